@@ -1,0 +1,1 @@
+"""Calibration of the particle model's connector parameters against the FE reference."""

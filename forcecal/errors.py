@@ -1,0 +1,35 @@
+"""Exceptions raised by forcecal.
+
+Every error a user can provoke with bad input (a mesh, a scene file, an HDF5
+file, a parameter set, a time step) is one of these, with a message that names
+the offending object (vertex, tet, connector, key, file). Nothing downstream
+should ever see a NaN-filled result instead.
+"""
+
+
+class ForcecalError(Exception):
+    """Base class of every error forcecal raises on purpose."""
+
+
+class SceneError(ForcecalError):
+    """A scene TOML file is missing, malformed, has unknown keys or bad values."""
+
+
+class MeshError(ForcecalError):
+    """A mesh is unusable: no tets, inverted/degenerate tets, duplicates, ..."""
+
+
+class DataFileError(ForcecalError):
+    """An HDF5 data file is missing, corrupt, of the wrong kind or mismatched."""
+
+
+class ParameterError(ForcecalError):
+    """Connector or material parameters are non-physical."""
+
+
+class StabilityError(ForcecalError):
+    """An explicit time step is above the stability limit, or a run diverged."""
+
+
+class ConvergenceError(ForcecalError):
+    """A nonlinear or optimisation solver failed to converge."""

@@ -1,0 +1,321 @@
+"""HDF5 files exchanged between the stages, written atomically and read with checks.
+
+``reference.h5`` (written by ``reference_fe``, read by ``particle`` and
+``calibration``) is described here once; the README's "HDF5 schemas" section
+is the prose version of :func:`write_reference`. Every dataset carries a
+``unit`` attribute. Files are written to ``<name>.tmp-<pid>`` and renamed into
+place, so a reader never sees a half-written file; a truncated, corrupt, wrong
+kind or mismatched file raises :class:`~forcecal.errors.DataFileError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import h5py
+import numpy as np
+
+import forcecal
+from forcecal.errors import DataFileError, MeshError
+from forcecal.mesh import TetMesh, check_mesh
+from forcecal.problem import Problem
+from forcecal.scene import MaterialSection
+
+REFERENCE_KIND = "forcecal.reference"
+REFERENCE_SCHEMA = 1
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it onto ``path`` if the block succeeds."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataFileError(f"cannot create output folder {path.parent}: {exc}") from exc
+    if not os.access(path.parent, os.W_OK):
+        raise DataFileError(f"output folder {path.parent} is not writable")
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+@contextlib.contextmanager
+def atomic_h5(path: str | Path, kind: str, schema: int) -> Iterator[h5py.File]:
+    """Open a new HDF5 file for writing; it appears at ``path`` only once complete."""
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as fh:
+            fh.attrs["kind"] = kind
+            fh.attrs["schema_version"] = schema
+            fh.attrs["forcecal_version"] = forcecal.__version__
+            fh.attrs["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat()
+            yield fh
+
+
+@contextlib.contextmanager
+def open_h5(path: str | Path, kind: str, schema: int) -> Iterator[h5py.File]:
+    """Open an HDF5 file written by :func:`atomic_h5`, checking its kind and schema version."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFileError(f"{path} does not exist")
+    try:
+        fh = h5py.File(path, "r")
+    except OSError as exc:
+        raise DataFileError(f"{path} is not a readable HDF5 file (corrupt or truncated?): "
+                            f"{exc}") from exc
+    with fh:
+        got = fh.attrs.get("kind")
+        if got != kind:
+            raise DataFileError(f"{path} is not a {kind} file (kind = {got!r})")
+        version = fh.attrs.get("schema_version")
+        if version != schema:
+            raise DataFileError(f"{path} has schema version {version}, this code reads {schema}; "
+                                "recompute it")
+        yield fh
+
+
+def put(group: h5py.Group, name: str, data: Any, unit: str, doc: str = "") -> h5py.Dataset:
+    """Write a dataset with its unit (and an optional one-line description)."""
+    ds = group.create_dataset(name, data=np.asarray(data))
+    ds.attrs["unit"] = unit
+    if doc:
+        ds.attrs["doc"] = doc
+    return ds
+
+
+def get(fh: h5py.File, name: str, shape: tuple | None = None, *, finite: bool = True,
+        dtype: str | None = None) -> np.ndarray:
+    """Read dataset ``name`` checking presence, shape (None entries are free) and finiteness."""
+    where = f"{fh.filename}:/{name}"
+    if name not in fh:
+        raise DataFileError(f"{where} is missing")
+    try:
+        arr = fh[name][()]
+    except Exception as exc:  # h5py raises OSError/KeyError/RuntimeError on damaged data
+        raise DataFileError(f"{where} cannot be read (corrupt file?): {exc}") from exc
+    arr = np.asarray(arr)
+    if shape is not None:
+        if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+            raise DataFileError(f"{where} has shape {arr.shape}, expected {shape}")
+    if dtype == "int":
+        if not np.issubdtype(arr.dtype, np.integer):
+            raise DataFileError(f"{where} must hold integers, has {arr.dtype}")
+        arr = arr.astype(np.int64)
+    elif dtype == "float":
+        arr = arr.astype(np.float64)
+    if finite and np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        raise DataFileError(f"{where} contains {bad} NaN/inf values")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class IndentationCurves:
+    """Quasi-static indentation of every test point (no gravity, long-term material).
+
+    Attributes:
+        displacement: (S,) float64, indentation depth of the test vertex along its
+            inward normal at each sample [m] (increasing, first sample > 0).
+        force: (P, S, 3) float64, force the indenter applies to the test vertex
+            (= reaction of the tissue, reversed) [N].
+        force_normal: (P, S) float64, ``force . inward_normal`` [N]; positive when pushing in.
+    """
+    displacement: np.ndarray
+    force: np.ndarray
+    force_normal: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RelaxationCurves:
+    """Ramp-and-hold indentation (quasi-static, viscoelastic material).
+
+    Attributes:
+        time: (S,) float64, sample times [s], increasing, first > 0.
+        displacement: (S,) float64, prescribed depth at those times [m].
+        force: (P, S, 3) float64, indenter force on the test vertex [N].
+        force_normal: (P, S) float64, its inward-normal component [N].
+    """
+    time: np.ndarray
+    displacement: np.ndarray
+    force: np.ndarray
+    force_normal: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class GravityResult:
+    """Sag of the organ under gravity, base fixed.
+
+    Attributes:
+        static_displacement: (N, 3) float64, static equilibrium displacement of every vertex [m]
+            (long-term material).
+        time: (S,) float64, sample times of the dynamic run [s], starting at 0 (rest).
+        displacement: (S, N, 3) float64, vertex displacements of the dynamic run [m].
+        tracked_node: vertex whose history the reports compare.
+    """
+    static_displacement: np.ndarray
+    time: np.ndarray
+    displacement: np.ndarray
+    tracked_node: int
+
+
+@dataclass(frozen=True, eq=False)
+class Reference:
+    """Everything in ``reference.h5``."""
+    problem: Problem
+    material: MaterialSection
+    indentation: IndentationCurves
+    relaxation: RelaxationCurves
+    gravity: GravityResult | None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _material_attrs(group: h5py.Group, m: MaterialSection) -> None:
+    for k in ("C10", "C01", "kappa", "density"):
+        group.attrs[k] = getattr(m, k)
+    group.attrs["prony_g"] = np.asarray(m.prony_g, dtype=float)
+    group.attrs["prony_tau"] = np.asarray(m.prony_tau, dtype=float)
+    group.attrs["reference"] = m.reference
+    group.attrs["units"] = json.dumps({"C10": "Pa", "C01": "Pa", "kappa": "Pa",
+                                       "density": "kg/m^3", "prony_g": "1", "prony_tau": "s"})
+
+
+def write_problem(fh: h5py.File, problem: Problem) -> None:
+    """Write the /mesh and /test_points groups (shared by every forcecal HDF5 file)."""
+    m = problem.mesh
+    g = fh.create_group("mesh")
+    put(g, "vertices", m.vertices, "m", "vertex coordinates (N, 3)")
+    put(g, "tets", m.tets, "1", "vertex ids of each positively oriented tet (T, 4)")
+    put(g, "edges", m.edges, "1", "unique edges i < j, sorted; one connector each (E, 2)")
+    put(g, "fixed", problem.fixed, "1", "ids of the fixed vertices (F,)")
+    g.attrs["fingerprint"] = m.fingerprint()
+    t = fh.create_group("test_points")
+    put(t, "nodes", problem.test_points, "1", "calibration points, then held-out points (P,)")
+    put(t, "is_calibration", np.r_[np.ones(len(problem.calibration), bool),
+                                   np.zeros(len(problem.held_out), bool)], "1",
+        "True for calibration points, False for held-out points (P,)")
+    put(t, "normals", problem.normals, "1", "inward unit normals = indentation directions (P, 3)")
+    t.attrs["tracked_node"] = problem.tracked_node
+
+
+def read_problem(fh: h5py.File) -> Problem:
+    """Read /mesh and /test_points back, re-checking the mesh."""
+    vertices = get(fh, "mesh/vertices", (None, 3), dtype="float")
+    tets = get(fh, "mesh/tets", (None, 4), dtype="int")
+    try:
+        mesh = check_mesh(TetMesh(vertices, tets))
+    except MeshError as exc:
+        raise DataFileError(f"{fh.filename}: stored mesh is invalid: {exc}") from None
+    stored_fp = fh["mesh"].attrs.get("fingerprint")
+    if stored_fp != mesh.fingerprint():
+        raise DataFileError(f"{fh.filename}: mesh fingerprint mismatch (file damaged or edited)")
+    edges = get(fh, "mesh/edges", (None, 2), dtype="int")
+    if not np.array_equal(edges, mesh.edges):
+        raise DataFileError(f"{fh.filename}: /mesh/edges do not match the tets")
+    fixed = get(fh, "mesh/fixed", (None,), dtype="int")
+    nodes = get(fh, "test_points/nodes", (None,), dtype="int")
+    is_cal = get(fh, "test_points/is_calibration", (len(nodes),)).astype(bool)
+    tracked = int(fh["test_points"].attrs.get("tracked_node", -1))
+    if not 0 <= tracked < mesh.n_vertices:
+        raise DataFileError(f"{fh.filename}: tracked node {tracked} is not a vertex")
+    problem = Problem(mesh=mesh, fixed=fixed, calibration=nodes[is_cal], held_out=nodes[~is_cal],
+                      tracked_node=tracked)
+    normals = get(fh, "test_points/normals", (len(nodes), 3), dtype="float")
+    if not np.allclose(normals, problem.normals, atol=1e-12):
+        raise DataFileError(f"{fh.filename}: stored normals do not match the mesh")
+    return problem
+
+
+def write_reference(path: str | Path, ref: Reference) -> None:
+    """Write ``reference.h5`` atomically (schema: see module docstring and README)."""
+    p = ref.problem
+    n_pts, n_v = len(p.test_points), p.mesh.n_vertices
+    ind, rel = ref.indentation, ref.relaxation
+    _check_shape("indentation.force", ind.force, (n_pts, len(ind.displacement), 3))
+    _check_shape("indentation.force_normal", ind.force_normal, (n_pts, len(ind.displacement)))
+    _check_shape("relaxation.force", rel.force, (n_pts, len(rel.time), 3))
+    _check_shape("relaxation.force_normal", rel.force_normal, (n_pts, len(rel.time)))
+    _check_shape("relaxation.displacement", rel.displacement, (len(rel.time),))
+    for name, arr in (("indentation", ind.force), ("relaxation", rel.force)):
+        if not np.all(np.isfinite(arr)):
+            raise DataFileError(f"refusing to write {path}: {name} forces contain NaN/inf")
+    with atomic_h5(path, REFERENCE_KIND, REFERENCE_SCHEMA) as fh:
+        for k, v in ref.meta.items():
+            fh.attrs[k] = v
+        write_problem(fh, p)
+        _material_attrs(fh.create_group("material"), ref.material)
+        g = fh.create_group("indentation")
+        put(g, "displacement", ind.displacement, "m", "depth along the inward normal (S,)")
+        put(g, "force", ind.force, "N", "indenter force on the test vertex (P, S, 3)")
+        put(g, "force_normal", ind.force_normal, "N", "force . inward normal (P, S)")
+        g = fh.create_group("relaxation")
+        put(g, "time", rel.time, "s", "sample times (S,)")
+        put(g, "displacement", rel.displacement, "m", "prescribed depth (S,)")
+        put(g, "force", rel.force, "N", "indenter force on the test vertex (P, S, 3)")
+        put(g, "force_normal", rel.force_normal, "N", "force . inward normal (P, S)")
+        if ref.gravity is not None:
+            gr = ref.gravity
+            _check_shape("gravity.static_displacement", gr.static_displacement, (n_v, 3))
+            _check_shape("gravity.displacement", gr.displacement, (len(gr.time), n_v, 3))
+            g = fh.create_group("gravity")
+            g.attrs["tracked_node"] = gr.tracked_node
+            put(g, "static_displacement", gr.static_displacement, "m",
+                "static sag of every vertex (N, 3)")
+            put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
+            put(g, "displacement", gr.displacement, "m", "dynamic vertex displacements (S, N, 3)")
+
+
+def _check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
+    if np.shape(arr) != shape:
+        raise DataFileError(f"{name} has shape {np.shape(arr)}, expected {shape}")
+
+
+def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Reference:
+    """Read and check ``reference.h5``; ``expect_mesh`` is a mesh fingerprint it must match."""
+    with open_h5(path, REFERENCE_KIND, REFERENCE_SCHEMA) as fh:
+        problem = read_problem(fh)
+        if expect_mesh is not None and problem.mesh.fingerprint() != expect_mesh:
+            raise DataFileError(f"{path} was computed on a different mesh than the scene's "
+                                "(mesh fingerprint mismatch); recompute the reference")
+        ma = fh["material"].attrs if "material" in fh else None
+        if ma is None:
+            raise DataFileError(f"{path}:/material is missing")
+        material = MaterialSection(C10=float(ma["C10"]), C01=float(ma["C01"]),
+                                   kappa=float(ma["kappa"]), density=float(ma["density"]),
+                                   prony_g=tuple(float(x) for x in ma["prony_g"]),
+                                   prony_tau=tuple(float(x) for x in ma["prony_tau"]),
+                                   reference=str(ma.get("reference", "")))
+        n_pts = len(problem.test_points)
+        d = get(fh, "indentation/displacement", (None,), dtype="float")
+        ind = IndentationCurves(d, get(fh, "indentation/force", (n_pts, len(d), 3), dtype="float"),
+                                get(fh, "indentation/force_normal", (n_pts, len(d)),
+                                    dtype="float"))
+        t = get(fh, "relaxation/time", (None,), dtype="float")
+        rel = RelaxationCurves(t, get(fh, "relaxation/displacement", (len(t),), dtype="float"),
+                               get(fh, "relaxation/force", (n_pts, len(t), 3), dtype="float"),
+                               get(fh, "relaxation/force_normal", (n_pts, len(t)), dtype="float"))
+        for name, arr in (("indentation/displacement", d), ("relaxation/time", t)):
+            if len(arr) == 0 or np.any(np.diff(arr) <= 0) or arr[0] <= 0:
+                raise DataFileError(f"{path}:/{name} must be positive and increasing")
+        gravity = None
+        if "gravity" in fh:
+            n_v = problem.mesh.n_vertices
+            gt = get(fh, "gravity/time", (None,), dtype="float")
+            gravity = GravityResult(
+                static_displacement=get(fh, "gravity/static_displacement", (n_v, 3),
+                                        dtype="float"),
+                time=gt, displacement=get(fh, "gravity/displacement", (len(gt), n_v, 3),
+                                          dtype="float"),
+                tracked_node=int(fh["gravity"].attrs["tracked_node"]))
+        meta = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in fh.attrs.items()}
+    return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
+                     gravity=gravity, meta=meta)

@@ -1,0 +1,462 @@
+"""Tetrahedral meshes: the one geometry both the FE reference and the particle model use.
+
+A :class:`TetMesh` is two arrays (vertices, tets) plus derived quantities that
+are pure functions of them (edges, volumes, surface, normals). Meshes come
+from :func:`generate_liver` (deterministic gmsh model of a liver-like organ)
+or :func:`read_mesh` (any tetrahedral mesh meshio reads), and always pass
+:func:`check_mesh` before use.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from forcecal.errors import MeshError
+
+log = logging.getLogger(__name__)
+
+# the 6 edges of a tet as local vertex pairs
+TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+# the 4 faces of a tet, each ordered so its normal points out of a positive tet
+TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+@dataclass(frozen=True, eq=False)
+class TetMesh:
+    """Linear tetrahedral mesh.
+
+    Attributes:
+        vertices: (N, 3) float64, vertex coordinates [m].
+        tets: (T, 4) int64, vertex ids of each tet, positively oriented
+            (``det[x1-x0, x2-x0, x3-x0] > 0``).
+    """
+    vertices: np.ndarray
+    tets: np.ndarray
+
+    def __post_init__(self) -> None:
+        v = np.array(self.vertices, dtype=np.float64, order="C")  # own copy: frozen below
+        t = np.array(self.tets, dtype=np.int64, order="C")
+        v.setflags(write=False)
+        t.setflags(write=False)
+        object.__setattr__(self, "vertices", v)
+        object.__setattr__(self, "tets", t)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.vertices.shape[0]
+
+    @property
+    def n_tets(self) -> int:
+        return self.tets.shape[0]
+
+    @cached_property
+    def signed_volumes(self) -> np.ndarray:
+        """(T,) float64, signed tet volumes [m^3] (positive for a valid mesh)."""
+        x = self.vertices[self.tets]
+        return np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]),
+                         x[:, 3] - x[:, 0]) / 6.0
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(E, 2) int64, unique edges (i < j), sorted lexicographically: one connector each."""
+        e = np.sort(self.tets[:, TET_EDGES].reshape(-1, 2), axis=1)
+        out = np.unique(e, axis=0)
+        out.setflags(write=False)
+        return out
+
+    @cached_property
+    def edge_lengths(self) -> np.ndarray:
+        """(E,) float64, rest lengths of the edges [m]."""
+        d = self.vertices[self.edges[:, 1]] - self.vertices[self.edges[:, 0]]
+        return np.linalg.norm(d, axis=1)
+
+    @cached_property
+    def edge_tet_volume(self) -> np.ndarray:
+        """(E,) float64, summed volume of the tets sharing each edge [m^3]."""
+        e = np.sort(self.tets[:, TET_EDGES].reshape(-1, 2), axis=1)
+        idx = self.edge_index(e[:, 0], e[:, 1])
+        return np.bincount(idx, weights=np.repeat(np.abs(self.signed_volumes), 6),
+                           minlength=len(self.edges))
+
+    def edge_index(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Index into :attr:`edges` of the edges (i, j) (any order); MeshError if absent."""
+        i = np.asarray(i, dtype=np.int64)
+        j = np.asarray(j, dtype=np.int64)
+        a, b = np.minimum(i, j), np.maximum(i, j)
+        keys = self.edges[:, 0] * self.n_vertices + self.edges[:, 1]
+        q = a * self.n_vertices + b
+        pos = np.searchsorted(keys, q)
+        pos = np.minimum(pos, len(keys) - 1)
+        if not np.all(keys[pos] == q):
+            raise MeshError("edge_index: some vertex pairs are not mesh edges")
+        return pos
+
+    @cached_property
+    def surface_faces(self) -> np.ndarray:
+        """(S, 3) int64, boundary triangles, ordered so their normals point outwards."""
+        faces = self.tets[:, TET_FACES].reshape(-1, 3)
+        key_ = np.sort(faces, axis=1)
+        _, inv, counts = np.unique(key_, axis=0, return_inverse=True, return_counts=True)
+        out = faces[counts[inv.ravel()] == 1]
+        out.setflags(write=False)
+        return out
+
+    @cached_property
+    def surface_vertices(self) -> np.ndarray:
+        """(Ns,) int64, sorted ids of the vertices on the boundary."""
+        return np.unique(self.surface_faces)
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """(N, 3) float64, area-weighted *outward* unit normals (zero for interior vertices)."""
+        x = self.vertices[self.surface_faces]
+        fn = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])  # length = 2 x area
+        n = np.zeros_like(self.vertices)
+        for k in range(3):
+            np.add.at(n, self.surface_faces[:, k], fn)
+        norm = np.linalg.norm(n, axis=1)
+        nz = norm > 0
+        n[nz] /= norm[nz, None]
+        return n
+
+    def inward_normals(self, nodes: np.ndarray) -> np.ndarray:
+        """(P, 3) float64, inward unit normals of surface vertices ``nodes``."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        not_surface = np.setdiff1d(nodes, self.surface_vertices)
+        if len(not_surface):
+            raise MeshError(f"vertices {not_surface.tolist()} are not on the surface; "
+                            "test points must be surface vertices")
+        return -self.vertex_normals[nodes]
+
+    @cached_property
+    def adjacency(self) -> sp.csr_matrix:
+        """(N, N) symmetric vertex adjacency of the edge graph (CSR, bool)."""
+        e = self.edges
+        n = self.n_vertices
+        a = sp.coo_matrix((np.ones(len(e), dtype=bool), (e[:, 0], e[:, 1])), shape=(n, n))
+        return (a + a.T).tocsr()
+
+    def lumped_masses(self, density: float) -> np.ndarray:
+        """(N,) float64, lumped vertex masses [kg]: each tet's mass split equally to its 4 vertices."""
+        return np.bincount(self.tets.ravel(), weights=np.repeat(np.abs(self.signed_volumes)
+                                                                * density / 4.0, 4),
+                           minlength=self.n_vertices)
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the vertex and tet arrays (exact bytes)."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.vertices, dtype="<f8").tobytes())
+        h.update(np.ascontiguousarray(self.tets, dtype="<i8").tobytes())
+        return h.hexdigest()
+
+    def summary(self) -> str:
+        return f"{self.n_vertices} vertices, {self.n_tets} tets, {len(self.edges)} edges"
+
+
+def check_mesh(mesh: TetMesh) -> TetMesh:
+    """Validate a mesh; raise :class:`MeshError` naming the first problem found.
+
+    Checks: at least one tet, finite coordinates, ids in range, no repeated
+    vertex inside a tet, no inverted or zero-volume tets, no duplicate
+    vertices, no unused vertices, one connected component.
+    """
+    v, t = mesh.vertices, mesh.tets
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise MeshError(f"bad mesh: vertices must be an (N, 3) array, got shape {v.shape}")
+    if t.ndim != 2 or t.shape[1] != 4 or len(t) == 0:
+        raise MeshError(f"bad mesh: no tetrahedra (tets array has shape {t.shape})")
+    if not np.all(np.isfinite(v)):
+        bad = np.unique(np.nonzero(~np.isfinite(v))[0])
+        raise MeshError(f"bad mesh: non-finite coordinates at vertices {bad[:10].tolist()}")
+    if t.min() < 0 or t.max() >= len(v):
+        raise MeshError(f"bad mesh: tet vertex ids must lie in [0, {len(v) - 1}], "
+                        f"got range [{t.min()}, {t.max()}]")
+    s = np.sort(t, axis=1)
+    rep = np.nonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))[0]
+    if len(rep):
+        raise MeshError(f"bad mesh: tets {rep[:10].tolist()} repeat a vertex")
+    vol = mesh.signed_volumes
+    scale = np.ptp(v, axis=0).max()
+    # a tet whose volume is below 1e-9 of a cube of the mesh's mean edge is degenerate
+    mean_edge = float(np.mean(mesh.edge_lengths))
+    tiny = 1e-9 * mean_edge ** 3
+    zero = np.nonzero(np.abs(vol) <= tiny)[0]
+    if len(zero):
+        raise MeshError(f"bad mesh: {len(zero)} zero-volume (degenerate) tets, e.g. "
+                        f"{zero[:10].tolist()}")
+    inverted = np.nonzero(vol < 0)[0]
+    if len(inverted):
+        raise MeshError(f"bad mesh: {len(inverted)} inverted tets (negative volume), e.g. "
+                        f"{inverted[:10].tolist()}")
+    used = np.zeros(len(v), dtype=bool)
+    used[t.ravel()] = True
+    if not used.all():
+        unused = np.nonzero(~used)[0]
+        raise MeshError(f"bad mesh: {len(unused)} vertices belong to no tet, e.g. "
+                        f"{unused[:10].tolist()}")
+    tol = 1e-9 * scale
+    order = np.lexsort(v.T[::-1])
+    d = np.abs(np.diff(v[order], axis=0)).max(axis=1)
+    dup = np.nonzero(d <= tol)[0]
+    if len(dup):
+        # lexsort neighbours catch exact duplicates; confirm with a KD-tree for near ones
+        a, b = order[dup[0]], order[dup[0] + 1]
+        raise MeshError(f"bad mesh: duplicate vertices {int(min(a, b))} and {int(max(a, b))} "
+                        f"at {v[a].tolist()}")
+    from scipy.spatial import cKDTree
+    pairs = cKDTree(v).query_pairs(tol, output_type="ndarray")
+    if len(pairs):
+        a, b = pairs[0]
+        raise MeshError(f"bad mesh: duplicate vertices {int(a)} and {int(b)} at {v[a].tolist()}")
+    ncomp, labels = connected_components(mesh.adjacency, directed=False)
+    if ncomp != 1:
+        sizes = np.bincount(labels)
+        raise MeshError(f"bad mesh: {ncomp} disconnected parts (vertex counts "
+                        f"{sorted(sizes.tolist(), reverse=True)[:10]}); one solid is expected")
+    return mesh
+
+
+def _orient(vertices: np.ndarray, tets: np.ndarray, origin: str) -> np.ndarray:
+    """Return tets positively oriented when a file uses the opposite convention throughout."""
+    m = TetMesh(vertices, tets)
+    vol = m.signed_volumes
+    if len(vol) and np.all(vol < 0):
+        log.info("%s: every tet is negatively oriented; swapping two vertices of each", origin)
+        return tets[:, [0, 2, 1, 3]]
+    return tets
+
+
+def read_mesh(path: str | Path, scale: float = 1.0) -> TetMesh:
+    """Read a tetrahedral mesh with meshio (.msh, .vtu, .vtk, .xdmf, ...) and check it.
+
+    Only ``tetra`` cells are used (surface/line cells in the file are ignored);
+    a file with no ``tetra`` cells is refused. A file whose tets are *all*
+    negatively oriented is reoriented; a mix of orientations is an error.
+    """
+    import meshio
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"mesh file {path} does not exist")
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises many types for bad files
+        raise MeshError(f"{path}: meshio could not read it: {exc}") from exc
+    blocks = [c.data for c in m.cells if c.type == "tetra"]
+    if not blocks:
+        kinds = sorted({c.type for c in m.cells})
+        raise MeshError(f"{path}: no tetra cells (found {kinds}); forcecal needs linear tets")
+    tets = np.concatenate(blocks).astype(np.int64)
+    pts = np.asarray(m.points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] not in (2, 3):
+        raise MeshError(f"{path}: points array has shape {pts.shape}; expected (N, 3)")
+    if pts.shape[1] == 2:
+        raise MeshError(f"{path}: 2-D points; a 3-D tetrahedral mesh is needed")
+    pts = pts * scale
+    if len(tets) and tets.min() >= 0 and tets.max() < len(pts):
+        tets = _orient(pts, tets, str(path))
+    try:
+        return check_mesh(TetMesh(pts, tets))
+    except MeshError as exc:
+        raise MeshError(f"{path}: {exc}") from None
+
+
+def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
+    """Deterministic liver-like solid: two fused ellipsoidal lobes, flat bottom at z = -0.025 m.
+
+    Right lobe semi-axes 75 x 60 x 40 mm centred at x = +30 mm, left lobe
+    60 x 40 x 25 mm centred at (-45, 10, 0) mm; everything below z = -25 mm is
+    cut off, giving a flat base for the fixed-node rule. Overall ~ 0.21 x 0.12 x
+    0.065 m, about 0.55 L. gmsh runs single-threaded with a fixed seed, so the
+    same length gives the same arrays, bit for bit.
+    """
+    import gmsh
+
+    if characteristic_length <= 0:
+        raise MeshError(f"characteristic_length must be > 0, got {characteristic_length}")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", 1)
+        gmsh.model.add("forcecal_liver")
+        occ = gmsh.model.occ
+        right = occ.addSphere(0.03, 0.0, 0.0, 1.0)
+        occ.dilate([(3, right)], 0.03, 0.0, 0.0, 0.075, 0.06, 0.04)
+        left = occ.addSphere(-0.045, 0.01, 0.0, 1.0)
+        occ.dilate([(3, left)], -0.045, 0.01, 0.0, 0.06, 0.04, 0.025)
+        fused, _ = occ.fuse([(3, right)], [(3, left)])
+        below = occ.addBox(-0.2, -0.2, -0.2, 0.4, 0.4, 0.2 - 0.025)
+        occ.cut(fused, [(3, below)])
+        occ.synchronize()
+        vols = [tag for _, tag in gmsh.model.getEntities(3)]
+        gmsh.model.addPhysicalGroup(3, vols, 1)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", characteristic_length)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", characteristic_length)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthFromCurvature", 0)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.optimize("")
+        node_tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, _, elem_nodes = gmsh.model.mesh.getElements(3)
+        gmsh.model.remove()
+    finally:
+        gmsh.finalize()
+    node_tags = np.asarray(node_tags, dtype=np.int64)
+    coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
+    tet_tags = np.concatenate([np.asarray(e, dtype=np.int64) for e in elem_nodes]).reshape(-1, 4)
+    # renumber: keep the vertices tets use, in the order of gmsh's node tags
+    used = np.unique(tet_tags)
+    order = np.argsort(node_tags)
+    pos = order[np.searchsorted(node_tags[order], used)]
+    vertices = coords[pos]
+    tets = np.searchsorted(used, tet_tags)
+    tets = _orient(vertices, tets, "generated liver")
+    return check_mesh(TetMesh(vertices, tets))
+
+
+def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
+                tolerance: float = 0.001) -> np.ndarray:
+    """(F,) int64 ids of the vertices within ``tolerance`` of the min/max coordinate along ``axis``."""
+    k = "xyz".index(axis)
+    c = mesh.vertices[:, k]
+    ref = c.min() if side == "min" else c.max()
+    ids = np.nonzero(np.abs(c - ref) <= tolerance)[0]
+    if len(ids) < 3:
+        raise MeshError(f"fixed-node rule ({axis} {side} +- {tolerance} m) selects {len(ids)} "
+                        "vertices; at least 3 non-collinear ones are needed to hold the organ")
+    return ids.astype(np.int64)
+
+
+def _minimum_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray) -> np.ndarray:
+    """Smallest subset D of ``vertices`` such that each of them is in D or adjacent to one in D.
+
+    Solved exactly as a 0/1 integer programme (HiGHS through scipy.optimize.milp):
+    minimise sum(x) subject to sum(x over the closed neighbourhood of v) >= 1 for
+    every v. Deterministic for a given graph.
+    """
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    sub = adj[vertices][:, vertices].astype(np.float64) + sp.identity(len(vertices))
+    res = milp(c=np.ones(len(vertices)), integrality=np.ones(len(vertices)),
+               bounds=Bounds(0, 1), constraints=LinearConstraint(sub.tocsr(), lb=1.0),
+               options={"time_limit": 60.0})
+    if res.x is None:
+        raise MeshError(f"could not choose calibration points covering the surface: {res.message}")
+    return np.sort(vertices[res.x > 0.5])
+
+
+def _farthest_points(x: np.ndarray, candidates: np.ndarray, n: int,
+                     avoid: np.ndarray) -> list[int]:
+    """n candidates chosen one by one as far as possible from ``avoid`` and from each other."""
+    if n == 0:
+        return []
+    if len(candidates) < n:
+        raise MeshError(f"only {len(candidates)} surface vertices left for {n} held-out points")
+    ref = x[avoid] if len(avoid) else x[candidates[:1]]
+    d = np.min(np.linalg.norm(x[candidates][:, None] - ref[None], axis=2), axis=1)
+    chosen: list[int] = []
+    for _ in range(n):
+        k = int(np.argmax(d))
+        chosen.append(int(candidates[k]))
+        d = np.minimum(d, np.linalg.norm(x[candidates] - x[candidates[k]], axis=1))
+        d[k] = -1.0
+    return chosen
+
+
+def free_surface_vertices(mesh: TetMesh, fixed: np.ndarray) -> np.ndarray:
+    """(Nf,) int64, sorted surface vertices that are not fixed (the candidate test points)."""
+    return np.setdiff1d(mesh.surface_vertices, fixed)
+
+
+def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31) -> np.ndarray:
+    """Choose ``n`` calibration points (sorted vertex ids) that cover the free surface.
+
+    They form a dominating set of the free surface graph: every free surface
+    vertex is a calibration point or shares a mesh edge with one, so every
+    surface connector lies in or touches the first ring of a calibration point
+    (a true vertex cover of the surface edges would need about 2/3 of the
+    surface vertices). The minimum cover is topped up to ``n`` with farthest
+    points; a cover larger than ``n`` is an error.
+    """
+    free_surface = free_surface_vertices(mesh, fixed)
+    cover = list(_minimum_dominating_set(mesh.adjacency, free_surface))
+    if len(cover) > n:
+        raise MeshError(f"covering the free surface needs {len(cover)} calibration points but "
+                        f"test_points.n_calibration = {n}")
+    rest = np.setdiff1d(free_surface, cover)
+    cover += _farthest_points(mesh.vertices, rest, n - len(cover), np.asarray(cover))
+    return np.sort(np.asarray(cover, dtype=np.int64))
+
+
+def select_held_out_points(mesh: TetMesh, fixed: np.ndarray, calibration: np.ndarray,
+                           n: int = 8) -> np.ndarray:
+    """``n`` free surface vertices farthest from the calibration points and from each other."""
+    rest = np.setdiff1d(free_surface_vertices(mesh, fixed), calibration)
+    held = _farthest_points(mesh.vertices, rest, n, np.asarray(calibration))
+    return np.sort(np.asarray(held, dtype=np.int64))
+
+
+def validate_test_points(mesh: TetMesh, fixed: np.ndarray, points: np.ndarray,
+                         what: str) -> np.ndarray:
+    """Check user-given test points: in range, unique, on the surface, not fixed."""
+    p = np.asarray(points, dtype=np.int64)
+    if p.ndim != 1:
+        raise MeshError(f"{what} test points must be a list of vertex ids")
+    bad = p[(p < 0) | (p >= mesh.n_vertices)]
+    if len(bad):
+        raise MeshError(f"unknown test point(s) {bad.tolist()} in {what}: the mesh has "
+                        f"vertices 0..{mesh.n_vertices - 1}")
+    if len(np.unique(p)) != len(p):
+        raise MeshError(f"{what} test points contain duplicates")
+    off = np.setdiff1d(p, mesh.surface_vertices)
+    if len(off):
+        raise MeshError(f"{what} test point(s) {off.tolist()} are not on the surface")
+    fx = np.intersect1d(p, fixed)
+    if len(fx):
+        raise MeshError(f"{what} test point(s) {fx.tolist()} are fixed nodes and cannot be "
+                        "indented")
+    return np.sort(p)
+
+
+def box_mesh(n: tuple[int, int, int] = (2, 2, 2),
+             size: tuple[float, float, float] = (1.0, 1.0, 1.0),
+             origin: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> TetMesh:
+    """Structured box of ``n`` cells per axis, each cell split into 6 tets (Kuhn split).
+
+    The Kuhn split makes neighbouring cells conforming, so the mesh is valid
+    for any ``n``; handy for tests with closed-form answers.
+    """
+    nx, ny, nz = n
+    xs = [np.linspace(o, o + s, k + 1) for o, s, k in zip(origin, size, n)]
+    X, Y, Z = np.meshgrid(*xs, indexing="ij")
+    vertices = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+
+    def vid(i, j, k):
+        return (i * (ny + 1) + j) * (nz + 1) + k
+
+    # the 6 tets of the unit cube sharing the main diagonal (0,0,0)-(1,1,1)
+    kuhn = [((0, 0, 0), (1, 0, 0), (1, 1, 0), (1, 1, 1)),
+            ((0, 0, 0), (1, 0, 0), (1, 0, 1), (1, 1, 1)),
+            ((0, 0, 0), (0, 1, 0), (1, 1, 0), (1, 1, 1)),
+            ((0, 0, 0), (0, 1, 0), (0, 1, 1), (1, 1, 1)),
+            ((0, 0, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1)),
+            ((0, 0, 0), (0, 0, 1), (0, 1, 1), (1, 1, 1))]
+    tets = []
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                for tet in kuhn:
+                    tets.append([vid(i + a, j + b, k + c) for a, b, c in tet])
+    tets = np.asarray(tets, dtype=np.int64)
+    vol = TetMesh(vertices, tets).signed_volumes
+    tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]
+    return check_mesh(TetMesh(vertices, tets))

@@ -1,0 +1,98 @@
+"""The geometric set-up of a scene: mesh, fixed nodes, test points, normals, tracked node.
+
+:func:`build_problem` turns a :class:`~forcecal.scene.Scene` into a
+:class:`Problem`. The FE stage stores it in ``reference.h5`` and every later
+stage reads it back from there (:func:`forcecal.h5io.read_reference`), so the
+particle side never re-derives geometry on its own.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from forcecal.errors import MeshError
+from forcecal.mesh import (TetMesh, fixed_nodes, generate_liver, read_mesh,
+                           select_calibration_points, select_held_out_points, validate_test_points)
+from forcecal.scene import Scene
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything geometric a scene's experiments need.
+
+    Attributes:
+        mesh: the tetrahedral mesh (vertices [m], tets).
+        fixed: (F,) int64, ids of the fixed (clamped) vertices.
+        calibration: (Pc,) int64, calibration test points (vertex ids).
+        held_out: (Ph,) int64, held-out test points, disjoint from ``calibration``.
+        tracked_node: vertex id whose gravity displacement history is compared.
+    """
+    mesh: TetMesh
+    fixed: np.ndarray
+    calibration: np.ndarray
+    held_out: np.ndarray
+    tracked_node: int
+
+    @property
+    def test_points(self) -> np.ndarray:
+        """(P,) int64: calibration points followed by held-out points (the curve order in files)."""
+        return np.concatenate([self.calibration, self.held_out])
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(P, 3) float64: inward unit normals of :attr:`test_points` (indentation directions)."""
+        return self.mesh.inward_normals(self.test_points)
+
+    @property
+    def free(self) -> np.ndarray:
+        """(N,) bool: True for vertices that are not fixed."""
+        m = np.ones(self.mesh.n_vertices, dtype=bool)
+        m[self.fixed] = False
+        return m
+
+
+def load_mesh(scene: Scene) -> TetMesh:
+    """The scene's mesh: generated liver or file (already checked)."""
+    path = scene.mesh_source_path()
+    if path is None:
+        mesh = generate_liver(scene.mesh.characteristic_length)
+    else:
+        mesh = read_mesh(path, scale=scene.mesh.scale)
+    log.info("mesh: %s", mesh.summary())
+    return mesh
+
+
+def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
+    """Mesh + fixed nodes + test points of a scene, validated."""
+    mesh = load_mesh(scene) if mesh is None else mesh
+    f = scene.fixed
+    fixed = fixed_nodes(mesh, f.axis, f.side, f.tolerance)
+    tp = scene.test_points
+    if isinstance(tp.calibration, str):
+        calibration = select_calibration_points(mesh, fixed, tp.n_calibration)
+    else:
+        calibration = validate_test_points(mesh, fixed, np.array(tp.calibration), "calibration")
+    if isinstance(tp.held_out, str):
+        held_out = select_held_out_points(mesh, fixed, calibration, tp.n_held_out)
+    else:
+        held_out = validate_test_points(mesh, fixed, np.array(tp.held_out), "held_out")
+    both = np.intersect1d(calibration, held_out)
+    if len(both):
+        raise MeshError(f"test points {both.tolist()} are both calibration and held-out points")
+    tracked = scene.gravity.tracked_node
+    if isinstance(tracked, str):  # "max_x": the free vertex farthest along +x
+        free = np.setdiff1d(np.arange(mesh.n_vertices), fixed)
+        tracked = int(free[np.argmax(mesh.vertices[free, 0])])
+    elif not 0 <= tracked < mesh.n_vertices or tracked in set(fixed.tolist()):
+        raise MeshError(f"gravity.tracked_node = {tracked} is not a free vertex of the mesh")
+    problem = Problem(mesh=mesh, fixed=fixed, calibration=calibration, held_out=held_out,
+                      tracked_node=int(tracked))
+    _ = problem.normals  # surface check of every test point
+    log.info("problem: %d fixed nodes, %d calibration + %d held-out test points, tracked node %d",
+             len(fixed), len(calibration), len(held_out), tracked)
+    return problem

@@ -1,0 +1,401 @@
+"""Scenes: one TOML file describes one experiment set on one organ.
+
+A scene file has a top-level ``name`` and one table per section below. Every
+key is declared here, once, as a dataclass field with a default, a unit and a
+one-line doc; unknown keys, wrong types and out-of-range values are refused
+with a :class:`~forcecal.errors.SceneError` naming the key. ``python -m
+pipelines scene-keys`` prints the table the README shows (generated from these
+declarations, so documentation cannot drift from the code).
+
+All values are SI (m, s, kg, Pa, N).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Union, get_args, get_origin, get_type_hints
+
+from forcecal.errors import SceneError
+
+
+def key(default: Any, doc: str, unit: str = "", *, minimum: float | None = None,
+        exclusive_minimum: float | None = None, choices: tuple | None = None) -> Any:
+    """Declare a scene key: default value, one-line doc, SI unit and bounds."""
+    meta = {"doc": doc, "unit": unit, "minimum": minimum,
+            "exclusive_minimum": exclusive_minimum, "choices": choices}
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class MeshSection:
+    source: str = key("generate", "'generate' builds the default liver with gmsh; otherwise a path "
+                      "(relative to the scene file) to a tetrahedral mesh meshio reads "
+                      "(.msh, .vtu, .vtk, .xdmf)")
+    characteristic_length: float = key(0.0182, "target edge length of the generated liver "
+                                       "(0.0182 m gives 282 vertices / 885 tets / 1400 edges)",
+                                       "m", exclusive_minimum=0.0)
+    scale: float = key(1.0, "factor applied to the coordinates of a mesh read from a file "
+                       "(e.g. 0.001 for a file in mm)", exclusive_minimum=0.0)
+
+
+@dataclass(frozen=True)
+class MaterialSection:
+    C10: float = key(2000.0, "Mooney-Rivlin C10, instantaneous (short-time) value", "Pa",
+                     exclusive_minimum=0.0)
+    C01: float = key(1000.0, "Mooney-Rivlin C01, instantaneous value", "Pa", minimum=0.0)
+    kappa: float = key(300000.0, "bulk modulus; W_vol = kappa/2 (J-1)^2 (ANSYS D1 = 2/kappa)",
+                       "Pa", exclusive_minimum=0.0)
+    density: float = key(1060.0, "mass density", "kg/m^3", exclusive_minimum=0.0)
+    prony_g: tuple[float, ...] = key((0.35, 0.25), "Prony relative shear moduli g_i "
+                                     "(ANSYS TB,PRONY SHEAR a_i); long-term factor is 1 - sum(g_i)")
+    prony_tau: tuple[float, ...] = key((0.5, 10.0), "Prony relaxation times tau_i", "s")
+    reference: str = key("representative values (see README, 'Material')",
+                         "where the values come from")
+
+    @property
+    def shear_modulus(self) -> float:
+        """Instantaneous small-strain shear modulus mu0 = 2 (C10 + C01) [Pa]."""
+        return 2.0 * (self.C10 + self.C01)
+
+    @property
+    def long_term_factor(self) -> float:
+        """g_inf = 1 - sum(g_i): the fraction of the deviatoric stiffness left at t = inf."""
+        return 1.0 - sum(self.prony_g)
+
+
+@dataclass(frozen=True)
+class FixedSection:
+    axis: str = key("z", "coordinate axis of the fixed-node rule", choices=("x", "y", "z"))
+    side: str = key("min", "fix nodes near the minimum or the maximum of that coordinate",
+                    choices=("min", "max"))
+    tolerance: float = key(0.001, "nodes within this distance of the extreme coordinate are fixed",
+                           "m", minimum=0.0)
+
+
+@dataclass(frozen=True)
+class TestPointsSection:
+    calibration: Union[str, tuple[int, ...]] = key(
+        "auto", "'auto' (every free surface vertex is a calibration point or shares an edge "
+        "with one) or an explicit list of vertex ids")
+    n_calibration: int = key(31, "number of calibration points when 'auto' (error if it cannot "
+                             "cover the surface)", minimum=1)
+    held_out: Union[str, tuple[int, ...]] = key(
+        "auto", "'auto' (spread-out surface vertices that are not calibration points) or a list "
+        "of vertex ids, used only for validation")
+    n_held_out: int = key(8, "number of held-out points when 'auto'", minimum=0)
+
+
+@dataclass(frozen=True)
+class IndentationSection:
+    indenter: str = key("vertex", "'vertex': the test vertex itself is displaced along its inward "
+                        "normal (the paper's definition)", choices=("vertex",))
+    depth: float = key(0.005, "final indentation depth", "m", exclusive_minimum=0.0)
+    steps: int = key(10, "quasi-static displacement steps = samples of the force curve", minimum=10)
+
+
+@dataclass(frozen=True)
+class RelaxationSection:
+    depth: float = key(0.005, "indentation depth reached at the end of the ramp", "m",
+                       exclusive_minimum=0.0)
+    ramp_time: float = key(0.5, "duration of the linear ramp", "s", exclusive_minimum=0.0)
+    ramp_steps: int = key(10, "time steps of the ramp", minimum=2)
+    hold_time: float = key(50.0, "duration of the hold (>= 5 tau_max)", "s", exclusive_minimum=0.0)
+    hold_steps: int = key(30, "time steps of the hold; they start at the ramp's step and grow "
+                          "geometrically", minimum=2)
+
+
+@dataclass(frozen=True)
+class GravitySection:
+    acceleration: tuple[float, float, float] = key((0.0, 0.0, -9.81), "gravitational acceleration",
+                                                   "m/s^2")
+    static_load_steps: int = key(4, "load steps of the static sag solve", minimum=1)
+    duration: float = key(3.0, "simulated time of the dynamic test (released from rest at t=0)",
+                          "s", exclusive_minimum=0.0)
+    fe_dt: float = key(0.005, "time step of the FE dynamic run (Newmark average acceleration)",
+                       "s", exclusive_minimum=0.0)
+    record_interval: float = key(0.005, "spacing of the stored displacement history", "s",
+                                 exclusive_minimum=0.0)
+    tracked_node: Union[str, int] = key("max_x", "node whose displacement history is compared "
+                                        "('max_x' = the free vertex farthest along +x)")
+
+
+@dataclass(frozen=True)
+class FESection:
+    element: str = key("P2", "displacement element: 'P2' (quadratic), 'TH' (Taylor-Hood P2-P1 "
+                       "u-p) or 'P1' (locks; only for the sensitivity study)",
+                       choices=("P1", "P2", "TH"))
+    quadrature_degree: int = key(4, "quadrature degree of the residual and of the Prony "
+                                 "internal variables", minimum=1)
+    newton_rtol: float = key(1e-8, "Newton relative tolerance", exclusive_minimum=0.0)
+    newton_atol: float = key(1e-10, "Newton absolute tolerance", exclusive_minimum=0.0)
+    newton_max_it: int = key(25, "Newton iteration limit before the step is cut", minimum=1)
+    max_step_cuts: int = key(6, "times a failed load/time step is halved before giving up",
+                             minimum=0)
+
+
+@dataclass(frozen=True)
+class ParticleSection:
+    dt: Union[str, float] = key("auto", "explicit time step; 'auto' = dt_safety x the estimated "
+                                "critical step; a number above the critical step is refused", "s")
+    dt_safety: float = key(0.5, "fraction of the critical step used by dt='auto'",
+                           exclusive_minimum=0.0)
+    damping: float = key(0.0, "global mass-proportional viscous damping (off for the gravity "
+                         "comparison: the arms are the only physical damping)", "1/s", minimum=0.0)
+
+
+@dataclass(frozen=True)
+class CalibrationSection:
+    local: bool = key(True, "run local tuning after global tuning")
+
+
+@dataclass(frozen=True)
+class OutputsSection:
+    figures: bool = key(True, "write PNG figures")
+    fields: bool = key(True, "write XDMF/VTU fields for ParaView")
+
+
+SECTIONS: dict[str, type] = {
+    "mesh": MeshSection,
+    "material": MaterialSection,
+    "fixed": FixedSection,
+    "test_points": TestPointsSection,
+    "indentation": IndentationSection,
+    "relaxation": RelaxationSection,
+    "gravity": GravitySection,
+    "fe": FESection,
+    "particle": ParticleSection,
+    "calibration": CalibrationSection,
+    "outputs": OutputsSection,
+}
+
+TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
+                  "description": "free text"}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene. Sections are frozen dataclasses; ``path`` is the TOML file (or None)."""
+    name: str
+    description: str
+    mesh: MeshSection
+    material: MaterialSection
+    fixed: FixedSection
+    test_points: TestPointsSection
+    indentation: IndentationSection
+    relaxation: RelaxationSection
+    gravity: GravitySection
+    fe: FESection
+    particle: ParticleSection
+    calibration: CalibrationSection
+    outputs: OutputsSection
+    path: Path | None = None
+
+    def section_dict(self, name: str) -> dict[str, Any]:
+        return dataclasses.asdict(getattr(self, name))
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"name": self.name, "description": self.description}
+        out.update({s: self.section_dict(s) for s in SECTIONS})
+        return out
+
+    def fingerprint(self, *sections: str) -> str:
+        """SHA-256 of the named sections (all if none): the cache key of a stage."""
+        names = sections or tuple(SECTIONS)
+        blob = json.dumps({s: self.section_dict(s) for s in names}, sort_keys=True, default=list)
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+    def mesh_source_path(self) -> Path | None:
+        """Absolute path of the mesh file, or None for the generated liver."""
+        if self.mesh.source == "generate":
+            return None
+        p = Path(self.mesh.source)
+        if not p.is_absolute() and self.path is not None:
+            p = self.path.parent / p
+        return p
+
+
+def _type_ok(value: Any, tp: Any) -> tuple[bool, Any]:
+    """Check/convert one TOML value against a field type. Returns (ok, converted)."""
+    origin = get_origin(tp)
+    if origin is Union:
+        for alt in get_args(tp):
+            ok, conv = _type_ok(value, alt)
+            if ok:
+                return True, conv
+        return False, None
+    if origin is tuple:
+        args = get_args(tp)
+        if not isinstance(value, list):
+            return False, None
+        if len(args) == 2 and args[1] is Ellipsis:
+            items = [_type_ok(v, args[0]) for v in value]
+        elif len(args) == len(value):
+            items = [_type_ok(v, a) for v, a in zip(value, args)]
+        else:
+            return False, None
+        if not all(ok for ok, _ in items):
+            return False, None
+        return True, tuple(c for _, c in items)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return False, None
+        return math.isfinite(float(value)), float(value)
+    if tp is int:
+        return (isinstance(value, int) and not isinstance(value, bool)), value
+    if tp is bool:
+        return isinstance(value, bool), value
+    if tp is str:
+        return isinstance(value, str), value
+    raise TypeError(f"unsupported scene field type {tp!r}")
+
+
+def _type_name(tp: Any) -> str:
+    origin = get_origin(tp)
+    if origin is Union:
+        return " or ".join(_type_name(a) for a in get_args(tp))
+    if origin is tuple:
+        args = get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"list of {_type_name(args[0])}"
+        return f"list of {len(args)} {_type_name(args[0])}"
+    return {float: "number", int: "integer", bool: "true/false", str: "string"}[tp]
+
+
+def _check_bounds(where: str, value: Any, meta: dict) -> None:
+    values = value if isinstance(value, tuple) else (value,)
+    for v in values:
+        if isinstance(v, str) or isinstance(v, bool):
+            continue
+        if meta.get("minimum") is not None and v < meta["minimum"]:
+            raise SceneError(f"{where} = {value!r}: must be >= {meta['minimum']}")
+        if meta.get("exclusive_minimum") is not None and v <= meta["exclusive_minimum"]:
+            raise SceneError(f"{where} = {value!r}: must be > {meta['exclusive_minimum']}")
+    if meta.get("choices") is not None and value not in meta["choices"]:
+        raise SceneError(f"{where} = {value!r}: must be one of {list(meta['choices'])}")
+
+
+def _build_section(name: str, cls: type, table: Any, origin: str) -> Any:
+    if not isinstance(table, dict):
+        raise SceneError(f"{origin}: [{name}] must be a table, got {type(table).__name__}")
+    hints = get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - set(fields))
+    if unknown:
+        raise SceneError(f"{origin}: unknown key(s) {unknown} in [{name}]; "
+                         f"known keys: {sorted(fields)}")
+    kwargs = {}
+    for k, value in table.items():
+        ok, conv = _type_ok(value, hints[k])
+        where = f"{origin}: {name}.{k}"
+        if not ok:
+            raise SceneError(f"{where} = {value!r}: expected {_type_name(hints[k])}"
+                             + (f" in {fields[k].metadata['unit']}" if fields[k].metadata["unit"]
+                                else ""))
+        _check_bounds(where, conv, fields[k].metadata)
+        kwargs[k] = conv
+    return cls(**kwargs)
+
+
+def _cross_checks(scene: Scene, origin: str) -> None:
+    m = scene.material
+    if len(m.prony_g) != len(m.prony_tau):
+        raise SceneError(f"{origin}: material.prony_g and material.prony_tau differ in length "
+                         f"({len(m.prony_g)} vs {len(m.prony_tau)})")
+    if any(g <= 0 for g in m.prony_g) or any(t <= 0 for t in m.prony_tau):
+        raise SceneError(f"{origin}: material.prony_g and material.prony_tau must be > 0")
+    if m.long_term_factor <= 0:
+        raise SceneError(f"{origin}: sum(material.prony_g) = {sum(m.prony_g)} must be < 1 "
+                         "(the long-term shear modulus would not be positive)")
+    r = scene.relaxation
+    if m.prony_tau and r.hold_time < 5 * max(m.prony_tau) * (1 - 1e-12):
+        raise SceneError(f"{origin}: relaxation.hold_time = {r.hold_time} s is shorter than "
+                         f"5 x tau_max = {5 * max(m.prony_tau)} s")
+    if r.hold_steps <= 0:
+        raise SceneError(f"{origin}: relaxation.hold_steps must be > 0")
+    g = scene.gravity
+    if g.record_interval < g.fe_dt * (1 - 1e-9):
+        raise SceneError(f"{origin}: gravity.record_interval ({g.record_interval} s) is shorter "
+                         f"than gravity.fe_dt ({g.fe_dt} s)")
+    if isinstance(scene.gravity.tracked_node, str) and scene.gravity.tracked_node != "max_x":
+        raise SceneError(f"{origin}: gravity.tracked_node must be 'max_x' or a vertex id")
+    p = scene.particle
+    if isinstance(p.dt, str) and p.dt != "auto":
+        raise SceneError(f"{origin}: particle.dt must be 'auto' or a number of seconds, "
+                         f"got {p.dt!r}")
+    if isinstance(p.dt, float) and p.dt <= 0:
+        raise SceneError(f"{origin}: particle.dt = {p.dt} must be > 0")
+    for which in ("calibration", "held_out"):
+        v = getattr(scene.test_points, which)
+        if isinstance(v, str) and v != "auto":
+            raise SceneError(f"{origin}: test_points.{which} must be 'auto' or a list of vertex "
+                             f"ids, got {v!r}")
+
+
+def scene_from_dict(data: dict[str, Any], *, path: Path | None = None,
+                    default_name: str = "scene") -> Scene:
+    """Validate a parsed TOML document and build a :class:`Scene`."""
+    origin = str(path) if path is not None else "scene"
+    allowed = set(SECTIONS) | set(TOP_LEVEL_KEYS)
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise SceneError(f"{origin}: unknown top-level key(s) or table(s) {unknown}; "
+                         f"known: {sorted(allowed)}")
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
+        raise SceneError(f"{origin}: name = {name!r} must be a non-empty string without "
+                         "slashes or spaces (it names the output folder)")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise SceneError(f"{origin}: description must be a string")
+    sections = {s: _build_section(s, cls, data.get(s, {}), origin) for s, cls in SECTIONS.items()}
+    scene = Scene(name=name, description=description, path=path, **sections)
+    _cross_checks(scene, origin)
+    return scene
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene TOML file."""
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise SceneError(f"scene file {path} does not exist")
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from exc
+    return scene_from_dict(data, path=path, default_name=path.stem)
+
+
+def replace(scene: Scene, **sections: dict[str, Any]) -> Scene:
+    """A copy of ``scene`` with some keys changed, e.g. ``replace(s, fe={"element": "TH"})``.
+
+    Goes through the same validation as a file, so benchmarks and tests cannot
+    build a scene a user could not write.
+    """
+    data = scene.to_dict()
+    for sec, changes in sections.items():
+        if sec in TOP_LEVEL_KEYS:
+            data[sec] = changes
+            continue
+        data[sec] = {**data[sec], **changes}
+    data = json.loads(json.dumps(data, default=list))  # tuples -> lists, as TOML gives them
+    return scene_from_dict(data, path=scene.path, default_name=scene.name)
+
+
+def keys_table() -> str:
+    """Markdown table of every scene key (section, key, default, unit, meaning)."""
+    rows = ["| key | default | unit | meaning |", "|---|---|---|---|"]
+    for k, doc in TOP_LEVEL_KEYS.items():
+        rows.append(f"| `{k}` | file name | | {doc} |")
+    for sec, cls in SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            default = json.dumps(f.default if not isinstance(f.default, tuple) else list(f.default))
+            rows.append(f"| `{sec}.{f.name}` | `{default}` | {f.metadata['unit']} | "
+                        f"{f.metadata['doc']} |")
+    return "\n".join(rows)

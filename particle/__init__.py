@@ -1,0 +1,1 @@
+"""Real-time particle model: one particle per vertex, one Maxwell-Solid connector per edge."""

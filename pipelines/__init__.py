@@ -1,0 +1,1 @@
+"""Pipelines chaining mesh -> FE reference -> calibration -> gravity comparison -> report."""

@@ -1,0 +1,2 @@
+"""FE reference (dolfinx 0.5.2): Mooney-Rivlin + Prony viscoelasticity, indentation,
+relaxation and gravity experiments. The only package that imports dolfinx."""

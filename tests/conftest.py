@@ -1,0 +1,28 @@
+import logging
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenes"
+
+os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT", "1")
+os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+
+
+@pytest.fixture(scope="session")
+def liver_scene():
+    from forcecal.scene import load_scene
+    return load_scene(SCENES / "liver.toml")
+
+
+@pytest.fixture(scope="session")
+def liver_problem(liver_scene):
+    from forcecal.problem import build_problem
+    return build_problem(liver_scene)
+
+
+@pytest.fixture(autouse=True)
+def _quiet_logs(caplog):
+    caplog.set_level(logging.WARNING)

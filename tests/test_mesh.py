@@ -1,0 +1,159 @@
+"""Meshes: generation is deterministic, checks refuse bad meshes, derived quantities are exact."""
+import numpy as np
+import pytest
+
+from forcecal.errors import MeshError
+from forcecal.mesh import (TetMesh, box_mesh, check_mesh, fixed_nodes, generate_liver, read_mesh,
+                           select_calibration_points, validate_test_points)
+
+
+def test_generated_liver_is_deterministic_and_paper_sized():
+    a = generate_liver(0.0182)
+    b = generate_liver(0.0182)
+    assert a.fingerprint() == b.fingerprint()
+    # paper: 269 nodes, 887 tets, 1358 connectors; issue: "about 270 / 900 / 1350"
+    assert 250 <= a.n_vertices <= 300
+    assert 820 <= a.n_tets <= 960
+    assert 1250 <= len(a.edges) <= 1450
+
+
+def test_euler_characteristic_of_a_solid_ball(liver_problem):
+    m = liver_problem.mesh
+    n_faces = len(np.unique(np.sort(m.tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]]
+                                    .reshape(-1, 3), axis=1), axis=0))
+    assert m.n_vertices - len(m.edges) + n_faces - m.n_tets == 1
+
+
+def test_volume_masses_and_edge_volumes_are_consistent():
+    m = box_mesh((3, 2, 2), (0.3, 0.2, 0.1))
+    assert m.signed_volumes.sum() == pytest.approx(0.3 * 0.2 * 0.1, rel=1e-12)
+    assert m.lumped_masses(1000.0).sum() == pytest.approx(6.0, rel=1e-12)
+    # every tet has 6 edges, so the edge-volume sums add to 6 x total volume
+    assert m.edge_tet_volume.sum() == pytest.approx(6 * 0.006, rel=1e-12)
+
+
+def test_inward_normal_of_a_face_vertex_is_the_face_normal():
+    m = box_mesh((2, 2, 2))
+    top_centre = int(np.argmin(np.linalg.norm(m.vertices - [0.5, 0.5, 1.0], axis=1)))
+    np.testing.assert_allclose(m.inward_normals([top_centre])[0], [0, 0, -1], atol=1e-12)
+    side_centre = int(np.argmin(np.linalg.norm(m.vertices - [0.0, 0.5, 0.5], axis=1)))
+    np.testing.assert_allclose(m.inward_normals([side_centre])[0], [1, 0, 0], atol=1e-12)
+    with pytest.raises(MeshError, match="not on the surface"):
+        m.inward_normals([int(np.argmin(np.linalg.norm(m.vertices - 0.5, axis=1)))])
+
+
+def test_surface_faces_point_outwards():
+    m = box_mesh((2, 2, 2))
+    x = m.vertices[m.surface_faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    centroid_out = x.mean(axis=1) - 0.5
+    assert np.all(np.einsum("ij,ij->i", n, centroid_out) > 0)
+    # closed surface: sum of outward area vectors vanishes
+    np.testing.assert_allclose(n.sum(axis=0), 0, atol=1e-12)
+
+
+def test_calibration_points_dominate_the_free_surface(liver_problem):
+    p = liver_problem
+    assert len(p.calibration) == 31 and len(p.held_out) == 8
+    assert not set(p.calibration) & set(p.held_out)
+    free_surface = np.setdiff1d(p.mesh.surface_vertices, p.fixed)
+    covered = np.zeros(p.mesh.n_vertices, bool)
+    covered[p.calibration] = True
+    covered[p.mesh.adjacency[p.calibration].indices] = True
+    assert covered[free_surface].all()
+    assert not set(p.calibration) & set(p.fixed)
+    assert np.allclose(np.linalg.norm(p.normals, axis=1), 1.0)
+
+
+def test_too_few_calibration_points_is_refused(liver_problem):
+    with pytest.raises(MeshError, match="covering the free surface needs"):
+        select_calibration_points(liver_problem.mesh, liver_problem.fixed, 10)
+
+
+def test_bad_user_test_points_are_refused(liver_problem):
+    p = liver_problem
+    with pytest.raises(MeshError, match="unknown test point"):
+        validate_test_points(p.mesh, p.fixed, np.array([10_000]), "calibration")
+    with pytest.raises(MeshError, match="fixed nodes"):
+        validate_test_points(p.mesh, p.fixed, p.fixed[:1], "calibration")
+    interior = np.setdiff1d(np.arange(p.mesh.n_vertices), p.mesh.surface_vertices)
+    with pytest.raises(MeshError, match="not on the surface"):
+        validate_test_points(p.mesh, p.fixed, interior[:1], "held_out")
+
+
+# --- every mesh-check error ---------------------------------------------------------------
+
+def _one_tet():
+    return np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2, 3]])
+
+
+def test_no_tets():
+    v, _ = _one_tet()
+    with pytest.raises(MeshError, match="no tetrahedra"):
+        check_mesh(TetMesh(v, np.zeros((0, 4), int)))
+
+
+def test_inverted_tet():
+    m = box_mesh((1, 1, 1))
+    tets = m.tets.copy()
+    tets[2] = tets[2][[1, 0, 2, 3]]
+    with pytest.raises(MeshError, match="1 inverted tets.*\\[2\\]"):
+        check_mesh(TetMesh(m.vertices, tets))
+
+
+def test_zero_volume_tet():
+    v, t = _one_tet()
+    v[3] = [0.5, 0.5, 0.0]  # flat
+    with pytest.raises(MeshError, match="zero-volume"):
+        check_mesh(TetMesh(v, t))
+
+
+def test_duplicate_vertices():
+    v, t = _one_tet()
+    v = np.vstack([v, v[1]])
+    t = np.array([[0, 4, 2, 3]])  # uses the copy
+    t2 = np.vstack([t, [[0, 1, 2, 3]]])
+    with pytest.raises(MeshError, match="duplicate vertices 1 and 4"):
+        check_mesh(TetMesh(v, t2))
+
+
+def test_unused_vertex():
+    v, t = _one_tet()
+    with pytest.raises(MeshError, match="belong to no tet"):
+        check_mesh(TetMesh(np.vstack([v, [5, 5, 5]]), t))
+
+
+def test_disconnected_parts():
+    v, t = _one_tet()
+    v2 = np.vstack([v, v + 10.0])
+    t2 = np.vstack([t, t + 4])
+    with pytest.raises(MeshError, match="2 disconnected parts"):
+        check_mesh(TetMesh(v2, t2))
+
+
+def test_no_fixed_vertex():
+    m = box_mesh((2, 2, 2))
+    with pytest.raises(MeshError, match="selects 0 vertices"):
+        fixed_nodes(m, "z", "min", -1.0)
+
+
+def test_read_mesh_roundtrip_and_errors(tmp_path):
+    import meshio
+    m = box_mesh((2, 1, 1))
+    path = tmp_path / "box.vtu"
+    meshio.write(path, meshio.Mesh(m.vertices, [("tetra", m.tets)]))
+    back = read_mesh(path)
+    assert back.fingerprint() == m.fingerprint()
+    # a file whose tets are all oppositely oriented is reoriented, not refused
+    meshio.write(path, meshio.Mesh(m.vertices, [("tetra", m.tets[:, [1, 0, 2, 3]])]))
+    assert np.all(read_mesh(path).signed_volumes > 0)
+    tri = tmp_path / "tri.vtu"
+    meshio.write(tri, meshio.Mesh(m.vertices, [("triangle", m.surface_faces)]))
+    with pytest.raises(MeshError, match="no tetra cells"):
+        read_mesh(tri)
+    empty = tmp_path / "empty.msh"
+    empty.write_text("")
+    with pytest.raises(MeshError, match="could not read"):
+        read_mesh(empty)
+    with pytest.raises(MeshError, match="does not exist"):
+        read_mesh(tmp_path / "missing.vtu")

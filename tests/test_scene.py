@@ -1,0 +1,70 @@
+"""Scene files: defaults, validation errors that name the key, documentation coverage."""
+import dataclasses
+
+import pytest
+
+from forcecal.errors import SceneError
+from forcecal.scene import SECTIONS, keys_table, load_scene, replace, scene_from_dict
+from tests.conftest import ROOT, SCENES
+
+
+def test_every_shipped_scene_loads():
+    for path in SCENES.glob("*.toml"):
+        scene = load_scene(path)
+        assert scene.name
+
+
+def test_liver_scene_material_is_consistent(liver_scene):
+    m = liver_scene.material
+    assert m.shear_modulus == pytest.approx(6000.0)
+    assert m.long_term_factor == pytest.approx(0.4)
+    # representative-value bounds from the issue: kappa 50-100 x mu, g in 0.2-0.5, tau1 < 1 s
+    assert 50 <= m.kappa / m.shear_modulus <= 100
+    assert all(0.2 <= g <= 0.5 for g in m.prony_g)
+    assert m.prony_tau[0] < 1.0 and 10.0 <= m.prony_tau[1] <= 50.0
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"material": {"C10": "soft"}}, r"material.C10 = 'soft': expected number in Pa"),
+    ({"material": {"stiffness": 1.0}}, r"unknown key\(s\) \['stiffness'\] in \[material\]"),
+    ({"colour": "red"}, r"unknown top-level key"),
+    ({"material": {"C10": -1.0}}, r"material.C10 = -1.0: must be > 0"),
+    ({"material": {"prony_g": [0.6, 0.5]}}, r"must be < 1"),
+    ({"material": {"prony_g": [0.3]}}, r"differ in length"),
+    ({"relaxation": {"hold_time": 10.0}}, r"shorter than 5 x tau_max"),
+    ({"fe": {"element": "Q2"}}, r"must be one of \['P1', 'P2', 'TH'\]"),
+    ({"indentation": {"steps": 3}}, r"indentation.steps = 3: must be >= 10"),
+    ({"particle": {"dt": "fast"}}, r"particle.dt must be 'auto'"),
+    ({"gravity": {"acceleration": [0, -9.81]}}, r"gravity.acceleration .*expected list of 3"),
+    ({"test_points": {"calibration": "some"}}, r"test_points.calibration must be 'auto'"),
+    ({"name": "my scene"}, r"without slashes or spaces"),
+])
+def test_bad_scene_values_name_the_key(doc, message):
+    with pytest.raises(SceneError, match=message):
+        scene_from_dict(doc)
+
+
+def test_bad_toml_and_missing_file(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("name = \n")
+    with pytest.raises(SceneError, match="not valid TOML"):
+        load_scene(bad)
+    with pytest.raises(SceneError, match="does not exist"):
+        load_scene(tmp_path / "nope.toml")
+
+
+def test_replace_validates_and_fingerprints_change(liver_scene):
+    th = replace(liver_scene, fe={"element": "TH"})
+    assert th.fe.element == "TH"
+    assert th.fingerprint("material") == liver_scene.fingerprint("material")
+    assert th.fingerprint("fe") != liver_scene.fingerprint("fe")
+    with pytest.raises(SceneError):
+        replace(liver_scene, fe={"element": "Q1"})
+
+
+def test_readme_documents_every_scene_key():
+    readme = (ROOT / "README.md").read_text()
+    for sec, cls in SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            assert f"`{sec}.{f.name}`" in readme, f"README lacks scene key {sec}.{f.name}"
+    assert keys_table().splitlines()[0] in readme
