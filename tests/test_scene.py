@@ -1,6 +1,8 @@
 """Scene files: defaults, validation errors that name the key, documentation coverage."""
 import dataclasses
 
+import numpy as np
+
 import pytest
 
 from forcecal.errors import SceneError
@@ -68,3 +70,20 @@ def test_readme_documents_every_scene_key():
         for f in dataclasses.fields(cls):
             assert f"`{sec}.{f.name}`" in readme, f"README lacks scene key {sec}.{f.name}"
     assert keys_table().splitlines()[0] in readme
+
+
+def test_relaxation_schedule_resolves_ramp_and_ends_on_time(liver_scene):
+    from forcecal.schedules import indentation_depths, relaxation_schedule
+    r = liver_scene.relaxation
+    t, d = relaxation_schedule(r)
+    assert len(t) == r.ramp_steps + r.hold_steps
+    assert t[r.ramp_steps - 1] == pytest.approx(r.ramp_time)
+    assert t[-1] == pytest.approx(r.ramp_time + r.hold_time, rel=1e-12)
+    steps = np.diff(np.r_[0.0, t])
+    assert np.all(steps > 0)
+    # first hold step equals the ramp step, later ones grow
+    assert steps[r.ramp_steps] == pytest.approx(r.ramp_time / r.ramp_steps)
+    assert np.all(np.diff(steps[r.ramp_steps:]) > 0)
+    assert d[-1] == r.depth and np.all(d[r.ramp_steps - 1:] == r.depth)
+    np.testing.assert_allclose(indentation_depths(liver_scene.indentation)[[0, -1]],
+                               [0.0005, 0.005])
