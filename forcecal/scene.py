@@ -152,6 +152,24 @@ class ParticleSection:
 @dataclass(frozen=True)
 class CalibrationSection:
     local: bool = key(True, "run local tuning after global tuning")
+    static_max_evaluations: int = key(200, "Nelder-Mead budget of the global static fit "
+                                      "(cost evaluations)", minimum=1)
+    relaxation_max_evaluations: int = key(300, "Nelder-Mead budget of the global relaxation fit "
+                                          "(cost evaluations)", minimum=1)
+    local_max_evaluations: int = key(60, "Nelder-Mead budget of one point's local fit, per stage "
+                                     "and sweep (cost evaluations)", minimum=1)
+    local_max_sweeps: int = key(3, "maximum Jacobi sweeps of each local stage (static, "
+                                "relaxation)", minimum=1)
+    local_sweep_tolerance: float = key(0.01, "stop sweeping when a sweep lowers the total cost by "
+                                       "less than this fraction", minimum=0.0)
+    xatol: float = key(1e-3, "Nelder-Mead simplex-size tolerance in the transformed parameters "
+                       "(logs and strain-scaled coefficients)", exclusive_minimum=0.0)
+    fatol: float = key(1e-6, "Nelder-Mead cost-spread tolerance, relative to the stage's initial "
+                       "cost", exclusive_minimum=0.0)
+    strain_margin: float = key(1.5, "the spring K(eps) must stay > 0 on the experiments' "
+                               "linear-network strain range widened by this factor", minimum=1.0)
+    workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
+                       "under mpirun the ranks other than 0 are the workers)", minimum=1)
 
 
 @dataclass(frozen=True)
