@@ -1,1 +1,28 @@
-"""Real-time particle model: one particle per vertex, one Maxwell-Solid connector per edge."""
+"""Real-time particle model: one particle per vertex, one Maxwell-Solid connector per edge.
+
+Public API (Warp ``warp.sim`` style: immutable Model of flat arrays built by a
+builder, mutable State, integrators and solvers apart):
+
+- :mod:`particle.model`: :class:`ConnectorParams`, :class:`Model`,
+  :class:`ModelBuilder`, :func:`build_model`, :class:`State`.
+- :mod:`particle.integrator`: :class:`VerletIntegrator`, :func:`critical_time_step`,
+  :func:`resolve_time_step`, :class:`Prescribed`.
+- :mod:`particle.statics`: Newton equilibrium, :func:`gravity_static`.
+- :mod:`particle.evaluators`: :class:`IndentationEvaluator`,
+  :class:`RelaxationEvaluator` (batch force curves for calibration).
+- :mod:`particle.experiments`: :func:`gravity_dynamic`, :func:`relaxation_dynamic`.
+- :mod:`particle.haptics`: :class:`HapticSession`.
+- :mod:`particle.bench`: benchmark functions returning dicts.
+"""
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.experiments import gravity_dynamic, relaxation_dynamic
+from particle.haptics import HapticSession
+from particle.integrator import (Prescribed, VerletIntegrator, critical_time_step,
+                                 resolve_time_step)
+from particle.model import ConnectorParams, Model, ModelBuilder, State, build_model
+from particle.statics import gravity_static
+
+__all__ = ["ConnectorParams", "HapticSession", "IndentationEvaluator", "Model", "ModelBuilder",
+           "Prescribed", "RelaxationEvaluator", "State", "VerletIntegrator", "build_model",
+           "critical_time_step", "gravity_dynamic", "gravity_static", "relaxation_dynamic",
+           "resolve_time_step"]

@@ -1,0 +1,232 @@
+"""Batch evaluators of the particle model's force curves: the API calibration codes against.
+
+An evaluator is built once per model and set of test points and then called
+with many parameter sets; it returns the force curves on exactly the samples
+the FE reference uses (sign conventions as in the README: the test vertex is
+pushed along its inward normal by depth d >= 0, the reported force is the force
+the indenter applies to it, ``force_normal = force . inward_normal``; no
+gravity).
+
+Each test point keeps a cache: its Newton solver with the last LU
+factorisation, and the equilibria of the previous call, which warm-start the
+next call (calibration moves parameters by small steps, so the previous
+solution is an excellent guess and the old factorisation a good one).
+Evaluators pickle (caches are rebuilt in the receiving process) so
+calibration can run them in worker processes.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Sequence
+
+import numpy as np
+
+from forcecal.errors import ConvergenceError, ParameterError
+from particle.model import ConnectorParams, Model
+from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
+                              continuation)
+
+log = logging.getLogger(__name__)
+
+
+class _PointEvaluator:
+    """Test points, their caches, parameter checks; subclasses define one point's curve."""
+
+    def __init__(self, model: Model, nodes: np.ndarray, normals: np.ndarray,
+                 depths: np.ndarray, *, strain_range: tuple[float, float] | None, rtol: float):
+        self.model = model
+        self.nodes = model.check_nodes(nodes, "test points")
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        if len(normals) != len(self.nodes):
+            raise ParameterError(f"{len(self.nodes)} test points but {len(normals)} normals")
+        lengths = np.linalg.norm(normals, axis=1)
+        bad = np.nonzero(~(np.abs(lengths - 1.0) < 1e-6))[0]
+        if len(bad):
+            raise ParameterError(f"normal of test point {self.nodes[bad[0]]} has length "
+                                 f"{lengths[bad[0]]}; unit vectors are expected")
+        self.normals = normals
+        depths = np.asarray(depths, dtype=np.float64).reshape(-1)
+        if len(depths) == 0 or not np.all(np.isfinite(depths)) or np.any(depths < 0):
+            raise ParameterError(f"depths must be finite and >= 0, got {depths}")
+        self.depths = depths
+        if strain_range is None:
+            reach = float(depths.max() / model.incident_min_length(self.nodes).min())
+            strain_range = (-min(reach, 0.9), reach)
+        self.strain_range = strain_range
+        self.rtol = rtol
+        self._pattern = TangentPattern.of(model)
+        self._solvers: dict[int, EquilibriumSolver] = {}
+        self._warm: dict[int, np.ndarray] = {}
+
+    def _indices(self, points: Sequence[int] | None) -> np.ndarray:
+        if points is None:
+            return np.arange(len(self.nodes))
+        idx = np.atleast_1d(np.asarray(points))
+        if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or np.any(
+                (idx < 0) | (idx >= len(self.nodes))):
+            raise ParameterError(f"points {np.asarray(points).tolist()} must index the "
+                                 f"{len(self.nodes)} test points")
+        return idx.astype(np.int64)
+
+    def _solver(self, k: int) -> EquilibriumSolver:
+        if k not in self._solvers:
+            self._solvers[k] = EquilibriumSolver(self.model, self.nodes[k:k + 1], self._pattern,
+                                                 rtol=self.rtol)
+        return self._solvers[k]
+
+    def _check_strains(self, params: ConnectorParams, eq: Equilibrium, k: int) -> None:
+        strain = eq.dx / self.model.rest_lengths
+        bad = np.nonzero(params.stiffness(strain) <= 0.0)[0]
+        if len(bad):
+            e = int(bad[0])
+            raise ParameterError(
+                f"connector {e} (particles {self.model.edges[e].tolist()}) reaches strain "
+                f"{strain[e]:.3g} where its stiffness K(eps) <= 0 (test point "
+                f"{self.nodes[k]})")
+
+    def force_vectors(self, params: ConnectorParams,
+                      points: Sequence[int] | None = None) -> np.ndarray:
+        """(P', S, 3) indenter forces [N] of the selected points (indices into ``nodes``)."""
+        idx = self._indices(points)
+        params.validate(self.strain_range, self.model.edges)
+        model = self.model.with_params(params)
+        prepared = self._prepare(params)
+        return np.stack([self._curve(model, prepared, int(k)) for k in idx])
+
+    def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None) -> np.ndarray:
+        """(P', S) normal forces [N] of the selected points (all if None).
+
+        Raises ParameterError (non-physical parameters) or ConvergenceError; never NaN.
+        """
+        idx = self._indices(points)
+        forces = self.force_vectors(params, idx)
+        return np.einsum("psc,pc->ps", forces, self.normals[idx])
+
+    def _prepare(self, params: ConnectorParams):
+        """Per-call data shared by every point (nothing by default)."""
+        return None
+
+    def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
+        raise NotImplementedError
+
+    @staticmethod
+    def _warm_guess(warm: np.ndarray, solutions: np.ndarray, s: int) -> np.ndarray:
+        """Previous call's equilibrium at sample ``s``, shifted by this call's change at ``s - 1``.
+
+        The change a parameter update causes varies smoothly along the curve,
+        so the shift removes most of the warm start's error.
+        """
+        return warm[s] if s == 0 else warm[s] + (solutions[s - 1] - warm[s - 1])
+
+    def _target(self, k: int, depth: float) -> np.ndarray:
+        return self.model.rest_positions[self.nodes[k]] + depth * self.normals[k]
+
+
+class IndentationEvaluator(_PointEvaluator):
+    """Static indentation curves: equilibrium at each depth, long-term (spring-only) model.
+
+    Args:
+        model: the particle model (its parameters are ignored; each call brings its own).
+        nodes: (P,) test particles.
+        normals: (P, 3) inward unit normals (indentation directions).
+        depths: (S,) indentation depths [m].
+        strain_range: range over which K(eps) must stay positive; default
+            +-(max depth / shortest connector at a test point).
+        rtol: Newton tolerance relative to the indenter force.
+    """
+
+    def __init__(self, model: Model, nodes: np.ndarray, normals: np.ndarray, depths: np.ndarray,
+                 *, strain_range: tuple[float, float] | None = None, rtol: float = 1e-8):
+        super().__init__(model, nodes, normals, depths, strain_range=strain_range, rtol=rtol)
+
+    def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
+        solver = self._solver(k)
+        node = self.nodes[k]
+        warm = self._warm.get(k)
+        params = model.params
+
+        def step(eq: Equilibrium, _: float, depth: float) -> Equilibrium:
+            guess = eq.x.copy()
+            guess[node] = self._target(k, depth)
+            return solver.solve(guess, params)
+
+        solutions = np.empty((len(self.depths), model.n_particles, 3))
+        forces = np.empty((len(self.depths), 3))
+        eq, reached = Equilibrium.at_rest(model), 0.0
+        for s, depth in enumerate(self.depths):
+            warm_eq = None
+            if warm is not None:
+                try:
+                    guess = self._warm_guess(warm, solutions, s)
+                    warm_eq = step(Equilibrium(guess, None, None, None, 0), reached, depth)
+                except ConvergenceError:
+                    log.debug("point %d depth %g: warm start failed, continuing cold", node, depth)
+            eq = warm_eq or continuation(step, eq, reached, depth,
+                                         what=f"indentation of particle {node}")
+            self._check_strains(params, eq, k)
+            reached = depth
+            solutions[s] = eq.x
+            forces[s] = eq.reaction(node)
+        self._warm[k] = solutions
+        return forces
+
+
+class RelaxationEvaluator(_PointEvaluator):
+    """Ramp-and-hold relaxation curves by the quasi-static path (inertia dropped).
+
+    At each sample time the equilibrium of springs + Maxwell arms is solved,
+    the arms advanced by the exact exponential recursion for the sample step
+    (``r = exp(-dt/tau)``, ``c = k tau (1 - r)/dt``, see
+    :meth:`ConnectorParams.arm_recursion`), which stays accurate for the coarse
+    late hold steps (dt up to ~tau) where the paper's backward-Euler
+    coefficients would not. The indenter follows the depth schedule linearly
+    between samples. A sample whose Newton solve fails is split into two
+    half-steps (recursively).
+
+    Args:
+        model, nodes, normals, strain_range, rtol: as :class:`IndentationEvaluator`.
+        times: (S,) increasing sample times [s] (first > 0; the test starts at rest at 0).
+        depths: (S,) indentation depth at those times [m].
+    """
+
+    def __init__(self, model: Model, nodes: np.ndarray, normals: np.ndarray, times: np.ndarray,
+                 depths: np.ndarray, *, strain_range: tuple[float, float] | None = None,
+                 rtol: float = 1e-8):
+        super().__init__(model, nodes, normals, depths, strain_range=strain_range, rtol=rtol)
+        times = np.asarray(times, dtype=np.float64).reshape(-1)
+        if times.shape != self.depths.shape or not np.all(np.diff(np.r_[0.0, times]) > 0):
+            raise ParameterError("relaxation times must be increasing, > 0 and match the depths")
+        self.times = times
+
+    def _prepare(self, params: ConnectorParams) -> list[tuple[np.ndarray, np.ndarray]]:
+        steps = np.diff(np.r_[0.0, self.times])
+        return [params.arm_recursion(dt, exact=True) for dt in steps]
+
+    def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
+        solver = self._solver(k)
+        node = self.nodes[k]
+        params = model.params
+        warm = self._warm.get(k)
+        times = np.r_[0.0, self.times]
+        depths = np.r_[0.0, self.depths]
+        solutions = np.empty((len(self.times), model.n_particles, 3))
+        forces = np.empty((len(self.times), 3))
+        eq = Equilibrium.at_rest(model)
+        for sample in range(len(self.times)):
+            whole = (times[sample], times[sample + 1])
+
+            def step(eq: Equilibrium, t0: float, t1: float, sample=sample, whole=whole):
+                full = (t0, t1) == whole
+                guess = (self._warm_guess(warm, solutions, sample) if full and warm is not None
+                         else eq.x).copy()
+                guess[node] = self._target(k, np.interp(t1, times, depths))
+                coeffs = prepared[sample] if full else params.arm_recursion(t1 - t0, exact=True)
+                return solver.solve(guess, params, arms=ArmStep(*coeffs, eq.arm_force, eq.dx))
+
+            eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
+            self._check_strains(params, eq, k)
+            solutions[sample] = eq.x
+            forces[sample] = eq.reaction(node)
+        self._warm[k] = solutions
+        return forces

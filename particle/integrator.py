@@ -1,0 +1,334 @@
+"""Explicit time integration: position Verlet, stability limit, divergence guard.
+
+:class:`VerletIntegrator` advances a :class:`~particle.model.State` in place
+with the compiled loop :func:`particle.kernels.run_verlet`. Which force terms
+the loop contains is decided once per run (:class:`Terms`): gravity, Maxwell
+arms, nonlinear springs and damping are compiled out when a run does not need
+them; ``skip=False`` keeps every term (with zero values) so benchmarks and tests
+can run the same experiment both ways.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from forcecal.errors import ParameterError, StabilityError
+from forcecal.scene import ParticleSection
+from particle import kernels
+from particle.model import ConnectorParams, Model, State
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STRAIN_RANGE = (-0.5, 0.5)
+# the kinetic energy may exceed the work the loads can do by this factor before a run is
+# declared divergent: a real run stays far below, an unstable one grows exponentially
+ENERGY_MARGIN = 100.0
+
+
+def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
+                       strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE,
+                       damping: float = 0.0) -> float:
+    """Stability limit [s] of the explicit step: ``2/omega_max`` (less with damping).
+
+    omega_max^2 is bounded by block Gershgorin on ``M^{-1/2} K M^{-1/2}``: for
+    each free particle ``i``, ``sum_e kappa_e/m_i + sum_e kappa_e/sqrt(m_i m_j)``
+    over its connectors (the second sum over free neighbours only). ``kappa_e``
+    bounds the spectral norm of a connector's 3x3 tangent block ``s e e^T +
+    (F/l)(I - e e^T)`` over ``strain_range``: the largest axial tangent
+    ``|K0 + 2 a eps + 3 b eps^2|`` plus the arms' instantaneous stiffness
+    ``k_i b_i/(k_i dt + b_i) <= k_i``, or the geometric term ``|F|/l`` if larger.
+    With mass-proportional damping gamma the central-difference limit becomes
+    ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
+    """
+    p = model.params if params is None else params
+    lo, hi = strain_range
+    arms = p.k1 + p.k2
+    axial = p.max_tangent_stiffness(strain_range) + arms
+    kmin, kmax = p.extreme_stiffness(strain_range)
+    stretch = max(abs(lo), abs(hi))
+    geometric = (np.maximum(np.abs(kmin), np.abs(kmax)) + arms) * stretch / (1.0 + lo)
+    kappa = np.maximum(axial, geometric)
+    i, j = model.edges[:, 0], model.edges[:, 1]
+    m = model.masses
+    free = ~model.fixed
+    coupling = kappa / np.sqrt(m[i] * m[j])
+    rows = np.bincount(i, kappa / m[i] + np.where(free[j], coupling, 0.0), model.n_particles)
+    rows += np.bincount(j, kappa / m[j] + np.where(free[i], coupling, 0.0), model.n_particles)
+    omega = math.sqrt(float(rows[free].max()))
+    xi = damping / (2.0 * omega)
+    return 2.0 / omega * (math.sqrt(1.0 + xi * xi) - xi)
+
+
+def resolve_time_step(section: ParticleSection, model: Model, *,
+                      strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE) -> float:
+    """The scene's explicit step [s]: ``dt_safety x critical`` for 'auto', else the number, checked."""
+    critical = critical_time_step(model, strain_range=strain_range, damping=section.damping)
+    if section.dt == "auto":
+        return section.dt_safety * critical
+    check_time_step(float(section.dt), critical)
+    return float(section.dt)
+
+
+def check_time_step(dt: float, critical: float) -> None:
+    """Raise :class:`StabilityError` if ``dt`` is not a positive step below ``critical``."""
+    if not (math.isfinite(dt) and dt > 0.0):
+        raise StabilityError(f"time step dt = {dt} s must be a finite number > 0")
+    if dt > critical:
+        raise StabilityError(f"time step dt = {dt:.4g} s is above the stability limit "
+                             f"{critical:.4g} s of this model (use particle.dt = 'auto' or a "
+                             "smaller step)")
+
+
+@dataclass(frozen=True)
+class Terms:
+    """Force terms compiled into a run (chosen once per run, never tested in the inner loop)."""
+    gravity: bool
+    arms: bool
+    nonlinear: bool
+    damping: bool
+
+    @classmethod
+    def select(cls, params: ConnectorParams, *, gravity: np.ndarray | None, arms: bool,
+               damping: float, skip: bool = True) -> "Terms":
+        """The terms a run needs; with ``skip=False`` every term (zero ones included)."""
+        if not skip:
+            return cls(gravity=True, arms=True, nonlinear=True, damping=True)
+        return cls(gravity=gravity is not None and bool(np.any(gravity)), arms=arms,
+                   nonlinear=not params.is_linear, damping=damping > 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class Prescribed:
+    """Particles whose positions follow piecewise-linear keyframes (held after the last).
+
+    Attributes:
+        nodes: (k,) int64, prescribed particle ids.
+        times: (K,) float64, increasing keyframe times [s].
+        positions: (K, k, 3) float64, positions at the keyframes [m].
+    """
+    nodes: np.ndarray
+    times: np.ndarray
+    positions: np.ndarray
+
+    def __post_init__(self) -> None:
+        nodes = np.atleast_1d(np.asarray(self.nodes, dtype=np.int64))
+        times = np.atleast_1d(np.asarray(self.times, dtype=np.float64))
+        pos = np.asarray(self.positions, dtype=np.float64).reshape(len(times), len(nodes), 3)
+        if len(times) == 0 or np.any(np.diff(times) <= 0) or not np.all(np.isfinite(pos)):
+            raise ParameterError("prescribed motion needs increasing keyframe times and finite "
+                                 "positions")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "positions", pos)
+
+    @classmethod
+    def hold(cls, nodes, positions) -> "Prescribed":
+        """Nodes held at fixed positions (k, 3) [m]."""
+        return cls(nodes, [0.0], np.asarray(positions, dtype=np.float64)[None])
+
+
+def energy_bound(model: Model, state: State, dt: float, n_steps: int,
+                  gravity: np.ndarray | None, prescribed: Prescribed | None) -> float:
+    """Kinetic energy [J] above which a run is declared divergent.
+
+    ``ENERGY_MARGIN`` x (present kinetic + elastic energy + the work gravity can
+    do in the run (falling the model's size, or freely for the run's duration)
+    + the work prescribed motion can do (moving each prescribed node its
+    largest keyframe distance against its connectors, plus dragging the whole
+    mass at the keyframes' fastest speed)), plus a floor for runs at rest.
+    """
+    m = model.masses
+    p = model.params
+    size = float(np.linalg.norm(np.ptp(model.rest_positions, axis=0)))
+    total_mass = float(m.sum())
+    duration = n_steps * dt
+    v_prev = (state.x - state.x_prev) / (state.dt or dt)
+    energy = 0.5 * float(np.sum(m[:, None] * v_prev ** 2))
+    lengths = np.linalg.norm(state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]], axis=1)
+    dx = lengths - model.rest_lengths
+    strain = np.clip(dx / model.rest_lengths, -0.99, None)
+    energy += float(np.sum(0.5 * np.abs(p.stiffness(strain)) * dx ** 2))
+    energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
+    if gravity is not None:
+        g = float(np.linalg.norm(gravity))
+        energy += total_mass * g * (size + 0.5 * g * duration ** 2)
+    if prescribed is not None:
+        stiff = np.bincount(model.edges.ravel(), np.repeat(np.abs(p.K0) + p.k1 + p.k2, 2),
+                            model.n_particles)[prescribed.nodes]
+        reach = np.linalg.norm(prescribed.positions - state.x[prescribed.nodes][None], axis=2)
+        energy += float(np.sum(stiff * (reach.max(axis=0) + size) ** 2))
+        if len(prescribed.times) > 1:
+            speed = (np.linalg.norm(np.diff(prescribed.positions, axis=0), axis=2)
+                     / np.diff(prescribed.times)[:, None]).max()
+            energy += total_mass * float(speed) ** 2
+    floor = 0.5 * total_mass * (1e-6 * size / dt) ** 2
+    return ENERGY_MARGIN * energy + floor
+
+
+class VerletIntegrator:
+    """Position (Stoermer) Verlet with the paper's Maxwell-arm recursion.
+
+    ``x^{t+dt} = 2 x^t - x^{t-dt} + dt^2 f(x^t)/m`` on free, non-prescribed
+    particles, second order. Start-up from rest: a State that has never been
+    stepped (``state.dt is None``, ``x_prev = x``, v = 0) takes
+    ``x^{dt} = x^0 + dt^2/2 a^0`` (the Taylor step) instead of the plain
+    formula's ``x^0 + dt^2 a^0``. If the step changes between runs, ``x_prev``
+    is rescaled to keep the velocity ``(x - x_prev)/dt``.
+
+    Each step evaluates, in this order: connector elongations, the arm
+    recursion ``F^t = r F^{t-1} + c (dx^t - dx^{t-1})`` with the paper's
+    coefficients (:meth:`ConnectorParams.arm_recursion`), spring + arm tension,
+    gravity ``m g``, and optional mass-proportional damping ``-gamma m v`` with
+    the backward-difference velocity.
+
+    Args:
+        damping: gamma [1/s], global mass-proportional viscous damping (0 = off).
+        check_every: steps between two divergence checks (non-finite positions,
+            kinetic energy beyond the bound the loads allow).
+        strain_range: strain range used for the stability limit.
+    """
+
+    def __init__(self, damping: float = 0.0, *, check_every: int = 64,
+                 strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE) -> None:
+        if not (math.isfinite(damping) and damping >= 0.0):
+            raise ParameterError(f"damping = {damping} 1/s must be >= 0")
+        if check_every < 1:
+            raise ParameterError(f"check_every = {check_every} must be >= 1")
+        self.damping = float(damping)
+        self.check_every = int(check_every)
+        self.strain_range = strain_range
+        self._critical: tuple[ConnectorParams, float] | None = None
+
+    def critical_time_step(self, model: Model) -> float:
+        """:func:`critical_time_step` of the model's parameters (cached per parameter set)."""
+        if self._critical is None or self._critical[0] is not model.params:
+            value = critical_time_step(model, strain_range=self.strain_range,
+                                       damping=self.damping)
+            self._critical = (model.params, value)
+        return self._critical[1]
+
+    def prepare(self, model: Model, dt: float, *, gravity: np.ndarray | None = None,
+                prescribed_nodes: np.ndarray | None = None, arms: bool = True,
+                skip: bool = True, _check_dt: bool = True) -> "Run":
+        """A :class:`Run`: everything fixed between calls of the compiled loop, set up once.
+
+        Raises :class:`StabilityError` if ``dt`` is above the stability limit
+        (``_check_dt=False`` bypasses the check; tests use it to provoke divergence).
+        """
+        dt = float(dt)
+        if _check_dt:
+            check_time_step(dt, self.critical_time_step(model))
+        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip)
+
+    def simulate(self, model: Model, state: State, dt: float, n_steps: int, *,
+                 gravity: np.ndarray | None = None, prescribed: Prescribed | None = None,
+                 record_nodes: np.ndarray | None = None, record_steps: np.ndarray | None = None,
+                 arms: bool = True, skip: bool = True,
+                 _check_dt: bool = True) -> np.ndarray | None:
+        """Advance ``state`` by ``n_steps`` steps of ``dt`` [s] in place.
+
+        Args:
+            gravity: (3,) gravitational acceleration [m/s^2] or None.
+            prescribed: particles moved along keyframes (times absolute, like ``state.t``).
+            record_nodes: (R,) particles whose positions are recorded.
+            record_steps: (S,) increasing step indices to record after (0 = now).
+            arms: False runs the purely elastic model (arm forces held at zero).
+            skip: compile out the terms the run does not need (False: keep all).
+        Returns:
+            (S, R, 3) recorded positions [m], or None without ``record_nodes``.
+        Raises:
+            StabilityError: dt above the stability limit, or the run diverged.
+        """
+        run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, _check_dt=_check_dt,
+                           prescribed_nodes=None if prescribed is None else prescribed.nodes)
+        record = None
+        if record_nodes is not None:
+            record_nodes = model.check_nodes(record_nodes, "record_nodes", movable=False)
+            record_steps = np.asarray(record_steps, dtype=np.int64)
+            if np.any(record_steps < 0) or np.any(record_steps > n_steps) or np.any(
+                    np.diff(record_steps) < 0):
+                raise ParameterError(f"record_steps must be increasing within 0..{n_steps}")
+            record = np.empty((len(record_steps), len(record_nodes), 3))
+        keyframes = None if prescribed is None else (prescribed.times, prescribed.positions)
+        bound = energy_bound(model, state, run.dt, n_steps, run.gravity, prescribed)
+        run(state, n_steps, keyframes, bound, (record_nodes, record_steps, record))
+        return record
+
+
+class Run:
+    """One prepared configuration of the compiled Verlet loop (model, dt, terms, prescribed set).
+
+    Built by :meth:`VerletIntegrator.prepare`; calling it advances a state.
+    Preparing once and calling many times keeps per-call overhead to the
+    kernel dispatch (the haptic loop relies on this).
+    """
+
+    def __init__(self, integrator: VerletIntegrator, model: Model, dt: float,
+                 gravity: np.ndarray | None, prescribed_nodes: np.ndarray | None, arms: bool,
+                 skip: bool) -> None:
+        p = model.params
+        g = None if gravity is None else np.asarray(gravity, dtype=np.float64).reshape(3)
+        self.terms = Terms.select(p, gravity=g, arms=arms, damping=integrator.damping, skip=skip)
+        self.integrator, self.model, self.dt, self.gravity, self.arms = (
+            integrator, model, dt, g, arms)
+        self.arm_r, self.arm_c = (p.arm_recursion(dt) if arms
+                                  else (np.zeros((model.n_connectors, 2)),) * 2)
+        if prescribed_nodes is None:
+            self.prescribed = np.zeros(0, np.int64)
+        else:
+            self.prescribed = model.check_nodes(prescribed_nodes, "prescribed motion")
+        self.active = np.setdiff1d(model.free_nodes, self.prescribed)
+        self.inv_masses = 1.0 / model.masses
+        self._forces = np.empty((model.n_particles, 3))
+        self._tension = np.empty(model.n_connectors)
+        t = self.terms
+        self._springs = (p.K0, p.a if t.nonlinear else None, p.b if t.nonlinear else None,
+                         self.arm_r if t.arms else None, self.arm_c if t.arms else None)
+        self._loads = ((np.zeros(3) if g is None else g) if t.gravity else None,
+                       integrator.damping / dt if t.damping else None)
+
+    def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
+                 record: tuple = (None, None, None)) -> None:
+        """Advance ``state`` by ``n_steps``; ``keyframes`` = (times (K,), positions (K, k, 3)).
+
+        Raises :class:`StabilityError` if the run diverges (the state is then invalid).
+        """
+        model, dt = self.model, self.dt
+        if state.dt is not None and state.dt != dt:
+            state.x_prev[:] = state.x - (state.x - state.x_prev) * (dt / state.dt)
+        if not self.arms:
+            state.arm_force[:] = 0.0
+        if keyframes is None:
+            keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
+        status = kernels.run_verlet(
+            state.x, state.x_prev, state.arm_force, state.dx_prev, model.edges,
+            model.rest_lengths, *self._springs, model.masses, self.inv_masses, self.active,
+            *self._loads, dt, int(n_steps), state.dt is None, self.prescribed, *keyframes,
+            state.t, *record, self.integrator.check_every, energy_bound, self._forces,
+            self._tension)
+        code, step, node = (int(v) for v in status)
+        if code != kernels.OK:
+            what = ("has a non-finite position" if code == kernels.NONFINITE
+                    else f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
+            raise StabilityError(
+                f"explicit run diverged at step {step} (t = {state.t + step * dt:.6g} s): "
+                f"particle {node} {what}; dt = {dt:.4g} s, stability limit "
+                f"{self.integrator.critical_time_step(model):.4g} s")
+        state.t += n_steps * dt
+        if n_steps:
+            state.dt = dt
+
+    def force_on(self, state: State, node: int) -> np.ndarray:
+        """(3,) connector force on particle ``node`` at ``state`` [N], arm step not committed.
+
+        What the next step will apply to that particle: its connectors only,
+        the arms advanced by this run's recursion into scratch (state unchanged).
+        """
+        return kernels.node_force(state.x, node, self.model.incidence_ptr,
+                                  self.model.incidence_edge, self.model.edges,
+                                  self.model.rest_lengths, *self._springs[:3], self.arm_r,
+                                  self.arm_c, state.arm_force, state.dx_prev)

@@ -1,0 +1,274 @@
+"""Compiled (numba) kernels: connector forces, the Verlet step loop, tangent assembly.
+
+Optional terms are passed either as arrays or as ``None``. Numba compiles one
+specialisation per argument-type combination and prunes ``if arg is None``
+branches at compile time, so a run that has no gravity, no Maxwell arms,
+linear springs (a = b = 0) or no recording executes a loop without those
+terms at all; the choice is made once per run by :class:`particle.integrator.Terms`,
+never inside the inner loop. Every kernel is serial: on the connector counts of
+interest (1e3-1e5) a parallel scatter needs atomics or a second gather pass and
+did not pay on the project's 2 shared cores (see ``particle.bench``).
+
+The force terms are small functions composed in :func:`net_forces`; the
+plain-numpy twin used as the reference in tests is :mod:`particle.reference_numpy`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# status codes of run_verlet
+OK = 0
+NONFINITE = 1
+ENERGY = 2
+
+
+@njit(cache=True)
+def spring_tension(e, dx, strain, K0, a, b):
+    """Elastic spring tension K(eps) dx [N] of connector e; a, b None = linear spring."""
+    if a is None:
+        return K0[e] * dx
+    return (K0[e] + a[e] * strain + b[e] * strain * strain) * dx
+
+
+@njit(cache=True)
+def spring_tangent(e, strain, K0, a, b):
+    """d(K(eps) dx)/d(dx) = K0 + 2 a eps + 3 b eps^2 [N/m] of connector e."""
+    if a is None:
+        return K0[e]
+    return K0[e] + 2.0 * a[e] * strain + 3.0 * b[e] * strain * strain
+
+
+@njit(cache=True)
+def arm_forces(e, dx, arm_r, arm_c, arm_prev, dx_prev):
+    """The two Maxwell arm forces [N] of connector e after one recursion step.
+
+    ``F^t = r F^{t-1} + c (dx^t - dx^{t-1})``.
+    """
+    ddx = dx - dx_prev[e]
+    return (arm_r[e, 0] * arm_prev[e, 0] + arm_c[e, 0] * ddx,
+            arm_r[e, 1] * arm_prev[e, 1] + arm_c[e, 1] * ddx)
+
+
+@njit(cache=True)
+def internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev,
+                    forces, tension, arm_out, dx_out):
+    """Connector forces on every particle (N, 3) [N], overwriting ``forces``.
+
+    Also writes each connector's tension (E,) [N], new arm forces (E, 2) [N]
+    (arms skipped if ``arm_r`` is None) and elongation (E,) [m]; ``arm_out``/``dx_out`` may alias ``arm_prev``/
+    ``dx_prev`` to commit the step in place (dynamics) or be scratch arrays
+    (Newton iterations, which must not commit).
+    """
+    forces[:] = 0.0
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        dx = length - rest_lengths[e]
+        f = spring_tension(e, dx, dx / rest_lengths[e], K0, a, b)
+        if arm_r is not None:
+            f1, f2 = arm_forces(e, dx, arm_r, arm_c, arm_prev, dx_prev)
+            arm_out[e, 0] = f1  # may alias arm_prev: this connector's old value is already used
+            arm_out[e, 1] = f2
+            f += f1 + f2
+        tension[e] = f
+        dx_out[e] = dx
+        s = f / length
+        forces[i, 0] += s * d0
+        forces[i, 1] += s * d1
+        forces[i, 2] += s * d2
+        forces[j, 0] -= s * d0
+        forces[j, 1] -= s * d1
+        forces[j, 2] -= s * d2
+
+
+@njit(cache=True)
+def node_force(x, node, incidence_ptr, incidence_edge, edges, rest_lengths, K0, a, b, arm_r,
+               arm_c, arm_prev, dx_prev):
+    """(3,) connector force on one particle [N], from its connectors only (CSR incidence).
+
+    Arm forces are advanced by the recursion but not stored (the state is unchanged).
+    """
+    out = np.zeros(3)
+    for k in range(incidence_ptr[node], incidence_ptr[node + 1]):
+        e = incidence_edge[k]
+        i = edges[e, 0]
+        j = edges[e, 1]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        dx = length - rest_lengths[e]
+        f1, f2 = arm_forces(e, dx, arm_r, arm_c, arm_prev, dx_prev)
+        s = (spring_tension(e, dx, dx / rest_lengths[e], K0, a, b) + f1 + f2) / length
+        if node == j:
+            s = -s
+        out[0] += s * d0
+        out[1] += s * d1
+        out[2] += s * d2
+    return out
+
+
+@njit(cache=True)
+def add_gravity(forces, masses, gravity, nodes):
+    """forces[n] += m_n g for the given nodes [N]."""
+    for n in nodes:
+        for c in range(3):
+            forces[n, c] += masses[n] * gravity[c]
+
+
+@njit(cache=True)
+def add_damping(forces, masses, x, x_prev, rate, nodes):
+    """Mass-proportional viscous damping: forces[n] -= m_n gamma v_n, v from the last step.
+
+    ``rate`` is gamma/dt [1/s^2]; v = (x - x_prev)/dt is the backward difference.
+    """
+    for n in nodes:
+        for c in range(3):
+            forces[n, c] -= masses[n] * rate * (x[n, c] - x_prev[n, c])
+
+
+@njit(cache=True)
+def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+               masses, active, gravity, damping_rate, forces, tension):
+    """All force terms of one explicit step, composed; commits the arm recursion in place."""
+    internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force, dx_prev,
+                    forces, tension, arm_force, dx_prev)
+    if gravity is not None:
+        add_gravity(forces, masses, gravity, active)
+    if damping_rate is not None:
+        add_damping(forces, masses, x, x_prev, damping_rate, active)
+
+
+@njit(cache=True)
+def prescribe(x, x_prev, nodes, times, positions, t):
+    """Move prescribed nodes to their piecewise-linear keyframe position at time t."""
+    k = np.searchsorted(times, t)
+    for p in range(nodes.shape[0]):
+        n = nodes[p]
+        for c in range(3):
+            if k == 0:
+                target = positions[0, p, c]
+            elif k >= times.shape[0]:
+                target = positions[times.shape[0] - 1, p, c]
+            else:
+                w = (t - times[k - 1]) / (times[k] - times[k - 1])
+                target = (1.0 - w) * positions[k - 1, p, c] + w * positions[k, p, c]
+            x_prev[n, c] = x[n, c]
+            x[n, c] = target
+
+
+@njit(cache=True)
+def check_divergence(x, x_prev, masses, active, dt, energy_bound, status):
+    """Flag non-finite positions or kinetic energy above ``energy_bound`` [J] in status[0, 2]."""
+    energy = 0.0
+    fastest = -1
+    fastest_v2 = -1.0
+    for n in active:
+        v2 = 0.0
+        for c in range(3):
+            if not math.isfinite(x[n, c]):
+                status[0] = NONFINITE
+                status[2] = n
+                return
+            dv = x[n, c] - x_prev[n, c]
+            v2 += dv * dv
+        v2 /= dt * dt
+        energy += 0.5 * masses[n] * v2
+        if v2 > fastest_v2:
+            fastest_v2 = v2
+            fastest = n
+    if not energy <= energy_bound:
+        status[0] = ENERGY
+        status[2] = fastest
+
+
+@njit(cache=True)
+def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+               masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
+               presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
+               check_every, energy_bound, forces, tension):
+    """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, node).
+
+    ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
+    and not prescribed); if ``startup``, the first step uses half the
+    acceleration term, i.e. the Taylor start ``x^1 = x^0 + dt^2/2 a^0`` of a
+    state at rest (``x_prev = x``). Prescribed nodes follow their keyframes.
+    Positions of ``rec_nodes`` are stored in ``rec_out[s]`` after step
+    ``rec_steps[s]`` (0 = the initial state). Every ``check_every`` steps the
+    run stops with a non-zero code if positions are non-finite or the kinetic
+    energy exceeds ``energy_bound``.
+    """
+    status = np.zeros(3, dtype=np.int64)
+    slot = 0
+    if rec_nodes is not None:
+        while slot < rec_steps.shape[0] and rec_steps[slot] == 0:
+            for r in range(rec_nodes.shape[0]):
+                rec_out[slot, r] = x[rec_nodes[r]]
+            slot += 1
+    h2 = dt * dt
+    for step in range(n_steps):
+        net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                   masses, active, gravity, damping_rate, forces, tension)
+        scale = 0.5 * h2 if (startup and step == 0) else h2
+        for n in active:
+            for c in range(3):
+                new = 2.0 * x[n, c] - x_prev[n, c] + scale * forces[n, c] * inv_masses[n]
+                x_prev[n, c] = x[n, c]
+                x[n, c] = new
+        prescribe(x, x_prev, presc_nodes, presc_times, presc_pos, t0 + (step + 1) * dt)
+        if rec_nodes is not None:
+            while slot < rec_steps.shape[0] and rec_steps[slot] == step + 1:
+                for r in range(rec_nodes.shape[0]):
+                    rec_out[slot, r] = x[rec_nodes[r]]
+                slot += 1
+        if (step + 1) % check_every == 0 or step + 1 == n_steps:
+            check_divergence(x, x_prev, masses, active, dt, energy_bound, status)
+            if status[0] != OK:
+                status[1] = step + 1
+                return status
+    return status
+
+
+@njit(cache=True)
+def assemble_tangent(x, edges, rest_lengths, K0, a, b, arm_stiffness, tension, slots, data):
+    """Tangent stiffness -d(forces)/dx into CSC ``data`` through precomputed ``slots``.
+
+    Per connector the 3x3 block is ``s e e^T + (F/l)(I - e e^T)`` with the
+    axial tangent ``s = K0 + 2 a eps + 3 b eps^2 (+ sum of arm coefficients
+    c_i)`` and the geometric term F/l (F = total tension). ``slots`` (E, 4, 3, 3)
+    gives the data index of blocks (i,i), (j,j), (i,j), (j,i), -1 for dofs not
+    in the matrix.
+    """
+    data[:] = 0.0
+    blk = np.empty((3, 3))
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        unit = (d0 / length, d1 / length, d2 / length)
+        s = spring_tangent(e, (length - rest_lengths[e]) / rest_lengths[e], K0, a, b)
+        if arm_stiffness is not None:
+            s += arm_stiffness[e]
+        g = tension[e] / length
+        for p in range(3):
+            for q in range(3):
+                blk[p, q] = (s - g) * unit[p] * unit[q]
+            blk[p, p] += g
+        for p in range(3):
+            for q in range(3):
+                v = blk[p, q]
+                for k, sign in ((0, 1.0), (1, 1.0), (2, -1.0), (3, -1.0)):
+                    idx = slots[e, k, p, q]
+                    if idx >= 0:
+                        data[idx] += sign * v

@@ -1,0 +1,445 @@
+"""The particle model: immutable :class:`Model` built by a :class:`ModelBuilder`, mutable :class:`State`.
+
+One particle per mesh vertex, one Maxwell-Solid connector per mesh edge
+(Basafa & Farahmand). A connector joining particles ``i`` and ``j`` with rest
+length ``L0`` and elongation ``dx = |x_j - x_i| - L0`` (strain ``eps = dx/L0``)
+carries the tension
+
+    F = K(eps) dx + F_arm1 + F_arm2,        K(eps) = K0 + a eps + b eps^2,
+
+along ``(x_j - x_i)/|x_j - x_i|`` (positive = tension, pulls ``i`` toward ``j``).
+Each Maxwell arm (spring ``k_i`` in series with a dashpot ``b_i``, ``tau_i =
+b_i/k_i``) obeys ``dF/dt = k_i d(dx)/dt - F/tau_i`` and is advanced by the
+one-step recursion ``F^t = r_i F^{t-1} + c_i (dx^t - dx^{t-1})``; see
+:meth:`ConnectorParams.arm_recursion` for the two coefficient choices.
+
+Style follows NVIDIA Warp's ``warp.sim``: the Model holds flat, read-only
+arrays; the State holds what changes in time; integrators and solvers are
+separate (:mod:`particle.integrator`, :mod:`particle.statics`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from forcecal.errors import MeshError, ParameterError
+from forcecal.mesh import TetMesh
+from forcecal.problem import Problem
+
+log = logging.getLogger(__name__)
+
+PARAM_NAMES = ("K0", "a", "b", "k1", "b1", "k2", "b2")
+N_ARMS = 2
+
+
+def _frozen(arr: np.ndarray, dtype) -> np.ndarray:
+    out = np.array(arr, dtype=dtype, order="C")  # own copy, so freezing cannot surprise a caller
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class ConnectorParams:
+    """Per-connector Maxwell-Solid parameters; seven (E,) float64 arrays.
+
+    Attributes:
+        K0: (E,) float64, small-strain stiffness of the elastic spring [N/m].
+        a: (E,) float64, linear strain coefficient of the spring stiffness [N/m].
+        b: (E,) float64, quadratic strain coefficient of the spring stiffness [N/m].
+        k1, k2: (E,) float64, spring stiffness of Maxwell arm 1 and 2 [N/m].
+        b1, b2: (E,) float64, dashpot coefficient of Maxwell arm 1 and 2 [N s/m].
+
+    Instances are immutable; calibration builds new ones with
+    ``dataclasses.replace(params, K0=...)``.
+    """
+    K0: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    k1: np.ndarray
+    b1: np.ndarray
+    k2: np.ndarray
+    b2: np.ndarray
+
+    def __post_init__(self) -> None:
+        arrays = [np.atleast_1d(np.asarray(getattr(self, n), dtype=np.float64)) for n in PARAM_NAMES]
+        shapes = {a.shape for a in arrays}
+        if len(shapes) != 1 or arrays[0].ndim != 1:
+            raise ParameterError("connector parameters must be seven 1-D arrays of one length, got "
+                                 + ", ".join(f"{n} {a.shape}" for n, a in zip(PARAM_NAMES, arrays)))
+        for name, arr in zip(PARAM_NAMES, arrays):
+            object.__setattr__(self, name, _frozen(arr, np.float64))
+
+    @classmethod
+    def uniform(cls, n_connectors: int, *, K0: float, a: float = 0.0, b: float = 0.0,
+                k1: float, b1: float, k2: float, b2: float) -> "ConnectorParams":
+        """The same values for every one of ``n_connectors`` connectors."""
+        values = dict(K0=K0, a=a, b=b, k1=k1, b1=b1, k2=k2, b2=b2)
+        return cls(**{n: np.full(n_connectors, float(v)) for n, v in values.items()})
+
+    @property
+    def n_connectors(self) -> int:
+        return self.K0.shape[0]
+
+    @property
+    def tau1(self) -> np.ndarray:
+        """(E,) float64, relaxation time of arm 1, b1/k1 [s]."""
+        return self.b1 / self.k1
+
+    @property
+    def tau2(self) -> np.ndarray:
+        """(E,) float64, relaxation time of arm 2, b2/k2 [s]."""
+        return self.b2 / self.k2
+
+    @property
+    def arm_stiffness(self) -> np.ndarray:
+        """(E, 2) float64, arm spring stiffnesses (k1, k2) [N/m]."""
+        return np.column_stack([self.k1, self.k2])
+
+    @property
+    def arm_tau(self) -> np.ndarray:
+        """(E, 2) float64, arm relaxation times (tau1, tau2) [s]."""
+        return np.column_stack([self.tau1, self.tau2])
+
+    @property
+    def is_linear(self) -> bool:
+        """True when a = b = 0 everywhere: K(eps) = K0 and the linear kernels apply."""
+        return not (np.any(self.a) or np.any(self.b))
+
+    def stiffness(self, strain: np.ndarray) -> np.ndarray:
+        """(E,) secant stiffness K(eps) = K0 + a eps + b eps^2 [N/m] at per-connector strains."""
+        return self.K0 + self.a * strain + self.b * strain * strain
+
+    def tangent_stiffness(self, strain: np.ndarray) -> np.ndarray:
+        """(E,) tangent d(K dx)/d(dx) = K0 + 2 a eps + 3 b eps^2 [N/m]."""
+        return self.K0 + 2.0 * self.a * strain + 3.0 * self.b * strain * strain
+
+    def extreme_stiffness(self, strain_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        """(E,) min and max of the secant K(eps) over ``strain_range``, analytically.
+
+        K is a quadratic in eps; its extremes lie at the interval ends or at the
+        vertex eps* = -a/(2b) when that lies inside.
+        """
+        lo, hi = strain_range
+        ends = np.stack([self.stiffness(np.full_like(self.K0, lo)),
+                         self.stiffness(np.full_like(self.K0, hi))])
+        kmin, kmax = ends.min(axis=0), ends.max(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vertex = np.where(self.b != 0.0, -self.a / (2.0 * self.b), np.nan)
+        inside = (vertex > lo) & (vertex < hi)
+        kv = self.stiffness(np.where(inside, vertex, 0.0))
+        kmin = np.where(inside, np.minimum(kmin, kv), kmin)
+        kmax = np.where(inside, np.maximum(kmax, kv), kmax)
+        return kmin, kmax
+
+    def max_tangent_stiffness(self, strain_range: tuple[float, float]) -> np.ndarray:
+        """(E,) max over ``strain_range`` of |K0 + 2 a eps + 3 b eps^2| [N/m] (quadratic: ends/vertex)."""
+        lo, hi = strain_range
+        cand = [np.abs(self.tangent_stiffness(np.full_like(self.K0, e))) for e in (lo, hi)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vertex = np.where(self.b != 0.0, -self.a / (3.0 * self.b), 0.0)
+        vertex = np.clip(vertex, lo, hi)
+        cand.append(np.abs(self.tangent_stiffness(vertex)))
+        return np.max(cand, axis=0)
+
+    def validate(self, strain_range: tuple[float, float] = (-0.5, 0.5),
+                 edges: np.ndarray | None = None) -> "ConnectorParams":
+        """Raise :class:`ParameterError` naming the first non-physical connector; return self.
+
+        Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, and a secant
+        stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
+        the quadratic's ends and vertex). ``edges`` (E, 2), if given, lets the
+        message name the connector's two particles.
+        """
+        lo, hi = (float(s) for s in strain_range)
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi and lo > -1.0):
+            raise ParameterError(f"strain range {strain_range} must be finite, increasing and "
+                                 "above -1 (a connector cannot shrink to zero length)")
+
+        def where(e: int) -> str:
+            ends = f" (particles {int(edges[e, 0])}-{int(edges[e, 1])})" if edges is not None else ""
+            return f"connector {e}{ends}"
+
+        for name in PARAM_NAMES:
+            bad = np.nonzero(~np.isfinite(getattr(self, name)))[0]
+            if len(bad):
+                raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]} "
+                                     "is not finite")
+        for name in ("K0", "k1", "b1", "k2", "b2"):
+            bad = np.nonzero(getattr(self, name) <= 0.0)[0]
+            if len(bad):
+                raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]:g} "
+                                     "must be > 0")
+        kmin, _ = self.extreme_stiffness((lo, hi))
+        bad = np.nonzero(kmin <= 0.0)[0]
+        if len(bad):
+            e = bad[0]
+            raise ParameterError(f"{where(e)}: spring stiffness K(eps) = K0 + a eps + b eps^2 "
+                                 f"(K0={self.K0[e]:g}, a={self.a[e]:g}, b={self.b[e]:g}) reaches "
+                                 f"{kmin[e]:g} N/m <= 0 in the strain range [{lo:g}, {hi:g}]")
+        return self
+
+    def arm_recursion(self, dt: float, *, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Coefficients (r, c), each (E, 2), of ``F_arm^t = r F_arm^{t-1} + c (dx^t - dx^{t-1})``.
+
+        ``exact=False`` is the paper's recursion, backward Euler of the Maxwell
+        arm: ``F^t = k b/(k dt + b) ((dx^t - dx^{t-1}) + F^{t-1}/k)``, i.e.
+        ``r = b/(b + k dt)``, ``c = k r``; used by the explicit runs, where
+        ``dt/tau`` is tiny.
+
+        ``exact=True`` integrates ``dF/dt = k d(dx)/dt - F/tau`` exactly for an
+        elongation that is linear within the step: ``r = exp(-dt/tau)``, ``c =
+        k tau (1 - r)/dt``. Both agree to first order in dt/tau; the exact form
+        stays right for the coarse steps (dt up to ~tau) of the quasi-static
+        relaxation path, where backward Euler would be badly off.
+        """
+        if not dt > 0.0:
+            raise ParameterError(f"arm recursion: time step {dt} s must be > 0")
+        k = self.arm_stiffness
+        tau = self.arm_tau
+        if exact:
+            r = np.exp(-dt / tau)
+            c = k * tau * (-np.expm1(-dt / tau)) / dt  # 1 - r without cancellation for dt << tau
+        else:
+            r = tau / (tau + dt)
+            c = k * r
+        return r, c
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """Immutable particle model: flat arrays only, shared by every run and solver.
+
+    Attributes:
+        rest_positions: (N, 3) float64, particle positions in the undeformed state [m].
+        edges: (E, 2) int64, particle ids (i, j) of each connector, i != j.
+        rest_lengths: (E,) float64, connector rest lengths L0 [m].
+        masses: (N,) float64, particle masses [kg] (> 0).
+        fixed: (N,) bool, True for clamped particles (never move).
+        params: connector parameters (:class:`ConnectorParams`, E entries).
+        free_nodes: (Nf,) int64, ids of the particles that are not fixed.
+        incidence_ptr: (N + 1,) int64, CSR row pointer of the particle -> connector incidence.
+        incidence_edge: (2E,) int64, connector ids touching each particle (CSR order).
+        incidence_other: (2E,) int64, the particle at the connector's other end.
+    """
+    rest_positions: np.ndarray
+    edges: np.ndarray
+    rest_lengths: np.ndarray
+    masses: np.ndarray
+    fixed: np.ndarray
+    params: ConnectorParams
+    free_nodes: np.ndarray = field(init=False)
+    incidence_ptr: np.ndarray = field(init=False)
+    incidence_edge: np.ndarray = field(init=False)
+    incidence_other: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        for name, dtype in (("rest_positions", np.float64), ("edges", np.int64),
+                            ("rest_lengths", np.float64), ("masses", np.float64),
+                            ("fixed", bool)):
+            object.__setattr__(self, name, _frozen(getattr(self, name), dtype))
+        if self.params.n_connectors != self.n_connectors:
+            raise ParameterError(f"parameters have {self.params.n_connectors} entries but the "
+                                 f"model has {self.n_connectors} connectors")
+        ends = self.edges.ravel()
+        order = np.argsort(ends, kind="stable")
+        ptr = np.zeros(self.n_particles + 1, dtype=np.int64)
+        ptr[1:] = np.cumsum(np.bincount(ends, minlength=self.n_particles))
+        other = self.edges[:, ::-1].ravel()
+        object.__setattr__(self, "free_nodes", _frozen(np.nonzero(~self.fixed)[0], np.int64))
+        object.__setattr__(self, "incidence_ptr", _frozen(ptr, np.int64))
+        object.__setattr__(self, "incidence_edge", _frozen(order // 2, np.int64))
+        object.__setattr__(self, "incidence_other", _frozen(other[order], np.int64))
+
+    @property
+    def n_particles(self) -> int:
+        return self.rest_positions.shape[0]
+
+    @property
+    def n_connectors(self) -> int:
+        return self.edges.shape[0]
+
+    def with_params(self, params: ConnectorParams) -> "Model":
+        """A new Model with other connector parameters, sharing every topology array."""
+        if params.n_connectors != self.n_connectors:
+            raise ParameterError(f"parameters have {params.n_connectors} entries but the model "
+                                 f"has {self.n_connectors} connectors")
+        new = object.__new__(Model)
+        for f in dataclasses.fields(Model):
+            object.__setattr__(new, f.name, getattr(self, f.name))
+        object.__setattr__(new, "params", params)
+        return new
+
+    def state(self) -> "State":
+        """A fresh State: at rest in the undeformed configuration, arms unloaded, t = 0."""
+        return State(x=self.rest_positions.copy(), x_prev=self.rest_positions.copy(),
+                     arm_force=np.zeros((self.n_connectors, N_ARMS)),
+                     dx_prev=np.zeros(self.n_connectors), t=0.0)
+
+    def check_nodes(self, nodes: np.ndarray, what: str, *, movable: bool = True) -> np.ndarray:
+        """(k,) int64 particle ids, checked: in range, and (if ``movable``) not fixed."""
+        nodes = np.atleast_1d(np.asarray(nodes))
+        if nodes.ndim != 1 or not np.issubdtype(nodes.dtype, np.integer):
+            raise MeshError(f"{what}: particle ids must be a 1-D list of integers, got {nodes!r}")
+        nodes = nodes.astype(np.int64)
+        bad = nodes[(nodes < 0) | (nodes >= self.n_particles)]
+        if len(bad):
+            raise MeshError(f"{what}: unknown particle(s) {bad.tolist()}; the model has particles "
+                            f"0..{self.n_particles - 1}")
+        if movable and np.any(self.fixed[nodes]):
+            raise MeshError(f"{what}: particle(s) {nodes[self.fixed[nodes]].tolist()} are fixed "
+                            "and cannot be moved")
+        return nodes
+
+    def incident_min_length(self, nodes: np.ndarray) -> np.ndarray:
+        """(k,) float64, the shortest rest length among the connectors touching each node [m]."""
+        nodes = self.check_nodes(nodes, "incident_min_length", movable=False)
+        return np.array([self.rest_lengths[self.incidence_edge[self.incidence_ptr[n]:
+                                                               self.incidence_ptr[n + 1]]].min()
+                         for n in nodes])
+
+
+@dataclass
+class State:
+    """Mutable state of one run.
+
+    Attributes:
+        x: (N, 3) float64, positions at time t [m].
+        x_prev: (N, 3) float64, positions one step earlier (position Verlet) [m];
+            equal to ``x`` for a state at rest.
+        arm_force: (E, 2) float64, Maxwell arm forces at the last completed step [N].
+        dx_prev: (E,) float64, connector elongation at the last completed step [m].
+        t: time [s].
+        dt: step that ``x_prev`` lags ``x`` by [s]; None for a state at rest that
+            has not been stepped (the integrator then uses the start-up step).
+    """
+    x: np.ndarray
+    x_prev: np.ndarray
+    arm_force: np.ndarray
+    dx_prev: np.ndarray
+    t: float = 0.0
+    dt: float | None = None
+
+    def copy(self) -> "State":
+        return State(self.x.copy(), self.x_prev.copy(), self.arm_force.copy(),
+                     self.dx_prev.copy(), self.t, self.dt)
+
+    def displacement(self, model: Model) -> np.ndarray:
+        """(N, 3) displacement from the rest positions [m]."""
+        return self.x - model.rest_positions
+
+
+class ModelBuilder:
+    """Accumulates particles and connectors, then freezes them into a :class:`Model`.
+
+    ``add_particle``/``add_connector`` add one item; ``add_particles``/
+    ``add_connectors`` add arrays (what :func:`build_model` uses).
+    """
+
+    def __init__(self) -> None:
+        self._x: list[np.ndarray] = []
+        self._m: list[np.ndarray] = []
+        self._fixed: list[np.ndarray] = []
+        self._edges: list[np.ndarray] = []
+        self._n = 0
+
+    def add_particle(self, x: Sequence[float], mass: float, fixed: bool = False) -> int:
+        """Add one particle at ``x`` [m] with ``mass`` [kg]; returns its id."""
+        return int(self.add_particles(np.reshape(x, (1, 3)), [mass], [fixed])[0])
+
+    def add_particles(self, x: np.ndarray, masses: np.ndarray,
+                      fixed: np.ndarray | None = None) -> np.ndarray:
+        """Add particles (k, 3) [m] with masses (k,) [kg]; returns their ids (k,)."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        m = np.asarray(masses, dtype=np.float64).reshape(-1)
+        fx = np.zeros(len(x), bool) if fixed is None else np.asarray(fixed, dtype=bool).reshape(-1)
+        if len(m) != len(x) or len(fx) != len(x):
+            raise MeshError(f"add_particles: {len(x)} positions, {len(m)} masses, {len(fx)} "
+                            "fixed flags")
+        if not np.all(np.isfinite(x)):
+            raise MeshError(f"add_particles: non-finite position for particle "
+                            f"{self._n + int(np.nonzero(~np.isfinite(x).all(1))[0][0])}")
+        bad = np.nonzero(~(m > 0) | ~np.isfinite(m))[0]
+        if len(bad):
+            raise ParameterError(f"particle {self._n + int(bad[0])}: mass {m[bad[0]]} must be a "
+                                 "finite number > 0")
+        ids = np.arange(self._n, self._n + len(x), dtype=np.int64)
+        self._x.append(x)
+        self._m.append(m)
+        self._fixed.append(fx)
+        self._n += len(x)
+        return ids
+
+    def add_connector(self, i: int, j: int) -> int:
+        """Connect particles ``i`` and ``j``; returns the connector id."""
+        return int(self.add_connectors(np.array([[i, j]]))[0])
+
+    def add_connectors(self, pairs: np.ndarray) -> np.ndarray:
+        """Add connectors (k, 2) between existing particles; returns their ids (k,)."""
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        first = sum(len(e) for e in self._edges)
+        bad = np.nonzero(np.any((pairs < 0) | (pairs >= self._n), axis=1))[0]
+        if len(bad):
+            raise MeshError(f"connector {first + int(bad[0])} joins unknown particle(s) "
+                            f"{pairs[bad[0]].tolist()}; particles are 0..{self._n - 1}")
+        same = np.nonzero(pairs[:, 0] == pairs[:, 1])[0]
+        if len(same):
+            raise MeshError(f"connector {first + int(same[0])} joins particle {pairs[same[0], 0]} "
+                            "to itself")
+        self._edges.append(pairs)
+        return np.arange(first, first + len(pairs), dtype=np.int64)
+
+    def finalize(self, params: ConnectorParams) -> Model:
+        """Freeze into a :class:`Model` (rest lengths from the current positions)."""
+        if self._n == 0 or not self._edges:
+            raise MeshError("ModelBuilder.finalize: the model needs particles and connectors")
+        x = np.concatenate(self._x)
+        edges = np.concatenate(self._edges)
+        key = np.sort(edges, axis=1)
+        uniq, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+        if np.any(counts > 1):
+            k = int(np.nonzero(counts > 1)[0][0])
+            raise MeshError(f"particles {uniq[k].tolist()} are joined by {counts[k]} connectors")
+        lengths = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)
+        zero = np.nonzero(lengths <= 1e-12 * max(1.0, float(np.ptp(x))))[0]
+        if len(zero):
+            raise MeshError(f"connector {int(zero[0])} (particles {edges[zero[0]].tolist()}) has "
+                            "zero rest length")
+        model = Model(rest_positions=x, edges=edges, rest_lengths=lengths,
+                      masses=np.concatenate(self._m), fixed=np.concatenate(self._fixed),
+                      params=params)
+        log.debug("model: %d particles (%d fixed), %d connectors", model.n_particles,
+                  int(model.fixed.sum()), model.n_connectors)
+        return model
+
+
+def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: ConnectorParams,
+                fixed: np.ndarray | None = None) -> Model:
+    """Particle model of a mesh: one particle per vertex, one connector per ``mesh.edges`` row.
+
+    Masses are lumped (each tet's mass split equally over its 4 vertices).
+    ``fixed`` (vertex ids) defaults to ``problem.fixed`` for a Problem and to
+    no fixed vertex for a bare mesh.
+    """
+    if isinstance(problem_or_mesh, Problem):
+        mesh = problem_or_mesh.mesh
+        fixed = problem_or_mesh.fixed if fixed is None else fixed
+    else:
+        mesh = problem_or_mesh
+    if not density > 0:
+        raise ParameterError(f"density = {density} kg/m^3 must be > 0")
+    mask = np.zeros(mesh.n_vertices, dtype=bool)
+    if fixed is not None:
+        fixed = np.asarray(fixed, dtype=np.int64)
+        bad = fixed[(fixed < 0) | (fixed >= mesh.n_vertices)]
+        if len(bad):
+            raise MeshError(f"fixed vertices {bad.tolist()} are not vertices of the mesh")
+        mask[fixed] = True
+    builder = ModelBuilder()
+    builder.add_particles(mesh.vertices, mesh.lumped_masses(density), mask)
+    builder.add_connectors(mesh.edges)
+    return builder.finalize(params)

@@ -1,0 +1,320 @@
+"""Static equilibrium by Newton's method with the analytic sparse tangent.
+
+The unknowns are the positions of the free particles that are not prescribed.
+Each connector contributes the 3x3 tangent block ``s e e^T + (F/l)(I - e e^T)``
+(axial tangent ``s = K0 + 2 a eps + 3 b eps^2`` plus, for a quasi-static arm
+step, the arm coefficients ``sum_i c_i``; geometric term F/l). The matrix is
+assembled by a compiled kernel straight into CSC storage through a
+precomputed index map (:class:`TangentPattern`, no Python loop over
+connectors); prescribed particles keep their rows and columns with an identity
+block, so one pattern serves every test point. ``scipy.sparse.linalg.splu``
+factorises it.
+
+Factorisations are expensive next to a solve, so :class:`EquilibriumSolver`
+runs a *modified* Newton iteration: it keeps its LU between iterations, load
+steps and calls, and refactorises only when the residual stops contracting
+fast (ratio above ``refactor_ratio``). A step that does not reduce the
+residual with a fresh factorisation is backtracked (line search); a load step
+that still fails is halved by :func:`continuation`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable, TypeVar
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from forcecal.errors import ConvergenceError, ParameterError
+from particle import kernels
+from particle.model import ConnectorParams, Model
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, eq=False)
+class TangentPattern:
+    """CSC sparsity of the tangent on the dofs of the non-fixed particles.
+
+    Attributes:
+        node_dof: (N,) int64, first dof (3 per particle) of each particle, -1 if fixed.
+        indptr: (n + 1,) int32, CSC column pointers (n = 3 x non-fixed particles).
+        indices: (nnz,) int32, CSC row indices.
+        slots: (E, 4, 3, 3) int64, data index of each entry of the connector blocks
+            (i,i), (j,j), (i,j), (j,i); -1 where a fixed particle is involved.
+    """
+    node_dof: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    slots: np.ndarray
+
+    @classmethod
+    def of(cls, model: Model) -> "TangentPattern":
+        node_dof = np.full(model.n_particles, -1, dtype=np.int64)
+        node_dof[model.free_nodes] = 3 * np.arange(len(model.free_nodes))
+        i, j = model.edges[:, 0], model.edges[:, 1]
+        blocks = np.stack([np.column_stack(pair) for pair in ((i, i), (j, j), (i, j), (j, i))],
+                          axis=1)  # (E, 4, 2): row node, column node
+        r0 = node_dof[blocks[..., 0]][..., None, None] + np.arange(3)[:, None]
+        c0 = node_dof[blocks[..., 1]][..., None, None] + np.arange(3)[None, :]
+        rows, cols = np.broadcast_arrays(r0, c0)
+        valid = (node_dof[blocks[..., 0]] >= 0) & (node_dof[blocks[..., 1]] >= 0)
+        valid = np.broadcast_to(valid[..., None, None], rows.shape)
+        n = 3 * len(model.free_nodes)
+        keys = cols[valid] * n + rows[valid]
+        unique = np.unique(keys)
+        slots = np.full(rows.shape, -1, dtype=np.int64)
+        slots[valid] = np.searchsorted(unique, keys)
+        indptr = np.searchsorted(unique // n, np.arange(n + 1)).astype(np.int32)
+        return cls(node_dof=node_dof, indptr=indptr, indices=(unique % n).astype(np.int32),
+                   slots=slots)
+
+    @property
+    def n_dofs(self) -> int:
+        return len(self.indptr) - 1
+
+    def dofs(self, nodes: np.ndarray) -> np.ndarray:
+        """(3k,) matrix dofs of non-fixed particles ``nodes``."""
+        return (self.node_dof[nodes][:, None] + np.arange(3)).ravel()
+
+    def constraint_slots(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Data indices of the rows/columns of ``nodes``' dofs, and of their diagonal entries."""
+        dofs = self.dofs(nodes)
+        cols = np.repeat(np.arange(self.n_dofs), np.diff(self.indptr))
+        in_row = np.isin(self.indices, dofs)
+        in_col = np.isin(cols, dofs)
+        diag = np.nonzero(in_row & (self.indices == cols))[0]
+        return np.nonzero(in_row | in_col)[0], diag
+
+
+@dataclass
+class ArmStep:
+    """One quasi-static step of the Maxwell arms: ``F = r F_prev + c (dx - dx_prev)``.
+
+    Attributes:
+        r, c: (E, 2) float64, recursion coefficients [-], [N/m].
+        force_prev: (E, 2) float64, arm forces at the previous sample [N].
+        dx_prev: (E,) float64, connector elongations at the previous sample [m].
+    """
+    r: np.ndarray
+    c: np.ndarray
+    force_prev: np.ndarray
+    dx_prev: np.ndarray
+
+    @property
+    def stiffness(self) -> np.ndarray:
+        """(E,) float64, the arms' contribution c_1 + c_2 to the axial tangent [N/m]."""
+        return self.c.sum(axis=1)
+
+
+@dataclass
+class Equilibrium:
+    """A converged static state.
+
+    Attributes:
+        x: (N, 3) float64, positions [m].
+        forces: (N, 3) float64, net internal (+ gravity) force on each particle [N];
+            at a prescribed particle, minus the force the constraint applies.
+        arm_force: (E, 2) float64, arm forces (zeros without arms) [N].
+        dx: (E,) float64, connector elongations [m].
+        iterations: Newton iterations used.
+    """
+    x: np.ndarray
+    forces: np.ndarray
+    arm_force: np.ndarray
+    dx: np.ndarray
+    iterations: int
+
+    @classmethod
+    def at_rest(cls, model: Model) -> "Equilibrium":
+        """The undeformed, unloaded state (arms unloaded)."""
+        return cls(model.rest_positions.copy(), np.zeros((model.n_particles, 3)),
+                   np.zeros((model.n_connectors, 2)), np.zeros(model.n_connectors), 0)
+
+    def reaction(self, nodes: int | np.ndarray) -> np.ndarray:
+        """Force [N] the constraint applies to prescribed particle(s) ``nodes``: (3,) or (k, 3)."""
+        return -self.forces[nodes]
+
+
+class EquilibriumSolver:
+    """Newton solver for one set of prescribed particles; keeps its LU between solves.
+
+    Args:
+        model: topology, masses and fixed particles (parameters come with each solve).
+        prescribed: (k,) ids of particles whose positions are given.
+        pattern: tangent pattern of ``model`` (shared between solvers of one model).
+        rtol: converged when ``|residual|_2 <= rtol x`` the force scale (the largest
+            of the constraint reaction, the total weight and the force of 0.1 %
+            strain on an average connector).
+        max_iter: Newton iterations per solve.
+        refactor_ratio: refactorise when an iteration reduces the residual by less.
+    """
+
+    def __init__(self, model: Model, prescribed: np.ndarray, pattern: TangentPattern, *,
+                 rtol: float = 1e-8, max_iter: int = 40, refactor_ratio: float = 0.25) -> None:
+        self.model = model
+        self.prescribed = model.check_nodes(prescribed, "prescribed particles")
+        self.pattern = pattern
+        self.rtol = rtol
+        self.max_iter = max_iter
+        self.refactor_ratio = refactor_ratio
+        active = np.setdiff1d(model.free_nodes, self.prescribed)
+        self._flat = (3 * active[:, None] + np.arange(3)).ravel()
+        self._mat = pattern.dofs(active)
+        self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
+        self._lu = None
+        self.factorizations = 0
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_lu"] = None  # SuperLU objects do not pickle; rebuilt on demand
+        return state
+
+    def _evaluate(self, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
+                  arms: ArmStep | None, gravity: np.ndarray | None) -> _Iterate:
+        n, e = self.model.n_particles, self.model.n_connectors
+        forces, tension, arm_out, dx = (np.empty((n, 3)), np.empty(e), np.zeros((e, 2)),
+                                        np.empty(e))
+        kernels.internal_forces(
+            x, self.model.edges, self.model.rest_lengths, p.K0, p.a if nonlinear else None,
+            p.b if nonlinear else None, None if arms is None else arms.r,
+            None if arms is None else arms.c, None if arms is None else arms.force_prev,
+            None if arms is None else arms.dx_prev, forces, tension, arm_out, dx)
+        if gravity is not None:
+            forces += self.model.masses[:, None] * gravity
+        return _Iterate(x, forces, tension, arm_out, dx, forces.ravel()[self._flat])
+
+    def _factorize(self, it: _Iterate, p: ConnectorParams, nonlinear: bool,
+                   arms: ArmStep | None) -> None:
+        pat = self.pattern
+        data = np.empty(len(pat.indices))
+        kernels.assemble_tangent(it.x, self.model.edges, self.model.rest_lengths, p.K0,
+                                 p.a if nonlinear else None, p.b if nonlinear else None,
+                                 None if arms is None else arms.stiffness, it.tension, pat.slots,
+                                 data)
+        data[self._zero_slots] = 0.0
+        data[self._diag_slots] = 1.0
+        matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
+        try:
+            # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
+            self._lu = splu(matrix, permc_spec="MMD_AT_PLUS_A",
+                            options=dict(SymmetricMode=True), diag_pivot_thresh=0.0)
+        except RuntimeError as exc:  # exactly singular: a mechanism (e.g. nothing holds the model)
+            raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model held "
+                                   "by fixed or prescribed particles?") from exc
+        self.factorizations += 1
+
+    def _newton_step(self, res: np.ndarray) -> np.ndarray:
+        rhs = np.zeros(self.pattern.n_dofs)
+        rhs[self._mat] = res
+        return self._lu.solve(rhs)[self._mat]
+
+    def _moved(self, it: _Iterate, step: np.ndarray, *args) -> _Iterate:
+        x = it.x.copy()
+        x.ravel()[self._flat] += step
+        return self._evaluate(x, *args)
+
+    def solve(self, x: np.ndarray, params: ConnectorParams, *, arms: ArmStep | None = None,
+              gravity: np.ndarray | None = None) -> Equilibrium:
+        """Equilibrium from the guess ``x`` (N, 3) (prescribed particles already at their targets).
+
+        Modified Newton: steps ``LU^{-1} residual`` with the kept factorisation;
+        a step that does not lower the residual triggers a refactorisation at
+        the current iterate, a fresh factorisation's step is backtracked (line
+        search). Raises :class:`ConvergenceError` if the residual cannot be
+        brought below the tolerance in ``max_iter`` iterations.
+        """
+        args = (params, not params.is_linear, arms, gravity)
+        floor = 1e-3 * float(np.mean(params.K0) * np.mean(self.model.rest_lengths))
+        if gravity is not None:
+            floor = max(floor, float(np.linalg.norm(gravity) * self.model.masses.sum()))
+        cur = self._evaluate(np.array(x, dtype=np.float64), *args)
+        fresh = False
+        for it in range(self.max_iter + 1):
+            scale = max(floor, float(np.linalg.norm(cur.forces[self.prescribed])))
+            if cur.norm <= self.rtol * scale:
+                return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, it)
+            if it == self.max_iter:
+                break
+            if self._lu is None:
+                self._factorize(cur, *args[:3])
+                fresh = True
+            newton = self._newton_step(cur.res)
+            trial = self._moved(cur, newton, *args)
+            for _ in range(8 if fresh else 0):  # line search on a fresh tangent's step
+                if trial.norm < cur.norm:
+                    break
+                newton = 0.5 * newton
+                trial = self._moved(cur, newton, *args)
+            if not trial.norm < cur.norm:  # includes NaN
+                if fresh:
+                    break
+                self._lu = None  # stale factorisation: refactorise here and retry
+                continue
+            if trial.norm > self.refactor_ratio * cur.norm:
+                self._lu = None
+            fresh = False
+            cur = trial
+        raise ConvergenceError(f"Newton did not converge for prescribed particles "
+                               f"{self.prescribed.tolist()}: residual {cur.norm:.3g} N after {it} "
+                               f"iterations (tolerance {self.rtol:g} x force scale)")
+
+
+class _Iterate:
+    """One Newton iterate: positions and everything the force kernel returned for them."""
+    __slots__ = ("x", "forces", "tension", "arm_force", "dx", "res", "norm")
+
+    def __init__(self, x, forces, tension, arm_force, dx, res):
+        self.x, self.forces, self.tension, self.arm_force, self.dx = x, forces, tension, arm_force, dx
+        self.res = res
+        self.norm = float(np.sqrt(res @ res))
+
+
+def continuation(step: Callable[[T, float, float], T], start: T, s0: float, s1: float, *,
+                 max_cuts: int = 6, what: str = "load step") -> T:
+    """Advance ``start`` from load parameter ``s0`` to ``s1`` with ``step(state, s_from, s_to)``.
+
+    If a step raises :class:`ConvergenceError` it is split in two halves,
+    recursively, at most ``max_cuts`` times deep.
+    """
+    try:
+        return step(start, s0, s1)
+    except ConvergenceError as exc:
+        if max_cuts <= 0:
+            raise ConvergenceError(f"{what} {s0:g} -> {s1:g} failed after repeated halving: "
+                                   f"{exc}") from None
+    mid = 0.5 * (s0 + s1)
+    log.debug("%s %g -> %g cut at %g", what, s0, s1, mid)
+    half = continuation(step, start, s0, mid, max_cuts=max_cuts - 1, what=what)
+    return continuation(step, half, mid, s1, max_cuts=max_cuts - 1, what=what)
+
+
+def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
+                   rtol: float = 1e-10) -> np.ndarray:
+    """(N, 3) static sag under gravity [m] (long-term springs only, arms relaxed).
+
+    Newton equilibrium with ``gravity`` [m/s^2] applied in ``load_steps`` equal
+    increments (each halved on failure).
+    """
+    g = np.asarray(gravity, dtype=np.float64).reshape(3)
+    if load_steps < 1:
+        raise ParameterError(f"load_steps = {load_steps} must be >= 1")
+    if not len(model.free_nodes) < model.n_particles:
+        raise ParameterError("gravity_static needs fixed particles: a free body under gravity "
+                             "has no static equilibrium")
+    model.params.validate(edges=model.edges)
+    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
+                               rtol=rtol, refactor_ratio=0.1)
+
+    def step(x: np.ndarray, _: float, s1: float) -> np.ndarray:
+        return solver.solve(x, model.params, gravity=s1 * g).x
+
+    x = model.rest_positions.copy()
+    for k in range(load_steps):
+        x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
+    return x - model.rest_positions
