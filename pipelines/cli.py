@@ -1,26 +1,86 @@
-"""Command-line entry point of forcecal's pipelines."""
+"""Command-line entry point of forcecal's pipelines.
+
+``python -m pipelines <stage> --scene FILE [--out DIR] [--force] [--no-progress] [--ranks K]``
+with stages ``reference``, ``calibrate``, ``gravity``, ``report`` (each brings the
+stages before it up to date first, like make) and ``demo`` (all of them).
+``python -m pipelines scene-keys`` prints the README's table of scene keys.
+"""
+
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from forcecal.errors import ForcecalError
 
+STAGE_COMMANDS = {"reference": "reference", "calibrate": "calibrate", "gravity": "gravity",
+                  "report": "report", "demo": "report"}
 
-def main(argv: list[str] | None = None) -> int:
+
+def default_out(scene_name: str) -> Path:
+    """``runs/<scene name>/`` under the current directory."""
+    return Path("runs") / scene_name
+
+
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m pipelines",
-                                     description="forcecal pipelines")
+                                     description="forcecal pipelines: FE reference -> "
+                                     "calibration -> gravity comparison -> report")
     sub = parser.add_subparsers(dest="stage", required=True)
     sub.add_parser("scene-keys", help="print the Markdown table of every scene key")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    helps = {"reference": "FE reference (reference.h5)",
+             "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
+             "gravity": "particle gravity runs (gravity.h5); runs earlier stages if needed",
+             "report": "report.json, figures, XDMF fields; runs earlier stages if needed",
+             "demo": "every stage for the scene"}
+    for name, text in helps.items():
+        p = sub.add_parser(name, help=text)
+        p.add_argument("--scene", required=True, help="scene TOML file")
+        p.add_argument("--out", help="output folder (default: runs/<scene name>/)")
+        p.add_argument("--force", action="store_true",
+                       help="rerun the stages even if their cache says they are up to date")
+        p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        p.add_argument("--ranks", type=int, default=2,
+                       help="MPI ranks of the FE reference when not already under mpirun "
+                       "(1 = in-process; default 2)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    for name in ("pipelines", "forcecal", "reference_fe", "particle", "calibration"):
+        logging.getLogger(name).setLevel(logging.INFO)
+    comm = None
     try:
         if args.stage == "scene-keys":
             from forcecal.scene import keys_table
             print(keys_table())
             return 0
+        from calibration.pool import mpi_world
+        from forcecal.scene import load_scene
+        from pipelines.stages import run_pipeline
+        comm = mpi_world()
+        if comm is not None and comm.Get_rank() != 0:
+            logging.getLogger().setLevel(logging.ERROR)
+            for name in ("pipelines", "forcecal", "reference_fe", "particle", "calibration"):
+                logging.getLogger(name).setLevel(logging.WARNING)
+        if args.ranks < 1:
+            raise ForcecalError(f"--ranks {args.ranks}: must be >= 1")
+        scene = load_scene(args.scene)
+        out = Path(args.out) if args.out else default_out(scene.name)
+        outcomes = run_pipeline(scene, out, until=STAGE_COMMANDS[args.stage], force=args.force,
+                                progress=not args.no_progress, ranks=args.ranks)
+        if comm is None or comm.Get_rank() == 0:
+            for o in outcomes:
+                print(f"{o.stage:<10} {'ran' if o.ran else 'skipped':<8} "
+                      f"{o.seconds:8.1f} s  {'; '.join(o.reasons) or 'up to date'}")
+            print(f"outputs in {out}/")
+        return 0
     except ForcecalError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        if comm is not None and comm.Get_size() > 1:
+            comm.Abort(2)  # the other ranks may be waiting for this one
         return 2
-    return 1

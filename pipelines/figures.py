@@ -1,0 +1,232 @@
+"""PNG figures of a run (matplotlib, Agg backend): the paper's Fig. 2 and Fig. 3 and error charts.
+
+* ``calibration.png`` (Fig. 2): (a) force-displacement and (b) relaxation of one
+  calibration point - FE, global, calibrated (global + local), baseline; (c, d)
+  cost per iteration of the global static and relaxation fits; (e) K0 and (f)
+  tau1 = b1/k1 per connector.
+* ``held_out.png``: the same curves at one held-out point (never fitted).
+* ``gravity_static.png`` (Fig. 3): 3-D views of the FE and particle static sag,
+  surfaces coloured by |u| on one colour scale.
+* ``gravity_dynamic.png`` (Fig. 3e): displacement of the tracked node vs time.
+* ``errors.png``: relative RMS error of every test point, calibrated vs baseline.
+
+The example points are the calibration (held-out) point with the *median*
+calibrated indentation error, so the figure shows a typical point, not the best.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+import numpy as np  # noqa: E402
+from matplotlib import cm, colors  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+
+from calibration.results import CalibrationResult  # noqa: E402
+from forcecal.h5io import Reference, atomic_path  # noqa: E402
+from pipelines.gravity import GravityRuns  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+FIGURES = ("calibration.png", "held_out.png", "gravity_static.png", "gravity_dynamic.png",
+           "errors.png")
+# one style per model, everywhere
+STYLE = {"fe": dict(color="black", lw=2.2, label="FE reference"),
+         "global": dict(color="tab:orange", lw=1.5, label="particle, global"),
+         "calibrated": dict(color="tab:blue", lw=1.5, label="particle, calibrated (global+local)"),
+         "baseline": dict(color="tab:gray", lw=1.3, ls="--", label="particle, baseline (Van Gelder)")}
+MM = 1e3
+
+
+def _save(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
+    if tight:  # not for 3-D axes, which place themselves
+        fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def median_point(errors: np.ndarray, mask: np.ndarray) -> int | None:
+    """Index (into the test points) of the point with the median error among ``mask``."""
+    idx = np.nonzero(mask)[0]
+    if not len(idx):
+        return None
+    return int(idx[np.argsort(errors[idx])[len(idx) // 2]])
+
+
+def _curves(ax_force, ax_relax, k: int, reference: Reference, cal: CalibrationResult,
+            variants: tuple[str, ...]) -> None:
+    """Force-displacement (ax_force) and relaxation (ax_relax) curves of test point index k."""
+    ind, rel = reference.indentation, reference.relaxation
+    ax_force.plot(MM * ind.displacement, ind.force_normal[k], "o-", ms=3, **STYLE["fe"])
+    ax_relax.plot(rel.time, rel.force_normal[k], "o-", ms=3, **STYLE["fe"])
+    for v in variants:
+        curves = cal.variants[v].curves
+        ax_force.plot(MM * ind.displacement, curves["indentation"][k], **STYLE[v])
+        ax_relax.plot(rel.time, curves["relaxation"][k], **STYLE[v])
+    ax_force.set(xlabel="indentation depth [mm]", ylabel="normal force [N]")
+    ax_relax.set(xlabel="time [s]", ylabel="normal force [N]", xscale="log")
+    for ax in (ax_force, ax_relax):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+
+
+def _cost(ax, cal: CalibrationResult, stage: str, title: str) -> None:
+    cost = cal.global_fits[stage].history.iteration_cost
+    ax.plot(np.arange(1, len(cost) + 1), cost, color="tab:orange")
+    # log scale only when the cost spans a decade (else its tick labels are unreadable)
+    ax.set(xlabel="Nelder-Mead iteration", ylabel="cost G = sum (F_FE - F)^2 [N^2]", title=title,
+           yscale="log" if cost.max() > 10 * cost.min() > 0 else "linear")
+    ax.grid(alpha=0.3, which="both")
+
+
+def _per_connector(ax, values: dict[str, np.ndarray], global_value: float, ylabel: str,
+                   title: str) -> None:
+    x = np.arange(len(values["calibrated"]))
+    if "baseline" in values:
+        ax.plot(x, values["baseline"], ".", ms=2, color="tab:gray", alpha=0.5,
+                label="baseline (Van Gelder)")
+    ax.plot(x, values["calibrated"], ".", ms=3, color="tab:blue", label="calibrated")
+    ax.axhline(global_value, color="tab:orange", lw=1.5, label="global")
+    ax.set(xlabel="connector index", ylabel=ylabel, title=title, yscale="log")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+
+
+def calibration_figure(path: Path, reference: Reference, cal: CalibrationResult) -> Path:
+    """The paper's Fig. 2 (module docstring)."""
+    err = cal.variants["calibrated"].errors["indentation"]
+    k = median_point(err, cal.is_calibration)
+    node = int(reference.problem.test_points[k])
+    fig, axes = plt.subplots(3, 2, figsize=(11, 12))
+    _curves(axes[0, 0], axes[0, 1], k, reference, cal, ("global", "calibrated", "baseline"))
+    axes[0, 0].set_title(f"(a) static indentation, calibration node {node}")
+    axes[0, 1].set_title(f"(b) relaxation (ramp and hold), node {node}")
+    _cost(axes[1, 0], cal, "static", "(c) global static tuning")
+    _cost(axes[1, 1], cal, "relaxation", "(d) global relaxation tuning")
+    conn = cal.connectors
+    _per_connector(axes[2, 0], {v: conn[v].K0 for v in ("calibrated", "baseline")},
+                   cal.global_params.K0, "K0 [N/m]", "(e) spring stiffness K0 per connector")
+    _per_connector(axes[2, 1], {"calibrated": conn["calibrated"].tau1},
+                   cal.global_params.tau1, "tau1 = b1/k1 [s]",
+                   "(f) relaxation time tau1 per connector")
+    fig.suptitle("Calibration against the FE reference")
+    return _save(fig, path)
+
+
+def held_out_figure(path: Path, reference: Reference, cal: CalibrationResult) -> Path | None:
+    """Curves of the median held-out point (None if the scene has no held-out points)."""
+    err = cal.variants["calibrated"].errors["indentation"]
+    k = median_point(err, ~cal.is_calibration)
+    if k is None:
+        return None
+    node = int(reference.problem.test_points[k])
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    _curves(axes[0], axes[1], k, reference, cal, ("global", "calibrated", "baseline"))
+    axes[0].set_title(f"static indentation, held-out node {node}")
+    axes[1].set_title(f"relaxation, held-out node {node}")
+    fig.suptitle("Validation at a held-out point (not used by any fit)")
+    return _save(fig, path)
+
+
+def _surface(ax, vertices: np.ndarray, faces: np.ndarray, u: np.ndarray, norm, scale: float,
+             title: str) -> None:
+    x = vertices + scale * u
+    magnitude = MM * np.linalg.norm(u, axis=1)[faces].mean(axis=1)
+    poly = Poly3DCollection(x[faces], facecolors=cm.viridis(norm(magnitude)),
+                            edgecolors=(0, 0, 0, 0.15), linewidths=0.2)
+    ax.add_collection3d(poly)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    pad = 0.05 * (hi - lo).max()
+    ax.set(xlim=(lo[0] - pad, hi[0] + pad), ylim=(lo[1] - pad, hi[1] + pad),
+           zlim=(lo[2] - pad, hi[2] + pad), xlabel="x [m]", ylabel="y [m]", zlabel="z [m]",
+           title=title)
+    ax.set_box_aspect(hi - lo + 2 * pad, zoom=1.1)
+    ax.view_init(elev=18, azim=-62)
+    ax.locator_params(nbins=4)
+    ax.tick_params(labelsize=7)
+
+
+def gravity_static_figure(path: Path, reference: Reference, gravity: GravityRuns) -> Path:
+    """FE vs calibrated particle static sag, deformed surfaces on a shared colour scale."""
+    mesh = reference.problem.mesh
+    fe = reference.gravity.static_displacement
+    particle = gravity.models["calibrated"].static_displacement
+    peak = max(np.linalg.norm(fe, axis=1).max(), np.linalg.norm(particle, axis=1).max())
+    size = float(np.ptp(mesh.vertices, axis=0).max())
+    # magnify so the largest sag shows as ~10 % of the organ (1x if it already does)
+    scale = max(1.0, round(0.1 * size / peak)) if peak > 0 else 1.0
+    norm = colors.Normalize(0.0, MM * peak)
+    fig = plt.figure(figsize=(13, 5.5))
+    for i, (u, label) in enumerate(((fe, "FE reference"), (particle, "particle, calibrated"))):
+        ax = fig.add_axes([0.01 + 0.45 * i, 0.02, 0.43, 0.86], projection="3d")
+        _surface(ax, mesh.vertices, mesh.surface_faces, u, norm, scale,
+                 f"{label}: max sag {MM * np.linalg.norm(u, axis=1).max():.2f} mm")
+    bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"),
+                       cax=fig.add_axes([0.92, 0.2, 0.015, 0.55]))
+    bar.set_label("|u| [mm]")
+    fig.suptitle(f"Static sag under gravity, base fixed (displacements drawn x{scale:g})")
+    return _save(fig, path, tight=False)
+
+
+def gravity_dynamic_figure(path: Path, reference: Reference, gravity: GravityRuns) -> Path:
+    """Vertical displacement and |u| of the tracked node vs time: FE vs particle models."""
+    node = reference.problem.tracked_node
+    t_fe, u_fe = reference.gravity.time, reference.gravity.displacement[:, node]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    series = [("fe", t_fe, u_fe)] + [(m, gravity.time, r.displacement[:, node])
+                                     for m, r in gravity.models.items()]
+    for name, t, u in series:
+        axes[0].plot(t, MM * u[:, 2], **STYLE[name])
+        axes[1].plot(t, MM * np.linalg.norm(u, axis=1), **STYLE[name])
+    axes[0].set(xlabel="time [s]", ylabel="u_z [mm]", title=f"vertical displacement, node {node}")
+    axes[1].set(xlabel="time [s]", ylabel="|u| [mm]", title=f"displacement magnitude, node {node}")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Release under gravity from rest (tracked node: free vertex farthest along +x)")
+    return _save(fig, path)
+
+
+def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> Path:
+    """Per-point relative RMS errors, calibration vs held-out points, calibrated vs baseline."""
+    nodes = reference.problem.test_points
+    n_cal = int(cal.is_calibration.sum())
+    x = np.arange(len(nodes))
+    fig, axes = plt.subplots(2, 1, figsize=(max(10, 0.28 * len(nodes)), 7), sharex=True)
+    for ax, e in zip(axes, ("indentation", "relaxation")):
+        for offset, v in ((-0.2, "calibrated"), (0.2, "baseline")):
+            err = 100 * cal.variants[v].errors[e]
+            ax.bar(x[:n_cal] + offset, err[:n_cal], 0.4, color=STYLE[v]["color"],
+                   label=f"{v}, calibration points")
+            ax.bar(x[n_cal:] + offset, err[n_cal:], 0.4, color=STYLE[v]["color"], hatch="//",
+                   edgecolor="white", label=f"{v}, held-out points")
+        if n_cal < len(nodes):
+            ax.axvline(n_cal - 0.5, color="black", lw=0.8)
+        top = 100 * max(cal.variants[v].errors[e].max() for v in ("calibrated", "baseline"))
+        ax.set_ylim(top=30 * top)  # room for the legend above the bars
+        ax.set(ylabel="relative RMS error [%]", yscale="log",
+               title=f"{e}: RMS(F_particle - F_FE) / max|F_FE| per test point")
+        ax.grid(alpha=0.3, axis="y", which="both")
+        ax.legend(fontsize=7, ncol=4)
+    axes[-1].set_xticks(x, [str(n) for n in nodes], rotation=90, fontsize=7)
+    axes[-1].set_xlabel("test point (vertex id); held-out points right of the line, hatched")
+    return _save(fig, path)
+
+
+def write_figures(folder: str | Path, reference: Reference, cal: CalibrationResult,
+                  gravity: GravityRuns) -> list[Path]:
+    """Write every figure into ``folder``; returns the files written."""
+    folder = Path(folder)
+    written = [calibration_figure(folder / "calibration.png", reference, cal),
+               held_out_figure(folder / "held_out.png", reference, cal),
+               gravity_static_figure(folder / "gravity_static.png", reference, gravity),
+               gravity_dynamic_figure(folder / "gravity_dynamic.png", reference, gravity),
+               errors_figure(folder / "errors.png", reference, cal)]
+    return [p for p in written if p is not None]

@@ -1,0 +1,212 @@
+"""``report.json``: every error of the run against the FE reference, timings and versions.
+
+Errors (all dimensionless):
+
+* curve errors are the relative RMS error ``RMS(F_sim - F_ref) / max|F_ref|``
+  of the normal force of each test point
+  (:func:`calibration.metrics.relative_rms_error`), averaged over a point set:
+  ``*_global`` and ``*_calibrated`` over the calibration points (global-only and
+  global + local models), ``*_held_out`` over the held-out points with the
+  calibrated model;
+* ``gravity_static``: mean over the free vertices of ``|u_particle - u_FE|``
+  divided by the largest FE sag ``max |u_FE|`` (fixed vertices, zero on both
+  sides, are left out so they do not dilute the mean);
+* ``gravity_dynamic``: RMS over the sample times of ``|u_p(t) - u_FE(t)|`` of the
+  tracked vertex divided by ``max_t |u_FE(t)|``.
+
+``baseline_errors`` repeats every key with the closed-form (Van Gelder) model,
+which is the same model on every point set ("global", "calibrated" and
+"held_out" only select the points).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import forcecal
+from calibration.metrics import relative_rms_error
+from calibration.results import EXPERIMENTS, CalibrationResult
+from forcecal.errors import DataFileError
+from forcecal.h5io import Reference, atomic_path
+from pipelines.gravity import GravityRuns, ParticleGravity
+
+log = logging.getLogger(__name__)
+
+ERROR_KEYS = ("indentation_global", "indentation_calibrated", "indentation_held_out",
+              "relaxation_global", "relaxation_calibrated", "relaxation_held_out",
+              "gravity_static", "gravity_dynamic")
+TIMING_KEYS = ("mesh", "reference", "calibration", "gravity_particle", "gravity_fe")
+
+
+def curve_errors(reference: Reference, calibration: CalibrationResult, variant: str,
+                 experiment: str) -> np.ndarray:
+    """(P,) relative RMS error of every test point's normal-force curve for one model variant."""
+    ref = getattr(reference, experiment).force_normal
+    sim = calibration.variants[variant].curves[experiment]
+    if sim.shape != ref.shape:
+        raise DataFileError(f"params.h5 {variant} {experiment} curves have shape {sim.shape}, "
+                            f"the reference {ref.shape}; rerun the calibration")
+    return relative_rms_error(sim, ref)
+
+
+def gravity_static_error(fe: np.ndarray, particle: np.ndarray, free: np.ndarray) -> float:
+    """Mean over free vertices of ``|u_p - u_FE|`` / ``max |u_FE|`` (displacements (N, 3) [m])."""
+    scale = float(np.linalg.norm(fe, axis=1).max())
+    if scale == 0.0:
+        raise DataFileError("the FE static sag is zero everywhere; no scale to compare against")
+    return float(np.linalg.norm(particle - fe, axis=1)[free].mean() / scale)
+
+
+def gravity_dynamic_error(fe: np.ndarray, particle: np.ndarray) -> float:
+    """RMS over time of ``|u_p(t) - u_FE(t)|`` / ``max_t |u_FE(t)|`` (histories (S, 3) [m])."""
+    scale = float(np.linalg.norm(fe, axis=1).max())
+    if scale == 0.0:
+        raise DataFileError("the FE displacement of the tracked node is zero at every sample")
+    return float(np.sqrt(np.mean(np.sum((particle - fe) ** 2, axis=1))) / scale)
+
+
+def _mean(values: np.ndarray) -> float | None:
+    return float(np.mean(values)) if len(values) else None
+
+
+def model_errors(reference: Reference, calibration: CalibrationResult,
+                 gravity: ParticleGravity, variants: dict[str, str]) -> dict[str, float | None]:
+    """The :data:`ERROR_KEYS` for one model; ``variants`` maps global/calibrated/held_out to the
+    params.h5 variant evaluated on that point set."""
+    cal = calibration.is_calibration
+    out: dict[str, float | None] = {}
+    for experiment in EXPERIMENTS:
+        for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
+            err = curve_errors(reference, calibration, variants[key], experiment)
+            out[f"{experiment}_{key}"] = _mean(err[points])
+    fe = reference.gravity
+    node = reference.problem.tracked_node
+    out["gravity_static"] = gravity_static_error(fe.static_displacement,
+                                                 gravity.static_displacement,
+                                                 reference.problem.free)
+    out["gravity_dynamic"] = gravity_dynamic_error(fe.displacement[:, node],
+                                                   gravity.displacement[:, node])
+    return out
+
+
+def fe_timings(reference: Reference) -> dict[str, float]:
+    """The FE stage timings stored in ``reference.h5`` (attribute ``timings_s``, JSON) [s]."""
+    raw = reference.meta.get("timings_s")
+    try:
+        t = json.loads(raw)
+        return {k: float(t[k]) for k in ("mesh", "total", "gravity_static", "gravity_dynamic")}
+    except (TypeError, ValueError, KeyError) as exc:
+        raise DataFileError(f"reference.h5 attribute timings_s = {raw!r} is not the JSON object "
+                            f"of stage timings the FE stage writes ({exc})") from None
+
+
+def git_commit(root: Path) -> str | None:
+    """``git rev-parse HEAD`` of the project (with ``+dirty`` if tracked files differ)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root).returncode
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def versions(reference: Reference) -> dict[str, str | None]:
+    """Software versions of the run (dolfinx from the reference file that used it)."""
+    import gmsh
+    import h5py
+    import matplotlib
+    import meshio
+    import numba
+    import scipy
+    return {"forcecal": forcecal.__version__, "python": platform.python_version(),
+            "numpy": np.__version__, "scipy": scipy.__version__, "numba": numba.__version__,
+            "dolfinx": str(reference.meta.get("dolfinx_version")), "gmsh": gmsh.__version__,
+            "h5py": h5py.__version__, "meshio": meshio.__version__,
+            "matplotlib": matplotlib.__version__,
+            "git_commit": git_commit(Path(__file__).resolve().parents[1])}
+
+
+def build_report(scene_name: str, reference: Reference, calibration: CalibrationResult,
+                 gravity: GravityRuns) -> dict[str, Any]:
+    """The report dictionary (fixed keys of the README plus documented extras)."""
+    p = reference.problem
+    fe_t = fe_timings(reference)
+    calibrated = model_errors(reference, calibration, gravity.models["calibrated"],
+                              {"global": "global", "calibrated": "calibrated",
+                               "held_out": "calibrated"})
+    baseline = model_errors(reference, calibration, gravity.models["baseline"],
+                            dict.fromkeys(("global", "calibrated", "held_out"), "baseline"))
+    held = ~calibration.is_calibration
+    per_point = {f"{v}_{e}": curve_errors(reference, calibration, v, e).tolist()
+                 for v in ("baseline", "global", "calibrated") for e in EXPERIMENTS}
+    warnings = list(calibration.warnings)
+    if not held.any():
+        warnings.append("the scene has no held-out points: the *_held_out errors are null")
+    lo, hi = calibration.strain.bounds
+    for m, r in gravity.models.items():
+        if r.strain_min < lo or r.strain_max > hi:
+            warnings.append(f"gravity test, {m} model: connector strains [{r.strain_min:.3g}, "
+                            f"{r.strain_max:.3g}] leave the calibrated range [{lo:.3g}, {hi:.3g}] "
+                            "(the springs are extrapolated there)")
+    run = gravity.models["calibrated"]
+    node = p.tracked_node
+    return {
+        "scene": scene_name,
+        "mesh": {"nodes": int(p.mesh.n_vertices), "tets": int(p.mesh.n_tets),
+                 "connectors": int(len(p.mesh.edges))},
+        "test_points": {"calibration": p.calibration.tolist(), "held_out": p.held_out.tolist()},
+        "errors": calibrated,
+        "baseline_errors": baseline,
+        "timings_s": {"mesh": fe_t["mesh"], "reference": fe_t["total"],
+                      "calibration": float(calibration.wall_time),
+                      "gravity_particle": run.static_time + run.dynamic_time,
+                      "gravity_fe": fe_t["gravity_static"] + fe_t["gravity_dynamic"]},
+        "versions": versions(reference),
+        "held_out_global": {e: _mean(curve_errors(reference, calibration, "global", e)[held])
+                            for e in EXPERIMENTS},
+        "per_point_errors": {"test_points": p.test_points.tolist(),
+                             "is_calibration": calibration.is_calibration.tolist(), **per_point},
+        "gravity": {"tracked_node": int(node),
+                    "duration_s": float(gravity.time[-1]),
+                    "fe_max_static_sag_m": float(np.linalg.norm(
+                        reference.gravity.static_displacement, axis=1).max()),
+                    **{f"{m}_max_static_sag_m": float(np.linalg.norm(
+                        r.static_displacement, axis=1).max()) for m, r in gravity.models.items()},
+                    **{f"{m}_dt_s": r.dt for m, r in gravity.models.items()},
+                    **{f"{m}_critical_dt_s": r.critical_dt for m, r in gravity.models.items()},
+                    **{f"{m}_strain_range": [r.strain_min, r.strain_max]
+                       for m, r in gravity.models.items()},
+                    "calibrated_strain_range": [lo, hi],
+                    "particle_dynamic_s": run.dynamic_time,
+                    "fe_dynamic_s": fe_t["gravity_dynamic"]},
+        "global_parameters": calibration.global_params.as_dict(),
+        "warnings": warnings,
+    }
+
+
+def check_report(report: dict[str, Any]) -> None:
+    """Raise :class:`DataFileError` if a fixed key is missing or a number is not finite."""
+    for group, keys in (("errors", ERROR_KEYS), ("baseline_errors", ERROR_KEYS),
+                        ("timings_s", TIMING_KEYS)):
+        for k in keys:
+            if k not in report.get(group, {}):
+                raise DataFileError(f"report.json: {group}.{k} is missing")
+            v = report[group][k]
+            held_out_absent = v is None and k.endswith("held_out")
+            if not held_out_absent and not (isinstance(v, float) and np.isfinite(v)):
+                raise DataFileError(f"report.json: {group}.{k} = {v!r} is not a finite number")
+
+
+def write_report(path: str | Path, report: dict[str, Any]) -> None:
+    """Check and write ``report.json`` atomically."""
+    check_report(report)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(report, indent=2) + "\n")
