@@ -1,0 +1,193 @@
+"""The four experiments of the FE reference, each a march of Newton steps with step cutting.
+
+* :func:`indentation_curve` - one vertex pushed along its inward normal,
+  quasi-static, long-term material, no gravity.
+* :func:`relaxation_curve` - ramp-and-hold indentation, quasi-static (no
+  inertia, like a static analysis with a time-dependent material), viscoelastic.
+* :func:`gravity_static` - sag under gravity, long-term material, load-stepped.
+* :func:`gravity_dynamic` - released from rest at t = 0 with gravity on,
+  viscoelastic, implicit Newmark average acceleration (no numerical damping:
+  the viscoelasticity is the only dissipation).
+
+Every experiment clamps the problem's fixed vertices (:meth:`FEModel.clamp_dofs`).
+A step whose Newton solve fails is halved, up to ``fe.max_step_cuts`` times;
+then :class:`~forcecal.errors.ConvergenceError` names the experiment, the
+step and the load or time it failed at.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Callable, Iterator
+
+import numpy as np
+
+from forcecal.errors import ConvergenceError, SceneError
+from reference_fe.model import (FEModel, FEState, Load, StepFailed, clamp, initial_state,
+                                nodal_force, prescribe_vertex, solve_step)
+
+log = logging.getLogger(__name__)
+
+Step = Callable[[FEState, FEState | None, float], FEState]
+
+
+def march(state: FEState, targets: np.ndarray, step: Step, *, max_cuts: int, what: str,
+          unit: str) -> Iterator[FEState]:
+    """Yield the converged state at each target value of the control variable, in order.
+
+    ``step(state, previous, target)`` solves from ``state`` (``previous`` is the
+    converged state before it, for extrapolated guesses) to ``target``. A failed
+    step is retried with half the increment, at most ``max_cuts`` times per target.
+    """
+    previous = None
+    for k, target in enumerate(targets):
+        increment = target - state.progress
+        cuts = 0
+        while state.progress < target:
+            nxt = state.progress + increment
+            if target - nxt <= 1e-9 * abs(increment):  # land exactly on the target
+                nxt = target
+            try:
+                new = step(state, previous, nxt)
+            except StepFailed as exc:
+                cuts += 1
+                if cuts > max_cuts:
+                    raise ConvergenceError(
+                        f"{what}: step {k + 1}/{len(targets)} (to {target:.6g} {unit}) did not "
+                        f"converge from {state.progress:.6g} {unit} even after {max_cuts} "
+                        f"halvings of the increment (last try: to {nxt:.6g} {unit}; {exc})"
+                    ) from None
+                increment /= 2.0
+                log.info("%s: step to %.6g %s failed, halving the increment (cut %d/%d)",
+                         what, nxt, unit, cuts, max_cuts)
+                continue
+            previous, state = state, new
+        yield state
+
+
+def extrapolate(state: FEState, previous: FEState | None, drive: Callable[[float], float],
+                target: float) -> np.ndarray:
+    """Newton guess: the solution extrapolated linearly in the driving load ``drive(progress)``.
+
+    Exact for the prescribed dofs; a much better start than the last solution
+    for the rest. Falls back to the last solution when the drive does not change.
+    """
+    if previous is None:
+        return state.u
+    span = drive(state.progress) - drive(previous.progress)
+    if span == 0.0:
+        return state.u
+    ratio = (drive(target) - drive(state.progress)) / span
+    return state.u + ratio * (state.u - previous.u)
+
+
+def _indent(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+            depth: float) -> Load:
+    return Load(clamp(model.clamp_dofs(fixed)) + prescribe_vertex(model, vertex, depth * normal))
+
+
+def indentation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+                      depths: np.ndarray) -> np.ndarray:
+    """(S, 3) force the indenter applies to ``vertex`` at each depth [N] (long-term material).
+
+    Args:
+        fixed: (F,) clamped vertex ids.
+        normal: (3,) inward unit normal; the vertex is moved by ``depth * normal``.
+        depths: (S,) increasing depths > 0 [m].
+    """
+    def step(state: FEState, previous: FEState | None, depth: float) -> FEState:
+        guess = extrapolate(state, previous, float, depth)
+        return solve_step(model, state, _indent(model, fixed, vertex, normal, depth), depth,
+                          dt=None, guess=guess)
+
+    states = march(initial_state(model), np.asarray(depths, float), step,
+                   max_cuts=model.fe.max_step_cuts, what=f"indentation of vertex {vertex}",
+                   unit="m")
+    return np.array([nodal_force(model, s, vertex) for s in states])
+
+
+def relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+                     times: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """(S, 3) indenter force at each sample time of a ramp-and-hold test [N] (viscoelastic).
+
+    The depth follows the piecewise-linear history through (0, 0) and the
+    samples ``(times, depths)`` (from :func:`forcecal.schedules.relaxation_schedule`),
+    so a halved time step stays on the prescribed history.
+    """
+    t_knots = np.r_[0.0, np.asarray(times, float)]
+    d_knots = np.r_[0.0, np.asarray(depths, float)]
+
+    def depth_at(t: float) -> float:
+        return float(np.interp(t, t_knots, d_knots))
+
+    def step(state: FEState, previous: FEState | None, t: float) -> FEState:
+        guess = extrapolate(state, previous, depth_at, t)
+        return solve_step(model, state, _indent(model, fixed, vertex, normal, depth_at(t)), t,
+                          dt=t - state.progress, guess=guess)
+
+    states = march(initial_state(model), t_knots[1:], step, max_cuts=model.fe.max_step_cuts,
+                   what=f"relaxation of vertex {vertex}", unit="s")
+    return np.array([nodal_force(model, s, vertex) for s in states])
+
+
+def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
+                   load_steps: int) -> np.ndarray:
+    """(N, 3) static displacement of every vertex under gravity [m] (long-term material).
+
+    Gravity is applied in ``load_steps`` equal increments (a single P2 step diverges).
+    """
+    held = clamp(model.clamp_dofs(fixed))
+    g = np.asarray(acceleration, float)
+
+    def step(state: FEState, previous: FEState | None, factor: float) -> FEState:
+        guess = extrapolate(state, previous, float, factor)
+        return solve_step(model, state, Load(held, factor * g), factor, dt=None, guess=guess)
+
+    factors = np.arange(1, load_steps + 1) / load_steps
+    *_, final = march(initial_state(model), factors, step, max_cuts=model.fe.max_step_cuts,
+                      what="gravity static", unit="x gravity")
+    return model.vertex_values(final.u)
+
+
+def record_times(duration: float, record_interval: float) -> np.ndarray:
+    """(S,) sample times 0, dt_rec, 2 dt_rec, ... <= duration [s] of the dynamic run."""
+    n = int(math.floor(duration / record_interval * (1 + 1e-12)))
+    return record_interval * np.arange(n + 1)
+
+
+def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
+                    duration: float, dt: float, record_interval: float) -> tuple[np.ndarray,
+                                                                                  np.ndarray]:
+    """Release from rest in the undeformed shape with gravity on at t = 0.
+
+    Each record interval is split into ``ceil(record_interval / dt)`` equal
+    steps (so the step never exceeds ``dt``). Newton starts from the
+    constant-velocity predictor ``u + dt v``.
+
+    Returns:
+        time: (S,) sample times [s], from 0 (:func:`record_times`).
+        displacement: (S, N, 3) displacement of every vertex [m] (zero at t = 0).
+    """
+    if not 0 < dt <= record_interval:
+        raise SceneError(f"gravity.fe_dt = {dt} s must be > 0 and <= gravity.record_interval "
+                         f"= {record_interval} s")
+    times = record_times(duration, record_interval)
+    substeps = math.ceil(record_interval / dt * (1 - 1e-9))
+    step_times = np.linspace(0.0, times[-1], (len(times) - 1) * substeps + 1)[1:]
+    load = Load(clamp(model.clamp_dofs(fixed)), np.asarray(acceleration, float))
+
+    def step(state: FEState, previous: FEState | None, t: float) -> FEState:
+        h = t - state.progress
+        return solve_step(model, state, load, t, dt=h, inertia=True,
+                          guess=state.u + h * state.velocity)
+
+    state = initial_state(model)
+    out = [model.vertex_values(state.u)]
+    states = march(state, step_times, step, max_cuts=model.fe.max_step_cuts,
+                   what="gravity dynamic", unit="s")
+    for k, state in enumerate(states, start=1):
+        if k % substeps == 0:
+            out.append(model.vertex_values(state.u))
+            log.debug("gravity dynamic: t = %.4g s", state.progress)
+    return times, np.array(out)

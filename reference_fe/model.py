@@ -1,0 +1,438 @@
+"""The discretised organ (:class:`FEModel`), its mutable :class:`FEState` and one Newton step.
+
+:class:`FEModel` turns a :class:`~forcecal.mesh.TetMesh` into dolfinx objects
+on ``MPI.COMM_SELF``, once per process: function space, compiled residual and
+Jacobian forms, Newton solver (MUMPS LU). Every experiment then reuses them; only the
+Dirichlet conditions, the constants (load, material scaling, time step) and
+the coefficient arrays change between steps, so forms are compiled once.
+
+One residual form serves every experiment (total Lagrangian, test function v)::
+
+    R(w; v) = int F S(u) : grad v  -  int rho g . v  +  int rho c_m (u - u_pred) . v
+              [ + int (J - 1 - p/kappa) q   for the Taylor-Hood u-p element ]
+    S(u)    = S_vol(u) + gamma S_iso0(u; C10, C01) + H
+
+(see :mod:`reference_fe.material` for ``gamma`` and ``H``). Quasi-static steps
+use ``c_m = 0``; dynamic steps (Newmark average acceleration, see
+:func:`solve_step`) ``c_m = 4/dt^2``. The residual vector assembled without
+Dirichlet conditions is the nodal force the body exerts: at a prescribed
+vertex it is the force the indenter applies to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import basix
+import dolfinx
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx import mesh as dmesh
+from dolfinx.fem.petsc import NonlinearProblem, assemble_vector
+from dolfinx.nls.petsc import NewtonSolver
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from forcecal.errors import ParameterError
+from forcecal.mesh import TetMesh
+from forcecal.scene import FESection, MaterialSection
+from reference_fe.material import (check_material, isochoric_stress, long_term, pressure_stress,
+                                   prony_step)
+
+log = logging.getLogger(__name__)
+
+ELEMENTS = ("P1", "P2", "TH")
+
+
+class StepFailed(Exception):
+    """A Newton solve did not converge (internal: the caller cuts the step)."""
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """Prescribed value of one displacement component on a set of degrees of freedom.
+
+    Attributes:
+        component: 0, 1 or 2 (x, y, z).
+        dofs: (K,) int32, indices into the solution vector (from :attr:`FEModel.vertex_dofs`
+            or :meth:`FEModel.entity_dofs`) of that component.
+        value: prescribed displacement [m].
+    """
+    component: int
+    dofs: np.ndarray
+    value: float
+
+    def __post_init__(self) -> None:
+        # dolfinx wants a contiguous int32 array (a column slice of vertex_dofs is not)
+        object.__setattr__(self, "dofs", np.ascontiguousarray(self.dofs, dtype=np.int32))
+
+
+@dataclass(frozen=True)
+class Load:
+    """What a step prescribes: Dirichlet constraints and the gravitational acceleration.
+
+    Attributes:
+        constraints: every prescribed displacement component.
+        gravity: (3,) float64, body-force acceleration [m/s^2] (zero for indentation).
+    """
+    constraints: tuple[Constraint, ...]
+    gravity: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass
+class FEState:
+    """Mutable state of one experiment; copies are cheap and restore a converged step.
+
+    Attributes:
+        u: (n_dofs,) float64, solution vector: displacement [m] (and pressure [Pa] for TH).
+        velocity: (n_dofs,) float64, d(u)/dt [m/s] (dynamic runs only, zeros otherwise).
+        history: (m, n_cells, n_qp, 9) float64, Prony internal variables h_i [Pa]
+            at the quadrature points (row-major 3x3 tensors).
+        s_iso: (n_cells, n_qp, 9) float64, instantaneous isochoric 2nd PK stress S_iso0 [Pa].
+        force: (n_dofs,) float64, residual R(u) assembled with c_m = 0 and without
+            Dirichlet rows [N]: the force needed to hold each dof (at a prescribed dof, the
+            reaction; in a dynamic run, -(mass x acceleration)). None before the first step.
+        progress: value of the experiment's control variable at this state (depth [m],
+            time [s] or load factor [1]).
+    """
+    u: np.ndarray
+    velocity: np.ndarray
+    history: np.ndarray
+    s_iso: np.ndarray
+    force: np.ndarray | None
+    progress: float
+
+    def copy(self) -> FEState:
+        return FEState(self.u.copy(), self.velocity.copy(), self.history.copy(),
+                       self.s_iso.copy(), None if self.force is None else self.force.copy(),
+                       self.progress)
+
+
+class _ResidualProblem(NonlinearProblem):
+    """dolfinx's NonlinearProblem plus a known vector added to the residual, and a NaN guard."""
+
+    def __init__(self, residual: ufl.Form, w: fem.Function, jacobian: ufl.Form):
+        super().__init__(residual, w, [], J=jacobian)
+        self.offset: PETSc.Vec | None = None  # zero on Dirichlet rows (see solve_step)
+
+    def form(self, x: PETSc.Vec) -> None:
+        super().form(x)
+        # an inverted element makes J^(-2/3) NaN; stop at once instead of iterating to max_it
+        if not np.all(np.isfinite(x.array_r)):
+            raise StepFailed("non-finite Newton iterate")
+
+    def F(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        super().F(x, b)
+        if self.offset is not None:
+            b.axpy(1.0, self.offset)
+
+
+class FEModel:
+    """Function space, compiled forms and Newton solver of one mesh + material + element.
+
+    Built once per process (the constructor compiles the forms); experiments
+    change only Dirichlet data, constants and coefficient arrays, through
+    :func:`solve_step`. Serial by design (``MPI.COMM_SELF``): the reference
+    distributes test points over ranks, not meshes.
+
+    Attributes:
+        mesh: the organ's tetrahedral mesh (vertex ids are the project's ids).
+        material: instantaneous material (the model applies :func:`long_term` itself).
+        fe: element, quadrature degree and Newton settings.
+        domain: the dolfinx mesh.
+        space: the solution space (vector P1/P2, or mixed P2-P1 for TH).
+        vertex_dofs: (N, 3) int32, solution-vector index of each mesh vertex's x, y, z
+            displacement (P2: the vertex dofs).
+        pressure_dofs: (Np,) int32, solution-vector indices of the pressure (TH only, else empty).
+        n_cells, n_qp: cells and quadrature points per cell of the internal variables.
+    """
+
+    def __init__(self, mesh: TetMesh, material: MaterialSection, fe: FESection):
+        if fe.element not in ELEMENTS:
+            raise ParameterError(f"fe.element = {fe.element!r}: must be one of {ELEMENTS}")
+        self.mesh, self.material, self.fe = mesh, check_material(material), fe
+        # failed Newton solves are expected (the step is cut) and reported by us, not by
+        # dolfinx's C++ log on stderr
+        dolfinx.log.set_log_level(dolfinx.log.LogLevel.ERROR)
+        cell = ufl.Mesh(ufl.VectorElement("Lagrange", "tetrahedron", 1))
+        self.domain = dmesh.create_mesh(MPI.COMM_SELF, mesh.tets, mesh.vertices, cell)
+        self._vertex_entity = _vertex_entities(self.domain)
+        q = fe.quadrature_degree
+        tet = self.domain.ufl_cell()
+        p2 = ufl.VectorElement("Lagrange", tet, 2)
+        element = {"P1": ufl.VectorElement("Lagrange", tet, 1), "P2": p2,
+                   "TH": ufl.MixedElement([p2, ufl.FiniteElement("Lagrange", tet, 1)])}
+        self.space = fem.FunctionSpace(self.domain, element[fe.element])
+        self._is_mixed = fe.element == "TH"
+        self._disp = self.space.sub(0) if self._is_mixed else self.space
+        self.vertex_dofs = self._component_dofs(0, self._vertex_entity)
+        self.pressure_dofs = (np.unique(self.space.sub(1).dofmap.list.array).astype(np.int32)
+                              if self._is_mixed else np.zeros(0, np.int32))
+
+        self.w = fem.Function(self.space)  # the unknown
+        self._u_pred = fem.Function(self.space)  # Newmark predictor u_n + dt v_n (u part used)
+        quad = ufl.TensorElement("Quadrature", tet, degree=q, quad_scheme="default")
+        self._hist = fem.Function(fem.FunctionSpace(self.domain, quad))  # H^n of material.py
+        self._qdofs = self._hist.function_space.dofmap.list.array.reshape(-1)
+        points, _ = basix.make_quadrature(basix.CellType.tetrahedron, q)
+        self.n_cells = self.domain.topology.index_map(3).size_local
+        self.n_qp = len(points)
+        c = lambda v: fem.Constant(self.domain, PETSc.ScalarType(v))
+        self._C10, self._C01, self._gamma, self._c_m = c(0.0), c(0.0), c(1.0), c(0.0)
+        self._gravity = fem.Constant(self.domain, np.zeros(3, dtype=PETSc.ScalarType))
+        rho, kappa = c(material.density), c(material.kappa)
+
+        if self._is_mixed:
+            u, p = ufl.split(self.w)
+            v, p_test = ufl.TestFunctions(self.space)
+            u_pred = ufl.split(self._u_pred)[0]
+        else:
+            u, v, u_pred = self.w, ufl.TestFunction(self.space), self._u_pred
+        F = ufl.Identity(3) + ufl.grad(u)
+        C = F.T * F
+        J = ufl.det(F)
+        s_iso = isochoric_stress(C, self._C10, self._C01)
+        s_vol = pressure_stress(C, p if self._is_mixed else kappa * (J - 1.0))
+        S = s_vol + self._gamma * s_iso + self._hist
+        dx = ufl.dx(domain=self.domain,
+                    metadata={"quadrature_degree": q, "quadrature_scheme": "default"})
+        residual = (ufl.inner(F * S, ufl.grad(v)) - rho * ufl.dot(self._gravity, v)
+                    + rho * self._c_m * ufl.dot(u - u_pred, v)) * dx
+        if self._is_mixed:
+            residual += (J - 1.0 - p / kappa) * p_test * dx
+        jacobian = ufl.derivative(residual, self.w, ufl.TrialFunction(self.space))
+        self._s_iso_expr = fem.Expression(s_iso, points)
+        self._cells = np.arange(self.n_cells, dtype=np.int32)
+
+        self._problem = _ResidualProblem(residual, self.w, jacobian)
+        self._residual_vec = fem.petsc.create_vector(self._problem.L)
+        self._offset = fem.petsc.create_vector(self._problem.L)
+        self._solver = NewtonSolver(MPI.COMM_SELF, self._problem)
+        self._solver.convergence_criterion = "residual"
+        self._solver.rtol = 0.0  # see solve_step
+        self._solver.max_it = fe.newton_max_it
+        self._solver.error_on_nonconvergence = False
+        self.newton_iterations = 0  # total over the model's life (performance reports)
+        self.n_prony = len(material.prony_g)
+        log.debug("FE model: %s, %d dofs, %d cells x %d quadrature points",
+                  fe.element, self.n_dofs, self.n_cells, self.n_qp)
+
+    @property
+    def n_dofs(self) -> int:
+        """Length of the solution vector."""
+        return self.w.x.array.size
+
+    def _component_dofs(self, dim: int, entities: np.ndarray) -> np.ndarray:
+        """(len(entities), 3) int32: solution index of each entity's first dof, per component."""
+        out = np.empty((len(entities), 3), dtype=np.int32)
+        cell_of, local_of = _entity_in_cell(self.domain, dim, entities)
+        for k in range(3):
+            sub = self._disp.sub(k)
+            cell_dofs = sub.dofmap.list.array.reshape(sub.dofmap.list.num_nodes, -1)
+            layout = [sub.dofmap.dof_layout.entity_dofs(dim, i)[0]
+                      for i in range(_N_ENTITIES[dim])]
+            out[:, k] = cell_dofs[cell_of, np.asarray(layout)[local_of]]
+        return out
+
+    def clamp_dofs(self, vertices: np.ndarray) -> np.ndarray:
+        """(K, 3) int32 dofs held by clamping ``vertices``: their own and, for P2/TH, the
+        midpoint dofs of every edge whose two ends are both clamped (a clamped face)."""
+        vertices = np.asarray(vertices, dtype=np.int64)
+        dofs = self.vertex_dofs[vertices]
+        if self.fe.element == "P1":
+            return dofs
+        clamped = np.zeros(self.mesh.n_vertices, dtype=bool)
+        clamped[vertices] = True
+        edges = self.mesh.edges[clamped[self.mesh.edges].all(axis=1)]
+        if len(edges) == 0:
+            return dofs
+        edge_ids = _edge_entities(self.domain, self._vertex_entity[edges])
+        return np.concatenate([dofs, self._component_dofs(1, edge_ids)])
+
+    def set_history(self, values: np.ndarray) -> None:
+        """Store (n_cells, n_qp, 9) tensors [Pa] as the stress term H of the residual form."""
+        self._hist.x.array.reshape(-1, 9)[self._qdofs] = values.reshape(-1, 9)
+
+    def isochoric_stress_at_quadrature_points(self) -> np.ndarray:
+        """(n_cells, n_qp, 9) S_iso0 [Pa] of the current iterate, at the residual's points."""
+        return self._s_iso_expr.eval(self._cells).reshape(self.n_cells, self.n_qp, 9)
+
+    def vertex_values(self, u: np.ndarray) -> np.ndarray:
+        """(N, 3) float64: the displacement of every mesh vertex [m] from a solution vector."""
+        return u[self.vertex_dofs]
+
+
+def clamp(dofs: np.ndarray) -> tuple[Constraint, ...]:
+    """Constraints holding (K, 3) dofs at zero displacement."""
+    return tuple(Constraint(k, dofs[:, k], 0.0) for k in range(3))
+
+
+def prescribe_vertex(model: FEModel, vertex: int, displacement: np.ndarray) -> tuple[Constraint,
+                                                                                        ...]:
+    """Constraints moving mesh vertex ``vertex`` by ``displacement`` (3,) [m]."""
+    dofs = model.vertex_dofs[vertex]
+    return tuple(Constraint(k, dofs[k:k + 1], float(displacement[k])) for k in range(3))
+
+
+def initial_state(model: FEModel) -> FEState:
+    """Undeformed, unstressed, at rest, progress 0."""
+    n = model.n_dofs
+    return FEState(u=np.zeros(n), velocity=np.zeros(n),
+                   history=np.zeros((model.n_prony, model.n_cells, model.n_qp, 9)),
+                   s_iso=np.zeros((model.n_cells, model.n_qp, 9)), force=None, progress=0.0)
+
+
+def _set_material(model: FEModel, state: FEState, dt: float | None) -> tuple[np.ndarray,
+                                                                               np.ndarray]:
+    """Constants and H for a step of length dt (None: long-term hyperelastic); returns (a, b)."""
+    if dt is None:
+        m = long_term(model.material)
+        model._C10.value, model._C01.value, model._gamma.value = m.C10, m.C01, 1.0
+        model._hist.x.array[:] = 0.0
+        return np.zeros(0), np.zeros(0)
+    m = model.material
+    decay, gain = prony_step(m, dt)
+    model._C10.value, model._C01.value = m.C10, m.C01
+    model._gamma.value = m.long_term_factor + gain.sum()
+    model.set_history(np.einsum("i,icqk->cqk", decay, state.history)
+                      - gain.sum() * state.s_iso)
+    return decay, gain
+
+
+def _assemble_residual(model: FEModel) -> np.ndarray:
+    """R(w) without Dirichlet rows, for the current coefficients [N]."""
+    b = model._residual_vec
+    with b.localForm() as loc:
+        loc.set(0.0)
+    assemble_vector(b, model._problem.L)
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    return b.array_r.copy()
+
+
+def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
+               dt: float | None, inertia: bool = False,
+               guess: np.ndarray | None = None) -> FEState:
+    """One Newton solve from ``state`` to the equilibrium under ``load``; returns the new state.
+
+    Args:
+        progress: the experiment's control variable at the end of the step (stored).
+        dt: None for the long-term hyperelastic material (quasi-static tests);
+            otherwise a viscoelastic step of ``dt`` seconds (internal variables updated).
+        inertia: Newmark average acceleration (beta = 1/4, gamma = 1/2, no numerical
+            dissipation) written as the trapezoidal rule, which needs no initial
+            acceleration: ``(4/dt^2) M (u1 - u0 - dt v0) + R(u1) + R(u0) = 0`` and
+            ``v1 = 2 (u1 - u0)/dt - v0``, where ``R(u0) = -M a0`` is
+            :attr:`FEState.force` of the previous step (at rest it is minus the weight:
+            ``a0 = g``, consistent).
+        guess: initial Newton iterate (default: ``state.u``).
+
+    Raises:
+        StepFailed: Newton did not converge (the caller halves the step).
+    """
+    if inertia and dt is None:
+        raise ParameterError("a dynamic step needs a time step dt")
+    decay, gain = _set_material(model, state, dt)
+    model._gravity.value[:] = load.gravity
+    problem = model._problem
+    problem.bcs = [fem.dirichletbc(PETSc.ScalarType(c.value), c.dofs,
+                                   model._disp.sub(c.component)) for c in load.constraints]
+    problem.offset = None
+    model._c_m.value = 0.0
+    if inertia:
+        offset = state.force.copy() if state.force is not None else _rest_force(model, state)
+        for c in load.constraints:
+            offset[c.dofs] = 0.0  # Dirichlet rows hold the constraint equation only
+        offset[model.pressure_dofs] = 0.0  # the pressure equation is not time-integrated
+        problem.offset = model._offset
+        problem.offset.array[:] = offset
+        model._u_pred.x.array[:] = state.u + dt * state.velocity
+        model._c_m.value = 4.0 / dt ** 2
+    model.w.x.array[:] = state.u if guess is None else guess
+    # The relative test of dolfinx 0.5's NewtonSolver divides by the first increment's
+    # norm (metres), so it is switched off; the force scale enters through atol instead.
+    force_scale = 0.0 if state.force is None else float(np.linalg.norm(state.force))
+    model._solver.atol = model.fe.newton_atol + model.fe.newton_rtol * force_scale
+    try:
+        iterations, converged = model._solver.solve(model.w)
+    except (StepFailed, RuntimeError) as exc:  # RuntimeError: e.g. MUMPS on a singular matrix
+        log.debug("Newton failed at progress %.6g: %s", progress, exc)
+        raise StepFailed(str(exc)) from None
+    model.newton_iterations += iterations
+    u = model.w.x.array.copy()
+    if not converged:
+        log.debug("Newton did not converge at progress %.6g (%d iterations, |R| = %.3g)",
+                  progress, iterations, model._solver.b.norm())
+        raise StepFailed(f"no convergence in {iterations} iterations")
+    new = FEState(u=u, velocity=state.velocity, history=state.history, s_iso=state.s_iso,
+                  force=None, progress=progress)
+    if dt is not None:
+        s_new = model.isochoric_stress_at_quadrature_points()
+        new.history = (decay[:, None, None, None] * state.history
+                       + gain[:, None, None, None] * (s_new - state.s_iso)[None])
+        new.s_iso = s_new
+    if inertia:
+        new.velocity = 2.0 * (u - state.u) / dt - state.velocity
+    model._c_m.value = 0.0
+    new.force = _assemble_residual(model)
+    return new
+
+
+def _rest_force(model: FEModel, state: FEState) -> np.ndarray:
+    """R(u0) of an unstressed state at rest (a dynamic run's start), current gravity."""
+    if np.any(state.u) or np.any(state.history) or np.any(state.velocity):
+        raise ParameterError("a dynamic run without a stored force must start from rest")
+    model.w.x.array[:] = state.u
+    return _assemble_residual(model)
+
+
+def nodal_force(model: FEModel, state: FEState, vertex: int) -> np.ndarray:
+    """(3,) force applied to mesh vertex ``vertex`` to hold the converged ``state`` [N].
+
+    The residual assembled without Dirichlet rows is the nodal internal force
+    minus the body force; at a prescribed vertex of a quasi-static step the
+    indenter supplies it, so this is the force the indenter applies (positive
+    along the inward normal when pushing in).
+    """
+    return state.force[model.vertex_dofs[vertex]]
+
+
+def _vertex_entities(domain: dmesh.Mesh) -> np.ndarray:
+    """(N,) int32: dolfinx topology vertex of each input (project) vertex id."""
+    domain.topology.create_connectivity(3, 0)
+    cell_vertices = domain.topology.connectivity(3, 0).array.reshape(-1, 4)
+    geometry_nodes = domain.geometry.dofmap.array.reshape(-1, 4)
+    inputs = np.asarray(domain.geometry.input_global_indices, dtype=np.int64)
+    out = np.full(len(inputs), -1, dtype=np.int32)
+    out[inputs[geometry_nodes.ravel()]] = cell_vertices.ravel()
+    return out
+
+
+_N_ENTITIES = {0: 4, 1: 6}  # vertices and edges of a tetrahedron
+
+
+def _entity_in_cell(domain: dmesh.Mesh, dim: int, entities: np.ndarray) -> tuple[np.ndarray,
+                                                                                  np.ndarray]:
+    """For each entity, one cell containing it and its local index in that cell."""
+    domain.topology.create_connectivity(3, dim)
+    c2e = domain.topology.connectivity(3, dim).array.reshape(-1, _N_ENTITIES[dim])
+    cells = np.repeat(np.arange(len(c2e)), _N_ENTITIES[dim])
+    local = np.tile(np.arange(_N_ENTITIES[dim]), len(c2e))
+    first = np.full(int(c2e.max()) + 1, -1, dtype=np.int64)
+    first[c2e.ravel()] = np.arange(c2e.size)  # any cell containing the entity will do
+    pos = first[np.asarray(entities)]
+    return cells[pos], local[pos]
+
+
+def _edge_entities(domain: dmesh.Mesh, vertex_pairs: np.ndarray) -> np.ndarray:
+    """dolfinx edge index of each (topology-vertex) pair."""
+    domain.topology.create_entities(1)
+    domain.topology.create_connectivity(1, 0)
+    e2v = np.sort(domain.topology.connectivity(1, 0).array.reshape(-1, 2), axis=1)
+    n = int(e2v.max()) + 1
+    keys = e2v[:, 0].astype(np.int64) * n + e2v[:, 1]
+    order = np.argsort(keys)
+    pairs = np.sort(vertex_pairs, axis=1).astype(np.int64)
+    return order[np.searchsorted(keys[order], pairs[:, 0] * n + pairs[:, 1])].astype(np.int32)

@@ -1,0 +1,295 @@
+"""Compute a scene's whole FE reference and write ``reference.h5``: :func:`compute_reference`.
+
+Work items are the indentation curve and the relaxation curve of every test
+point, the static sag and the dynamic gravity run. Under ``mpirun -n K`` every
+rank builds one :class:`~reference_fe.model.FEModel` on ``MPI.COMM_SELF``
+(forms compiled once per process) and claims items one at a time, largest
+first, by creating ``<item>.claim`` exclusively in the checkpoint folder
+``<out>.parts/`` (dynamic load balancing without messages). Each finished item
+is written there atomically as ``<item>.npz``; an interrupted run resumes from
+them. Rank 0 then gathers the parts, writes ``reference.h5`` atomically and
+deletes the folder. Items never depend on the rank that computed them, so the
+result equals the serial one. Ranks share the output folder's filesystem (one
+machine, as ``mpirun`` is used here).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+from tqdm import tqdm
+
+import dolfinx
+from forcecal import errors
+from forcecal.errors import DataFileError, ForcecalError
+from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
+                           atomic_path, write_reference)
+from forcecal.problem import Problem, build_problem
+from forcecal.scene import Scene
+from forcecal.schedules import indentation_depths, relaxation_schedule
+from reference_fe import experiments
+from reference_fe.model import FEModel
+
+log = logging.getLogger(__name__)
+
+# the scene sections a reference depends on (its cache key)
+REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
+                      "gravity", "fe")
+KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+
+
+@dataclass(frozen=True)
+class WorkItem:
+    """One independent piece of the reference.
+
+    Attributes:
+        kind: one of :data:`KINDS`.
+        point: index into ``problem.test_points`` (-1 for the gravity runs).
+        cost: estimated Newton solves (orders the items, largest first).
+    """
+    kind: str
+    point: int
+    cost: float
+
+    @property
+    def name(self) -> str:
+        return self.kind if self.point < 0 else f"{self.kind}-{self.point:04d}"
+
+
+def work_items(scene: Scene, n_points: int) -> list[WorkItem]:
+    """Every item of a reference, largest estimated cost first (better load balance)."""
+    g = scene.gravity
+    # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
+    items = [WorkItem("gravity_dynamic", -1, 3.0 * g.duration / g.fe_dt),
+             WorkItem("gravity_static", -1, 5.0 * g.static_load_steps)]
+    n_rel = scene.relaxation.ramp_steps + scene.relaxation.hold_steps
+    for p in range(n_points):
+        items.append(WorkItem("relaxation", p, 2.0 * n_rel))
+        items.append(WorkItem("indentation", p, 2.0 * scene.indentation.steps))
+    return sorted(items, key=lambda it: -it.cost)
+
+
+def run_key(scene: Scene, problem: Problem) -> str:
+    """Identity of a reference computation: checkpoint parts with another key are ignored."""
+    h = hashlib.sha256(scene.fingerprint(*REFERENCE_SECTIONS).encode())
+    h.update(problem.mesh.fingerprint().encode())
+    for arr in (problem.fixed, problem.test_points, problem.normals):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    h.update(str(problem.tracked_node).encode())
+    return h.hexdigest()
+
+
+def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem) -> dict:
+    """Arrays of one work item (keys as stored in its checkpoint part)."""
+    g = scene.gravity
+    if item.kind == "gravity_static":
+        return {"displacement": experiments.gravity_static(model, problem.fixed, g.acceleration,
+                                                           g.static_load_steps)}
+    if item.kind == "gravity_dynamic":
+        times, disp = experiments.gravity_dynamic(model, problem.fixed, g.acceleration,
+                                                  g.duration, g.fe_dt, g.record_interval)
+        return {"time": times, "displacement": disp}
+    vertex = int(problem.test_points[item.point])
+    normal = problem.normals[item.point]
+    if item.kind == "indentation":
+        force = experiments.indentation_curve(model, problem.fixed, vertex, normal,
+                                              indentation_depths(scene.indentation))
+    else:
+        times, depths = relaxation_schedule(scene.relaxation)
+        force = experiments.relaxation_curve(model, problem.fixed, vertex, normal, times, depths)
+    return {"force": force}
+
+
+class _Parts:
+    """The checkpoint folder ``<out>.parts/``: finished items, claims and a failure note."""
+
+    def __init__(self, out_path: Path, key: str):
+        self.folder = out_path.with_name(out_path.name + ".parts")
+        self.key = key
+
+    def _path(self, item: WorkItem, suffix: str) -> Path:
+        return self.folder / f"{item.name}.{suffix}"
+
+    def load(self, item: WorkItem) -> dict | None:
+        """The stored arrays of ``item`` if present and computed for this run key."""
+        path = self._path(item, "npz")
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path) as data:
+                if str(data["run_key"]) != self.key:
+                    return None
+                return {k: data[k] for k in data.files if k != "run_key"}
+        except (OSError, ValueError, KeyError) as exc:  # damaged part: compute it again
+            log.warning("ignoring unreadable checkpoint %s: %s", path, exc)
+            return None
+
+    def save(self, item: WorkItem, arrays: dict) -> None:
+        with atomic_path(self._path(item, "npz")) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, run_key=self.key, **arrays)
+
+    def claim(self, item: WorkItem) -> bool:
+        """True if this process is the first to claim ``item``."""
+        try:
+            os.close(os.open(self._path(item, "claim"), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return False
+        return True
+
+    def clear_claims(self) -> None:
+        for claim in self.folder.glob("*.claim"):
+            claim.unlink()
+        (self.folder / "FAILED").unlink(missing_ok=True)
+
+    def fail(self, message: str) -> None:
+        (self.folder / "FAILED").write_text(message)
+
+    @property
+    def failed(self) -> bool:
+        return (self.folder / "FAILED").exists()
+
+    def count(self) -> int:
+        return len(list(self.folder.glob("*.npz")))
+
+
+def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path: str | Path,
+                      progress: bool = True) -> Reference:
+    """Compute every test point's indentation and relaxation curves plus the gravity runs.
+
+    Serial, or under ``mpirun -n K`` (items distributed over the ranks of
+    ``MPI.COMM_WORLD``, see the module docstring). Writes ``out_path``
+    (``reference.h5``, atomically) on rank 0 and returns the
+    :class:`~forcecal.h5io.Reference` on every rank.
+
+    Args:
+        problem: the scene's geometry; built with :func:`forcecal.problem.build_problem`
+            (on rank 0, then broadcast) when None.
+        out_path: the ``reference.h5`` to write; checkpoints go to ``<out_path>.parts/``.
+        progress: show a tqdm bar of finished items on rank 0 (only on a terminal).
+
+    Raises:
+        ConvergenceError: an experiment failed even with step cutting; raised on every
+            rank (other failures keep their ForcecalError class, anything else is a
+            RuntimeError), with the messages of all failed items.
+    """
+    comm = MPI.COMM_WORLD
+    rank = comm.rank
+    start = time.perf_counter()
+    out_path = Path(out_path)
+    if problem is None:
+        problem = comm.bcast(build_problem(scene) if rank == 0 else None, root=0)
+    key = run_key(scene, problem)
+    parts = _Parts(out_path, key)
+    items = work_items(scene, len(problem.test_points))
+    if rank == 0:
+        parts.folder.mkdir(parents=True, exist_ok=True)
+        parts.clear_claims()  # left by an interrupted run
+    comm.barrier()
+    mesh_seconds = time.perf_counter() - start
+
+    bar = tqdm(total=len(items), desc="FE reference", unit="item", initial=parts.count(),
+               disable=not progress or rank != 0 or not sys.stderr.isatty())
+    failure, build_seconds = _work(scene, problem, items, parts, bar)
+    bar.close()
+    failures = [f for f in comm.allgather(failure) if f is not None]
+    if failures:
+        kind = getattr(errors, failures[0][0], None)
+        kind = kind if isinstance(kind, type) and issubclass(kind, ForcecalError) else RuntimeError
+        raise kind("FE reference failed: " + "; ".join(m for _, m in failures)
+                   + f" (finished items are kept in {parts.folder}/ and reused by a rerun)")
+    reference = None
+    if rank == 0:
+        reference = _assemble(scene, problem, items, parts, comm.size,
+                              mesh_seconds + build_seconds, time.perf_counter() - start)
+        write_reference(out_path, reference)
+        shutil.rmtree(parts.folder)
+        log.info("wrote %s (%d test points, %.1f s)", out_path, len(problem.test_points),
+                 time.perf_counter() - start)
+    return comm.bcast(reference, root=0)
+
+
+def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+          bar: tqdm) -> tuple[tuple[str, str] | None, float]:
+    """Claim and compute items until none is left.
+
+    Returns ``(failure, build_seconds)``: ``failure`` is None or (exception class
+    name, message); ``build_seconds`` the time spent building the FE model.
+    """
+    model, build_seconds = None, 0.0
+    for item in items:
+        if parts.failed:  # another rank failed: stop early, its message is reported
+            break
+        if parts.load(item) is not None or not parts.claim(item):
+            continue
+        t0 = time.perf_counter()
+        try:
+            if model is None:
+                model = FEModel(problem.mesh, scene.material, scene.fe)
+                build_seconds = time.perf_counter() - t0
+                t0 = time.perf_counter()
+            arrays = compute_item(model, scene, problem, item)
+        except Exception as exc:  # reported on every rank, not left to hang the others
+            message = f"{item.name}: {exc}"
+            parts.fail(message)
+            log.error("%s", message)
+            return (type(exc).__name__, message), build_seconds
+        arrays["seconds"] = np.float64(time.perf_counter() - t0)
+        parts.save(item, arrays)
+        log.debug("%s done in %.2f s", item.name, float(arrays["seconds"]))
+        bar.update(parts.count() - bar.n)
+    return None, build_seconds
+
+
+def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+              n_ranks: int, mesh_seconds: float, total_seconds: float) -> Reference:
+    """Build the :class:`Reference` from the checkpoint parts (rank 0)."""
+    data = {}
+    for item in items:
+        arrays = parts.load(item)
+        if arrays is None:
+            raise DataFileError(f"checkpoint of {item.name} is missing from {parts.folder}")
+        data[item.name] = arrays
+    seconds = {k: 0.0 for k in KINDS}
+    for item in items:
+        seconds[item.kind] += float(data[item.name]["seconds"])
+    by_kind = {k: sorted((it for it in items if it.kind == k), key=lambda it: it.point)
+               for k in ("indentation", "relaxation")}
+    normals = problem.normals
+
+    def forces(kind: str) -> tuple[np.ndarray, np.ndarray]:
+        f = np.stack([data[it.name]["force"] for it in by_kind[kind]])
+        return f, np.einsum("psk,pk->ps", f, normals)
+
+    f_ind, fn_ind = forces("indentation")
+    f_rel, fn_rel = forces("relaxation")
+    times, depths = relaxation_schedule(scene.relaxation)
+    dyn = data["gravity_dynamic"]
+    meta = {
+        "dolfinx_version": dolfinx.__version__,
+        "element": scene.fe.element,
+        "quadrature_degree": scene.fe.quadrature_degree,
+        "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
+        "mesh_fingerprint": problem.mesh.fingerprint(),
+        # item times are compute seconds summed over ranks (and over an interrupted
+        # earlier run for resumed items); total is this call's wall time
+        "timings_s": json.dumps({"mesh": mesh_seconds, **seconds, "total": total_seconds}),
+        "n_ranks": n_ranks,
+    }
+    return Reference(
+        problem=problem, material=scene.material,
+        indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind, fn_ind),
+        relaxation=RelaxationCurves(times, depths, f_rel, fn_rel),
+        gravity=GravityResult(static_displacement=data["gravity_static"]["displacement"],
+                              time=dyn["time"], displacement=dyn["displacement"],
+                              tracked_node=problem.tracked_node),
+        meta=meta)
