@@ -1,0 +1,41 @@
+"""Command line of the calibration stage."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from forcecal.errors import ForcecalError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m calibration",
+                                     description="fit the particle model's connector parameters "
+                                                 "to an FE reference and write params.h5")
+    parser.add_argument("--scene", required=True, help="scene TOML file")
+    parser.add_argument("--reference", required=True, help="reference.h5 of that scene")
+    parser.add_argument("--out", required=True, help="params.h5 to write")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="parallel workers (default: the scene's calibration.workers)")
+    parser.add_argument("--verbose", action="store_true",
+                        help="log every Nelder-Mead iteration and infeasible point")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+
+    from calibration.pool import mpi_world, serve_mpi
+    comm = mpi_world()
+    if comm is not None and comm.Get_rank() > 0:
+        serve_mpi(comm)
+        return 0
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from calibration.core import calibrate
+    try:
+        result = calibrate(args.scene, args.reference, args.out, progress=not args.no_progress,
+                           verbose=args.verbose, workers=args.workers)
+    except ForcecalError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        if comm is not None:  # release the worker ranks waiting for work
+            comm.Abort(2)
+        return 2
+    print(result.summary())
+    return 0

@@ -1,0 +1,249 @@
+"""``calibrate``: initial guess -> global tuning -> local tuning -> validation -> params.h5.
+
+Stages, each checkpointed (:mod:`calibration.checkpoint`) so an interrupted run
+resumes where it stopped and ends with the same result:
+
+1. closed-form initial guess (:func:`calibration.global_fit.initial_guess`);
+2. global static fit, 3. global relaxation fit (:mod:`calibration.global_fit`);
+4. local static sweeps, 5. local relaxation sweeps (:mod:`calibration.local`),
+   unless ``calibration.local = false``;
+6. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
+   global-only and the calibrated (global + local) models are evaluated at every
+   test point; held-out points, never used by any fit, give the honest accuracy.
+
+The reference must match the scene: same mesh, fixed nodes, test points,
+material and sample schedules; a mismatch, a corrupt file or a non-physical
+curve raises :class:`~forcecal.errors.DataFileError` before any fitting.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+import forcecal
+from calibration.baseline import van_gelder_params
+from calibration.checkpoint import Checkpoint
+from calibration.global_fit import fe_initial_slopes, fit_relaxation, fit_static, initial_guess
+from calibration.local import LocalModel, Sweep, run_local_stage
+from calibration.metrics import relative_rms_error
+from calibration.network import linear_indentation
+from calibration.optimize import Fit
+from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParams, StrainRange,
+                                         build_rings)
+from calibration.pool import Backend, Experiments, Pool, particle_backend
+from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
+from forcecal.errors import DataFileError, ParameterError
+from forcecal.h5io import Reference, read_reference
+from forcecal.problem import build_problem
+from forcecal.scene import Scene, load_scene
+from forcecal.schedules import indentation_depths, relaxation_schedule
+
+log = logging.getLogger(__name__)
+
+
+def file_fingerprint(path: str | Path) -> str:
+    """SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_checked_reference(scene: Scene, reference_path: str | Path) -> Reference:
+    """Read the reference and check it belongs to ``scene`` (module docstring)."""
+    problem = build_problem(scene)
+    ref = read_reference(reference_path, expect_mesh=problem.mesh.fingerprint())
+    rp = ref.problem
+    for what in ("fixed", "calibration", "held_out"):
+        if not np.array_equal(np.sort(getattr(rp, what)), np.sort(getattr(problem, what))):
+            raise DataFileError(f"{reference_path}: its {what} nodes differ from the scene's; "
+                                "recompute the reference for this scene")
+    fixed_cal = np.intersect1d(rp.calibration, rp.fixed)
+    if len(fixed_cal):
+        raise DataFileError(f"{reference_path}: calibration point(s) {fixed_cal.tolist()} are "
+                            "fixed nodes and cannot be indented")
+    if ref.material != dataclasses.replace(scene.material, reference=ref.material.reference):
+        raise DataFileError(f"{reference_path}: computed with material {ref.material} but the "
+                            f"scene has {scene.material}")
+    times, depths = relaxation_schedule(scene.relaxation)
+    for name, got, want in (
+            ("indentation/displacement", ref.indentation.displacement,
+             indentation_depths(scene.indentation)),
+            ("relaxation/time", ref.relaxation.time, times),
+            ("relaxation/displacement", ref.relaxation.displacement, depths)):
+        if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=0.0):
+            raise DataFileError(f"{reference_path}:/{name} does not match the scene's schedule")
+    for name, curves in (("indentation", ref.indentation.force_normal),
+                         ("relaxation", ref.relaxation.force_normal)):
+        bad = np.nonzero(np.max(curves, axis=1) <= 0.0)[0]
+        if len(bad):
+            raise DataFileError(f"{reference_path}: {name} force of test point(s) "
+                                f"{rp.test_points[bad].tolist()} never pushes back (<= 0 N); "
+                                "is the force signed along the inward normal?")
+    return ref
+
+
+def strain_range(strain_per_depth: np.ndarray, depth: float, margin: float) -> StrainRange:
+    """Strains of the experiments (linear network at the deepest indentation) times ``margin``."""
+    low = float(strain_per_depth.min()) * depth * margin
+    high = float(strain_per_depth.max()) * depth * margin
+    if not (-1.0 < low < 0.0 < high):
+        raise ParameterError(f"indenting {depth} m compresses connectors by {-low:.3g} "
+                             f"(linear estimate x margin {margin}); the depth is too large for "
+                             "the mesh (connectors would collapse)")
+    return StrainRange(low, high)
+
+
+def _settings(scene: Scene) -> dict:
+    return dataclasses.asdict(scene.calibration)
+
+
+def _versions() -> dict[str, str]:
+    import numba
+    import scipy
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "numba": numba.__version__,
+            "forcecal": forcecal.__version__}
+
+
+def checkpoint_path(out_path: Path) -> Path:
+    """Where the checkpoint of a calibration writing ``out_path`` lives."""
+    return out_path.parent / "checkpoints" / f"{out_path.name}.json"
+
+
+def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: str | Path, *,
+              progress: bool = True, verbose: bool = False, workers: int | None = None,
+              backend: Backend = particle_backend) -> CalibrationResult:
+    """Fit the connector parameters of ``scene`` to the FE reference; write ``params.h5``.
+
+    Args:
+        scene: the scene (or its TOML path); its ``[calibration]`` table holds the settings.
+        reference_path: ``reference.h5`` of that scene.
+        out_path: the ``params.h5`` to write (atomically); the checkpoint lives in
+            ``<out dir>/checkpoints/`` and is removed at the end.
+        progress: tqdm bars (only on a terminal).
+        verbose: log every Nelder-Mead iteration (INFO) and every infeasible point.
+        workers: parallel workers; None = ``calibration.workers`` of the scene.
+        backend: builds the evaluators of a worker's points (tests substitute it).
+
+    Returns:
+        the :class:`CalibrationResult` (also readable with :func:`read_params`).
+    """
+    t0 = time.perf_counter()
+    scene = scene if isinstance(scene, Scene) else load_scene(scene)
+    out_path = Path(out_path)
+    settings = scene.calibration
+    ref = load_checked_reference(scene, reference_path)
+    problem, material = ref.problem, ref.material
+    mesh = problem.mesh
+    n_conn, n_cal = len(mesh.edges), len(problem.calibration)
+    cal = np.arange(n_cal)
+    ref_static = ref.indentation.force_normal
+    ref_relax = ref.relaxation.force_normal
+    linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals)
+    depth = float(max(ref.indentation.displacement.max(), ref.relaxation.displacement.max()))
+    strain = strain_range(linear.strain, depth, settings.strain_margin)
+    experiments = Experiments(problem, material.density, ref.indentation.displacement,
+                              ref.relaxation.time, ref.relaxation.displacement, strain.bounds)
+    fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
+    initial = initial_guess(material, fe_slope, linear.slope[:n_cal])
+    log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
+
+    fingerprint = hashlib.sha256(json.dumps({
+        "reference": file_fingerprint(reference_path),
+        "settings": {k: v for k, v in _settings(scene).items() if k != "workers"},
+        "backend": getattr(backend, "__qualname__", repr(backend))}, sort_keys=True).encode()
+    ).hexdigest()
+    checkpoint = Checkpoint(checkpoint_path(out_path), fingerprint)
+    evaluations: dict[str, int] = {}
+    rings = build_rings(mesh, problem.calibration)
+    with Pool(experiments, initial.connector_params(n_conn), backend=backend,
+              workers=settings.workers if workers is None else workers) as pool:
+        glob = initial
+        global_fits: dict[str, Fit] = {}
+        for stage, fit_fn, reference in (("static", fit_static, ref_static[:n_cal]),
+                                         ("relaxation", fit_relaxation, ref_relax[:n_cal])):
+            saved = checkpoint.get(f"global_{stage}")
+            if saved is None:
+                glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
+                                   progress=progress, verbose=verbose)
+                checkpoint.put(f"global_{stage}", {"params": glob.as_dict(),
+                                                   "fit": fit.as_dict()})
+            else:
+                glob, fit = GlobalParams(**saved["params"]), Fit.from_dict(saved["fit"])
+            global_fits[stage] = fit
+            evaluations[f"global_{stage}_cost_evaluations"] = fit.evaluations
+            log.info("global %s fit: cost %.6g -> %.6g in %d evaluations", stage,
+                     fit.initial_cost, fit.cost, fit.evaluations)
+        log.info("global parameters: %s", glob)
+
+        model = LocalModel(glob, rings, strain, np.zeros((n_cal, STATIC_DIM)),
+                           np.zeros((n_cal, RELAXATION_DIM)))
+        local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
+        if settings.local:
+            for stage, reference in (("static", ref_static[:n_cal]),
+                                     ("relaxation", ref_relax[:n_cal])):
+                key = f"local_{stage}"
+                model, local_sweeps[stage] = run_local_stage(
+                    pool, model, stage, reference, settings, checkpoint.get(key),
+                    lambda record, key=key: checkpoint.put(key, record),
+                    progress=progress, verbose=verbose)
+                evaluations[f"{key}_cost_evaluations"] = sum(
+                    f.evaluations for s in local_sweeps[stage] for f in s.fits)
+
+        connectors = {"baseline": van_gelder_params(mesh, material),
+                      "global": glob.connector_params(n_conn),
+                      "calibrated": model.params()}
+        variants = {}
+        all_points = np.arange(len(problem.test_points))
+        for variant, params in connectors.items():
+            curves = {e: pool.curves(e, params, all_points) for e in EXPERIMENTS}
+            errors = {"indentation": relative_rms_error(curves["indentation"], ref_static),
+                      "relaxation": relative_rms_error(curves["relaxation"], ref_relax)}
+            variants[variant] = VariantCurves(curves, errors)
+        evaluations["point_curves"] = pool.evaluations()
+
+    warnings = [w for fit in global_fits.values() for w in fit.warnings]
+    warnings += _local_warnings(local_sweeps)
+    result = CalibrationResult(
+        problem=problem, initial=initial, global_params=glob, connectors=connectors,
+        variants=variants, z_static=model.z_static, z_relaxation=model.z_relaxation,
+        strain=strain, fe_slope=fe_slope, unit_slope=linear.slope, global_fits=global_fits,
+        local_sweeps=local_sweeps, settings=_settings(scene),
+        reference_fingerprint=file_fingerprint(reference_path),
+        reference_path=str(reference_path), evaluations=evaluations,
+        wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=_versions())
+    write_params(out_path, result)
+    checkpoint.remove()
+    for w in warnings:
+        log.warning(w)
+    log.info("calibration done in %.1f s; wrote %s", result.wall_time, out_path)
+    return result
+
+
+def _local_warnings(local_sweeps: dict[str, list[Sweep]]) -> list[str]:
+    """One line per local stage and sweep summarising its points' warnings."""
+    out = []
+    for stage, sweeps in local_sweeps.items():
+        for k, sweep in enumerate(sweeps):
+            budget = [j for j, f in enumerate(sweep.fits) if not f.converged]
+            stuck = [j for j, f in enumerate(sweep.fits) if f.cost >= f.initial_cost > 0]
+            if budget:
+                out.append(f"local {stage} sweep {k + 1}: the fits of calibration point(s) "
+                           f"{budget} stopped at their budget without meeting the tolerances")
+            if stuck:
+                out.append(f"local {stage} sweep {k + 1}: the fits of calibration point(s) "
+                           f"{stuck} did not reduce their cost")
+            if not sweep.accepted and k == 0:  # later rejections just mean converged
+                out.append(f"local {stage} sweep {k + 1}: no damped Jacobi update lowered the "
+                           "total cost; the stage stopped there")
+    return out

@@ -1,0 +1,98 @@
+"""Closed-form initial guess and global tuning (one parameter set for every connector).
+
+* Initial guess: ``K0 = argmin sum_j (K0 u_j - s_j)^2 = sum s_j u_j / sum u_j^2``
+  with ``s_j`` the FE's initial static slope at calibration point j (from its
+  first two samples, ``F = s d + c d^2`` through the origin) and ``u_j`` the
+  slope of the unit-stiffness linear network (exactly the particle model's
+  initial slope per unit K0, :mod:`calibration.network`); ``a = b = 0``; arms
+  from the Prony series, ``k_i = g_i/g_inf K0``, ``tau_i`` from the material.
+* Step 1, static: Nelder-Mead over ``x = (alpha s, beta s^2)`` on the static
+  curves of all calibration points; for each x the curve of a uniform network
+  is exactly proportional to K0, so K0 is solved in closed form (least squares)
+  from one evaluation at a reference K0 -- a 2-D search instead of 3-D.
+* Step 2, relaxation: Nelder-Mead over ``(log k1, log tau1, log k2, log tau2)``
+  on the relaxation curves with the step-1 spring fixed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.baseline import prony_arms
+from calibration.optimize import Fit, nelder_mead
+from calibration.parametrisation import GlobalParams, StrainRange, check_feasible
+from calibration.pool import Pool
+from calibration.progress import cost_ticker, progress_bar
+from forcecal.errors import DataFileError, ParameterError
+from forcecal.scene import CalibrationSection, MaterialSection
+
+STATIC_STEP = 0.25  # initial simplex: K changes by 25 % at the largest strain
+RELAXATION_STEP = 0.3  # initial simplex: arm stiffnesses and times change by a factor 1.35
+
+
+def fe_initial_slopes(depths: np.ndarray, forces: np.ndarray) -> np.ndarray:
+    """(P,) initial slopes dF/dd at d = 0 [N/m] of curves (P, S) sampled at ``depths`` [m].
+
+    The quadratic ``F = s d + c d^2`` through the origin and the first two samples.
+    """
+    d1, d2 = depths[0], depths[1]
+    return (forces[:, 0] * d2 ** 2 - forces[:, 1] * d1 ** 2) / (d1 * d2 * (d2 - d1))
+
+
+def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
+                  unit_slope: np.ndarray) -> GlobalParams:
+    """Closed-form start (module docstring) from per-point FE and unit-network slopes [N/m]."""
+    K0 = float(np.dot(fe_slope, unit_slope) / np.dot(unit_slope, unit_slope))
+    if not K0 > 0:
+        raise DataFileError(f"the FE's initial static slopes {np.round(fe_slope, 6).tolist()} "
+                            "N/m give no positive stiffness; are the reference forces signed "
+                            "along the inward normal?")
+    ratio, tau = prony_arms(material)
+    return GlobalParams(K0=K0, alpha=0.0, beta=0.0, k1=float(ratio[0] * K0), tau1=float(tau[0]),
+                        k2=float(ratio[1] * K0), tau2=float(tau[1]))
+
+
+def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
+               n_connectors: int, settings: CalibrationSection, *, progress: bool = True,
+               verbose: bool = False) -> tuple[GlobalParams, Fit]:
+    """Step 1: spring ``K0, a, b`` on the static curves ``reference`` (Pc, S) [N]."""
+    points = np.arange(len(reference))
+    K0_of: dict[bytes, float] = {}
+
+    def cost(x: np.ndarray) -> float:
+        params = start.with_static_coordinates(x, start.K0, strain).connector_params(n_connectors)
+        check_feasible(params, strain)
+        sim = pool.curves("indentation", params, points)
+        scale = float(np.sum(reference * sim) / np.sum(sim * sim))
+        if not scale > 0:
+            raise ParameterError(f"the static curves at alpha s, beta s^2 = {x.tolist()} do not "
+                                 "push back (least-squares K0 <= 0)")
+        K0_of[np.asarray(x, dtype=float).tobytes()] = scale * start.K0
+        return float(np.sum((reference - scale * sim) ** 2))
+
+    with progress_bar("global static", settings.static_max_evaluations, progress) as bar:
+        fit = nelder_mead(cost, start.static_coordinates(strain), np.full(2, STATIC_STEP),
+                          name="global static fit", xatol=settings.xatol, fatol=settings.fatol,
+                          max_evaluations=settings.static_max_evaluations,
+                          on_evaluation=cost_ticker(bar), verbose=verbose)
+    return start.with_static_coordinates(fit.x, K0_of[fit.x.tobytes()], strain), fit
+
+
+def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
+                   n_connectors: int, settings: CalibrationSection, *, progress: bool = True,
+                   verbose: bool = False) -> tuple[GlobalParams, Fit]:
+    """Step 2: arms ``k1, tau1, k2, tau2`` on the relaxation curves (Pc, S) [N], spring fixed."""
+    points = np.arange(len(reference))
+
+    def cost(y: np.ndarray) -> float:
+        params = start.with_relaxation_coordinates(y).connector_params(n_connectors)
+        check_feasible(params, strain)
+        return float(np.sum((reference - pool.curves("relaxation", params, points)) ** 2))
+
+    with progress_bar("global relaxation", settings.relaxation_max_evaluations, progress) as bar:
+        fit = nelder_mead(cost, start.relaxation_coordinates(), np.full(4, RELAXATION_STEP),
+                          name="global relaxation fit", xatol=settings.xatol,
+                          fatol=settings.fatol,
+                          max_evaluations=settings.relaxation_max_evaluations,
+                          on_evaluation=cost_ticker(bar), verbose=verbose)
+    return start.with_relaxation_coordinates(fit.x), fit

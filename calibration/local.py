@@ -1,0 +1,203 @@
+"""Local tuning: per-point ring offsets fitted by Jacobi sweeps of small Nelder-Mead problems.
+
+Design (the recommended one of the issue, as implemented):
+
+* each calibration point j owns offsets ``z_j`` for the connectors of its first
+  ring (the connectors incident to j), in the coordinates of
+  :mod:`calibration.parametrisation`: static ``(log s_K0, s dalpha, s^2 dbeta)``
+  fitted on j's static curve, then relaxation ``(log s_k1, log s_tau1, log s_k2,
+  log s_tau2)`` fitted on j's relaxation curve with the static offsets fixed; a
+  connector in two rings gets the mean offset (geometric mean of the factors);
+* a **Jacobi sweep** fits every point with the other points' offsets frozen at
+  the sweep's start (3-D / 4-D Nelder-Mead on that point's own curve, run on the
+  worker that owns the point), then applies all new offsets at once. If the total
+  cost over the calibration points does not decrease, the update is halved (in
+  the offset coordinates, i.e. in log space for the factors) up to
+  :data:`MAX_HALVINGS` times; if it still does not decrease, the stage stops at
+  the sweep's start. The result does not depend on the order of the points by
+  construction;
+* sweeps repeat until one lowers the total cost by less than
+  ``calibration.local_sweep_tolerance`` (relative) or ``local_max_sweeps`` is
+  reached. A checkpoint is written after every point's fit and every sweep.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from calibration.optimize import INFEASIBLE, Fit, nelder_mead
+from calibration.parametrisation import (GlobalParams, Rings, StrainRange, check_feasible,
+                                         local_params)
+from calibration.pool import Pool, PointWorker
+from calibration.progress import progress_bar
+from forcecal.scene import CalibrationSection
+from particle.model import ConnectorParams
+
+log = logging.getLogger(__name__)
+
+MAX_HALVINGS = 4  # an update damped to 1/16 that still raises the total cost ends the stage
+LOCAL_STEP = 0.2  # initial simplex step of every offset coordinate (a 22 % factor, or 0.2 s dalpha)
+STAGE_KIND = {"static": "indentation", "relaxation": "relaxation"}
+
+
+@dataclass(frozen=True, eq=False)
+class LocalModel:
+    """Global parameters + ring offsets -> connector parameters (picklable, sent to workers).
+
+    Attributes:
+        glob: the global parameter set.
+        rings: first rings of the calibration points.
+        strain: strain range of the experiments (feasibility and coordinate scale).
+        z_static: (Pc, 3) static offsets.
+        z_relaxation: (Pc, 4) relaxation offsets.
+    """
+    glob: GlobalParams
+    rings: Rings
+    strain: StrainRange
+    z_static: np.ndarray
+    z_relaxation: np.ndarray
+
+    def offsets(self, stage: str) -> np.ndarray:
+        return self.z_static if stage == "static" else self.z_relaxation
+
+    def with_offsets(self, stage: str, z: np.ndarray) -> "LocalModel":
+        key = "z_static" if stage == "static" else "z_relaxation"
+        return LocalModel(**{**self.__dict__, key: np.asarray(z, dtype=float)})
+
+    def params(self) -> ConnectorParams:
+        return local_params(self.glob, self.rings, self.strain, self.z_static, self.z_relaxation)
+
+
+@dataclass(frozen=True, eq=False)
+class Sweep:
+    """One Jacobi sweep of a local stage.
+
+    Attributes:
+        start_cost: total cost over the calibration points at the sweep's start [N^2].
+        end_cost: total cost after the (damped) update, or the start cost if rejected [N^2].
+        halvings: times the update was halved (-1 if it was rejected).
+        fits: the per-point fits, in calibration-point order.
+    """
+    start_cost: float
+    end_cost: float
+    halvings: int
+    fits: tuple[Fit, ...]
+
+    @property
+    def accepted(self) -> bool:
+        return self.halvings >= 0
+
+
+def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
+              reference: np.ndarray, settings: CalibrationSection, verbose: bool) -> Fit:
+    """Call run on the worker owning ``point``: fit its offsets, the others' frozen (Jacobi)."""
+    kind = STAGE_KIND[stage]
+    z = model.offsets(stage)
+    node = int(worker.experiments.problem.test_points[point])
+
+    def cost(zj: np.ndarray) -> float:
+        trial = z.copy()
+        trial[point] = zj
+        params = model.with_offsets(stage, trial).params()
+        check_feasible(params, model.strain)
+        sim = worker.curves(kind, params, [point])[0]
+        return float(np.sum((reference - sim) ** 2))
+
+    return nelder_mead(cost, z[point], np.full(z.shape[1], LOCAL_STEP),
+                       name=f"local {stage} fit of point {point} (vertex {node})",
+                       xatol=settings.xatol, fatol=settings.fatol,
+                       max_evaluations=settings.local_max_evaluations, verbose=verbose)
+
+
+def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.ndarray,
+                    settings: CalibrationSection, saved: dict | None,
+                    save: Callable[[dict], None], *, progress: bool = True,
+                    verbose: bool = False) -> tuple[LocalModel, list[Sweep]]:
+    """Jacobi sweeps of one stage (module docstring).
+
+    Args:
+        pool: evaluation pool (calibration points are test points 0..Pc-1).
+        model: starting model; its offsets of ``stage`` are the sweeps' start.
+        stage: "static" or "relaxation".
+        reference: (Pc, S) reference curves of the calibration points [N].
+        saved: this stage's checkpoint record (None for a fresh start).
+        save: stores the stage's record in the checkpoint.
+    """
+    kind = STAGE_KIND[stage]
+    n_points = model.rings.n_points
+    points = np.arange(n_points)
+    record = saved or {"sweeps": [], "done": False}
+    sweeps: list[Sweep] = []
+    for k in range(settings.local_max_sweeps):
+        if k < len(record["sweeps"]):
+            entry = record["sweeps"][k]
+        else:
+            start_cost = (sweeps[-1].end_cost if sweeps else
+                          pool.total_cost(kind, model.params(), points, reference))
+            entry = {"start": model.offsets(stage).tolist(), "start_cost": start_cost,
+                     "fits": {}}
+            record["sweeps"].append(entry)
+            save(record)
+        start = model.with_offsets(stage, entry["start"])
+        fits = _sweep_fits(pool, start, stage, reference, settings, entry, record, save,
+                           f"local {stage} sweep {k + 1}", progress, verbose)
+        if "end" not in entry:
+            entry.update(_damped_update(pool, start, stage, reference, fits, entry["start_cost"]))
+            save(record)
+        sweep = Sweep(entry["start_cost"], entry["end_cost"], entry["halvings"], tuple(fits))
+        sweeps.append(sweep)
+        model = start.with_offsets(stage, entry["end"])
+        gain = (sweep.start_cost - sweep.end_cost) / sweep.start_cost if sweep.start_cost else 0.0
+        log.info("local %s sweep %d: total cost %.6g -> %.6g (%s)", stage, k + 1,
+                 sweep.start_cost, sweep.end_cost,
+                 f"update halved {sweep.halvings} times" if sweep.accepted else "rejected")
+        if not sweep.accepted or gain < settings.local_sweep_tolerance:
+            break
+    record["done"] = True
+    save(record)
+    return model, sweeps
+
+
+def _sweep_fits(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray,
+                settings: CalibrationSection, entry: dict, record: dict,
+                save: Callable[[dict], None], desc: str, progress: bool,
+                verbose: bool) -> list[Fit]:
+    """Fit every point not yet in ``entry["fits"]``, checkpointing after each one."""
+    n_points = start.rings.n_points
+    todo = [j for j in range(n_points) if str(j) not in entry["fits"]]
+    with progress_bar(desc, n_points, progress, initial=n_points - len(todo)) as bar:
+        calls = [(j, (start, stage, j, reference[j], settings, verbose)) for j in todo]
+        for i, fit in pool.map(fit_point, calls):
+            entry["fits"][str(todo[i])] = fit.as_dict()
+            save(record)
+            bar.update(1)
+            bar.set_postfix_str(f"point {todo[i]}: {fit.initial_cost:.3g} -> {fit.cost:.3g}")
+    return [Fit.from_dict(entry["fits"][str(j)]) for j in range(n_points)]
+
+
+def _damped_update(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray,
+                   fits: list[Fit], start_cost: float) -> dict:
+    """Apply all points' new offsets at once, halving the step until the total cost drops."""
+    kind = STAGE_KIND[stage]
+    z0 = start.offsets(stage)
+    step = np.array([f.x for f in fits]) - z0
+    points = np.arange(len(fits))
+    for halvings in range(MAX_HALVINGS + 1):
+        z = z0 + step / 2 ** halvings
+        trial = start.with_offsets(stage, z)
+        try:
+            check_feasible(trial.params(), start.strain)
+            cost = pool.total_cost(kind, trial.params(), points, reference)
+        except INFEASIBLE as exc:  # e.g. a blend of feasible rings that is not: damp further
+            log.info("local %s update x 1/%d is infeasible: %s", stage, 2 ** halvings, exc)
+            continue
+        if cost < start_cost:
+            return {"end": z.tolist(), "end_cost": cost, "halvings": halvings}
+    log.info("local %s sweep: no damped update lowers the total cost; keeping the sweep's start",
+             stage)
+    return {"end": z0.tolist(), "end_cost": start_cost, "halvings": -1}
+

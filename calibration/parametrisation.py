@@ -1,0 +1,166 @@
+"""The spaces the optimisers search, and how a point in them becomes connector parameters.
+
+Global parameters (one value for every connector), :class:`GlobalParams`:
+``K0`` [N/m], ``alpha = a/K0`` and ``beta = b/K0`` [1] (so
+``K(eps) = K0 (1 + alpha eps + beta eps^2)``), arm stiffnesses ``k1, k2`` [N/m]
+and relaxation times ``tau1 < tau2`` [s] (``b_i = tau_i k_i``).
+
+Optimiser coordinates are dimensionless and O(1) per unit change:
+
+* static:  ``x = (alpha s, beta s^2)`` with ``s`` the strain scale of the
+  experiments (:class:`StrainRange`), i.e. the relative change of K at the
+  largest strain. K0 is not searched: the static curve of a uniform network
+  with ``a = alpha K0, b = beta K0`` is exactly proportional to K0 (every force
+  scales, the equilibrium shape does not), so K0 is the closed-form least-squares
+  factor for each (alpha, beta);
+* relaxation: ``y = (log k1, log tau1, log k2, log tau2)``; optimising log tau
+  rather than log b keeps the two arms identifiable, and ``tau1 < tau2`` is
+  required (the swapped half is the same model).
+
+Local tuning (:class:`Rings`) gives every calibration point j offsets in the
+same coordinates that apply to its first ring (the connectors incident to j):
+static ``z_j = (log s_K0, s dalpha, s^2 dbeta)``, relaxation
+``z_j = (log s_k1, log s_tau1, log s_k2, log s_tau2)``. A connector in several
+rings gets the mean of their offsets, i.e. the geometric mean of the
+multiplicative factors (arithmetic mean of the additive alpha/beta offsets).
+
+A parameter set is *infeasible* (cost = +inf, reason logged) if the spring
+``K(eps)`` is not positive over the strain range (``ConnectorParams.validate``)
+or some connector has ``tau1 >= tau2``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from forcecal.errors import ParameterError
+from forcecal.mesh import TetMesh
+from particle.model import ConnectorParams
+
+STATIC_DIM = 3
+RELAXATION_DIM = 4
+
+
+@dataclass(frozen=True)
+class StrainRange:
+    """Connector strains the experiments reach (linear-network estimate times a margin).
+
+    Attributes:
+        low: most compressive strain [1] (< 0).
+        high: largest tensile strain [1] (> 0).
+    """
+    low: float
+    high: float
+
+    @property
+    def scale(self) -> float:
+        """Largest strain magnitude [1]: the unit of the static optimiser coordinates."""
+        return max(-self.low, self.high)
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        return (self.low, self.high)
+
+
+@dataclass(frozen=True)
+class GlobalParams:
+    """One parameter set for every connector (module docstring for the meaning)."""
+    K0: float
+    alpha: float
+    beta: float
+    k1: float
+    tau1: float
+    k2: float
+    tau2: float
+
+    def connector_params(self, n_connectors: int) -> ConnectorParams:
+        return ConnectorParams.uniform(n_connectors, K0=self.K0, a=self.alpha * self.K0,
+                                       b=self.beta * self.K0, k1=self.k1, b1=self.tau1 * self.k1,
+                                       k2=self.k2, b2=self.tau2 * self.k2)
+
+    def static_coordinates(self, strain: StrainRange) -> np.ndarray:
+        s = strain.scale
+        return np.array([self.alpha * s, self.beta * s * s])
+
+    def with_static_coordinates(self, x: np.ndarray, K0: float, strain: StrainRange
+                                ) -> "GlobalParams":
+        s = strain.scale
+        return _replace(self, K0=float(K0), alpha=float(x[0]) / s, beta=float(x[1]) / (s * s))
+
+    def relaxation_coordinates(self) -> np.ndarray:
+        return np.log([self.k1, self.tau1, self.k2, self.tau2])
+
+    def with_relaxation_coordinates(self, y: np.ndarray) -> "GlobalParams":
+        k1, tau1, k2, tau2 = np.exp(np.asarray(y, dtype=float))
+        return _replace(self, k1=float(k1), tau1=float(tau1), k2=float(k2), tau2=float(tau2))
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(getattr(self, k)) for k in self.__dataclass_fields__}
+
+
+def _replace(p: GlobalParams, **changes: float) -> GlobalParams:
+    return GlobalParams(**{**p.as_dict(), **changes})
+
+
+@dataclass(frozen=True, eq=False)
+class Rings:
+    """First rings of the calibration points and how their offsets reach the connectors.
+
+    Attributes:
+        members: tuple of Pc (R_j,) int64 arrays, the connectors incident to each point.
+        weights: (E, Pc) CSR float64, ``1/n_c`` where connector c is in ring j and
+            belongs to ``n_c`` rings (rows of connectors in no ring are empty).
+    """
+    members: tuple[np.ndarray, ...]
+    weights: sp.csr_matrix
+
+    @property
+    def n_points(self) -> int:
+        return len(self.members)
+
+    def connector_offsets(self, z: np.ndarray) -> np.ndarray:
+        """(E, d) mean offset of each connector's rings for per-point offsets z (Pc, d)."""
+        return np.asarray(self.weights @ z)
+
+
+def build_rings(mesh: TetMesh, points: np.ndarray) -> Rings:
+    """Rings of ``points`` (vertex ids) in ``mesh``: connectors having the point as an end."""
+    e = mesh.edges
+    members = tuple(np.nonzero((e[:, 0] == p) | (e[:, 1] == p))[0] for p in points)
+    rows = np.concatenate(members)
+    cols = np.repeat(np.arange(len(points)), [len(m) for m in members])
+    count = np.bincount(rows, minlength=len(e)).astype(float)
+    weights = sp.csr_matrix((1.0 / count[rows], (rows, cols)), shape=(len(e), len(points)))
+    return Rings(members=members, weights=weights)
+
+
+def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
+                 z_static: np.ndarray, z_relaxation: np.ndarray) -> ConnectorParams:
+    """Per-connector parameters: global values modified by the ring offsets (module docstring).
+
+    Args:
+        z_static: (Pc, 3) static offsets of the calibration points.
+        z_relaxation: (Pc, 4) relaxation offsets.
+    """
+    s = strain.scale
+    o = rings.connector_offsets(z_static)
+    r = rings.connector_offsets(z_relaxation)
+    K0 = glob.K0 * np.exp(o[:, 0])
+    alpha = glob.alpha + o[:, 1] / s
+    beta = glob.beta + o[:, 2] / (s * s)
+    k1, tau1 = glob.k1 * np.exp(r[:, 0]), glob.tau1 * np.exp(r[:, 1])
+    k2, tau2 = glob.k2 * np.exp(r[:, 2]), glob.tau2 * np.exp(r[:, 3])
+    return ConnectorParams(K0=K0, a=alpha * K0, b=beta * K0, k1=k1, b1=tau1 * k1,
+                           k2=k2, b2=tau2 * k2)
+
+
+def check_feasible(params: ConnectorParams, strain: StrainRange) -> None:
+    """Raise :class:`ParameterError` if ``params`` is outside the searched region."""
+    params.validate(strain.bounds)
+    order = np.nonzero(params.b1 / params.k1 >= params.b2 / params.k2)[0]
+    if len(order):
+        raise ParameterError(f"connector {int(order[0])}: tau1 >= tau2 "
+                             f"({len(order)} connectors); the arms must stay ordered")

@@ -1,0 +1,388 @@
+"""Evaluate test points in parallel: persistent workers, each owning a fixed set of points.
+
+Every test point belongs to one worker (round robin over the point index), which
+builds the particle evaluators for its points once and keeps them, so warm starts
+and factorisations stay where they are used. The master sends *calls*: a
+module-level function and its arguments, run as ``fn(worker, *args)`` on the
+worker; the two calls calibration needs are :func:`point_curves` (curves of some
+points for one parameter set) and the local fit of one point
+(:func:`calibration.local.fit_point`).
+
+One code path, three transports:
+
+* ``workers = 1``: the worker lives in the calling process (:class:`InlineTransport`);
+* ``workers > 1``: worker processes, fresh interpreters talking over sockets
+  (:class:`ProcessTransport`);
+* under ``mpirun`` with more than one rank: ranks 1..n-1 are the workers
+  (:class:`MpiTransport`, :func:`serve_mpi`), rank 0 runs the optimisers.
+
+A worker error travels back to the master, which lets every other call in
+flight finish and then raises it (ForcecalError subclasses keep their type).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import socket
+import subprocess
+import sys
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
+
+import numpy as np
+
+from calibration.metrics import point_costs
+from forcecal.problem import Problem
+from particle.model import ConnectorParams
+
+log = logging.getLogger(__name__)
+
+KINDS = ("indentation", "relaxation")
+
+
+@dataclass(frozen=True, eq=False)
+class Experiments:
+    """The experiments every worker reproduces (picklable).
+
+    Attributes:
+        problem: mesh, fixed nodes and test points (curves are ordered like
+            ``problem.test_points``).
+        density: mass density [kg/m^3] (the evaluators' model needs masses).
+        depths: (Si,) float64, indentation depths [m].
+        times: (Sr,) float64, relaxation sample times [s].
+        relaxation_depths: (Sr,) float64, prescribed depth at those times [m].
+        strain_range: (low, high) strains over which the spring K(eps) must stay
+            positive (the evaluators refuse parameters that violate it).
+    """
+    problem: Problem
+    density: float
+    depths: np.ndarray
+    times: np.ndarray
+    relaxation_depths: np.ndarray
+    strain_range: tuple[float, float]
+
+
+class PointEvaluator(Protocol):
+    def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None
+                 ) -> np.ndarray: ...
+
+
+Backend = Callable[[Experiments, np.ndarray, ConnectorParams], dict[str, PointEvaluator]]
+
+
+def particle_backend(experiments: Experiments, points: np.ndarray,
+                     params: ConnectorParams) -> dict[str, PointEvaluator]:
+    """The particle engine's evaluators for test points ``points`` (indices into test_points)."""
+    from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+    from particle.model import build_model
+
+    p = experiments.problem
+    model = build_model(p, experiments.density, params)
+    nodes, normals = p.test_points[points], p.normals[points]
+    strain = experiments.strain_range
+    return {"indentation": IndentationEvaluator(model, nodes, normals, experiments.depths,
+                                                strain_range=strain),
+            "relaxation": RelaxationEvaluator(model, nodes, normals, experiments.times,
+                                              experiments.relaxation_depths,
+                                              strain_range=strain)}
+
+
+@dataclass(frozen=True, eq=False)
+class WorkerSpec:
+    """What a worker is built from (picklable: sent to forkserver children and MPI ranks)."""
+    experiments: Experiments
+    points: np.ndarray
+    backend: Backend
+    params: ConnectorParams
+    log_level: int = logging.WARNING
+
+
+class PointWorker:
+    """Owns the evaluators of a fixed set of test points."""
+
+    def __init__(self, spec: WorkerSpec):
+        self.experiments = spec.experiments
+        self.points = np.asarray(spec.points, dtype=np.int64)
+        self._local = {int(p): i for i, p in enumerate(self.points)}
+        self.evaluators = spec.backend(spec.experiments, self.points, spec.params)
+        self.evaluations = 0  # point-curves computed by this worker
+
+    def curves(self, kind: str, params: ConnectorParams, points: Sequence[int]) -> np.ndarray:
+        """(len(points), S) normal-force curves [N] of owned test points (global indices)."""
+        local = [self._local[int(p)] for p in points]
+        out = np.asarray(self.evaluators[kind](params, local), dtype=np.float64)
+        self.evaluations += len(local)
+        return out
+
+
+def point_curves(worker: PointWorker, kind: str, params: ConnectorParams,
+                 points: Sequence[int]) -> np.ndarray:
+    """Call run on a worker: its curves of ``points`` (see :meth:`PointWorker.curves`)."""
+    return worker.curves(kind, params, points)
+
+
+def evaluation_count(worker: PointWorker) -> int:
+    """Call run on a worker: point-curves it has computed so far."""
+    return worker.evaluations
+
+
+def _run(worker: PointWorker, message: tuple) -> tuple[str, Any]:
+    fn, args = message
+    try:
+        return "ok", fn(worker, *args)
+    except Exception as exc:  # sent back and re-raised by the master
+        exc.add_note(f"(in calibration worker {os.getpid()})\n{traceback.format_exc()}")
+        return "error", exc
+
+
+def serve(receive: Callable[[], Any], send: Callable[[Any], None]) -> None:
+    """Worker loop: first message is a WorkerSpec, then calls until None."""
+    import numba
+    numba.set_num_threads(1)  # one core per worker; the pool is the parallelism
+    spec = receive()
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=spec.log_level,
+                            format=f"%(levelname)s %(name)s [worker {os.getpid()}]: %(message)s")
+    try:
+        worker = PointWorker(spec)
+    except Exception as exc:
+        exc.add_note(traceback.format_exc())
+        send(("error", exc))
+        return
+    send(("ok", None))
+    while (message := receive()) is not None:
+        send(_run(worker, message))
+
+
+class InlineTransport:
+    """One worker in the calling process."""
+
+    def __init__(self, specs: list[WorkerSpec]):
+        self.worker = PointWorker(specs[0])
+        self._replies: collections.deque = collections.deque()
+
+    def send(self, w: int, message: tuple) -> None:
+        self._replies.append((w, _run(self.worker, message)))
+
+    def receive(self) -> tuple[int, tuple[str, Any]]:
+        return self._replies.popleft()
+
+    def close(self) -> None:
+        pass
+
+
+class ProcessTransport:
+    """Worker processes (fresh interpreters, ``python -m calibration.worker``) over sockets.
+
+    Fresh interpreters rather than ``fork``: a parent that has started numba or
+    OpenMP threads cannot hand a broken runtime to its children, and unlike
+    ``spawn``/``forkserver`` the caller's ``__main__`` is not re-imported, so
+    scripts need no ``if __name__ == "__main__"`` guard.
+    """
+
+    def __init__(self, specs: list[WorkerSpec]):
+        from multiprocessing.connection import Connection
+        self._conns, self._procs = [], []
+        for spec in specs:
+            parent, child = socket.socketpair()
+            proc = subprocess.Popen([sys.executable, "-m", "calibration.worker",
+                                     str(child.fileno())], pass_fds=(child.fileno(),))
+            child.close()
+            conn = Connection(parent.detach())
+            conn.send(spec)
+            self._conns.append(conn)
+            self._procs.append(proc)
+        for w, conn in enumerate(self._conns):
+            _check_reply(self._recv(w, conn))
+
+    def _recv(self, w: int, conn) -> tuple[str, Any]:
+        try:
+            return conn.recv()
+        except (EOFError, ConnectionError):
+            raise RuntimeError(f"calibration worker {w} (pid {self._procs[w].pid}) died "
+                               f"(exit code {self._procs[w].poll()})") from None
+
+    def send(self, w: int, message: tuple) -> None:
+        self._conns[w].send(message)
+
+    def receive(self) -> tuple[int, tuple[str, Any]]:
+        from multiprocessing.connection import wait
+        ready = wait(self._conns)
+        w = self._conns.index(ready[0])
+        return w, self._recv(w, ready[0])
+
+    def close(self) -> None:
+        for conn in self._conns:
+            try:
+                conn.send(None)
+            except OSError:
+                pass
+        for proc in self._procs:
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for conn in self._conns:
+            conn.close()
+
+
+def serve_socket(fd: int) -> None:
+    """Body of a worker process: serve the master over the socket ``fd`` until it closes."""
+    from multiprocessing.connection import Connection
+    conn = Connection(fd)
+    try:
+        serve(conn.recv, conn.send)
+    except EOFError:  # the master went away
+        pass
+
+
+def mpi_world():
+    """The MPI world communicator when running under mpirun with > 1 rank, else None.
+
+    mpi4py is imported only then (importing it initialises MPI).
+    """
+    size = int(os.environ.get("OMPI_COMM_WORLD_SIZE", os.environ.get("PMI_SIZE", "1")))
+    if size <= 1:
+        return None
+    from mpi4py import MPI
+    return MPI.COMM_WORLD
+
+
+class MpiTransport:
+    """Ranks 1..n-1 of ``comm`` are the workers; this rank (0) is the master."""
+
+    def __init__(self, specs: list[WorkerSpec], comm):
+        self.comm = comm
+        for w, spec in enumerate(specs):
+            comm.send(spec, dest=w + 1)
+        for _ in specs:
+            _check_reply(self.receive()[1])
+
+    def send(self, w: int, message: tuple) -> None:
+        self.comm.send(message, dest=w + 1)
+
+    def receive(self) -> tuple[int, tuple[str, Any]]:
+        from mpi4py import MPI
+        status = MPI.Status()
+        reply = self.comm.recv(source=MPI.ANY_SOURCE, status=status)
+        return status.Get_source() - 1, reply
+
+    def close(self) -> None:
+        for w in range(self.comm.Get_size() - 1):
+            self.comm.send(None, dest=w + 1)
+
+
+def serve_mpi(comm) -> None:
+    """Body of an MPI worker rank: serve the master (rank 0) until it closes the pool."""
+    serve(lambda: comm.recv(source=0), lambda obj: comm.send(obj, dest=0))
+
+
+def _check_reply(reply: tuple[str, Any]) -> Any:
+    status, value = reply
+    if status == "error":
+        raise value
+    return value
+
+
+class Pool:
+    """Persistent workers evaluating test points; use as a context manager.
+
+    Args:
+        experiments: the experiments to reproduce.
+        backend: builds a worker's evaluators (default: the particle engine).
+        params: any valid parameter set to build the evaluators' model with.
+        workers: number of workers (ignored under mpirun: the ranks other than 0).
+    """
+
+    def __init__(self, experiments: Experiments, params: ConnectorParams, *,
+                 backend: Backend = particle_backend, workers: int = 2):
+        n_points = len(experiments.problem.test_points)
+        comm = mpi_world()
+        n = comm.Get_size() - 1 if comm is not None else workers
+        n = max(1, min(n, n_points))
+        self.owner = np.arange(n_points) % n
+        level = logging.getLogger().getEffectiveLevel()
+        specs = [WorkerSpec(experiments, np.nonzero(self.owner == w)[0], backend, params, level)
+                 for w in range(n)]
+        if comm is not None:
+            self.transport = MpiTransport(specs, comm)
+        elif n == 1:
+            self.transport = InlineTransport(specs)
+        else:
+            self.transport = ProcessTransport(specs)
+        self.n_workers = len(specs)
+        log.info("evaluation pool: %d worker(s) via %s", self.n_workers,
+                 type(self.transport).__name__)
+
+    def __enter__(self) -> "Pool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.transport.close()
+
+    def map(self, fn: Callable, items: Iterable[tuple[int, tuple]]) -> Iterator[tuple[int, Any]]:
+        """Run ``fn(worker, *args)`` for each ``(point, args)`` on the point's owner.
+
+        Yields ``(item index, result)`` as calls complete; each worker runs its
+        calls in the given order, one at a time. On a worker error, the calls
+        already running finish and the first error is raised.
+        """
+        queues: dict[int, collections.deque] = collections.defaultdict(collections.deque)
+        for i, (point, args) in enumerate(items):
+            queues[int(self.owner[point])].append((i, args))
+        running: dict[int, int] = {}
+
+        def start(w: int) -> None:
+            if queues[w]:
+                i, args = queues[w].popleft()
+                running[w] = i
+                self.transport.send(w, (fn, args))
+
+        for w in list(queues):
+            start(w)
+        error = None
+        while running:
+            w, (status, value) = self.transport.receive()
+            i = running.pop(w)
+            if status == "error":
+                error = error or value
+                continue
+            if error is None:
+                start(w)
+                yield i, value
+        if error is not None:
+            raise error
+
+    def curves(self, kind: str, params: ConnectorParams, points: Sequence[int]) -> np.ndarray:
+        """(len(points), S) normal-force curves [N] of test points ``points`` (indices)."""
+        points = np.asarray(points, dtype=np.int64)
+        groups = [points[self.owner[points] == w] for w in range(self.n_workers)]
+        calls = [(int(g[0]), (kind, params, g)) for g in groups if len(g)]
+        out: list[np.ndarray | None] = [None] * len(calls)
+        for i, value in self.map(point_curves, calls):
+            out[i] = value
+        curves = np.concatenate(out)
+        order = np.concatenate([g for g in groups if len(g)])
+        result = np.empty_like(curves)
+        result[_positions(order, points)] = curves
+        return result
+
+    def total_cost(self, kind: str, params: ConnectorParams, points: Sequence[int],
+                   reference: np.ndarray) -> float:
+        """Sum of the points' costs ``G_j`` against ``reference`` (len(points), S) [N^2]."""
+        return float(np.sum(point_costs(self.curves(kind, params, points), reference)))
+
+    def evaluations(self) -> int:
+        """Point-curves computed by all workers so far."""
+        calls = [(int(np.nonzero(self.owner == w)[0][0]), ()) for w in range(self.n_workers)]
+        return sum(v for _, v in self.map(evaluation_count, calls))
+
+
+def _positions(order: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Where each entry of ``order`` sits in ``points`` (both permutations of the same ids)."""
+    where = {int(p): i for i, p in enumerate(points)}
+    return np.array([where[int(p)] for p in order], dtype=np.int64)

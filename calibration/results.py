@@ -1,0 +1,302 @@
+"""The calibration's result and its file, ``params.h5`` (kind ``forcecal.params``).
+
+Schema (every dataset has a ``unit`` attribute; P test points = Pc calibration
+points then the held-out ones, E connectors in ``mesh/edges`` order):
+
+| path | shape | unit | content |
+|---|---|---|---|
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference file), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON of ``[calibration]``), ``versions`` (JSON: python, numpy, scipy, numba, forcecal) |
+| ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
+| ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local) |
+| ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s | ``K0, alpha, beta, k1, tau1, k2, tau2`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``) |
+| ``/initial_guess/fe_slope`` | (Pc,) | N/m | FE initial static slope per calibration point |
+| ``/initial_guess/unit_slope`` | (P,) | N/m | unit-stiffness network slope per test point |
+| ``/strain_range`` attrs | | 1 | ``low``, ``high``: where K(eps) > 0 is required |
+| ``/local/z_static``, ``/local/z_relaxation`` | (Pc, 3), (Pc, 4) | 1 | ring offsets (see :mod:`calibration.parametrisation`) |
+| ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` |
+| ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples |
+| ``/history/global_<stage>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); stages ``static``, ``relaxation`` |
+| ``/history/local_<stage>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
+| ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per stage |
+| ``/warnings`` | (n,) | | every warning of the run (strings) |
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from calibration.local import Sweep
+from calibration.optimize import Fit, History
+from calibration.parametrisation import GlobalParams, StrainRange
+from forcecal.h5io import atomic_h5, get, open_h5, put, read_problem, write_problem
+from forcecal.problem import Problem
+from particle.model import PARAM_NAMES, ConnectorParams
+
+PARAMS_KIND = "forcecal.params"
+PARAMS_SCHEMA = 1
+VARIANTS = ("baseline", "global", "calibrated")
+EXPERIMENTS = ("indentation", "relaxation")
+STAGES = ("static", "relaxation")
+PARAM_UNITS = {"K0": "N/m", "a": "N/m", "b": "N/m", "k1": "N/m", "b1": "N s/m", "k2": "N/m",
+               "b2": "N s/m"}
+GLOBAL_UNITS = {"K0": "N/m", "alpha": "1", "beta": "1", "k1": "N/m", "tau1": "s", "k2": "N/m",
+                "tau2": "s"}
+
+
+@dataclass(frozen=True, eq=False)
+class VariantCurves:
+    """Simulated curves and errors of one model variant at every test point.
+
+    Attributes:
+        curves: experiment -> (P, S) float64 normal forces [N].
+        errors: experiment -> (P,) float64 relative RMS errors [1].
+    """
+    curves: dict[str, np.ndarray]
+    errors: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Everything a calibration produced (and ``params.h5`` holds).
+
+    Attributes:
+        problem: mesh, fixed nodes and test points.
+        initial: closed-form initial guess.
+        global_params: result of global tuning.
+        connectors: variant -> per-connector parameters (``baseline``, ``global``, ``calibrated``).
+        variants: variant -> curves and errors at every test point.
+        z_static: (Pc, 3) static ring offsets; z_relaxation: (Pc, 4) relaxation ring offsets.
+        strain: strain range on which K(eps) > 0 was required.
+        fe_slope: (Pc,) FE initial static slopes [N/m]; unit_slope: (P,) unit-network slopes [N/m].
+        global_fits: stage -> Nelder-Mead result of the global stage.
+        local_sweeps: stage -> Jacobi sweeps (empty when local tuning is off).
+        settings: the ``[calibration]`` settings used.
+        reference_fingerprint: SHA-256 of the reference file fitted to.
+        reference_path: its path.
+        evaluations: evaluation counts (see :func:`write_params`).
+        wall_time: wall-clock time of the calibration [s].
+        warnings: every warning of the run.
+        versions: software versions.
+    """
+    problem: Problem
+    initial: GlobalParams
+    global_params: GlobalParams
+    connectors: dict[str, ConnectorParams]
+    variants: dict[str, VariantCurves]
+    z_static: np.ndarray
+    z_relaxation: np.ndarray
+    strain: StrainRange
+    fe_slope: np.ndarray
+    unit_slope: np.ndarray
+    global_fits: dict[str, Fit]
+    local_sweeps: dict[str, list[Sweep]]
+    settings: dict
+    reference_fingerprint: str
+    reference_path: str
+    evaluations: dict[str, int]
+    wall_time: float
+    warnings: tuple[str, ...] = field(default=())
+    versions: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def is_calibration(self) -> np.ndarray:
+        """(P,) bool: True for calibration points, False for held-out ones."""
+        n = len(self.problem.calibration)
+        return np.arange(len(self.problem.test_points)) < n
+
+    def error_summary(self) -> dict[str, dict[str, dict[str, float]]]:
+        """variant -> experiment -> {"calibration_mean", "calibration_max", "held_out_mean",
+        "held_out_max"} relative RMS errors [1] (held-out keys absent without held-out points)."""
+        out: dict = {}
+        for v, vc in self.variants.items():
+            out[v] = {}
+            for e, err in vc.errors.items():
+                row = {}
+                for group, mask in (("calibration", self.is_calibration),
+                                    ("held_out", ~self.is_calibration)):
+                    if mask.any():
+                        row[f"{group}_mean"] = float(err[mask].mean())
+                        row[f"{group}_max"] = float(err[mask].max())
+                out[v][e] = row
+        return out
+
+    def summary(self) -> str:
+        """Human-readable table of the errors and the run's figures."""
+        g = self.global_params
+        lines = [f"calibration of {len(self.problem.mesh.edges)} connectors on "
+                 f"{len(self.problem.calibration)} calibration + {len(self.problem.held_out)} "
+                 f"held-out points: {self.wall_time:.1f} s, "
+                 f"{self.evaluations.get('point_curves', 0)} point-curve evaluations",
+                 f"global: K0 = {g.K0:.4g} N/m, alpha = {g.alpha:.4g}, beta = {g.beta:.4g}, "
+                 f"k1 = {g.k1:.4g} N/m, tau1 = {g.tau1:.4g} s, k2 = {g.k2:.4g} N/m, "
+                 f"tau2 = {g.tau2:.4g} s",
+                 "relative RMS error, mean / max [%]:",
+                 f"{'variant':<11} {'experiment':<12} {'calibration':>17} {'held-out':>17}"]
+        for v, exps in self.error_summary().items():
+            for e, row in exps.items():
+                cells = [f"{100 * row[f'{grp}_mean']:7.2f} / {100 * row[f'{grp}_max']:6.2f}"
+                         if f"{grp}_mean" in row else f"{'-':>16}"
+                         for grp in ("calibration", "held_out")]
+                lines.append(f"{v:<11} {e:<12} {cells[0]:>17} {cells[1]:>17}")
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def _put_global(group: h5py.Group, g: GlobalParams) -> None:
+    for k, v in g.as_dict().items():
+        put(group, k, v, GLOBAL_UNITS[k])
+
+
+def _get_global(fh: h5py.File, path: str) -> GlobalParams:
+    return GlobalParams(**{k: float(get(fh, f"{path}/{k}", ())) for k in GLOBAL_UNITS})
+
+
+def _put_history(group: h5py.Group, fit: Fit) -> None:
+    h = fit.history
+    put(group, "evaluation_cost", h.evaluation_cost, "N^2", "cost of every evaluation")
+    put(group, "iteration_cost", h.iteration_cost, "N^2", "best cost after each iteration")
+    put(group, "iteration_evaluations", h.iteration_evaluations, "1",
+        "evaluations done by the end of each iteration")
+    group.attrs["x"] = fit.x
+    group.attrs["cost"] = fit.cost
+    group.attrs["initial_cost"] = fit.initial_cost
+    group.attrs["converged"] = fit.converged
+    group.attrs["warnings"] = json.dumps(list(fit.warnings))
+
+
+def _get_fit(fh: h5py.File, path: str) -> Fit:
+    a = fh[path].attrs
+    history = History(get(fh, f"{path}/evaluation_cost", (None,), finite=False, dtype="float"),
+                      get(fh, f"{path}/iteration_cost", (None,), dtype="float"),
+                      get(fh, f"{path}/iteration_evaluations", (None,), dtype="int"))
+    return Fit(np.asarray(a["x"], dtype=float), float(a["cost"]), float(a["initial_cost"]),
+               bool(a["converged"]), history, tuple(json.loads(a["warnings"])))
+
+
+def _ragged(group: h5py.Group, name: str, arrays: list[np.ndarray], unit: str, doc: str) -> None:
+    put(group, name, np.concatenate(arrays) if arrays else np.zeros(0), unit, doc)
+    put(group, f"{name.split('_')[0]}_offsets", np.cumsum([0] + [len(a) for a in arrays]), "1",
+        f"point j's entries of {name} are [offsets[j], offsets[j+1])")
+
+
+def _put_sweep(group: h5py.Group, sweep: Sweep) -> None:
+    group.attrs["start_cost"] = sweep.start_cost
+    group.attrs["end_cost"] = sweep.end_cost
+    group.attrs["halvings"] = sweep.halvings
+    fits = sweep.fits
+    put(group, "x", np.array([f.x for f in fits]), "1", "fitted offsets per point (Pc, d)")
+    put(group, "cost", [f.cost for f in fits], "N^2", "final cost per point")
+    put(group, "initial_cost", [f.initial_cost for f in fits], "N^2", "starting cost per point")
+    put(group, "converged", [f.converged for f in fits], "1", "tolerances met per point")
+    _ragged(group, "evaluation_cost", [f.history.evaluation_cost for f in fits], "N^2",
+            "cost of every evaluation, points concatenated")
+    _ragged(group, "iteration_cost", [f.history.iteration_cost for f in fits], "N^2",
+            "best cost after each iteration, points concatenated")
+    put(group, "iteration_evaluations",
+        np.concatenate([f.history.iteration_evaluations for f in fits]).astype(np.int64), "1",
+        "evaluations done by the end of each iteration, points concatenated")
+    group.attrs["warnings"] = json.dumps([list(f.warnings) for f in fits])
+
+
+def _get_sweep(fh: h5py.File, path: str) -> Sweep:
+    a = fh[path].attrs
+    x = get(fh, f"{path}/x", (None, None), dtype="float")
+    n = len(x)
+    cost = get(fh, f"{path}/cost", (n,), dtype="float")
+    initial = get(fh, f"{path}/initial_cost", (n,), dtype="float")
+    converged = get(fh, f"{path}/converged", (n,)).astype(bool)
+    ev = get(fh, f"{path}/evaluation_cost", (None,), finite=False, dtype="float")
+    ev_off = get(fh, f"{path}/evaluation_offsets", (n + 1,), dtype="int")
+    it = get(fh, f"{path}/iteration_cost", (None,), dtype="float")
+    it_n = get(fh, f"{path}/iteration_evaluations", (len(it),), dtype="int")
+    it_off = get(fh, f"{path}/iteration_offsets", (n + 1,), dtype="int")
+    warnings = json.loads(a["warnings"])
+    fits = tuple(Fit(x[j], float(cost[j]), float(initial[j]), bool(converged[j]),
+                     History(ev[ev_off[j]:ev_off[j + 1]], it[it_off[j]:it_off[j + 1]],
+                             it_n[it_off[j]:it_off[j + 1]]), tuple(warnings[j]))
+                 for j in range(n))
+    return Sweep(float(a["start_cost"]), float(a["end_cost"]), int(a["halvings"]), fits)
+
+
+def write_params(path: str | Path, result: CalibrationResult) -> None:
+    """Write ``params.h5`` atomically (schema in the module docstring)."""
+    with atomic_h5(path, PARAMS_KIND, PARAMS_SCHEMA) as fh:
+        fh.attrs["reference_fingerprint"] = result.reference_fingerprint
+        fh.attrs["reference_path"] = result.reference_path
+        fh.attrs["wall_time"] = result.wall_time
+        fh.attrs["settings"] = json.dumps(result.settings)
+        fh.attrs["versions"] = json.dumps(result.versions)
+        write_problem(fh, result.problem)
+        for variant, params in result.connectors.items():
+            g = fh.create_group(f"connectors/{variant}")
+            for name in PARAM_NAMES:
+                put(g, name, getattr(params, name), PARAM_UNITS[name])
+        _put_global(fh.create_group("global"), result.global_params)
+        g = fh.create_group("initial_guess")
+        _put_global(g, result.initial)
+        put(g, "fe_slope", result.fe_slope, "N/m", "FE initial static slope per calibration point")
+        put(g, "unit_slope", result.unit_slope, "N/m", "unit-stiffness network slope per point")
+        s = fh.create_group("strain_range")
+        s.attrs["low"], s.attrs["high"] = result.strain.low, result.strain.high
+        g = fh.create_group("local")
+        put(g, "z_static", result.z_static, "1", "static ring offsets (Pc, 3)")
+        put(g, "z_relaxation", result.z_relaxation, "1", "relaxation ring offsets (Pc, 4)")
+        for variant, vc in result.variants.items():
+            for e in EXPERIMENTS:
+                put(fh, f"errors/{variant}/{e}", vc.errors[e], "1", "relative RMS error (P,)")
+                put(fh, f"curves/{variant}/{e}", vc.curves[e], "N", "normal-force curves (P, S)")
+        for stage, fit in result.global_fits.items():
+            _put_history(fh.create_group(f"history/global_{stage}"), fit)
+        for stage, sweeps in result.local_sweeps.items():
+            g = fh.create_group(f"history/local_{stage}")
+            for k, sweep in enumerate(sweeps):
+                _put_sweep(g.create_group(f"sweep_{k:02d}"), sweep)
+        ev = fh.create_group("evaluations")
+        for k, v in result.evaluations.items():
+            ev.attrs[k] = v
+        fh.create_dataset("warnings", data=np.array(result.warnings, dtype=object),
+                          dtype=h5py.string_dtype())
+
+
+def read_params(path: str | Path) -> CalibrationResult:
+    """Read ``params.h5`` back (checks kind, schema, shapes and finiteness)."""
+    with open_h5(path, PARAMS_KIND, PARAMS_SCHEMA) as fh:
+        problem = read_problem(fh)
+        n_e, n_p, n_c = len(problem.mesh.edges), len(problem.test_points), len(problem.calibration)
+        connectors = {v: ConnectorParams(**{n: get(fh, f"connectors/{v}/{n}", (n_e,),
+                                                     dtype="float") for n in PARAM_NAMES})
+                      for v in VARIANTS}
+        variants = {v: VariantCurves(
+            curves={e: get(fh, f"curves/{v}/{e}", (n_p, None), dtype="float")
+                    for e in EXPERIMENTS},
+            errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in EXPERIMENTS})
+            for v in VARIANTS}
+        local_sweeps = {}
+        for stage in STAGES:
+            group = f"history/local_{stage}"
+            names = sorted(fh[group]) if group in fh else []
+            local_sweeps[stage] = [_get_sweep(fh, f"{group}/{s}") for s in names]
+        a = fh.attrs
+        return CalibrationResult(
+            problem=problem, initial=_get_global(fh, "initial_guess"),
+            global_params=_get_global(fh, "global"), connectors=connectors, variants=variants,
+            z_static=get(fh, "local/z_static", (n_c, 3), dtype="float"),
+            z_relaxation=get(fh, "local/z_relaxation", (n_c, 4), dtype="float"),
+            strain=StrainRange(float(fh["strain_range"].attrs["low"]),
+                               float(fh["strain_range"].attrs["high"])),
+            fe_slope=get(fh, "initial_guess/fe_slope", (n_c,), dtype="float"),
+            unit_slope=get(fh, "initial_guess/unit_slope", (n_p,), dtype="float"),
+            global_fits={s: _get_fit(fh, f"history/global_{s}") for s in STAGES},
+            local_sweeps=local_sweeps, settings=json.loads(a["settings"]),
+            reference_fingerprint=str(a["reference_fingerprint"]),
+            reference_path=str(a["reference_path"]),
+            evaluations={k: int(v) for k, v in fh["evaluations"].attrs.items()},
+            wall_time=float(a["wall_time"]),
+            warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
+                           for s in fh["warnings"][()]),
+            versions=json.loads(a["versions"]))

@@ -1,0 +1,181 @@
+"""Calibration building blocks against closed-form answers: metrics, linear network,
+Van Gelder baseline, parametrisation, Nelder-Mead bookkeeping, initial guess."""
+import numpy as np
+import pytest
+
+from calibration.baseline import long_term_young_modulus, van_gelder_params
+from calibration.global_fit import fe_initial_slopes, initial_guess
+from calibration.metrics import point_costs, relative_rms_error
+from calibration.network import linear_indentation
+from calibration.optimize import nelder_mead
+from calibration.parametrisation import (GlobalParams, StrainRange, build_rings, check_feasible,
+                                         local_params)
+from forcecal.errors import ConvergenceError, ParameterError
+from forcecal.mesh import TetMesh, box_mesh, check_mesh, fixed_nodes
+from forcecal.scene import MaterialSection
+from particle.model import ConnectorParams, build_model
+
+
+def test_metrics_closed_form():
+    ref = np.array([[1.0, 2.0, 3.0, 4.0], [-2.0, 0.0, 1.0, 0.5]])
+    sim = ref + np.array([[0.1], [0.2]])
+    # a constant offset c gives RMS = c, divided by max|F_ref|
+    np.testing.assert_allclose(relative_rms_error(sim, ref), [0.1 / 4.0, 0.2 / 2.0])
+    np.testing.assert_allclose(point_costs(sim, ref), [4 * 0.01, 4 * 0.04])
+    with pytest.raises(ParameterError, match="shape"):
+        relative_rms_error(sim[:, :3], ref)
+    with pytest.raises(ParameterError, match="NaN"):
+        relative_rms_error(np.full_like(ref, np.nan), ref)
+    with pytest.raises(ParameterError, match="identically zero"):
+        relative_rms_error(sim, np.zeros_like(ref))
+
+
+def _one_tet() -> TetMesh:
+    return check_mesh(TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.3, 1.0]]) * 0.01,
+                              np.array([[0, 1, 2, 3]])))
+
+
+def test_linear_network_single_free_vertex_closed_form():
+    # vertex 3 indented, 0-2 clamped: each connector c = (i, 3) stretches by e_c . n per unit
+    # depth, so the normal force per unit depth is sum_c k_c (e_c . n)^2 and eps_c = e_c . n / L_c
+    mesh = _one_tet()
+    n = mesh.inward_normals([3])
+    k = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    lin = linear_indentation(mesh, np.array([0, 1, 2]), np.array([3]), n, k)
+    x = mesh.vertices
+    expected_slope, expected_strain = 0.0, np.zeros(6)
+    for c, (i, j) in enumerate(mesh.edges):
+        if j == 3:
+            e = (x[3] - x[i]) / np.linalg.norm(x[3] - x[i])
+            expected_slope += k[c] * (e @ n[0]) ** 2
+            expected_strain[c] = (e @ n[0]) / mesh.edge_lengths[c]
+    assert lin.slope[0] == pytest.approx(expected_slope, rel=1e-12)
+    np.testing.assert_allclose(lin.strain[0], expected_strain, rtol=1e-12, atol=1e-12)
+
+
+def test_linear_network_is_the_particle_models_initial_slope():
+    # at rest the particle tangent is sum K0 e e^T (no geometric term), so a 1 um indentation
+    # of the nonlinear engine must match the linear slope up to O(depth / edge) = 1e-4
+    from particle.evaluators import IndentationEvaluator
+    mesh = box_mesh((2, 2, 2), (0.04, 0.04, 0.02))
+    fixed = fixed_nodes(mesh, "z", "min", 1e-4)
+    nodes = np.array([22, 25])
+    normals = mesh.inward_normals(nodes)
+    lin = linear_indentation(mesh, fixed, nodes, normals)
+    params = ConnectorParams.uniform(len(mesh.edges), K0=25.0, k1=1.0, b1=1.0, k2=1.0, b2=10.0)
+    model = build_model(mesh, 1000.0, params, fixed=fixed)
+    force = IndentationEvaluator(model, nodes, normals, np.array([1e-6]))(params)[:, 0]
+    np.testing.assert_allclose(force / 1e-6, 25.0 * lin.slope, rtol=1e-3)
+
+
+def test_van_gelder_baseline_matches_dilation_energy_and_prony():
+    material = MaterialSection()
+    E = long_term_young_modulus(material)
+    mu = material.long_term_factor * material.shear_modulus
+    assert E == pytest.approx(9 * material.kappa * mu / (3 * material.kappa + mu))
+    mesh = box_mesh((2, 3, 2), (0.03, 0.05, 0.02))
+    p = van_gelder_params(mesh, material)
+    # uniform strain e in every connector stores 1/2 sum K0 (e L)^2 = 3 E V e^2 (six edges per
+    # tet), the continuum dilation energy of a nu = 1/4 solid: sum K0 L^2 = 6 E V exactly
+    volume = mesh.signed_volumes.sum()
+    assert np.sum(p.K0 * mesh.edge_lengths ** 2) == pytest.approx(6 * E * volume, rel=1e-12)
+    g_inf = material.long_term_factor
+    np.testing.assert_allclose(p.k1 / p.K0, material.prony_g[0] / g_inf)
+    np.testing.assert_allclose(p.k2 / p.K0, material.prony_g[1] / g_inf)
+    np.testing.assert_allclose(p.tau1, material.prony_tau[0])
+    np.testing.assert_allclose(p.tau2, material.prony_tau[1])
+    assert not p.a.any() and not p.b.any()
+    with pytest.raises(ParameterError, match="exactly two Maxwell arms"):
+        van_gelder_params(mesh, MaterialSection(prony_g=(0.3,), prony_tau=(1.0,)))
+
+
+def test_rings_blend_factors_geometrically():
+    mesh = box_mesh((2, 2, 2), (0.04, 0.04, 0.02))
+    points = np.array([22, 25])  # neighbours: connector 22-25 lies in both rings
+    rings = build_rings(mesh, points)
+    for p, members in zip(points, rings.members):
+        np.testing.assert_array_equal(np.sort(members),
+                                      np.nonzero((mesh.edges == p).any(axis=1))[0])
+    shared = mesh.edge_index(np.array([22]), np.array([25]))[0]
+    rows = np.asarray(rings.weights.sum(axis=1)).ravel()
+    in_rings = np.zeros(len(mesh.edges), bool)
+    in_rings[np.concatenate(rings.members)] = True
+    np.testing.assert_allclose(rows[in_rings], 1.0)
+    assert not rows[~in_rings].any()
+    g = GlobalParams(K0=10.0, alpha=0.5, beta=2.0, k1=5.0, tau1=0.5, k2=3.0, tau2=10.0)
+    strain = StrainRange(-0.2, 0.4)
+    zs = np.array([[np.log(2.0), 0.1, 0.0], [np.log(8.0), 0.3, 0.0]])
+    zr = np.array([[0.0, np.log(2.0), 0.0, 0.0], [0.0, np.log(0.5), 0.0, 0.0]])
+    p = local_params(g, rings, strain, zs, zr)
+    # the shared connector: geometric mean of factors 2 and 8 = 4; mean alpha offset 0.2 / s
+    assert p.K0[shared] == pytest.approx(40.0)
+    assert p.a[shared] / p.K0[shared] == pytest.approx(0.5 + 0.2 / strain.scale)
+    assert p.tau1[shared] == pytest.approx(0.5)  # sqrt(2 x 0.5) = 1
+    only_first = np.setdiff1d(rings.members[0], rings.members[1])
+    np.testing.assert_allclose(p.K0[only_first], 20.0)
+    np.testing.assert_allclose(p.K0[~in_rings], 10.0)
+    np.testing.assert_allclose(p.b2 / p.k2, 10.0)
+
+
+def test_feasibility_refuses_soft_springs_and_swapped_arms():
+    strain = StrainRange(-0.3, 0.3)
+    ok = GlobalParams(K0=10.0, alpha=0.0, beta=0.0, k1=1.0, tau1=0.5, k2=1.0, tau2=10.0)
+    check_feasible(ok.connector_params(5), strain)
+    # K(eps)/K0 = 1 - 4 eps reaches 0 at eps = 0.25 < 0.3
+    soft = GlobalParams(**{**ok.as_dict(), "alpha": -4.0})
+    with pytest.raises(ParameterError, match="K\\(eps\\)"):
+        check_feasible(soft.connector_params(5), strain)
+    swapped = GlobalParams(**{**ok.as_dict(), "tau1": 20.0})
+    with pytest.raises(ParameterError, match="tau1 >= tau2"):
+        check_feasible(swapped.connector_params(5), strain)
+
+
+def test_nelder_mead_records_history_and_converges():
+    target = np.array([1.0, -2.0])
+    fit = nelder_mead(lambda x: float(np.sum((x - target) ** 2) + 0.5), np.zeros(2),
+                      np.full(2, 0.5), name="quadratic", xatol=1e-6, fatol=1e-10,
+                      max_evaluations=1000)
+    np.testing.assert_allclose(fit.x, target, atol=1e-5)
+    assert fit.converged and not fit.warnings
+    assert fit.initial_cost == pytest.approx(5.5)
+    assert fit.evaluations == len(fit.history.evaluation_cost)
+    assert fit.history.evaluation_cost.min() == fit.cost
+    assert np.all(np.diff(fit.history.iteration_cost) <= 0)
+    assert np.all(np.diff(fit.history.iteration_evaluations) >= 0)
+
+
+def test_nelder_mead_warns_on_budget_and_no_progress():
+    fit = nelder_mead(lambda x: float(np.sum(x ** 2)), np.ones(3), np.full(3, 0.1),
+                      name="tiny budget", xatol=1e-9, fatol=1e-12, max_evaluations=6)
+    assert not fit.converged and fit.evaluations <= 8
+    assert any("budget of 6 evaluations" in w for w in fit.warnings)
+    flat = nelder_mead(lambda x: 1.0, np.zeros(2), np.full(2, 0.1), name="flat", xatol=1e-3,
+                       fatol=1e-6, max_evaluations=50)
+    assert any("did not reduce the cost" in w for w in flat.warnings)
+
+
+def test_nelder_mead_infeasible_points_cost_inf():
+    def cost(x):
+        if x[0] < 0.2:
+            raise ParameterError("x below 0.2")
+        return float((x[0] - 0.1) ** 2)
+    fit = nelder_mead(cost, np.array([1.0]), np.array([0.5]), name="bounded", xatol=1e-6,
+                      fatol=1e-12, max_evaluations=200)
+    assert np.isinf(fit.history.evaluation_cost).any()
+    assert fit.x[0] == pytest.approx(0.2, abs=1e-4)  # the feasible optimum is the bound
+    with pytest.raises(ConvergenceError, match="starting point .* infeasible: x below 0.2"):
+        nelder_mead(cost, np.array([0.0]), np.array([0.5]), name="bad start", xatol=1e-3,
+                    fatol=1e-6, max_evaluations=10)
+
+
+def test_initial_guess_is_exact_on_linear_data():
+    # F = s d + c d^2 sampled exactly: the two-sample quadratic recovers s
+    depths = np.linspace(0.5e-3, 5e-3, 10)
+    s, c = np.array([3.0, 5.0]), np.array([100.0, -40.0])
+    forces = s[:, None] * depths + c[:, None] * depths ** 2
+    np.testing.assert_allclose(fe_initial_slopes(depths, forces), s, rtol=1e-12)
+    unit = np.array([0.1, 0.2])
+    g = initial_guess(MaterialSection(), 42.0 * unit, unit)
+    assert g.K0 == pytest.approx(42.0)
+    assert (g.alpha, g.beta) == (0.0, 0.0)
+    assert g.k1 == pytest.approx(42.0 * 0.35 / 0.4) and g.tau2 == 10.0
