@@ -82,6 +82,12 @@ class TangentPattern:
         """(3k,) matrix dofs of non-fixed particles ``nodes``."""
         return (self.node_dof[nodes][:, None] + np.arange(3)).ravel()
 
+    @property
+    def diagonal(self) -> np.ndarray:
+        """(n,) data indices of the diagonal entries."""
+        cols = np.repeat(np.arange(self.n_dofs), np.diff(self.indptr))
+        return np.nonzero(self.indices == cols)[0]
+
     def constraint_slots(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Data indices of the rows/columns of ``nodes``' dofs, and of their diagonal entries."""
         dofs = self.dofs(nodes)
@@ -199,15 +205,25 @@ class EquilibriumSolver:
                                  data)
         data[self._zero_slots] = 0.0
         data[self._diag_slots] = 1.0
-        matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
         try:
-            # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
-            self._lu = splu(matrix, permc_spec="MMD_AT_PLUS_A",
-                            options=dict(SymmetricMode=True), diag_pivot_thresh=0.0)
-        except RuntimeError as exc:  # exactly singular: a mechanism (e.g. nothing holds the model)
-            raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model held "
-                                   "by fixed or prescribed particles?") from exc
+            self._lu = self._lu_of(data)
+        except RuntimeError:
+            # exactly singular, e.g. a hanging string at rest has no transverse stiffness yet:
+            # a tiny diagonal shift only changes the iteration matrix, not the equilibrium
+            data[pat.diagonal] += 1e-6 * np.abs(data[pat.diagonal]).max()
+            try:
+                self._lu = self._lu_of(data)
+            except RuntimeError as exc:
+                raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model "
+                                       "held by fixed or prescribed particles?") from exc
         self.factorizations += 1
+
+    def _lu_of(self, data: np.ndarray):
+        pat = self.pattern
+        matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
+        # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
+        return splu(matrix, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
+                    diag_pivot_thresh=0.0)
 
     def _newton_step(self, res: np.ndarray) -> np.ndarray:
         rhs = np.zeros(self.pattern.n_dofs)

@@ -1,0 +1,51 @@
+"""Plain-numpy explicit step: the reference the compiled kernels are tested and benchmarked against.
+
+The same model, formulas and order of operations as
+:func:`particle.kernels.run_verlet` (see :class:`particle.integrator.VerletIntegrator`),
+written with whole-array numpy operations instead of loops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from particle.model import Model, State
+
+
+def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
+               damping: float = 0.0, arms: bool = True) -> None:
+    """Advance ``state`` by one position-Verlet step of ``dt`` [s] in place (no prescribed nodes).
+
+    A state that was never stepped (``state.dt is None``) takes the start-up
+    step from rest, ``x^1 = x^0 + dt^2/2 a^0``. ``state.dt`` must otherwise equal ``dt``.
+    """
+    if state.dt is not None and state.dt != dt:
+        raise ValueError("step_numpy does not change the step size of a running state")
+    p = model.params
+    x, x_prev = state.x, state.x_prev
+    i, j = model.edges[:, 0], model.edges[:, 1]
+    d = x[j] - x[i]
+    length = np.sqrt(np.einsum("ij,ij->i", d, d))
+    dx = length - model.rest_lengths
+    tension = p.stiffness(dx / model.rest_lengths) * dx
+    if arms:
+        r, c = p.arm_recursion(dt)
+        state.arm_force[:] = r * state.arm_force + c * (dx - state.dx_prev)[:, None]
+        tension = tension + state.arm_force.sum(axis=1)
+    state.dx_prev[:] = dx
+    pull = (tension / length)[:, None] * d
+    forces = np.zeros_like(x)
+    np.add.at(forces, i, pull)
+    np.add.at(forces, j, -pull)
+    m = model.masses[:, None]
+    if gravity is not None:
+        forces += m * np.asarray(gravity)
+    if damping:
+        forces -= m * (damping / dt) * (x - x_prev)
+    scale = 0.5 if state.dt is None else 1.0
+    free = model.free_nodes
+    new = 2.0 * x[free] - x_prev[free] + scale * dt * dt * forces[free] / m[free]
+    x_prev[free] = x[free]
+    x[free] = new
+    state.t += dt
+    state.dt = dt

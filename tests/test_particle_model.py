@@ -1,0 +1,164 @@
+"""Particle model data structures: parameters, builder, Model, State, and their refusals."""
+import dataclasses
+import pickle
+
+import numpy as np
+import pytest
+
+from forcecal.errors import MeshError, ParameterError
+from forcecal.mesh import box_mesh
+from particle.model import ConnectorParams, ModelBuilder, build_model
+from particle.testing import viscoelastic_params
+
+
+def test_uniform_params_shapes_and_relaxation_times():
+    p = ConnectorParams.uniform(4, K0=10.0, a=1.0, b=2.0, k1=3.0, b1=1.5, k2=4.0, b2=40.0)
+    assert p.n_connectors == 4
+    np.testing.assert_array_equal(p.tau1, 0.5)
+    np.testing.assert_array_equal(p.tau2, 10.0)
+    assert p.arm_stiffness.shape == (4, 2) and not p.is_linear
+    with pytest.raises(ValueError):
+        p.K0[0] = 1.0  # immutable: calibration must build new instances
+    q = dataclasses.replace(p, a=np.zeros(4), b=np.zeros(4))
+    assert q.is_linear
+
+
+def test_params_of_different_lengths_are_refused():
+    with pytest.raises(ParameterError, match="one length"):
+        ConnectorParams(K0=np.ones(3), a=np.zeros(3), b=np.zeros(3), k1=np.ones(2),
+                        b1=np.ones(3), k2=np.ones(3), b2=np.ones(3))
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("K0", 0.0, "K0 = 0 must be > 0"),
+    ("K0", -5.0, "K0 = -5 must be > 0"),
+    ("k1", 0.0, "k1 = 0 must be > 0"),
+    ("k2", -1.0, "k2 = -1 must be > 0"),
+    ("b1", 0.0, "b1 = 0 must be > 0"),
+    ("b2", -2.0, "b2 = -2 must be > 0"),
+    ("a", np.nan, "a = nan is not finite"),
+    ("b2", np.inf, "b2 = inf is not finite"),
+])
+def test_validate_names_the_first_bad_connector(name, value, message):
+    p = viscoelastic_params(5)
+    values = getattr(p, name).copy()
+    values[3] = value
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 7], [4, 5]])
+    with pytest.raises(ParameterError, match=f"connector 3 \\(particles 3-7\\): {message}"):
+        dataclasses.replace(p, **{name: values}).validate(edges=edges)
+
+
+def test_validate_checks_the_quadratic_minimum_inside_the_range():
+    # K(eps) = 10 - 40 eps + 50 eps^2 is 10 at both ends of [0, 0.8] and has its minimum
+    # 2 at eps = 0.4: valid. Lowering K0 to 7 makes the minimum -1 while both ends stay at
+    # 7: only the analytic minimum catches it.
+    ok = viscoelastic_params(1, K0=10.0, a=-40.0, b=50.0)
+    kmin, kmax = ok.extreme_stiffness((0.0, 0.8))
+    assert kmin[0] == pytest.approx(2.0) and kmax[0] == pytest.approx(10.0)
+    ok.validate((0.0, 0.8))
+    bad = viscoelastic_params(1, K0=7.0, a=-40.0, b=50.0)
+    with pytest.raises(ParameterError, match=r"connector 0: spring stiffness .* reaches -1 N/m"):
+        bad.validate((0.0, 0.8))
+    # the same parameters are fine where the parabola stays positive
+    bad.validate((-0.2, 0.1))
+
+
+def test_validate_refuses_a_nonsense_strain_range():
+    with pytest.raises(ParameterError, match="strain range"):
+        viscoelastic_params(2).validate((0.5, 0.1))
+    with pytest.raises(ParameterError, match="strain range"):
+        viscoelastic_params(2).validate((-1.5, 0.1))
+
+
+def test_arm_recursion_coefficients():
+    p = ConnectorParams.uniform(1, K0=1.0, k1=2.0, b1=1.0, k2=4.0, b2=40.0)
+    dt = 0.1
+    r, c = p.arm_recursion(dt)
+    tau = np.array([0.5, 10.0])
+    k = np.array([2.0, 4.0])
+    # the paper's coefficients: k b/(k dt + b) multiplies (ddx + F/k)
+    np.testing.assert_allclose(c[0], k * k * tau / (k * dt + k * tau), rtol=1e-15)
+    np.testing.assert_allclose(r[0], c[0] / k, rtol=1e-15)
+    r, c = p.arm_recursion(dt, exact=True)
+    np.testing.assert_allclose(r[0], np.exp(-dt / tau), rtol=1e-15)
+    np.testing.assert_allclose(c[0], k * tau * (1 - np.exp(-dt / tau)) / dt, rtol=1e-14)
+    with pytest.raises(ParameterError, match="time step"):
+        p.arm_recursion(0.0)
+
+
+def test_build_model_from_a_mesh():
+    mesh = box_mesh((2, 2, 1), (0.02, 0.02, 0.01))
+    params = viscoelastic_params(len(mesh.edges))
+    model = build_model(mesh, 1000.0, params, fixed=[0, 1, 2])
+    assert model.n_particles == mesh.n_vertices and model.n_connectors == len(mesh.edges)
+    np.testing.assert_array_equal(model.edges, mesh.edges)  # same order: connector e = edge e
+    np.testing.assert_allclose(model.rest_lengths, mesh.edge_lengths, rtol=1e-15)
+    # lumped masses add up to density x volume
+    assert model.masses.sum() == pytest.approx(1000.0 * 0.02 * 0.02 * 0.01, rel=1e-12)
+    assert model.fixed[[0, 1, 2]].all() and model.fixed.sum() == 3
+    np.testing.assert_array_equal(model.free_nodes, np.arange(3, mesh.n_vertices))
+    # CSR incidence: every connector appears at both ends
+    for n in (0, 5):
+        touching = model.incidence_edge[model.incidence_ptr[n]:model.incidence_ptr[n + 1]]
+        expected = np.nonzero((mesh.edges == n).any(axis=1))[0]
+        np.testing.assert_array_equal(np.sort(touching), expected)
+    other = dataclasses.replace(params, K0=params.K0 * 2)
+    m2 = model.with_params(other)
+    assert m2.params is other and m2.edges is model.edges and m2.masses is model.masses
+    with pytest.raises(ParameterError, match="3 entries but the model has"):
+        model.with_params(viscoelastic_params(3))
+    restored = pickle.loads(pickle.dumps(model))
+    np.testing.assert_array_equal(restored.incidence_edge, model.incidence_edge)
+
+
+def test_build_model_from_a_problem_uses_its_fixed_nodes(liver_problem):
+    model = build_model(liver_problem, 1060.0, viscoelastic_params(len(liver_problem.mesh.edges)))
+    np.testing.assert_array_equal(np.nonzero(model.fixed)[0], np.sort(liver_problem.fixed))
+    assert model.n_connectors == 1400
+
+
+def test_state_starts_at_rest():
+    mesh = box_mesh((1, 1, 1))
+    model = build_model(mesh, 1.0, viscoelastic_params(len(mesh.edges)))
+    s = model.state()
+    np.testing.assert_array_equal(s.x, model.rest_positions)
+    np.testing.assert_array_equal(s.x_prev, s.x)
+    assert s.x is not model.rest_positions and s.dt is None and s.t == 0.0
+    assert not s.arm_force.any() and not s.dx_prev.any()
+    c = s.copy()
+    c.x[0, 0] = 5.0
+    assert s.x[0, 0] == 0.0
+
+
+def test_builder_refusals():
+    b = ModelBuilder()
+    b.add_particle((0, 0, 0), 1.0)
+    b.add_particle((1, 0, 0), 1.0)
+    with pytest.raises(MeshError, match="unknown particle"):
+        b.add_connector(0, 2)
+    with pytest.raises(MeshError, match="to itself"):
+        b.add_connector(1, 1)
+    with pytest.raises(ParameterError, match="mass"):
+        b.add_particle((2, 0, 0), 0.0)
+    with pytest.raises(MeshError, match="needs particles and connectors"):
+        b.finalize(viscoelastic_params(0))
+    b.add_connector(0, 1)
+    b.add_connector(1, 0)
+    with pytest.raises(MeshError, match="joined by 2 connectors"):
+        b.finalize(viscoelastic_params(2))
+    z = ModelBuilder()
+    z.add_particles(np.zeros((2, 3)), [1.0, 1.0])
+    z.add_connector(0, 1)
+    with pytest.raises(MeshError, match="zero rest length"):
+        z.finalize(viscoelastic_params(1))
+
+
+def test_unknown_and_fixed_nodes_are_refused():
+    mesh = box_mesh((1, 1, 1))
+    model = build_model(mesh, 1.0, viscoelastic_params(len(mesh.edges)), fixed=[0])
+    with pytest.raises(MeshError, match=r"unknown particle\(s\) \[8\]"):
+        model.check_nodes([8], "test points")
+    with pytest.raises(MeshError, match=r"particle\(s\) \[0\] are fixed"):
+        model.check_nodes([0], "test points")
+    with pytest.raises(MeshError, match="not vertices"):
+        build_model(mesh, 1.0, viscoelastic_params(len(mesh.edges)), fixed=[99])
