@@ -13,7 +13,9 @@ resumes where it stopped and ends with the same result:
 
 The reference must match the scene: same mesh, fixed nodes, test points,
 material and sample schedules; a mismatch, a corrupt file or a non-physical
-curve raises :class:`~forcecal.errors.DataFileError` before any fitting.
+curve raises :class:`~forcecal.errors.DataFileError` before any fitting (a
+scene whose test points are fixed or off the surface is refused by
+:func:`forcecal.problem.build_problem` with a :class:`~forcecal.errors.MeshError`).
 """
 
 from __future__ import annotations
@@ -67,10 +69,6 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
         if not np.array_equal(np.sort(getattr(rp, what)), np.sort(getattr(problem, what))):
             raise DataFileError(f"{reference_path}: its {what} nodes differ from the scene's; "
                                 "recompute the reference for this scene")
-    fixed_cal = np.intersect1d(rp.calibration, rp.fixed)
-    if len(fixed_cal):
-        raise DataFileError(f"{reference_path}: calibration point(s) {fixed_cal.tolist()} are "
-                            "fixed nodes and cannot be indented")
     if ref.material != dataclasses.replace(scene.material, reference=ref.material.reference):
         raise DataFileError(f"{reference_path}: computed with material {ref.material} but the "
                             f"scene has {scene.material}")

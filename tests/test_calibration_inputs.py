@@ -1,0 +1,96 @@
+"""Bad input to the calibration: every case is a clear ForcecalError naming the problem, or a
+warning recorded in the result and in params.h5 -- never a silent success."""
+import h5py
+import numpy as np
+import pytest
+
+from calibration.core import calibrate
+from calibration.results import read_params
+from calibration.synthetic import box_scene, synthetic_reference
+from forcecal.errors import DataFileError, MeshError
+from forcecal.h5io import read_reference, write_reference
+from forcecal.problem import build_problem
+from forcecal.scene import replace
+from particle.model import ConnectorParams
+
+TABLES = dict(test_points={"n_calibration": 4, "n_held_out": 2},
+              indentation={"depth": 0.002}, relaxation={"depth": 0.002},
+              calibration={"local": False, "workers": 1})
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    scene = box_scene(d, **TABLES)
+    n = len(build_problem(scene).mesh.edges)
+    params = ConnectorParams.uniform(n, K0=30.0, k1=26.0, b1=13.0, k2=19.0, b2=190.0)
+    synthetic_reference(scene, params, d / "reference.h5")
+    return scene, d / "reference.h5"
+
+
+def _run(scene, reference, tmp_path):
+    return calibrate(scene, reference, tmp_path / "params.h5", progress=False)
+
+
+def test_missing_corrupt_and_nan_references(case, tmp_path):
+    scene, reference = case
+    with pytest.raises(DataFileError, match="does not exist"):
+        _run(scene, tmp_path / "nope.h5", tmp_path)
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(reference.read_bytes()[:3000])
+    with pytest.raises(DataFileError, match="not a readable HDF5 file"):
+        _run(scene, truncated, tmp_path)
+    nan = tmp_path / "nan.h5"
+    nan.write_bytes(reference.read_bytes())
+    with h5py.File(nan, "a") as fh:
+        fh["indentation/force_normal"][1, 3] = np.nan
+    with pytest.raises(DataFileError, match="indentation/force_normal contains 1 NaN"):
+        _run(scene, nan, tmp_path)
+    assert not (tmp_path / "params.h5").exists()
+
+
+def test_reference_of_another_scene_is_refused(case, tmp_path):
+    scene, reference = case
+    other_mesh = box_scene(tmp_path / "other", cells=(3, 2, 2), **TABLES)
+    with pytest.raises(DataFileError, match="different mesh"):
+        _run(other_mesh, reference, tmp_path)
+    with pytest.raises(DataFileError, match="held_out nodes differ"):
+        _run(replace(scene, test_points={"n_held_out": 3}), reference, tmp_path)
+    with pytest.raises(DataFileError, match="indentation/displacement does not match"):
+        _run(replace(scene, indentation={"depth": 0.003}), reference, tmp_path)
+    with pytest.raises(DataFileError, match="computed with material"):
+        _run(replace(scene, material={"C10": 2500.0}), reference, tmp_path)
+
+
+def test_fixed_calibration_point_is_refused(case, tmp_path):
+    scene, reference = case
+    fixed = int(build_problem(scene).fixed[0])
+    with pytest.raises(MeshError, match=f"test point\\(s\\) \\[{fixed}\\] are fixed nodes"):
+        _run(replace(scene, test_points={"calibration": [fixed, 47]}), reference, tmp_path)
+
+
+def test_forces_of_the_wrong_sign_are_refused(case, tmp_path):
+    scene, reference = case
+    ref = read_reference(reference)
+    flipped = tmp_path / "flipped.h5"
+    write_reference(flipped, type(ref)(
+        problem=ref.problem, material=ref.material, gravity=None,
+        indentation=type(ref.indentation)(ref.indentation.displacement, -ref.indentation.force,
+                                          -ref.indentation.force_normal),
+        relaxation=ref.relaxation))
+    node = int(ref.problem.test_points[0])
+    with pytest.raises(DataFileError, match=f"indentation force of test point\\(s\\) \\[{node},"):
+        _run(scene, flipped, tmp_path)
+
+
+def test_exhausted_budgets_are_recorded_as_warnings(case, tmp_path):
+    scene, reference = case
+    starved = replace(scene, calibration={"static_max_evaluations": 3,
+                                          "relaxation_max_evaluations": 4})
+    result = _run(starved, reference, tmp_path)
+    budget = [w for w in result.warnings if "stopped at its budget" in w]
+    assert any(w.startswith("global static fit") for w in budget)
+    assert any(w.startswith("global relaxation fit") for w in budget)
+    assert not result.global_fits["static"].converged
+    assert read_params(tmp_path / "params.h5").warnings == result.warnings
+    assert "warning: global static fit" in result.summary()
