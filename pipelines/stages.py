@@ -129,6 +129,8 @@ def run_reference(ctx: Context) -> list[str]:
            "--scene", str(ctx.scene.path), "--out", str(path)]
     if not ctx.progress:
         cmd.append("--no-progress")
+    # an explicit copy of os.environ also leaves out what MPI, if this process initialised it
+    # (e.g. dolfinx imported in-process), set in the C environment: mpirun fails with those
     env = dict(os.environ)
     for k in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
               "OMPI_MCA_rmaps_base_oversubscribe"):

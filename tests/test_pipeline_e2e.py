@@ -1,0 +1,157 @@
+"""End to end on the tiny scene: every stage, report keys, content caching, calibrated < baseline.
+
+One full run (FE reference with 2 MPI ranks, calibration with small budgets,
+gravity, report) is shared by the tests; each test that changes something
+works on its own copy of the output folder.
+"""
+import json
+import math
+import shutil
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from forcecal.h5io import read_reference
+from forcecal.scene import load_scene
+from pipelines.gravity import read_gravity
+from pipelines.report import ERROR_KEYS, TIMING_KEYS
+from pipelines.stages import ORDER, run_pipeline
+from tests.conftest import ROOT, SCENES
+
+pytestmark = [pytest.mark.slow, pytest.mark.fe, pytest.mark.mpi]
+
+# the tiny scene with smaller calibration budgets and a shorter gravity run: the test is
+# about the pipeline, not about how far the optimiser gets (it still beats the baseline)
+FAST = {"calibration": {"static_max_evaluations": 60, "relaxation_max_evaluations": 80,
+                        "local_max_evaluations": 25, "local_max_sweeps": 1},
+        "gravity": {"duration": 0.1}}
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, str):
+        return json.dumps(v)
+    return repr(v)
+
+
+def write_scene(path, changes: dict) -> None:
+    """Copy scenes/tiny.toml to ``path`` with ``changes`` ({section: {key: value}}) applied."""
+    doc = tomllib.loads((SCENES / "tiny.toml").read_text())
+    for section, keys in [*FAST.items(), *changes.items()]:
+        doc[section] = {**doc.get(section, {}), **keys}
+    lines = [f"{k} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
+    for section, table in doc.items():
+        if isinstance(table, dict):
+            lines += [f"\n[{section}]"] + [f"{k} = {_toml_value(v)}" for k, v in table.items()]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def ran(outcomes) -> list[str]:
+    return [o.stage for o in outcomes if o.ran]
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+    """(scene path, output folder, outcomes) of a complete run from scratch."""
+    base = tmp_path_factory.mktemp("pipeline")
+    scene_path = base / "tiny.toml"
+    write_scene(scene_path, {})
+    out = base / "out"
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False, ranks=2)
+    return scene_path, out, outcomes
+
+
+def copy_run(first_run, tmp_path):
+    scene_path, out, _ = first_run
+    shutil.copy(scene_path, tmp_path / "tiny.toml")
+    shutil.copytree(out, tmp_path / "out")
+    return tmp_path / "tiny.toml", tmp_path / "out"
+
+
+def test_first_run_runs_every_stage_and_writes_every_output(first_run):
+    _, out, outcomes = first_run
+    assert ran(outcomes) == list(ORDER)
+    for name in ("reference.h5", "params.h5", "gravity.h5", "report.json", "gravity_fe.xdmf",
+                 "gravity_fe.h5", "gravity_particle.xdmf", "gravity_particle.h5"):
+        assert (out / name).is_file(), name
+    for name in ("calibration", "held_out", "gravity_static", "gravity_dynamic", "errors"):
+        assert (out / "figures" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    gravity = read_gravity(out / "gravity.h5")
+    assert set(gravity.models) == {"calibrated", "baseline"}
+
+
+def test_report_has_every_key_finite_and_calibration_beats_the_baseline(first_run):
+    _, out, _ = first_run
+    report = json.loads((out / "report.json").read_text())
+    assert report["scene"] == "tiny"
+    assert report["mesh"] == {"nodes": 78, "tets": 186, "connectors": 336}
+    assert len(report["test_points"]["calibration"]) == 9
+    assert len(report["test_points"]["held_out"]) == 2
+    for group, keys in (("errors", ERROR_KEYS), ("baseline_errors", ERROR_KEYS),
+                        ("timings_s", TIMING_KEYS)):
+        assert set(keys) <= set(report[group])
+        for k in keys:
+            assert isinstance(report[group][k], float) and math.isfinite(report[group][k]), k
+    for k in ("forcecal", "python", "numpy", "scipy", "numba", "dolfinx", "gmsh"):
+        assert report["versions"][k], k
+    assert report["versions"]["dolfinx"] == "0.5.2"
+    # the whole point of calibrating: the fitted curves beat the closed-form springs
+    assert report["errors"]["indentation_calibrated"] < report["baseline_errors"][
+        "indentation_calibrated"]
+    # the baseline is one model: its "global" and "calibrated" errors are the same points
+    assert report["baseline_errors"]["indentation_global"] == report["baseline_errors"][
+        "indentation_calibrated"]
+
+
+def test_second_run_skips_every_stage_and_says_why(first_run, tmp_path):
+    scene_path, out = copy_run(first_run, tmp_path)
+    r = subprocess.run([sys.executable, "-m", "pipelines", "demo", "--scene", str(scene_path),
+                        "--out", str(out), "--no-progress"], capture_output=True, text=True,
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    for stage in ORDER:
+        assert f"{stage:<10} skipped" in r.stdout
+        assert f"{stage:<9} up to date, skipped" in r.stderr
+
+
+def test_deleted_output_reruns_only_its_stage(first_run, tmp_path):
+    scene_path, out = copy_run(first_run, tmp_path)
+    (out / "figures" / "errors.png").unlink()
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False)
+    assert ran(outcomes) == ["report"]
+    assert outcomes[-1].reasons == ("output figures/errors.png is missing",)
+    assert (out / "figures" / "errors.png").is_file()
+
+
+def test_reference_computed_outside_the_pipeline_is_adopted(first_run, tmp_path):
+    scene_path, out = copy_run(first_run, tmp_path)
+    (out / "cache" / "reference.json").unlink()  # as if python -m reference_fe had made it
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False)
+    assert ran(outcomes) == []
+
+
+def test_calibration_keys_rerun_calibration_and_downstream_not_the_reference(first_run,
+                                                                              tmp_path):
+    scene_path, out = copy_run(first_run, tmp_path)
+    before = (out / "reference.h5").read_bytes()
+    write_scene(scene_path, {"calibration": {"local_max_evaluations": 20}})
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False)
+    assert ran(outcomes) == ["calibrate", "gravity", "report"]
+    assert outcomes[1].reasons == ("scene [calibration] changed",)
+    assert outcomes[2].reasons == ("params.h5 changed",)
+    assert (out / "reference.h5").read_bytes() == before
+
+
+def test_material_change_reruns_everything(first_run, tmp_path):
+    scene_path, out = copy_run(first_run, tmp_path)
+    write_scene(scene_path, {"material": {"C10": 2200.0}})
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False, ranks=2)
+    assert ran(outcomes) == list(ORDER)
+    assert outcomes[0].reasons == ("scene [material] changed",)
+    assert "reference.h5 changed" in outcomes[1].reasons
+    assert read_reference(out / "reference.h5").material.C10 == 2200.0

@@ -1,0 +1,230 @@
+"""Pipeline building blocks: stage cache, gravity runs and gravity.h5, report errors, XDMF fields."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from forcecal.errors import DataFileError, ParameterError
+from forcecal.mesh import box_mesh
+from forcecal.problem import Problem
+from particle.model import ConnectorParams, build_model
+from particle.statics import gravity_static
+from pipelines.cache import Cache, StageInputs, code_digest, file_digest
+from pipelines.gravity import (GravityRuns, ParticleGravity, check_springs, connector_strains,
+                               read_gravity, static_sag, write_gravity)
+from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
+                              gravity_static_error)
+from pipelines.stages import REFERENCE_SECTIONS
+from tests.conftest import ROOT
+
+
+@pytest.fixture
+def column():
+    """A 1 x 1 x 4 cell box column, 10 mm cells, clamped at its base (z = 0)."""
+    mesh = box_mesh((1, 1, 4), (0.01, 0.01, 0.04))
+    fixed = np.nonzero(mesh.vertices[:, 2] == 0.0)[0]
+    top = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.04))[0]
+    return Problem(mesh=mesh, fixed=fixed, calibration=top[:2], held_out=top[2:3],
+                   tracked_node=int(top[-1]))
+
+
+def linear_params(n: int, K0: float = 200.0) -> ConnectorParams:
+    return ConnectorParams.uniform(n, K0=K0, k1=50.0, b1=5.0, k2=20.0, b2=40.0)
+
+
+# ------------------------------------------------------------------------------- cache
+
+def test_cache_reruns_on_each_kind_of_change(tmp_path):
+    cache = Cache(tmp_path)
+    (tmp_path / "out.h5").write_bytes(b"result")
+    inputs = StageInputs(scene={"material": "m1", "fe": "f1"}, mesh="mesh1",
+                         upstream={"reference.h5": "r1"}, code={"particle": "c1"})
+    assert cache.check("stage", inputs) == ["no cache record"]
+    cache.store("stage", inputs, ["out.h5"], 1.5)
+    assert cache.check("stage", inputs) == []
+    assert cache.elapsed("stage") == 1.5
+    changed = StageInputs(scene={"material": "m2", "fe": "f1"}, mesh="mesh2",
+                          upstream={"reference.h5": "r2"}, code={"particle": "c2"})
+    assert cache.check("stage", changed) == ["scene [material] changed", "mesh changed",
+                                             "reference.h5 changed", "code of particle changed"]
+    (tmp_path / "out.h5").write_bytes(b"edited by hand")
+    assert cache.check("stage", inputs) == ["output out.h5 was modified"]
+    (tmp_path / "out.h5").unlink()
+    assert cache.check("stage", inputs) == ["output out.h5 is missing"]
+
+
+def test_unreadable_cache_record_means_rerun(tmp_path):
+    cache = Cache(tmp_path)
+    cache.record_path("stage").parent.mkdir()
+    cache.record_path("stage").write_text("{ not json")
+    assert cache.check("stage", StageInputs()) == ["no cache record"]
+
+
+def test_code_digest_follows_the_source_files(tmp_path, monkeypatch):
+    pkg = tmp_path / "fc_demo_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "mod.py").write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = code_digest("fc_demo_pkg")
+    assert code_digest("fc_demo_pkg") == before
+    (pkg / "mod.py").write_text("X = 2\n")
+    assert code_digest("fc_demo_pkg") != before
+    with pytest.raises(DataFileError, match="not importable"):
+        code_digest("fc_no_such_package")
+
+
+def test_file_digest_of_missing_file_is_a_data_file_error(tmp_path):
+    with pytest.raises(DataFileError, match="cannot read"):
+        file_digest(tmp_path / "nope.h5")
+
+
+def test_reference_sections_match_the_fe_package():
+    # in a child process: importing reference_fe.run imports dolfinx and initialises MPI
+    code = "from reference_fe.run import REFERENCE_SECTIONS as s; print(','.join(s))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=ROOT).stdout.strip()
+    assert tuple(out.split(",")) == REFERENCE_SECTIONS
+
+
+# ------------------------------------------------------------------------------- gravity
+
+def test_connector_strains_of_a_uniform_dilation_are_exact(column):
+    model = build_model(column, 1000.0, linear_params(len(column.mesh.edges)))
+    eps = 0.03
+    strain = connector_strains(model, eps * column.mesh.vertices)
+    # x -> (1 + eps) x scales every length by (1 + eps): strain eps to round-off
+    assert np.allclose(strain, eps, rtol=0, atol=1e-12)
+
+
+def test_static_sag_equals_the_particle_statics_for_valid_springs(column):
+    model = build_model(column, 1000.0, linear_params(len(column.mesh.edges)))
+    g = np.array([0.0, -9.81, 0.0])
+    ours = static_sag(model, g, 4, (-0.5, 0.5))
+    theirs = gravity_static(model, g, load_steps=4)
+    # same Newton problem and tolerance (rtol 1e-10 of the force scale): same sag
+    assert np.allclose(ours, theirs, rtol=0, atol=1e-9 * np.abs(theirs).max())
+    assert np.abs(ours[column.fixed]).max() == 0.0
+    assert ours[column.tracked_node, 1] < 0  # the top sags along gravity
+
+
+def test_static_sag_validates_springs_on_the_given_strain_range(column):
+    n = len(column.mesh.edges)
+    # K(eps) = 100 (1 - 5 eps): positive on [-0.1, 0.1], zero at eps = 0.2
+    soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -500.0), b=np.zeros(n),
+                           k1=np.full(n, 50.0), b1=np.full(n, 5.0), k2=np.full(n, 20.0),
+                           b2=np.full(n, 40.0))
+    model = build_model(column, 1000.0, soft)
+    g = np.array([0.0, -1.0, 0.0])
+    u = static_sag(model, g, 2, (-0.1, 0.1))
+    assert np.all(np.isfinite(u))
+    with pytest.raises(ParameterError, match=r"K\(eps\).*<= 0 in the strain range"):
+        static_sag(model, g, 2, (-0.5, 0.5))
+    with pytest.raises(ParameterError, match="connector 0 .*strain 0.3"):
+        check_springs(model, np.full((1, n), 0.3), "test")
+
+
+def test_gravity_file_round_trip_and_refusals(tmp_path, column):
+    n, s = column.mesh.n_vertices, 4
+    rng = np.random.default_rng(0)
+    models = {m: ParticleGravity(rng.normal(size=(n, 3)), rng.normal(size=(s, n, 3)), 1e-4,
+                                 2e-4, 0.1, 0.2, -0.05, 0.07)
+              for m in ("calibrated", "baseline")}
+    runs = GravityRuns(column, np.linspace(0, 0.03, s), np.array([0, 0, -9.81]), models,
+                       "ref-sha", "params-sha")
+    path = tmp_path / "gravity.h5"
+    write_gravity(path, runs)
+    back = read_gravity(path)
+    assert back.reference_fingerprint == "ref-sha" and back.params_fingerprint == "params-sha"
+    assert np.array_equal(back.time, runs.time)
+    for m, r in models.items():
+        assert np.array_equal(back.models[m].displacement, r.displacement)
+        assert np.array_equal(back.models[m].static_displacement, r.static_displacement)
+        assert (back.models[m].dt, back.models[m].strain_max) == (1e-4, 0.07)
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(DataFileError, match="not a readable HDF5 file"):
+        read_gravity(path)
+    with pytest.raises(DataFileError, match="does not exist"):
+        read_gravity(tmp_path / "missing.h5")
+
+
+# ------------------------------------------------------------------------------- report
+
+def test_gravity_errors_closed_form():
+    fe = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, -3.0]])
+    free = np.array([False, True, True])
+    # particle = 1.1 x FE: |du| = 0.1 |u_FE|; mean over free (0.1 + 0.3)/2 = 0.2, / max 3
+    assert gravity_static_error(fe, 1.1 * fe, free) == pytest.approx(0.2 / 3.0, rel=1e-12)
+    history = np.zeros((5, 3))
+    history[:, 2] = -np.linspace(0, 2.0, 5)
+    offset = np.array([0.3, 0.0, 0.4])  # |offset| = 0.5 at every sample: RMS 0.5, / max 2
+    assert gravity_dynamic_error(history, history + offset) == pytest.approx(0.25, rel=1e-12)
+    with pytest.raises(DataFileError, match="zero"):
+        gravity_static_error(np.zeros((3, 3)), fe, free)
+    with pytest.raises(DataFileError, match="zero"):
+        gravity_dynamic_error(np.zeros((5, 3)), history)
+
+
+def _report():
+    return {"errors": dict.fromkeys(ERROR_KEYS, 0.1),
+            "baseline_errors": dict.fromkeys(ERROR_KEYS, 0.2),
+            "timings_s": dict.fromkeys(TIMING_KEYS, 1.0)}
+
+
+def test_check_report_refuses_missing_and_non_finite_numbers():
+    check_report(_report())
+    r = _report()
+    r["errors"]["indentation_held_out"] = None  # allowed: a scene without held-out points
+    check_report(r)
+    r = _report()
+    r["errors"]["gravity_static"] = float("nan")
+    with pytest.raises(DataFileError, match="errors.gravity_static = nan"):
+        check_report(r)
+    r = _report()
+    del r["timings_s"]["calibration"]
+    with pytest.raises(DataFileError, match="timings_s.calibration is missing"):
+        check_report(r)
+
+
+# ------------------------------------------------------------------------------- fields
+
+def test_xdmf_time_series_round_trip(tmp_path, column, monkeypatch):
+    import meshio
+
+    workdir = tmp_path / "cwd"
+    workdir.mkdir()
+    monkeypatch.chdir(workdir)
+    from pipelines.fields import write_time_series
+    n = column.mesh.n_vertices
+    times = np.array([0.0, 0.1, 0.2])
+    u = np.stack([t * np.tile([0.0, 0.0, -1.0], (n, 1)) for t in times])
+    static = np.tile([0.0, 0.0, -0.5], (n, 1))
+    out = tmp_path / "out"
+    written = write_time_series(out / "g.xdmf", column.mesh, times, u, static)
+    assert sorted(p.name for p in written) == ["g.h5", "g.xdmf"]
+    assert sorted(os.listdir(out)) == ["g.h5", "g.xdmf"]  # no temporary left behind
+    assert os.listdir(workdir) == [] and os.getcwd() == str(workdir)
+    with meshio.xdmf.TimeSeriesReader(out / "g.xdmf") as reader:
+        points, cells = reader.read_points_cells()
+        assert np.allclose(points, column.mesh.vertices)
+        assert np.array_equal(cells[0].data, column.mesh.tets)
+        for k in range(reader.num_steps):
+            t, point_data, _ = reader.read_data(k)
+            assert t == pytest.approx(times[k])
+            assert np.allclose(point_data["displacement"], u[k])
+            assert np.allclose(point_data["static_displacement"], static)
+    with pytest.raises(DataFileError, match="do not fit"):
+        write_time_series(out / "bad.xdmf", column.mesh, times, u[:2], static)
+
+
+def test_cli_reports_a_bad_scene_without_traceback(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[material]\nC10 = "soft"\n')
+    r = subprocess.run([sys.executable, "-m", "pipelines", "demo", "--scene", str(bad),
+                        "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 2
+    assert "error:" in r.stderr and "material.C10 = 'soft'" in r.stderr
+    assert "Traceback" not in r.stderr
