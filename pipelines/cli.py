@@ -24,6 +24,13 @@ def default_out(scene_name: str) -> Path:
     return Path("runs") / scene_name
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 1")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m pipelines",
                                      description="forcecal pipelines: FE reference -> "
@@ -42,7 +49,7 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--force", action="store_true",
                        help="rerun the stages even if their cache says they are up to date")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
-        p.add_argument("--ranks", type=int, default=2,
+        p.add_argument("--ranks", type=_positive_int, default=2,
                        help="MPI ranks of the FE reference when not already under mpirun "
                        "(1 = in-process; default 2)")
     return parser
@@ -67,8 +74,6 @@ def main(argv: list[str] | None = None) -> int:
             logging.getLogger().setLevel(logging.ERROR)
             for name in ("pipelines", "forcecal", "reference_fe", "particle", "calibration"):
                 logging.getLogger(name).setLevel(logging.WARNING)
-        if args.ranks < 1:
-            raise ForcecalError(f"--ranks {args.ranks}: must be >= 1")
         scene = load_scene(args.scene)
         out = Path(args.out) if args.out else default_out(scene.name)
         outcomes = run_pipeline(scene, out, until=STAGE_COMMANDS[args.stage], force=args.force,

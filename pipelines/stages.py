@@ -33,7 +33,7 @@ from typing import Any, Callable
 
 import h5py
 
-from forcecal.errors import DataFileError, ForcecalError
+from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
 from pipelines.cache import Cache, StageInputs, code_digest, file_digest, source_files
@@ -178,7 +178,7 @@ def run_calibrate(ctx: Context) -> list[str]:
         from calibration.pool import serve_mpi
         serve_mpi(ctx.comm)
         return []
-    from calibration.core import calibrate
+    from calibration import calibrate
     calibrate(ctx.scene, ctx.out / REFERENCE, ctx.out / PARAMS, progress=ctx.progress)
     return [PARAMS]
 
@@ -187,7 +187,7 @@ def run_calibrate(ctx: Context) -> list[str]:
 
 def run_gravity_stage(ctx: Context) -> list[str]:
     """Particle gravity runs of the calibrated and baseline models -> ``gravity.h5``."""
-    from calibration.results import read_params
+    from calibration import read_params
     from forcecal.h5io import read_reference
     from pipelines.gravity import run_gravity, write_gravity
     reference = read_reference(ctx.out / REFERENCE)
@@ -211,7 +211,7 @@ def check_fitted_to(reference_fingerprint: str, out: Path, what: str) -> None:
 
 def run_report(ctx: Context) -> list[str]:
     """``report.json``, figures and XDMF fields from the three upstream files."""
-    from calibration.results import read_params
+    from calibration import read_params
     from forcecal.h5io import read_reference
     from pipelines.fields import write_time_series
     from pipelines.figures import write_figures
@@ -277,9 +277,10 @@ def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report", force:
     from calibration.pool import mpi_world
 
     if scene.path is None:
-        raise DataFileError("run_pipeline needs a scene loaded from a file (scene.path is None)")
+        raise SceneError("run_pipeline needs a scene loaded from a file (scene.path is None): "
+                         "the FE stage may run in another process, which reads the file")
     if until not in STAGES:
-        raise DataFileError(f"unknown stage {until!r}; stages are {list(ORDER)}")
+        raise ValueError(f"unknown stage {until!r}; stages are {list(ORDER)}")
     ctx = Context(scene, Path(out), progress, ranks, mpi_world())
     cache = Cache(ctx.out)
     outcomes = []
