@@ -1,0 +1,159 @@
+"""How much the FE reference depends on its discretisation: :func:`discretisation_study`.
+
+For a few calibration points (full-depth indentation force) and the static
+gravity sag it compares P1, P2, Taylor-Hood and P2 on a uniformly refined mesh,
+and P2 with quadrature degrees 2/4/6 (the degree study justifies
+``fe.quadrature_degree``: the force should stop changing). Refinement uses
+``dolfinx.mesh.refine`` (uniform, every tet split into 8, the original vertices
+kept), so each test point is still a vertex: it is mapped by its coordinates,
+its inward normal is unchanged (every face around it is split into four
+coplanar ones) and the clamped base is the same surface (fixed vertices and
+the midpoints of the edges between them). Meant for ``make bench``: at the
+default liver size the refined P2 model has ~40 000 dofs and takes minutes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Sequence
+
+import numpy as np
+import ufl
+from dolfinx import mesh as dmesh
+from mpi4py import MPI
+
+from forcecal.errors import MeshError
+from forcecal.mesh import TetMesh, check_mesh
+from forcecal.problem import Problem, build_problem
+from forcecal.scene import Scene
+from forcecal.schedules import indentation_depths
+from reference_fe import experiments
+from reference_fe.model import FEModel
+
+log = logging.getLogger(__name__)
+
+
+def refine_uniformly(mesh: TetMesh) -> TetMesh:
+    """Every tet split into 8 (dolfinx's plaza refinement); original vertices are kept."""
+    cell = ufl.Mesh(ufl.VectorElement("Lagrange", "tetrahedron", 1))
+    coarse = dmesh.create_mesh(MPI.COMM_SELF, mesh.tets, mesh.vertices, cell)
+    coarse.topology.create_entities(1)
+    fine = dmesh.refine(coarse, redistribute=False)
+    vertices = fine.geometry.x[:, :3].copy()
+    tets = fine.geometry.dofmap.array.reshape(-1, 4).astype(np.int64)
+    x = vertices[tets]
+    volume = np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]),
+                       x[:, 3] - x[:, 0])
+    tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]  # dolfinx does not orient cells
+    return check_mesh(TetMesh(vertices, tets))
+
+
+def _vertex_ids(mesh: TetMesh, points: np.ndarray) -> np.ndarray:
+    """Ids of the vertices of ``mesh`` at coordinates ``points`` (MeshError if one is missing)."""
+    from scipy.spatial import cKDTree
+
+    distance, ids = cKDTree(mesh.vertices).query(points)
+    scale = np.ptp(mesh.vertices, axis=0).max()
+    if np.any(distance > 1e-9 * scale):
+        raise MeshError("refined mesh lost a test point vertex")
+    return ids
+
+
+def _refined_problem(problem: Problem, points: np.ndarray) -> tuple[Problem, np.ndarray]:
+    """The problem on the refined mesh and the refined ids of ``points``.
+
+    The clamped set is the coarse P2 one: the fixed vertices and the midpoints
+    of the edges joining two of them (re-applying the fixed-node rule's distance
+    tolerance to the finer mesh could catch new vertices above the base).
+    """
+    coarse = problem.mesh
+    fine = refine_uniformly(coarse)
+    is_fixed = np.zeros(coarse.n_vertices, dtype=bool)
+    is_fixed[problem.fixed] = True
+    base_edges = coarse.edges[is_fixed[coarse.edges].all(axis=1)]
+    clamped = np.concatenate([coarse.vertices[problem.fixed],
+                              coarse.vertices[base_edges].mean(axis=1)])
+    ids = _vertex_ids(fine, coarse.vertices[points])
+    tracked = _vertex_ids(fine, coarse.vertices[[problem.tracked_node]])[0]
+    refined = Problem(mesh=fine, fixed=np.sort(_vertex_ids(fine, clamped)), calibration=ids,
+                      held_out=np.zeros(0, np.int64), tracked_node=int(tracked))
+    return refined, ids
+
+
+def _measure(scene: Scene, problem: Problem, points: np.ndarray, normals: np.ndarray,
+             fe_changes: dict) -> dict:
+    """Full-depth indentation forces at ``points`` and the static sag, with wall times."""
+    fe = dataclasses.replace(scene.fe, **fe_changes)
+    t0 = time.perf_counter()
+    model = FEModel(problem.mesh, scene.material, fe)
+    t1 = time.perf_counter()
+    depths = indentation_depths(scene.indentation)
+    forces = [float(experiments.indentation_curve(model, problem.fixed, int(p), n, depths)[-1]
+                    @ n) for p, n in zip(points, normals)]
+    t2 = time.perf_counter()
+    g = scene.gravity
+    sag = experiments.gravity_static(model, problem.fixed, g.acceleration, g.static_load_steps)
+    t3 = time.perf_counter()
+    return {"element": fe.element, "quadrature_degree": fe.quadrature_degree,
+            "n_vertices": problem.mesh.n_vertices, "n_dofs": model.n_dofs,
+            "indentation_force_N": forces,
+            "max_sag_m": float(np.linalg.norm(sag, axis=1).max()),
+            "wall_time_s": {"build": t1 - t0, "indentation_per_point": (t2 - t1) / len(points),
+                            "gravity_static": t3 - t2}}
+
+
+def discretisation_study(scene: Scene, points: Sequence[int] | None = None, *,
+                         problem: Problem | None = None,
+                         quadrature_degrees: Sequence[int] = (2, 4, 6)) -> dict:
+    """Indentation force at full depth and max static sag for several discretisations.
+
+    Args:
+        points: test vertices (ids in the scene's mesh); default: three calibration
+            points spread through the list.
+        quadrature_degrees: degrees tried with P2 (the others use ``scene.fe``'s).
+
+    Returns:
+        A JSON-ready dict: ``points``, ``depth_m``, ``variants`` (label -> element,
+        quadrature degree, vertices, dofs, ``indentation_force_N`` per point,
+        ``max_sag_m``, wall times) and ``relative_to_scene_fe`` (label -> relative
+        change of each force and of the sag against the scene's own discretisation),
+        plus ``quadrature_change_4_to_6`` when degrees 4 and 6 are both tried.
+    """
+    problem = build_problem(scene) if problem is None else problem
+    if points is None:
+        cal = problem.calibration
+        points = cal[np.linspace(0, len(cal) - 1, 3).round().astype(int)]
+    points = np.asarray(points, dtype=np.int64)
+    normals = problem.mesh.inward_normals(points)
+    q = scene.fe.quadrature_degree
+    degrees = sorted(set(quadrature_degrees) | {q})  # the scene's own degree is the baseline
+    variants = {f"P2 q={d}": ("coarse", {"element": "P2", "quadrature_degree": d})
+                for d in degrees}
+    variants.update({f"P1 q={q}": ("coarse", {"element": "P1"}),
+                     f"TH q={q}": ("coarse", {"element": "TH"}),
+                     f"P2 q={q} refined": ("refined", {"element": "P2"})})
+    refined, refined_points = _refined_problem(problem, points)
+    results = {}
+    for label, (which, changes) in variants.items():
+        log.info("discretisation study: %s", label)
+        if which == "refined":
+            results[label] = _measure(scene, refined, refined_points, normals, changes)
+        else:
+            results[label] = _measure(scene, problem, points, normals, changes)
+    base = results[f"{scene.fe.element} q={q}"]
+    out = {"points": points.tolist(), "depth_m": scene.indentation.depth,
+           "refinement": "dolfinx.mesh.refine, uniform (each tet into 8), points mapped by "
+                         "coordinates",
+           "variants": results,
+           "relative_to_scene_fe": {
+               label: {"force": (np.asarray(r["indentation_force_N"])
+                                 / np.asarray(base["indentation_force_N"]) - 1).tolist(),
+                       "sag": r["max_sag_m"] / base["max_sag_m"] - 1}
+               for label, r in results.items()}}
+    if {4, 6} <= set(degrees):
+        f4 = np.asarray(results["P2 q=4"]["indentation_force_N"])
+        f6 = np.asarray(results["P2 q=6"]["indentation_force_N"])
+        out["quadrature_change_4_to_6"] = float(np.max(np.abs(f6 / f4 - 1)))
+    return out
