@@ -25,7 +25,7 @@ import numpy as np
 from forcecal.errors import ConvergenceError, ParameterError
 from particle.model import ConnectorParams, Model
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
-                              continuation)
+                              check_stiffness, continuation)
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,12 @@ class _PointEvaluator:
         self._pattern = TangentPattern.of(model)
         self._solvers: dict[int, EquilibriumSolver] = {}
         self._warm: dict[int, np.ndarray] = {}
+        self._factors: dict[int, list] = {}
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_factors"] = {}  # LU factorisations do not pickle; rebuilt on demand
+        return state
 
     def _indices(self, points: Sequence[int] | None) -> np.ndarray:
         if points is None:
@@ -74,16 +80,6 @@ class _PointEvaluator:
             self._solvers[k] = EquilibriumSolver(self.model, self.nodes[k:k + 1], self._pattern,
                                                  rtol=self.rtol)
         return self._solvers[k]
-
-    def _check_strains(self, params: ConnectorParams, eq: Equilibrium, k: int) -> None:
-        strain = eq.dx / self.model.rest_lengths
-        bad = np.nonzero(params.stiffness(strain) <= 0.0)[0]
-        if len(bad):
-            e = int(bad[0])
-            raise ParameterError(
-                f"connector {e} (particles {self.model.edges[e].tolist()}) reaches strain "
-                f"{strain[e]:.3g} where its stiffness K(eps) <= 0 (test point "
-                f"{self.nodes[k]})")
 
     def force_vectors(self, params: ConnectorParams,
                       points: Sequence[int] | None = None) -> np.ndarray:
@@ -109,6 +105,19 @@ class _PointEvaluator:
 
     def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
         raise NotImplementedError
+
+    def _samples(self, k: int, solver: EquilibriumSolver, n: int):
+        """Sample indices 0..n-1 of point ``k``; each solved with the factorisation that served
+        that sample in the previous call (the tangent changes along a curve much more than
+        between two nearby parameter sets, so this avoids most refactorisations)."""
+        previous = self._factors.get(k)
+        used = []
+        for s in range(n):
+            if previous is not None:
+                solver.factorization = previous[s]
+            yield s
+            used.append(solver.factorization)
+        self._factors[k] = used
 
     @staticmethod
     def _warm_guess(warm: np.ndarray, solutions: np.ndarray, s: int) -> np.ndarray:
@@ -154,7 +163,8 @@ class IndentationEvaluator(_PointEvaluator):
         solutions = np.empty((len(self.depths), model.n_particles, 3))
         forces = np.empty((len(self.depths), 3))
         eq, reached = Equilibrium.at_rest(model), 0.0
-        for s, depth in enumerate(self.depths):
+        for s in self._samples(k, solver, len(self.depths)):
+            depth = self.depths[s]
             warm_eq = None
             if warm is not None:
                 try:
@@ -164,7 +174,7 @@ class IndentationEvaluator(_PointEvaluator):
                     log.debug("point %d depth %g: warm start failed, continuing cold", node, depth)
             eq = warm_eq or continuation(step, eq, reached, depth,
                                          what=f"indentation of particle {node}")
-            self._check_strains(params, eq, k)
+            check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             reached = depth
             solutions[s] = eq.x
             forces[s] = eq.reaction(node)
@@ -213,7 +223,7 @@ class RelaxationEvaluator(_PointEvaluator):
         solutions = np.empty((len(self.times), model.n_particles, 3))
         forces = np.empty((len(self.times), 3))
         eq = Equilibrium.at_rest(model)
-        for sample in range(len(self.times)):
+        for sample in self._samples(k, solver, len(self.times)):
             whole = (times[sample], times[sample + 1])
 
             def step(eq: Equilibrium, t0: float, t1: float, sample=sample, whole=whole):
@@ -225,7 +235,7 @@ class RelaxationEvaluator(_PointEvaluator):
                 return solver.solve(guess, params, arms=ArmStep(*coeffs, eq.arm_force, eq.dx))
 
             eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
-            self._check_strains(params, eq, k)
+            check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             solutions[sample] = eq.x
             forces[sample] = eq.reaction(node)
         self._warm[k] = solutions

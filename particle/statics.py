@@ -174,12 +174,27 @@ class EquilibriumSolver:
         self._mat = pattern.dofs(active)
         self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
         self._lu = None
+        self._stale = True  # refactorise before the next step
         self.factorizations = 0
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
-        state["_lu"] = None  # SuperLU objects do not pickle; rebuilt on demand
+        state["_lu"], state["_stale"] = None, True  # SuperLU objects do not pickle
         return state
+
+    @property
+    def factorization(self):
+        """The LU factorisation the next step will use (a SuperLU object, or None).
+
+        Callers that solve a sequence of similar problems can hand back the one
+        that served a similar problem before (see the evaluators).
+        """
+        return self._lu
+
+    @factorization.setter
+    def factorization(self, lu) -> None:
+        self._lu = lu
+        self._stale = lu is None
 
     def _evaluate(self, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                   arms: ArmStep | None, gravity: np.ndarray | None) -> _Iterate:
@@ -206,16 +221,17 @@ class EquilibriumSolver:
         data[self._zero_slots] = 0.0
         data[self._diag_slots] = 1.0
         try:
-            self._lu = self._lu_of(data)
+            lu = self._lu_of(data)
         except RuntimeError:
             # exactly singular, e.g. a hanging string at rest has no transverse stiffness yet:
             # a tiny diagonal shift only changes the iteration matrix, not the equilibrium
             data[pat.diagonal] += 1e-6 * np.abs(data[pat.diagonal]).max()
             try:
-                self._lu = self._lu_of(data)
+                lu = self._lu_of(data)
             except RuntimeError as exc:
                 raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model "
                                        "held by fixed or prescribed particles?") from exc
+        self.factorization = lu
         self.factorizations += 1
 
     def _lu_of(self, data: np.ndarray):
@@ -257,7 +273,7 @@ class EquilibriumSolver:
                 return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, it)
             if it == self.max_iter:
                 break
-            if self._lu is None:
+            if self._stale:
                 self._factorize(cur, *args[:3])
                 fresh = True
             newton = self._newton_step(cur.res)
@@ -270,10 +286,10 @@ class EquilibriumSolver:
             if not trial.norm < cur.norm:  # includes NaN
                 if fresh:
                     break
-                self._lu = None  # stale factorisation: refactorise here and retry
+                self._stale = True  # old factorisation: refactorise here and retry
                 continue
             if trial.norm > self.refactor_ratio * cur.norm:
-                self._lu = None
+                self._stale = True
             fresh = False
             cur = trial
         raise ConvergenceError(f"Newton did not converge for prescribed particles "
@@ -311,11 +327,13 @@ def continuation(step: Callable[[T, float, float], T], start: T, s0: float, s1: 
 
 
 def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
-                   rtol: float = 1e-10) -> np.ndarray:
+                   rtol: float = 1e-10,
+                   strain_range: tuple[float, float] = (-0.5, 0.5)) -> np.ndarray:
     """(N, 3) static sag under gravity [m] (long-term springs only, arms relaxed).
 
     Newton equilibrium with ``gravity`` [m/s^2] applied in ``load_steps`` equal
-    increments (each halved on failure).
+    increments (each halved on failure). The parameters are validated on
+    ``strain_range`` and the springs' K(eps) checked at the strains reached.
     """
     g = np.asarray(gravity, dtype=np.float64).reshape(3)
     if load_steps < 1:
@@ -323,7 +341,7 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
     if not len(model.free_nodes) < model.n_particles:
         raise ParameterError("gravity_static needs fixed particles: a free body under gravity "
                              "has no static equilibrium")
-    model.params.validate(edges=model.edges)
+    model.params.validate(strain_range, model.edges)
     solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
                                rtol=rtol, refactor_ratio=0.1)
 
@@ -333,4 +351,15 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
     x = model.rest_positions.copy()
     for k in range(load_steps):
         x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0, "gravity_static")
     return x - model.rest_positions
+
+
+def check_stiffness(model: Model, strain: np.ndarray, what: str) -> None:
+    """Raise :class:`ParameterError` if a spring's K(eps) <= 0 at the connector strains (E,)."""
+    bad = np.nonzero(model.params.stiffness(strain) <= 0.0)[0]
+    if len(bad):
+        e = int(bad[0])
+        raise ParameterError(f"{what}: connector {e} (particles {model.edges[e].tolist()}) "
+                             f"reaches strain {strain[e]:.3g} where its stiffness K(eps) <= 0")

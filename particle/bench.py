@@ -1,0 +1,211 @@
+"""Benchmarks of the particle engine: functions that return JSON-ready dicts.
+
+``pipelines`` wires :func:`run_all` into ``make bench`` (-> ``runs/bench/bench.json``);
+every function can also be called alone. Timings are wall-clock
+(``time.perf_counter``) *and* CPU time of this process (``time.process_time``):
+on a shared machine the CPU time is the better measure of the code. Every
+kernel is serial, so the numbers are single-core. Nothing here asserts a
+timing; the goals are reported next to the measurements.
+
+Parameters are uniform (the scene's Prony split of a spring stiffness ``K0``,
+30 N/m on the default liver, scaled with the mean edge length on other meshes
+so that every mesh models the same material); ``a = b = 0`` unless stated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+
+from forcecal.mesh import TetMesh, fixed_nodes, generate_liver
+from forcecal.problem import Problem, build_problem
+from forcecal.scene import Scene, load_scene
+from forcecal.schedules import indentation_depths, relaxation_schedule
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.experiments import gravity_dynamic
+from particle.haptics import HapticSession
+from particle.integrator import VerletIntegrator, critical_time_step
+from particle.model import ConnectorParams, Model, build_model
+from particle.reference_numpy import step_numpy
+from particle.testing import viscoelastic_params
+
+log = logging.getLogger(__name__)
+
+LIVER_K0 = 30.0  # N/m, on the default liver (mean edge 20.5 mm)
+LIVER_MEAN_EDGE = 0.0205  # m
+LARGE_MESH_LENGTH = 0.008  # m: generate_liver(0.008) has 12062 connectors
+
+
+def _timed(fn: Callable[[], object]) -> tuple[float, float]:
+    """(wall, cpu) seconds of one call."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    fn()
+    return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def scene_model(scene: Scene, mesh: TetMesh | None = None,
+                fixed: np.ndarray | None = None) -> Model:
+    """Particle model of ``mesh`` (default: the scene's) with the uniform benchmark parameters."""
+    mesh = build_problem(scene).mesh if mesh is None else mesh
+    fixed = fixed_nodes(mesh, scene.fixed.axis, scene.fixed.side,
+                        scene.fixed.tolerance) if fixed is None else fixed
+    m = scene.material
+    K0 = LIVER_K0 * float(mesh.edge_lengths.mean()) / LIVER_MEAN_EDGE
+    params = viscoelastic_params(len(mesh.edges), K0, g=m.prony_g, tau=m.prony_tau)
+    return build_model(mesh, m.density, params, fixed=fixed)
+
+
+def step_throughput(model: Model, *, steps: int = 2000, numpy_steps: int = 50) -> dict:
+    """Connector updates per second of the compiled loop vs the numpy step (gravity + arms)."""
+    gravity = np.array([0.0, 0.0, -9.81])
+    dt = 0.5 * critical_time_step(model)
+    integrator = VerletIntegrator()
+    integrator.simulate(model, model.state(), dt, 1, gravity=gravity)  # compile outside the clock
+    compiled = _timed(lambda: integrator.simulate(model, model.state(), dt, steps,
+                                                  gravity=gravity))
+    state = model.state()
+
+    def numpy_run():
+        for _ in range(numpy_steps):
+            step_numpy(model, state, dt, gravity=gravity)
+
+    reference = _timed(numpy_run)
+    rate = model.n_connectors * steps / compiled[1]
+    numpy_rate = model.n_connectors * numpy_steps / reference[1]
+    return {"connectors": model.n_connectors, "particles": model.n_particles,
+            "compiled_updates_per_s": rate, "numpy_updates_per_s": numpy_rate,
+            "speedup": rate / numpy_rate, "compiled_wall_s": compiled[0],
+            "compiled_cpu_s": compiled[1], "steps": steps, "goal_speedup": 20.0}
+
+
+def gravity_realtime(model: Model, gravity: np.ndarray, *, duration: float = 3.0,
+                     record_interval: float = 0.005, safety: float = 0.5,
+                     skip: bool = True) -> dict:
+    """Wall/CPU time and real-time factor of ``duration`` s of gravity dynamics (all nodes recorded)."""
+    dt = safety * critical_time_step(model)
+    times = np.arange(0.0, duration + 0.5 * record_interval, record_interval)
+    gravity_dynamic(model, gravity, 2 * record_interval, dt, times[:3], skip=skip)  # compile
+    wall, cpu = _timed(lambda: gravity_dynamic(model, gravity, duration, dt, times, skip=skip))
+    return {"duration_s": duration, "dt_s": dt, "steps": int(np.ceil(duration / dt)),
+            "wall_s": wall, "cpu_s": cpu, "realtime_factor_wall": duration / wall,
+            "realtime_factor_cpu": duration / cpu, "goal_wall_s": 0.05, "paper_wall_s": 1.3}
+
+
+def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) -> dict:
+    """The same runs with unneeded terms compiled out (skip) and kept at zero (no skip).
+
+    ``viscoelastic``: gravity + arms, linear springs (the nonlinear term skipped);
+    ``elastic``: gravity, no arms, linear springs (arms and nonlinear term skipped);
+    ``free``: no gravity, no arms (gravity, arms, nonlinear term and damping skipped).
+    """
+    dt = 0.5 * critical_time_step(model)
+    steps = int(np.ceil(duration / dt))
+    linear = model.with_params(dataclasses.replace(model.params, a=0 * model.params.a,
+                                                   b=0 * model.params.b))
+    out = {"dt_s": dt, "steps": steps}
+    for name, g, arms in (("viscoelastic", gravity, True), ("elastic", gravity, False),
+                          ("free", None, False)):
+        row = {}
+        for skip in (True, False):
+            integrator = VerletIntegrator()
+            integrator.simulate(linear, linear.state(), dt, 1, gravity=g, arms=arms, skip=skip)
+            state = linear.state()
+            if g is None:  # something to move: the state of a short gravity run
+                integrator.simulate(linear, state, dt, 100, gravity=gravity, arms=arms)
+            wall, cpu = _timed(lambda: integrator.simulate(linear, state, dt, steps, gravity=g,
+                                                           arms=arms, skip=skip))
+            row["skip" if skip else "no_skip"] = {"wall_s": wall, "cpu_s": cpu}
+        row["cpu_ratio"] = row["no_skip"]["cpu_s"] / row["skip"]["cpu_s"]
+        out[name] = row
+    return out
+
+
+def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 2000,
+                   depth: float = 0.005) -> dict:
+    """Per-call latency [us] of :meth:`HapticSession.step` (1 ms of simulated time per call)."""
+    session = HapticSession(model, 0.5 * critical_time_step(model))
+    start = model.rest_positions[node]
+    session.step(node, start)  # compile outside the clock
+    latencies = np.empty(calls)
+    for k in range(calls):
+        target = start + depth * min(1.0, k / (calls / 4)) * normal
+        t0 = time.perf_counter()
+        session.step(node, target)
+        latencies[k] = time.perf_counter() - t0
+    us = 1e6 * latencies
+    return {"connectors": model.n_connectors, "substeps": session.substeps, "dt_s": session.dt,
+            "median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
+            "max_us": float(us.max()), "goal_us": 100.0}
+
+
+def _perturbed(params: ConnectorParams, rng: np.random.Generator, rel: float) -> ConnectorParams:
+    """Every connector's parameters scaled by 1 + rel N(0, 1): a calibration-like step."""
+    names = ("K0", "a", "b", "k1", "b1", "k2", "b2")
+    return dataclasses.replace(params, **{n: getattr(params, n) * (
+        1.0 + rel * rng.standard_normal(params.n_connectors)) for n in names})
+
+
+def evaluator_timings(model: Model, problem: Problem, scene: Scene, *, points: int = 4,
+                      calls: int = 3, nonlinear: tuple[float, float] = (10.0, 50.0),
+                      perturbation: float = 0.01) -> dict:
+    """Warm per-point time [ms] of the indentation and relaxation evaluators.
+
+    Parameters: the model's, with ``a, b = nonlinear`` [N/m]; each timed call
+    perturbs every connector's seven parameters by ``perturbation`` (relative,
+    random), as calibration's local steps do.
+    """
+    rng = np.random.default_rng(0)
+    base = dataclasses.replace(model.params, a=np.full(model.n_connectors, nonlinear[0]),
+                               b=np.full(model.n_connectors, nonlinear[1]))
+    selected = np.arange(points)
+    times, depths = relaxation_schedule(scene.relaxation)
+    out = {}
+    for name, ev, target in (
+            ("indentation", IndentationEvaluator(model, problem.test_points, problem.normals,
+                                                 indentation_depths(scene.indentation)), 10.0),
+            ("relaxation", RelaxationEvaluator(model, problem.test_points, problem.normals,
+                                               times, depths), 30.0)):
+        cold = _timed(lambda: ev(base, selected))
+        samples = []
+        for _ in range(calls):
+            params = _perturbed(base, rng, perturbation)
+            samples.append(_timed(lambda: ev(params, selected)))
+        wall, cpu = np.array(samples).T / points * 1e3
+        out[name] = {"samples": len(ev.depths), "cold_ms_per_point": 1e3 * cold[1] / points,
+                     "warm_ms_per_point_wall": float(np.median(wall)),
+                     "warm_ms_per_point_cpu": float(np.median(cpu)),
+                     "factorizations": sum(s.factorizations for s in ev._solvers.values()),
+                     "goal_ms": target}
+    return out
+
+
+def run_all(scene_path: str = "scenes/liver.toml", *, quick: bool = False) -> dict:
+    """Every benchmark on the scene's liver and on a >= 10k-connector liver (one core)."""
+    import numba
+    numba.set_num_threads(1)
+    scene = load_scene(scene_path)
+    problem = build_problem(scene)
+    liver = scene_model(scene, problem.mesh, problem.fixed)
+    large_mesh = generate_liver(LARGE_MESH_LENGTH)
+    large = scene_model(scene, large_mesh)
+    gravity = np.asarray(scene.gravity.acceleration)
+    node, normal = int(problem.test_points[0]), problem.normals[0]
+    large_node = int(np.argmax(large_mesh.vertices[:, 2]))  # top of the organ
+    steps = 500 if quick else 2000
+    out = {
+        "throughput": {"liver": step_throughput(liver, steps=steps),
+                       "large": step_throughput(large, steps=steps // 4)},
+        "gravity_3s_liver": gravity_realtime(liver, gravity, duration=scene.gravity.duration,
+                                             record_interval=scene.gravity.record_interval),
+        "skip": skip_timings(liver, gravity, duration=1.0 if quick else 3.0),
+        "haptic": {"liver": haptic_latency(liver, node, normal, calls=500 if quick else 2000),
+                   "large": haptic_latency(large, large_node, np.array([0.0, 0.0, -1.0]),
+                                           calls=200 if quick else 1000)},
+        "evaluators": evaluator_timings(liver, problem, scene, points=2 if quick else 4),
+    }
+    log.info("particle bench done")
+    return out
