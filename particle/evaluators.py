@@ -107,9 +107,13 @@ class _PointEvaluator:
         raise NotImplementedError
 
     def _samples(self, k: int, solver: EquilibriumSolver, n: int):
-        """Sample indices 0..n-1 of point ``k``; each solved with the factorisation that served
-        that sample in the previous call (the tangent changes along a curve much more than
-        between two nearby parameter sets, so this avoids most refactorisations)."""
+        """Sample indices 0..n-1 of point ``k``, each with last call's factorisation for it.
+
+        The tangent changes along a curve much more than between two nearby
+        parameter sets, so the factorisation that served sample ``s`` in the
+        previous call is the best one to start sample ``s`` with; this avoids
+        most refactorisations.
+        """
         previous = self._factors.get(k)
         used = []
         for s in range(n):
@@ -155,10 +159,13 @@ class IndentationEvaluator(_PointEvaluator):
         warm = self._warm.get(k)
         params = model.params
 
-        def step(eq: Equilibrium, _: float, depth: float) -> Equilibrium:
-            guess = eq.x.copy()
+        def solve_at(x: np.ndarray, depth: float) -> Equilibrium:
+            guess = x.copy()
             guess[node] = self._target(k, depth)
             return solver.solve(guess, params)
+
+        def step(eq: Equilibrium, _: float, depth: float) -> Equilibrium:
+            return solve_at(eq.x, depth)
 
         solutions = np.empty((len(self.depths), model.n_particles, 3))
         forces = np.empty((len(self.depths), 3))
@@ -168,8 +175,7 @@ class IndentationEvaluator(_PointEvaluator):
             warm_eq = None
             if warm is not None:
                 try:
-                    guess = self._warm_guess(warm, solutions, s)
-                    warm_eq = step(Equilibrium(guess, None, None, None, 0), reached, depth)
+                    warm_eq = solve_at(self._warm_guess(warm, solutions, s), depth)
                 except ConvergenceError:
                     log.debug("point %d depth %g: warm start failed, continuing cold", node, depth)
             eq = warm_eq or continuation(step, eq, reached, depth,

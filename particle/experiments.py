@@ -14,6 +14,7 @@ import logging
 import math
 
 import numpy as np
+from tqdm import tqdm
 
 from forcecal.errors import ParameterError
 from particle.integrator import Prescribed, VerletIntegrator, energy_bound
@@ -61,13 +62,15 @@ def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: floa
 
 
 def relaxation_dynamic(model: Model, node: int, normal: np.ndarray, times: np.ndarray,
-                       depths: np.ndarray, dt: float, *, damping: float = 0.0) -> np.ndarray:
+                       depths: np.ndarray, dt: float, *, damping: float = 0.0,
+                       progress: bool = True) -> np.ndarray:
     """(S, 3) indenter force [N] at ``times`` of a ramp-and-hold test run with explicit Verlet.
 
     The particle follows ``depths`` along ``normal`` piecewise linearly in time
     (from rest at t = 0); the arms use the paper's recursion at the explicit
     step. Each interval between samples is split into equal steps <= ``dt``,
-    so the force is evaluated exactly at the sample times.
+    so the force is evaluated exactly at the sample times. A progress bar
+    over the samples shows on a terminal unless ``progress`` is False.
     """
     node = int(model.check_nodes([node], "relaxation test particle")[0])
     times = np.asarray(times, dtype=np.float64)
@@ -79,7 +82,8 @@ def relaxation_dynamic(model: Model, node: int, normal: np.ndarray, times: np.nd
     integrator = VerletIntegrator(damping)
     state = model.state()
     forces = np.empty((len(times), 3))
-    for s, t1 in enumerate(times):
+    for s, t1 in enumerate(tqdm(times, desc=f"relaxation of particle {node}", unit="sample",
+                                disable=None if progress else True, leave=False)):
         n = math.ceil((t1 - state.t) / dt * (1.0 - 1e-12))
         step = (t1 - state.t) / n
         run = integrator.prepare(model, step, prescribed_nodes=motion.nodes)

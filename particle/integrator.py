@@ -65,7 +65,7 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
 
 def resolve_time_step(section: ParticleSection, model: Model, *,
                       strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE) -> float:
-    """The scene's explicit step [s]: ``dt_safety x critical`` for 'auto', else the number, checked."""
+    """The scene's explicit step [s]: dt_safety x critical for 'auto', else the checked number."""
     critical = critical_time_step(model, strain_range=strain_range, damping=section.damping)
     if section.dt == "auto":
         return section.dt_safety * critical
@@ -312,8 +312,8 @@ class Run:
             self._tension)
         code, step, node = (int(v) for v in status)
         if code != kernels.OK:
-            what = ("has a non-finite position" if code == kernels.NONFINITE
-                    else f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
+            what = ("has a non-finite position" if code == kernels.NONFINITE else
+                    f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
             raise StabilityError(
                 f"explicit run diverged at step {step} (t = {state.t + step * dt:.6g} s): "
                 f"particle {node} {what}; dt = {dt:.4g} s, stability limit "

@@ -65,9 +65,9 @@ def internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx
     """Connector forces on every particle (N, 3) [N], overwriting ``forces``.
 
     Also writes each connector's tension (E,) [N], new arm forces (E, 2) [N]
-    (arms skipped if ``arm_r`` is None) and elongation (E,) [m]; ``arm_out``/``dx_out`` may alias ``arm_prev``/
-    ``dx_prev`` to commit the step in place (dynamics) or be scratch arrays
-    (Newton iterations, which must not commit).
+    (arms skipped if ``arm_r`` is None) and elongation (E,) [m]; ``arm_out``/
+    ``dx_out`` may alias ``arm_prev``/``dx_prev`` to commit the step in place
+    (dynamics) or be scratch arrays (Newton iterations, which must not commit).
     """
     forces[:] = 0.0
     for e in range(edges.shape[0]):

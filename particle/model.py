@@ -1,4 +1,4 @@
-"""The particle model: immutable :class:`Model` built by a :class:`ModelBuilder`, mutable :class:`State`.
+"""The particle model: an immutable :class:`Model` built by :class:`ModelBuilder`; :class:`State`.
 
 One particle per mesh vertex, one Maxwell-Solid connector per mesh edge
 (Basafa & Farahmand). A connector joining particles ``i`` and ``j`` with rest
@@ -66,7 +66,8 @@ class ConnectorParams:
     b2: np.ndarray
 
     def __post_init__(self) -> None:
-        arrays = [np.atleast_1d(np.asarray(getattr(self, n), dtype=np.float64)) for n in PARAM_NAMES]
+        arrays = [np.atleast_1d(np.asarray(getattr(self, n), dtype=np.float64))
+                  for n in PARAM_NAMES]
         shapes = {a.shape for a in arrays}
         if len(shapes) != 1 or arrays[0].ndim != 1:
             raise ParameterError("connector parameters must be seven 1-D arrays of one length, got "
@@ -137,7 +138,7 @@ class ConnectorParams:
         return kmin, kmax
 
     def max_tangent_stiffness(self, strain_range: tuple[float, float]) -> np.ndarray:
-        """(E,) max over ``strain_range`` of |K0 + 2 a eps + 3 b eps^2| [N/m] (quadratic: ends/vertex)."""
+        """(E,) max of |K0 + 2 a eps + 3 b eps^2| over ``strain_range`` [N/m] (ends or vertex)."""
         lo, hi = strain_range
         cand = [np.abs(self.tangent_stiffness(np.full_like(self.K0, e))) for e in (lo, hi)]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -161,8 +162,9 @@ class ConnectorParams:
                                  "above -1 (a connector cannot shrink to zero length)")
 
         def where(e: int) -> str:
-            ends = f" (particles {int(edges[e, 0])}-{int(edges[e, 1])})" if edges is not None else ""
-            return f"connector {e}{ends}"
+            if edges is None:
+                return f"connector {e}"
+            return f"connector {e} (particles {int(edges[e, 0])}-{int(edges[e, 1])})"
 
         for name in PARAM_NAMES:
             bad = np.nonzero(~np.isfinite(getattr(self, name)))[0]

@@ -302,8 +302,8 @@ class _Iterate:
     __slots__ = ("x", "forces", "tension", "arm_force", "dx", "res", "norm")
 
     def __init__(self, x, forces, tension, arm_force, dx, res):
-        self.x, self.forces, self.tension, self.arm_force, self.dx = x, forces, tension, arm_force, dx
-        self.res = res
+        self.x, self.forces, self.tension = x, forces, tension
+        self.arm_force, self.dx, self.res = arm_force, dx, res
         self.norm = float(np.sqrt(res @ res))
 
 
