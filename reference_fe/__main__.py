@@ -1,4 +1,7 @@
-"""``python -m reference_fe --scene FILE --out PATH [--no-progress]`` (also under ``mpirun -n K``)."""
+"""CLI: ``python -m reference_fe --scene FILE --out PATH [--no-progress]``.
+
+Also under ``mpirun -n K``: the work items are shared between the ranks.
+"""
 from __future__ import annotations
 
 import argparse
@@ -22,8 +25,9 @@ def main(argv: list[str] | None = None) -> int:
     from reference_fe.run import compute_reference
 
     rank = MPI.COMM_WORLD.rank
+    # force=True: importing FFCx has already configured the root logger
     logging.basicConfig(level=logging.WARNING, format=f"[rank {rank}] %(levelname)s "
-                        "%(name)s: %(message)s", force=True)  # force: the FFCx import configures logging
+                        "%(name)s: %(message)s", force=True)
     if rank == 0:
         for name in ("forcecal", "reference_fe"):
             logging.getLogger(name).setLevel(logging.INFO)

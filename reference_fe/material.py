@@ -72,7 +72,11 @@ def long_term(material: MaterialSection) -> MaterialSection:
 
 
 def prony_step(material: MaterialSection, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Decay ``a_i = exp(-dt/tau_i)`` and gain ``b_i = g_i (1 - a_i)/(dt/tau_i)`` of a step dt [s]."""
+    """Decay ``a_i = exp(-dt/tau_i)`` and gain ``b_i = g_i (1 - a_i)/(dt/tau_i)`` of a step.
+
+    Args:
+        dt: step length [s], > 0.
+    """
     if not dt > 0:
         raise ParameterError(f"viscoelastic time step dt = {dt} s must be > 0")
     tau = np.asarray(material.prony_tau, dtype=float)

@@ -21,9 +21,8 @@ vertex it is the force the indenter applies to it.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import basix
 import dolfinx
@@ -79,12 +78,13 @@ class Load:
         gravity: (3,) float64, body-force acceleration [m/s^2] (zero for indentation).
     """
     constraints: tuple[Constraint, ...]
-    gravity: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass
 class FEState:
-    """Mutable state of one experiment; copies are cheap and restore a converged step.
+    """State of one experiment after a converged step. :func:`solve_step` returns a new one
+    and never modifies its input, so a failed step simply retries from the old state.
 
     Attributes:
         u: (n_dofs,) float64, solution vector: displacement [m] (and pressure [Pa] for TH).
@@ -104,11 +104,6 @@ class FEState:
     s_iso: np.ndarray
     force: np.ndarray | None
     progress: float
-
-    def copy(self) -> FEState:
-        return FEState(self.u.copy(), self.velocity.copy(), self.history.copy(),
-                       self.s_iso.copy(), None if self.force is None else self.force.copy(),
-                       self.progress)
 
 
 class _ResidualProblem(NonlinearProblem):
@@ -270,8 +265,8 @@ def clamp(dofs: np.ndarray) -> tuple[Constraint, ...]:
     return tuple(Constraint(k, dofs[:, k], 0.0) for k in range(3))
 
 
-def prescribe_vertex(model: FEModel, vertex: int, displacement: np.ndarray) -> tuple[Constraint,
-                                                                                        ...]:
+def prescribe_vertex(model: FEModel, vertex: int,
+                     displacement: np.ndarray) -> tuple[Constraint, ...]:
     """Constraints moving mesh vertex ``vertex`` by ``displacement`` (3,) [m]."""
     dofs = model.vertex_dofs[vertex]
     return tuple(Constraint(k, dofs[k:k + 1], float(displacement[k])) for k in range(3))

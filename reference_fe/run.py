@@ -245,7 +245,8 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
             return (type(exc).__name__, message), build_seconds
         arrays["seconds"] = np.float64(time.perf_counter() - t0)
         parts.save(item, arrays)
-        log.debug("%s done in %.2f s", item.name, float(arrays["seconds"]))
+        log.debug("%s done in %.2f s (%d Newton iterations so far on this rank)", item.name,
+                  float(arrays["seconds"]), model.newton_iterations)
         bar.update(parts.count() - bar.n)
     return None, build_seconds
 
