@@ -58,6 +58,8 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     coupling = kappa / np.sqrt(m[i] * m[j])
     rows = np.bincount(i, kappa / m[i] + np.where(free[j], coupling, 0.0), model.n_particles)
     rows += np.bincount(j, kappa / m[j] + np.where(free[i], coupling, 0.0), model.n_particles)
+    if not free.any():
+        return math.inf  # nothing moves
     omega = math.sqrt(float(rows[free].max()))
     xi = damping / (2.0 * omega)
     return 2.0 / omega * (math.sqrt(1.0 + xi * xi) - xi)
@@ -254,6 +256,7 @@ class VerletIntegrator:
                 raise ParameterError(f"record_steps must be increasing within 0..{n_steps}")
             record = np.empty((len(record_steps), len(record_nodes), 3))
         keyframes = None if prescribed is None else (prescribed.times, prescribed.positions)
+        run.check_state(state)
         bound = energy_bound(model, state, run.dt, n_steps, run.gravity, prescribed)
         run(state, n_steps, keyframes, bound, (record_nodes, record_steps, record))
         return record
@@ -272,6 +275,8 @@ class Run:
                  skip: bool) -> None:
         p = model.params
         g = None if gravity is None else np.asarray(gravity, dtype=np.float64).reshape(3)
+        if g is not None and not np.all(np.isfinite(g)):
+            raise ParameterError(f"gravity {g} m/s^2 is not finite")
         self.terms = Terms.select(p, gravity=g, arms=arms, damping=integrator.damping, skip=skip)
         self.integrator, self.model, self.dt, self.gravity, self.arms = (
             integrator, model, dt, g, arms)
@@ -298,12 +303,18 @@ class Run:
         Raises :class:`StabilityError` if the run diverges (the state is then invalid).
         """
         model, dt = self.model, self.dt
+        if n_steps < 0:
+            raise ParameterError(f"n_steps = {n_steps} must be >= 0")
+        self.check_state(state)
+        if keyframes is None:
+            keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
+        if keyframes[1].shape[1:] != (len(self.prescribed), 3):
+            raise ParameterError(f"keyframe positions of shape {keyframes[1].shape} do not match "
+                                 f"the {len(self.prescribed)} prescribed particles")
         if state.dt is not None and state.dt != dt:
             state.x_prev[:] = state.x - (state.x - state.x_prev) * (dt / state.dt)
         if not self.arms:
             state.arm_force[:] = 0.0
-        if keyframes is None:
-            keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
         status = kernels.run_verlet(
             state.x, state.x_prev, state.arm_force, state.dx_prev, model.edges,
             model.rest_lengths, *self._springs, model.masses, self.inv_masses, self.active,
@@ -322,12 +333,23 @@ class Run:
         if n_steps:
             state.dt = dt
 
+    def check_state(self, state: State) -> None:
+        """Raise :class:`ParameterError` unless ``state``'s arrays fit this run's model."""
+        n, e = self.model.n_particles, self.model.n_connectors
+        if (state.x.shape != (n, 3) or state.x_prev.shape != (n, 3)
+                or state.arm_force.shape != (e, 2) or state.dx_prev.shape != (e,)):
+            raise ParameterError(f"the state (x {state.x.shape}, arm_force "
+                                 f"{state.arm_force.shape}) does not belong to this model of {n} "
+                                 f"particles and {e} connectors")
+
     def force_on(self, state: State, node: int) -> np.ndarray:
         """(3,) connector force on particle ``node`` at ``state`` [N], arm step not committed.
 
         What the next step will apply to that particle: its connectors only,
         the arms advanced by this run's recursion into scratch (state unchanged).
         """
+        if not 0 <= node < self.model.n_particles:
+            raise ParameterError(f"unknown particle {node}")
         return kernels.node_force(state.x, node, self.model.incidence_ptr,
                                   self.model.incidence_edge, self.model.edges,
                                   self.model.rest_lengths, *self._springs[:3], self.arm_r,

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from forcecal.errors import StabilityError
+from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle import kernels
 from particle.integrator import VerletIntegrator, critical_time_step, resolve_time_step
@@ -168,3 +168,21 @@ def test_time_step_above_the_limit_is_refused():
         resolve_time_step(ParticleSection(dt=2 * critical), model)
     # damping lowers the limit: (2/omega)(sqrt(1 + xi^2) - xi)
     assert critical_time_step(model, damping=100.0) < critical
+
+
+def test_mismatched_inputs_are_refused():
+    model = box_model()
+    dt = 0.5 * critical_time_step(model)
+    other = box_model((2, 2, 2))
+    with pytest.raises(ParameterError, match="does not belong to this model"):
+        VerletIntegrator().simulate(model, other.state(), dt, 1)
+    with pytest.raises(ParameterError, match="n_steps"):
+        VerletIntegrator().simulate(model, model.state(), dt, -1)
+    with pytest.raises(ParameterError, match="not finite"):
+        VerletIntegrator().simulate(model, model.state(), dt, 1, gravity=[0.0, np.nan, 0.0])
+    run = VerletIntegrator().prepare(model, dt, prescribed_nodes=[model.free_nodes[0]])
+    with pytest.raises(ParameterError, match="do not match the 1 prescribed"):
+        run(model.state(), 1, None, 1.0)
+    with pytest.raises(ParameterError, match="record_steps"):
+        VerletIntegrator().simulate(model, model.state(), dt, 5, record_nodes=[0],
+                                    record_steps=[0, 7])
