@@ -20,6 +20,7 @@ import json
 import logging
 import os
 import shutil
+import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -146,10 +147,25 @@ class _Parts:
             return False
         return True
 
-    def clear_claims(self) -> None:
+    def start(self) -> str:
+        """Take the folder over for this run (rank 0); returns an error message or ''.
+
+        Claims and a failure note left by an interrupted run are cleared, but not
+        while another live process computes the same output (its claims would be lost).
+        """
+        self.folder.mkdir(parents=True, exist_ok=True)
+        owner = self.folder / "OWNER"
+        if owner.is_file():
+            host, _, pid = owner.read_text().partition(" ")
+            if pid.strip().isdigit() and int(pid) != os.getpid() and _alive(host, int(pid)):
+                return (f"{self.folder} is in use by process {pid.strip()} on {host}, which "
+                        "computes the same reference; wait for it (or delete the folder if "
+                        "that process is gone)")
+        owner.write_text(f"{socket.gethostname()} {os.getpid()}")
         for claim in self.folder.glob("*.claim"):
             claim.unlink()
         (self.folder / "FAILED").unlink(missing_ok=True)
+        return ""
 
     def fail(self, message: str) -> None:
         (self.folder / "FAILED").write_text(message)
@@ -160,6 +176,19 @@ class _Parts:
 
     def count(self) -> int:
         return len(list(self.folder.glob("*.npz")))
+
+
+def _alive(host: str, pid: int) -> bool:
+    """Whether process ``pid`` runs (a process on another host is assumed to)."""
+    if host != socket.gethostname():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
 
 
 def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path: str | Path,
@@ -178,6 +207,7 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         progress: show a tqdm bar of finished items on rank 0 (only on a terminal).
 
     Raises:
+        DataFileError: another live process is computing the same ``out_path``.
         ConvergenceError: an experiment failed even with step cutting; raised on every
             rank (other failures keep their ForcecalError class, anything else is a
             RuntimeError), with the messages of all failed items.
@@ -191,10 +221,9 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     key = run_key(scene, problem)
     parts = _Parts(out_path, key)
     items = work_items(scene, len(problem.test_points))
-    if rank == 0:
-        parts.folder.mkdir(parents=True, exist_ok=True)
-        parts.clear_claims()  # left by an interrupted run
-    comm.barrier()
+    busy = comm.bcast(parts.start() if rank == 0 else None, root=0)
+    if busy:
+        raise DataFileError(busy)
     mesh_seconds = time.perf_counter() - start
 
     bar = tqdm(total=len(items), desc="FE reference", unit="item", initial=parts.count(),

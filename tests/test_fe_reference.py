@@ -3,6 +3,7 @@
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
 
@@ -11,7 +12,7 @@ import pytest
 
 pytest.importorskip("dolfinx")
 
-from forcecal.errors import ConvergenceError  # noqa: E402
+from forcecal.errors import ConvergenceError, DataFileError  # noqa: E402
 from forcecal.h5io import read_reference  # noqa: E402
 from forcecal.problem import build_problem  # noqa: E402
 from forcecal.scene import load_scene, replace  # noqa: E402
@@ -41,7 +42,10 @@ def serial(tiny_scene, tmp_path_factory):
              seconds=0.0)
     np.savez(parts / "indentation-0001.npz", run_key="another scene",
              force=np.full((steps, 3), FAKE), seconds=0.0)
-    (parts / "relaxation-0002.claim").touch()  # left by an interrupted run
+    (parts / "relaxation-0002.claim").touch()  # left by an interrupted run ...
+    finished = subprocess.Popen(["true"])
+    finished.wait()
+    (parts / "OWNER").write_text(f"{socket.gethostname()} {finished.pid}")  # ... now gone
     ref = compute_reference(tiny_scene, out_path=out, progress=False)
     return out, ref
 
@@ -119,3 +123,11 @@ def test_failed_item_names_itself_and_keeps_the_checkpoints(tiny_scene, tmp_path
         compute_reference(scene, out_path=out, progress=False)
     assert not out.exists()
     assert (tmp_path / "reference.h5.parts" / "FAILED").is_file()
+
+
+def test_refuses_a_folder_another_live_process_is_filling(tiny_scene, tmp_path):
+    parts = tmp_path / "reference.h5.parts"
+    parts.mkdir()
+    (parts / "OWNER").write_text(f"{socket.gethostname()} {os.getppid()}")  # alive
+    with pytest.raises(DataFileError, match=rf"in use by process {os.getppid()}"):
+        compute_reference(tiny_scene, out_path=tmp_path / "reference.h5", progress=False)
