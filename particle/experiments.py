@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from forcecal.errors import ParameterError
-from particle.integrator import Prescribed, VerletIntegrator, energy_bound
+from particle.integrator import Prescribed, VerletIntegrator, check_time_step, energy_bound
 from particle.model import Model
 
 log = logging.getLogger(__name__)
@@ -29,6 +29,7 @@ def sample_steps(times: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
     Returns (step [s], (S,) int64 step index of each time). Non-uniform times
     are recorded at the nearest step (error <= step/2).
     """
+    check_time_step(dt, math.inf)
     times = np.asarray(times, dtype=np.float64)
     if len(times) == 0 or times[0] < 0 or np.any(np.diff(times) <= 0):
         raise ParameterError("record times must be >= 0 and increasing")
@@ -73,11 +74,12 @@ def relaxation_dynamic(model: Model, node: int, normal: np.ndarray, times: np.nd
     over the samples shows on a terminal unless ``progress`` is False.
     """
     node = int(model.check_nodes([node], "relaxation test particle")[0])
+    check_time_step(dt, math.inf)
     times = np.asarray(times, dtype=np.float64)
     depths = np.asarray(depths, dtype=np.float64)
     if times.shape != depths.shape or np.any(np.diff(np.r_[0.0, times]) <= 0):
         raise ParameterError("relaxation times must be increasing, > 0 and match the depths")
-    path = model.rest_positions[node] + np.r_[0.0, depths][:, None] * np.asarray(normal)
+    path = model.rest_positions[node] + np.r_[0.0, depths][:, None] * np.reshape(normal, 3)
     motion = Prescribed([node], np.r_[0.0, times], path[:, None, :])
     integrator = VerletIntegrator(damping)
     state = model.state()

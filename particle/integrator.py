@@ -134,7 +134,7 @@ class Prescribed:
 
 
 def energy_bound(model: Model, state: State, dt: float, n_steps: int,
-                  gravity: np.ndarray | None, prescribed: Prescribed | None) -> float:
+                 gravity: np.ndarray | None, prescribed: Prescribed | None) -> float:
     """Kinetic energy [J] above which a run is declared divergent.
 
     ``ENERGY_MARGIN`` x (present kinetic + elastic energy + the work gravity can
@@ -203,14 +203,14 @@ class VerletIntegrator:
         self.damping = float(damping)
         self.check_every = int(check_every)
         self.strain_range = strain_range
-        self._critical: tuple[ConnectorParams, float] | None = None
+        self._critical: tuple[Model, float] | None = None
 
     def critical_time_step(self, model: Model) -> float:
-        """:func:`critical_time_step` of the model's parameters (cached per parameter set)."""
-        if self._critical is None or self._critical[0] is not model.params:
+        """:func:`critical_time_step` of ``model`` (cached for the last model seen)."""
+        if self._critical is None or self._critical[0] is not model:
             value = critical_time_step(model, strain_range=self.strain_range,
                                        damping=self.damping)
-            self._critical = (model.params, value)
+            self._critical = (model, value)
         return self._critical[1]
 
     def prepare(self, model: Model, dt: float, *, gravity: np.ndarray | None = None,
