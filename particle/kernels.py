@@ -33,6 +33,17 @@ ENERGY = 2
 
 
 @njit(**JIT)
+def connector_vector(x, edges, e):
+    """Ends i, j, vector x_j - x_i (3 floats) [m] and length [m] of connector e."""
+    i = edges[e, 0]
+    j = edges[e, 1]
+    d0 = x[j, 0] - x[i, 0]
+    d1 = x[j, 1] - x[i, 1]
+    d2 = x[j, 2] - x[i, 2]
+    return i, j, d0, d1, d2, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(**JIT)
 def spring_tension(e, dx, strain, K0, a, b):
     """Elastic spring tension K(eps) dx [N] of connector e; a, b None = linear spring."""
     if a is None:
@@ -71,12 +82,7 @@ def internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx
     """
     forces[:] = 0.0
     for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        i, j, d0, d1, d2, length = connector_vector(x, edges, e)
         dx = length - rest_lengths[e]
         f = spring_tension(e, dx, dx / rest_lengths[e], K0, a, b)
         if arm_r is not None:
@@ -105,12 +111,7 @@ def node_force(x, node, incidence_ptr, incidence_edge, edges, rest_lengths, K0, 
     out = np.zeros(3)
     for k in range(incidence_ptr[node], incidence_ptr[node + 1]):
         e = incidence_edge[k]
-        i = edges[e, 0]
-        j = edges[e, 1]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        i, j, d0, d1, d2, length = connector_vector(x, edges, e)
         dx = length - rest_lengths[e]
         f1, f2 = arm_forces(e, dx, arm_r, arm_c, arm_prev, dx_prev)
         s = (spring_tension(e, dx, dx / rest_lengths[e], K0, a, b) + f1 + f2) / length
@@ -256,12 +257,7 @@ def assemble_tangent(x, edges, rest_lengths, K0, a, b, arm_stiffness, tension, s
     data[:] = 0.0
     blk = np.empty((3, 3))
     for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        i, j, d0, d1, d2, length = connector_vector(x, edges, e)
         unit = (d0 / length, d1 / length, d2 / length)
         s = spring_tangent(e, (length - rest_lengths[e]) / rest_lengths[e], K0, a, b)
         if arm_stiffness is not None:
