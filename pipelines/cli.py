@@ -37,6 +37,8 @@ def _parser() -> argparse.ArgumentParser:
                                      "calibration -> gravity comparison -> report")
     sub = parser.add_subparsers(dest="stage", required=True)
     sub.add_parser("scene-keys", help="print the Markdown table of every scene key")
+    p = sub.add_parser("results-table", help="print the README's results tables from a report")
+    p.add_argument("report", help="report.json")
     helps = {"reference": "FE reference (reference.h5)",
              "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
              "gravity": "particle gravity runs (gravity.h5); runs earlier stages if needed",
@@ -65,6 +67,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.stage == "scene-keys":
             from forcecal.scene import keys_table
             print(keys_table())
+            return 0
+        if args.stage == "results-table":
+            from pipelines.report import read_report, results_markdown
+            print(results_markdown(read_report(args.report)))
             return 0
         from calibration.pool import mpi_world
         from forcecal.scene import load_scene

@@ -1,4 +1,4 @@
-"""XDMF time series of the gravity test for ParaView: ``gravity_fe.xdmf``, ``gravity_particle.xdmf``.
+"""XDMF time series of the gravity test for ParaView: gravity_fe.xdmf, gravity_particle.xdmf.
 
 Both files hold the same tetrahedral mesh (vertex coordinates [m]) and, at
 every sample time [s] of the dynamic run, two vertex fields:

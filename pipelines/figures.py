@@ -39,7 +39,8 @@ FIGURES = ("calibration.png", "held_out.png", "gravity_static.png", "gravity_dyn
 STYLE = {"fe": dict(color="black", lw=2.2, label="FE reference"),
          "global": dict(color="tab:orange", lw=1.5, label="particle, global"),
          "calibrated": dict(color="tab:blue", lw=1.5, label="particle, calibrated (global+local)"),
-         "baseline": dict(color="tab:gray", lw=1.3, ls="--", label="particle, baseline (Van Gelder)")}
+         "baseline": dict(color="tab:gray", lw=1.3, ls="--",
+                          label="particle, baseline (Van Gelder)")}
 MM = 1e3
 
 

@@ -205,8 +205,52 @@ def check_report(report: dict[str, Any]) -> None:
                 raise DataFileError(f"report.json: {group}.{k} = {v!r} is not a finite number")
 
 
+def read_report(path: str | Path) -> dict[str, Any]:
+    """Read and check a ``report.json``."""
+    try:
+        report = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise DataFileError(f"{path} is not a readable report.json: {exc}") from None
+    check_report(report)
+    return report
+
+
 def write_report(path: str | Path, report: dict[str, Any]) -> None:
     """Check and write ``report.json`` atomically."""
     check_report(report)
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(report, indent=2) + "\n")
+
+
+ERROR_ROWS = (("indentation_global", "static indentation, calibration points, global model"),
+              ("indentation_calibrated", "static indentation, calibration points, calibrated"),
+              ("indentation_held_out", "static indentation, held-out points, calibrated"),
+              ("relaxation_global", "relaxation, calibration points, global model"),
+              ("relaxation_calibrated", "relaxation, calibration points, calibrated"),
+              ("relaxation_held_out", "relaxation, held-out points, calibrated"),
+              ("gravity_static", "gravity, static sag (all free vertices)"),
+              ("gravity_dynamic", "gravity, dynamic release, tracked node"))
+TIMING_ROWS = (("mesh", "mesh + test points (FE stage)"),
+               ("reference", "FE reference, everything (wall)"),
+               ("gravity_fe", "FE gravity: static + dynamic (compute)"),
+               ("calibration", "calibration (wall)"),
+               ("gravity_particle", "particle gravity: static + dynamic (wall)"))
+
+
+def _percent(value: float | None) -> str:
+    return "n/a" if value is None else f"{100 * value:.2f} %"
+
+
+def results_markdown(report: dict[str, Any]) -> str:
+    """The README's results tables (errors and timings) generated from a report."""
+    rows = ["| error vs FE (relative, see definitions) | particle, tuned | particle, baseline |",
+            "|---|---|---|"]
+    rows += [f"| {label} | {_percent(report['errors'][k])} | "
+             f"{_percent(report['baseline_errors'][k])} |" for k, label in ERROR_ROWS]
+    rows += ["", "| step | time [s] |", "|---|---|"]
+    rows += [f"| {label} | {report['timings_s'][k]:.1f} |" for k, label in TIMING_ROWS]
+    g = report.get("gravity", {})
+    if "particle_dynamic_s" in g:
+        rows.append(f"| particle gravity dynamics alone ({g['duration_s']:g} s simulated) | "
+                    f"{g['particle_dynamic_s']:.2f} |")
+    return "\n".join(rows)

@@ -75,6 +75,10 @@ class Context:
     def rank(self) -> int:
         return 0 if self.comm is None else self.comm.Get_rank()
 
+    @property
+    def under_mpi(self) -> bool:
+        return self.comm is not None
+
 
 @dataclass(frozen=True)
 class Stage:
@@ -111,16 +115,12 @@ class Stage:
 
 # ---------------------------------------------------------------------------- reference
 
-def under_mpi(ctx: Context) -> bool:
-    return ctx.comm is not None and ctx.comm.Get_size() > 1
-
-
 def run_reference(ctx: Context) -> list[str]:
     """FE reference: in-process under MPI or with one rank, else spawned with mpirun."""
     path = ctx.out / REFERENCE
     mpirun = shutil.which("mpirun")
-    if under_mpi(ctx) or ctx.ranks <= 1 or mpirun is None:
-        if ctx.ranks > 1 and mpirun is None and not under_mpi(ctx):
+    if ctx.under_mpi or ctx.ranks <= 1 or mpirun is None:
+        if ctx.ranks > 1 and mpirun is None and not ctx.under_mpi:
             log.warning("mpirun not found: computing the FE reference on one process")
         from reference_fe.run import compute_reference
         compute_reference(ctx.scene, out_path=path, progress=ctx.progress)
@@ -174,7 +174,7 @@ def adopt_reference(ctx: Context, stage: Stage, inputs: StageInputs) -> bool:
 
 def run_calibrate(ctx: Context) -> list[str]:
     """Calibration; under MPI rank 0 fits and ranks 1..K-1 evaluate test points."""
-    if under_mpi(ctx) and ctx.rank != 0:
+    if ctx.under_mpi and ctx.rank != 0:
         from calibration.pool import serve_mpi
         serve_mpi(ctx.comm)
         return []

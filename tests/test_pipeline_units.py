@@ -1,5 +1,4 @@
-"""Pipeline building blocks: stage cache, gravity runs and gravity.h5, report errors, XDMF fields."""
-import json
+"""Pipeline parts: stage cache, gravity adapter and gravity.h5, report errors, XDMF fields."""
 import os
 import subprocess
 import sys
