@@ -153,7 +153,10 @@ class _Parts:
         Claims and a failure note left by an interrupted run are cleared, but not
         while another live process computes the same output (its claims would be lost).
         """
-        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            return f"cannot create the checkpoint folder {self.folder}: {exc}"
         owner = self.folder / "OWNER"
         if owner.is_file():
             host, _, pid = owner.read_text().partition(" ")

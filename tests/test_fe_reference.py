@@ -131,3 +131,11 @@ def test_refuses_a_folder_another_live_process_is_filling(tiny_scene, tmp_path):
     (parts / "OWNER").write_text(f"{socket.gethostname()} {os.getppid()}")  # alive
     with pytest.raises(DataFileError, match=rf"in use by process {os.getppid()}"):
         compute_reference(tiny_scene, out_path=tmp_path / "reference.h5", progress=False)
+
+
+def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
+    from reference_fe.__main__ import main
+
+    assert main(["--scene", str(tmp_path / "missing.toml"), "--out",
+                 str(tmp_path / "r.h5"), "--no-progress"]) == 2
+    assert "error: scene file" in capsys.readouterr().err
