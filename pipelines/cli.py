@@ -49,7 +49,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--scene", required=True, help="scene TOML file")
         p.add_argument("--out", help="output folder (default: runs/<scene name>/)")
         p.add_argument("--force", action="store_true",
-                       help="rerun the stages even if their cache says they are up to date")
+                       help=f"rerun {'every stage' if name == 'demo' else 'this stage'} even if "
+                       "its cache says it is up to date")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         p.add_argument("--ranks", type=_positive_int, default=2,
                        help="MPI ranks of the FE reference when not already under mpirun "
@@ -57,11 +58,15 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+def _configure_logging(rank: int) -> None:
+    """INFO from forcecal's packages on rank 0, warnings only on the other MPI ranks."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     for name in ("pipelines", "forcecal", "reference_fe", "particle", "calibration"):
-        logging.getLogger(name).setLevel(logging.INFO)
+        logging.getLogger(name).setLevel(logging.INFO if rank == 0 else logging.WARNING)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
     comm = None
     try:
         if args.stage == "scene-keys":
@@ -74,17 +79,17 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         from calibration.pool import mpi_world
         from forcecal.scene import load_scene
-        from pipelines.stages import run_pipeline
+        from pipelines.stages import ORDER, run_pipeline
         comm = mpi_world()
-        if comm is not None and comm.Get_rank() != 0:
-            logging.getLogger().setLevel(logging.ERROR)
-            for name in ("pipelines", "forcecal", "reference_fe", "particle", "calibration"):
-                logging.getLogger(name).setLevel(logging.WARNING)
+        rank = 0 if comm is None else comm.Get_rank()
+        _configure_logging(rank)
         scene = load_scene(args.scene)
         out = Path(args.out) if args.out else default_out(scene.name)
-        outcomes = run_pipeline(scene, out, until=STAGE_COMMANDS[args.stage], force=args.force,
+        until = STAGE_COMMANDS[args.stage]
+        force = (ORDER if args.stage == "demo" else (until,)) if args.force else ()
+        outcomes = run_pipeline(scene, out, until=until, force=force,
                                 progress=not args.no_progress, ranks=args.ranks)
-        if comm is None or comm.Get_rank() == 0:
+        if rank == 0:
             for o in outcomes:
                 print(f"{o.stage:<10} {'ran' if o.ran else 'skipped':<8} "
                       f"{o.seconds:8.1f} s  {'; '.join(o.reasons) or 'up to date'}")
@@ -92,6 +97,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except ForcecalError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        if comm is not None and comm.Get_size() > 1:
+        if comm is not None:
             comm.Abort(2)  # the other ranks may be waiting for this one
         return 2

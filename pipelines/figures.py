@@ -53,6 +53,11 @@ def _save(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
     return path
 
 
+def _scale(values: np.ndarray) -> str:
+    """'log' when positive values span more than a decade (else log tick labels are unreadable)."""
+    return "log" if values.max() > 10 * values.min() > 0 else "linear"
+
+
 def median_point(errors: np.ndarray, mask: np.ndarray) -> int | None:
     """Index (into the test points) of the point with the median error among ``mask``."""
     idx = np.nonzero(mask)[0]
@@ -81,9 +86,8 @@ def _curves(ax_force, ax_relax, k: int, reference: Reference, cal: CalibrationRe
 def _cost(ax, cal: CalibrationResult, stage: str, title: str) -> None:
     cost = cal.global_fits[stage].history.iteration_cost
     ax.plot(np.arange(1, len(cost) + 1), cost, color="tab:orange")
-    # log scale only when the cost spans a decade (else its tick labels are unreadable)
     ax.set(xlabel="Nelder-Mead iteration", ylabel="cost G = sum (F_FE - F)^2 [N^2]", title=title,
-           yscale="log" if cost.max() > 10 * cost.min() > 0 else "linear")
+           yscale=_scale(cost))
     ax.grid(alpha=0.3, which="both")
 
 
@@ -95,7 +99,8 @@ def _per_connector(ax, values: dict[str, np.ndarray], global_value: float, ylabe
                 label="baseline (Van Gelder)")
     ax.plot(x, values["calibrated"], ".", ms=3, color="tab:blue", label="calibrated")
     ax.axhline(global_value, color="tab:orange", lw=1.5, label="global")
-    ax.set(xlabel="connector index", ylabel=ylabel, title=title, yscale="log")
+    ax.set(xlabel="connector index", ylabel=ylabel, title=title,
+           yscale=_scale(np.concatenate(list(values.values()))))
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
 

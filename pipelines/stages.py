@@ -268,10 +268,12 @@ class Outcome:
     seconds: float
 
 
-def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report", force: bool = False,
-                 progress: bool = True, ranks: int = 2) -> list[Outcome]:
+def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report",
+                 force: tuple[str, ...] = (), progress: bool = True,
+                 ranks: int = 2) -> list[Outcome]:
     """Bring ``until`` and every stage before it up to date in ``out``; see module docstring.
 
+    ``force`` names stages to rerun even if their cache says they are up to date.
     Returns one :class:`Outcome` per stage (on every MPI rank).
     """
     from calibration.pool import mpi_world
@@ -279,13 +281,14 @@ def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report", force:
     if scene.path is None:
         raise SceneError("run_pipeline needs a scene loaded from a file (scene.path is None): "
                          "the FE stage may run in another process, which reads the file")
-    if until not in STAGES:
-        raise ValueError(f"unknown stage {until!r}; stages are {list(ORDER)}")
+    unknown = sorted(set(force) - set(STAGES)) + ([until] if until not in STAGES else [])
+    if unknown:
+        raise ValueError(f"unknown stage(s) {unknown}; stages are {list(ORDER)}")
     ctx = Context(scene, Path(out), progress, ranks, mpi_world())
     cache = Cache(ctx.out)
     outcomes = []
     for stage in ORDER[:ORDER.index(until) + 1]:
-        outcomes.append(_run_stage(ctx, cache, STAGES[stage], force))
+        outcomes.append(_run_stage(ctx, cache, STAGES[stage], stage in force))
     return outcomes
 
 
