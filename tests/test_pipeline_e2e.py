@@ -128,6 +128,14 @@ def test_deleted_output_reruns_only_its_stage(first_run, tmp_path):
     assert (out / "figures" / "errors.png").is_file()
 
 
+def test_force_reruns_the_named_stage_only(first_run, tmp_path):
+    scene_path, out = copy_run(first_run, tmp_path)
+    outcomes = run_pipeline(load_scene(scene_path), out, until="gravity", force=("gravity",),
+                            progress=False)
+    assert [o.stage for o in outcomes] == ["reference", "calibrate", "gravity"]
+    assert ran(outcomes) == ["gravity"] and outcomes[-1].reasons == ("--force",)
+
+
 def test_reference_computed_outside_the_pipeline_is_adopted(first_run, tmp_path):
     scene_path, out = copy_run(first_run, tmp_path)
     (out / "cache" / "reference.json").unlink()  # as if python -m reference_fe had made it
