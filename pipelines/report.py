@@ -230,7 +230,7 @@ ERROR_ROWS = (("indentation_global", "static indentation, calibration points, gl
               ("relaxation_held_out", "relaxation, held-out points, calibrated"),
               ("gravity_static", "gravity, static sag (all free vertices)"),
               ("gravity_dynamic", "gravity, dynamic release, tracked node"))
-TIMING_ROWS = (("mesh", "mesh + test points (FE stage)"),
+TIMING_ROWS = (("mesh", "mesh, test points, FE model set-up"),
                ("reference", "FE reference, everything (wall)"),
                ("gravity_fe", "FE gravity: static + dynamic (compute)"),
                ("calibration", "calibration (wall)"),
