@@ -155,4 +155,4 @@ def test_arm_recursions_are_contractions_for_every_step(params, dt):
     r_ex, c_ex = params.arm_recursion(dt, exact=True)
     for r, c in ((r_be, c_be), (r_ex, c_ex)):
         assert np.all((r >= 0) & (r < 1)) and np.all(c > 0)
-    assert np.all(r_be >= r_ex)
+    assert np.all(r_be >= r_ex - 4 * np.finfo(float).eps)  # they differ by (dt/tau)^2/2: rounding
