@@ -135,6 +135,9 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
     Returns:
         the :class:`CalibrationResult` (also readable with :func:`read_params`).
+
+    Under ``mpirun`` with several ranks, call this on rank 0 only; the other
+    ranks serve as its workers with :func:`calibration.pool.serve_mpi`.
     """
     t0 = time.perf_counter()
     scene = scene if isinstance(scene, Scene) else load_scene(scene)
@@ -158,11 +161,11 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
     fingerprint = hashlib.sha256(json.dumps({
         "reference": file_fingerprint(reference_path),
-        "settings": {k: v for k, v in _settings(scene).items() if k != "workers"},
-        "backend": getattr(backend, "__qualname__", repr(backend))}, sort_keys=True).encode()
-    ).hexdigest()
+        "settings": {k: v for k, v in _settings(scene).items() if k != "workers"}},
+        sort_keys=True).encode()).hexdigest()
     checkpoint = Checkpoint(checkpoint_path(out_path), fingerprint)
     evaluations: dict[str, int] = {}
+    stage_times: dict[str, float] = {}
     rings = build_rings(mesh, problem.calibration)
     with Pool(experiments, initial.connector_params(n_conn), backend=backend,
               workers=settings.workers if workers is None else workers) as pool:
@@ -171,6 +174,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         for stage, fit_fn, reference in (("static", fit_static, ref_static[:n_cal]),
                                          ("relaxation", fit_relaxation, ref_relax[:n_cal])):
             saved = checkpoint.get(f"global_{stage}")
+            t = time.perf_counter()
             if saved is None:
                 glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
                                    progress=progress, verbose=verbose)
@@ -179,6 +183,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             else:
                 glob, fit = GlobalParams(**saved["params"]), Fit.from_dict(saved["fit"])
             global_fits[stage] = fit
+            stage_times[f"global_{stage}"] = time.perf_counter() - t
             evaluations[f"global_{stage}_cost_evaluations"] = fit.evaluations
             log.info("global %s fit: cost %.6g -> %.6g in %d evaluations", stage,
                      fit.initial_cost, fit.cost, fit.evaluations)
@@ -191,16 +196,19 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             for stage, reference in (("static", ref_static[:n_cal]),
                                      ("relaxation", ref_relax[:n_cal])):
                 key = f"local_{stage}"
+                t = time.perf_counter()
                 model, local_sweeps[stage] = run_local_stage(
                     pool, model, stage, reference, settings, checkpoint.get(key),
                     lambda record, key=key: checkpoint.put(key, record),
                     progress=progress, verbose=verbose)
                 evaluations[f"{key}_cost_evaluations"] = sum(
                     f.evaluations for s in local_sweeps[stage] for f in s.fits)
+                stage_times[key] = time.perf_counter() - t
 
         connectors = {"baseline": van_gelder_params(mesh, material),
                       "global": glob.connector_params(n_conn),
                       "calibrated": model.params()}
+        t = time.perf_counter()
         variants = {}
         all_points = np.arange(len(problem.test_points))
         for variant, params in connectors.items():
@@ -209,6 +217,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                       "relaxation": relative_rms_error(curves["relaxation"], ref_relax)}
             variants[variant] = VariantCurves(curves, errors)
         evaluations["point_curves"] = pool.evaluations()
+        stage_times["validation"] = time.perf_counter() - t
 
     warnings = [w for fit in global_fits.values() for w in fit.warnings]
     warnings += _local_warnings(local_sweeps)
@@ -218,7 +227,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         strain=strain, fe_slope=fe_slope, unit_slope=linear.slope, global_fits=global_fits,
         local_sweeps=local_sweeps, settings=_settings(scene),
         reference_fingerprint=file_fingerprint(reference_path),
-        reference_path=str(reference_path), evaluations=evaluations,
+        reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
         wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=_versions())
     write_params(out_path, result)
     checkpoint.remove()

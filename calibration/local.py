@@ -17,12 +17,18 @@ Design (the recommended one of the issue, as implemented):
   the sweep's start. The result does not depend on the order of the points by
   construction;
 * sweeps repeat until one lowers the total cost by less than
-  ``calibration.local_sweep_tolerance`` (relative) or ``local_max_sweeps`` is
-  reached. A checkpoint is written after every point's fit and every sweep.
+  ``calibration.local_sweep_tolerance`` times the total cost at the stage's
+  start, or less than that is left to gain, or ``local_max_sweeps`` is reached;
+  likewise each point's ``fatol`` is relative to its cost at the stage's start
+  (later sweeps do not chase residues negligible against the misfit the stage
+  began with), and its initial simplex has the size of the point's correction
+  in the previous sweep (clipped to [10 xatol, LOCAL_STEP]).
+  A checkpoint is written after every point's fit and every sweep.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Callable
@@ -40,7 +46,9 @@ from particle.model import ConnectorParams
 log = logging.getLogger(__name__)
 
 MAX_HALVINGS = 4  # an update damped to 1/16 that still raises the total cost ends the stage
-LOCAL_STEP = 0.2  # initial simplex step of every offset coordinate (a 22 % factor, or 0.2 s dalpha)
+# initial simplex step of every offset coordinate in the first sweep (a 22 % factor, or
+# 0.2 s dalpha); later sweeps start at the size of the point's previous correction
+LOCAL_STEP = 0.2
 STAGE_KIND = {"static": "indentation", "relaxation": "relaxation"}
 
 
@@ -66,7 +74,7 @@ class LocalModel:
 
     def with_offsets(self, stage: str, z: np.ndarray) -> "LocalModel":
         key = "z_static" if stage == "static" else "z_relaxation"
-        return LocalModel(**{**self.__dict__, key: np.asarray(z, dtype=float)})
+        return dataclasses.replace(self, **{key: np.asarray(z, dtype=float)})
 
     def params(self) -> ConnectorParams:
         return local_params(self.glob, self.rings, self.strain, self.z_static, self.z_relaxation)
@@ -93,8 +101,14 @@ class Sweep:
 
 
 def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
-              reference: np.ndarray, settings: CalibrationSection, verbose: bool) -> Fit:
-    """Call run on the worker owning ``point``: fit its offsets, the others' frozen (Jacobi)."""
+              reference: np.ndarray, settings: CalibrationSection, scale: float | None,
+              step: np.ndarray, verbose: bool) -> Fit:
+    """Call run on the worker owning ``point``: fit its offsets, the others' frozen (Jacobi).
+
+    ``scale`` is the point's cost at the start of the stage (None in the first
+    sweep, where it is the fit's own start): ``fatol`` is relative to it.
+    ``step`` is the initial simplex step of each offset coordinate.
+    """
     kind = STAGE_KIND[stage]
     z = model.offsets(stage)
     node = int(worker.experiments.problem.test_points[point])
@@ -107,9 +121,9 @@ def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
         sim = worker.curves(kind, params, [point])[0]
         return float(np.sum((reference - sim) ** 2))
 
-    return nelder_mead(cost, z[point], np.full(z.shape[1], LOCAL_STEP),
+    return nelder_mead(cost, z[point], step,
                        name=f"local {stage} fit of point {point} (vertex {node})",
-                       xatol=settings.xatol, fatol=settings.fatol,
+                       xatol=settings.xatol, fatol=settings.fatol, scale=scale,
                        max_evaluations=settings.local_max_evaluations, verbose=verbose)
 
 
@@ -143,34 +157,57 @@ def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.nda
             record["sweeps"].append(entry)
             save(record)
         start = model.with_offsets(stage, entry["start"])
-        fits = _sweep_fits(pool, start, stage, reference, settings, entry, record, save,
-                           f"local {stage} sweep {k + 1}", progress, verbose)
+        fits = _sweep_fits(pool, start, stage, reference, settings, _point_starts(record, k),
+                           entry, record, save, f"local {stage} sweep {k + 1}", progress, verbose)
         if "end" not in entry:
             entry.update(_damped_update(pool, start, stage, reference, fits, entry["start_cost"]))
             save(record)
         sweep = Sweep(entry["start_cost"], entry["end_cost"], entry["halvings"], tuple(fits))
         sweeps.append(sweep)
         model = start.with_offsets(stage, entry["end"])
-        gain = (sweep.start_cost - sweep.end_cost) / sweep.start_cost if sweep.start_cost else 0.0
+        # stop when this sweep gained, or the next could gain (at most what is left),
+        # less than the tolerance times the stage's starting cost
+        tolerance = settings.local_sweep_tolerance * record["sweeps"][0]["start_cost"]
         log.info("local %s sweep %d: total cost %.6g -> %.6g (%s)", stage, k + 1,
                  sweep.start_cost, sweep.end_cost,
                  f"update halved {sweep.halvings} times" if sweep.accepted else "rejected")
-        if not sweep.accepted or gain < settings.local_sweep_tolerance:
+        if (not sweep.accepted or sweep.start_cost - sweep.end_cost < tolerance
+                or sweep.end_cost < tolerance):
             break
     record["done"] = True
     save(record)
     return model, sweeps
 
 
+def _point_starts(record: dict, k: int) -> list[tuple[float | None, np.ndarray | None]]:
+    """Per point (fatol scale, initial simplex step) for sweep ``k`` of a stage record."""
+    if k == 0:
+        return [(None, None)] * len(record["sweeps"][0]["start"])
+    first, previous = record["sweeps"][0], record["sweeps"][k - 1]
+    starts = []
+    for j, z0 in enumerate(previous["start"]):
+        moved = np.abs(np.asarray(previous["fits"][str(j)]["x"]) - np.asarray(z0))
+        starts.append((first["fits"][str(j)]["initial_cost"], moved))
+    return starts
+
+
 def _sweep_fits(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray,
-                settings: CalibrationSection, entry: dict, record: dict,
-                save: Callable[[dict], None], desc: str, progress: bool,
+                settings: CalibrationSection,
+                starts: list[tuple[float | None, np.ndarray | None]], entry: dict,
+                record: dict, save: Callable[[dict], None], desc: str, progress: bool,
                 verbose: bool) -> list[Fit]:
     """Fit every point not yet in ``entry["fits"]``, checkpointing after each one."""
     n_points = start.rings.n_points
     todo = [j for j in range(n_points) if str(j) not in entry["fits"]]
     with progress_bar(desc, n_points, progress, initial=n_points - len(todo)) as bar:
-        calls = [(j, (start, stage, j, reference[j], settings, verbose)) for j in todo]
+        dim = start.offsets(stage).shape[1]
+        calls = []
+        for j in todo:
+            scale, moved = starts[j]
+            size = LOCAL_STEP if moved is None else np.clip(moved.max(), 10 * settings.xatol,
+                                                            LOCAL_STEP)
+            step = np.full(dim, size)
+            calls.append((j, (start, stage, j, reference[j], settings, scale, step, verbose)))
         for i, fit in pool.map(fit_point, calls):
             entry["fits"][str(todo[i])] = fit.as_dict()
             save(record)

@@ -2,8 +2,10 @@
 
 :func:`nelder_mead` wraps ``scipy.optimize.minimize(method="Nelder-Mead")``:
 
-* the objective is the cost divided by the cost at the start, so ``fatol`` is
-  relative to the initial cost (``xatol`` acts on the transformed coordinates);
+* the objective is the cost divided by a scale, by default the cost at the
+  start, so ``fatol`` is relative to the initial cost (``xatol`` acts on the
+  transformed coordinates); the local stage passes the point's cost at the
+  start of the stage, so later sweeps do not chase ever smaller residues;
 * the initial simplex is ``x0 + step_i e_i`` (steps chosen per coordinate by the
   caller; scipy's default 5 % of each entry is useless at 0);
 * a cost function raising one of :data:`INFEASIBLE` gives +inf there (reason
@@ -95,9 +97,12 @@ class Fit:
 
 def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.ndarray, *,
                 name: str, xatol: float, fatol: float, max_evaluations: int,
+                scale: float | None = None,
                 on_evaluation: Callable[[float], None] | None = None,
                 verbose: bool = False) -> Fit:
     """Minimise ``cost`` from ``x0`` (module docstring); ``name`` labels logs and warnings.
+
+    ``fatol`` is relative to ``scale`` [N^2] (default: the cost at ``x0``).
 
     Raises:
         ConvergenceError: the starting point itself is infeasible.
@@ -129,6 +134,7 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
     record(x0, start)
     if start == 0.0:  # nothing to fit (synthetic data that the start reproduces exactly)
         return Fit(x0, 0.0, 0.0, True, History(np.array([0.0]), np.zeros(0), np.zeros(0, int)))
+    scale = start if scale is None or not scale > 0 else float(scale)
     memo = {x0.tobytes(): start}  # scipy evaluates x0 again as the simplex's first vertex
 
     def objective(x: np.ndarray) -> float:
@@ -138,11 +144,11 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
             if reason:
                 log.log(level, "%s: cost = +inf at %s: %s", name, np.round(x, 6).tolist(), reason)
             record(x, c)
-        return c / start
+        return c / scale
 
     def callback(_xk: np.ndarray) -> None:
         iterations.append((best[0], len(evaluations)))
-        log.log(level, "%s: iteration %d, %d evaluations, cost %.6g (%.4g of start)", name,
+        log.log(level, "%s: iteration %d, %d evaluations, cost %.6g (%.4g of the start)", name,
                 len(iterations), len(evaluations), best[0], best[0] / start)
 
     simplex = np.vstack([x0, x0 + np.diag(np.asarray(step, dtype=float))])

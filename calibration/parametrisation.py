@@ -31,6 +31,7 @@ or some connector has ``tau1 >= tau2``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,21 +89,19 @@ class GlobalParams:
     def with_static_coordinates(self, x: np.ndarray, K0: float, strain: StrainRange
                                 ) -> "GlobalParams":
         s = strain.scale
-        return _replace(self, K0=float(K0), alpha=float(x[0]) / s, beta=float(x[1]) / (s * s))
+        return dataclasses.replace(self, K0=float(K0), alpha=float(x[0]) / s,
+                                   beta=float(x[1]) / (s * s))
 
     def relaxation_coordinates(self) -> np.ndarray:
         return np.log([self.k1, self.tau1, self.k2, self.tau2])
 
     def with_relaxation_coordinates(self, y: np.ndarray) -> "GlobalParams":
         k1, tau1, k2, tau2 = np.exp(np.asarray(y, dtype=float))
-        return _replace(self, k1=float(k1), tau1=float(tau1), k2=float(k2), tau2=float(tau2))
+        return dataclasses.replace(self, k1=float(k1), tau1=float(tau1), k2=float(k2),
+                                   tau2=float(tau2))
 
     def as_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in self.__dataclass_fields__}
-
-
-def _replace(p: GlobalParams, **changes: float) -> GlobalParams:
-    return GlobalParams(**{**p.as_dict(), **changes})
 
 
 @dataclass(frozen=True, eq=False)

@@ -18,6 +18,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/history/global_<stage>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); stages ``static``, ``relaxation`` |
 | ``/history/local_<stage>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
 | ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per stage |
+| ``/stage_times`` attrs | | s | wall time of each stage in this run (0 for stages resumed from a checkpoint) |
 | ``/warnings`` | (n,) | | every warning of the run (strings) |
 """
 
@@ -79,6 +80,7 @@ class CalibrationResult:
         reference_fingerprint: SHA-256 of the reference file fitted to.
         reference_path: its path.
         evaluations: evaluation counts (see :func:`write_params`).
+        stage_times: stage -> wall time in this run [s] (0 when resumed from a checkpoint).
         wall_time: wall-clock time of the calibration [s].
         warnings: every warning of the run.
         versions: software versions.
@@ -99,6 +101,7 @@ class CalibrationResult:
     reference_fingerprint: str
     reference_path: str
     evaluations: dict[str, int]
+    stage_times: dict[str, float]
     wall_time: float
     warnings: tuple[str, ...] = field(default=())
     versions: dict[str, str] = field(default_factory=dict)
@@ -131,7 +134,8 @@ class CalibrationResult:
         lines = [f"calibration of {len(self.problem.mesh.edges)} connectors on "
                  f"{len(self.problem.calibration)} calibration + {len(self.problem.held_out)} "
                  f"held-out points: {self.wall_time:.1f} s, "
-                 f"{self.evaluations.get('point_curves', 0)} point-curve evaluations",
+                 f"{self.evaluations.get('point_curves', 0)} point-curve evaluations ("
+                 + ", ".join(f"{k} {v:.1f} s" for k, v in self.stage_times.items()) + ")",
                  f"global: K0 = {g.K0:.4g} N/m, alpha = {g.alpha:.4g}, beta = {g.beta:.4g}, "
                  f"k1 = {g.k1:.4g} N/m, tau1 = {g.tau1:.4g} s, k2 = {g.k2:.4g} N/m, "
                  f"tau2 = {g.tau2:.4g} s",
@@ -256,9 +260,10 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
             g = fh.create_group(f"history/local_{stage}")
             for k, sweep in enumerate(sweeps):
                 _put_sweep(g.create_group(f"sweep_{k:02d}"), sweep)
-        ev = fh.create_group("evaluations")
-        for k, v in result.evaluations.items():
-            ev.attrs[k] = v
+        for name in ("evaluations", "stage_times"):
+            g = fh.create_group(name, track_order=True)  # attributes read back in stage order
+            for k, v in getattr(result, name).items():
+                g.attrs[k] = v
         fh.create_dataset("warnings", data=np.array(result.warnings, dtype=object),
                           dtype=h5py.string_dtype())
 
@@ -296,6 +301,7 @@ def read_params(path: str | Path) -> CalibrationResult:
             reference_fingerprint=str(a["reference_fingerprint"]),
             reference_path=str(a["reference_path"]),
             evaluations={k: int(v) for k, v in fh["evaluations"].attrs.items()},
+            stage_times={k: float(v) for k, v in fh["stage_times"].attrs.items()},
             wall_time=float(a["wall_time"]),
             warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
                            for s in fh["warnings"][()]),

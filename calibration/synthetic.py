@@ -3,7 +3,9 @@
 A calibration fitted to curves that the particle model produced with known
 parameters must give those curves (and, where identifiable, those parameters)
 back: :func:`synthetic_reference` writes such a ``reference.h5``;
-:func:`box_scene` makes a small scene on a structured box mesh to run it on.
+:func:`ring_perturbed_params` makes known non-uniform parameters of exactly the
+form local tuning searches; :func:`box_scene` makes a small scene on a
+structured box mesh to run it on.
 """
 
 from __future__ import annotations
@@ -15,9 +17,10 @@ from typing import Any
 import meshio
 import numpy as np
 
+from calibration.parametrisation import GlobalParams, StrainRange, build_rings, local_params
 from forcecal.h5io import IndentationCurves, Reference, RelaxationCurves, write_reference
 from forcecal.mesh import box_mesh
-from forcecal.problem import build_problem
+from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
@@ -69,3 +72,23 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path)
                     gravity=None, meta={"source": "particle model (synthetic reference)"})
     write_reference(path, ref)
     return ref
+
+
+def ring_perturbed_params(problem: Problem, glob: GlobalParams, strain: StrainRange, *,
+                          amplitude: float = 0.3, seed: int = 1
+                          ) -> tuple[ConnectorParams, np.ndarray, np.ndarray]:
+    """Global parameters with random ring offsets of the calibration points.
+
+    Offsets are uniform in ``[-amplitude, amplitude]`` (factors exp(+-0.3) = x0.74..x1.35
+    on K0, k_i and tau_i by default), alpha/beta offsets 0.3 times that.
+
+    Returns:
+        params: the per-connector parameters;
+        z_static: (Pc, 3) and z_relaxation: (Pc, 4), the offsets used.
+    """
+    rng = np.random.default_rng(seed)
+    n = len(problem.calibration)
+    z_static = rng.uniform(-amplitude, amplitude, (n, 3)) * np.array([1.0, 0.3, 0.3])
+    z_relaxation = rng.uniform(-amplitude, amplitude, (n, 4))
+    rings = build_rings(problem.mesh, problem.calibration)
+    return local_params(glob, rings, strain, z_static, z_relaxation), z_static, z_relaxation

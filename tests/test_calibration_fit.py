@@ -13,10 +13,10 @@ import pytest
 from calibration.checkpoint import Checkpoint
 from calibration.core import calibrate, checkpoint_path
 from calibration.local import LocalModel, run_local_stage
-from calibration.parametrisation import GlobalParams, StrainRange, build_rings, local_params
+from calibration.parametrisation import GlobalParams, StrainRange, build_rings
 from calibration.pool import Experiments, Pool, particle_backend
 from calibration.results import read_params
-from calibration.synthetic import box_scene, synthetic_reference
+from calibration.synthetic import box_scene, ring_perturbed_params, synthetic_reference
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import replace
 from particle.model import PARAM_NAMES
@@ -24,7 +24,8 @@ from tests.conftest import ROOT
 
 # quick budgets: the box has 4 calibration + 2 held-out points and 197 connectors
 SETTINGS = {"static_max_evaluations": 80, "relaxation_max_evaluations": 160,
-            "local_max_evaluations": 60, "local_max_sweeps": 3, "workers": 1}
+            "local_max_evaluations": 60, "local_max_sweeps": 3, "local_sweep_tolerance": 1e-4,
+            "workers": 1}
 TRUE_GLOBAL = GlobalParams(K0=30.0, alpha=1.0, beta=10.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)
 STRAIN = StrainRange(-0.2, 0.05)  # what the box's 2 mm indentation reaches (linear estimate)
 
@@ -45,20 +46,11 @@ def box_problem(box):
     return build_problem(box)
 
 
-def _true_offsets(n_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Known, moderate ring factors (K0 x0.75..x1.35, tau x0.75..x1.35) and alpha/beta shifts."""
-    rng = np.random.default_rng(1)
-    zs = rng.uniform(-0.3, 0.3, (n_points, 3)) * np.array([1.0, 0.3, 0.3])
-    zr = rng.uniform(-0.3, 0.3, (n_points, 4))
-    return zs, zr
-
-
 @pytest.fixture(scope="module")
 def nonuniform(box, box_problem):
     """Reference from global + ring factors, and the uninterrupted calibration fitted to it."""
-    rings = build_rings(box_problem.mesh, box_problem.calibration)
-    zs, zr = _true_offsets(len(box_problem.calibration))
-    true = local_params(TRUE_GLOBAL, rings, STRAIN, zs, zr)
+    # K0, k_i, tau_i x0.74..x1.35 per ring, alpha/beta shifted too
+    true, _, _ = ring_perturbed_params(box_problem, TRUE_GLOBAL, STRAIN)
     d = box.path.parent / "nonuniform"
     synthetic_reference(box, true, d / "reference.h5")
     result = calibrate(box, d / "reference.h5", d / "params.h5", progress=False)
@@ -171,7 +163,13 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
         np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
                                    getattr(reference_run.connectors["calibrated"], name),
                                    rtol=1e-6)
-    assert result.global_params == reference_run.global_params  # loaded, not recomputed
+    assert result.global_params == reference_run.global_params
+    # the global stages and point 0's local fit were loaded, not recomputed
+    n_cal = len(result.problem.calibration)
+    loaded = n_cal * (result.evaluations["global_static_cost_evaluations"]
+                      + result.evaluations["global_relaxation_cost_evaluations"])
+    loaded += n_cal + result.local_sweeps["static"][0].fits[0].evaluations  # sweep start + fit
+    assert result.evaluations["point_curves"] == reference_run.evaluations["point_curves"] - loaded
     assert not checkpoint_path(out).exists()
 
 
