@@ -6,7 +6,9 @@ A stage's *inputs* are recorded as fingerprints (:class:`StageInputs`):
 * ``mesh``: the mesh fingerprint (only for the stage that reads the mesh itself,
   the FE reference; later stages read the mesh back from ``reference.h5``);
 * ``upstream``: SHA-256 of the content of every upstream file it reads;
-* ``code``: SHA-256 of the source files of every package or module it runs.
+* ``code``: SHA-256 of every project source file the stage's entry modules
+  import, transitively (:func:`import_closure`), so editing a module the
+  stage does not use does not invalidate it.
 
 After a successful run :meth:`Cache.store` writes ``<out>/cache/<stage>.json``
 with those inputs and the content hash of every output file. :meth:`Cache.check`
@@ -18,6 +20,7 @@ replaced by hand is noticed.
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import importlib.util
 import json
@@ -32,8 +35,10 @@ from forcecal.h5io import atomic_path
 
 log = logging.getLogger(__name__)
 
-RECORD_VERSION = 1
+RECORD_VERSION = 2
 CHUNK = 1 << 20
+# the packages whose source is followed when fingerprinting a stage's code
+PROJECT_PACKAGES = ("forcecal", "reference_fe", "particle", "calibration", "pipelines")
 
 
 def file_digest(path: str | Path) -> str:
@@ -48,29 +53,88 @@ def file_digest(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def source_files(name: str) -> tuple[Path, list[Path]]:
-    """Root folder and sorted ``.py`` files of a package (recursively) or of a single module.
+def package_root(package: str) -> Path:
+    """Folder holding the top-level ``package`` (found without importing it)."""
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        raise DataFileError(f"cannot fingerprint the code of {package!r}: it is not an "
+                            "importable package")
+    return Path(next(iter(spec.submodule_search_locations))).parent
 
-    Located with :func:`importlib.util.find_spec`, which does not import the
-    package itself (hashing ``reference_fe`` must not import dolfinx).
+
+def module_file(name: str, roots: dict[str, Path]) -> Path | None:
+    """Source file of dotted module ``name`` if it lies in one of the packages of ``roots``."""
+    top = name.split(".")[0]
+    if top not in roots:
+        return None
+    base = roots[top].joinpath(*name.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imported_names(path: Path) -> set[str]:
+    """Dotted names a source file imports anywhere (top level or inside functions)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module)
+            names.update(f"{node.module}.{a.name}" for a in node.names)  # maybe submodules
+    return names
+
+
+def import_closure(entries: tuple[str, ...]) -> dict[str, Path]:
+    """Every project module the ``entries`` import, transitively: ``{module name: file}``.
+
+    An entry is a module, or a package standing for all of its modules.
+    Imports are read from the source (:mod:`ast`), so nothing is imported and
+    lazy imports inside functions count too. Only modules of the project's
+    packages (and of the entries' own top-level packages) are followed; each
+    module brings the ``__init__`` of its parent packages, which Python runs
+    on import.
     """
-    spec = importlib.util.find_spec(name)
-    if spec is None:
-        raise DataFileError(f"cannot fingerprint the code of {name!r}: it is not importable")
-    if spec.submodule_search_locations:
-        root = Path(next(iter(spec.submodule_search_locations)))
-        return root, sorted(p for p in root.rglob("*.py") if "__pycache__" not in p.parts)
-    origin = Path(spec.origin)
-    return origin.parent, [origin]
+    roots = {p: package_root(p) for p in {e.split(".")[0] for e in entries}}
+    roots.update({p: package_root(p) for p in PROJECT_PACKAGES
+                  if p not in roots and importlib.util.find_spec(p) is not None})
+    pending = []
+    for entry in entries:
+        path = module_file(entry, roots)
+        if path is None:
+            raise DataFileError(f"cannot fingerprint the code of {entry!r}: no source file")
+        pending.append(entry)
+        if path.name == "__init__.py":  # a package entry: all of its modules
+            pending += [".".join((entry, *f.relative_to(path.parent).with_suffix("").parts))
+                        for f in sorted(path.parent.rglob("*.py"))
+                        if f.name != "__init__.py" and "__pycache__" not in f.parts]
+    found: dict[str, Path] = {}
+    while pending:
+        name = pending.pop()
+        path = module_file(name, roots)
+        if name in found or path is None:
+            continue
+        found[name] = path
+        parts = name.split(".")
+        pending += [".".join(parts[:k]) for k in range(1, len(parts))]
+        pending += sorted(_imported_names(path))
+    return found
 
 
-def code_digest(name: str) -> str:
-    """SHA-256 over the relative paths and contents of the source files of ``name``."""
-    root, files = source_files(name)
-    h = hashlib.sha256()
-    for f in files:
-        h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes() + b"\0")
-    return h.hexdigest()
+def code_digests(entries: tuple[str, ...]) -> dict[str, str]:
+    """``{file path relative to its package root: SHA-256}`` of the import closure of ``entries``."""
+    closure = import_closure(entries)
+    out = {}
+    for name, path in closure.items():
+        rel = path.relative_to(package_root(name.split(".")[0]))
+        out[str(rel)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return dict(sorted(out.items()))
+
+
+def code_digest(*entries: str) -> str:
+    """One SHA-256 over :func:`code_digests` of ``entries`` (e.g. ``code_digest("reference_fe")``)."""
+    return hashlib.sha256(json.dumps(code_digests(entries), sort_keys=True).encode()).hexdigest()
 
 
 @dataclass(frozen=True)
@@ -89,8 +153,13 @@ class StageInputs:
             reasons.append("mesh changed")
         reasons += [f"{k} changed" for k in sorted(self.upstream)
                     if old.get("upstream", {}).get(k) != self.upstream[k]]
-        reasons += [f"code of {k} changed" for k in sorted(self.code)
-                    if old.get("code", {}).get(k) != self.code[k]]
+        old_code = old.get("code", {})
+        changed = sorted(set(self.code) ^ set(old_code)
+                         | {k for k in self.code if old_code.get(k) != self.code[k]})
+        if changed:
+            shown = ", ".join(changed[:5]) + (f" and {len(changed) - 5} more"
+                                              if len(changed) > 5 else "")
+            reasons.append(f"code changed: {shown}")
         return reasons
 
 

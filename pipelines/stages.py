@@ -21,6 +21,8 @@ in-process.
 
 from __future__ import annotations
 
+import datetime
+import json
 import logging
 import os
 import shutil
@@ -36,7 +38,7 @@ import h5py
 from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
-from pipelines.cache import Cache, StageInputs, code_digest, file_digest, source_files
+from pipelines.cache import Cache, StageInputs, code_digests, file_digest, import_closure
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +89,8 @@ class Stage:
     Attributes:
         name: CLI name.
         sections: scene sections it reads.
-        code: packages/modules whose source is part of its cache key.
+        code: entry modules it runs; every project module they import is part of its
+            cache key (:func:`pipelines.cache.code_digests`).
         upstream: files of the output folder it reads.
         run: ``run(ctx) -> output file names`` (relative to ``ctx.out``); called on every
             rank under MPI, returns the outputs on rank 0.
@@ -110,7 +113,7 @@ class Stage:
         return StageInputs(scene=scene,
                            mesh=load_mesh(ctx.scene).fingerprint() if self.reads_mesh else None,
                            upstream={n: file_digest(ctx.out / n) for n in self.upstream},
-                           code={c: code_digest(c) for c in self.code})
+                           code=code_digests(self.code))
 
 
 # ---------------------------------------------------------------------------- reference
@@ -148,25 +151,24 @@ def adopt_reference(ctx: Context, stage: Stage, inputs: StageInputs) -> bool:
     """Accept a ``reference.h5`` computed outside the pipeline (``python -m reference_fe``).
 
     It is adopted when its stored scene and mesh fingerprints equal the current
-    ones and it is newer than every source file of the code the stage runs
-    (the file does not record the code version, so a newer source means it may
-    be stale).
+    ones and every source file the FE stage runs is older than the start of
+    that computation (``created`` minus the total time it reports): the file
+    does not record the code version, so newer code means it may be stale.
     """
     path = ctx.out / REFERENCE
-    if not path.is_file():
-        return False
     try:
         with h5py.File(path, "r") as fh:
-            scene_fp = fh.attrs.get("scene_fingerprint")
-            mesh_fp = fh.attrs.get("mesh_fingerprint")
-    except OSError:
+            a = dict(fh.attrs)
+        started = (datetime.datetime.fromisoformat(a["created"]).timestamp()
+                   - float(json.loads(a["timings_s"])["total"]))
+    except (OSError, KeyError, ValueError, TypeError):  # absent, foreign or damaged: recompute
         return False
-    newest_source = max(f.stat().st_mtime for c in stage.code for f in source_files(c)[1])
-    if (scene_fp != ctx.scene.fingerprint(*REFERENCE_SECTIONS) or mesh_fp != inputs.mesh
-            or path.stat().st_mtime < newest_source):
+    newest_source = max(f.stat().st_mtime for f in import_closure(stage.code).values())
+    if (a.get("scene_fingerprint") != ctx.scene.fingerprint(*REFERENCE_SECTIONS)
+            or a.get("mesh_fingerprint") != inputs.mesh or newest_source > started):
         return False
-    log.info("reference: adopting the existing %s (its scene and mesh fingerprints match and it "
-             "is newer than the FE code)", path)
+    log.info("reference: adopting the existing %s (its scene and mesh fingerprints match and "
+             "the FE code is older than it)", path)
     return True
 
 
@@ -244,17 +246,16 @@ def run_report(ctx: Context) -> list[str]:
 
 
 STAGES: dict[str, Stage] = {s.name: s for s in (
-    Stage("reference", REFERENCE_SECTIONS, ("forcecal", "reference_fe"), (), run_reference,
-          reads_mesh=True),
+    Stage("reference", REFERENCE_SECTIONS, ("reference_fe.__main__", "reference_fe.run"), (),
+          run_reference, reads_mesh=True),
     Stage("calibrate", ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
                         "calibration"),
-          ("forcecal", "particle", "calibration"), (REFERENCE,), run_calibrate),
+          ("calibration.core", "calibration.worker"), (REFERENCE,), run_calibrate),
     Stage("gravity", ("material", "gravity", "particle"),
-          ("forcecal", "particle", "calibration", "pipelines.gravity"), (REFERENCE, PARAMS),
-          run_gravity_stage),
-    Stage("report", ("outputs",),
-          ("forcecal", "calibration", "pipelines.report", "pipelines.figures",
-           "pipelines.fields", "pipelines.gravity"), (REFERENCE, PARAMS, GRAVITY), run_report),
+          ("pipelines.gravity", "calibration.results"),
+          (REFERENCE, PARAMS), run_gravity_stage),
+    Stage("report", ("outputs",), ("pipelines.report", "pipelines.figures", "pipelines.fields"),
+          (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)
 

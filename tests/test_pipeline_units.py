@@ -11,12 +11,13 @@ from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
 from particle.model import ConnectorParams, build_model
 from particle.statics import gravity_static
-from pipelines.cache import Cache, StageInputs, code_digest, file_digest
+from pipelines.cache import (Cache, StageInputs, code_digest, code_digests, file_digest,
+                             import_closure)
 from pipelines.gravity import (GravityRuns, ParticleGravity, check_springs, connector_strains,
                                read_gravity, static_sag, write_gravity)
 from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
                               gravity_static_error)
-from pipelines.stages import REFERENCE_SECTIONS
+from pipelines.stages import REFERENCE_SECTIONS, STAGES
 from tests.conftest import ROOT
 
 
@@ -40,15 +41,16 @@ def test_cache_reruns_on_each_kind_of_change(tmp_path):
     cache = Cache(tmp_path)
     (tmp_path / "out.h5").write_bytes(b"result")
     inputs = StageInputs(scene={"material": "m1", "fe": "f1"}, mesh="mesh1",
-                         upstream={"reference.h5": "r1"}, code={"particle": "c1"})
+                         upstream={"reference.h5": "r1"}, code={"particle/model.py": "c1"})
     assert cache.check("stage", inputs) == ["no cache record"]
     cache.store("stage", inputs, ["out.h5"], 1.5)
     assert cache.check("stage", inputs) == []
     assert cache.elapsed("stage") == 1.5
     changed = StageInputs(scene={"material": "m2", "fe": "f1"}, mesh="mesh2",
-                          upstream={"reference.h5": "r2"}, code={"particle": "c2"})
+                          upstream={"reference.h5": "r2"}, code={"particle/model.py": "c2"})
     assert cache.check("stage", changed) == ["scene [material] changed", "mesh changed",
-                                             "reference.h5 changed", "code of particle changed"]
+                                             "reference.h5 changed",
+                                             "code changed: particle/model.py"]
     (tmp_path / "out.h5").write_bytes(b"edited by hand")
     assert cache.check("stage", inputs) == ["output out.h5 was modified"]
     (tmp_path / "out.h5").unlink()
@@ -62,18 +64,39 @@ def test_unreadable_cache_record_means_rerun(tmp_path):
     assert cache.check("stage", StageInputs()) == ["no cache record"]
 
 
-def test_code_digest_follows_the_source_files(tmp_path, monkeypatch):
+def test_code_digests_follow_the_import_closure_only(tmp_path, monkeypatch):
     pkg = tmp_path / "fc_demo_pkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
-    (pkg / "mod.py").write_text("X = 1\n")
+    (pkg / "entry.py").write_text("from fc_demo_pkg import used\n\ndef f():\n"
+                                  "    import fc_demo_pkg.lazy\n")
+    for name in ("used", "lazy", "unrelated"):
+        (pkg / f"{name}.py").write_text("X = 1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    before = code_digest("fc_demo_pkg")
-    assert code_digest("fc_demo_pkg") == before
-    (pkg / "mod.py").write_text("X = 2\n")
-    assert code_digest("fc_demo_pkg") != before
-    with pytest.raises(DataFileError, match="not importable"):
-        code_digest("fc_no_such_package")
+    before = code_digests(("fc_demo_pkg.entry",))
+    assert set(before) == {"fc_demo_pkg/__init__.py", "fc_demo_pkg/entry.py",
+                           "fc_demo_pkg/used.py", "fc_demo_pkg/lazy.py"}
+    (pkg / "unrelated.py").write_text("X = 2\n")
+    assert code_digests(("fc_demo_pkg.entry",)) == before
+    for name in ("used", "lazy"):
+        (pkg / f"{name}.py").write_text("X = 3\n")
+        after = code_digests(("fc_demo_pkg.entry",))
+        assert after[f"fc_demo_pkg/{name}.py"] != before[f"fc_demo_pkg/{name}.py"]
+    assert StageInputs(code=after).changes_from({"code": before}) == [
+        "code changed: fc_demo_pkg/lazy.py, fc_demo_pkg/used.py"]
+    # a package entry stands for all of its modules
+    assert "fc_demo_pkg/unrelated.py" in code_digests(("fc_demo_pkg",))
+    assert code_digest("fc_demo_pkg") != code_digest("fc_demo_pkg.entry")
+    with pytest.raises(DataFileError, match="fc_demo_pkg.missing"):
+        code_digests(("fc_demo_pkg.missing",))
+    with pytest.raises(DataFileError, match="not an importable package"):
+        code_digests(("fc_no_such_package.mod",))
+
+
+def test_fe_stage_code_is_the_fe_and_shared_packages():
+    closure = import_closure(STAGES["reference"].code)
+    assert {"reference_fe.run", "reference_fe.model", "forcecal.h5io"} <= set(closure)
+    assert not any(n.split(".")[0] in ("particle", "calibration", "pipelines") for n in closure)
 
 
 def test_file_digest_of_missing_file_is_a_data_file_error(tmp_path):
