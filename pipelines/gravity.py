@@ -31,14 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
-from forcecal.errors import DataFileError, ParameterError
+from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem, write_problem
 from forcecal.problem import Problem
 from forcecal.scene import Scene
 from particle.experiments import gravity_dynamic
 from particle.integrator import critical_time_step, resolve_time_step
 from particle.model import ConnectorParams, Model, build_model
-from particle.statics import EquilibriumSolver, TangentPattern, continuation
+from particle.statics import check_stiffness, gravity_static
 
 log = logging.getLogger(__name__)
 
@@ -90,25 +90,6 @@ class GravityRuns:
     params_fingerprint: str = ""
 
 
-def static_sag(model: Model, gravity: np.ndarray, load_steps: int,
-               strain_range: tuple[float, float]) -> np.ndarray:
-    """(N, 3) static sag [m] of the long-term model (springs only), load-stepped Newton.
-
-    Thin adapter over the particle statics: :func:`particle.statics.gravity_static`
-    refuses parameters whose spring K(eps) is not positive on a fixed +-50 %
-    strain range, but calibrated springs are only required (and fitted) to be
-    positive on the calibration's strain range, so this validates on that range.
-    """
-    model.params.validate(strain_range, model.edges)
-    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
-                               rtol=1e-10, refactor_ratio=0.1)
-    x = model.rest_positions.copy()
-    for k in range(load_steps):
-        x = continuation(lambda x, _, s1: solver.solve(x, model.params, gravity=s1 * gravity).x,
-                         x, k / load_steps, (k + 1) / load_steps, what="gravity load")
-    return x - model.rest_positions
-
-
 def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:
     """(..., E) connector strains [1] of displacements (..., N, 3) [m]."""
     x = model.rest_positions + displacement
@@ -116,38 +97,29 @@ def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:
     return np.linalg.norm(d, axis=-1) / model.rest_lengths - 1.0
 
 
-def check_springs(model: Model, strain: np.ndarray, what: str) -> None:
-    """Raise :class:`ParameterError` if some spring's K(eps) <= 0 at the strains (S, E) reached."""
-    k = model.params.stiffness(strain)
-    if np.all(k > 0.0):
-        return
-    s, e = np.unravel_index(int(np.argmin(k)), k.shape)
-    raise ParameterError(f"{what}: connector {e} (particles {model.edges[e].tolist()}) reaches "
-                         f"strain {strain[s, e]:.3g} where its spring stiffness K(eps) = "
-                         f"{k[s, e]:.3g} N/m <= 0; the model is not valid there")
-
-
 def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: np.ndarray,
               times: np.ndarray, strain_range: tuple[float, float], name: str
               ) -> ParticleGravity:
     """Static sag and dynamic release of one parameter set.
 
-    ``strain_range`` is where the springs were calibrated; the runs are refused
-    (:class:`ParameterError`) if a spring's K(eps) becomes <= 0 at a strain
-    they reach, and the strain extremes are recorded so leaving the calibrated
-    range can be reported.
+    ``strain_range`` is where the springs were calibrated (and must be
+    positive); the runs are refused (:class:`ParameterError`) if a spring's
+    K(eps) becomes <= 0 at a strain they reach, and the strain extremes are
+    recorded so that leaving the calibrated range can be reported.
     """
     model = build_model(problem, scene.material.density, params)
     dt = resolve_time_step(scene.particle, model)
     critical = critical_time_step(model, damping=scene.particle.damping)
     t0 = time.perf_counter()
-    static = static_sag(model, gravity, scene.gravity.static_load_steps, strain_range)
+    static = gravity_static(model, gravity, load_steps=scene.gravity.static_load_steps,
+                            strain_range=strain_range)
     t1 = time.perf_counter()
     dynamic = gravity_dynamic(model, gravity, float(times[-1]), dt, times,
                               damping=scene.particle.damping)
     t2 = time.perf_counter()
     strain = np.vstack([connector_strains(model, static)[None], connector_strains(model, dynamic)])
-    check_springs(model, strain, f"gravity test of the {name} model")
+    for t, sample in zip(times, strain[1:]):
+        check_stiffness(model, sample, f"gravity dynamics of the {name} model at t = {t:.4g} s")
     log.info("gravity, %s model: max static sag %.3g mm, dt %.3g s (limit %.3g s), strains "
              "[%.3g, %.3g], static %.2f s, dynamic %.2f s (%d samples)", name,
              1e3 * np.linalg.norm(static, axis=1).max(), dt, critical, strain.min(),

@@ -1,4 +1,4 @@
-"""Pipeline parts: stage cache, gravity adapter and gravity.h5, report errors, XDMF fields."""
+"""Pipeline parts: stage cache, particle gravity runs and gravity.h5, report errors, XDMF fields."""
 import os
 import subprocess
 import sys
@@ -9,12 +9,12 @@ import pytest
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
+from forcecal.scene import scene_from_dict
 from particle.model import ConnectorParams, build_model
-from particle.statics import gravity_static
 from pipelines.cache import (Cache, StageInputs, code_digest, code_digests, file_digest,
                              import_closure)
-from pipelines.gravity import (GravityRuns, ParticleGravity, check_springs, connector_strains,
-                               read_gravity, static_sag, write_gravity)
+from pipelines.gravity import (GravityRuns, ParticleGravity, connector_strains, read_gravity,
+                               run_model, write_gravity)
 from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
                               gravity_static_error)
 from pipelines.stages import REFERENCE_SECTIONS, STAGES
@@ -122,31 +122,61 @@ def test_connector_strains_of_a_uniform_dilation_are_exact(column):
     assert np.allclose(strain, eps, rtol=0, atol=1e-12)
 
 
-def test_static_sag_equals_the_particle_statics_for_valid_springs(column):
-    model = build_model(column, 1000.0, linear_params(len(column.mesh.edges)))
-    g = np.array([0.0, -9.81, 0.0])
-    ours = static_sag(model, g, 4, (-0.5, 0.5))
-    theirs = gravity_static(model, g, load_steps=4)
-    # same Newton problem and tolerance (rtol 1e-10 of the force scale): same sag
-    assert np.allclose(ours, theirs, rtol=0, atol=1e-9 * np.abs(theirs).max())
-    assert np.abs(ours[column.fixed]).max() == 0.0
-    assert ours[column.tracked_node, 1] < 0  # the top sags along gravity
+@pytest.fixture
+def corner():
+    """A 10 mm Kuhn-split cube with every vertex clamped but the corner (1, 1, 1) x 10 mm."""
+    mesh = box_mesh((1, 1, 1), (0.01, 0.01, 0.01))
+    free = int(np.argmax(mesh.vertices.sum(axis=1)))
+    fixed = np.setdiff1d(np.arange(mesh.n_vertices), [free])
+    return Problem(mesh=mesh, fixed=fixed, calibration=np.array([free]),
+                   held_out=np.zeros(0, np.int64), tracked_node=free)
 
 
-def test_static_sag_validates_springs_on_the_given_strain_range(column):
-    n = len(column.mesh.edges)
+def test_gravity_runs_of_one_free_particle_match_the_closed_form(corner):
+    """One particle on linear springs: static K^-1 m g, release (I - cos(w t)) per mode."""
+    n = len(corner.mesh.edges)
+    K0 = 100.0
+    # arms 1e-6 x the springs: their stiffness and damping change the answer by ~1e-6
+    params = ConnectorParams.uniform(n, K0=K0, k1=1e-6 * K0, b1=1e-6 * K0, k2=1e-6 * K0,
+                                     b2=1e-5 * K0)
+    scene = scene_from_dict({"particle": {"dt_safety": 0.05}})
+    g = np.array([0.0, 0.0, -0.01])  # sag ~1e-8 m on 10 mm springs: geometric terms ~1e-6
+    node = corner.tracked_node
+    mass = corner.mesh.lumped_masses(scene.material.density)[node]
+    ends = corner.mesh.edges[np.any(corner.mesh.edges == node, axis=1)]
+    e = corner.mesh.vertices[ends[:, 1]] - corner.mesh.vertices[ends[:, 0]]
+    e /= np.linalg.norm(e, axis=1)[:, None]
+    stiffness = K0 * e.T @ e  # sum of K0 e e^T over the particle's springs [N/m]
+    u_static = np.linalg.solve(stiffness, mass * g)
+    lam, vec = np.linalg.eigh(stiffness / mass)
+    period = 2 * np.pi / np.sqrt(lam.min())
+    times = np.linspace(0.0, 2 * period, 81)
+    modal = vec.T @ u_static
+    u_exact = np.stack([vec @ ((1 - np.cos(np.sqrt(lam) * t)) * modal) for t in times])
+    run = run_model(scene, corner, params, g, times, (-0.5, 0.5), "test")
+    scale = np.abs(u_static).max()
+    assert np.allclose(run.static_displacement[node], u_static, rtol=0, atol=1e-4 * scale)
+    assert np.abs(np.delete(run.static_displacement, node, axis=0)).max() == 0.0
+    # position Verlet at dt <= 0.05 x the limit (w dt <= 0.1): phase error (w dt)^2/24 per
+    # radian, ~5e-3 rad after two periods of the slowest mode, so 1e-2 of the amplitude
+    assert np.allclose(run.displacement[:, node], u_exact, rtol=0, atol=1e-2 * 2 * scale)
+    assert run.dt <= 0.05 * run.critical_dt * (1 + 1e-12)
+    assert abs(run.strain_max) < 1e-4 and abs(run.strain_min) < 1e-4
+
+
+def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
+    n = len(corner.mesh.edges)
     # K(eps) = 100 (1 - 5 eps): positive on [-0.1, 0.1], zero at eps = 0.2
     soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -500.0), b=np.zeros(n),
                            k1=np.full(n, 50.0), b1=np.full(n, 5.0), k2=np.full(n, 20.0),
                            b2=np.full(n, 40.0))
-    model = build_model(column, 1000.0, soft)
-    g = np.array([0.0, -1.0, 0.0])
-    u = static_sag(model, g, 2, (-0.1, 0.1))
-    assert np.all(np.isfinite(u))
+    scene = scene_from_dict({})
+    g = np.array([0.0, 0.0, -1.0])
+    times = np.linspace(0.0, 0.01, 3)
+    run = run_model(scene, corner, soft, g, times, (-0.1, 0.1), "soft")
+    assert np.all(np.isfinite(run.displacement))
     with pytest.raises(ParameterError, match=r"K\(eps\).*<= 0 in the strain range"):
-        static_sag(model, g, 2, (-0.5, 0.5))
-    with pytest.raises(ParameterError, match="connector 0 .*strain 0.3"):
-        check_springs(model, np.full((1, n), 0.3), "test")
+        run_model(scene, corner, soft, g, times, (-0.5, 0.5), "soft")
 
 
 def test_gravity_file_round_trip_and_refusals(tmp_path, column):
