@@ -160,8 +160,9 @@ class CalibrationSection:
                                      "and sweep (cost evaluations)", minimum=1)
     local_max_sweeps: int = key(3, "maximum Jacobi sweeps of each local stage (static, "
                                 "relaxation)", minimum=1)
-    local_sweep_tolerance: float = key(0.01, "stop sweeping when a sweep lowers the total cost by "
-                                       "less than this fraction", minimum=0.0)
+    local_sweep_tolerance: float = key(1e-3, "a local stage stops sweeping once a sweep gains, "
+                                       "or there is left to gain, less than this fraction of "
+                                       "its starting cost", minimum=0.0)
     xatol: float = key(1e-3, "Nelder-Mead simplex-size tolerance in the transformed parameters "
                        "(logs and strain-scaled coefficients)", exclusive_minimum=0.0)
     fatol: float = key(1e-6, "Nelder-Mead cost-spread tolerance, relative to the stage's initial "
