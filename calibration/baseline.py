@@ -40,12 +40,19 @@ def long_term_young_modulus(material: MaterialSection) -> float:
 
 
 def prony_arms(material: MaterialSection) -> tuple[np.ndarray, np.ndarray]:
-    """Arm stiffness ratios ``g_i / g_inf`` [1] and relaxation times ``tau_i`` [s] (two arms)."""
+    """Arm stiffness ratios ``g_i / g_inf`` [1] and relaxation times ``tau_i`` [s] (two arms).
+
+    Sorted by relaxation time: arm 1 is the fast one (``tau1 < tau2``).
+    """
     if len(material.prony_g) != 2:
         raise ParameterError(f"the particle model has exactly two Maxwell arms; the material has "
                              f"{len(material.prony_g)} Prony terms")
-    ratio = np.asarray(material.prony_g) / material.long_term_factor
-    return ratio, np.asarray(material.prony_tau, dtype=float)
+    tau = np.asarray(material.prony_tau, dtype=float)
+    if tau[0] == tau[1]:
+        raise ParameterError(f"the two Prony relaxation times are equal ({tau[0]} s); the arms "
+                             "would not be identifiable")
+    order = np.argsort(tau)
+    return (np.asarray(material.prony_g)[order] / material.long_term_factor, tau[order])
 
 
 def van_gelder_params(mesh: TetMesh, material: MaterialSection) -> ConnectorParams:

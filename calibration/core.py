@@ -244,13 +244,19 @@ def _local_warnings(local_sweeps: dict[str, list[Sweep]]) -> list[str]:
         for k, sweep in enumerate(sweeps):
             budget = [j for j, f in enumerate(sweep.fits) if not f.converged]
             stuck = [j for j, f in enumerate(sweep.fits) if f.cost >= f.initial_cost > 0]
+            n = len(sweep.fits)
             if budget:
-                out.append(f"local {stage} sweep {k + 1}: the fits of calibration point(s) "
-                           f"{budget} stopped at their budget without meeting the tolerances")
+                out.append(f"local {stage} sweep {k + 1}: the fits of {_points(budget, n)} "
+                           "stopped at their budget without meeting the tolerances")
             if stuck:
-                out.append(f"local {stage} sweep {k + 1}: the fits of calibration point(s) "
-                           f"{stuck} did not reduce their cost")
+                out.append(f"local {stage} sweep {k + 1}: the fits of {_points(stuck, n)} did "
+                           "not reduce their cost")
             if not sweep.accepted and k == 0:  # later rejections just mean converged
                 out.append(f"local {stage} sweep {k + 1}: no damped Jacobi update lowered the "
                            "total cost; the stage stopped there")
     return out
+
+
+def _points(points: list[int], n: int) -> str:
+    return (f"all {n} calibration points" if len(points) == n
+            else f"calibration point(s) {points}")

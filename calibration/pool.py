@@ -40,8 +40,6 @@ from particle.model import ConnectorParams
 
 log = logging.getLogger(__name__)
 
-KINDS = ("indentation", "relaxation")
-
 
 @dataclass(frozen=True, eq=False)
 class Experiments:

@@ -87,6 +87,10 @@ def test_van_gelder_baseline_matches_dilation_energy_and_prony():
     assert not p.a.any() and not p.b.any()
     with pytest.raises(ParameterError, match="exactly two Maxwell arms"):
         van_gelder_params(mesh, MaterialSection(prony_g=(0.3,), prony_tau=(1.0,)))
+    swapped = van_gelder_params(mesh, MaterialSection(prony_g=(0.25, 0.35),
+                                                      prony_tau=(10.0, 0.5)))
+    np.testing.assert_allclose(swapped.tau1, 0.5)  # arm 1 is always the fast one
+    np.testing.assert_allclose(swapped.k1, p.k1)
 
 
 def test_rings_blend_factors_geometrically():
