@@ -10,12 +10,18 @@ its inward normal is unchanged (every face around it is split into four
 coplanar ones) and the clamped base is the same surface (fixed vertices and
 the midpoints of the edges between them). Meant for ``make bench``: at the
 default liver size the refined P2 model has ~40 000 dofs and takes minutes.
+
+``python -m reference_fe.sensitivity --scene FILE [--points ID ...]`` prints the
+study as JSON.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import json
 import logging
+import sys
 import time
 from typing import Sequence
 
@@ -24,10 +30,10 @@ import ufl
 from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
-from forcecal.errors import MeshError
+from forcecal.errors import ForcecalError, MeshError
 from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, build_problem
-from forcecal.scene import Scene
+from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths
 from reference_fe import experiments
 from reference_fe.model import FEModel
@@ -157,3 +163,27 @@ def discretisation_study(scene: Scene, points: Sequence[int] | None = None, *,
         f6 = np.asarray(results["P2 q=6"]["indentation_force_N"])
         out["quadrature_change_4_to_6"] = float(np.max(np.abs(f6 / f4 - 1)))
     return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m reference_fe.sensitivity",
+                                     description="FE discretisation study of a scene (JSON)")
+    parser.add_argument("--scene", required=True, help="scene TOML file")
+    parser.add_argument("--points", type=int, nargs="*", help="test vertex ids (default: 3 "
+                        "calibration points)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s",
+                        force=True)  # force=True: importing FFCx configured logging already
+    logging.getLogger().setLevel(logging.WARNING)
+    log.setLevel(logging.INFO)
+    try:
+        study = discretisation_study(load_scene(args.scene), args.points or None)
+    except ForcecalError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(study, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
