@@ -86,15 +86,32 @@ def prony_step(material: MaterialSection, dt: float) -> tuple[np.ndarray, np.nda
     return decay, g * (-np.expm1(-x)) / x
 
 
-def isochoric_stress(C: ufl.core.expr.Expr, C10: ufl.core.expr.Expr,
+def isochoric_energy(C: ufl.core.expr.Expr, C10: ufl.core.expr.Expr,
                      C01: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
-    """S_iso0 = 2 dW_iso/dC of the Mooney-Rivlin isochoric energy [Pa] (UFL)."""
-    C = ufl.variable(C)
-    J = ufl.sqrt(ufl.det(C))  # through C, so that d/dC sees the J-dependence
+    """W_iso = C10 (I1b - 3) + C01 (I2b - 3) of the Mooney-Rivlin model [J/m^3] (UFL)."""
+    J = ufl.sqrt(ufl.det(C))
     I1 = ufl.tr(C)
     I2 = 0.5 * (I1 ** 2 - ufl.tr(C * C))
-    W_iso = C10 * (J ** (-2.0 / 3.0) * I1 - 3.0) + C01 * (J ** (-4.0 / 3.0) * I2 - 3.0)
-    return 2.0 * ufl.diff(W_iso, C)
+    return C10 * (J ** (-2.0 / 3.0) * I1 - 3.0) + C01 * (J ** (-4.0 / 3.0) * I2 - 3.0)
+
+
+def isochoric_stress(C: ufl.core.expr.Expr, C10: ufl.core.expr.Expr,
+                     C01: ufl.core.expr.Expr) -> ufl.core.expr.Expr:
+    """S_iso0 = 2 dW_iso/dC [Pa] (UFL), written out::
+
+        S_iso0 = 2 C10 J^(-2/3) (I - I1/3 C^-1) + 2 C01 J^(-4/3) (I1 I - C - 2/3 I2 C^-1)
+
+    from dI1/dC = I, dI2/dC = I1 I - C and dJ/dC = J/2 C^-1. The closed form
+    compiles to kernels about twice as fast as ``ufl.diff`` of
+    :func:`isochoric_energy` (a test checks the two agree).
+    """
+    I = ufl.Identity(3)
+    C_inv = ufl.inv(C)
+    J = ufl.sqrt(ufl.det(C))
+    I1 = ufl.tr(C)
+    I2 = 0.5 * (I1 ** 2 - ufl.tr(C * C))
+    return 2.0 * (C10 * J ** (-2.0 / 3.0) * (I - I1 / 3.0 * C_inv)
+                  + C01 * J ** (-4.0 / 3.0) * (I1 * I - C - 2.0 / 3.0 * I2 * C_inv))
 
 
 def pressure_stress(C: ufl.core.expr.Expr, p: ufl.core.expr.Expr) -> ufl.core.expr.Expr:

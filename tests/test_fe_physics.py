@@ -129,6 +129,27 @@ def test_vertex_dofs_and_clamped_face_dofs(element):
     assert dofs.shape == (expected, 3) and len(np.unique(dofs)) == 3 * expected
 
 
+def test_isochoric_stress_is_the_derivative_of_the_energy():
+    """The written-out S_iso0 equals 2 dW_iso/dC taken by UFL, for a general (non-diagonal,
+    volume-changing) deformation: the relative L2 mismatch is round-off."""
+    import ufl
+    from dolfinx import fem
+
+    from reference_fe.material import isochoric_energy, isochoric_stress
+
+    model = FEModel(box_mesh((1, 1, 1), (L, L, L)), MATERIAL, FESection(element="P2"))
+    model.w.interpolate(lambda x: np.stack([0.3 * x[1] ** 2 / L + 0.05 * x[0],
+                                            0.2 * x[0] * x[2] / L, -0.1 * x[2] ** 2 / L]))
+    F = ufl.Identity(3) + ufl.grad(model.w)
+    C = ufl.variable(F.T * F)
+    by_ufl = 2 * ufl.diff(isochoric_energy(C, MATERIAL.C10, MATERIAL.C01), C)
+    written = isochoric_stress(C, MATERIAL.C10, MATERIAL.C01)
+    dx = ufl.dx(metadata={"quadrature_degree": 4})
+    error = fem.assemble_scalar(fem.form(ufl.inner(written - by_ufl, written - by_ufl) * dx))
+    norm = fem.assemble_scalar(fem.form(ufl.inner(by_ufl, by_ufl) * dx))
+    assert norm > 0 and error < 1e-26 * norm
+
+
 def test_internal_variables_sit_at_the_residual_quadrature_points():
     """Values evaluated at the quadrature points and stored in H are read back by the residual
     form at the same points, in the same order, for an inhomogeneous field (else the Prony
