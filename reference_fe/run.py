@@ -25,6 +25,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, TypeVar
 
 import numpy as np
 from mpi4py import MPI
@@ -47,6 +48,7 @@ log = logging.getLogger(__name__)
 REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
                       "gravity", "fe")
 KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -147,28 +149,31 @@ class _Parts:
             return False
         return True
 
-    def start(self) -> str:
-        """Take the folder over for this run (rank 0); returns an error message or ''.
+    def start(self) -> None:
+        """Take the folder over for this run (rank 0).
 
         Claims and a failure note left by an interrupted run are cleared, but not
         while another live process computes the same output (its claims would be lost).
+
+        Raises:
+            DataFileError: the folder cannot be created, or another process uses it.
         """
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            return f"cannot create the checkpoint folder {self.folder}: {exc}"
+            raise DataFileError(f"cannot create the checkpoint folder {self.folder}: "
+                                f"{exc}") from None
         owner = self.folder / "OWNER"
         if owner.is_file():
             host, _, pid = owner.read_text().partition(" ")
             if pid.strip().isdigit() and int(pid) != os.getpid() and _alive(host, int(pid)):
-                return (f"{self.folder} is in use by process {pid.strip()} on {host}, which "
-                        "computes the same reference; wait for it (or delete the folder if "
-                        "that process is gone)")
+                raise DataFileError(f"{self.folder} is in use by process {pid.strip()} on "
+                                    f"{host}, which computes the same reference; wait for it "
+                                    "(or delete the folder if that process is gone)")
         owner.write_text(f"{socket.gethostname()} {os.getpid()}")
         for claim in self.folder.glob("*.claim"):
             claim.unlink()
         (self.folder / "FAILED").unlink(missing_ok=True)
-        return ""
 
     def fail(self, message: str) -> None:
         (self.folder / "FAILED").write_text(message)
@@ -216,21 +221,17 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
             RuntimeError), with the messages of all failed items.
     """
     comm = MPI.COMM_WORLD
-    rank = comm.rank
     start = time.perf_counter()
     out_path = Path(out_path)
     if problem is None:
-        problem = comm.bcast(build_problem(scene) if rank == 0 else None, root=0)
-    key = run_key(scene, problem)
-    parts = _Parts(out_path, key)
+        problem = _on_root(comm, lambda: build_problem(scene))
+    parts = _Parts(out_path, run_key(scene, problem))
     items = work_items(scene, len(problem.test_points))
-    busy = comm.bcast(parts.start() if rank == 0 else None, root=0)
-    if busy:
-        raise DataFileError(busy)
+    _on_root(comm, parts.start)
     mesh_seconds = time.perf_counter() - start
 
     bar = tqdm(total=len(items), desc="FE reference", unit="item", initial=parts.count(),
-               disable=not progress or rank != 0 or not sys.stderr.isatty())
+               disable=not progress or comm.rank != 0 or not sys.stderr.isatty())
     failure, build_seconds = _work(scene, problem, items, parts, bar)
     bar.close()
     failures = [f for f in comm.allgather(failure) if f is not None]
@@ -239,15 +240,32 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         kind = kind if isinstance(kind, type) and issubclass(kind, ForcecalError) else RuntimeError
         raise kind("FE reference failed: " + "; ".join(m for _, m in failures)
                    + f" (finished items are kept in {parts.folder}/ and reused by a rerun)")
-    reference = None
-    if rank == 0:
+
+    def finish() -> Reference:
         reference = _assemble(scene, problem, items, parts, comm.size,
                               mesh_seconds + build_seconds, time.perf_counter() - start)
         write_reference(out_path, reference)
         shutil.rmtree(parts.folder)
         log.info("wrote %s (%d test points, %.1f s)", out_path, len(problem.test_points),
                  time.perf_counter() - start)
-    return comm.bcast(reference, root=0)
+        return reference
+
+    return _on_root(comm, finish)
+
+
+def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
+    """``task()`` run on rank 0, its result broadcast; a ForcecalError there is raised on
+    every rank (the others would otherwise wait for rank 0 forever)."""
+    result, error = None, None
+    if comm.rank == 0:
+        try:
+            result = task()
+        except ForcecalError as exc:
+            error = exc
+    result, error = comm.bcast((result, error), root=0)
+    if error is not None:
+        raise error
+    return result
 
 
 def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
