@@ -1,0 +1,424 @@
+"""``make bench``: run time vs error, kernel throughput, term skipping, reference timings.
+
+``python -m pipelines bench [--quick] [--out DIR] [--scene FILE] [--ranks K] [--no-progress]``
+writes ``DIR/bench.json`` (keys below), ``DIR/pareto.png`` and ``DIR/BENCH.md``.
+``--quick`` benchmarks ``scenes/tiny.toml`` with small sizes (development, a few
+minutes); the default is the default liver.
+
+Items, in order (each logs ``bench [k/N] <item>`` and its time):
+
+1. ``default``: the default scene through the cached pipeline in
+   ``DIR/cache/runs/default/`` (seeded from ``runs/<scene name>/`` when that
+   folder holds a finished run, so ``make demo``'s work is reused);
+2. ``pareto``: every configuration of :mod:`pipelines.bench_configs` (cached
+   pipelines), the particle time-step sweep and the FE discretisation study;
+3. ``reference``: wall time of the full default reference with 1 and 2 MPI
+   ranks: the default run's own (its ``reference.h5`` records wall time and rank
+   count) and, for the other rank count, one run kept in
+   ``DIR/cache/reference_timing.json`` for the same code and scene
+   fingerprints (a cold first run of ``make bench`` therefore computes a full
+   reference once more, ~10-25 min);
+4. particle engine (:mod:`particle.bench`): ``kernel`` throughput (compiled vs
+   numpy step, default liver and a >= 10k-connector liver), ``gravity_dynamic``
+   (3 s of the calibrated model, against the FE's time and error),
+   ``skip`` (the same runs with and without the terms they do not need),
+   haptic latency, evaluator times;
+5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench_stability`).
+
+Fixed keys of ``bench.json``: ``kernel {connectors, updates_per_s, numpy_ratio}``,
+``gravity_dynamic {particle_s, fe_s, speedup, error}``, ``calibration {wall_s,
+evaluations}``, ``reference {wall_s_1rank, wall_s_2ranks}``, ``pareto [{config,
+stage, wall_s, errors}]``, ``skip [{scene, full_s, skipped_s}]``; the rest
+(``machine``, ``haptic``, ``evaluators``, ``stability``, ...) are extras. Numbers
+are from real runs of this code; timings on a shared machine are indicative
+(``machine.load_average_start`` says how busy it was).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+
+from forcecal.errors import DataFileError
+from forcecal.h5io import Reference, atomic_path, read_reference
+from forcecal.problem import build_problem, load_mesh
+from forcecal.scene import Scene, load_scene
+from pipelines import bench_configs as bc
+from pipelines.cache import code_digest
+from pipelines.report import git_commit, gravity_dynamic_error, read_report
+from pipelines.stages import PARAMS, REFERENCE, REFERENCE_SECTIONS, run_pipeline
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED_FILES = (REFERENCE, PARAMS, "gravity.h5", "report.json")
+DT_FRACTIONS = {False: (0.1, 0.25, 0.5, 0.75, 1.0), True: (0.25, 0.5, 1.0)}
+GOALS = {"numpy_ratio": 20.0, "gravity_3s_s": 0.05, "haptic_us": 100.0, "calibration_s": 300.0,
+         "reference_2ranks_s": 900.0}
+PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
+
+
+# ---------------------------------------------------------------------------- default run
+
+def seed_default(scene: Scene, folder: Path) -> None:
+    """Copy a finished run of the scene (``runs/<name>/``, e.g. from ``make demo``) into
+    ``folder`` when it has none yet; the pipeline's cache then decides what is still valid."""
+    source = ROOT / "runs" / scene.name
+    if (folder / "cache").is_dir() or not (source / "cache").is_dir():
+        return
+    (folder / "cache").mkdir(parents=True, exist_ok=True)
+    for name in SEED_FILES:
+        if (source / name).is_file():
+            shutil.copy2(source / name, folder / name)
+    for record in (source / "cache").glob("*.json"):
+        shutil.copy2(record, folder / "cache" / record.name)
+    log.info("bench: seeded %s from %s", folder, source)
+
+
+def default_run(scene: Scene, root: Path, *, ranks: int, progress: bool) -> Path:
+    """The default scene's full pipeline, up to date, in ``root/default``."""
+    folder = root / "default"
+    seed_default(scene, folder)
+    run_pipeline(scene, folder, progress=progress, ranks=ranks)
+    return folder
+
+
+# ---------------------------------------------------------------------------- particle dt axis
+
+def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[dict[str, Any]]:
+    """3 s gravity dynamics of the calibrated model at several steps (fractions of the limit).
+
+    Errors at the tracked vertex (:func:`pipelines.report.gravity_dynamic_error`)
+    against the FE and against the smallest step's run.
+    """
+    from calibration import read_params
+    from particle.experiments import gravity_dynamic
+    from particle.integrator import critical_time_step
+    from particle.model import build_model
+
+    reference = read_reference(folder / REFERENCE)
+    model = build_model(reference.problem, scene.material.density,
+                        read_params(folder / PARAMS).connectors["calibrated"])
+    damping = scene.particle.damping
+    critical = critical_time_step(model, damping=damping)
+    g = np.asarray(scene.gravity.acceleration, dtype=float)
+    times = reference.gravity.time
+    node = reference.problem.tracked_node
+    fe = reference.gravity.displacement[:, node]
+    gravity_dynamic(model, g, float(times[2]), critical, times[:3], damping=damping)  # compile
+    runs = []
+    for f in sorted(fractions):
+        u, wall = bc.timed(gravity_dynamic, model, g, float(times[-1]), f * critical, times,
+                           damping=damping)
+        runs.append((f, u[:, node], wall))
+    finest = runs[0][1]
+    default = scene.particle.dt_safety if scene.particle.dt == "auto" else None
+    return [{"axis": "particle dt", "label": f"{f:g} x limit",
+             "config": {"dt_fraction": f, "dt_s": f * critical, "critical_dt_s": critical},
+             "stage": "gravity dynamics (particle, 3 s)", "wall_s": wall,
+             "errors": {"gravity_dynamic": gravity_dynamic_error(fe, u),
+                        "vs_smallest_dt": gravity_dynamic_error(finest, u) if f > runs[0][0]
+                        else 0.0,
+                        "overall": gravity_dynamic_error(fe, u)},
+             "default": default is not None and abs(f - default) < 1e-12}
+            for f, u, wall in runs]
+
+
+# ---------------------------------------------------------------------------- FE axis
+
+def fe_key(scene: Scene) -> str:
+    """Identity of an FE computation: FE code, the scene's reference sections, the mesh."""
+    blob = json.dumps({"code": code_digest("reference_fe"),
+                       "scene": scene.fingerprint(*REFERENCE_SECTIONS),
+                       "mesh": load_mesh(scene).fingerprint()})
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def cached(path: Path, key: str, compute: Callable[[], Any]) -> Any:
+    """``compute()``'s JSON result, kept in ``path`` and reused while ``key`` is unchanged."""
+    if path.is_file():
+        try:
+            record = json.loads(path.read_text())
+            if record.get("key") == key:
+                log.info("bench: reusing %s (same code and scene)", path)
+                return record["value"]
+        except ValueError:
+            log.warning("bench: ignoring unreadable %s", path)
+    value = compute()
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({"key": key, "value": value,
+                                   "measured": _now()}, indent=1))
+    return value
+
+
+def fe_rows(scene: Scene, cache: Path) -> list[dict[str, Any]]:
+    """The FE discretisation study as rows: wall time of the variant's experiments, change of
+    the full-depth indentation forces and of the max static sag against the finest variant."""
+    def study() -> dict:
+        from reference_fe.sensitivity import discretisation_study
+        return discretisation_study(scene)
+
+    result = cached(cache / "fe_study.json", fe_key(scene), study)
+    variants = result["variants"]
+    finest = next(k for k in variants if k.endswith("refined"))
+    ref_f = np.asarray(variants[finest]["indentation_force_N"])
+    ref_sag = variants[finest]["max_sag_m"]
+    own = f"{scene.fe.element} q={scene.fe.quadrature_degree}"
+    rows = []
+    for label, v in variants.items():
+        t = v["wall_time_s"]
+        force = float(np.mean(np.abs(np.asarray(v["indentation_force_N"]) / ref_f - 1)))
+        sag = abs(v["max_sag_m"] / ref_sag - 1)
+        rows.append({"axis": "FE discretisation", "label": label,
+                     "config": {"element": v["element"], "quadrature_degree":
+                                v["quadrature_degree"], "dofs": v["n_dofs"],
+                                "refined": label.endswith("refined")},
+                     "stage": "FE model build + indentation of the study's points + static sag",
+                     "wall_s": t["build"] + t["indentation_per_point"] * len(result["points"])
+                     + t["gravity_static"],
+                     "errors": {"force_change_vs_finest": force, "sag_change_vs_finest": sag,
+                                "overall": 0.5 * (force + sag)},
+                     "default": label == own})
+    return rows
+
+
+# ---------------------------------------------------------------------------- reference timings
+
+def _complete_run_seconds(reference: Reference) -> tuple[int, float] | None:
+    """(ranks, wall s) of the run that wrote ``reference``, or None if it was resumed.
+
+    A resumed run's wall time covers only its own part: its items' compute time
+    (summed over ranks) then exceeds ranks x wall time.
+    """
+    meta = reference.meta
+    try:
+        ranks, t = int(meta["n_ranks"]), json.loads(meta["timings_s"])
+        items = sum(t[k] for k in ("indentation", "relaxation", "gravity_static",
+                                   "gravity_dynamic"))
+        total = float(t["total"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (ranks, total) if items <= 1.05 * ranks * total else None
+
+
+def measure_reference(scene: Scene, ranks: int, folder: Path, progress: bool) -> float:
+    """Compute the scene's full reference with ``ranks`` MPI ranks; its wall time [s]."""
+    out = folder / f"reference-{ranks}rank" / REFERENCE
+    cmd = [sys.executable, "-m", "reference_fe", "--scene", str(scene.path), "--out", str(out)]
+    if not progress:
+        cmd.append("--no-progress")
+    if ranks > 1:
+        mpirun = shutil.which("mpirun")
+        if mpirun is None:
+            raise DataFileError("mpirun is not on the PATH: cannot time the reference on "
+                                f"{ranks} ranks")
+        cmd = [mpirun, "-n", str(ranks)] + cmd
+    env = {**os.environ, **{k: os.environ.get(k, "1") for k in (
+        "OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
+        "OMPI_MCA_rmaps_base_oversubscribe")}}
+    log.info("bench: timing the full reference on %d rank(s): %s", ranks, " ".join(cmd))
+    if subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL).returncode != 0:
+        raise DataFileError(f"the timed reference run on {ranks} rank(s) failed (message above)")
+    measured = _complete_run_seconds(read_reference(out))
+    shutil.rmtree(out.parent)
+    if measured is None or measured[0] != ranks:
+        raise DataFileError(f"the timed reference run on {ranks} rank(s) did not record a "
+                            "complete wall time")
+    return measured[1]
+
+
+def reference_timings(scene: Scene, default_folder: Path, cache: Path,
+                      progress: bool) -> dict[str, Any]:
+    """Wall time of the full reference with 1 and 2 ranks (see the module docstring)."""
+    key = fe_key(scene)
+    path = cache / "reference_timing.json"
+    record = {"key": key, "runs": {}}
+    if path.is_file():
+        old = json.loads(path.read_text())
+        if old.get("key") == key:
+            record = old
+    own = _complete_run_seconds(read_reference(default_folder / REFERENCE))
+    if own is not None and str(own[0]) not in record["runs"]:
+        record["runs"][str(own[0])] = {"wall_s": own[1], "source": "default pipeline run",
+                                       "measured": _now()}
+    for ranks in (1, 2):
+        if str(ranks) not in record["runs"]:
+            record["runs"][str(ranks)] = {
+                "wall_s": measure_reference(scene, ranks, cache, progress),
+                "source": "bench run", "measured": _now()}
+            with atomic_path(path) as tmp:  # kept at once: the next one takes minutes
+                tmp.write_text(json.dumps(record, indent=1))
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(record, indent=1))
+    runs = record["runs"]
+    return {"wall_s_1rank": runs["1"]["wall_s"], "wall_s_2ranks": runs["2"]["wall_s"],
+            "goal_2ranks_s": GOALS["reference_2ranks_s"], "runs": runs,
+            "test_points": len(build_problem(scene).test_points)}
+
+
+# ---------------------------------------------------------------------------- particle engine
+
+def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
+    """Kernel throughput, gravity dynamics vs FE, term skipping, haptics, evaluators."""
+    import numba
+
+    from calibration import read_params
+    from forcecal.mesh import generate_liver
+    from particle import bench as pb
+    from particle.model import build_model
+
+    numba.set_num_threads(1)
+    reference = read_reference(folder / REFERENCE)
+    report = read_report(folder / "report.json")
+    problem = reference.problem
+    g = np.asarray(scene.gravity.acceleration, dtype=float)
+    uniform = pb.scene_model(scene, problem.mesh, problem.fixed)
+    large_mesh = generate_liver(0.012 if quick else pb.LARGE_MESH_LENGTH)
+    large = pb.scene_model(scene, large_mesh)
+    steps = 500 if quick else 2000
+    liver_rate = pb.step_throughput(uniform, steps=steps)
+    large_rate = pb.step_throughput(large, steps=steps // 4)
+    calibrated = build_model(problem, scene.material.density,
+                             read_params(folder / PARAMS).connectors["calibrated"])
+    dynamics = pb.gravity_realtime(calibrated, g, duration=scene.gravity.duration,
+                                   record_interval=scene.gravity.record_interval,
+                                   safety=scene.particle.dt_safety)
+    fe_dynamic = json.loads(reference.meta["timings_s"])["gravity_dynamic"]
+    skip = pb.skip_timings(uniform, g, duration=1.0 if quick else scene.gravity.duration)
+    top = int(np.argmax(large_mesh.vertices[:, 2]))
+    haptic = {"liver": pb.haptic_latency(uniform, int(problem.test_points[0]),
+                                         problem.normals[0], calls=500 if quick else 2000),
+              "large": pb.haptic_latency(large, top, np.array([0.0, 0.0, -1.0]),
+                                         calls=200 if quick else 1000)}
+    return {
+        "kernel": {"connectors": liver_rate["connectors"],
+                   "updates_per_s": liver_rate["compiled_updates_per_s"],
+                   "numpy_ratio": liver_rate["speedup"], "liver": liver_rate,
+                   "large": large_rate, "goal_numpy_ratio": GOALS["numpy_ratio"]},
+        "gravity_dynamic": {"particle_s": dynamics["wall_s"], "particle_cpu_s": dynamics["cpu_s"],
+                            "fe_s": fe_dynamic, "speedup": fe_dynamic / dynamics["wall_s"],
+                            "error": report["errors"]["gravity_dynamic"],
+                            "baseline_error": report["baseline_errors"]["gravity_dynamic"],
+                            "dt_s": dynamics["dt_s"], "steps": dynamics["steps"],
+                            "duration_s": dynamics["duration_s"],
+                            "goal_s": GOALS["gravity_3s_s"], "paper_s": PAPER["gravity_3s_s"]},
+        "skip": [{"scene": name, "full_s": row["no_skip"]["cpu_s"],
+                  "skipped_s": row["skip"]["cpu_s"], "full_wall_s": row["no_skip"]["wall_s"],
+                  "skipped_wall_s": row["skip"]["wall_s"], "steps": skip["steps"]}
+                 for name, row in skip.items() if isinstance(row, dict)],
+        "haptic": haptic,
+        "evaluators": pb.evaluator_timings(uniform, problem, scene, points=2 if quick else 4),
+    }
+
+
+def calibration_item(folder: Path) -> dict[str, Any]:
+    """Wall time and evaluation counts of the default calibration (from its params.h5)."""
+    from calibration import read_params
+    result = read_params(folder / PARAMS)
+    return {"wall_s": result.wall_time, "evaluations": result.evaluations.get("point_curves"),
+            "cost_evaluations": {k: v for k, v in result.evaluations.items()
+                                 if k != "point_curves"},
+            "stage_times_s": result.stage_times, "goal_s": GOALS["calibration_s"],
+            "paper_s": PAPER["calibration_s"]}
+
+
+# ---------------------------------------------------------------------------- driver
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def machine() -> dict[str, Any]:
+    """Where and when: CPU count, load, platform, commit (benchmarks need an idle machine)."""
+    return {"date": _now(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
+            "python": platform.python_version(), "load_average_start": list(os.getloadavg()),
+            "git_commit": git_commit(ROOT)}
+
+
+def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
+              ranks: int = 2, progress: bool = True) -> dict[str, Any]:
+    """Every item of the module docstring; writes bench.json, pareto.png, BENCH.md in ``out``."""
+    from pipelines.bench_report import write_markdown, write_pareto_plot
+    from pipelines.bench_stability import stability_table
+
+    scene = load_scene(scene_path or ROOT / "scenes" / ("tiny.toml" if quick else "liver.toml"))
+    cache = out / "cache"
+    runs = cache / "runs"
+    bench: dict[str, Any] = {"machine": machine(), "scene": scene.name, "quick": quick}
+    state: dict[str, Any] = {}
+
+    def default_item():
+        state["default"] = default_run(scene, runs, ranks=ranks, progress=progress)
+        bench["calibration"] = calibration_item(state["default"])
+
+    def pareto_item():
+        rows = [bc.default_row(state["default"], scene)]
+        rows += bc.axis_defaults(scene, rows[0])
+        for config in bc.configs(scene, quick):
+            log.info("bench: configuration %s / %s", config.axis, config.label)
+            rows.append(bc.run_config(config, scene, state["default"], runs, ranks=ranks,
+                                      progress=progress))
+        rows += dt_sweep(scene, state["default"], DT_FRACTIONS[quick])
+        rows += fe_rows(scene, cache)
+        bc.mark_fronts(rows)
+        bench["pareto"] = rows
+
+    def reference_item():
+        bench["reference"] = reference_timings(scene, state["default"], cache, progress)
+
+    def particle_item():
+        bench.update(particle_items(scene, state["default"], quick))
+
+    def stability_item():
+        bench["stability"] = stability_table(quick)
+
+    items = [("default pipeline run", default_item), ("run time vs error", pareto_item),
+             ("reference timings", reference_item), ("particle engine", particle_item),
+             ("stability limits", stability_item)]
+    for k, (name, fn) in enumerate(items, 1):
+        log.info("bench [%d/%d] %s ...", k, len(items), name)
+        t0 = time.perf_counter()
+        fn()
+        log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, time.perf_counter() - t0)
+    bench["machine"]["load_average_end"] = list(os.getloadavg())
+    bench["goals"], bench["paper"] = GOALS, PAPER
+    with atomic_path(out / "bench.json") as tmp:
+        tmp.write_text(json.dumps(bench, indent=1) + "\n")
+    write_pareto_plot(out / "pareto.png", bench)
+    write_markdown(out / "BENCH.md", bench)
+    log.info("bench: wrote %s, %s, %s", out / "bench.json", out / "pareto.png", out / "BENCH.md")
+    return bench
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``bench`` subcommand's options (used by :mod:`pipelines.cli`)."""
+    parser.add_argument("--out", default=None,
+                        help="output folder (default: runs/bench, runs/bench-quick with --quick)")
+    parser.add_argument("--quick", action="store_true",
+                        help="small sizes on scenes/tiny.toml (a few minutes)")
+    parser.add_argument("--scene", default=None, help="scene to benchmark (default: the liver)")
+    parser.add_argument("--ranks", type=int, default=2, help="MPI ranks of FE references")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark from parsed ``args`` (see :func:`add_arguments`)."""
+    out = Path(args.out or ("runs/bench-quick" if args.quick else "runs/bench"))
+    run_bench(out, quick=args.quick, scene_path=Path(args.scene) if args.scene else None,
+              ranks=args.ranks, progress=not args.no_progress)
+    print(f"bench: outputs in {out}/ (bench.json, pareto.png, BENCH.md)")
+    return 0
