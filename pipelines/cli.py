@@ -39,6 +39,8 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scene-keys", help="print the Markdown table of every scene key")
     p = sub.add_parser("results-table", help="print the README's results tables from a report")
     p.add_argument("report", help="report.json")
+    from pipelines.bench import add_arguments as bench_arguments
+    bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
     helps = {"reference": "FE reference (reference.h5)",
              "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
              "gravity": "particle gravity runs (gravity.h5); runs earlier stages if needed",
@@ -77,6 +79,10 @@ def main(argv: list[str] | None = None) -> int:
             from pipelines.report import read_report, results_markdown
             print(results_markdown(read_report(args.report)))
             return 0
+        if args.stage == "bench":
+            from pipelines.bench import main as bench_main
+            _configure_logging(0)
+            return bench_main(args)
         from calibration.pool import mpi_world
         from forcecal.scene import load_scene
         from pipelines.stages import ORDER, run_pipeline
