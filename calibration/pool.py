@@ -234,7 +234,7 @@ def serve_socket(fd: int) -> None:
     conn = Connection(fd)
     try:
         serve(conn.recv, conn.send)
-    except EOFError:  # the master went away
+    except (EOFError, ConnectionError, KeyboardInterrupt):  # the master went away or Ctrl-C
         pass
 
 
