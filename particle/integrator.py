@@ -313,6 +313,8 @@ class Run:
                                  f"the {len(self.prescribed)} prescribed particles")
         if state.dt is not None and state.dt != dt:
             state.x_prev[:] = state.x - (state.x - state.x_prev) * (dt / state.dt)
+            if self.arms and n_steps:
+                self._close_arm_step(state)
         if not self.arms:
             state.arm_force[:] = 0.0
         status = kernels.run_verlet(
@@ -332,6 +334,23 @@ class Run:
         state.t += n_steps * dt
         if n_steps:
             state.dt = dt
+
+    def _close_arm_step(self, state: State) -> None:
+        """Let this run's first arm update close the previous run's last step exactly.
+
+        The loop updates the arms at the start of each step for the step before
+        it, which had the state's old length ``state.dt``: that update is done
+        here with ``state.dt``'s coefficients, and stored so that the loop's
+        first update (with this run's r, c) reproduces it: ``dx_prev = dx``,
+        ``arm_force = F / r``.
+        """
+        model = self.model
+        r_old, c_old = model.params.arm_recursion(state.dt)
+        d = state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]]
+        dx = np.sqrt(np.einsum("ij,ij->i", d, d)) - model.rest_lengths
+        force = r_old * state.arm_force + c_old * (dx - state.dx_prev)[:, None]
+        state.dx_prev[:] = dx
+        state.arm_force[:] = force / self.arm_r
 
     def check_state(self, state: State) -> None:
         """Raise :class:`ParameterError` unless ``state``'s arrays fit this run's model."""
