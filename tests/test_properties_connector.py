@@ -156,3 +156,25 @@ def test_arm_recursions_are_contractions_for_every_step(params, dt):
     for r, c in ((r_be, c_be), (r_ex, c_ex)):
         assert np.all((r >= 0) & (r < 1)) and np.all(c > 0)
     assert np.all(r_be >= r_ex - 4 * np.finfo(float).eps)  # they differ by (dt/tau)^2/2: rounding
+
+
+@settings(deadline=None, max_examples=15, derandomize=True)
+@given(connectors(), st.floats(0.05, 0.4), st.floats(1.0, 5.0))
+def test_explicit_relaxation_with_changing_steps_keeps_the_same_error_bound(params, strain,
+                                                                          ramp_in_tau):
+    """Samples on a geometric hold: the explicit run changes its step at every sample. Each
+    step's arm update must use that step's coefficients, so the bound k v dt_max/2 still holds
+    (the error recursion e_n = r_n e_{n-1} + r_n dt_n^2 k v/(2 tau) keeps it for dt_n <= dt_max)."""
+    tau_min = float(params.arm_tau.min())
+    assume(params.arm_tau.max() <= 20.0 * tau_min)
+    model = two_particle_model(L0, params=params)
+    depth = strain * L0
+    ramp_time = ramp_in_tau * tau_min
+    times, depths = _ramp_and_hold(ramp_time, depth, 2.0 * float(params.arm_tau.max()),
+                                   hold_samples=8)
+    exact = RelaxationEvaluator(model, [1], [[-1.0, 0.0, 0.0]], times, depths)(params)[0]
+    dt = min(0.04 * tau_min, 0.5 * critical_time_step(model))
+    explicit = -relaxation_dynamic(model, 1, np.array([-1.0, 0.0, 0.0]), times, depths, dt,
+                                   progress=False)[:, 0]
+    bound = float(params.arm_stiffness.sum()) * depth / ramp_time * dt / 2
+    assert np.abs(explicit - exact).max() <= bound * (1 + 1e-6)
