@@ -211,12 +211,12 @@ def configs(scene: Scene, quick: bool) -> list[Config]:
     """The pipeline configurations of the study (the particle dt and FE axes are not pipelines)."""
     out = []
     h0 = scene.mesh.characteristic_length
-    factors = (1.25, 1.0, 0.8) if quick else (1.37, 1.0, 0.77)  # 0.025 / 0.0182 / 0.014 m
+    factors = (1.25, 1.0, 0.8) if quick else (1.375, 1.0, 0.77)  # 0.025 / 0.0182 / 0.014 m
     if scene.mesh.source == "generate":
         n_cal, n_held = (4, 2) if quick else REDUCED_POINTS
         duration = min(scene.gravity.duration, MESH_GRAVITY_DURATION)
         for f in factors:
-            h = round(h0 * f, 4)
+            h = round(h0 * f, 3) if f != 1.0 else h0
             out.append(Config("mesh", f"h={h:g} m", {"characteristic_length_m": h,
                                                      "points": [n_cal, n_held],
                                                      "gravity_duration_s": duration},
