@@ -64,7 +64,7 @@ def sliver_mesh(height: float = 1e-3, size: float = 0.02) -> TetMesh:
 
 
 def stability_meshes(quick: bool = False) -> dict[str, tuple[TetMesh, np.ndarray]]:
-    """Meshes of the study with their clamped vertices: boxes of three aspects, a sliver, a liver."""
+    """Meshes of the study and their clamped vertices: three box aspects, a sliver, a liver."""
     out = {}
     for name, n, size in (("cube 3x3x2", (3, 3, 2), (0.03, 0.03, 0.03)),
                           ("bar 8x2x2", (8, 2, 2), (0.08, 0.02, 0.02)),

@@ -141,7 +141,7 @@ def test_corrupt_report_is_refused_by_results_table(tmp_path, capsys):
 
 
 def test_time_step_above_the_limit_is_refused_by_the_gravity_stage():
-    """``particle.dt`` above the model's stability limit: refused before any step, with the limit."""
+    """``particle.dt`` above the model's stability limit: refused before a step, with the limit."""
     scene = replace(load_scene(SCENES / "tiny.toml"), particle={"dt": 1.0})
     fixed = np.nonzero(np.isclose(BOX.vertices[:, 2], 0.0))[0]
     problem = Problem(BOX, fixed, np.zeros(0, np.int64), np.zeros(0, np.int64), 26)

@@ -58,7 +58,7 @@ vectors = st.tuples(*(st.floats(-1.0, 1.0),) * 3)
 @SETTINGS
 @given(connectors(), st.floats(-0.45, 0.45), st.floats(-1e-3, 1e-3), vectors)
 def test_tension_is_continuous_in_the_elongation(params, strain, step, vector):
-    """|F(dx + h) - F(dx)| <= max |dF/d(dx)| |h|: Lipschitz with the tangent K0 + 2 a eps + 3 b eps^2."""
+    """|F(dx + h) - F(dx)| <= max |dF/d(dx)| |h|: Lipschitz, tangent K0 + 2 a eps + 3 b eps^2."""
     e = _direction(vector)
     dx, h = strain * L0, step * L0
     change = np.linalg.norm(spring_force(params, dx + h, e)[1] - spring_force(params, dx, e)[1])

@@ -6,7 +6,6 @@ is bounded (fixed step counts, bisections with a fixed bracket, Newton with
 an iteration limit and a bounded number of load-step halvings), so nothing
 here can hang.
 """
-import dataclasses
 
 import numpy as np
 import pytest
@@ -77,7 +76,8 @@ def spring_energy(model: Model, x: np.ndarray) -> float:
     """Sum over connectors of int_0^dx K(s/L) s ds = K0 dx^2/2 + a dx^3/(3L) + b dx^4/(4L^2) [J]."""
     p, L = model.params, model.rest_lengths
     dx = np.linalg.norm(x[model.edges[:, 1]] - x[model.edges[:, 0]], axis=1) - L
-    return float(np.sum(p.K0 * dx ** 2 / 2 + p.a * dx ** 3 / (3 * L) + p.b * dx ** 4 / (4 * L ** 2)))
+    return float(np.sum(p.K0 * dx ** 2 / 2 + p.a * dx ** 3 / (3 * L)
+                        + p.b * dx ** 4 / (4 * L ** 2)))
 
 
 def mechanical_energy(model: Model, state: State, gravity: np.ndarray) -> tuple[float, float]:
