@@ -52,7 +52,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.problem import build_problem, load_mesh
