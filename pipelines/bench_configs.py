@@ -44,14 +44,13 @@ from forcecal.mesh import fixed_nodes, select_held_out_points
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene, load_scene, scene_from_dict
 from pipelines.cache import file_digest
-from pipelines.report import read_report
-from pipelines.stages import REFERENCE, REFERENCE_SECTIONS, run_pipeline
+from pipelines.report import fe_timings, read_report
+from pipelines.stages import PARAMS, REFERENCE, REFERENCE_SECTIONS, run_pipeline
 
 log = logging.getLogger(__name__)
 
-# the held-out and validation errors that summarise a pipeline run (all dimensionless)
-VALIDATION_ERRORS = ("indentation_held_out", "relaxation_held_out", "gravity_static",
-                     "gravity_dynamic")
+# the gravity errors of a pipeline run (dimensionless, see pipelines.report)
+GRAVITY_ERRORS = ("gravity_static", "gravity_dynamic")
 REDUCED_POINTS = (8, 4)  # calibration, held-out points of the mesh study
 MESH_GRAVITY_DURATION = 1.0  # s of gravity dynamics in the mesh study
 BUDGET_KEYS = ("static_max_evaluations", "relaxation_max_evaluations", "local_max_evaluations")
@@ -150,51 +149,66 @@ def seed_reference(config: Config, scene: Scene, default_out: Path, folder: Path
     marker.write_text(json.dumps({"source": digest}))
 
 
-def validation_errors(report: dict[str, Any]) -> dict[str, float]:
-    """The :data:`VALIDATION_ERRORS` of a report and their mean (``overall``)."""
-    errors = {k: report["errors"][k] for k in VALIDATION_ERRORS}
-    errors["overall"] = float(np.mean([v for v in errors.values() if v is not None]))
-    return errors
+def pipeline_row(scene: Scene, folder: Path, *, ranks: int, progress: bool) -> dict[str, Any]:
+    """Bring ``scene``'s pipeline in ``folder`` up to date; its measurements as a row.
+
+    Held-out curve errors and wall times come from the reference and the
+    calibration; if the gravity stage fails (a calibrated model without a
+    static equilibrium, say) the row keeps them and says why its gravity
+    errors are missing. A failing reference or calibration raises.
+    """
+    from calibration import read_params
+
+    ran = [o.stage for o in run_pipeline(scene, folder, until="calibrate", progress=progress,
+                                         ranks=ranks) if o.ran]
+    params = read_params(folder / PARAMS)
+    summary = params.error_summary()["calibrated"]
+    errors: dict[str, float | None] = {f"{e}_held_out": summary[e].get("held_out_mean")
+                                       for e in ("indentation", "relaxation")}
+    errors["overall"] = float(np.mean(list(errors.values())))
+    row = {"reference_s": fe_timings(read_reference(folder / REFERENCE))["total"],
+           "calibration_s": params.wall_time, "connectors": int(len(params.problem.mesh.edges)),
+           "test_points": [len(params.problem.calibration), len(params.problem.held_out)],
+           "folder": str(folder)}
+    try:
+        ran += [o.stage for o in run_pipeline(scene, folder, progress=progress, ranks=ranks)
+                if o.ran]
+        report = read_report(folder / "report.json")
+        errors.update({k: report["errors"][k] for k in GRAVITY_ERRORS})
+    except ForcecalError as exc:
+        log.warning("bench: %s: gravity stage failed: %s", scene.name, exc)
+        errors.update(dict.fromkeys(GRAVITY_ERRORS))
+        row["gravity_failed"] = f"{type(exc).__name__}: {exc}"
+    return {**row, "errors": errors, "ran": ran}
 
 
 def run_config(config: Config, base: Scene, default_out: Path, root: Path, *, ranks: int,
                progress: bool) -> dict[str, Any]:
-    """Bring one configuration's pipeline up to date; its row of ``bench.json:/pareto``."""
+    """One configuration's row of ``bench.json:/pareto`` (its pipeline brought up to date)."""
     folder = root / config.slug
     scene = derived_scene(base, f"bench-{config.slug}", config.changes, folder)
+    row = {"axis": config.axis, "label": config.label, "config": config.values,
+           "default": config.default}
     if config.reference != "compute":
         seed_reference(config, scene, default_out, folder)
     try:
-        outcomes = run_pipeline(scene, folder, progress=progress, ranks=ranks)
+        measured = pipeline_row(scene, folder, ranks=ranks, progress=progress)
     except ForcecalError as exc:  # a configuration the method cannot handle is a result too
         log.warning("bench: configuration %s / %s failed: %s", config.axis, config.label, exc)
-        return {"axis": config.axis, "label": config.label, "config": config.values,
-                "stage": "calibration", "wall_s": None, "errors": None,
-                "default": config.default, "failed": f"{type(exc).__name__}: {exc}",
-                "folder": str(folder)}
-    report = read_report(folder / "report.json")
-    timings = report["timings_s"]
+        return {**row, "stage": "calibration", "wall_s": None, "errors": None,
+                "failed": f"{type(exc).__name__}: {exc}", "folder": str(folder)}
     if config.axis == "mesh":
-        stage, wall = "reference + calibration", timings["reference"] + timings["calibration"]
+        stage = "reference + calibration"
+        wall = measured["reference_s"] + measured["calibration_s"]
     else:
-        stage, wall = "calibration", timings["calibration"]
-    return {"axis": config.axis, "label": config.label, "config": config.values, "stage": stage,
-            "wall_s": wall, "errors": validation_errors(report), "default": config.default,
-            "timings_s": timings, "connectors": report["mesh"]["connectors"],
-            "test_points": [len(report["test_points"]["calibration"]),
-                            len(report["test_points"]["held_out"])],
-            "ran": [o.stage for o in outcomes if o.ran], "folder": str(folder)}
+        stage, wall = "calibration", measured["calibration_s"]
+    return {**row, "stage": stage, "wall_s": wall, **measured}
 
 
-def default_row(default_out: Path, scene: Scene) -> dict[str, Any]:
-    """The default scene's own run as a row (axis ``default``)."""
-    report = read_report(default_out / "report.json")
+def default_row(measured: dict[str, Any], scene: Scene) -> dict[str, Any]:
+    """The default scene's own run (:func:`pipeline_row`) as a row (axis ``default``)."""
     return {"axis": "default", "label": scene.name, "config": {}, "stage": "calibration",
-            "wall_s": report["timings_s"]["calibration"], "errors": validation_errors(report),
-            "default": True, "timings_s": report["timings_s"],
-            "connectors": report["mesh"]["connectors"],
-            "test_points": [len(report["test_points"]["calibration"]),
-                            len(report["test_points"]["held_out"])], "folder": str(default_out)}
+            "wall_s": measured["calibration_s"], "default": True, **measured}
 
 
 def reduced_points(scene: Scene, characteristic_length: float) -> list[int]:

@@ -18,7 +18,7 @@ ERROR_LABEL = {
     "particle dt": "tracked-vertex history: change vs smallest dt",
     "FE discretisation": "max static sag: change vs refined P2",
 }
-DEFAULT_ERROR_LABEL = "validation error (mean of 4)"
+DEFAULT_ERROR_LABEL = "held-out curve error (indentation, relaxation)"
 # why the default setting stays where it is when another one dominates it
 WHY_DEFAULT = {
     "particle dt": "the estimated limit is a bound over strains +-0.5; a calibrated spring "
@@ -33,7 +33,8 @@ WHY_DEFAULT = {
     "Nelder-Mead budget": "the budget is an upper bound: fits that converge earlier cost the same, "
                           "and a smaller budget risks stopping fits on harder scenes",
     "local tuning": "local tuning is what fits the calibration points themselves; the "
-                    "validation error mixes held-out and gravity errors it was not fitted to",
+                    "held-out points measure how that carries over to points it was not "
+                    "fitted to",
     "FE discretisation": "P1 locks for a nearly incompressible material and the refined mesh "
                          "changes the geometry the particle model shares; P2 on the particle "
                          "model's own tets is the consistent reference",
@@ -170,6 +171,8 @@ def _pareto_section(b: dict) -> list[str]:
                          + [r["errors"]["overall"], r["on_front"], r["default"]]
                          for r in done])
         lines += [f"\nFailed: {r['label']}: `{r['failed']}`" for r in rows if "failed" in r]
+        lines += [f"\nGravity stage failed for {r['label']}: `{r['gravity_failed']}`"
+                  for r in done if "gravity_failed" in r]
         default = [r for r in rows if r["default"]]
         if default and not default[0].get("on_front"):
             better = [r["label"] for r in rows if r.get("on_front") and
@@ -225,14 +228,16 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         f"{g['duration_s']:g} s of gravity dynamics in {g['particle_s']:.3g} s "
         f"({1.3 * g['duration_s'] / 3 / g['particle_s']:.0f}x faster than the paper's rate; "
         f"{g['steps']} explicit steps of {g['dt_s'] * 1e6:.3g} us), with the error stated "
-        f"against the FE ({g['error']:.3g}, relative RMS at the tracked vertex).",
+        f"against the FE ({_fmt(g['error'])}, relative RMS at the tracked vertex).",
         "", "## Run time vs error", "",
         "![Pareto](pareto.png)", "",
         "Each panel varies one setting of the default scene and times the stage it affects; "
         "green points are Pareto-optimal (no other setting of the panel is both faster and "
-        "more accurate), the red star is the default scene. *Validation error* = mean of the "
-        "held-out indentation and relaxation errors and the static and dynamic gravity errors "
-        "of the calibrated model (README, 'Error definitions'). " + _mesh_protocol(b) + " "
+        "more accurate), the red star is the default scene. The calibration and mesh panels' "
+        "error is the mean of the held-out indentation and relaxation errors of the "
+        "calibrated model (relative RMS, README 'Error definitions'); their tables also give "
+        "the static and dynamic gravity errors ('-' where the gravity stage failed, the "
+        "reason below the table). " + _mesh_protocol(b) + " "
         "The calibration panels reuse the default FE reference (a slice of its points for "
         f"fewer calibration points). The particle-dt panel runs {g['duration_s']:g} s of "
         "gravity dynamics of the calibrated model; its Pareto error is the change of the "
@@ -260,7 +265,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               f"{g['particle_s']:.3g} s wall ({g['particle_cpu_s']:.3g} s CPU). FE (P2, "
               f"Newmark, dt 5 ms, one rank): {g['fe_s']:.1f} s (from `reference.h5`). Ratio "
               f"**{g['speedup']:.0f}x**. Error of the particle run against the FE: "
-              f"{g['error']:.3g} (calibrated), {g['baseline_error']:.3g} (closed-form "
+              f"{_fmt(g['error'])} (calibrated), {_fmt(g['baseline_error'])} (closed-form "
               "baseline); the FE's own discretisation error is the FE panel above.", "",
               "## Skipping what a scene does not need", "",
               "The same explicit run (default liver, linear springs, "
