@@ -215,10 +215,12 @@ def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> P
                    edgecolor="white", label=f"{v}, held-out points")
         if n_cal < len(nodes):
             ax.axvline(n_cal - 0.5, color="black", lw=0.8)
-        top = 100 * max(cal.variants[v].errors[e].max() for v in ("calibrated", "baseline"))
-        ax.set_ylim(top=30 * top)  # room for the legend above the bars
+        errors = 100 * np.concatenate([cal.variants[v].errors[e] for v in ("calibrated",
+                                                                          "baseline")])
         ax.set(ylabel="relative RMS error [%]", yscale="log",
                title=f"{e}: RMS(F_particle - F_FE) / max|F_FE| per test point")
+        # log axis set before its limits; room above the bars for the legend
+        ax.set_ylim(0.5 * errors[errors > 0].min(), 30 * errors.max())
         ax.grid(alpha=0.3, axis="y", which="both")
         ax.legend(fontsize=7, ncol=4)
     axes[-1].set_xticks(x, [str(n) for n in nodes], rotation=90, fontsize=7)
