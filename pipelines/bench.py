@@ -52,7 +52,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from forcecal.errors import DataFileError
+from forcecal.errors import DataFileError, ForcecalError
 from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.problem import build_problem, load_mesh
 from forcecal.scene import Scene, load_scene
@@ -170,9 +170,17 @@ def fe_rows(scene: Scene, cache: Path) -> list[dict[str, Any]]:
     def study() -> dict:
         from reference_fe.sensitivity import discretisation_study
         logging.getLogger().setLevel(logging.WARNING)  # importing FFCx set the root to INFO
-        return discretisation_study(scene)
+        try:
+            return discretisation_study(scene)
+        except ForcecalError as exc:  # kept too: retried only when the FE code changes
+            return {"failed": f"{type(exc).__name__}: {exc}"}
 
     result = cached(cache / "fe_study.json", fe_key(scene), study)
+    if "failed" in result:
+        log.warning("bench: the FE discretisation study failed: %s", result["failed"])
+        return [{"axis": "FE discretisation", "label": "study", "config": {},
+                 "stage": "FE discretisation study", "wall_s": None, "errors": None,
+                 "default": False, "failed": result["failed"]}]
     variants = result["variants"]
     finest = next(k for k in variants if k.endswith("refined"))
     ref_f = np.asarray(variants[finest]["indentation_force_N"])

@@ -162,6 +162,8 @@ def _pareto_section(b: dict) -> list[str]:
         rows = _rows(b, axis)
         done = [r for r in rows if "failed" not in r]
         if not done:
+            lines += ["", f"### {axis}", ""] + [f"Failed: {r['label']}: `{r['failed']}`"
+                                                 for r in rows]
             continue
         keys = [k for k in done[0]["errors"] if k != "overall"]
         lines += ["", f"### {axis}", "", f"Stage timed: {done[0]['stage']}. Pareto error: "
