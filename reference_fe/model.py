@@ -353,14 +353,17 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
     try:
         iterations, converged = model._solver.solve(model.w)
     except (StepFailed, RuntimeError) as exc:  # RuntimeError: e.g. MUMPS on a singular matrix
-        log.debug("Newton failed at progress %.6g: %s", progress, exc)
-        raise StepFailed(str(exc)) from None
+        iterations, converged, reason = 0, False, str(exc)
+    else:
+        reason = f"no convergence in {iterations} iterations"
     model.newton_iterations += iterations
-    u = model.w.x.array.copy()
     if not converged:
-        log.debug("Newton did not converge at progress %.6g (%d iterations, |R| = %.3g)",
-                  progress, iterations, model._solver.b.norm())
-        raise StepFailed(f"no convergence in {iterations} iterations")
+        log.debug("Newton failed at progress %.6g: %s", progress, reason)
+        # a factorisation that failed (NaN or singular matrix) stays failed in PETSc and
+        # would fail every retry; drop it so the halved step starts afresh
+        model._solver.krylov_solver.reset()
+        raise StepFailed(reason)
+    u = model.w.x.array.copy()
     new = FEState(u=u, velocity=state.velocity, history=state.history, s_iso=state.s_iso,
                   force=None, progress=progress)
     if dt is not None:

@@ -18,8 +18,8 @@ from forcecal.mesh import TetMesh, box_mesh, check_mesh  # noqa: E402
 from forcecal.scene import FESection, MaterialSection  # noqa: E402
 from reference_fe import experiments as ex  # noqa: E402
 from reference_fe.material import long_term  # noqa: E402
-from reference_fe.model import (Constraint, FEModel, Load, clamp,  # noqa: E402
-                                initial_state, solve_step)
+from reference_fe.model import (Constraint, FEModel, Load, StepFailed,  # noqa: E402
+                                clamp, initial_state, solve_step)
 
 pytestmark = pytest.mark.fe
 
@@ -326,6 +326,18 @@ def test_failed_step_is_halved_and_retried(symmetric_block):
     fine = ex.indentation_curve(model, fixed, top, normal, np.linspace(0.05, 0.5, 10) * L)
     # same equilibrium reached by two load paths: equal to Newton tolerance (hyperelastic)
     np.testing.assert_allclose(cut[-1], fine[-1], rtol=1e-7, atol=1e-10)
+
+
+def test_a_failed_factorisation_does_not_poison_the_next_solve(p2_block):
+    """Gravity on an unsupported block: singular tangent, MUMPS fails. PETSc keeps a failed
+    factorisation failed, so without a reset every halved retry would fail too."""
+    model = p2_block
+    g = np.array([0.0, 0.0, -9.81])
+    with pytest.raises(StepFailed):
+        solve_step(model, initial_state(model), Load((), g), 1.0, dt=None)
+    held = clamp(model.clamp_dofs(face(model.mesh, 2, 0.0)))
+    state = solve_step(model, initial_state(model), Load(held, g), 1.0, dt=None)
+    assert np.all(np.isfinite(state.u)) and np.abs(state.u).max() > 0
 
 
 def test_unrecoverable_step_raises_convergence_error_naming_the_step(symmetric_block):
