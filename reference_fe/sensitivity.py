@@ -172,9 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, nargs="*", help="test vertex ids (default: 3 "
                         "calibration points)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s",
-                        force=True)  # force=True: importing FFCx configured logging already
-    logging.getLogger().setLevel(logging.WARNING)
+    # force=True: importing FFCx has configured logging already (and logs its builds at INFO)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
+                        force=True)
     log.setLevel(logging.INFO)
     try:
         study = discretisation_study(load_scene(args.scene), args.points or None)
