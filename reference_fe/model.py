@@ -57,7 +57,7 @@ class Constraint:
     Attributes:
         component: 0, 1 or 2 (x, y, z).
         dofs: (K,) int32, indices into the solution vector (from :attr:`FEModel.vertex_dofs`
-            or :meth:`FEModel.entity_dofs`) of that component.
+            or :meth:`FEModel.clamp_dofs`) of that component.
         value: prescribed displacement [m].
     """
     component: int
