@@ -271,7 +271,8 @@ def reference_timings(scene: Scene, default_folder: Path, cache: Path,
         if str(ranks) not in record["runs"]:
             record["runs"][str(ranks)] = {
                 "wall_s": measure_reference(scene, ranks, cache, progress),
-                "source": "bench run", "measured": _now()}
+                "source": "bench run", "measured": _now(),
+                "load_average": os.getloadavg()[1]}  # 5-minute mean at the end
             with atomic_path(path) as tmp:  # kept at once: the next one takes minutes
                 tmp.write_text(json.dumps(record, indent=1))
     with atomic_path(path) as tmp:
