@@ -67,6 +67,22 @@ def load_mesh(scene: Scene) -> TetMesh:
     return mesh
 
 
+def tracked_node_by_rule(mesh: TetMesh, fixed: np.ndarray, rule: str) -> int:
+    """The free vertex a gravity comparison tracks, by rule.
+
+    ``farthest_from_support``: farthest from the centroid of the fixed nodes —
+    the tip of an overhanging part, which sags and swings the most (the
+    paper's "far-right node"). ``max_x``: the free vertex with the largest x.
+    """
+    free = np.setdiff1d(np.arange(mesh.n_vertices), fixed)
+    if rule == "farthest_from_support":
+        distance = np.linalg.norm(mesh.vertices[free] - mesh.vertices[fixed].mean(axis=0), axis=1)
+        return int(free[np.argmax(distance)])
+    if rule == "max_x":
+        return int(free[np.argmax(mesh.vertices[free, 0])])
+    raise MeshError(f"unknown tracked-node rule {rule!r}")
+
+
 def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     """Mesh + fixed nodes + test points of a scene, validated."""
     mesh = load_mesh(scene) if mesh is None else mesh
@@ -85,9 +101,8 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     if len(both):
         raise MeshError(f"test points {both.tolist()} are both calibration and held-out points")
     tracked = scene.gravity.tracked_node
-    if isinstance(tracked, str):  # "max_x": the free vertex farthest along +x
-        free = np.setdiff1d(np.arange(mesh.n_vertices), fixed)
-        tracked = int(free[np.argmax(mesh.vertices[free, 0])])
+    if isinstance(tracked, str):
+        tracked = tracked_node_by_rule(mesh, fixed, tracked)
     elif not 0 <= tracked < mesh.n_vertices or tracked in set(fixed.tolist()):
         raise MeshError(f"gravity.tracked_node = {tracked} is not a free vertex of the mesh")
     problem = Problem(mesh=mesh, fixed=fixed, calibration=calibration, held_out=held_out,

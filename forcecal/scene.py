@@ -121,14 +121,17 @@ class GravitySection:
                        "s", exclusive_minimum=0.0)
     record_interval: float = key(0.005, "spacing of the stored displacement history", "s",
                                  exclusive_minimum=0.0)
-    tracked_node: Union[str, int] = key("max_x", "node whose displacement history is compared "
-                                        "('max_x' = the free vertex farthest along +x)")
+    tracked_node: Union[str, int] = key(
+        "farthest_from_support", "node whose displacement history is compared: "
+        "'farthest_from_support' (the free vertex farthest from the centroid of the fixed nodes: "
+        "the tip of an overhanging lobe), 'max_x' (farthest along +x) or a vertex id")
 
 
 @dataclass(frozen=True)
 class FESection:
-    element: str = key("P2", "displacement element: 'P2' (quadratic), 'TH' (Taylor-Hood P2-P1 "
-                       "u-p) or 'P1' (locks; only for the sensitivity study)",
+    element: str = key("TH", "element: 'TH' (Taylor-Hood P2-P1 u-p, locking-free), 'P2' "
+                       "(quadratic displacement; ~15 % too stiff in sag on the default liver) or "
+                       "'P1' (locks; only for the sensitivity study)",
                        choices=("P1", "P2", "TH"))
     quadrature_degree: int = key(4, "quadrature degree of the residual and of the Prony "
                                  "internal variables", minimum=1)
@@ -192,6 +195,8 @@ SECTIONS: dict[str, type] = {
     "calibration": CalibrationSection,
     "outputs": OutputsSection,
 }
+
+TRACKED_RULES = ("farthest_from_support", "max_x")
 
 TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
                   "description": "free text"}
@@ -341,8 +346,9 @@ def _cross_checks(scene: Scene, origin: str) -> None:
     if g.record_interval < g.fe_dt * (1 - 1e-9):
         raise SceneError(f"{origin}: gravity.record_interval ({g.record_interval} s) is shorter "
                          f"than gravity.fe_dt ({g.fe_dt} s)")
-    if isinstance(scene.gravity.tracked_node, str) and scene.gravity.tracked_node != "max_x":
-        raise SceneError(f"{origin}: gravity.tracked_node must be 'max_x' or a vertex id")
+    if isinstance(scene.gravity.tracked_node, str) and scene.gravity.tracked_node not in TRACKED_RULES:
+        raise SceneError(f"{origin}: gravity.tracked_node must be one of {list(TRACKED_RULES)} "
+                         "or a vertex id")
     p = scene.particle
     if isinstance(p.dt, str) and p.dt != "auto":
         raise SceneError(f"{origin}: particle.dt must be 'auto' or a number of seconds, "
