@@ -196,7 +196,7 @@ def gravity_dynamic_figure(path: Path, reference: Reference, gravity: GravityRun
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("Release under gravity from rest (tracked node: free vertex farthest along +x)")
+    fig.suptitle(f"Release under gravity from rest, tracked node {node} (gravity.tracked_node)")
     return _save(fig, path)
 
 
