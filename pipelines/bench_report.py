@@ -39,9 +39,10 @@ WHY_DEFAULT = {
     "local tuning": "local tuning is what fits the calibration points themselves; the "
                     "held-out points measure how that carries over to points it was not "
                     "fitted to",
-    "FE discretisation": "P1 locks for a nearly incompressible material and the refined mesh "
-                         "changes the geometry the particle model shares; P2 on the particle "
-                         "model's own tets is the consistent reference",
+    "FE discretisation": "the default element is chosen for accuracy against the refined "
+                         "mesh (README, 'The FE reference'); the reference is computed once per "
+                         "scene, so its cost matters less than its error, and the refined mesh "
+                         "is too slow for routine use",
 }
 
 
