@@ -6,7 +6,7 @@ builder, mutable State, integrators and solvers apart):
 - :mod:`particle.model`: :class:`ConnectorParams`, :class:`Model`,
   :class:`ModelBuilder`, :func:`build_model`, :class:`State`.
 - :mod:`particle.integrator`: :class:`VerletIntegrator`, :func:`critical_time_step`,
-  :func:`resolve_time_step`, :class:`Prescribed`.
+  :func:`strain_range_for_release`, :func:`resolve_time_step`, :class:`Prescribed`.
 - :mod:`particle.statics`: Newton equilibrium, :func:`gravity_static`.
 - :mod:`particle.evaluators`: :class:`IndentationEvaluator`,
   :class:`RelaxationEvaluator` (batch force curves for calibration).
@@ -18,11 +18,11 @@ from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.haptics import HapticSession
 from particle.integrator import (Prescribed, VerletIntegrator, critical_time_step,
-                                 resolve_time_step)
+                                 resolve_time_step, strain_range_for_release)
 from particle.model import ConnectorParams, Model, ModelBuilder, State, build_model
 from particle.statics import gravity_static
 
 __all__ = ["ConnectorParams", "HapticSession", "IndentationEvaluator", "Model", "ModelBuilder",
            "Prescribed", "RelaxationEvaluator", "State", "VerletIntegrator", "build_model",
            "critical_time_step", "gravity_dynamic", "gravity_static", "relaxation_dynamic",
-           "resolve_time_step"]
+           "resolve_time_step", "strain_range_for_release"]

@@ -23,7 +23,7 @@ import numpy as np
 
 from forcecal.mesh import TetMesh, fixed_nodes, generate_liver
 from forcecal.problem import Problem, build_problem
-from forcecal.scene import Scene, load_scene
+from forcecal.scene import ParticleSection, Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic
@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 LIVER_K0 = 30.0  # N/m, on the default liver (mean edge 20.5 mm)
 LIVER_MEAN_EDGE = 0.0205  # m
 LARGE_MESH_LENGTH = 0.008  # m: generate_liver(0.008) has 12062 connectors
+DT_SAFETY = ParticleSection().dt_safety  # the scene default: fraction of the limit used as step
 
 
 def _timed(fn: Callable[[], object]) -> tuple[float, float]:
@@ -83,7 +84,7 @@ def step_throughput(model: Model, *, steps: int = 2000, numpy_steps: int = 50) -
 
 
 def gravity_realtime(model: Model, gravity: np.ndarray, *, duration: float = 3.0,
-                     record_interval: float = 0.005, safety: float = 0.5,
+                     record_interval: float = 0.005, safety: float = DT_SAFETY,
                      skip: bool = True) -> dict:
     """Wall/CPU time and real-time factor of ``duration`` s of gravity dynamics.
 
@@ -128,9 +129,13 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 
 
 def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 2000,
-                   depth: float = 0.005) -> dict:
-    """Per-call latency [us] of :meth:`HapticSession.step` (1 ms of simulated time per call)."""
-    session = HapticSession(model, 0.5 * critical_time_step(model))
+                   depth: float = 0.005, safety: float = DT_SAFETY) -> dict:
+    """Per-call latency [us] of :meth:`HapticSession.step` (1 ms of simulated time per call).
+
+    The largest step is ``safety`` x the stability limit over the default strain range
+    (+-0.5), which the session monitors.
+    """
+    session = HapticSession(model, safety * critical_time_step(model))
     start = model.rest_positions[node]
     session.step(node, start)  # compile outside the clock
     latencies = np.empty(calls)

@@ -17,8 +17,9 @@ import numpy as np
 from tqdm import tqdm
 
 from forcecal.errors import ParameterError
-from particle.integrator import Prescribed, VerletIntegrator, check_time_step, energy_bound
-from particle.model import Model
+from particle.integrator import (DEFAULT_STRAIN_RANGE, Prescribed, VerletIntegrator,
+                                 check_time_step, energy_bound)
+from particle.model import Model, StrainBounds
 
 log = logging.getLogger(__name__)
 
@@ -39,15 +40,17 @@ def sample_steps(times: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
 
 
 def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: float,
-                    record_times: np.ndarray, *, damping: float = 0.0,
-                    skip: bool = True) -> np.ndarray:
+                    record_times: np.ndarray, *, damping: float = 0.0, skip: bool = True,
+                    strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> np.ndarray:
     """(S, N, 3) displacements [m] at ``record_times`` after release from rest under gravity.
 
     Explicit Verlet with the paper's arm recursion, fixed particles clamped,
     starting undeformed and at rest at t = 0. The step is the largest one <=
     ``dt`` that divides the record spacing (see :func:`sample_steps`), so
-    samples fall exactly on steps; ``dt`` above the stability limit raises
-    :class:`~forcecal.errors.StabilityError`.
+    samples fall exactly on steps; ``dt`` above the stability limit for
+    ``strain_range`` (a pair or per-connector arrays, e.g.
+    :func:`~particle.integrator.strain_range_for_release`), or a connector
+    leaving that range during the run, raises :class:`~forcecal.errors.StabilityError`.
     """
     step, record_steps = sample_steps(record_times, dt)
     if record_times[-1] > duration * (1 + 1e-9):
@@ -55,7 +58,7 @@ def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: floa
                              f"({duration} s)")
     n_steps = max(int(record_steps[-1]), math.ceil(duration / step - 1e-9))
     state = model.state()
-    positions = VerletIntegrator(damping).simulate(
+    positions = VerletIntegrator(damping, strain_range=strain_range).simulate(
         model, state, step, n_steps, gravity=gravity, record_nodes=np.arange(model.n_particles),
         record_steps=record_steps, skip=skip)
     log.info("gravity: %d steps of %.3g s", n_steps, step)

@@ -15,11 +15,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import ArpackNoConvergence, eigsh
 
 from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle import kernels
-from particle.model import ConnectorParams, Model, State
+from particle.model import ConnectorParams, Model, State, StrainBounds
 
 log = logging.getLogger(__name__)
 
@@ -27,48 +29,169 @@ DEFAULT_STRAIN_RANGE = (-0.5, 0.5)
 # the kinetic energy may exceed the work the loads can do by this factor before a run is
 # declared divergent: a real run stays far below, an unstable one grows exponentially
 ENERGY_MARGIN = 100.0
+# the computed lambda_max is multiplied by this: it covers the eigensolver's tolerance (1e-10
+# relative) and rounding with a wide margin, at a cost of 0.05 % of the step
+EIGENVALUE_MARGIN = 1.001
+# free particles up to which the dense eigensolver is used: Lanczos is faster beyond (measured
+# on Kuhn boxes: 294 free particles 6.6 ms dense, 1.2 ms Lanczos; 1089: 227 ms, 2.9 ms)
+DENSE_EIGEN_LIMIT = 100
+
+
+def connector_strain_bounds(model: Model, strain_range: StrainBounds
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (E,), hi (E,)) strains [1] of ``strain_range``: a (lo, hi) pair or per-connector arrays.
+
+    Raises :class:`ParameterError` unless every range is finite, ordered (lo <=
+    hi) and above -1 (zero length).
+    """
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in strain_range)
+    for bound in (lo, hi):
+        if bound.shape not in ((), (model.n_connectors,)):
+            raise ParameterError(f"strain range bounds of shape {bound.shape}: expected one "
+                                 f"number or one per connector ({model.n_connectors},)")
+    lo, hi = np.broadcast_to(lo, (model.n_connectors,)), np.broadcast_to(hi, (model.n_connectors,))
+    bad = np.nonzero(~(np.isfinite(lo) & np.isfinite(hi) & (lo > -1.0) & (lo <= hi)))[0]
+    if len(bad):
+        e = int(bad[0])
+        raise ParameterError(f"connector {e} (particles {model.edges[e].tolist()}): strain range "
+                             f"[{lo[e]:g}, {hi[e]:g}] must be finite, ordered and above -1 (a "
+                             "connector cannot shrink to zero length)")
+    return lo, hi
+
+
+def connector_stiffness_bound(params: ConnectorParams, lo: np.ndarray, hi: np.ndarray
+                              ) -> np.ndarray:
+    """(E,) kappa_e >= the largest eigenvalue of connector e's 3x3 tangent block [N/m].
+
+    The block ``s e e^T + (F/l)(I - e e^T)`` has the eigenvalues ``s`` (axial)
+    and ``F/l`` (twice, transverse); kappa bounds both over strains in
+    ``[lo, hi]`` (any ordered range above -1):
+
+    * axial: the spring's tangent ``K0 + 2 a eps + 3 b eps^2`` (its maximum,
+      analytic) plus the arms' instantaneous stiffness ``k_i b_i/(k_i dt + b_i)
+      <= k_i``;
+    * transverse: ``F/l = K(eps) eps/(1 + eps) + F_arm/l``. The spring part is
+      positive only in tension with K > 0 (at most ``K_max hi/(1 + hi)``) or in
+      compression with K < 0 (at most ``-K_min |lo|/(1 + lo)``). An arm's force
+      is ``k_i`` times the elongation minus a weighted mean of its past values
+      (the Maxwell convolution), so ``|F_arm| <= k_i (hi - lo) L0``, and ``l >=
+      (1 + lo) L0``.
+
+    kappa is at least 0, so that ``kappa``-weighted graph Laplacians are positive
+    semidefinite.
+    """
+    _, tangent = params.extreme_tangent_stiffness((lo, hi))
+    kmin, kmax = params.extreme_stiffness((lo, hi))
+    arms = params.k1 + params.k2
+    spring = np.maximum(np.maximum(kmax, 0.0) * hi / (1.0 + hi),
+                        np.maximum(-kmin, 0.0) * -lo / (1.0 + lo))
+    transverse = spring + arms * (hi - lo) / (1.0 + lo)
+    return np.maximum(np.maximum(tangent + arms, transverse), 0.0)
+
+
+def mass_scaled_laplacian(model: Model, kappa: np.ndarray) -> sp.csr_matrix:
+    """(Nf, Nf) ``M^{-1/2} L_kappa M^{-1/2}`` on the free particles [1/s^2].
+
+    ``L_kappa`` is the graph Laplacian with connector weights ``kappa`` (E,)
+    [N/m]; a connector to a fixed particle keeps its diagonal term (the rows and
+    columns of fixed particles are dropped).
+    """
+    free = ~model.fixed
+    index = np.full(model.n_particles, -1, dtype=np.int64)
+    index[free] = np.arange(int(free.sum()))
+    i, j = model.edges[:, 0], model.edges[:, 1]
+    m = model.masses
+    both = free[i] & free[j]
+    rows = np.concatenate([index[i], index[j], index[i][both], index[j][both]])
+    cols = np.concatenate([index[i], index[j], index[j][both], index[i][both]])
+    coupling = -kappa[both] / np.sqrt(m[i][both] * m[j][both])
+    values = np.concatenate([kappa / m[i], kappa / m[j], coupling, coupling])
+    keep = rows >= 0  # drops the diagonal terms of the fixed ends
+    n = int(free.sum())
+    return sp.csr_matrix((values[keep], (rows[keep], cols[keep])), shape=(n, n))
+
+
+def largest_eigenvalue(matrix: sp.csr_matrix) -> float:
+    """Largest eigenvalue of a symmetric sparse matrix: dense below :data:`DENSE_EIGEN_LIMIT`
+    rows, else Lanczos (``eigsh``, relative tolerance 1e-10, fixed start vector)."""
+    n = matrix.shape[0]
+    if n <= DENSE_EIGEN_LIMIT:
+        return float(np.linalg.eigvalsh(matrix.toarray())[-1])
+    # a fixed random start vector: reproducible limits, and (almost surely) not orthogonal to
+    # the top mode
+    start = np.random.default_rng(0).uniform(0.5, 1.5, n)
+    try:
+        return float(eigsh(matrix, k=1, which="LA", tol=1e-10, v0=start,
+                           return_eigenvectors=False)[0])
+    except ArpackNoConvergence as exc:
+        raise StabilityError(f"the stability limit's eigenvalue solve (n = {n}) did not "
+                             f"converge: {exc}") from None
 
 
 def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
-                       strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE,
+                       strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
                        damping: float = 0.0) -> float:
     """Stability limit [s] of the explicit step: ``2/omega_max`` (less with damping).
 
-    omega_max^2 is bounded by block Gershgorin on ``M^{-1/2} K M^{-1/2}``: for
-    each free particle ``i``, ``sum_e kappa_e/m_i + sum_e kappa_e/sqrt(m_i m_j)``
-    over its connectors (the second sum over free neighbours only). ``kappa_e``
-    bounds the spectral norm of a connector's 3x3 tangent block ``s e e^T +
-    (F/l)(I - e e^T)`` over ``strain_range``: the largest axial tangent
-    ``|K0 + 2 a eps + 3 b eps^2|`` plus the arms' instantaneous stiffness
-    ``k_i b_i/(k_i dt + b_i) <= k_i``, or the geometric term ``|F|/l`` if larger.
-    With mass-proportional damping gamma the central-difference limit becomes
+    ``strain_range`` is where the connectors' strains stay during the run: one
+    (lo, hi) pair, or per-connector ``(lo (E,), hi (E,))`` arrays (e.g.
+    :func:`strain_range_for_release`); :class:`Run` verifies it while stepping.
+
+    The bound is rigorous for any state with strains in that range. Each
+    connector's 3x3 tangent block ``A_e`` satisfies ``A_e <= kappa_e I_3`` in the
+    Loewner order (:func:`connector_stiffness_bound`), so the tangent stiffness
+    ``K_t = sum_e B_e^T A_e B_e`` (``B_e x = x_j - x_i``) satisfies ``K_t <=
+    sum_e kappa_e B_e^T B_e = L_kappa (x) I_3``, restricted to the free
+    particles. Congruence with ``M^{-1/2}`` keeps the order, hence
+    ``omega_max^2 = lambda_max(M^{-1/2} K_t M^{-1/2}) <= lambda_max(M^{-1/2}
+    L_kappa M^{-1/2})``, the largest eigenvalue of a scalar Nf x Nf matrix
+    (:func:`mass_scaled_laplacian`; Kronecker with I_3 does not change
+    eigenvalues). It is computed (:func:`largest_eigenvalue`) and multiplied by
+    :data:`EIGENVALUE_MARGIN`. This is never above the block-Gershgorin bound
+    of the same matrix (the largest row sum), usually well below. With
+    mass-proportional damping gamma the central-difference limit becomes
     ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
     """
     p = model.params if params is None else params
-    lo, hi = strain_range
-    arms = p.k1 + p.k2
-    axial = p.max_tangent_stiffness(strain_range) + arms
-    kmin, kmax = p.extreme_stiffness(strain_range)
-    stretch = max(abs(lo), abs(hi))
-    geometric = (np.maximum(np.abs(kmin), np.abs(kmax)) + arms) * stretch / (1.0 + lo)
-    kappa = np.maximum(axial, geometric)
-    i, j = model.edges[:, 0], model.edges[:, 1]
-    m = model.masses
-    free = ~model.fixed
-    coupling = kappa / np.sqrt(m[i] * m[j])
-    rows = np.bincount(i, kappa / m[i] + np.where(free[j], coupling, 0.0), model.n_particles)
-    rows += np.bincount(j, kappa / m[j] + np.where(free[i], coupling, 0.0), model.n_particles)
-    if not free.any():
+    if not (~model.fixed).any():
         return math.inf  # nothing moves
-    omega = math.sqrt(float(rows[free].max()))
+    lo, hi = connector_strain_bounds(model, strain_range)
+    kappa = connector_stiffness_bound(p, lo, hi)
+    omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
+    if not omega2 > 0.0:
+        return math.inf  # no stiffness at all: nothing oscillates
+    omega = math.sqrt(omega2)
     xi = damping / (2.0 * omega)
     return 2.0 / omega * (math.sqrt(1.0 + xi * xi) - xi)
 
 
-def resolve_time_step(section: ParticleSection, model: Model, *,
-                      strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE) -> float:
-    """The scene's explicit step [s]: dt_safety x critical for 'auto', else the checked number."""
-    critical = critical_time_step(model, strain_range=strain_range, damping=section.damping)
+def strain_range_for_release(model: Model, static_displacement: np.ndarray, margin: float
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-connector strain range (lo (E,), hi (E,)) of a release from rest under a static load.
+
+    Released from rest in the undeformed shape, a connector overshoots to about
+    twice its static strain ``eps_s`` (undamped, linear: exactly twice), so the
+    range is ``[min(0, 2 eps_s) - margin, max(0, 2 eps_s) + margin]``; the run
+    verifies it (:class:`Run`). ``static_displacement`` (N, 3) [m] is the static
+    solution (e.g. :func:`particle.statics.gravity_static`).
+    """
+    if not (math.isfinite(margin) and margin >= 0.0):
+        raise ParameterError(f"strain margin = {margin} must be >= 0")
+    x = model.rest_positions + np.asarray(static_displacement, dtype=np.float64).reshape(-1, 3)
+    if x.shape != model.rest_positions.shape:
+        raise ParameterError(f"static displacement of shape {np.shape(static_displacement)} "
+                             f"does not fit the model's {model.n_particles} particles")
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    overshoot = 2.0 * (np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0)
+    lo = np.minimum(overshoot, 0.0) - margin
+    hi = np.maximum(overshoot, 0.0) + margin
+    return connector_strain_bounds(model, (lo, hi))
+
+
+def resolve_time_step(section: ParticleSection, critical: float) -> float:
+    """The scene's explicit step [s] for a model whose stability limit is ``critical`` [s]
+    (:func:`critical_time_step` with ``section.damping``): dt_safety x critical for 'auto',
+    else the checked number."""
     if section.dt == "auto":
         return section.dt_safety * critical
     check_time_step(float(section.dt), critical)
@@ -187,15 +310,23 @@ class VerletIntegrator:
     gravity ``m g``, and optional mass-proportional damping ``-gamma m v`` with
     the backward-difference velocity.
 
+    A step is accepted only below :func:`critical_time_step` for ``strain_range``,
+    and that bound holds only while the strains stay in the range: every run
+    with a checked step verifies it, at each divergence check, and stops with
+    :class:`StabilityError` naming the first connector outside it.
+
     Args:
         damping: gamma [1/s], global mass-proportional viscous damping (0 = off).
         check_every: steps between two divergence checks (non-finite positions,
-            kinetic energy beyond the bound the loads allow).
-        strain_range: strain range used for the stability limit.
+            kinetic energy beyond the bound the loads allow, connector strains
+            outside ``strain_range``).
+        strain_range: connector strains the runs stay in [1]: one (lo, hi) pair or
+            per-connector (lo (E,), hi (E,)) arrays; the stability limit is the one of
+            this range.
     """
 
     def __init__(self, damping: float = 0.0, *, check_every: int = 64,
-                 strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE) -> None:
+                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> None:
         if not (math.isfinite(damping) and damping >= 0.0):
             raise ParameterError(f"damping = {damping} 1/s must be >= 0")
         if check_every < 1:
@@ -219,12 +350,15 @@ class VerletIntegrator:
         """A :class:`Run`: everything fixed between calls of the compiled loop, set up once.
 
         Raises :class:`StabilityError` if ``dt`` is above the stability limit
-        (``_check_dt=False`` bypasses the check; tests use it to provoke divergence).
+        (``_check_dt=False`` bypasses the check and the strain-range monitoring;
+        tests use it to provoke divergence).
         """
         dt = float(dt)
+        monitored = None
         if _check_dt:
             check_time_step(dt, self.critical_time_step(model))
-        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip)
+            monitored = connector_strain_bounds(model, self.strain_range)
+        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip, monitored)
 
     def simulate(self, model: Model, state: State, dt: float, n_steps: int, *,
                  gravity: np.ndarray | None = None, prescribed: Prescribed | None = None,
@@ -243,7 +377,8 @@ class VerletIntegrator:
         Returns:
             (S, R, 3) recorded positions [m], or None without ``record_nodes``.
         Raises:
-            StabilityError: dt above the stability limit, or the run diverged.
+            StabilityError: dt above the stability limit, the run diverged, or a
+                connector left the strain range the step was verified for.
         """
         run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, _check_dt=_check_dt,
                            prescribed_nodes=None if prescribed is None else prescribed.nodes)
@@ -267,12 +402,13 @@ class Run:
 
     Built by :meth:`VerletIntegrator.prepare`; calling it advances a state.
     Preparing once and calling many times keeps per-call overhead to the
-    kernel dispatch (the haptic loop relies on this).
+    kernel dispatch (the haptic loop relies on this). ``monitored`` (lo (E,),
+    hi (E,)) is the strain range the step was verified for (None: not checked).
     """
 
     def __init__(self, integrator: VerletIntegrator, model: Model, dt: float,
                  gravity: np.ndarray | None, prescribed_nodes: np.ndarray | None, arms: bool,
-                 skip: bool) -> None:
+                 skip: bool, monitored: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         p = model.params
         g = None if gravity is None else np.asarray(gravity, dtype=np.float64).reshape(3)
         if g is not None and not np.all(np.isfinite(g)):
@@ -295,12 +431,17 @@ class Run:
                          self.arm_r if t.arms else None, self.arm_c if t.arms else None)
         self._loads = ((np.zeros(3) if g is None else g) if t.gravity else None,
                        integrator.damping / dt if t.damping else None)
+        self.monitored = monitored
+        # compared with the elongations the force kernel stores anyway: no extra sqrt
+        self._elongation_limits = ((None, None) if monitored is None else
+                                   tuple(b * model.rest_lengths for b in monitored))
 
     def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
                  record: tuple = (None, None, None)) -> None:
         """Advance ``state`` by ``n_steps``; ``keyframes`` = (times (K,), positions (K, k, 3)).
 
-        Raises :class:`StabilityError` if the run diverges (the state is then invalid).
+        Raises :class:`StabilityError` if the run diverges or leaves the monitored
+        strain range (the state is then invalid).
         """
         model, dt = self.model, self.dt
         if n_steps < 0:
@@ -321,9 +462,11 @@ class Run:
             state.x, state.x_prev, state.arm_force, state.dx_prev, model.edges,
             model.rest_lengths, *self._springs, model.masses, self.inv_masses, self.active,
             *self._loads, dt, int(n_steps), state.dt is None, self.prescribed, *keyframes,
-            state.t, *record, self.integrator.check_every, energy_bound, self._forces,
-            self._tension)
+            state.t, *record, self.integrator.check_every, energy_bound,
+            *self._elongation_limits, self._forces, self._tension)
         code, step, node = (int(v) for v in status)
+        if code == kernels.STRAIN:
+            self._raise_strain_exit(state, node, state.t + (step - 1) * dt)
         if code != kernels.OK:
             what = ("has a non-finite position" if code == kernels.NONFINITE else
                     f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
@@ -334,6 +477,19 @@ class Run:
         state.t += n_steps * dt
         if n_steps:
             state.dt = dt
+
+    def _raise_strain_exit(self, state: State, e: int, t: float) -> None:
+        """StabilityError for connector ``e`` found outside its monitored range at time ``t``."""
+        lo, hi = self.monitored
+        i, j = self.model.edges[e]
+        strain = state.dx_prev[e] / self.model.rest_lengths[e]
+        raise StabilityError(
+            f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
+            f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {self.dt:.4g} s was "
+            f"verified stable for (limit {self.integrator.critical_time_step(self.model):.4g} "
+            "s); the run stopped rather than continue with an unverified step. Widen the "
+            "range (in a scene: a larger particle.strain_margin) or use a smaller explicit "
+            "step verified for a wider range (particle.dt)")
 
     def _close_arm_step(self, state: State) -> None:
         """Let this run's first arm update close the previous run's last step exactly.

@@ -30,6 +30,7 @@ JIT = dict(cache=True, error_model="numpy")
 OK = 0
 NONFINITE = 1
 ENERGY = 2
+STRAIN = 3
 
 
 @njit(**JIT)
@@ -198,11 +199,21 @@ def check_divergence(x, x_prev, masses, active, dt, energy_bound, status):
 
 
 @njit(**JIT)
+def check_strains(dx, dx_lo, dx_hi, status):
+    """Flag the first connector whose elongation dx [m] is outside [dx_lo, dx_hi] (status[0, 2])."""
+    for e in range(dx.shape[0]):
+        if not (dx_lo[e] <= dx[e] <= dx_hi[e]):
+            status[0] = STRAIN
+            status[2] = e
+            return
+
+
+@njit(**JIT)
 def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
                presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
-               check_every, energy_bound, forces, tension):
-    """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, node).
+               check_every, energy_bound, dx_lo, dx_hi, forces, tension):
+    """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
     and not prescribed); if ``startup``, the first step uses half the
@@ -211,7 +222,9 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     Positions of ``rec_nodes`` are stored in ``rec_out[s]`` after step
     ``rec_steps[s]`` (0 = the initial state). Every ``check_every`` steps the
     run stops with a non-zero code if positions are non-finite or the kinetic
-    energy exceeds ``energy_bound``.
+    energy exceeds ``energy_bound`` (id = the particle), or, unless ``dx_lo`` is
+    None, a connector's elongation at the step before is outside ``[dx_lo,
+    dx_hi]`` (E,) [m] (id = the connector).
     """
     status = np.zeros(3, dtype=np.int64)
     slot = 0
@@ -238,6 +251,8 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                 slot += 1
         if (step + 1) % check_every == 0 or step + 1 == n_steps:
             check_divergence(x, x_prev, masses, active, dt, energy_bound, status)
+            if dx_lo is not None and status[0] == OK:
+                check_strains(dx_prev, dx_lo, dx_hi, status)
             if status[0] != OK:
                 status[1] = step + 1
                 return status

@@ -35,12 +35,37 @@ log = logging.getLogger(__name__)
 
 PARAM_NAMES = ("K0", "a", "b", "k1", "b1", "k2", "b2")
 N_ARMS = 2
+# a strain range: one (lo, hi) pair [1] for every connector, or per-connector (lo (E,), hi (E,))
+StrainBounds = tuple[float | np.ndarray, float | np.ndarray]
 
 
 def _frozen(arr: np.ndarray, dtype) -> np.ndarray:
     out = np.array(arr, dtype=dtype, order="C")  # own copy, so freezing cannot surprise a caller
     out.setflags(write=False)
     return out
+
+
+def _quadratic_extremes(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, lo, hi
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) min and max of ``c0 + c1 eps + c2 eps^2`` over ``[lo, hi]`` (floats or (E,) arrays).
+
+    The extremes lie at the ends or at the vertex ``-c1/(2 c2)``. The vertex is
+    inside exactly when the slope ``c1 + 2 c2 eps`` changes sign between the
+    ends, which is decided without dividing, so a tiny ``c2`` cannot overflow;
+    the division is done only where the vertex is inside (``|vertex| <
+    max(|lo|, |hi|)`` there).
+    """
+    lo, hi = np.broadcast_arrays(np.asarray(lo, dtype=np.float64), np.asarray(hi, np.float64))
+
+    def value(eps):
+        return c0 + (c1 + c2 * eps) * eps
+
+    at_lo, at_hi = value(lo), value(hi)
+    inside = np.sign(c1 + 2.0 * c2 * lo) * np.sign(c1 + 2.0 * c2 * hi) < 0.0
+    vertex = np.divide(-c1, 2.0 * c2, out=np.zeros_like(at_lo), where=inside)
+    at_vertex = np.where(inside, value(vertex), at_lo)
+    return (np.minimum(np.minimum(at_lo, at_hi), at_vertex),
+            np.maximum(np.maximum(at_lo, at_hi), at_vertex))
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,42 +144,27 @@ class ConnectorParams:
         """(E,) tangent d(K dx)/d(dx) = K0 + 2 a eps + 3 b eps^2 [N/m]."""
         return self.K0 + 2.0 * self.a * strain + 3.0 * self.b * strain * strain
 
-    def extreme_stiffness(self, strain_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-        """(E,) min and max of the secant K(eps) over ``strain_range``, analytically.
+    def extreme_stiffness(self, strain_range: StrainBounds) -> tuple[np.ndarray, np.ndarray]:
+        """(E,) min and max of the secant K0 + a eps + b eps^2 over ``strain_range`` [N/m].
 
-        K is a quadratic in eps; its extremes lie at the interval ends or at the
-        vertex eps* = -a/(2b) when that lies inside.
+        ``strain_range`` is one (lo, hi) pair or per-connector (lo (E,), hi (E,)) arrays.
         """
-        lo, hi = strain_range
-        ends = np.stack([self.stiffness(np.full_like(self.K0, lo)),
-                         self.stiffness(np.full_like(self.K0, hi))])
-        kmin, kmax = ends.min(axis=0), ends.max(axis=0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            vertex = np.where(self.b != 0.0, -self.a / (2.0 * self.b), np.nan)
-        inside = (vertex > lo) & (vertex < hi)
-        kv = self.stiffness(np.where(inside, vertex, 0.0))
-        kmin = np.where(inside, np.minimum(kmin, kv), kmin)
-        kmax = np.where(inside, np.maximum(kmax, kv), kmax)
-        return kmin, kmax
+        return _quadratic_extremes(self.K0, self.a, self.b, *strain_range)
 
-    def max_tangent_stiffness(self, strain_range: tuple[float, float]) -> np.ndarray:
-        """(E,) max of |K0 + 2 a eps + 3 b eps^2| over ``strain_range`` [N/m] (ends or vertex)."""
-        lo, hi = strain_range
-        cand = [np.abs(self.tangent_stiffness(np.full_like(self.K0, e))) for e in (lo, hi)]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            vertex = np.where(self.b != 0.0, -self.a / (3.0 * self.b), 0.0)
-        vertex = np.clip(vertex, lo, hi)
-        cand.append(np.abs(self.tangent_stiffness(vertex)))
-        return np.max(cand, axis=0)
+    def extreme_tangent_stiffness(self, strain_range: StrainBounds
+                                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(E,) min and max of the tangent K0 + 2 a eps + 3 b eps^2 over ``strain_range`` [N/m]."""
+        return _quadratic_extremes(self.K0, 2.0 * self.a, 3.0 * self.b, *strain_range)
 
     def validate(self, strain_range: tuple[float, float] = (-0.5, 0.5),
-                 edges: np.ndarray | None = None) -> "ConnectorParams":
+                 edges: np.ndarray | None = None, *, floor: float = 0.0) -> "ConnectorParams":
         """Raise :class:`ParameterError` naming the first non-physical connector; return self.
 
         Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, and a secant
-        stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
-        the quadratic's ends and vertex). ``edges`` (E, 2), if given, lets the
-        message name the connector's two particles.
+        stiffness K(eps) <= 0, or below ``floor`` [N/m], anywhere in
+        ``strain_range`` (checked exactly at the quadratic's ends and vertex).
+        ``edges`` (E, 2), if given, lets the message name the connector's two
+        particles.
         """
         lo, hi = (float(s) for s in strain_range)
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi and lo > -1.0):
@@ -177,12 +187,13 @@ class ConnectorParams:
                 raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]:g} "
                                      "must be > 0")
         kmin, _ = self.extreme_stiffness((lo, hi))
-        bad = np.nonzero(kmin <= 0.0)[0]
+        bad = np.nonzero((kmin <= 0.0) | (kmin < floor))[0]
         if len(bad):
             e = bad[0]
+            limit = "<= 0" if kmin[e] <= 0.0 else f"< the floor {floor:g} N/m"
             raise ParameterError(f"{where(e)}: spring stiffness K(eps) = K0 + a eps + b eps^2 "
                                  f"(K0={self.K0[e]:g}, a={self.a[e]:g}, b={self.b[e]:g}) reaches "
-                                 f"{kmin[e]:g} N/m <= 0 in the strain range [{lo:g}, {hi:g}]")
+                                 f"{kmin[e]:g} N/m {limit} in the strain range [{lo:g}, {hi:g}]")
         return self
 
     def arm_recursion(self, dt: float, *, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
