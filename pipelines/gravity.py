@@ -36,7 +36,7 @@ from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem,
 from forcecal.problem import Problem
 from forcecal.scene import Scene
 from particle.experiments import gravity_dynamic
-from particle.integrator import critical_time_step, resolve_time_step
+from particle.integrator import critical_time_step, resolve_time_step, strain_range_for_release
 from particle.model import ConnectorParams, Model, build_model
 from particle.statics import check_stiffness, gravity_static
 
@@ -105,17 +105,25 @@ def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: 
     ``strain_range`` is where the springs were calibrated (and must be
     positive); the runs are refused (:class:`ParameterError`) if a spring's
     K(eps) becomes <= 0 at a strain they reach, and the strain extremes are
-    recorded so that leaving the calibrated range can be reported.
+    recorded so that leaving the calibrated range can be reported. The
+    explicit step is chosen for each connector's strain range of the release
+    (:func:`strain_range_for_release` of the static sag, ``particle.strain_margin``),
+    which the dynamic run verifies; an explicit ``particle.dt`` must be stable
+    over the calibrated range as well.
     """
     model = build_model(problem, scene.material.density, params)
-    dt = resolve_time_step(scene.particle, model)
-    critical = critical_time_step(model, damping=scene.particle.damping)
     t0 = time.perf_counter()
     static = gravity_static(model, gravity, load_steps=scene.gravity.static_load_steps,
                             strain_range=strain_range)
     t1 = time.perf_counter()
+    release = strain_range_for_release(model, static, scene.particle.strain_margin)
+    if scene.particle.dt != "auto":
+        release = (np.minimum(release[0], strain_range[0]),
+                   np.maximum(release[1], strain_range[1]))
+    critical = critical_time_step(model, strain_range=release, damping=scene.particle.damping)
+    dt = resolve_time_step(scene.particle, critical)
     dynamic = gravity_dynamic(model, gravity, float(times[-1]), dt, times,
-                              damping=scene.particle.damping)
+                              damping=scene.particle.damping, strain_range=release)
     t2 = time.perf_counter()
     strain = np.vstack([connector_strains(model, static)[None], connector_strains(model, dynamic)])
     for t, sample in zip(times, strain[1:]):
