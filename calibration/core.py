@@ -189,8 +189,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
-        model = LocalModel(glob, rings, strain, np.zeros((n_cal, STATIC_DIM)),
-                           np.zeros((n_cal, RELAXATION_DIM)))
+        model = LocalModel(glob, rings, strain, settings.stiffness_floor * glob.K0,
+                           np.zeros((n_cal, STATIC_DIM)), np.zeros((n_cal, RELAXATION_DIM)))
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         if settings.local:
             for stage, reference in (("static", ref_static[:n_cal]),

@@ -58,10 +58,11 @@ def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: 
     """Step 1: spring ``K0, a, b`` on the static curves ``reference`` (Pc, S) [N]."""
     points = np.arange(len(reference))
     K0_of: dict[bytes, float] = {}
+    floor = settings.stiffness_floor * start.K0  # K(eps)/K0 does not depend on the K0 solved for
 
     def cost(x: np.ndarray) -> float:
         params = start.with_static_coordinates(x, start.K0, strain).connector_params(n_connectors)
-        check_feasible(params, strain)
+        check_feasible(params, strain, floor)
         sim = pool.curves("indentation", params, points)
         scale = float(np.sum(reference * sim) / np.sum(sim * sim))
         if not scale > 0:
@@ -86,7 +87,7 @@ def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, referen
 
     def cost(y: np.ndarray) -> float:
         params = start.with_relaxation_coordinates(y).connector_params(n_connectors)
-        check_feasible(params, strain)
+        check_feasible(params, strain, settings.stiffness_floor * start.K0)
         return float(np.sum((reference - pool.curves("relaxation", params, points)) ** 2))
 
     with progress_bar("global relaxation", settings.relaxation_max_evaluations, progress) as bar:

@@ -60,12 +60,15 @@ class LocalModel:
         glob: the global parameter set.
         rings: first rings of the calibration points.
         strain: strain range of the experiments (feasibility and coordinate scale).
+        floor: smallest feasible spring stiffness K(eps) on that range [N/m]
+            (``calibration.stiffness_floor`` x the global K0).
         z_static: (Pc, 3) static offsets.
         z_relaxation: (Pc, 4) relaxation offsets.
     """
     glob: GlobalParams
     rings: Rings
     strain: StrainRange
+    floor: float
     z_static: np.ndarray
     z_relaxation: np.ndarray
 
@@ -117,7 +120,7 @@ def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
         trial = z.copy()
         trial[point] = zj
         params = model.with_offsets(stage, trial).params()
-        check_feasible(params, model.strain)
+        check_feasible(params, model.strain, model.floor)
         sim = worker.curves(kind, params, [point])[0]
         return float(np.sum((reference - sim) ** 2))
 
@@ -227,7 +230,7 @@ def _damped_update(pool: Pool, start: LocalModel, stage: str, reference: np.ndar
         z = z0 + step / 2 ** halvings
         trial = start.with_offsets(stage, z)
         try:
-            check_feasible(trial.params(), start.strain)
+            check_feasible(trial.params(), start.strain, start.floor)
             cost = pool.total_cost(kind, trial.params(), points, reference)
         except INFEASIBLE as exc:  # e.g. a blend of feasible rings that is not: damp further
             log.info("local %s update x 1/%d is infeasible: %s", stage, 2 ** halvings, exc)

@@ -24,9 +24,15 @@ static ``z_j = (log s_K0, s dalpha, s^2 dbeta)``, relaxation
 rings gets the mean of their offsets, i.e. the geometric mean of the
 multiplicative factors (arithmetic mean of the additive alpha/beta offsets).
 
-A parameter set is *infeasible* (cost = +inf, reason logged) if the spring
-``K(eps)`` is not positive over the strain range (``ConnectorParams.validate``)
-or some connector has ``tau1 >= tau2``.
+A parameter set is *infeasible* (cost = +inf, reason logged) if some spring's
+``K(eps)`` falls below the floor ``calibration.stiffness_floor x`` the global K0
+anywhere in the strain range (``ConnectorParams.validate``), or some connector
+has ``tau1 >= tau2``. The floor keeps local tuning from making nearly
+stiffness-less springs, which fit the indentation curves at the calibration
+points but leave the organ without support elsewhere (the gravity sag then has
+no equilibrium): the FE material itself keeps the global spring above 95 % of
+K0 on the default liver's range, and the local factors only compensate the
+discretisation, so a 10-fold softening (floor 0.1) is already generous.
 """
 
 from __future__ import annotations
@@ -156,9 +162,12 @@ def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
                            k2=k2, b2=tau2 * k2)
 
 
-def check_feasible(params: ConnectorParams, strain: StrainRange) -> None:
-    """Raise :class:`ParameterError` if ``params`` is outside the searched region."""
-    params.validate(strain.bounds)
+def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -> None:
+    """Raise :class:`ParameterError` if ``params`` is outside the searched region.
+
+    ``floor`` [N/m]: the smallest spring stiffness K(eps) allowed in the strain range.
+    """
+    params.validate(strain.bounds, floor=floor)
     order = np.nonzero(params.b1 / params.k1 >= params.b2 / params.k2)[0]
     if len(order):
         raise ParameterError(f"connector {int(order[0])}: tau1 >= tau2 "

@@ -190,6 +190,7 @@ def _local_static(problem: Problem, scene, reference_params, workers: int):
     with Pool(exp, reference_params, workers=workers) as pool:
         reference = pool.curves("indentation", reference_params, np.arange(n_cal))
         model = LocalModel(TRUE_GLOBAL, build_rings(problem.mesh, problem.calibration), STRAIN,
+                           scene.calibration.stiffness_floor * TRUE_GLOBAL.K0,
                            np.zeros((n_cal, 3)), np.zeros((n_cal, 4)))
         model, sweeps = run_local_stage(pool, model, "static", reference, scene.calibration,
                                         None, lambda record: None, progress=False)

@@ -124,14 +124,49 @@ def test_rings_blend_factors_geometrically():
 def test_feasibility_refuses_soft_springs_and_swapped_arms():
     strain = StrainRange(-0.3, 0.3)
     ok = GlobalParams(K0=10.0, alpha=0.0, beta=0.0, k1=1.0, tau1=0.5, k2=1.0, tau2=10.0)
-    check_feasible(ok.connector_params(5), strain)
+    check_feasible(ok.connector_params(5), strain, 1.0)
     # K(eps)/K0 = 1 - 4 eps reaches 0 at eps = 0.25 < 0.3
     soft = GlobalParams(**{**ok.as_dict(), "alpha": -4.0})
     with pytest.raises(ParameterError, match="K\\(eps\\)"):
-        check_feasible(soft.connector_params(5), strain)
+        check_feasible(soft.connector_params(5), strain, 1.0)
+    # K(eps)/K0 = 1 - 2 eps stays positive (0.4 at eps = 0.3) but falls below a floor of 0.5 K0
+    softish = GlobalParams(**{**ok.as_dict(), "alpha": -2.0}).connector_params(5)
+    check_feasible(softish, strain, 0.0)
+    with pytest.raises(ParameterError, match=r"reaches 4 N/m < the floor 5 N/m"):
+        check_feasible(softish, strain, 5.0)
     swapped = GlobalParams(**{**ok.as_dict(), "tau1": 20.0})
     with pytest.raises(ParameterError, match="tau1 >= tau2"):
-        check_feasible(swapped.connector_params(5), strain)
+        check_feasible(swapped.connector_params(5), strain, 1.0)
+
+
+def test_a_local_update_softening_a_ring_below_the_floor_is_infeasible():
+    """Ring offsets act on the connectors of a calibration point only: scaling point 0's
+    K0 by 0.08 puts its ring at 8 % of the global K0, below the default floor (10 %), while
+    0.12 stays feasible; so does an alpha offset that makes K(eps) dip inside the range."""
+    mesh = box_mesh((2, 2, 2), (0.02, 0.02, 0.02))
+    rings = build_rings(mesh, np.array([13, 4]))
+    glob = GlobalParams(K0=10.0, alpha=0.0, beta=0.0, k1=5.0, tau1=0.5, k2=3.0, tau2=10.0)
+    strain = StrainRange(-0.2, 0.4)
+    floor = 0.1 * glob.K0
+    zr = np.zeros((2, 4))
+
+    def static_offsets(log_factor: float, dalpha: float) -> np.ndarray:
+        z = np.zeros((2, 3))
+        z[0] = [log_factor, dalpha * strain.scale, 0.0]
+        return z
+
+    only_first = np.setdiff1d(rings.members[0], rings.members[1])
+    feasible = local_params(glob, rings, strain, static_offsets(np.log(0.12), 0.0), zr)
+    assert feasible.K0[only_first] == pytest.approx(1.2)
+    check_feasible(feasible, strain, floor)
+    with pytest.raises(ParameterError, match=r"reaches 0\.8 N/m < the floor 1 N/m"):
+        check_feasible(local_params(glob, rings, strain, static_offsets(np.log(0.08), 0.0), zr),
+                       strain, floor)
+    # K0 x 0.5 with alpha -2.25: K(eps) = 5 (1 - 2.25 eps) falls to 0.5 N/m at eps = 0.4 on
+    # point 0's own connectors (the shared ones get half the offsets and stay above 3 N/m)
+    with pytest.raises(ParameterError, match=r"reaches 0\.5 N/m < the floor 1 N/m"):
+        check_feasible(local_params(glob, rings, strain, static_offsets(np.log(0.5), -2.25), zr),
+                       strain, floor)
 
 
 def test_nelder_mead_records_history_and_converges():
