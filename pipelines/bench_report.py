@@ -322,8 +322,9 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               "different moments; on a shared machine their ratio is not a parallel speed-up "
               "(the default pipeline's run may have overlapped other jobs).", "",
               "## Stability", "",
-              "Estimated stability limit of the explicit step (`critical_time_step`, block "
-              "Gershgorin over strains +-0.5) against the limit found by bisection (3000 "
+              "Estimated stability limit of the explicit step (`critical_time_step`, largest "
+              "eigenvalue of the kappa-weighted graph Laplacian over strains +-0.5) against "
+              "the limit found by bisection (3000 "
               "steps from a perturbed state; blow-up = the integrator's divergence guard); "
               "tested in `tests/test_stability_particle.py`. A ratio <= 1 means the estimate "
               "is safe; its size says how conservative it is.", ""]

@@ -1,6 +1,6 @@
 """Numerical stability of the explicit particle step: the estimated limit against the real one.
 
-:func:`critical_time_step` (block Gershgorin, see :mod:`particle.integrator`)
+:func:`critical_time_step` (eigenvalue bound, see :mod:`particle.integrator`)
 must never exceed the step at which the explicit run really blows up.
 :func:`empirical_critical_step` finds that step by bisection: a run of
 ``steps`` steps from a slightly perturbed state is *blown up* when the
