@@ -1,7 +1,7 @@
 """The explicit step's stability bound against closed forms, and the strain-range monitoring.
 
-The estimator's safety on general meshes (estimate <= Gershgorin's bound's step <=
-the limit found by bisection) is in ``tests/test_stability_particle.py``.
+The estimator on general meshes (the Gershgorin bound's step <= the estimate <= the
+limit found by bisection) is tested in ``tests/test_stability_particle.py``.
 """
 import warnings
 
