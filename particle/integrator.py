@@ -171,9 +171,13 @@ def strain_range_for_release(model: Model, static_displacement: np.ndarray, marg
 
     Released from rest in the undeformed shape, a connector overshoots to about
     twice its static strain ``eps_s`` (undamped, linear: exactly twice), so the
-    range is ``[min(0, 2 eps_s) - margin, max(0, 2 eps_s) + margin]``; the run
-    verifies it (:class:`Run`). ``static_displacement`` (N, 3) [m] is the static
-    solution (e.g. :func:`particle.statics.gravity_static`).
+    range is ``[min(0, 2 eps_s) - margin, max(0, 2 eps_s) + margin]``, except
+    that a compression is capped at half the static length, ``lo >= (eps_s -
+    1)/2`` (twice a static strain near -0.5 would reach zero length; the
+    viscoelastic arms keep strongly compressed connectors well short of twice
+    their static strain). The run verifies the range (:class:`Run`).
+    ``static_displacement`` (N, 3) [m] is the static solution (e.g.
+    :func:`particle.statics.gravity_static`).
     """
     if not (math.isfinite(margin) and margin >= 0.0):
         raise ParameterError(f"strain margin = {margin} must be >= 0")
@@ -182,9 +186,9 @@ def strain_range_for_release(model: Model, static_displacement: np.ndarray, marg
         raise ParameterError(f"static displacement of shape {np.shape(static_displacement)} "
                              f"does not fit the model's {model.n_particles} particles")
     d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-    overshoot = 2.0 * (np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0)
-    lo = np.minimum(overshoot, 0.0) - margin
-    hi = np.maximum(overshoot, 0.0) + margin
+    static = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
+    lo = np.maximum(np.minimum(2.0 * static, 0.0) - margin, 0.5 * (static - 1.0))
+    hi = np.maximum(2.0 * static, 0.0) + margin
     return connector_strain_bounds(model, (lo, hi))
 
 

@@ -102,6 +102,12 @@ def test_release_range_is_twice_the_static_strain_widened_by_the_margin():
     eps = mass * 9.81 / (K0 * L)
     lo, hi = strain_range_for_release(model, static, 0.05)
     np.testing.assert_allclose([lo[0], hi[0]], [-0.05, 2 * eps + 0.05], rtol=1e-9)
+    # a static compression of 0.4: twice that minus the margin (-0.85) is capped at half the
+    # static length, (-0.4 - 1)/2 = -0.7; a compression of 0.1 is not capped
+    for compression, expected in ((0.4, -0.7), (0.1, -0.25)):
+        lo, hi = strain_range_for_release(model, [[0.0, 0.0, 0.0], [0.0, 0.0, compression * L]],
+                                          0.05)
+        np.testing.assert_allclose([lo[0], hi[0]], [expected, 0.05], rtol=1e-12)
     period = 2 * np.pi * np.sqrt(mass / K0)
     times = np.linspace(0.0, 3 * period, 301)
     release = strain_range_for_release(model, static, 1e-9)
