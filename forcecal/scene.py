@@ -155,8 +155,9 @@ class ParticleSection:
     strain_margin: float = key(0.2, "gravity release: the step is chosen for each connector's "
                                "strains in [min(0, 2 eps_static) - m, max(0, 2 eps_static) + m] "
                                "(twice the static sag's strain, the overshoot of a release from "
-                               "rest, widened by this m; the liver runs measured so far needed "
-                               "m <= 0.13) and the run stops if a strain leaves that range",
+                               "rest, widened by this m; compressions capped at half the static "
+                               "length; the liver runs measured so far needed m <= 0.13) and the "
+                               "run stops if a strain leaves that range",
                                minimum=0.0)
     damping: float = key(0.0, "global mass-proportional viscous damping (off for the gravity "
                          "comparison: the arms are the only physical damping)", "1/s", minimum=0.0)
