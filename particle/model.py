@@ -157,14 +157,13 @@ class ConnectorParams:
         return _quadratic_extremes(self.K0, 2.0 * self.a, 3.0 * self.b, *strain_range)
 
     def validate(self, strain_range: tuple[float, float] = (-0.5, 0.5),
-                 edges: np.ndarray | None = None, *, floor: float = 0.0) -> "ConnectorParams":
+                 edges: np.ndarray | None = None) -> "ConnectorParams":
         """Raise :class:`ParameterError` naming the first non-physical connector; return self.
 
         Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, and a secant
-        stiffness K(eps) <= 0, or below ``floor`` [N/m], anywhere in
-        ``strain_range`` (checked exactly at the quadratic's ends and vertex).
-        ``edges`` (E, 2), if given, lets the message name the connector's two
-        particles.
+        stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
+        the quadratic's ends and vertex). ``edges`` (E, 2), if given, lets the
+        message name the connector's two particles.
         """
         lo, hi = (float(s) for s in strain_range)
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi and lo > -1.0):
@@ -187,13 +186,12 @@ class ConnectorParams:
                 raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]:g} "
                                      "must be > 0")
         kmin, _ = self.extreme_stiffness((lo, hi))
-        bad = np.nonzero((kmin <= 0.0) | (kmin < floor))[0]
+        bad = np.nonzero(kmin <= 0.0)[0]
         if len(bad):
             e = bad[0]
-            limit = "<= 0" if kmin[e] <= 0.0 else f"< the floor {floor:g} N/m"
             raise ParameterError(f"{where(e)}: spring stiffness K(eps) = K0 + a eps + b eps^2 "
                                  f"(K0={self.K0[e]:g}, a={self.a[e]:g}, b={self.b[e]:g}) reaches "
-                                 f"{kmin[e]:g} N/m {limit} in the strain range [{lo:g}, {hi:g}]")
+                                 f"{kmin[e]:g} N/m <= 0 in the strain range [{lo:g}, {hi:g}]")
         return self
 
     def arm_recursion(self, dt: float, *, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -164,11 +164,15 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
                                    getattr(reference_run.connectors["calibrated"], name),
                                    rtol=1e-6)
     assert result.global_params == reference_run.global_params
-    # the global stages and point 0's local fit were loaded, not recomputed
+    # the global stages and point 0's local fit were loaded, not recomputed; an infeasible
+    # point (cost +inf) is refused before any curve is computed
     n_cal = len(result.problem.calibration)
-    loaded = n_cal * (result.evaluations["global_static_cost_evaluations"]
-                      + result.evaluations["global_relaxation_cost_evaluations"])
-    loaded += n_cal + result.local_sweeps["static"][0].fits[0].evaluations  # sweep start + fit
+
+    def feasible(fit) -> int:
+        return int(np.isfinite(fit.history.evaluation_cost).sum())
+
+    loaded = n_cal * sum(feasible(fit) for fit in result.global_fits.values())
+    loaded += n_cal + feasible(result.local_sweeps["static"][0].fits[0])  # sweep start + fit
     assert result.evaluations["point_curves"] == reference_run.evaluations["point_curves"] - loaded
     assert not checkpoint_path(out).exists()
 

@@ -129,11 +129,17 @@ def test_feasibility_refuses_soft_springs_and_swapped_arms():
     soft = GlobalParams(**{**ok.as_dict(), "alpha": -4.0})
     with pytest.raises(ParameterError, match="K\\(eps\\)"):
         check_feasible(soft.connector_params(5), strain, 1.0)
-    # K(eps)/K0 = 1 - 2 eps stays positive (0.4 at eps = 0.3) but falls below a floor of 0.5 K0
-    softish = GlobalParams(**{**ok.as_dict(), "alpha": -2.0}).connector_params(5)
-    check_feasible(softish, strain, 0.0)
-    with pytest.raises(ParameterError, match=r"reaches 4 N/m < the floor 5 N/m"):
+    # K(eps)/K0 = 1 - eps: the tangent 1 - 2 eps falls to 0.4 at eps = 0.3, below a floor of 5 N/m
+    softish = GlobalParams(**{**ok.as_dict(), "alpha": -1.0}).connector_params(5)
+    check_feasible(softish, strain, 3.0)
+    with pytest.raises(ParameterError, match=r"tangent stiffness .* reaches 4 N/m < the floor "
+                       r"5 N/m in the strain range \[-0\.3, 0\.3\] \(5 connectors\)"):
         check_feasible(softish, strain, 5.0)
+    # K(eps)/K0 = 1 - 2 eps stays positive (0.4 at eps = 0.3) but its force K eps L0 stops
+    # rising at eps = 0.25 (tangent 1 - 4 eps): infeasible even without a floor
+    snapping = GlobalParams(**{**ok.as_dict(), "alpha": -2.0}).connector_params(5)
+    with pytest.raises(ParameterError, match=r"reaches -2 N/m < the floor 0 N/m"):
+        check_feasible(snapping, strain, 0.0)
     swapped = GlobalParams(**{**ok.as_dict(), "tau1": 20.0})
     with pytest.raises(ParameterError, match="tau1 >= tau2"):
         check_feasible(swapped.connector_params(5), strain, 1.0)
@@ -142,7 +148,7 @@ def test_feasibility_refuses_soft_springs_and_swapped_arms():
 def test_a_local_update_softening_a_ring_below_the_floor_is_infeasible():
     """Ring offsets act on the connectors of a calibration point only: scaling point 0's
     K0 by 0.08 puts its ring at 8 % of the global K0, below the default floor (10 %), while
-    0.12 stays feasible; so does an alpha offset that makes K(eps) dip inside the range."""
+    0.12 stays feasible; so is an alpha offset that makes the ring's tangent dip below it."""
     mesh = box_mesh((2, 2, 2), (0.02, 0.02, 0.02))
     rings = build_rings(mesh, np.array([13, 4]))
     glob = GlobalParams(K0=10.0, alpha=0.0, beta=0.0, k1=5.0, tau1=0.5, k2=3.0, tau2=10.0)
@@ -162,10 +168,11 @@ def test_a_local_update_softening_a_ring_below_the_floor_is_infeasible():
     with pytest.raises(ParameterError, match=r"reaches 0\.8 N/m < the floor 1 N/m"):
         check_feasible(local_params(glob, rings, strain, static_offsets(np.log(0.08), 0.0), zr),
                        strain, floor)
-    # K0 x 0.5 with alpha -2.25: K(eps) = 5 (1 - 2.25 eps) falls to 0.5 N/m at eps = 0.4 on
-    # point 0's own connectors (the shared ones get half the offsets and stay above 3 N/m)
-    with pytest.raises(ParameterError, match=r"reaches 0\.5 N/m < the floor 1 N/m"):
-        check_feasible(local_params(glob, rings, strain, static_offsets(np.log(0.5), -2.25), zr),
+    # K0 x 0.5 with alpha -1.5 on point 0's own connectors: K(eps) = 5 (1 - 1.5 eps) stays
+    # positive (2 N/m at eps = 0.4) but the tangent 5 (1 - 3 eps) reaches -1 N/m; the shared
+    # connectors get half the offsets and keep a tangent above 2.8 N/m
+    with pytest.raises(ParameterError, match=r"reaches -1 N/m < the floor 1 N/m"):
+        check_feasible(local_params(glob, rings, strain, static_offsets(np.log(0.5), -1.5), zr),
                        strain, floor)
 
 
