@@ -183,9 +183,10 @@ class CalibrationSection:
                        "cost", exclusive_minimum=0.0)
     strain_margin: float = key(1.5, "the spring K(eps) must stay > 0 on the experiments' "
                                "linear-network strain range widened by this factor", minimum=1.0)
-    stiffness_floor: float = key(0.1, "feasible springs keep K(eps) >= this fraction of the "
-                                 "global K0 on that strain range (local tuning may soften a "
-                                 "ring 10-fold, not to a nearly stiffness-less spring)",
+    stiffness_floor: float = key(0.1, "feasible springs keep their tangent stiffness K0 + 2 a "
+                                 "eps + 3 b eps^2 (hence K(eps)) >= this fraction of the global "
+                                 "K0 on that strain range (local tuning may soften a ring "
+                                 "10-fold, not to a nearly stiffness-less or snapping spring)",
                                  minimum=0.0)
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
