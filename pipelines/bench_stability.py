@@ -114,11 +114,12 @@ def perturbed_state(model: Model, amplitude: float, seed: int = 0,
 
 
 def blows_up(model: Model, dt: float, *, steps: int = 3000, amplitude: float = 1e-6,
-             seed: int = 0, prestrain: float = 0.0) -> bool:
-    """Whether ``steps`` explicit steps of ``dt`` [s] from a perturbed state diverge."""
+             seed: int = 0, prestrain: float = 0.0, gravity: np.ndarray | None = None) -> bool:
+    """Whether ``steps`` explicit steps of ``dt`` [s] from a perturbed state diverge
+    (under ``gravity`` [m/s^2] if given)."""
     state = perturbed_state(model, amplitude, seed, prestrain)
     try:
-        VerletIntegrator().simulate(model, state, dt, steps, _check_dt=False)
+        VerletIntegrator().simulate(model, state, dt, steps, gravity=gravity, _check_dt=False)
     except StabilityError:
         return True
     return False
