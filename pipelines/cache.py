@@ -6,9 +6,10 @@ A stage's *inputs* are recorded as fingerprints (:class:`StageInputs`):
 * ``mesh``: the mesh fingerprint (only for the stage that reads the mesh itself,
   the FE reference; later stages read the mesh back from ``reference.h5``);
 * ``upstream``: SHA-256 of the content of every upstream file it reads;
-* ``code``: SHA-256 of every project source file the stage's entry modules
+* ``code``: a digest of every project source file the stage's entry modules
   import, transitively (:func:`import_closure`), so editing a module the
-  stage does not use does not invalidate it.
+  stage does not use does not invalidate it; comments, formatting and
+  docstrings are left out (:func:`source_digest`).
 
 After a successful run :meth:`Cache.store` writes ``<out>/cache/<stage>.json``
 with those inputs and the content hash of every output file. :meth:`Cache.check`
@@ -35,7 +36,7 @@ from forcecal.h5io import atomic_path
 
 log = logging.getLogger(__name__)
 
-RECORD_VERSION = 2
+RECORD_VERSION = 3
 CHUNK = 1 << 20
 # the packages whose source is followed when fingerprinting a stage's code
 PROJECT_PACKAGES = ("forcecal", "reference_fe", "particle", "calibration", "pipelines")
@@ -122,13 +123,31 @@ def import_closure(entries: tuple[str, ...]) -> dict[str, Path]:
     return found
 
 
+def source_digest(path: Path) -> str:
+    """SHA-256 of a module's syntax tree without docstrings.
+
+    Comments, formatting and docstrings do not change what a stage computes, so
+    editing them must not force a rerun; every other change (code, string
+    constants such as messages) does.
+    """
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return hashlib.sha256(ast.dump(tree).encode()).hexdigest()
+
+
 def code_digests(entries: tuple[str, ...]) -> dict[str, str]:
-    """``{file path relative to its package root: SHA-256}`` of the import closure of ``entries``."""
+    """``{file path relative to its package root: source_digest}`` of the import closure."""
     closure = import_closure(entries)
     out = {}
     for name, path in closure.items():
         rel = path.relative_to(package_root(name.split(".")[0]))
-        out[str(rel)] = hashlib.sha256(path.read_bytes()).hexdigest()
+        out[str(rel)] = source_digest(path)
     return dict(sorted(out.items()))
 
 

@@ -78,6 +78,9 @@ def test_code_digests_follow_the_import_closure_only(tmp_path, monkeypatch):
                            "fc_demo_pkg/used.py", "fc_demo_pkg/lazy.py"}
     (pkg / "unrelated.py").write_text("X = 2\n")
     assert code_digests(("fc_demo_pkg.entry",)) == before
+    # comments, layout and docstrings do not count; code does
+    (pkg / "used.py").write_text('"""A module."""\n# why X is 1\nX  =  1\n')
+    assert code_digests(("fc_demo_pkg.entry",)) == before
     for name in ("used", "lazy"):
         (pkg / f"{name}.py").write_text("X = 3\n")
         after = code_digests(("fc_demo_pkg.entry",))
