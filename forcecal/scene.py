@@ -129,9 +129,11 @@ class GravitySection:
 
 @dataclass(frozen=True)
 class FESection:
-    element: str = key("TH", "element: 'TH' (Taylor-Hood P2-P1 u-p, locking-free), 'P2' "
-                       "(quadratic displacement; ~15 % too stiff in sag on the default liver) or "
-                       "'P1' (locks; only for the sensitivity study)",
+    element: str = key("P2", "element: 'P2' (quadratic displacement; sag ~15 % below the "
+                       "refined mesh's on the default liver), 'TH' (Taylor-Hood P2-P1 u-p, "
+                       "locking-free; a particle model fitted to its indentation curves is too "
+                       "soft to carry the organ's weight, see README) or 'P1' (locks; only for "
+                       "the sensitivity study)",
                        choices=("P1", "P2", "TH"))
     quadrature_degree: int = key(4, "quadrature degree of the residual and of the Prony "
                                  "internal variables", minimum=1)

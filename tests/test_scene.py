@@ -56,8 +56,8 @@ def test_bad_toml_and_missing_file(tmp_path):
 
 
 def test_replace_validates_and_fingerprints_change(liver_scene):
-    th = replace(liver_scene, fe={"element": "P2"})
-    assert th.fe.element == "P2"
+    th = replace(liver_scene, fe={"element": "TH"})
+    assert th.fe.element == "TH"
     assert th.fingerprint("material") == liver_scene.fingerprint("material")
     assert th.fingerprint("fe") != liver_scene.fingerprint("fe")
     with pytest.raises(SceneError):
