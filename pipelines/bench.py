@@ -75,9 +75,13 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 
 def seed_default(scene: Scene, folder: Path) -> None:
     """Copy a finished run of the scene (``runs/<name>/``, e.g. from ``make demo``) into
-    ``folder`` when it has none yet; the pipeline's cache then decides what is still valid."""
+    ``folder`` when that run finished later than the folder's own (or the folder has none);
+    the pipeline's cache then decides what is still valid."""
     source = ROOT / "runs" / scene.name
-    if (folder / "cache").is_dir() or not (source / "cache").is_dir():
+    finished = source / "cache" / "report.json"
+    own = folder / "cache" / "report.json"
+    if not finished.is_file() or (own.is_file()
+                                  and own.stat().st_mtime >= finished.stat().st_mtime):
         return
     (folder / "cache").mkdir(parents=True, exist_ok=True)
     for name in SEED_FILES:
