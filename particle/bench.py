@@ -28,8 +28,8 @@ from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic
 from particle.haptics import HapticSession
-from particle.integrator import VerletIntegrator, critical_time_step
-from particle.model import ConnectorParams, Model, build_model
+from particle.integrator import DEFAULT_STRAIN_RANGE, VerletIntegrator, critical_time_step
+from particle.model import ConnectorParams, Model, StrainBounds, build_model
 from particle.reference_numpy import step_numpy
 from particle.testing import viscoelastic_params
 
@@ -90,15 +90,19 @@ def step_throughput(model: Model, *, steps: int = 2000, numpy_steps: int = 50) -
 
 def gravity_realtime(model: Model, gravity: np.ndarray, *, duration: float = 3.0,
                      record_interval: float = 0.005, safety: float = DT_SAFETY,
-                     skip: bool = True) -> dict:
+                     skip: bool = True,
+                     strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> dict:
     """Wall/CPU time and real-time factor of ``duration`` s of gravity dynamics.
 
-    Every particle is recorded at ``record_interval``, as the gravity stage does.
+    Every particle is recorded at ``record_interval``, as the gravity stage does; the
+    step is ``safety`` x the stability limit over ``strain_range``, which the run verifies.
     """
-    dt = safety * critical_time_step(model)
+    dt = safety * critical_time_step(model, strain_range=strain_range)
     times = np.arange(0.0, duration + 0.5 * record_interval, record_interval)
-    gravity_dynamic(model, gravity, 2 * record_interval, dt, times[:3], skip=skip)  # compile
-    wall, cpu = _timed(lambda: gravity_dynamic(model, gravity, duration, dt, times, skip=skip))
+    gravity_dynamic(model, gravity, 2 * record_interval, dt, times[:3], skip=skip,
+                    strain_range=strain_range)  # compile
+    wall, cpu = _timed(lambda: gravity_dynamic(model, gravity, duration, dt, times, skip=skip,
+                                               strain_range=strain_range))
     return {"duration_s": duration, "dt_s": dt, "steps": int(np.ceil(duration / dt)),
             "wall_s": wall, "cpu_s": cpu, "realtime_factor_wall": duration / wall,
             "realtime_factor_cpu": duration / cpu, "goal_wall_s": 0.05, "paper_wall_s": 1.3}

@@ -59,7 +59,7 @@ from forcecal.scene import Scene, load_scene
 from pipelines import bench_configs as bc
 from pipelines.cache import code_digest
 from pipelines.report import git_commit, gravity_dynamic_error, read_report
-from pipelines.stages import PARAMS, REFERENCE, REFERENCE_SECTIONS
+from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS
 
 log = logging.getLogger(__name__)
 
@@ -102,32 +102,56 @@ def default_run(scene: Scene, root: Path, *, ranks: int, progress: bool
 
 # ---------------------------------------------------------------------------- particle dt axis
 
+def calibrated_release(scene: Scene, folder: Path, reference: Reference):
+    """(calibrated Model, per-connector strain range of its release) as the gravity stage has them.
+
+    The range is :func:`~particle.integrator.strain_range_for_release` of the stage's own
+    static sag (``gravity.h5``), so steps chosen for it are the ones ``make demo`` uses;
+    without that file (the gravity stage failed) the default range +-0.5, with a warning.
+    """
+    from calibration import read_params
+    from particle.integrator import DEFAULT_STRAIN_RANGE, strain_range_for_release
+    from particle.model import build_model
+    from pipelines.gravity import read_gravity
+
+    model = build_model(reference.problem, scene.material.density,
+                        read_params(folder / PARAMS).connectors["calibrated"])
+    if not (folder / GRAVITY).is_file():
+        log.warning("bench: no %s (the gravity stage failed): particle gravity runs use the "
+                    "default strain range %s", folder / GRAVITY, DEFAULT_STRAIN_RANGE)
+        return model, DEFAULT_STRAIN_RANGE
+    static = read_gravity(folder / GRAVITY).models["calibrated"].static_displacement
+    return model, strain_range_for_release(model, static, scene.particle.strain_margin)
+
+
 def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[dict[str, Any]]:
     """Gravity dynamics of the calibrated model at several steps (fractions of the limit).
 
+    The limit is the gravity stage's (over the release's strain range, which each
+    run verifies); the scene's ``particle.dt_safety`` is one of the fractions.
     Errors at the tracked vertex (:func:`pipelines.report.gravity_dynamic_error`):
     ``gravity_dynamic`` against the FE; ``overall`` (the axis's Pareto error, the
     time-discretisation error the step controls) against the smallest step's run.
     """
-    from calibration import read_params
     from particle.experiments import gravity_dynamic
     from particle.integrator import critical_time_step
-    from particle.model import build_model
 
     reference = read_reference(folder / REFERENCE)
-    model = build_model(reference.problem, scene.material.density,
-                        read_params(folder / PARAMS).connectors["calibrated"])
+    model, release = calibrated_release(scene, folder, reference)
     damping = scene.particle.damping
-    critical = critical_time_step(model, damping=damping)
+    critical = critical_time_step(model, strain_range=release, damping=damping)
     g = np.asarray(scene.gravity.acceleration, dtype=float)
     times = reference.gravity.time
     node = reference.problem.tracked_node
     fe = reference.gravity.displacement[:, node]
-    gravity_dynamic(model, g, float(times[2]), critical, times[:3], damping=damping)  # compile
+    gravity_dynamic(model, g, float(times[2]), critical, times[:3], damping=damping,
+                    strain_range=release)  # compile
+    if scene.particle.dt == "auto":
+        fractions = (*fractions, scene.particle.dt_safety)
     runs = []
-    for f in sorted(fractions):
+    for f in sorted(set(fractions)):
         u, wall = bc.timed(gravity_dynamic, model, g, float(times[-1]), f * critical, times,
-                           damping=damping)
+                           damping=damping, strain_range=release)
         runs.append((f, u[:, node], wall))
     finest = runs[0][1]
     default = scene.particle.dt_safety if scene.particle.dt == "auto" else None
@@ -293,10 +317,8 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
     """Kernel throughput, gravity dynamics vs FE, term skipping, haptics, evaluators."""
     import numba
 
-    from calibration import read_params
     from forcecal.mesh import generate_liver
     from particle import bench as pb
-    from particle.model import build_model
 
     numba.set_num_threads(1)
     reference = read_reference(folder / REFERENCE)
@@ -313,11 +335,10 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
     steps = 500 if quick else 2000
     liver_rate = pb.step_throughput(uniform, steps=steps)
     large_rate = pb.step_throughput(large, steps=steps // 4)
-    calibrated = build_model(problem, scene.material.density,
-                             read_params(folder / PARAMS).connectors["calibrated"])
+    calibrated, release = calibrated_release(scene, folder, reference)
     dynamics = pb.gravity_realtime(calibrated, g, duration=scene.gravity.duration,
                                    record_interval=scene.gravity.record_interval,
-                                   safety=scene.particle.dt_safety)
+                                   safety=scene.particle.dt_safety, strain_range=release)
     fe_dynamic = json.loads(reference.meta["timings_s"])["gravity_dynamic"]
     skip = pb.skip_timings(uniform, g, duration=1.0 if quick else scene.gravity.duration)
     top = int(np.argmax(large_mesh.vertices[:, 2]))

@@ -21,10 +21,10 @@ ERROR_LABEL = {
 DEFAULT_ERROR_LABEL = "held-out curve error (indentation, relaxation)"
 # why the default setting stays where it is when another one dominates it
 WHY_DEFAULT = {
-    "particle dt": "the estimated limit is a bound over strains +-0.5; a calibrated spring "
-                   "stiffening beyond that range or a harder load needs the margin that half the "
-                   "limit keeps, and the error against the FE does not depend on the step here "
-                   "(the model error dominates the time-discretisation error)",
+    "particle dt": "the limit is a rigorous bound over the release's strain range, which the "
+                   "run verifies; particle.dt_safety keeps a margin below it, and the error "
+                   "against the FE does not depend on the step here (the model error dominates "
+                   "the time-discretisation error)",
     "mesh": "the error is measured against each mesh's own FE reference (vertex indentation has "
             "no mesh-converged force), so a coarser mesh is not a less accurate model of the "
             "same FE; the default keeps the paper's resolution (~270 nodes)",
@@ -39,10 +39,12 @@ WHY_DEFAULT = {
     "local tuning": "local tuning is what fits the calibration points themselves; the "
                     "held-out points measure how that carries over to points it was not "
                     "fitted to",
-    "FE discretisation": "the default element is chosen for accuracy against the refined "
-                         "mesh (README, 'The FE reference'); the reference is computed once per "
-                         "scene, so its cost matters less than its error, and the refined mesh "
-                         "is too slow for routine use",
+    "FE discretisation": "the particle model fitted to the Taylor-Hood reference's (softer) "
+                         "indentation curves cannot carry the organ's weight: its static sag "
+                         "has no equilibrium beyond about 0.85 g (README, 'Limitations'), so "
+                         "the default is the P2 reference a particle model can be fitted to end "
+                         "to end, with its 15 % stiffness in sag stated; the refined mesh is "
+                         "too slow for routine use",
 }
 
 
@@ -64,11 +66,14 @@ def _rows(bench: dict, axis: str) -> list[dict]:
 
 def _scale(axis, set_scale, values: np.ndarray) -> None:
     """Log scale for positive data spanning more than a decade, else linear; plain ticks."""
-    from matplotlib.ticker import NullFormatter, ScalarFormatter
+    from matplotlib.ticker import FuncFormatter, NullFormatter, ScalarFormatter
 
     if values.min() > 0 and values.max() > 10 * values.min():
         set_scale("log")
         axis.set_minor_formatter(NullFormatter())
+        # ScalarFormatter mislabels log axes (decades shown as 0.00, 0.01, ...)
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        return
     formatter = ScalarFormatter()
     formatter.set_scientific(True)
     formatter.set_powerlimits((-2, 3))
@@ -118,7 +123,7 @@ def write_pareto_plot(path: Path, bench: dict[str, Any]) -> None:
         more = ax.get_legend_handles_labels()
         handles, labels = handles + more[0], labels + more[1]
     unique = dict(zip(labels, handles))
-    fig.legend(unique.values(), unique.keys(), loc="lower right", fontsize=10,
+    fig.legend(unique.values(), unique.keys(), loc="lower center", ncol=len(unique), fontsize=10,
                title="green: on the panel's Pareto front")
     failed = [a for a in AXES if _rows(bench, a) and a not in axes]
     for k, ax in enumerate(panels.ravel()[len(axes):]):
@@ -129,7 +134,7 @@ def write_pareto_plot(path: Path, bench: dict[str, Any]) -> None:
     fig.suptitle(f"forcecal run time vs error ({bench['scene']}; "
                  f"{bench['machine']['date'][:10]}, "
                  f"load {bench['machine']['load_average_start'][0]:.1f})")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))  # room for the legend below the panels
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
@@ -279,9 +284,10 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
                      for name, row in (("default liver", k["liver"]),
                                        ("fine liver", k["large"]))])
     lines += ["", f"## {g['duration_s']:g} s of gravity dynamics: particle vs FE", "",
-              f"Calibrated particle model, explicit step {g['dt_s'] * 1e6:.3g} us (half the "
-              "estimated limit), every vertex recorded every 5 ms, like the gravity stage: "
-              f"{g['particle_s']:.3g} s wall ({g['particle_cpu_s']:.3g} s CPU). FE (P2, "
+              f"Calibrated particle model, explicit step {g['dt_s'] * 1e6:.3g} us "
+              "(particle.dt_safety x the stability limit over the release's strain range), "
+              "every vertex recorded every 5 ms, as the gravity stage runs it: "
+              f"{g['particle_s']:.3g} s wall ({g['particle_cpu_s']:.3g} s CPU). FE ("
               f"Newmark, dt 5 ms, one rank): {g['fe_s']:.1f} s (from `reference.h5`). Ratio "
               f"**{g['speedup']:.0f}x**. Error of the particle run against the FE: "
               f"{_fmt(g['error'])} (calibrated), {_fmt(g['baseline_error'])} (closed-form "
