@@ -237,10 +237,10 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         "machine; on this shared 2-core machine every time is indicative. Every number comes "
         "from a run of this code (`bench.json`); long results (pipeline runs, FE study, "
         "reference timings) are cached in `cache/` under the same code and scene "
-        "fingerprints, so the first `make bench` takes much longer (37 min on an idle 2-core machine "
-        "after `make demo`, whose run it reuses: three reduced FE references, the FE "
-        "discretisation study, eight calibrations and one extra full reference) than the "
-        "next ones (under a minute).", "",
+        "fingerprints, so the first `make bench` takes much longer (37 min on an idle "
+        "2-core machine after `make demo`, whose run it reuses: three reduced FE "
+        "references, the FE discretisation study, eight calibrations and one extra full "
+        "reference) than the next ones (under a minute).", "",
         "## Goals", "",
     ]
     lines += _goals_section(b)
