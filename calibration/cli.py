@@ -6,6 +6,7 @@ import logging
 import sys
 
 from forcecal.errors import ForcecalError
+from forcecal.logs import configure_logging
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     if comm is not None and comm.Get_rank() > 0:
         serve_mpi(comm)
         return 0
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging(logging.INFO)
     from calibration.core import calibrate
     try:
         result = calibrate(args.scene, args.reference, args.out, progress=not args.no_progress,

@@ -197,7 +197,6 @@ def fe_rows(scene: Scene, cache: Path) -> list[dict[str, Any]]:
     finest variant (P2 on the uniformly refined mesh)."""
     def study() -> dict:
         from reference_fe.sensitivity import discretisation_study
-        logging.getLogger().setLevel(logging.WARNING)  # importing FFCx set the root to INFO
         try:
             return discretisation_study(scene)
         except ForcecalError as exc:  # kept too: retried only when the FE code changes

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from forcecal.errors import ForcecalError
+from forcecal.logs import configure_logging
 
 STAGE_COMMANDS = {"reference": "reference", "calibrate": "calibrate", "gravity": "gravity",
                   "report": "report", "demo": "report"}
@@ -60,13 +61,6 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _configure_logging(rank: int) -> None:
-    """INFO from forcecal's packages on rank 0, warnings only on the other MPI ranks."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    for name in ("pipelines", "forcecal", "reference_fe", "particle", "calibration"):
-        logging.getLogger(name).setLevel(logging.INFO if rank == 0 else logging.WARNING)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     comm = None
@@ -81,14 +75,15 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.stage == "bench":
             from pipelines.bench import main as bench_main
-            _configure_logging(0)
+            configure_logging(logging.INFO)
             return bench_main(args)
         from calibration.pool import mpi_world
         from forcecal.scene import load_scene
         from pipelines.stages import ORDER, run_pipeline
         comm = mpi_world()
         rank = 0 if comm is None else comm.Get_rank()
-        _configure_logging(rank)
+        # INFO on rank 0, warnings only on the other MPI ranks
+        configure_logging(logging.INFO if rank == 0 else logging.WARNING)
         scene = load_scene(args.scene)
         out = Path(args.out) if args.out else default_out(scene.name)
         until = STAGE_COMMANDS[args.stage]

@@ -9,6 +9,7 @@ import logging
 import sys
 
 from forcecal.errors import ForcecalError
+from forcecal.logs import configure_logging
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -25,12 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     from reference_fe.run import compute_reference
 
     rank = MPI.COMM_WORLD.rank
-    # force=True: importing FFCx has already configured the root logger
-    logging.basicConfig(level=logging.WARNING, format=f"[rank {rank}] %(levelname)s "
-                        "%(name)s: %(message)s", force=True)
-    if rank == 0:
-        for name in ("forcecal", "reference_fe"):
-            logging.getLogger(name).setLevel(logging.INFO)
+    configure_logging(logging.INFO if rank == 0 else logging.WARNING, prefix=f"[rank {rank}] ")
     try:
         compute_reference(load_scene(args.scene), out_path=args.out,
                           progress=not args.no_progress)

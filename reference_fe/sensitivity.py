@@ -31,6 +31,7 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from forcecal.errors import ForcecalError, MeshError
+from forcecal.logs import configure_logging
 from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
@@ -172,10 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, nargs="*", help="test vertex ids (default: 3 "
                         "calibration points)")
     args = parser.parse_args(argv)
-    # force=True: importing FFCx has configured logging already (and logs its builds at INFO)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
-                        force=True)
-    log.setLevel(logging.INFO)
+    configure_logging(loggers=(__name__,))
     try:
         study = discretisation_study(load_scene(args.scene), args.points or None)
     except ForcecalError as exc:
