@@ -9,3 +9,6 @@ imported lazily to generate the default organ); dolfinx lives in
 """
 
 __version__ = "0.1.0"
+
+#: the project's top-level packages (their loggers, their code in the stage cache keys)
+PROJECT_PACKAGES = ("forcecal", "reference_fe", "particle", "calibration", "pipelines")

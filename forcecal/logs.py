@@ -11,8 +11,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 
-#: top-level packages whose loggers are the project's own
-PROJECT_PACKAGES = ("forcecal", "reference_fe", "particle", "calibration", "pipelines")
+from forcecal import PROJECT_PACKAGES
 
 
 class _ProjectRecords(logging.Filter):

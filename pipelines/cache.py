@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from forcecal import PROJECT_PACKAGES
 from forcecal.errors import DataFileError
 from forcecal.h5io import atomic_path
 
@@ -38,8 +39,6 @@ log = logging.getLogger(__name__)
 
 RECORD_VERSION = 3
 CHUNK = 1 << 20
-# the packages whose source is followed when fingerprinting a stage's code
-PROJECT_PACKAGES = ("forcecal", "reference_fe", "particle", "calibration", "pipelines")
 
 
 def file_digest(path: str | Path) -> str:
