@@ -22,6 +22,7 @@ in-process.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import logging
 import os
@@ -38,7 +39,8 @@ import h5py
 from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
-from pipelines.cache import Cache, StageInputs, code_digests, file_digest, import_closure
+from pipelines.cache import (Cache, StageInputs, code_digests, file_digest, import_closure,
+                             source_digest)
 
 log = logging.getLogger(__name__)
 
@@ -88,9 +90,9 @@ class Stage:
 
     Attributes:
         name: CLI name.
-        sections: scene sections it reads.
+        sections: scene sections it reads ("name": the scene's name).
         code: entry modules it runs; every project module they import is part of its
-            cache key (:func:`pipelines.cache.code_digests`).
+            cache key (:func:`pipelines.cache.code_digests`), and so is this module.
         upstream: files of the output folder it reads.
         run: ``run(ctx) -> output file names`` (relative to ``ctx.out``); called on every
             rank under MPI, returns the outputs on rank 0.
@@ -109,11 +111,16 @@ class Stage:
             if not (ctx.out / name).is_file():
                 raise DataFileError(f"stage {self.name} needs {ctx.out / name}, which does not "
                                     "exist")
-        scene = {s: ctx.scene.fingerprint(s) for s in self.sections}
+        # "name" stands for the scene's top-level name (written into the report)
+        scene = {s: (hashlib.sha256(ctx.scene.name.encode()).hexdigest() if s == "name"
+                     else ctx.scene.fingerprint(s)) for s in self.sections}
+        # this module holds every stage's runner, so it is part of every stage's code (its
+        # lazy imports are not followed: each stage names the modules it runs in `code`)
+        code = {**code_digests(self.code), "pipelines/stages.py": source_digest(Path(__file__))}
         return StageInputs(scene=scene,
                            mesh=load_mesh(ctx.scene).fingerprint() if self.reads_mesh else None,
                            upstream={n: file_digest(ctx.out / n) for n in self.upstream},
-                           code=code_digests(self.code))
+                           code=code)
 
 
 # ---------------------------------------------------------------------------- reference
@@ -254,7 +261,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("gravity", ("material", "gravity", "particle"),
           ("pipelines.gravity", "calibration.results"),
           (REFERENCE, PARAMS), run_gravity_stage),
-    Stage("report", ("outputs",), ("pipelines.report", "pipelines.figures", "pipelines.fields"),
+    Stage("report", ("name", "outputs"), ("pipelines.report", "pipelines.figures", "pipelines.fields"),
           (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)

@@ -102,6 +102,22 @@ def test_fe_stage_code_is_the_fe_and_shared_packages():
     assert not any(n.split(".")[0] in ("particle", "calibration", "pipelines") for n in closure)
 
 
+def test_every_stage_key_holds_the_runners_module_and_the_report_holds_the_scene_name(
+        tmp_path, monkeypatch):
+    from pipelines.stages import Context
+    scene = scene_from_dict({"name": "keyed"})
+    ctx = Context(scene, tmp_path, progress=False, ranks=1)
+    for name in ("reference.h5", "params.h5", "gravity.h5"):
+        (tmp_path / name).write_bytes(b"stand-in")
+    monkeypatch.setattr("pipelines.stages.load_mesh", lambda scene: box_mesh((1, 1, 1), (1, 1, 1)))
+    keys = {name: stage.inputs(ctx) for name, stage in STAGES.items()}
+    assert all("pipelines/stages.py" in k.code for k in keys.values())
+    renamed = STAGES["report"].inputs(Context(scene_from_dict({"name": "other"}), tmp_path,
+                                              progress=False, ranks=1))
+    assert renamed.changes_from({"scene": keys["report"].scene, "upstream": renamed.upstream,
+                                 "code": renamed.code}) == ["scene [name] changed"]
+
+
 def test_file_digest_of_missing_file_is_a_data_file_error(tmp_path):
     with pytest.raises(DataFileError, match="cannot read"):
         file_digest(tmp_path / "nope.h5")
