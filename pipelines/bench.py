@@ -71,6 +71,45 @@ GOALS = {"numpy_ratio": 20.0, "gravity_3s_s": 0.05, "haptic_us": 100.0, "calibra
 PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 
 
+# the fixed keys of bench.json (issue: benchmarks), checked before it is written
+BENCH_KEYS = {"kernel": ("connectors", "updates_per_s", "numpy_ratio"),
+              "gravity_dynamic": ("particle_s", "fe_s", "speedup", "error"),
+              "calibration": ("wall_s", "evaluations"),
+              "reference": ("wall_s_1rank", "wall_s_2ranks")}
+ROW_KEYS = {"pareto": ("config", "stage", "wall_s", "errors"),
+            "skip": ("scene", "full_s", "skipped_s")}
+
+
+def check_bench(bench: dict[str, Any]) -> None:
+    """Raise :class:`DataFileError` if a fixed key of ``bench.json`` is missing or one of its
+    numbers is not finite (a failed Pareto configuration may have ``wall_s`` None: it says
+    why under ``failed``)."""
+    def number(where: str, value: Any, allow_none: bool = False) -> None:
+        if value is None and allow_none:
+            return
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(
+                value):
+            raise DataFileError(f"bench.json: {where} = {value!r} is not a finite number")
+
+    for group, keys in BENCH_KEYS.items():
+        for k in keys:
+            if k not in bench.get(group, {}):
+                raise DataFileError(f"bench.json: {group}.{k} is missing")
+            # the dynamic error is None only when the gravity stage failed (its row says so)
+            number(f"{group}.{k}", bench[group][k], allow_none=(group, k) == (
+                "gravity_dynamic", "error"))
+    for group, keys in ROW_KEYS.items():
+        rows = bench.get(group)
+        if not isinstance(rows, list) or not rows:
+            raise DataFileError(f"bench.json: {group} must be a non-empty list of rows")
+        for n, row in enumerate(rows):
+            for k in keys:
+                if k not in row:
+                    raise DataFileError(f"bench.json: {group}[{n}].{k} is missing")
+            for k in keys[1:] if group == "skip" else ("wall_s",):
+                number(f"{group}[{n}].{k}", row[k], allow_none="failed" in row)
+
+
 # ---------------------------------------------------------------------------- default run
 
 def seed_default(scene: Scene, folder: Path) -> None:
@@ -438,6 +477,7 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, time.perf_counter() - t0)
     bench["machine"]["load_average_end"] = list(os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
+    check_bench(bench)
     with atomic_path(out / "bench.json") as tmp:
         tmp.write_text(json.dumps(bench, indent=1) + "\n")
     write_pareto_plot(out / "pareto.png", bench)

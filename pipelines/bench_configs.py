@@ -285,13 +285,19 @@ def pareto_front(rows: list[dict[str, Any]], error: str = "overall") -> list[boo
 
 def mark_fronts(rows: list[dict[str, Any]]) -> None:
     """Set ``on_front`` of every row, per axis, on the axis's primary error (``errors.overall``);
-    failed configurations are never on it."""
+    failed configurations are never on it. The ``default`` row is no axis of its own (alone
+    it would trivially be on a front): it is on the front when the default setting is on the
+    front of every axis it takes part in."""
     for row in rows:
         row["on_front"] = False
-    for axis in dict.fromkeys(r["axis"] for r in rows):
+    for axis in dict.fromkeys(r["axis"] for r in rows if r["axis"] != "default"):
         members = [r for r in rows if r["axis"] == axis and "failed" not in r]
         for r, on in zip(members, pareto_front(members)):
             r["on_front"] = on
+    defaults = [r["on_front"] for r in rows if r["default"] and r["axis"] != "default"]
+    for row in rows:
+        if row["axis"] == "default":
+            row["on_front"] = bool(defaults) and all(defaults)
 
 
 def timed(fn, *args, **kwargs) -> tuple[Any, float]:

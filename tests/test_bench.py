@@ -66,3 +66,58 @@ def test_a_resumed_reference_run_is_not_taken_as_a_wall_time(liver_scene, liver_
         {"mesh": 1.0, "indentation": 40.0, "relaxation": 80.0, "gravity_static": 10.0,
          "gravity_dynamic": 30.0, "total": total}))
     assert _complete_run_seconds(reference) == ((2, total) if complete else None)
+
+
+def _row(axis, label, wall, error, default=False):
+    return {"axis": axis, "label": label, "wall_s": wall, "errors": {"overall": error},
+            "default": default}
+
+
+def test_the_default_row_is_on_the_front_only_if_it_is_on_every_axis_front():
+    from pipelines.bench_configs import mark_fronts
+    rows = [_row("default", "liver", 10.0, 0.2, True),
+            _row("budget", "x1", 10.0, 0.2, True), _row("budget", "x0.5", 5.0, 0.3),
+            _row("local", "on", 10.0, 0.2, True), _row("local", "off", 5.0, 0.3)]
+    mark_fronts(rows)
+    assert [r["on_front"] for r in rows] == [True, True, True, True, True]
+    rows[-1]["errors"]["overall"] = 0.1  # "off" now dominates the default on its axis
+    mark_fronts(rows)
+    assert [r["on_front"] for r in rows] == [False, True, True, False, True]
+
+
+def _bench():
+    return {"kernel": {"connectors": 1400, "updates_per_s": 2e8, "numpy_ratio": 50.0},
+            "gravity_dynamic": {"particle_s": 0.04, "fe_s": 240.0, "speedup": 6000.0,
+                                "error": 0.27},
+            "calibration": {"wall_s": 83.0, "evaluations": 15000},
+            "reference": {"wall_s_1rank": 800.0, "wall_s_2ranks": 400.0},
+            "pareto": [{"config": {}, "stage": "calibration", "wall_s": 83.0,
+                        "errors": {"overall": 0.13}},
+                       {"config": {"local": False}, "stage": "calibration", "wall_s": None,
+                        "errors": None, "failed": "ConvergenceError: ..."}],
+            "skip": [{"scene": "elastic", "full_s": 0.05, "skipped_s": 0.03}]}
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda b: b["kernel"].pop("numpy_ratio"), "kernel.numpy_ratio is missing"),
+    (lambda b: b.pop("reference"), "reference.wall_s_1rank is missing"),
+    (lambda b: b["calibration"].update(wall_s=float("nan")), "calibration.wall_s = nan"),
+    (lambda b: b["pareto"][0].update(wall_s=None), r"pareto\[0\].wall_s = None"),
+    (lambda b: b["pareto"][0].pop("stage"), r"pareto\[0\].stage is missing"),
+    (lambda b: b.update(skip=[]), "skip must be a non-empty list"),
+    (lambda b: b["skip"][0].update(skipped_s="fast"), r"skip\[0\].skipped_s = 'fast'"),
+])
+def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message):
+    from forcecal.errors import DataFileError
+    from pipelines.bench import check_bench
+    bench = _bench()
+    check_bench(bench)
+    damage(bench)
+    with pytest.raises(DataFileError, match=message):
+        check_bench(bench)
+
+
+def test_the_committed_bench_has_every_fixed_key():
+    from pipelines.bench import check_bench
+    from tests.conftest import ROOT
+    check_bench(json.loads((ROOT / "runs" / "bench" / "bench.json").read_text()))
