@@ -80,6 +80,21 @@ def _scale(axis, set_scale, values: np.ndarray) -> None:
     axis.set_major_formatter(formatter)
 
 
+def _merged_labels(labels: list[str], screen: np.ndarray) -> dict[int, str]:
+    """One annotation per group of points that nearly coincide on screen (``screen``: (n, 2)
+    display coordinates [px]), e.g. ``P2 q=4 / P2 q=6``, so labels do not print over each other."""
+    out: dict[int, str] = {}
+    taken = np.zeros(len(labels), dtype=bool)
+    for k in range(len(labels)):
+        if taken[k]:
+            continue
+        dx, dy = np.abs(screen - screen[k]).T
+        near = (dx < 60.0) & (dy < 12.0) & ~taken  # about a label's width and height
+        taken |= near
+        out[k] = " / ".join(labels[i] for i in np.nonzero(near)[0])
+    return out
+
+
 def write_pareto_plot(path: Path, bench: dict[str, Any]) -> None:
     """One panel per axis: wall time of the stage it affects vs its error, front and default."""
     import matplotlib
@@ -101,9 +116,7 @@ def write_pareto_plot(path: Path, bench: dict[str, Any]) -> None:
         ax.plot(t[front][order], shown[front][order], "-", color="tab:green", lw=2, alpha=0.5,
                 label="Pareto front")
         ax.scatter(t, shown, c=np.where(front, "tab:green", "tab:gray"), s=50, zorder=3)
-        for r, x, y, z in zip(rows, t, shown, e):
-            text = r["label"] + (" (= 0)" if z <= 0 else "")
-            ax.annotate(text, (x, y), textcoords="offset points", xytext=(6, 4), fontsize=8)
+        for r, x, y in zip(rows, t, shown):
             if r["default"]:
                 ax.scatter([x], [y], marker="*", s=260, facecolor="none", edgecolor="tab:red",
                            lw=1.8, zorder=4, label="default scene")
@@ -118,6 +131,12 @@ def write_pareto_plot(path: Path, bench: dict[str, Any]) -> None:
             # differences far below the error itself: show them at that scale, not magnified
             mid = 0.5 * (shown.max() + shown.min())
             ax.set_ylim(0.85 * mid, 1.15 * mid)
+        # labelled last, in screen space once the scales and limits are final
+        labels = [r["label"] + (" (= 0)" if z <= 0 else "") for r, z in zip(rows, e)]
+        screen = ax.transData.transform(np.column_stack([t, shown]))
+        for k, text in _merged_labels(labels, screen).items():
+            ax.annotate(text, (t[k], shown[k]), textcoords="offset points", xytext=(6, 4),
+                        fontsize=8)
     handles, labels = panels.ravel()[0].get_legend_handles_labels()
     for ax in panels.ravel()[:len(axes)]:
         more = ax.get_legend_handles_labels()

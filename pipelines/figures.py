@@ -171,7 +171,8 @@ def gravity_static_figure(path: Path, reference: Reference, gravity: GravityRuns
     norm = colors.Normalize(0.0, MM * peak)
     fig = plt.figure(figsize=(13, 5.5))
     for i, (u, label) in enumerate(((fe, "FE reference"), (particle, "particle, calibrated"))):
-        ax = fig.add_axes([0.01 + 0.45 * i, 0.02, 0.43, 0.86], projection="3d")
+        # the 3-D axes draw their z label outside their box: leave room for it before the next
+        ax = fig.add_axes([0.0 + 0.46 * i, 0.02, 0.40, 0.86], projection="3d")
         _surface(ax, mesh.vertices, mesh.surface_faces, u, norm, scale,
                  f"{label}: max sag {MM * np.linalg.norm(u, axis=1).max():.2f} mm")
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"),
