@@ -59,7 +59,7 @@ from forcecal.scene import Scene, load_scene
 from pipelines import bench_configs as bc
 from pipelines.cache import code_digest
 from pipelines.report import git_commit, gravity_dynamic_error, read_report
-from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS
+from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS, mpirun_environment
 
 log = logging.getLogger(__name__)
 
@@ -302,11 +302,8 @@ def measure_reference(scene: Scene, ranks: int, folder: Path, progress: bool) ->
             raise DataFileError("mpirun is not on the PATH: cannot time the reference on "
                                 f"{ranks} ranks")
         cmd = [mpirun, "-n", str(ranks)] + cmd
-    env = {**os.environ, **{k: os.environ.get(k, "1") for k in (
-        "OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
-        "OMPI_MCA_rmaps_base_oversubscribe")}}
     log.info("bench: timing the full reference on %d rank(s): %s", ranks, " ".join(cmd))
-    if subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL).returncode != 0:
+    if subprocess.run(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL).returncode != 0:
         raise DataFileError(f"the timed reference run on {ranks} rank(s) failed (message above)")
     measured = _complete_run_seconds(read_reference(out))
     shutil.rmtree(out.parent)

@@ -139,19 +139,25 @@ def run_reference(ctx: Context) -> list[str]:
            "--scene", str(ctx.scene.path), "--out", str(path)]
     if not ctx.progress:
         cmd.append("--no-progress")
+    log.info("running %s", " ".join(cmd))
+    rc = subprocess.run(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL).returncode
+    if rc != 0:
+        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}); its message is "
+                          "printed above. Finished work items are kept in "
+                          f"{path}.parts/ and reused by a rerun")
+    return [REFERENCE]
+
+
+def mpirun_environment() -> dict[str, str]:
+    """Environment of a spawned ``mpirun``: this process's, with OpenMPI allowed to run as
+    root and to oversubscribe the cores (unless the caller set those variables)."""
     # an explicit copy of os.environ also leaves out what MPI, if this process initialised it
     # (e.g. dolfinx imported in-process), set in the C environment: mpirun fails with those
     env = dict(os.environ)
     for k in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
               "OMPI_MCA_rmaps_base_oversubscribe"):
         env.setdefault(k, "1")
-    log.info("running %s", " ".join(cmd))
-    rc = subprocess.run(cmd, env=env, stdin=subprocess.DEVNULL).returncode
-    if rc != 0:
-        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}); its message is "
-                          "printed above. Finished work items are kept in "
-                          f"{path}.parts/ and reused by a rerun")
-    return [REFERENCE]
+    return env
 
 
 def adopt_reference(ctx: Context, stage: Stage, inputs: StageInputs) -> bool:
@@ -261,7 +267,8 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("gravity", ("material", "gravity", "particle"),
           ("pipelines.gravity", "calibration.results"),
           (REFERENCE, PARAMS), run_gravity_stage),
-    Stage("report", ("name", "outputs"), ("pipelines.report", "pipelines.figures", "pipelines.fields"),
+    Stage("report", ("name", "outputs"),
+          ("pipelines.report", "pipelines.figures", "pipelines.fields"),
           (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)
