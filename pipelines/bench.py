@@ -110,6 +110,18 @@ def check_bench(bench: dict[str, Any]) -> None:
                 number(f"{group}[{n}].{k}", row[k], allow_none="failed" in row)
 
 
+def read_bench(path: str | Path) -> dict[str, Any]:
+    """A ``bench.json`` with its fixed keys checked (:func:`check_bench`)."""
+    try:
+        bench = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise DataFileError(f"cannot read {path}: {exc}") from exc
+    if not isinstance(bench, dict):
+        raise DataFileError(f"{path}: not a bench.json (a JSON object is expected)")
+    check_bench(bench)
+    return bench
+
+
 # ---------------------------------------------------------------------------- default run
 
 def seed_default(scene: Scene, folder: Path) -> None:
@@ -467,11 +479,15 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     items = [("default pipeline run", default_item), ("run time vs error", pareto_item),
              ("reference timings", reference_item), ("particle engine", particle_item),
              ("stability limits", stability_item)]
+    bench["item_s"] = {}
+    start = time.perf_counter()
     for k, (name, fn) in enumerate(items, 1):
         log.info("bench [%d/%d] %s ...", k, len(items), name)
         t0 = time.perf_counter()
         fn()
-        log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, time.perf_counter() - t0)
+        bench["item_s"][name] = time.perf_counter() - t0
+        log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, bench["item_s"][name])
+    bench["wall_s"] = time.perf_counter() - start
     bench["machine"]["load_average_end"] = list(os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
     check_bench(bench)

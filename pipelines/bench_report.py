@@ -197,6 +197,20 @@ def _goals_section(b: dict) -> list[str]:
     return _table(["goal (issues)", "target", "measured", ""], rows)
 
 
+def _duration(b: dict) -> str:
+    """How long this bench run took, item by item (runs written before it was recorded: '')."""
+    if "wall_s" not in b:
+        return ""
+    items = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in b["item_s"].items())
+    return f"This run took {b['wall_s'] / 60:.1f} min ({items} min)."
+
+
+def goals_markdown(b: dict[str, Any]) -> str:
+    """The goals table of ``BENCH.md`` (the README shows it: ``python -m pipelines
+    bench-table runs/bench/bench.json``)."""
+    return "\n".join(_goals_section(b))
+
+
 def _pareto_section(b: dict) -> list[str]:
     lines = []
     for axis in AXES:
@@ -256,10 +270,10 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         "machine; on this shared 2-core machine every time is indicative. Every number comes "
         "from a run of this code (`bench.json`); long results (pipeline runs, FE study, "
         "reference timings) are cached in `cache/` under the same code and scene "
-        "fingerprints, so the first `make bench` takes much longer (37 min on an idle "
-        "2-core machine after `make demo`, whose run it reuses: three reduced FE "
-        "references, the FE discretisation study, eight calibrations and one extra full "
-        "reference) than the next ones (under a minute).", "",
+        "fingerprints, so a `make bench` after a code change recomputes them (three reduced "
+        "FE references, the FE discretisation study, eight calibrations and one extra full "
+        "reference; the default pipeline run is `make demo`'s) and one without change "
+        "takes about a minute. " + _duration(b), "",
         "## Goals", "",
     ]
     lines += _goals_section(b)

@@ -40,6 +40,8 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scene-keys", help="print the Markdown table of every scene key")
     p = sub.add_parser("results-table", help="print the README's results tables from a report")
     p.add_argument("report", help="report.json")
+    p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
+    p.add_argument("bench", help="bench.json")
     from pipelines.bench import add_arguments as bench_arguments
     bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
     helps = {"reference": "FE reference (reference.h5)",
@@ -72,6 +74,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.stage == "results-table":
             from pipelines.report import read_report, results_markdown
             print(results_markdown(read_report(args.report)))
+            return 0
+        if args.stage == "bench-table":
+            from pipelines.bench import read_bench
+            from pipelines.bench_report import goals_markdown
+            print(goals_markdown(read_bench(args.bench)))
             return 0
         if args.stage == "bench":
             from pipelines.bench import main as bench_main

@@ -117,7 +117,20 @@ def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message
         check_bench(bench)
 
 
-def test_the_committed_bench_has_every_fixed_key():
-    from pipelines.bench import check_bench
+def test_the_committed_bench_has_every_fixed_key_and_the_readme_shows_its_goals():
+    from pipelines.bench import read_bench
+    from pipelines.bench_report import goals_markdown
     from tests.conftest import ROOT
-    check_bench(json.loads((ROOT / "runs" / "bench" / "bench.json").read_text()))
+    bench = read_bench(ROOT / "runs" / "bench" / "bench.json")
+    assert goals_markdown(bench) in (ROOT / "README.md").read_text()
+
+
+def test_read_bench_refuses_a_damaged_file(tmp_path):
+    from forcecal.errors import DataFileError
+    from pipelines.bench import read_bench
+    (tmp_path / "bench.json").write_text('{"kernel": ')
+    with pytest.raises(DataFileError, match="cannot read"):
+        read_bench(tmp_path / "bench.json")
+    (tmp_path / "bench.json").write_text("[1, 2]")
+    with pytest.raises(DataFileError, match="not a bench.json"):
+        read_bench(tmp_path / "bench.json")
