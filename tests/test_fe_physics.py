@@ -56,6 +56,74 @@ def lateral_stretch(stretch: float, m: MaterialSection) -> float:
     return brentq(lambda lt: nominal_stress((stretch, lt, lt), m)[1], 0.5, 1.5, xtol=1e-15)
 
 
+def _pk2(l1: float, l2: float, m: MaterialSection) -> tuple[np.ndarray, np.ndarray]:
+    """Principal 2nd PK stresses S_k = (1/l_k) dW/dl_k of stretches (l1, l2, l2) along the axis
+    (k = 1) and laterally (k = 2), isochoric and volumetric parts [Pa], by complex step."""
+    h = 1e-30
+    iso, vol = np.empty(2), np.empty(2)
+    for k, s in enumerate(((l1 + 1j * h, l2, l2), (l1, l2 + 1j * h, l2))):
+        iso[k] = energy(s, m, "iso").imag / h / (l1, l2)[k]
+        vol[k] = energy(s, m, "vol").imag / h / (l1, l2)[k]
+    return iso, vol
+
+
+def viscoelastic_uniaxial(stretch_at, knots: np.ndarray,
+                          m: MaterialSection) -> tuple[np.ndarray, np.ndarray]:
+    """Viscoelastic uniaxial test of a homogeneous block with traction-free lateral faces.
+
+    Axial stretch ``stretch_at(t)``, lateral stretch l2 = l3 from S_2 = 0, with
+    ``S = S_vol + g_inf S_iso0 + sum_i h_i`` and the Prony stresses as the hereditary integral
+    ``h_i(t) = g_i int_0^t exp(-(t - s)/tau_i) dS_iso0/ds ds``, evaluated directly (a sum over
+    the whole history at every time, not the FE's recursion) on a fine grid: each interval
+    between knots split into >= 20 pieces of <= tau_min/100, S_iso0 linear in a piece, the
+    kernel at its midpoint (relative error (dt/tau)^2/24 <= 4e-6 per increment).
+
+    Returns, at ``knots``:
+        nominal axial stress P_1 = l1 S_1 [Pa];
+        bound [Pa] on the error of an FE that steps from knot to knot. Its update is exact for
+        an S_iso0 linear within each step, so its h_i integrates the piecewise-linear
+        interpolant S^ of S_iso0 through the knots; by parts,
+        ``|h_i^FE - h_i| <= g_i/tau_i int exp(-(t - s)/tau_i) |S^ - S_iso0| ds`` per
+        component. A lateral error is taken up by l2, which changes S_1 by
+        (dS_1/dl2)/(dS_2/dl2) ~ (l2/l1)^2 < 1 times it (both derivatives are dominated by the
+        volumetric stress), so the bound is l1 times the sum of both components' bounds (to
+        first order: the feedback of l2 into S_iso0 is ~mu0/kappa = 2 % of it).
+    """
+    g, tau = np.array(m.prony_g), np.array(m.prony_tau)
+    edges = np.r_[0.0, knots]
+    pieces = [max(20, int(np.ceil((b - a) / (tau.min() / 100)))) for a, b in zip(edges[:-1],
+                                                                                  edges[1:])]
+    grid = np.concatenate([[0.0]] + [np.linspace(a, b, n + 1)[1:]
+                                     for a, b, n in zip(edges[:-1], edges[1:], pieces)])
+    mid = 0.5 * (grid[1:] + grid[:-1])
+    iso = np.zeros((len(grid), 2))
+    axial = np.zeros(len(grid))
+    l2 = 1.0
+    for n in range(1, len(grid)):
+        l1 = stretch_at(grid[n])
+        weight = np.sum(g[:, None] * np.exp(-(grid[n] - mid[:n])[None] / tau[:, None]), axis=0)
+        history = weight[:-1] @ np.diff(iso[:n], axis=0)  # h_i summed over earlier pieces
+
+        def stress(lateral):
+            s_iso, s_vol = _pk2(l1, lateral, m)
+            return (s_vol + m.long_term_factor * s_iso + history
+                    + weight[-1] * (s_iso - iso[n - 1])), s_iso
+
+        l2 = brentq(lambda lateral: stress(lateral)[0][1], l2 - 0.02, l2 + 0.02, xtol=1e-15)
+        s, iso[n] = stress(l2)
+        axial[n] = l1 * s[0]
+    at = np.searchsorted(grid, knots)
+    nodes = np.r_[0, at]
+    deviation = sum(np.abs(np.interp(grid, grid[nodes], iso[nodes, k]) - iso[:, k])
+                    for k in range(2))
+    bound = np.empty(len(knots))
+    for j, i in enumerate(at):
+        rate = np.sum(g[:, None] / tau[:, None]
+                      * np.exp(-(grid[i] - grid[:i + 1])[None] / tau[:, None]), axis=0)
+        bound[j] = stretch_at(grid[i]) * np.trapz(rate * deviation[:i + 1], grid[:i + 1])
+    return axial[at], bound
+
+
 # --- meshes and loads ---------------------------------------------------------------------------
 
 def mirrored_block(a: float, h: float) -> TetMesh:
@@ -200,34 +268,38 @@ def test_uniaxial_stretch_matches_homogeneous_solution(element, stretch):
     np.testing.assert_allclose(u[side, 1], (lt - 1.0) * L, rtol=1e-7)
 
 
-def test_step_relaxation_matches_prony_closed_form(p2_block):
-    """Step stretch (applied in 1e-4 s) held for 5 tau_max, P2, viscoelastic, free lateral faces.
+@pytest.mark.parametrize("case", ["step", "steps of tau1"])
+def test_relaxation_matches_the_hereditary_integral(p2_block, case):
+    """Uniaxial stretch to 1.1 then hold, P2, viscoelastic, free lateral faces, against the
+    independent semi-analytic solution of :func:`viscoelastic_uniaxial`.
 
-    Closed form used: P(t) = [g_inf + sum g_i exp(-t/tau_i)] P_0, with P_0 the
-    *instantaneous total* nominal stress of the homogeneous solution. It is exact
-    for an incompressible material (the pressure adapts so that the lateral
-    faces stay traction-free, so the whole uniaxial stress relaxes like the
-    isochoric one; splitting off a constant P_vol would be wrong here: it is off
-    by 3 %). With kappa = 50 mu0 the lateral stretch drifts by 6e-4 while the
-    shear stress relaxes, which leaves ~0.4 % between FE and closed form: the
-    task allows 2 %, we assert 1 %.
+    ``step``: stretch applied in 1e-4 s (2 steps), held 5 tau_max with 60 geometrically
+    growing steps (dt/tau1 from 2.5e-4 to 4). ``steps of tau1``: a 1 s ramp then a hold to 3 s,
+    every step dt = tau1 (the default scene's ramp runs at dt/tau1 = 0.1): the Prony update is
+    exact only for a stress linear in a step, so these large steps test its decay and gain.
+
+    Tolerance: the time-discretisation bound that function returns (observed 0.89 and 0.73 of
+    it: 3.8e-6 and 1.3e-3 relative), plus 1e-6 for the Newton tolerance (1e-8) and the
+    reference's own quadrature (doubling its substeps changes it by < 1e-9). A Prony gain
+    b_i = g_i instead of g_i (1 - exp(-dt/tau_i)) tau_i/dt fails both (errors 9.6e-5, 0.18).
     """
-    stretch, ramp = 1.1, 1e-4
-    samples = np.array([ramp, 0.05, 0.1, 0.2, 0.4, 0.7, 1.0, 2.0, 3.0, 5.0])
-    times = np.unique(np.r_[ramp / 2, samples, np.geomspace(ramp, 5.0, 60)])
-    states = uniaxial_history(p2_block, lambda t: 1.0 + (stretch - 1.0) * min(t / ramp, 1.0),
-                              times, viscous=True)
+    stretch = 1.1
+    if case == "step":
+        ramp, times = 1e-4, np.unique(np.r_[5e-5, np.geomspace(1e-4, 5.0, 60)])
+    else:
+        tau1 = MATERIAL.prony_tau[0]
+        ramp, times = 1.0, tau1 * np.arange(1, 16)
+    stretch_at = lambda t: 1.0 + (stretch - 1.0) * min(t / ramp, 1.0)  # noqa: E731
+    states = uniaxial_history(p2_block, stretch_at, times, viscous=True)
     _, pulled = uniaxial_load(p2_block, stretch)
-    force = {t: s.force[pulled].sum() / L ** 2 for t, s in zip(times, states)}
+    fe = np.array([s.force[pulled].sum() / L ** 2 for s in states])  # nominal stress [Pa]
 
-    lt0 = lateral_stretch(stretch, MATERIAL)
-    p_0 = nominal_stress((stretch, lt0, lt0), MATERIAL)[0]
-    g, tau = np.array(MATERIAL.prony_g), np.array(MATERIAL.prony_tau)
-    for t in samples:
-        relaxation = MATERIAL.long_term_factor + np.sum(g * np.exp(-(t - ramp) / tau))
-        assert force[t] == pytest.approx(relaxation * p_0, rel=0.01), t
-    # the force relaxes from the instantaneous towards the long-term value (ratio 1/g_inf)
-    assert force[samples[0]] / force[samples[-1]] > 2.4
+    reference, bound = viscoelastic_uniaxial(stretch_at, times, MATERIAL)
+    assert np.all(np.abs(fe - reference) <= bound + 1e-6 * np.abs(reference))
+    if case == "step":
+        assert np.max(np.abs(fe / reference - 1.0)) < 1e-5
+        # the force relaxes from the instantaneous towards the long-term value (ratio 1/g_inf)
+        assert fe[1] / fe[-1] > 2.4
 
 
 def test_long_term_material_is_the_slow_ramp_limit(symmetric_block):
