@@ -202,20 +202,12 @@ def check_mesh(mesh: TetMesh) -> TetMesh:
         unused = np.nonzero(~used)[0]
         raise MeshError(f"bad mesh: {len(unused)} vertices belong to no tet, e.g. "
                         f"{unused[:10].tolist()}")
-    tol = 1e-9 * scale
-    order = np.lexsort(v.T[::-1])
-    d = np.abs(np.diff(v[order], axis=0)).max(axis=1)
-    dup = np.nonzero(d <= tol)[0]
-    if len(dup):
-        # lexsort neighbours catch exact duplicates; confirm with a KD-tree for near ones
-        a, b = order[dup[0]], order[dup[0] + 1]
-        raise MeshError(f"bad mesh: duplicate vertices {int(min(a, b))} and {int(max(a, b))} "
-                        f"at {v[a].tolist()}")
+    # vertices closer than 1e-9 of the mesh size are the same point (exact or round-off copies)
     from scipy.spatial import cKDTree
-    pairs = cKDTree(v).query_pairs(tol, output_type="ndarray")
+    pairs = cKDTree(v).query_pairs(1e-9 * scale, output_type="ndarray")
     if len(pairs):
-        a, b = pairs[0]
-        raise MeshError(f"bad mesh: duplicate vertices {int(a)} and {int(b)} at {v[a].tolist()}")
+        a, b = min((int(i), int(j)) for i, j in pairs)  # i < j; the lowest pair, deterministically
+        raise MeshError(f"bad mesh: duplicate vertices {a} and {b} at {v[a].tolist()}")
     ncomp, labels = connected_components(mesh.adjacency, directed=False)
     if ncomp != 1:
         sizes = np.bincount(labels)
@@ -330,9 +322,18 @@ def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
     c = mesh.vertices[:, k]
     ref = c.min() if side == "min" else c.max()
     ids = np.nonzero(np.abs(c - ref) <= tolerance)[0]
+    rule = f"fixed-node rule ({axis} {side} +- {tolerance} m)"
     if len(ids) < 3:
-        raise MeshError(f"fixed-node rule ({axis} {side} +- {tolerance} m) selects {len(ids)} "
-                        "vertices; at least 3 non-collinear ones are needed to hold the organ")
+        raise MeshError(f"{rule} selects {len(ids)} vertices; at least 3 non-collinear ones are "
+                        "needed to hold the organ")
+    # clamped points on one line leave the rotation about it free (a singular problem); they
+    # are collinear when the second principal extent is below 1e-6 of the first
+    x = mesh.vertices[ids]
+    extent = np.linalg.svd(x - x.mean(axis=0), compute_uv=False)
+    if extent[1] <= 1e-6 * extent[0]:
+        raise MeshError(f"{rule} selects {len(ids)} collinear vertices ({ids[:10].tolist()}); "
+                        "the organ could rotate about their line: at least 3 non-collinear "
+                        "ones are needed (widen fixed.tolerance)")
     return ids.astype(np.int64)
 
 
@@ -349,18 +350,23 @@ def _minimum_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray) -> np.ndar
     res = milp(c=np.ones(len(vertices)), integrality=np.ones(len(vertices)),
                bounds=Bounds(0, 1), constraints=LinearConstraint(sub.tocsr(), lb=1.0),
                options={"time_limit": 60.0})
-    if res.x is None:
-        raise MeshError(f"could not choose calibration points covering the surface: {res.message}")
+    # only a proven optimum is a function of the graph alone; a time-limited feasible answer
+    # would depend on the machine's speed (and change the points and every cache key)
+    if res.status != 0 or res.x is None:
+        raise MeshError(f"could not choose calibration points covering the surface: the "
+                        f"minimum cover of {len(vertices)} free surface vertices was not proven "
+                        f"optimal ({res.message}); give test_points.calibration explicitly")
     return np.sort(vertices[res.x > 0.5])
 
 
-def _farthest_points(x: np.ndarray, candidates: np.ndarray, n: int,
-                     avoid: np.ndarray) -> list[int]:
-    """n candidates chosen one by one as far as possible from ``avoid`` and from each other."""
+def _farthest_points(x: np.ndarray, candidates: np.ndarray, n: int, avoid: np.ndarray,
+                     what: str) -> list[int]:
+    """n candidates chosen one by one as far as possible from ``avoid`` and from each other
+    (``what`` names them in the error raised when there are fewer than n)."""
     if n == 0:
         return []
     if len(candidates) < n:
-        raise MeshError(f"only {len(candidates)} surface vertices left for {n} held-out points")
+        raise MeshError(f"only {len(candidates)} free surface vertices left for {n} {what}")
     ref = x[avoid] if len(avoid) else x[candidates[:1]]
     d = np.min(np.linalg.norm(x[candidates][:, None] - ref[None], axis=2), axis=1)
     chosen: list[int] = []
@@ -393,7 +399,8 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31) -> 
         raise MeshError(f"covering the free surface needs {len(cover)} calibration points but "
                         f"test_points.n_calibration = {n}")
     rest = np.setdiff1d(free_surface, cover)
-    cover += _farthest_points(mesh.vertices, rest, n - len(cover), np.asarray(cover))
+    cover += _farthest_points(mesh.vertices, rest, n - len(cover), np.asarray(cover),
+                              "more calibration points (test_points.n_calibration)")
     return np.sort(np.asarray(cover, dtype=np.int64))
 
 
@@ -401,7 +408,8 @@ def select_held_out_points(mesh: TetMesh, fixed: np.ndarray, calibration: np.nda
                            n: int = 8) -> np.ndarray:
     """``n`` free surface vertices farthest from the calibration points and from each other."""
     rest = np.setdiff1d(free_surface_vertices(mesh, fixed), calibration)
-    held = _farthest_points(mesh.vertices, rest, n, np.asarray(calibration))
+    held = _farthest_points(mesh.vertices, rest, n, np.asarray(calibration),
+                            "held-out points (test_points.n_held_out)")
     return np.sort(np.asarray(held, dtype=np.int64))
 
 

@@ -4,7 +4,9 @@ import pytest
 
 from forcecal.errors import MeshError
 from forcecal.mesh import (TetMesh, box_mesh, check_mesh, fixed_nodes, generate_liver, read_mesh,
-                           select_calibration_points, validate_test_points)
+                           select_calibration_points, select_held_out_points,
+                           validate_test_points)
+from forcecal.scene import FixedSection
 
 
 def test_generated_liver_is_deterministic_and_paper_sized():
@@ -79,12 +81,58 @@ def test_bad_user_test_points_are_refused(liver_problem):
     interior = np.setdiff1d(np.arange(p.mesh.n_vertices), p.mesh.surface_vertices)
     with pytest.raises(MeshError, match="not on the surface"):
         validate_test_points(p.mesh, p.fixed, interior[:1], "held_out")
+    twice = np.r_[p.held_out[:2], p.held_out[:1]]
+    with pytest.raises(MeshError, match="held_out test points contain duplicates"):
+        validate_test_points(p.mesh, p.fixed, twice, "held_out")
+
+
+def test_too_few_vertices_left_for_the_held_out_points(liver_problem):
+    p = liver_problem
+    left = len(np.setdiff1d(np.setdiff1d(p.mesh.surface_vertices, p.fixed), p.calibration))
+    with pytest.raises(MeshError, match=rf"only {left} free surface vertices left for "
+                       rf"{left + 1} held-out points \(test_points.n_held_out\)"):
+        select_held_out_points(p.mesh, p.fixed, p.calibration, left + 1)
+
+
+def test_a_cover_not_proven_optimal_is_refused(liver_problem, monkeypatch):
+    """A time-limited MILP answer (status 1) would make the points depend on the machine."""
+    import scipy.optimize
+
+    def time_limited(c, **_):  # a feasible (all points) but unproven answer
+        return scipy.optimize.OptimizeResult(x=np.ones(len(c)), status=1, success=False,
+                                             message="Time limit reached. (HiGHS Status 13)")
+
+    monkeypatch.setattr(scipy.optimize, "milp", time_limited)
+    with pytest.raises(MeshError, match="was not proven optimal \\(Time limit reached"):
+        select_calibration_points(liver_problem.mesh, liver_problem.fixed, 31)
 
 
 # --- every mesh-check error ---------------------------------------------------------------
 
 def _one_tet():
     return np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2, 3]])
+
+
+def test_non_finite_coordinates():
+    v, t = _one_tet()
+    v[2, 1] = np.inf
+    with pytest.raises(MeshError, match=r"non-finite coordinates at vertices \[2\]"):
+        check_mesh(TetMesh(v, t))
+
+
+def test_vertex_ids_out_of_range():
+    v, _ = _one_tet()
+    with pytest.raises(MeshError, match=r"tet vertex ids must lie in \[0, 3\], got range "
+                       r"\[0, 4\]"):
+        check_mesh(TetMesh(v, np.array([[0, 1, 2, 4]])))
+
+
+def test_tet_repeating_a_vertex():
+    m = box_mesh((1, 1, 1))
+    tets = m.tets.copy()
+    tets[3, 2] = tets[3, 1]
+    with pytest.raises(MeshError, match=r"tets \[3\] repeat a vertex"):
+        check_mesh(TetMesh(m.vertices, tets))
 
 
 def test_no_tets():
@@ -131,10 +179,31 @@ def test_disconnected_parts():
         check_mesh(TetMesh(v2, t2))
 
 
-def test_no_fixed_vertex():
+def _rotated_box(about: tuple[float, float, float]) -> TetMesh:
+    """The unit 2 x 2 x 2 box rotated by the angles ``about`` [rad] about x, y, z."""
+    from scipy.spatial.transform import Rotation
     m = box_mesh((2, 2, 2))
-    with pytest.raises(MeshError, match="selects 0 vertices"):
-        fixed_nodes(m, "z", "min", -1.0)
+    return check_mesh(TetMesh(Rotation.from_euler("xyz", about).apply(m.vertices), m.tets))
+
+
+def test_no_fixed_vertex():
+    """A cube standing on a corner: the scene's default rule (1 mm from the lowest z) finds
+    only that corner."""
+    m = _rotated_box((np.arctan(1 / np.sqrt(2)), np.pi / 4, 0.0))
+    f = FixedSection()
+    with pytest.raises(MeshError, match=r"fixed-node rule \(z min \+- 0.001 m\) selects 1 "
+                       "vertices"):
+        fixed_nodes(m, f.axis, f.side, f.tolerance)
+
+
+def test_collinear_fixed_vertices():
+    """A cube lying on an edge: the 3 vertices of that edge are found, all on one line."""
+    m = _rotated_box((0.0, np.pi / 4, 0.0))
+    f = FixedSection()
+    with pytest.raises(MeshError, match=r"selects 3 collinear vertices .*rotate about their "
+                       "line"):
+        fixed_nodes(m, f.axis, f.side, f.tolerance)
+    assert len(fixed_nodes(m, f.axis, f.side, 0.4)) > 3  # a wider band holds it
 
 
 def test_read_mesh_roundtrip_and_errors(tmp_path):
@@ -157,3 +226,15 @@ def test_read_mesh_roundtrip_and_errors(tmp_path):
         read_mesh(empty)
     with pytest.raises(MeshError, match="does not exist"):
         read_mesh(tmp_path / "missing.vtu")
+
+
+def test_read_mesh_refuses_2d_points(tmp_path, monkeypatch):
+    """meshio's writers pad 2-D points to 3-D, so a reader returning them is simulated."""
+    import meshio
+    m = box_mesh((1, 1, 1))
+    path = tmp_path / "flat.vtu"
+    path.write_text("")
+    flat = meshio.Mesh(m.vertices[:, :2], [("tetra", m.tets)])
+    monkeypatch.setattr(meshio, "read", lambda _: flat)
+    with pytest.raises(MeshError, match="flat.vtu: 2-D points; a 3-D tetrahedral mesh"):
+        read_mesh(path)
