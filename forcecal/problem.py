@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from forcecal.errors import MeshError
+from forcecal.errors import MeshError, SceneError
 from forcecal.mesh import (TetMesh, fixed_nodes, generate_liver, read_mesh,
                            select_calibration_points, select_held_out_points, validate_test_points)
-from forcecal.scene import Scene
+from forcecal.scene import MIN_HELD_OUT, Scene
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +83,38 @@ def tracked_node_by_rule(mesh: TetMesh, fixed: np.ndarray, rule: str) -> int:
     raise MeshError(f"unknown tracked-node rule {rule!r}")
 
 
+# a vertex pushed deeper than this fraction of the mean edge length crushes the tets around it
+MAX_DEPTH_PER_EDGE = 0.5
+
+
+def check_depths(scene: Scene, mesh: TetMesh) -> None:
+    """Refuse indentation depths that cannot be meant for this mesh (a value in mm, say).
+
+    Raises:
+        SceneError: ``indentation.depth`` or ``relaxation.depth`` is not below
+            :data:`MAX_DEPTH_PER_EDGE` x the mean edge length.
+    """
+    edge = float(np.mean(mesh.edge_lengths))
+    for name, depth in (("indentation.depth", scene.indentation.depth),
+                        ("relaxation.depth", scene.relaxation.depth)):
+        if not depth < MAX_DEPTH_PER_EDGE * edge:
+            raise SceneError(f"{name} = {depth:g} m is not below {MAX_DEPTH_PER_EDGE:g} x the "
+                             f"mesh's mean edge length ({MAX_DEPTH_PER_EDGE:g} x {edge:.3g} = "
+                             f"{MAX_DEPTH_PER_EDGE * edge:.3g} m; a vertex pushed deeper "
+                             "crushes the tets around it); scene values are in metres "
+                             "(5 mm is 0.005)")
+
+
 def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
-    """Mesh + fixed nodes + test points of a scene, validated."""
+    """Mesh + fixed nodes + test points of a scene, validated.
+
+    Raises:
+        MeshError: the fixed-node rule or the test points do not suit the mesh.
+        SceneError: an indentation depth implausible for the mesh, or an explicit
+            ``held_out`` list shorter than :data:`~forcecal.scene.MIN_HELD_OUT`.
+    """
     mesh = load_mesh(scene) if mesh is None else mesh
+    check_depths(scene, mesh)
     f = scene.fixed
     fixed = fixed_nodes(mesh, f.axis, f.side, f.tolerance)
     tp = scene.test_points
@@ -97,6 +126,10 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
         held_out = select_held_out_points(mesh, fixed, calibration, tp.n_held_out)
     else:
         held_out = validate_test_points(mesh, fixed, np.array(tp.held_out), "held_out")
+        if len(held_out) < MIN_HELD_OUT:
+            raise SceneError(f"test_points.held_out lists {len(held_out)} vertices; at least "
+                             f"{MIN_HELD_OUT} held-out points are needed (they give the "
+                             "accuracy no fit has seen)")
     both = np.intersect1d(calibration, held_out)
     if len(both):
         raise MeshError(f"test points {both.tolist()} are both calibration and held-out points")

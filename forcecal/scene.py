@@ -68,6 +68,20 @@ class MaterialSection:
         """g_inf = 1 - sum(g_i): the fraction of the deviatoric stiffness left at t = inf."""
         return 1.0 - sum(self.prony_g)
 
+    def prony_error(self) -> str | None:
+        """What is wrong with the Prony series (None if nothing): the one check the scene
+        loader and the FE material (:func:`reference_fe.material.check_material`) share."""
+        g, tau = self.prony_g, self.prony_tau
+        if len(g) != len(tau):
+            return (f"material.prony_g and material.prony_tau differ in length "
+                    f"({len(g)} vs {len(tau)})")
+        if any(not x > 0 for x in g) or any(not x > 0 for x in tau):
+            return f"material.prony_g = {list(g)} and material.prony_tau = {list(tau)} must be > 0"
+        if not self.long_term_factor > 0:
+            return (f"sum(material.prony_g) = {sum(g)} must be < 1 (the long-term shear "
+                    "modulus would not be positive)")
+        return None
+
 
 @dataclass(frozen=True)
 class FixedSection:
@@ -76,6 +90,10 @@ class FixedSection:
                     choices=("min", "max"))
     tolerance: float = key(0.001, "nodes within this distance of the extreme coordinate are fixed",
                            "m", minimum=0.0)
+
+
+# the issue's "disjoint set of >= 8 held-out surface points": fewer give no honest accuracy
+MIN_HELD_OUT = 8
 
 
 @dataclass(frozen=True)
@@ -88,7 +106,8 @@ class TestPointsSection:
     held_out: Union[str, tuple[int, ...]] = key(
         "auto", "'auto' (spread-out surface vertices that are not calibration points) or a list "
         "of vertex ids, used only for validation")
-    n_held_out: int = key(8, "number of held-out points when 'auto'", minimum=0)
+    n_held_out: int = key(8, "number of held-out points when 'auto'; at least "
+                          f"{MIN_HELD_OUT} (an explicit held_out list too)", minimum=MIN_HELD_OUT)
 
 
 @dataclass(frozen=True)
@@ -107,7 +126,23 @@ class RelaxationSection:
     ramp_steps: int = key(10, "time steps of the ramp", minimum=2)
     hold_time: float = key(50.0, "duration of the hold (>= 5 tau_max)", "s", exclusive_minimum=0.0)
     hold_steps: int = key(30, "time steps of the hold; they start at the ramp's step and grow "
-                          "geometrically", minimum=2)
+                          "geometrically (so hold_time >= hold_steps x ramp_time / ramp_steps)",
+                          minimum=2)
+
+    def schedule_error(self) -> str | None:
+        """Why the ramp-and-hold schedule cannot be built (None if it can): the hold steps
+        start at the ramp's step and can only grow, so ``hold_steps`` of them must fit in
+        ``hold_time`` (shared by the scene loader and
+        :func:`forcecal.schedules.relaxation_schedule`)."""
+        first = self.ramp_time / self.ramp_steps
+        if self.hold_time < self.hold_steps * first * (1 - 1e-12):
+            return (f"relaxation.hold_time = {self.hold_time} s is shorter than "
+                    f"relaxation.hold_steps x the ramp step (relaxation.ramp_time / "
+                    f"relaxation.ramp_steps) = {self.hold_steps} x {first:.6g} s = "
+                    f"{self.hold_steps * first:.6g} s: the hold steps, which start at the ramp "
+                    "step and grow, cannot end on time; lower relaxation.hold_steps, raise "
+                    "relaxation.ramp_steps or lengthen relaxation.hold_time")
+        return None
 
 
 @dataclass(frozen=True)
@@ -346,20 +381,16 @@ def _build_section(name: str, cls: type, table: Any, origin: str) -> Any:
 
 def _cross_checks(scene: Scene, origin: str) -> None:
     m = scene.material
-    if len(m.prony_g) != len(m.prony_tau):
-        raise SceneError(f"{origin}: material.prony_g and material.prony_tau differ in length "
-                         f"({len(m.prony_g)} vs {len(m.prony_tau)})")
-    if any(g <= 0 for g in m.prony_g) or any(t <= 0 for t in m.prony_tau):
-        raise SceneError(f"{origin}: material.prony_g and material.prony_tau must be > 0")
-    if m.long_term_factor <= 0:
-        raise SceneError(f"{origin}: sum(material.prony_g) = {sum(m.prony_g)} must be < 1 "
-                         "(the long-term shear modulus would not be positive)")
+    problem = m.prony_error()
+    if problem:
+        raise SceneError(f"{origin}: {problem}")
     r = scene.relaxation
     if m.prony_tau and r.hold_time < 5 * max(m.prony_tau) * (1 - 1e-12):
         raise SceneError(f"{origin}: relaxation.hold_time = {r.hold_time} s is shorter than "
                          f"5 x tau_max = {5 * max(m.prony_tau)} s")
-    if r.hold_steps <= 0:
-        raise SceneError(f"{origin}: relaxation.hold_steps must be > 0")
+    problem = r.schedule_error()
+    if problem:
+        raise SceneError(f"{origin}: {problem}")
     g = scene.gravity
     if g.record_interval < g.fe_dt * (1 - 1e-9):
         raise SceneError(f"{origin}: gravity.record_interval ({g.record_interval} s) is shorter "

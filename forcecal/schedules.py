@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import brentq
 
+from forcecal.errors import SceneError
 from forcecal.scene import IndentationSection, RelaxationSection
 
 
@@ -37,9 +38,17 @@ def relaxation_schedule(section: RelaxationSection) -> tuple[np.ndarray, np.ndar
     where the force changes fast (ramp, tau_1), coarse late in the hold.
 
     Returns:
-        time: (S,) float64, sample times [s] (first > 0).
+        time: (S,) float64, sample times [s] (first > 0, increasing).
         depth: (S,) float64, depth at those times [m] (linear ramp, then constant).
+
+    Raises:
+        SceneError: the hold steps do not fit in the hold
+            (:meth:`~forcecal.scene.RelaxationSection.schedule_error`), or the times would
+            not increase.
     """
+    problem = section.schedule_error()
+    if problem:
+        raise SceneError(problem)
     dt0 = section.ramp_time / section.ramp_steps
     ramp = dt0 * np.arange(1, section.ramp_steps + 1)
     r = geometric_ratio(dt0, section.hold_time, section.hold_steps)
@@ -47,5 +56,7 @@ def relaxation_schedule(section: RelaxationSection) -> tuple[np.ndarray, np.ndar
     hold = section.ramp_time + np.cumsum(steps)
     hold[-1] = section.ramp_time + section.hold_time  # exact end despite round-off
     time = np.concatenate([ramp, hold])
+    if not np.all(np.diff(np.r_[0.0, time]) > 0):  # a FE march would skip a sample silently
+        raise SceneError(f"relaxation schedule {time.tolist()} does not increase")
     depth = section.depth * np.minimum(time / section.ramp_time, 1.0)
     return time, depth

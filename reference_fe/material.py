@@ -53,10 +53,9 @@ def check_material(material: MaterialSection) -> MaterialSection:
     if bad or m.C10 <= 0 or m.C01 < 0 or m.kappa <= 0 or m.density <= 0:
         raise ParameterError(f"material {values}: need C10 > 0, C01 >= 0, kappa > 0, "
                              "density > 0, all finite")
-    if len(m.prony_g) != len(m.prony_tau) or any(g <= 0 for g in m.prony_g) \
-            or any(t <= 0 for t in m.prony_tau) or m.long_term_factor <= 0:
-        raise ParameterError(f"material Prony series g = {m.prony_g}, tau = {m.prony_tau}: "
-                             "need equal lengths, g_i > 0, tau_i > 0 and sum(g_i) < 1")
+    problem = m.prony_error()
+    if problem:
+        raise ParameterError(f"material Prony series: {problem}")
     return m
 
 

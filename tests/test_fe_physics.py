@@ -197,6 +197,22 @@ def test_vertex_dofs_and_clamped_face_dofs(element):
     assert dofs.shape == (expected, 3) and len(np.unique(dofs)) == 3 * expected
 
 
+def test_material_refuses_a_bad_prony_series_with_the_scene_message():
+    """The FE material (used without a scene file too) and the scene loader share the check."""
+    from forcecal.errors import ParameterError, SceneError
+    from forcecal.scene import replace, scene_from_dict
+    from reference_fe.material import check_material
+
+    bad = dataclasses.replace(MATERIAL, prony_g=(0.6, 0.5))
+    with pytest.raises(ParameterError, match=r"Prony series: sum\(material.prony_g\) = 1.1 "
+                       "must be < 1"):
+        check_material(bad)
+    with pytest.raises(SceneError, match=r"sum\(material.prony_g\) = 1.1 must be < 1"):
+        replace(scene_from_dict({}), material={"prony_g": [0.6, 0.5]})
+    with pytest.raises(ParameterError, match="differ in length"):
+        check_material(dataclasses.replace(MATERIAL, prony_g=(0.3,)))
+
+
 def test_isochoric_stress_is_the_derivative_of_the_energy():
     """The written-out S_iso0 equals 2 dW_iso/dC taken by UFL, for a general (non-diagonal,
     volume-changing) deformation: the relative L2 mismatch is round-off."""

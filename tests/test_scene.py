@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from forcecal.errors import SceneError
-from forcecal.scene import SECTIONS, keys_table, load_scene, replace, scene_from_dict
+from forcecal.scene import (SECTIONS, RelaxationSection, keys_table, load_scene, replace,
+                            scene_from_dict)
 from tests.conftest import ROOT, SCENES
 
 
@@ -40,6 +41,13 @@ def test_liver_scene_material_is_consistent(liver_scene):
     ({"gravity": {"acceleration": [0, -9.81]}}, r"gravity.acceleration .*expected list of 3"),
     ({"test_points": {"calibration": "some"}}, r"test_points.calibration must be 'auto'"),
     ({"name": "my scene"}, r"without slashes or spaces"),
+    ({"gravity": {"record_interval": 0.001}},
+     r"gravity.record_interval \(0.001 s\) is shorter than gravity.fe_dt \(0.005 s\)"),
+    ({"test_points": {"n_held_out": 2}}, r"test_points.n_held_out = 2: must be >= 8"),
+    # hold steps start at the ramp's 0.05 s: 30 of them overshoot a 0.5 s hold
+    ({"material": {"prony_tau": [0.02, 0.1]}, "relaxation": {"hold_time": 0.5}},
+     r"relaxation.hold_time = 0.5 s is shorter than relaxation.hold_steps x the ramp step "
+     r"\(relaxation.ramp_time / relaxation.ramp_steps\) = 30 x 0.05 s = 1.5 s"),
 ])
 def test_bad_scene_values_name_the_key(doc, message):
     with pytest.raises(SceneError, match=message):
@@ -87,3 +95,36 @@ def test_relaxation_schedule_resolves_ramp_and_ends_on_time(liver_scene):
     assert d[-1] == r.depth and np.all(d[r.ramp_steps - 1:] == r.depth)
     np.testing.assert_allclose(indentation_depths(liver_scene.indentation)[[0, -1]],
                                [0.0005, 0.005])
+
+
+def test_relaxation_schedule_refuses_hold_steps_that_cannot_fit():
+    """Built directly (no scene validation), the schedule still refuses instead of returning
+    times that do not increase (a FE march would silently skip a sample)."""
+    from forcecal.schedules import relaxation_schedule
+    with pytest.raises(SceneError, match="relaxation.hold_time = 0.5 s is shorter"):
+        relaxation_schedule(RelaxationSection(hold_time=0.5))
+    t, _ = relaxation_schedule(RelaxationSection(hold_time=1.5))  # exactly 30 ramp steps
+    assert np.all(np.diff(t) > 0) and t[-1] == pytest.approx(2.0)
+
+
+def test_indentation_depth_in_the_wrong_unit_is_refused(liver_scene, liver_problem):
+    """5 meant as mm: refused against the mesh before any test point is chosen."""
+    from forcecal.problem import build_problem
+    mesh = liver_problem.mesh
+    with pytest.raises(SceneError, match=r"indentation.depth = 5 m is not below 0.5 x the "
+                       r"mesh's mean edge length \(0.5 x 0.0205 = 0.0102 m; .*in metres "
+                       r"\(5 mm is 0.005\)"):
+        build_problem(replace(liver_scene, indentation={"depth": 5.0}), mesh)
+    with pytest.raises(SceneError, match=r"relaxation.depth = 0.02 m is not below"):
+        build_problem(replace(liver_scene, relaxation={"depth": 0.02}), mesh)
+
+
+def test_an_explicit_held_out_list_needs_8_points(liver_scene, liver_problem):
+    from forcecal.problem import build_problem
+    p = liver_problem
+    points = {"calibration": p.calibration.tolist(), "held_out": p.held_out[:7].tolist()}
+    with pytest.raises(SceneError, match="test_points.held_out lists 7 vertices; at least 8"):
+        build_problem(replace(liver_scene, test_points=points), p.mesh)
+    points["held_out"] = p.held_out.tolist()
+    rebuilt = build_problem(replace(liver_scene, test_points=points), p.mesh)
+    np.testing.assert_array_equal(rebuilt.held_out, p.held_out)
