@@ -21,7 +21,9 @@ from scipy.sparse.linalg import ArpackNoConvergence, eigsh
 from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle import kernels
-from particle.model import ConnectorParams, Model, State, StrainBounds
+from particle.model import (ConnectorParams, Model, State, StrainBounds,
+                            connector_strain_bounds)
+from particle.statics import check_stiffness
 
 log = logging.getLogger(__name__)
 
@@ -35,28 +37,6 @@ EIGENVALUE_MARGIN = 1.001
 # free particles up to which the dense eigensolver is used: Lanczos is faster beyond (measured
 # on Kuhn boxes: 294 free particles 6.6 ms dense, 1.2 ms Lanczos; 1089: 227 ms, 2.9 ms)
 DENSE_EIGEN_LIMIT = 100
-
-
-def connector_strain_bounds(model: Model, strain_range: StrainBounds
-                            ) -> tuple[np.ndarray, np.ndarray]:
-    """(lo (E,), hi (E,)) strains [1] of ``strain_range``: a (lo, hi) pair or per-connector arrays.
-
-    Raises :class:`ParameterError` unless every range is finite, ordered (lo <=
-    hi) and above -1 (zero length).
-    """
-    lo, hi = (np.asarray(b, dtype=np.float64) for b in strain_range)
-    for bound in (lo, hi):
-        if bound.shape not in ((), (model.n_connectors,)):
-            raise ParameterError(f"strain range bounds of shape {bound.shape}: expected one "
-                                 f"number or one per connector ({model.n_connectors},)")
-    lo, hi = np.broadcast_to(lo, (model.n_connectors,)), np.broadcast_to(hi, (model.n_connectors,))
-    bad = np.nonzero(~(np.isfinite(lo) & np.isfinite(hi) & (lo > -1.0) & (lo <= hi)))[0]
-    if len(bad):
-        e = int(bad[0])
-        raise ParameterError(f"connector {e} (particles {model.edges[e].tolist()}): strain range "
-                             f"[{lo[e]:g}, {hi[e]:g}] must be finite, ordered and above -1 (a "
-                             "connector cannot shrink to zero length)")
-    return lo, hi
 
 
 def connector_stiffness_bound(params: ConnectorParams, lo: np.ndarray, hi: np.ndarray
@@ -155,7 +135,7 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     p = model.params if params is None else params
     if not (~model.fixed).any():
         return math.inf  # nothing moves
-    lo, hi = connector_strain_bounds(model, strain_range)
+    lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
     kappa = connector_stiffness_bound(p, lo, hi)
     omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
     if not omega2 > 0.0:
@@ -189,7 +169,7 @@ def strain_range_for_release(model: Model, static_displacement: np.ndarray, marg
     static = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
     lo = np.maximum(np.minimum(2.0 * static, 0.0) - margin, 0.5 * (static - 1.0))
     hi = np.maximum(2.0 * static, 0.0) + margin
-    return connector_strain_bounds(model, (lo, hi))
+    return connector_strain_bounds((lo, hi), model.n_connectors, model.edges)
 
 
 def resolve_time_step(section: ParticleSection, critical: float) -> float:
@@ -268,7 +248,9 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
     do in the run (falling the model's size, or freely for the run's duration)
     + the work prescribed motion can do (moving each prescribed node its
     largest keyframe distance against its connectors, plus dragging the whole
-    mass at the keyframes' fastest speed)), plus a floor for runs at rest.
+    mass at the keyframes' fastest speed)), plus a floor for runs at rest. The
+    elastic energy is ``K(eps) dx^2/2`` at the state's strains; a state where
+    a spring's K(eps) <= 0 raises :class:`ParameterError`.
     """
     m = model.masses
     p = model.params
@@ -280,13 +262,16 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
     lengths = np.linalg.norm(state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]], axis=1)
     dx = lengths - model.rest_lengths
     strain = np.clip(dx / model.rest_lengths, -0.99, None)
-    energy += float(np.sum(0.5 * np.abs(p.stiffness(strain)) * dx ** 2))
+    # prepare() refused springs that go soft in the run's strain range; a state outside it
+    # (an unmonitored run) where one does is refused too, not bounded with |K|
+    check_stiffness(model, strain, f"explicit run from t = {state.t:.6g} s")
+    energy += float(np.sum(0.5 * p.stiffness(strain) * dx ** 2))
     energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
     if gravity is not None:
         g = float(np.linalg.norm(gravity))
         energy += total_mass * g * (size + 0.5 * g * duration ** 2)
     if prescribed is not None:
-        stiff = np.bincount(model.edges.ravel(), np.repeat(np.abs(p.K0) + p.k1 + p.k2, 2),
+        stiff = np.bincount(model.edges.ravel(), np.repeat(p.K0 + p.k1 + p.k2, 2),
                             model.n_particles)[prescribed.nodes]
         reach = np.linalg.norm(prescribed.positions - state.x[prescribed.nodes][None], axis=2)
         energy += float(np.sum(stiff * (reach.max(axis=0) + size) ** 2))
@@ -353,15 +338,20 @@ class VerletIntegrator:
                 skip: bool = True, _check_dt: bool = True) -> "Run":
         """A :class:`Run`: everything fixed between calls of the compiled loop, set up once.
 
-        Raises :class:`StabilityError` if ``dt`` is above the stability limit
-        (``_check_dt=False`` bypasses the check and the strain-range monitoring;
-        tests use it to provoke divergence).
+        Raises :class:`ParameterError` if the model's connector parameters are
+        non-physical on this integrator's strain range (see
+        :meth:`ConnectorParams.validate`), :class:`StabilityError` if ``dt`` is
+        above the stability limit (``_check_dt=False`` bypasses the step check
+        and the strain-range monitoring, not the parameter check; tests use it
+        to provoke divergence).
         """
         dt = float(dt)
+        model.params.validate(self.strain_range, model.edges)
         monitored = None
         if _check_dt:
             check_time_step(dt, self.critical_time_step(model))
-            monitored = connector_strain_bounds(model, self.strain_range)
+            monitored = connector_strain_bounds(self.strain_range, model.n_connectors,
+                                                model.edges)
         return Run(self, model, dt, gravity, prescribed_nodes, arms, skip, monitored)
 
     def simulate(self, model: Model, state: State, dt: float, n_steps: int, *,

@@ -68,6 +68,44 @@ def _quadratic_extremes(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, lo, hi
             np.maximum(np.maximum(at_lo, at_hi), at_vertex))
 
 
+def connector_name(e: int, edges: np.ndarray | None = None) -> str:
+    """``connector e``, with its two particles when ``edges`` (E, 2) is given (for messages)."""
+    if edges is None:
+        return f"connector {int(e)}"
+    return f"connector {int(e)} (particles {int(edges[e, 0])}-{int(edges[e, 1])})"
+
+
+def connector_strain_bounds(strain_range: StrainBounds, n_connectors: int,
+                            edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (E,), hi (E,)) strains [1] of ``strain_range``: a (lo, hi) pair or per-connector arrays.
+
+    The one check of a strain range, for parameter validation and the
+    stability limit alike: every range must be finite, ordered (lo <= hi; a
+    connector held at one strain has lo = hi) and above -1 (zero length),
+    else :class:`ParameterError` names the first bad connector (with its
+    particles if ``edges`` (E, 2) is given).
+    """
+    if len(strain_range) != 2:
+        raise ParameterError(f"a strain range is a (lo, hi) pair, got {strain_range!r}")
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in strain_range)
+    for bound in (lo, hi):
+        if bound.shape not in ((), (n_connectors,)):
+            raise ParameterError(f"strain range bounds of shape {bound.shape}: expected one "
+                                 f"number or one per connector ({n_connectors},)")
+    if lo.shape == hi.shape == () and not (np.isfinite(lo) and np.isfinite(hi) and lo > -1.0
+                                           and lo <= hi):
+        raise ParameterError(f"strain range [{lo:g}, {hi:g}] must be finite, ordered and above "
+                             "-1 (a connector cannot shrink to zero length)")
+    lo, hi = np.broadcast_to(lo, (n_connectors,)), np.broadcast_to(hi, (n_connectors,))
+    bad = np.nonzero(~(np.isfinite(lo) & np.isfinite(hi) & (lo > -1.0) & (lo <= hi)))[0]
+    if len(bad):
+        e = int(bad[0])
+        raise ParameterError(f"{connector_name(e, edges)}: strain range [{lo[e]:g}, {hi[e]:g}] "
+                             "must be finite, ordered and above -1 (a connector cannot shrink to "
+                             "zero length)")
+    return lo, hi
+
+
 @dataclass(frozen=True, eq=False)
 class ConnectorParams:
     """Per-connector Maxwell-Solid parameters; seven (E,) float64 arrays.
@@ -156,24 +194,21 @@ class ConnectorParams:
         """(E,) min and max of the tangent K0 + 2 a eps + 3 b eps^2 over ``strain_range`` [N/m]."""
         return _quadratic_extremes(self.K0, 2.0 * self.a, 3.0 * self.b, *strain_range)
 
-    def validate(self, strain_range: tuple[float, float] = (-0.5, 0.5),
+    def validate(self, strain_range: StrainBounds = (-0.5, 0.5),
                  edges: np.ndarray | None = None) -> "ConnectorParams":
         """Raise :class:`ParameterError` naming the first non-physical connector; return self.
 
         Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, and a secant
         stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
-        the quadratic's ends and vertex). ``edges`` (E, 2), if given, lets the
+        the quadratic's ends and vertex). ``strain_range`` is one (lo, hi) pair
+        or per-connector (lo (E,), hi (E,)) arrays [1], checked by
+        :func:`connector_strain_bounds`. ``edges`` (E, 2), if given, lets the
         message name the connector's two particles.
         """
-        lo, hi = (float(s) for s in strain_range)
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi and lo > -1.0):
-            raise ParameterError(f"strain range {strain_range} must be finite, increasing and "
-                                 "above -1 (a connector cannot shrink to zero length)")
+        lo, hi = connector_strain_bounds(strain_range, self.n_connectors, edges)
 
         def where(e: int) -> str:
-            if edges is None:
-                return f"connector {e}"
-            return f"connector {e} (particles {int(edges[e, 0])}-{int(edges[e, 1])})"
+            return connector_name(e, edges)
 
         for name in PARAM_NAMES:
             bad = np.nonzero(~np.isfinite(getattr(self, name)))[0]
@@ -191,7 +226,8 @@ class ConnectorParams:
             e = bad[0]
             raise ParameterError(f"{where(e)}: spring stiffness K(eps) = K0 + a eps + b eps^2 "
                                  f"(K0={self.K0[e]:g}, a={self.a[e]:g}, b={self.b[e]:g}) reaches "
-                                 f"{kmin[e]:g} N/m <= 0 in the strain range [{lo:g}, {hi:g}]")
+                                 f"{kmin[e]:g} N/m <= 0 in the strain range [{lo[e]:g}, "
+                                 f"{hi[e]:g}]")
         return self
 
     def arm_recursion(self, dt: float, *, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +271,6 @@ class Model:
         free_nodes: (Nf,) int64, ids of the particles that are not fixed.
         incidence_ptr: (N + 1,) int64, CSR row pointer of the particle -> connector incidence.
         incidence_edge: (2E,) int64, connector ids touching each particle (CSR order).
-        incidence_other: (2E,) int64, the particle at the connector's other end.
     """
     rest_positions: np.ndarray
     edges: np.ndarray
@@ -246,7 +281,6 @@ class Model:
     free_nodes: np.ndarray = field(init=False)
     incidence_ptr: np.ndarray = field(init=False)
     incidence_edge: np.ndarray = field(init=False)
-    incidence_other: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         for name, dtype in (("rest_positions", np.float64), ("edges", np.int64),
@@ -260,11 +294,9 @@ class Model:
         order = np.argsort(ends, kind="stable")
         ptr = np.zeros(self.n_particles + 1, dtype=np.int64)
         ptr[1:] = np.cumsum(np.bincount(ends, minlength=self.n_particles))
-        other = self.edges[:, ::-1].ravel()
         object.__setattr__(self, "free_nodes", _frozen(np.nonzero(~self.fixed)[0], np.int64))
         object.__setattr__(self, "incidence_ptr", _frozen(ptr, np.int64))
         object.__setattr__(self, "incidence_edge", _frozen(order // 2, np.int64))
-        object.__setattr__(self, "incidence_other", _frozen(other[order], np.int64))
 
     @property
     def n_particles(self) -> int:

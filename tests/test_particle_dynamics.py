@@ -187,3 +187,34 @@ def test_mismatched_inputs_are_refused():
     with pytest.raises(ParameterError, match="record_steps"):
         VerletIntegrator().simulate(model, model.state(), dt, 5, record_nodes=[0],
                                     record_steps=[0, 7])
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("K0", -5.0, "K0 = -5 must be > 0"),
+    ("k1", 0.0, "k1 = 0 must be > 0"),  # used to run and report a misleading divergence
+    ("b1", 0.0, "b1 = 0 must be > 0"),
+    ("k2", np.nan, "k2 = nan is not finite"),
+])
+def test_explicit_runs_refuse_non_physical_parameters(name, value, message):
+    model = box_model()
+    values = getattr(model.params, name).copy()
+    values[7] = value
+    bad = model.with_params(dataclasses.replace(model.params, **{name: values}))
+    i, j = model.edges[7]
+    with pytest.raises(ParameterError, match=rf"connector 7 \(particles {i}-{j}\): {message}"):
+        VerletIntegrator().simulate(bad, bad.state(), 1e-5, 10, gravity=GRAVITY)
+
+
+def test_explicit_runs_refuse_springs_that_go_soft_in_their_own_strain_range():
+    """K(eps) = K0 (1 + 4 eps) <= 0 at eps <= -0.25: per-connector ranges (a release's) are
+    validated connector by connector, before the stability limit is computed."""
+    model = box_model(K0=50.0, a=200.0)
+    lo = np.full(model.n_connectors, -0.2)
+    integrator = VerletIntegrator(strain_range=(lo, 0.5))
+    integrator.simulate(model, model.state(), 0.5 * integrator.critical_time_step(model), 10)
+    lo[3] = -0.3
+    i, j = model.edges[3]
+    with pytest.raises(ParameterError, match=rf"connector 3 \(particles {i}-{j}\): spring "
+                       r"stiffness .* <= 0 in the strain range \[-0\.3, 0\.5\]"):
+        VerletIntegrator(strain_range=(lo, 0.5)).simulate(model, model.state(), 1e-5, 10)
+

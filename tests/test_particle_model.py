@@ -64,10 +64,32 @@ def test_validate_checks_the_quadratic_minimum_inside_the_range():
 
 
 def test_validate_refuses_a_nonsense_strain_range():
-    with pytest.raises(ParameterError, match="strain range"):
+    with pytest.raises(ParameterError, match=r"strain range \[0\.5, 0\.1\] must be finite, "
+                                             "ordered and above -1"):
         viscoelastic_params(2).validate((0.5, 0.1))
     with pytest.raises(ParameterError, match="strain range"):
         viscoelastic_params(2).validate((-1.5, 0.1))
+    edges = np.array([[0, 1], [1, 2]])
+    with pytest.raises(ParameterError, match=r"connector 1 \(particles 1-2\): strain range "
+                                             r"\[0\.2, 0\.1\]"):
+        viscoelastic_params(2).validate((np.array([0.0, 0.2]), 0.1), edges)
+    with pytest.raises(ParameterError, match=r"shape \(3,\): expected one number or one per "
+                                             r"connector \(2,\)"):
+        viscoelastic_params(2).validate((np.zeros(3), 0.1))
+    # a range of one strain (a connector held there) is a range: the same rule as the
+    # stability limit's (lo <= hi)
+    viscoelastic_params(2).validate((0.1, 0.1))
+
+
+def test_validate_takes_per_connector_strain_ranges():
+    """K(eps) = 10 (1 + 4 eps) is <= 0 at eps <= -0.25: refused where a connector's own range
+    reaches it, accepted where only another connector's range would."""
+    p = viscoelastic_params(3, K0=10.0, a=40.0)
+    edges = np.array([[0, 1], [1, 2], [2, 5]])
+    with pytest.raises(ParameterError, match=r"connector 2 \(particles 2-5\): spring stiffness "
+                       r".* reaches -2 N/m <= 0 in the strain range \[-0\.3, 0\.1\]"):
+        p.validate((np.array([-0.2, -0.2, -0.3]), np.array([0.1, 0.1, 0.1])), edges)
+    p.validate((np.array([-0.2, -0.2, -0.2]), 0.5), edges)
 
 
 def test_arm_recursion_coefficients():

@@ -82,7 +82,7 @@ def test_strain_bounds_of_the_wrong_shape_or_order_are_refused():
     with pytest.raises(ParameterError, match=r"shape \(2,\): expected one number or one per "
                        r"connector \(3,\)"):
         critical_time_step(model, strain_range=(np.zeros(2), 0.1))
-    with pytest.raises(ParameterError, match=r"connector 1 \(particles \[1, 2\]\): strain range "
+    with pytest.raises(ParameterError, match=r"connector 1 \(particles 1-2\): strain range "
                        r"\[0\.2, 0\.1\] must be finite, ordered and above -1"):
         critical_time_step(model, strain_range=(np.array([0.0, 0.2, 0.0]), 0.1))
     with pytest.raises(ParameterError, match="above -1"):

@@ -51,7 +51,7 @@ def test_estimated_limit_never_exceeds_the_empirical_one(meshes, mesh_name, para
 def gershgorin_step(model: Model) -> float:
     """2/sqrt(largest row sum) of the estimate's matrix ``M^{-1/2} L_kappa M^{-1/2}``: the
     block-Gershgorin bound the eigenvalue bound replaced (same connector bounds kappa)."""
-    lo, hi = connector_strain_bounds(model, DEFAULT_STRAIN_RANGE)
+    lo, hi = connector_strain_bounds(DEFAULT_STRAIN_RANGE, model.n_connectors)
     matrix = mass_scaled_laplacian(model, connector_stiffness_bound(model.params, lo, hi))
     return 2.0 / np.sqrt(abs(matrix).sum(axis=1).max())
 
