@@ -6,22 +6,28 @@ the tool particle moved linearly from where it was to the new tool position,
 and returns the force the tissue exerts on the tool (what the device renders;
 equal and opposite to the indenter force of the indentation convention).
 Everything that does not change between calls (a :class:`~particle.integrator.Run`
-per tool particle, the divergence bound) is prepared once, so a call costs the
-kernel dispatch plus the substeps.
+per tool particle, the divergence bound) is prepared once, so a call costs one
+kernel dispatch (substeps and reaction force together) plus a few checks.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import operator
+from collections import OrderedDict
 
 import numpy as np
 
-from forcecal.errors import ParameterError
-from particle.integrator import Prescribed, Run, VerletIntegrator, energy_bound
+from forcecal.errors import MeshError, ParameterError
+from particle.integrator import Prescribed, Run, VerletIntegrator, check_time_step, energy_bound
 from particle.model import Model
 
 log = logging.getLogger(__name__)
+
+# tool particles whose prepared run is kept (least recently used dropped beyond): a run holds
+# a few (E,) and (N, 3) arrays (~1 MB on a 12k-connector mesh) and takes ~1 ms to prepare
+TOOL_RUN_CACHE = 16
 
 
 class HapticSession:
@@ -38,12 +44,18 @@ class HapticSession:
     Attributes:
         state: the model's State (starts undeformed, at rest).
         substeps: explicit steps per call; ``dt`` the step actually used [s].
+
+    Raises :class:`~forcecal.errors.StabilityError` for a ``dt`` that is not a
+    finite number > 0 or is above the stability limit,
+    :class:`~forcecal.errors.ParameterError` for a bad period or non-physical
+    connector parameters.
     """
 
     def __init__(self, model: Model, dt: float, *, period: float = 1e-3,
                  gravity: np.ndarray | None = None, damping: float = 0.0) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError(f"haptic period = {period} s must be > 0")
+        check_time_step(dt, math.inf)  # a finite step > 0; the limit is checked below
         self.model = model
         self.period = float(period)
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
@@ -51,37 +63,53 @@ class HapticSession:
         self.gravity = gravity
         self.integrator = VerletIntegrator(damping)
         self.state = model.state()
-        self._runs: dict[int, tuple[Run, float]] = {}
+        self._runs: OrderedDict[int, tuple[Run, float]] = OrderedDict()
         self._keyframes = (np.zeros(2), np.zeros((2, 1, 3)))
         self.integrator.prepare(model, self.dt)  # refuse an unstable dt now, not mid-session
 
     def _run(self, node: int) -> tuple[Run, float]:
-        if node not in self._runs:
-            run = self.integrator.prepare(self.model, self.dt, gravity=self.gravity,
-                                          prescribed_nodes=[node])
-            # divergence bound for the worst drag: the tool crossing the whole organ in one period
-            x0 = self.model.rest_positions[node]
-            size = float(np.linalg.norm(np.ptp(self.model.rest_positions, axis=0)))
-            sweep = Prescribed([node], [0.0, self.period], [[x0], [x0 + size]])
-            bound = energy_bound(self.model, self.model.state(), self.dt, self.substeps,
-                                 run.gravity, sweep)
-            self._runs[node] = (run, bound)
-        return self._runs[node]
+        """The prepared run and divergence bound of tool particle ``node`` (LRU cached)."""
+        if node in self._runs:
+            self._runs.move_to_end(node)
+            return self._runs[node]
+        run = self.integrator.prepare(self.model, self.dt, gravity=self.gravity,
+                                      prescribed_nodes=[node])
+        # divergence bound for the worst drag: the tool crossing the whole organ in one period
+        x0 = self.model.rest_positions[node]
+        size = float(np.linalg.norm(np.ptp(self.model.rest_positions, axis=0)))
+        sweep = Prescribed([node], [0.0, self.period], [[x0], [x0 + size]])
+        bound = energy_bound(self.model, self.model.state(), self.dt, self.substeps,
+                             run.gravity, sweep)
+        self._runs[node] = (run, bound)
+        if len(self._runs) > TOOL_RUN_CACHE:
+            self._runs.popitem(last=False)
+        return run, bound
 
     def step(self, tool_node: int, tool_position: np.ndarray) -> np.ndarray:
-        """Advance one period with ``tool_node`` moved to ``tool_position`` [m].
+        """Advance one period with ``tool_node`` moved to ``tool_position`` (3,) [m].
 
         Returns the (3,) force the tissue exerts on the tool at the end of the
-        period [N]. Raises MeshError for an unknown or fixed particle,
-        ParameterError for a non-finite position, StabilityError on divergence.
+        period [N]. Raises MeshError for a tool node that is not an integer id
+        of a free particle, ParameterError for a tool position that is not 3
+        finite coordinates, StabilityError on divergence.
         """
-        run, bound = self._run(int(tool_node))
+        try:
+            node = operator.index(tool_node)
+        except TypeError:
+            raise MeshError(f"tool node {tool_node!r} must be an integer particle id") from None
+        try:
+            position = np.asarray(tool_position, dtype=np.float64)
+        except (TypeError, ValueError):
+            position = None
+        if position is None or position.shape != (3,):
+            raise ParameterError(f"tool position {tool_position!r} must be 3 coordinates [m]")
+        x, y, z = position.tolist()
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            raise ParameterError(f"tool position {tool_position} is not finite")
+        run, bound = self._run(node)
         times, positions = self._keyframes
         state = self.state
         times[0], times[1] = state.t, state.t + self.period
-        positions[0, 0] = state.x[tool_node]
-        positions[1, 0] = tool_position
-        if not np.all(np.isfinite(positions[1, 0])):
-            raise ParameterError(f"tool position {tool_position} is not finite")
-        run(state, self.substeps, self._keyframes, bound)
-        return run.force_on(state, tool_node)
+        positions[0, 0] = state.x[node]
+        positions[1, 0] = x, y, z
+        return run(state, self.substeps, self._keyframes, bound, probe=node)

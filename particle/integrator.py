@@ -395,7 +395,7 @@ class Run:
     """One prepared configuration of the compiled Verlet loop (model, dt, terms, prescribed set).
 
     Built by :meth:`VerletIntegrator.prepare`; calling it advances a state.
-    Preparing once and calling many times keeps per-call overhead to the
+    Preparing once and calling many times keeps per-call overhead to one
     kernel dispatch (the haptic loop relies on this). ``monitored`` (lo (E,),
     hi (E,)) is the strain range the step was verified for (None: not checked).
     """
@@ -419,7 +419,6 @@ class Run:
         self.active = np.setdiff1d(model.free_nodes, self.prescribed)
         self.inv_masses = 1.0 / model.masses
         self._forces = np.empty((model.n_particles, 3))
-        self._tension = np.empty(model.n_connectors)
         t = self.terms
         self._springs = (p.K0, p.a if t.nonlinear else None, p.b if t.nonlinear else None,
                          self.arm_r if t.arms else None, self.arm_c if t.arms else None)
@@ -429,20 +428,31 @@ class Run:
         # compared with the elongations the force kernel stores anyway: no extra sqrt
         self._elongation_limits = ((None, None) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
+        self._edges = kernels.index_view(model.edges)
+        self._active = kernels.index_view(self.active)
+        self._prescribed = kernels.index_view(self.prescribed)
+        self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
+        self._node_edges: dict[int, np.ndarray] = {}
+        self._state_shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
+                              ("arm_force", (model.n_connectors, 2)),
+                              ("dx_prev", (model.n_connectors,)))
 
     def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
-                 record: tuple = (None, None, None)) -> None:
+                 record: tuple = (None, None, None), probe: int | None = None
+                 ) -> np.ndarray | None:
         """Advance ``state`` by ``n_steps``; ``keyframes`` = (times (K,), positions (K, k, 3)).
 
-        Raises :class:`StabilityError` if the run diverges or leaves the monitored
-        strain range (the state is then invalid).
+        Returns the (3,) connector force [N] on particle ``probe`` at the final
+        state (what :meth:`force_on` gives, in the same kernel call), or None
+        without ``probe``. Raises :class:`StabilityError` if the run diverges or
+        leaves the monitored strain range (the state is then invalid).
         """
         model, dt = self.model, self.dt
         if n_steps < 0:
             raise ParameterError(f"n_steps = {n_steps} must be >= 0")
         self.check_state(state)
         if keyframes is None:
-            keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
+            keyframes = self._no_keyframes
         if keyframes[1].shape[1:] != (len(self.prescribed), 3):
             raise ParameterError(f"keyframe positions of shape {keyframes[1].shape} do not match "
                                  f"the {len(self.prescribed)} prescribed particles")
@@ -452,13 +462,16 @@ class Run:
                 self._close_arm_step(state)
         if not self.arms:
             state.arm_force[:] = 0.0
+        out = node_edges = None
+        if probe is not None:
+            node_edges, out = self._incident(probe), np.empty(3)
         status = kernels.run_verlet(
-            state.x, state.x_prev, state.arm_force, state.dx_prev, model.edges,
-            model.rest_lengths, *self._springs, model.masses, self.inv_masses, self.active,
-            *self._loads, dt, int(n_steps), state.dt is None, self.prescribed, *keyframes,
-            state.t, *record, self.integrator.check_every, energy_bound,
-            *self._elongation_limits, self._forces, self._tension)
-        code, step, node = (int(v) for v in status)
+            state.x, state.x_prev, state.arm_force, state.dx_prev, self._edges,
+            model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
+            *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
+            float(state.t), *record, self.integrator.check_every, float(energy_bound),
+            *self._elongation_limits, self._forces, probe, node_edges, out)
+        code, step, node = status.tolist()
         if code == kernels.STRAIN:
             self._raise_strain_exit(state, node, state.t + (step - 1) * dt)
         if code != kernels.OK:
@@ -471,6 +484,7 @@ class Run:
         state.t += n_steps * dt
         if n_steps:
             state.dt = dt
+        return out
 
     def _raise_strain_exit(self, state: State, e: int, t: float) -> None:
         """StabilityError for connector ``e`` found outside its monitored range at time ``t``."""
@@ -503,13 +517,34 @@ class Run:
         state.arm_force[:] = force / self.arm_r
 
     def check_state(self, state: State) -> None:
-        """Raise :class:`ParameterError` unless ``state``'s arrays fit this run's model."""
-        n, e = self.model.n_particles, self.model.n_connectors
-        if (state.x.shape != (n, 3) or state.x_prev.shape != (n, 3)
-                or state.arm_force.shape != (e, 2) or state.dx_prev.shape != (e,)):
-            raise ParameterError(f"the state (x {state.x.shape}, arm_force "
-                                 f"{state.arm_force.shape}) does not belong to this model of {n} "
-                                 f"particles and {e} connectors")
+        """Raise :class:`ParameterError` unless ``state`` fits this run's model and kernels.
+
+        Its arrays must have the model's shapes and be C-contiguous, writeable
+        float64 (another dtype would be truncated to it or compile another kernel
+        specialisation), and its time finite.
+        """
+        for name, shape in self._state_shapes:
+            arr = getattr(state, name)
+            if not (isinstance(arr, np.ndarray) and arr.shape == shape
+                    and arr.dtype == np.float64 and arr.flags.carray):
+                what = (f"{arr.dtype} array of shape {arr.shape}" if isinstance(arr, np.ndarray)
+                        else type(arr).__name__)
+                raise ParameterError(
+                    f"the state's {name} ({what}) does not belong to this model of "
+                    f"{self.model.n_particles} particles and {self.model.n_connectors} connectors:"
+                    f" expected a writeable, C-contiguous float64 array of shape {shape}")
+        if not math.isfinite(state.t):
+            raise ParameterError(f"the state's time t = {state.t} s is not finite")
+
+    def _incident(self, node: int) -> np.ndarray:
+        """The connectors touching particle ``node`` (index view for the kernels; cached)."""
+        edges = self._node_edges.get(node)
+        if edges is None:
+            node = int(self.model.check_nodes([node], "force_on", movable=False)[0])
+            ptr = self.model.incidence_ptr
+            edges = kernels.index_view(self.model.incidence_edge[ptr[node]:ptr[node + 1]])
+            self._node_edges[node] = edges
+        return edges
 
     def force_on(self, state: State, node: int) -> np.ndarray:
         """(3,) connector force on particle ``node`` at ``state`` [N], arm step not committed.
@@ -517,9 +552,8 @@ class Run:
         What the next step will apply to that particle: its connectors only,
         the arms advanced by this run's recursion into scratch (state unchanged).
         """
-        if not 0 <= node < self.model.n_particles:
-            raise ParameterError(f"unknown particle {node}")
-        return kernels.node_force(state.x, node, self.model.incidence_ptr,
-                                  self.model.incidence_edge, self.model.edges,
-                                  self.model.rest_lengths, *self._springs[:3], self.arm_r,
-                                  self.arm_c, state.arm_force, state.dx_prev)
+        out = np.empty(3)
+        kernels.node_force(state.x, node, self._incident(node), self._edges,
+                           self.model.rest_lengths, *self._springs, state.arm_force,
+                           state.dx_prev, out)
+        return out

@@ -189,6 +189,26 @@ def test_mismatched_inputs_are_refused():
                                     record_steps=[0, 7])
 
 
+@pytest.mark.parametrize("field, convert, what", [
+    ("x", lambda a: a.astype(np.int64), "int64 array"),  # was silently truncated
+    ("x_prev", lambda a: a.astype(np.float32), "float32 array"),  # compiled a new kernel
+    ("arm_force", np.asfortranarray, "float64 array"),  # (E, 2) in column order
+    ("dx_prev", lambda a: a[:-1], r"float64 array of shape \(\d+,\)"),
+    ("x", lambda a: a.tolist(), "list"),
+])
+def test_a_state_of_another_dtype_or_layout_is_refused(field, convert, what):
+    model = box_model()
+    state = model.state()
+    setattr(state, field, convert(getattr(state, field)))
+    with pytest.raises(ParameterError, match=rf"the state's {field} \({what}.*\) does not belong "
+                       r"to this model .* expected a writeable, C-contiguous float64 array"):
+        VerletIntegrator().simulate(model, state, 0.5 * critical_time_step(model), 1)
+    state = model.state()
+    state.t = np.nan
+    with pytest.raises(ParameterError, match="time t = nan s is not finite"):
+        VerletIntegrator().simulate(model, state, 0.5 * critical_time_step(model), 1)
+
+
 @pytest.mark.parametrize("name, value, message", [
     ("K0", -5.0, "K0 = -5 must be > 0"),
     ("k1", 0.0, "k1 = 0 must be > 0"),  # used to run and report a misleading divergence
@@ -218,3 +238,20 @@ def test_explicit_runs_refuse_springs_that_go_soft_in_their_own_strain_range():
                        r"stiffness .* <= 0 in the strain range \[-0\.3, 0\.5\]"):
         VerletIntegrator(strain_range=(lo, 0.5)).simulate(model, model.state(), 1e-5, 10)
 
+
+def test_divergence_names_a_non_finite_particle_or_the_fastest_one():
+    """The checks ride on the kernel's force and position passes; a failed one names the
+    step, the time and the particle, never returns NaN."""
+    model = box_model()
+    dt = 0.5 * critical_time_step(model)
+    node = int(model.free_nodes[4])
+    state = _perturbed(model, dt, 1e-3)
+    state.x[node, 1] = np.nan
+    with pytest.raises(StabilityError, match=r"diverged at step 1 \(t = .* s\): particle "
+                       r"\d+ has a non-finite position"):
+        VerletIntegrator(check_every=1).simulate(model, state, dt, 10)
+    state = _perturbed(model, dt, 1e-3)
+    run = VerletIntegrator(check_every=4).prepare(model, dt)
+    with pytest.raises(StabilityError, match=r"diverged at step 4 \(t = .* s\): particle "
+                       r"\d+ is the fastest particle; the kinetic energy exceeds 1e-30 J"):
+        run(state, 10, None, 1e-30)

@@ -228,22 +228,3 @@ def test_liver_curves(liver_problem, liver_scene):
     assert np.all(relax[:, ramp - 1] > static[:, -1])
     assert np.all(relax[:, ramp - 1] < static[:, -1] / g_inf)
 
-
-def test_haptic_session_settles_to_the_static_indentation_force():
-    from particle.haptics import HapticSession
-    model = box_model(tau=(0.01, 0.05))
-    node = top_centre(model)
-    target = model.rest_positions[node] + 0.002 * DOWN
-    session = HapticSession(model, 0.5 * critical_time_step(model, damping=40.0), damping=40.0)
-    for k in range(3000):  # 3 s of device time, tool pressed in over the first 50 ms
-        force = session.step(node, model.rest_positions[node] + min(1.0, k / 50) * 0.002 * DOWN)
-    np.testing.assert_allclose(session.state.x[node], target, rtol=1e-15)
-    static = IndentationEvaluator(model, [node], [DOWN], [0.002]).force_vectors(model.params)
-    # the tissue pushes the tool back: minus the indenter force, once settled
-    np.testing.assert_allclose(force, -static[0, 0], rtol=1e-6, atol=1e-9)
-    with pytest.raises(MeshError, match="unknown particle"):
-        session.step(model.n_particles, target)
-    with pytest.raises(MeshError, match="are fixed"):
-        session.step(int(np.nonzero(model.fixed)[0][0]), target)
-    with pytest.raises(ParameterError, match="not finite"):
-        session.step(node, [np.nan, 0.0, 0.0])
