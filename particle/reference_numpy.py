@@ -9,15 +9,19 @@ from __future__ import annotations
 
 import numpy as np
 
+from particle.integrator import Prescribed
 from particle.model import Model, State
 
 
 def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
-               damping: float = 0.0, arms: bool = True) -> None:
-    """Advance ``state`` by one position-Verlet step of ``dt`` [s] in place (no prescribed nodes).
+               damping: float = 0.0, arms: bool = True,
+               prescribed: Prescribed | None = None) -> None:
+    """Advance ``state`` by one position-Verlet step of ``dt`` [s] in place.
 
     A state that was never stepped (``state.dt is None``) takes the start-up
     step from rest, ``x^1 = x^0 + dt^2/2 a^0``. ``state.dt`` must otherwise equal ``dt``.
+    ``prescribed`` particles are moved to their keyframe positions at ``t + dt``
+    instead of being integrated.
     """
     if state.dt is not None and state.dt != dt:
         raise ValueError("step_numpy does not change the step size of a running state")
@@ -43,9 +47,21 @@ def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | N
     if damping:
         forces -= m * (damping / dt) * (x - x_prev)
     scale = 0.5 if state.dt is None else 1.0
-    free = model.free_nodes
+    free = model.free_nodes if prescribed is None else np.setdiff1d(model.free_nodes,
+                                                                     prescribed.nodes)
     new = 2.0 * x[free] - x_prev[free] + scale * dt * dt * forces[free] / m[free]
     x_prev[free] = x[free]
     x[free] = new
+    if prescribed is not None:
+        nodes, times, keys = prescribed.nodes, prescribed.times, prescribed.positions
+        t = state.t + dt
+        k = int(np.searchsorted(times, t))
+        if k == 0 or k >= len(times):
+            target = keys[min(k, len(times) - 1)]
+        else:
+            w = (t - times[k - 1]) / (times[k] - times[k - 1])
+            target = (1.0 - w) * keys[k - 1] + w * keys[k]
+        x_prev[nodes] = x[nodes]
+        x[nodes] = target
     state.t += dt
     state.dt = dt

@@ -1,11 +1,12 @@
-"""Small models with closed-form answers, shared by the particle tests and benchmarks."""
+"""Small models with closed-form answers and their energies, shared by the particle tests and
+benchmarks."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from forcecal.mesh import box_mesh
-from particle.model import ConnectorParams, Model, ModelBuilder, build_model
+from particle.model import ConnectorParams, Model, ModelBuilder, State, build_model
 
 
 def viscoelastic_params(n_connectors: int, K0: float = 50.0, *, a: float = 0.0, b: float = 0.0,
@@ -48,3 +49,30 @@ def top_centre(model: Model) -> int:
     top = np.nonzero(np.isclose(x[:, 2], x[:, 2].max()))[0]
     centre = x[top].mean(axis=0)
     return int(top[np.argmin(np.linalg.norm(x[top] - centre, axis=1))])
+
+
+def spring_energy(model: Model, x: np.ndarray) -> float:
+    """Sum over connectors of int_0^dx K(s/L) s ds = K0 dx^2/2 + a dx^3/(3L) + b dx^4/(4L^2) [J]."""
+    p, L = model.params, model.rest_lengths
+    dx = np.linalg.norm(x[model.edges[:, 1]] - x[model.edges[:, 0]], axis=1) - L
+    return float(np.sum(p.K0 * dx ** 2 / 2 + p.a * dx ** 3 / (3 * L)
+                        + p.b * dx ** 4 / (4 * L ** 2)))
+
+
+def mechanical_energy(model: Model, state: State, gravity: np.ndarray) -> tuple[float, float]:
+    """(total, stored) energy [J]: total = kinetic + spring + arm spring + gravitational,
+    zero at rest undeformed; stored = kinetic + spring + arm spring (what is in motion).
+
+    Position Verlet's velocity lives at half steps: v = (x^n - x^{n-1})/dt, so the
+    potentials are averaged over x^n and x^{n-1}; the arm forces of the state belong to
+    x^{n-1} (their spring holds F^2/(2k)). The dashpots only dissipate, so the total can
+    only fall, up to the integrator's bounded O((omega dt)^2) energy error.
+    """
+    m = model.masses
+    v = (state.x - state.x_prev) / state.dt
+    kinetic = 0.5 * float(np.sum(m[:, None] * v ** 2))
+    springs = 0.5 * (spring_energy(model, state.x) + spring_energy(model, state.x_prev))
+    arms = float(np.sum(state.arm_force ** 2 / (2.0 * model.params.arm_stiffness)))
+    mid = 0.5 * (state.x + state.x_prev) - model.rest_positions
+    stored = kinetic + springs + arms
+    return stored - float(np.sum(m[:, None] * mid * gravity)), stored

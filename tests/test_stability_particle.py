@@ -19,9 +19,9 @@ from particle.evaluators import IndentationEvaluator
 from particle.integrator import (DEFAULT_STRAIN_RANGE, VerletIntegrator, connector_stiffness_bound,
                                  connector_strain_bounds, critical_time_step,
                                  mass_scaled_laplacian, strain_range_for_release)
-from particle.model import Model, State
+from particle.model import Model
 from particle.statics import EquilibriumSolver, TangentPattern, continuation, gravity_static
-from particle.testing import box_model, top_centre
+from particle.testing import box_model, mechanical_energy, spring_energy, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -101,33 +101,6 @@ def test_tiny_masses_scale_the_limit_by_the_square_root_of_the_density(meshes):
 
 
 # --------------------------------------------------------------------------- energy
-
-def spring_energy(model: Model, x: np.ndarray) -> float:
-    """Sum over connectors of int_0^dx K(s/L) s ds = K0 dx^2/2 + a dx^3/(3L) + b dx^4/(4L^2) [J]."""
-    p, L = model.params, model.rest_lengths
-    dx = np.linalg.norm(x[model.edges[:, 1]] - x[model.edges[:, 0]], axis=1) - L
-    return float(np.sum(p.K0 * dx ** 2 / 2 + p.a * dx ** 3 / (3 * L)
-                        + p.b * dx ** 4 / (4 * L ** 2)))
-
-
-def mechanical_energy(model: Model, state: State, gravity: np.ndarray) -> tuple[float, float]:
-    """(total, stored) energy [J]: total = kinetic + spring + arm spring + gravitational,
-    zero at rest undeformed; stored = kinetic + spring + arm spring (what is in motion).
-
-    Position Verlet's velocity lives at half steps: v = (x^n - x^{n-1})/dt, so the
-    potentials are averaged over x^n and x^{n-1}; the arm forces of the state belong to
-    x^{n-1} (their spring holds F^2/(2k)). The dashpots only dissipate, so the total can
-    only fall, up to the integrator's bounded O((omega dt)^2) energy error.
-    """
-    m = model.masses
-    v = (state.x - state.x_prev) / state.dt
-    kinetic = 0.5 * float(np.sum(m[:, None] * v ** 2))
-    springs = 0.5 * (spring_energy(model, state.x) + spring_energy(model, state.x_prev))
-    arms = float(np.sum(state.arm_force ** 2 / (2.0 * model.params.arm_stiffness)))
-    mid = 0.5 * (state.x + state.x_prev) - model.rest_positions
-    stored = kinetic + springs + arms
-    return stored - float(np.sum(m[:, None] * mid * gravity)), stored
-
 
 def assert_energy_bounded(model: Model, seconds: float, chunks: int, *,
                           monitored: bool = True) -> np.ndarray:
