@@ -5,12 +5,18 @@
 is the prose version of :func:`write_reference`. Every dataset carries a
 ``unit`` attribute. Files are written to ``<name>.tmp-<pid>`` and renamed into
 place, so a reader never sees a half-written file; a truncated, corrupt, wrong
-kind or mismatched file raises :class:`~forcecal.errors.DataFileError`.
+kind or mismatched file, or one missing a dataset or attribute, raises
+:class:`~forcecal.errors.DataFileError` naming the path inside the file.
+
+A reference stores the scene settings it was computed with (``[material]``,
+``[fe]``, ``[gravity]``, the indenter) as attributes; readers check them
+against their scene with :func:`check_reference_settings`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import json
 import os
@@ -22,13 +28,16 @@ import h5py
 import numpy as np
 
 import forcecal
-from forcecal.errors import DataFileError, MeshError
+from forcecal.errors import DataFileError, MeshError, SceneError
 from forcecal.mesh import TetMesh, check_mesh
-from forcecal.problem import Problem
-from forcecal.scene import MaterialSection
+from forcecal.problem import Problem, tracked_node_by_rule
+from forcecal.scene import (SECTIONS, FESection, GravitySection, MaterialSection, Scene,
+                            section_from_values)
+from forcecal.schedules import record_times
 
 REFERENCE_KIND = "forcecal.reference"
-REFERENCE_SCHEMA = 1
+# 2: the [fe] and [gravity] settings and the indenter are stored (and checked on read)
+REFERENCE_SCHEMA = 2
 
 
 @contextlib.contextmanager
@@ -119,6 +128,53 @@ def get(fh: h5py.File, name: str, shape: tuple | None = None, *, finite: bool = 
     return arr
 
 
+def group(fh: h5py.File, name: str) -> h5py.Group:
+    """Group ``name`` of ``fh``; DataFileError naming it if it is missing or not a group."""
+    try:
+        g = fh[name] if name in fh else None
+    except Exception as exc:  # h5py raises several types on damaged metadata
+        raise DataFileError(f"{fh.filename}:/{name} cannot be read (corrupt file?): "
+                            f"{exc}") from exc
+    if not isinstance(g, h5py.Group):
+        raise DataFileError(f"{fh.filename}:/{name} is missing")
+    return g
+
+
+def attr(obj: h5py.Group | h5py.File, name: str) -> Any:
+    """Attribute ``name`` of a group or file as a plain value (numpy scalars unwrapped);
+    DataFileError naming the file, group and attribute if it is missing or unreadable."""
+    where = f"{obj.file.filename}:{obj.name} attribute {name!r}"
+    try:
+        if name not in obj.attrs:
+            raise DataFileError(f"{where} is missing")
+        value = obj.attrs[name]
+    except DataFileError:
+        raise
+    except Exception as exc:
+        raise DataFileError(f"{where} cannot be read (corrupt file?): {exc}") from exc
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def write_section(g: h5py.Group, section: Any) -> None:
+    """Every key of a scene section as an attribute of ``g`` (lists as float arrays)."""
+    for f in dataclasses.fields(section):
+        value = getattr(section, f.name)
+        g.attrs[f.name] = np.asarray(value, dtype=float) if isinstance(value, tuple) else value
+
+
+def read_section(g: h5py.Group, name: str) -> Any:
+    """Scene section ``name`` from the attributes of ``g`` (:func:`write_section`), with the
+    type and range checks of a scene file; DataFileError naming what is missing or wrong."""
+    values = {}
+    for f in dataclasses.fields(SECTIONS[name]):
+        value = attr(g, f.name)
+        values[f.name] = value.tolist() if isinstance(value, np.ndarray) else value
+    try:
+        return section_from_values(name, values, f"{g.file.filename}:{g.name}")
+    except SceneError as exc:
+        raise DataFileError(f"{exc} (corrupt file?)") from None
+
+
 @dataclass(frozen=True, eq=False)
 class IndentationCurves:
     """Quasi-static indentation of every test point (no gravity, long-term material).
@@ -133,6 +189,7 @@ class IndentationCurves:
     displacement: np.ndarray
     force: np.ndarray
     force_normal: np.ndarray
+    indenter: str = "vertex"  # ``indentation.indenter`` (relaxation uses the same one)
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,33 +217,71 @@ class GravityResult:
             (long-term material).
         time: (S,) float64, sample times of the dynamic run [s], starting at 0 (rest).
         displacement: (S, N, 3) float64, vertex displacements of the dynamic run [m].
-        tracked_node: vertex whose history the reports compare.
+        settings: the scene's ``[gravity]`` keys the runs were computed with (acceleration,
+            load steps, duration, FE step, record interval), ``tracked_node`` resolved to the
+            vertex whose history the reports compare.
     """
     static_displacement: np.ndarray
     time: np.ndarray
     displacement: np.ndarray
-    tracked_node: int
+    settings: GravitySection
+
+    @property
+    def tracked_node(self) -> int:
+        """Vertex whose displacement history the reports compare."""
+        return int(self.settings.tracked_node)
 
 
 @dataclass(frozen=True, eq=False)
 class Reference:
-    """Everything in ``reference.h5``."""
+    """Everything in ``reference.h5``.
+
+    ``fe`` is the ``[fe]`` section the curves were computed with (None for a reference not
+    computed by the FE, e.g. :func:`calibration.synthetic.synthetic_reference`).
+    """
     problem: Problem
     material: MaterialSection
     indentation: IndentationCurves
     relaxation: RelaxationCurves
     gravity: GravityResult | None
     meta: dict[str, Any] = field(default_factory=dict)
+    fe: FESection | None = None
 
 
-def _material_attrs(group: h5py.Group, m: MaterialSection) -> None:
-    for k in ("C10", "C01", "kappa", "density"):
-        group.attrs[k] = getattr(m, k)
-    group.attrs["prony_g"] = np.asarray(m.prony_g, dtype=float)
-    group.attrs["prony_tau"] = np.asarray(m.prony_tau, dtype=float)
-    group.attrs["reference"] = m.reference
-    group.attrs["units"] = json.dumps({"C10": "Pa", "C01": "Pa", "kappa": "Pa",
-                                       "density": "kg/m^3", "prony_g": "1", "prony_tau": "s"})
+def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> None:
+    """Refuse a reference computed with other FE, gravity or indenter settings than ``scene``'s.
+
+    Compares ``[fe]`` (element, quadrature degree, Newton settings), ``[gravity]``
+    (acceleration, load steps, duration, FE step, record interval, tracked node) and
+    ``indentation.indenter``; the material, schedules and test points are the caller's
+    (:func:`calibration.core.load_checked_reference`).
+
+    Raises:
+        DataFileError: naming every key that differs, with both values.
+    """
+    differ = []
+
+    def compare(section: str, stored: Any, wanted: Any, keys: tuple[str, ...]) -> None:
+        for k in keys:
+            got, want = getattr(stored, k), getattr(wanted, k)
+            if got != want:
+                differ.append(f"{section}.{k} = {got!r} (scene: {want!r})")
+
+    if ref.indentation.indenter != scene.indentation.indenter:
+        differ.append(f"indentation.indenter = {ref.indentation.indenter!r} "
+                      f"(scene: {scene.indentation.indenter!r})")
+    if ref.fe is not None:
+        compare("fe", ref.fe, scene.fe, tuple(f.name for f in dataclasses.fields(FESection)))
+    if ref.gravity is not None:
+        wanted = scene.gravity
+        if isinstance(wanted.tracked_node, str):
+            wanted = dataclasses.replace(wanted, tracked_node=tracked_node_by_rule(
+                ref.problem.mesh, ref.problem.fixed, wanted.tracked_node))
+        compare("gravity", ref.gravity.settings, wanted,
+                tuple(f.name for f in dataclasses.fields(GravitySection)))
+    if differ:
+        raise DataFileError(f"{path} was computed with other settings than the scene's: "
+                            + "; ".join(differ) + "; recompute the reference")
 
 
 def write_problem(fh: h5py.File, problem: Problem) -> None:
@@ -215,7 +310,7 @@ def read_problem(fh: h5py.File) -> Problem:
         mesh = check_mesh(TetMesh(vertices, tets))
     except MeshError as exc:
         raise DataFileError(f"{fh.filename}: stored mesh is invalid: {exc}") from None
-    stored_fp = fh["mesh"].attrs.get("fingerprint")
+    stored_fp = attr(group(fh, "mesh"), "fingerprint")
     if stored_fp != mesh.fingerprint():
         raise DataFileError(f"{fh.filename}: mesh fingerprint mismatch (file damaged or edited)")
     edges = get(fh, "mesh/edges", (None, 2), dtype="int")
@@ -224,8 +319,8 @@ def read_problem(fh: h5py.File) -> Problem:
     fixed = get(fh, "mesh/fixed", (None,), dtype="int")
     nodes = get(fh, "test_points/nodes", (None,), dtype="int")
     is_cal = get(fh, "test_points/is_calibration", (len(nodes),)).astype(bool)
-    tracked = int(fh["test_points"].attrs.get("tracked_node", -1))
-    if not 0 <= tracked < mesh.n_vertices:
+    tracked = attr(group(fh, "test_points"), "tracked_node")
+    if not isinstance(tracked, int) or not 0 <= tracked < mesh.n_vertices:
         raise DataFileError(f"{fh.filename}: tracked node {tracked} is not a vertex")
     problem = Problem(mesh=mesh, fixed=fixed, calibration=nodes[is_cal], held_out=nodes[~is_cal],
                       tracked_node=tracked)
@@ -248,12 +343,22 @@ def write_reference(path: str | Path, ref: Reference) -> None:
     for name, arr in (("indentation", ind.force), ("relaxation", rel.force)):
         if not np.all(np.isfinite(arr)):
             raise DataFileError(f"refusing to write {path}: {name} forces contain NaN/inf")
+    if ref.gravity is not None and ref.gravity.settings.tracked_node != p.tracked_node:
+        raise DataFileError(f"refusing to write {path}: gravity tracked node "
+                            f"{ref.gravity.settings.tracked_node!r} is not the problem's "
+                            f"{p.tracked_node}")
     with atomic_h5(path, REFERENCE_KIND, REFERENCE_SCHEMA) as fh:
         for k, v in ref.meta.items():
             fh.attrs[k] = v
         write_problem(fh, p)
-        _material_attrs(fh.create_group("material"), ref.material)
+        g = fh.create_group("material")
+        write_section(g, ref.material)
+        g.attrs["units"] = json.dumps({"C10": "Pa", "C01": "Pa", "kappa": "Pa",
+                                       "density": "kg/m^3", "prony_g": "1", "prony_tau": "s"})
+        if ref.fe is not None:
+            write_section(fh.create_group("fe"), ref.fe)
         g = fh.create_group("indentation")
+        g.attrs["indenter"] = ind.indenter
         put(g, "displacement", ind.displacement, "m", "depth along the inward normal (S,)")
         put(g, "force", ind.force, "N", "indenter force on the test vertex (P, S, 3)")
         put(g, "force_normal", ind.force_normal, "N", "force . inward normal (P, S)")
@@ -267,7 +372,9 @@ def write_reference(path: str | Path, ref: Reference) -> None:
             _check_shape("gravity.static_displacement", gr.static_displacement, (n_v, 3))
             _check_shape("gravity.displacement", gr.displacement, (len(gr.time), n_v, 3))
             g = fh.create_group("gravity")
-            g.attrs["tracked_node"] = gr.tracked_node
+            write_section(g, gr.settings)
+            g.attrs["units"] = json.dumps({"acceleration": "m/s^2", "duration": "s",
+                                           "fe_dt": "s", "record_interval": "s"})
             put(g, "static_displacement", gr.static_displacement, "m",
                 "static sag of every vertex (N, 3)")
             put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
@@ -286,19 +393,14 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
         if expect_mesh is not None and problem.mesh.fingerprint() != expect_mesh:
             raise DataFileError(f"{path} was computed on a different mesh than the scene's "
                                 "(mesh fingerprint mismatch); recompute the reference")
-        ma = fh["material"].attrs if "material" in fh else None
-        if ma is None:
-            raise DataFileError(f"{path}:/material is missing")
-        material = MaterialSection(C10=float(ma["C10"]), C01=float(ma["C01"]),
-                                   kappa=float(ma["kappa"]), density=float(ma["density"]),
-                                   prony_g=tuple(float(x) for x in ma["prony_g"]),
-                                   prony_tau=tuple(float(x) for x in ma["prony_tau"]),
-                                   reference=str(ma.get("reference", "")))
+        material = read_section(group(fh, "material"), "material")
+        fe = read_section(group(fh, "fe"), "fe") if "fe" in fh else None
         n_pts = len(problem.test_points)
         d = get(fh, "indentation/displacement", (None,), dtype="float")
         ind = IndentationCurves(d, get(fh, "indentation/force", (n_pts, len(d), 3), dtype="float"),
                                 get(fh, "indentation/force_normal", (n_pts, len(d)),
-                                    dtype="float"))
+                                    dtype="float"),
+                                indenter=str(attr(group(fh, "indentation"), "indenter")))
         t = get(fh, "relaxation/time", (None,), dtype="float")
         rel = RelaxationCurves(t, get(fh, "relaxation/displacement", (len(t),), dtype="float"),
                                get(fh, "relaxation/force", (n_pts, len(t), 3), dtype="float"),
@@ -309,13 +411,23 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
         gravity = None
         if "gravity" in fh:
             n_v = problem.mesh.n_vertices
+            settings = read_section(fh["gravity"], "gravity")
+            if settings.tracked_node != problem.tracked_node:
+                raise DataFileError(f"{path}:/gravity tracked_node {settings.tracked_node!r} "
+                                    f"differs from /test_points' {problem.tracked_node}")
             gt = get(fh, "gravity/time", (None,), dtype="float")
+            expected = record_times(settings.duration, settings.record_interval)
+            if gt.shape != expected.shape or not np.allclose(gt, expected, rtol=1e-12,
+                                                             atol=1e-12 * settings.duration):
+                raise DataFileError(f"{path}:/gravity/time does not match its duration "
+                                    f"({settings.duration} s) and record_interval "
+                                    f"({settings.record_interval} s)")
             gravity = GravityResult(
                 static_displacement=get(fh, "gravity/static_displacement", (n_v, 3),
                                         dtype="float"),
                 time=gt, displacement=get(fh, "gravity/displacement", (len(gt), n_v, 3),
                                           dtype="float"),
-                tracked_node=int(fh["gravity"].attrs["tracked_node"]))
-        meta = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in fh.attrs.items()}
+                settings=settings)
+        meta = {k: attr(fh, k) for k in fh.attrs}
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
-                     gravity=gravity, meta=meta)
+                     gravity=gravity, meta=meta, fe=fe)

@@ -379,6 +379,12 @@ def _build_section(name: str, cls: type, table: Any, origin: str) -> Any:
     return cls(**kwargs)
 
 
+def section_from_values(name: str, values: dict[str, Any], origin: str) -> Any:
+    """Section ``name`` built from plain values (as TOML gives them) with the checks of a file:
+    types, units and bounds; how data files read back the settings they store."""
+    return _build_section(name, SECTIONS[name], values, origin)
+
+
 def _cross_checks(scene: Scene, origin: str) -> None:
     m = scene.material
     problem = m.prony_error()

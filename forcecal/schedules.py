@@ -6,6 +6,8 @@ compared point by point without interpolation.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import brentq
 
@@ -60,3 +62,9 @@ def relaxation_schedule(section: RelaxationSection) -> tuple[np.ndarray, np.ndar
         raise SceneError(f"relaxation schedule {time.tolist()} does not increase")
     depth = section.depth * np.minimum(time / section.ramp_time, 1.0)
     return time, depth
+
+
+def record_times(duration: float, record_interval: float) -> np.ndarray:
+    """(S,) sample times 0, dt_rec, 2 dt_rec, ... <= duration [s] of the dynamic gravity run."""
+    n = int(math.floor(duration / record_interval * (1 + 1e-12)))
+    return record_interval * np.arange(n + 1)

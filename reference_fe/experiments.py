@@ -24,6 +24,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from forcecal.errors import ConvergenceError, SceneError
+from forcecal.schedules import record_times
 from reference_fe.model import (FEModel, FEState, Load, StepFailed, clamp, initial_state,
                                 nodal_force, prescribe_vertex, solve_step)
 
@@ -150,12 +151,6 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
     return model.vertex_values(final.u)
 
 
-def record_times(duration: float, record_interval: float) -> np.ndarray:
-    """(S,) sample times 0, dt_rec, 2 dt_rec, ... <= duration [s] of the dynamic run."""
-    n = int(math.floor(duration / record_interval * (1 + 1e-12)))
-    return record_interval * np.arange(n + 1)
-
-
 def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
                     duration: float, dt: float, record_interval: float) -> tuple[np.ndarray,
                                                                                   np.ndarray]:
@@ -166,7 +161,7 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
     constant-velocity predictor ``u + dt v``.
 
     Returns:
-        time: (S,) sample times [s], from 0 (:func:`record_times`).
+        time: (S,) sample times [s], from 0 (:func:`forcecal.schedules.record_times`).
         displacement: (S, N, 3) displacement of every vertex [m] (zero at t = 0).
     """
     if not 0 < dt <= record_interval:

@@ -15,6 +15,7 @@ machine, as ``mpirun`` is used here).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -327,8 +328,6 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
     dyn = data["gravity_dynamic"]
     meta = {
         "dolfinx_version": dolfinx.__version__,
-        "element": scene.fe.element,
-        "quadrature_degree": scene.fe.quadrature_degree,
         "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
         "mesh_fingerprint": problem.mesh.fingerprint(),
         # item times are compute seconds summed over ranks (and over an interrupted
@@ -338,9 +337,11 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
     }
     return Reference(
         problem=problem, material=scene.material,
-        indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind, fn_ind),
+        indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind, fn_ind,
+                                      indenter=scene.indentation.indenter),
         relaxation=RelaxationCurves(times, depths, f_rel, fn_rel),
         gravity=GravityResult(static_displacement=data["gravity_static"]["displacement"],
                               time=dyn["time"], displacement=dyn["displacement"],
-                              tracked_node=problem.tracked_node),
-        meta=meta)
+                              settings=dataclasses.replace(scene.gravity,
+                                                           tracked_node=problem.tracked_node)),
+        meta=meta, fe=scene.fe)

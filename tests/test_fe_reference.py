@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("dolfinx")
 
 from forcecal.errors import ConvergenceError, DataFileError  # noqa: E402
-from forcecal.h5io import read_reference  # noqa: E402
+from forcecal.h5io import check_reference_settings, read_reference  # noqa: E402
 from forcecal.problem import build_problem  # noqa: E402
 from forcecal.scene import load_scene, replace  # noqa: E402
 from reference_fe.run import compute_reference, run_key  # noqa: E402
@@ -54,7 +54,10 @@ def test_reference_file_contents_and_checkpoint_reuse(serial, tiny_scene):
     out, ref = serial
     assert not out.with_name("reference.h5.parts").exists()  # removed once the file is written
     back = read_reference(out)
-    assert back.meta["element"] == "P2" and back.meta["quadrature_degree"] == 4
+    assert back.fe == tiny_scene.fe and back.fe.element == "P2" and back.fe.quadrature_degree == 4
+    assert back.gravity.settings.acceleration == tiny_scene.gravity.acceleration
+    assert back.gravity.settings.fe_dt == tiny_scene.gravity.fe_dt
+    check_reference_settings(back, tiny_scene, out)  # the settings it was computed with
     assert back.meta["n_ranks"] == 1 and back.meta["dolfinx_version"] == "0.5.2"
     assert back.meta["mesh_fingerprint"] == ref.problem.mesh.fingerprint()
     timings = json.loads(back.meta["timings_s"])
