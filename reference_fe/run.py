@@ -23,10 +23,11 @@ import os
 import shutil
 import socket
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, TypeVar
+from typing import Callable, TextIO, TypeVar
 
 import numpy as np
 from mpi4py import MPI
@@ -34,7 +35,7 @@ from tqdm import tqdm
 
 import dolfinx
 from forcecal import errors
-from forcecal.errors import DataFileError, ForcecalError
+from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            atomic_path, write_reference)
 from forcecal.problem import Problem, build_problem
@@ -93,6 +94,26 @@ def run_key(scene: Scene, problem: Problem) -> str:
     return h.hexdigest()
 
 
+def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
+                                                  Callable[..., np.ndarray]]:
+    """The FE experiments of ``indentation.indenter``: (static curve, relaxation curve).
+
+    Each takes ``(model, fixed, vertex, normal, depths)`` or ``(model, fixed, vertex,
+    normal, times, depths)`` and returns the (S, 3) force on the test vertex, like
+    :func:`~reference_fe.experiments.indentation_curve` and
+    :func:`~reference_fe.experiments.relaxation_curve`. A physical indenter (a rigid
+    sphere or flat punch with local refinement) is another branch here.
+
+    Raises:
+        SceneError: an indenter with no FE experiment.
+    """
+    indenter = scene.indentation.indenter
+    if indenter == "vertex":  # the test vertex itself is displaced along its inward normal
+        return experiments.indentation_curve, experiments.relaxation_curve
+    raise SceneError(f"indentation.indenter = {indenter!r}: the FE reference has no experiment "
+                     "for it (known: 'vertex')")
+
+
 def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem) -> dict:
     """Arrays of one work item (keys as stored in its checkpoint part)."""
     g = scene.gravity
@@ -103,14 +124,15 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem)
         times, disp = experiments.gravity_dynamic(model, problem.fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
         return {"time": times, "displacement": disp}
+    static_curve, relaxation_curve = indenter_experiments(scene)
     vertex = int(problem.test_points[item.point])
     normal = problem.normals[item.point]
     if item.kind == "indentation":
-        force = experiments.indentation_curve(model, problem.fixed, vertex, normal,
-                                              indentation_depths(scene.indentation))
+        force = static_curve(model, problem.fixed, vertex, normal,
+                             indentation_depths(scene.indentation))
     else:
         times, depths = relaxation_schedule(scene.relaxation)
-        force = experiments.relaxation_curve(model, problem.fixed, vertex, normal, times, depths)
+        force = relaxation_curve(model, problem.fixed, vertex, normal, times, depths)
     return {"force": force}
 
 
@@ -124,9 +146,13 @@ class _Parts:
     def _path(self, item: WorkItem, suffix: str) -> Path:
         return self.folder / f"{item.name}.{suffix}"
 
+    def path(self, item: WorkItem) -> Path:
+        """The finished part of ``item`` (present once it is complete: written atomically)."""
+        return self._path(item, "npz")
+
     def load(self, item: WorkItem) -> dict | None:
         """The stored arrays of ``item`` if present and computed for this run key."""
-        path = self._path(item, "npz")
+        path = self.path(item)
         if not path.is_file():
             return None
         try:
@@ -139,7 +165,7 @@ class _Parts:
             return None
 
     def save(self, item: WorkItem, arrays: dict) -> None:
-        with atomic_path(self._path(item, "npz")) as tmp, open(tmp, "wb") as fh:
+        with atomic_path(self.path(item)) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, run_key=self.key, **arrays)
 
     def claim(self, item: WorkItem) -> bool:
@@ -183,8 +209,79 @@ class _Parts:
     def failed(self) -> bool:
         return (self.folder / "FAILED").exists()
 
-    def count(self) -> int:
-        return len(list(self.folder.glob("*.npz")))
+
+def progress_stream(progress: bool, rank: int) -> TextIO | None:
+    """Where rank 0 draws the bar of finished items, or None for no bar.
+
+    On stderr if it is a terminal, else on stdout if that is one (under ``mpirun``,
+    OpenMPI hands its ranks a pseudo-terminal as stdout but a pipe as stderr), else on
+    stderr if the environment sets ``FORCECAL_PROGRESS=1``. ``progress=False``
+    (``--no-progress``) always wins.
+    """
+    if not progress or rank != 0:
+        return None
+    for stream in (sys.stderr, sys.stdout):
+        if stream.isatty():
+            return stream
+    return sys.stderr if os.environ.get("FORCECAL_PROGRESS") == "1" else None
+
+
+class _Progress:
+    """A tqdm bar on ``stream`` that ticks once per finished work item, with its name.
+
+    It counts the items every rank finishes: a thread polls the checkpoint folder
+    (every :attr:`POLL_S` seconds, and after each of this rank's items), so the bar moves
+    while rank 0 computes a long item itself. Items already done when it starts are in
+    its initial count. ``stream=None``: no bar, no thread.
+    """
+
+    POLL_S = 0.5
+
+    def __init__(self, parts: _Parts, items: list[WorkItem], stream: TextIO | None):
+        self._bar = None
+        if stream is None:
+            return
+        self._paths = {it.name: parts.path(it) for it in items}
+        # an item is pending until its part appears or changes (a stale part is replaced)
+        self._pending = {it.name: self._stamp(it.name) for it in items if parts.load(it) is None}
+        self._lock = threading.Lock()
+        # every tick is drawn (items take seconds, so this cannot flood the terminal)
+        self._bar = tqdm(total=len(items), initial=len(items) - len(self._pending),
+                         desc="FE reference", unit="item", file=stream, mininterval=0,
+                         miniters=1)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fe-progress", daemon=True)
+        self._thread.start()
+
+    def _stamp(self, name: str) -> int | None:
+        try:
+            return self._paths[name].stat().st_mtime_ns
+        except OSError:
+            return None
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.POLL_S):
+            self.poll()
+
+    def poll(self) -> None:
+        """Tick for every item whose part appeared since the last poll."""
+        if self._bar is None:
+            return
+        with self._lock:
+            for name, stamp in list(self._pending.items()):
+                now = self._stamp(name)
+                if now is not None and now != stamp:
+                    del self._pending[name]
+                    self._bar.set_postfix_str(name, refresh=False)
+                    self._bar.update(1)
+
+    def close(self) -> None:
+        if self._bar is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self.poll()
+        self._bar.close()
 
 
 def _alive(host: str, pid: int) -> bool:
@@ -213,7 +310,7 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         problem: the scene's geometry; built with :func:`forcecal.problem.build_problem`
             (on rank 0, then broadcast) when None.
         out_path: the ``reference.h5`` to write; checkpoints go to ``<out_path>.parts/``.
-        progress: show a tqdm bar of finished items on rank 0 (only on a terminal).
+        progress: show a bar of finished items on rank 0 (:func:`progress_stream`).
 
     Raises:
         DataFileError: another live process is computing the same ``out_path``.
@@ -224,6 +321,7 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     comm = MPI.COMM_WORLD
     start = time.perf_counter()
     out_path = Path(out_path)
+    indenter_experiments(scene)  # an unknown indenter fails here, before any work
     if problem is None:
         problem = _on_root(comm, lambda: build_problem(scene))
     parts = _Parts(out_path, run_key(scene, problem))
@@ -231,10 +329,11 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     _on_root(comm, parts.start)
     mesh_seconds = time.perf_counter() - start
 
-    bar = tqdm(total=len(items), desc="FE reference", unit="item", initial=parts.count(),
-               disable=not progress or comm.rank != 0 or not sys.stderr.isatty())
-    failure, build_seconds = _work(scene, problem, items, parts, bar)
-    bar.close()
+    bar = _Progress(parts, items, progress_stream(progress, comm.rank))
+    try:
+        failure, build_seconds = _work(scene, problem, items, parts, bar)
+    finally:
+        bar.close()
     failures = [f for f in comm.allgather(failure) if f is not None]
     if failures:
         kind = getattr(errors, failures[0][0], None)
@@ -270,7 +369,7 @@ def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
 
 
 def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
-          bar: tqdm) -> tuple[tuple[str, str] | None, float]:
+          bar: _Progress) -> tuple[tuple[str, str] | None, float]:
     """Claim and compute items until none is left.
 
     Returns ``(failure, build_seconds)``: ``failure`` is None or (exception class
@@ -298,7 +397,7 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
         parts.save(item, arrays)
         log.debug("%s done in %.2f s (%d Newton iterations so far on this rank)", item.name,
                   float(arrays["seconds"]), model.newton_iterations)
-        bar.update(parts.count() - bar.n)
+        bar.poll()
     return None, build_seconds
 
 

@@ -1,5 +1,7 @@
 """End to end: the tiny scene's FE reference, serial vs mpirun -n 2, checkpoints, failures."""
 
+import dataclasses
+import io
 import json
 import os
 import shutil
@@ -12,11 +14,12 @@ import pytest
 
 pytest.importorskip("dolfinx")
 
-from forcecal.errors import ConvergenceError, DataFileError  # noqa: E402
+from forcecal.errors import ConvergenceError, DataFileError, SceneError  # noqa: E402
 from forcecal.h5io import check_reference_settings, read_reference  # noqa: E402
 from forcecal.problem import build_problem  # noqa: E402
 from forcecal.scene import load_scene, replace  # noqa: E402
-from reference_fe.run import compute_reference, run_key  # noqa: E402
+from reference_fe.run import (WorkItem, _Parts, _Progress, compute_item,  # noqa: E402
+                              compute_reference, progress_stream, run_key, work_items)
 
 from tests.conftest import ROOT, SCENES  # noqa: E402
 
@@ -142,3 +145,65 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
     assert main(["--scene", str(tmp_path / "missing.toml"), "--out",
                  str(tmp_path / "r.h5"), "--no-progress"]) == 2
     assert "error: scene file" in capsys.readouterr().err
+
+
+def test_an_indenter_without_an_fe_experiment_is_refused_where_items_are_computed(tiny_scene,
+                                                                                  tmp_path):
+    """The scene only accepts 'vertex'; a scene built around that check (or a future
+    indenter without FE code) is refused by the work-item code before any solve."""
+    scene = dataclasses.replace(tiny_scene, indentation=dataclasses.replace(
+        tiny_scene.indentation, indenter="sphere"))
+    problem = build_problem(tiny_scene)
+    for kind in ("indentation", "relaxation"):
+        with pytest.raises(SceneError, match="indentation.indenter = 'sphere': the FE "
+                           "reference has no experiment for it"):
+            compute_item(None, scene, problem, WorkItem(kind, 0, 1.0))
+    with pytest.raises(SceneError, match="'sphere'"):
+        compute_reference(scene, problem, out_path=tmp_path / "reference.h5", progress=False)
+    assert not (tmp_path / "reference.h5.parts").exists()
+
+
+class _Stream(io.StringIO):
+    def __init__(self, tty: bool):
+        super().__init__()
+        self.tty = tty
+
+    def isatty(self) -> bool:
+        return self.tty
+
+
+@pytest.mark.parametrize("stderr_tty, stdout_tty, forced, expected", [
+    (True, True, None, "stderr"), (False, True, None, "stdout"),  # mpirun: stdout is a pty
+    (False, False, None, None), (False, False, "1", "stderr"), (False, False, "0", None)])
+def test_progress_bar_goes_to_a_terminal_or_where_forced(monkeypatch, stderr_tty, stdout_tty,
+                                                         forced, expected):
+    streams = {"stderr": _Stream(stderr_tty), "stdout": _Stream(stdout_tty)}
+    monkeypatch.setattr(sys, "stderr", streams["stderr"])
+    monkeypatch.setattr(sys, "stdout", streams["stdout"])
+    if forced is None:
+        monkeypatch.delenv("FORCECAL_PROGRESS", raising=False)
+    else:
+        monkeypatch.setenv("FORCECAL_PROGRESS", forced)
+    assert progress_stream(True, 0) is (streams[expected] if expected else None)
+    assert progress_stream(False, 0) is None  # --no-progress
+    assert progress_stream(True, 1) is None  # rank 0 only
+
+
+def test_progress_bar_ticks_once_per_finished_item_with_its_name(tiny_scene, tmp_path):
+    """Items finished by any rank (parts appearing in the folder) tick the bar; a part left
+    from another run (other run key) counts only once it is recomputed."""
+    items = work_items(tiny_scene, 2)  # 6 items
+    parts = _Parts(tmp_path / "reference.h5", "key")
+    parts.folder.mkdir()
+    parts.save(items[0], {"force": np.zeros(1)})  # finished before: initial count
+    _Parts(tmp_path / "reference.h5", "another run").save(items[1], {"force": np.zeros(1)})
+    out = _Stream(True)
+    bar = _Progress(parts, items, out)
+    parts.save(items[2], {"force": np.zeros(1)})
+    bar.poll()
+    parts.save(items[1], {"force": np.zeros(1)})
+    bar.close()
+    text = out.getvalue()
+    assert "1/6" in text and "3/6" in text and "4/6" not in text
+    assert items[2].name in text and items[1].name in text
+    assert items[3].name not in text
