@@ -122,16 +122,19 @@ def test_gravity_dynamic_samples_and_refusals():
         gravity_dynamic(model, [0.0, 0.0, -9.81], 0.02, 0.005, times)
 
 
-def test_quasi_static_relaxation_matches_the_explicit_run():
-    """The quasi-static path (coarse steps, exact arm recursion, no inertia) vs Verlet.
+@pytest.mark.parametrize("a, b", [(0.0, 0.0), (-30.0, 400.0)])
+def test_quasi_static_relaxation_matches_the_explicit_run(a, b):
+    """The quasi-static path (coarse steps, exact arm recursion, no inertia) vs Verlet,
+    linear and nonlinear springs (K(eps) = K0 - 30 eps + 400 eps^2, N/m).
 
     The explicit run uses the paper's recursion at dt ~ 4e-4 s (dt/tau_1 ~ 8e-3) with
     light damping (5 1/s) so that the ringing excited by the ramp's kinks dies out.
     Differences: inertia during the 0.05 s ramp, the O(dt/tau) error of backward Euler,
-    the damping force of the slow creep; 0.3 % relative RMS measured (0.4 % undamped),
-    against the 1 % asked.
+    the damping force of the slow creep; 0.32 % relative RMS measured for both (0.4 %
+    undamped), against the 1 % asked. (The paper's recursion at the sample steps instead:
+    1.5 % and 1.4 %, see :class:`RelaxationEvaluator`.)
     """
-    model = box_model(tau=(0.05, 0.5))
+    model = box_model(tau=(0.05, 0.5), a=a, b=b)
     node = top_centre(model)
     section = RelaxationSection(depth=0.002, ramp_time=0.05, ramp_steps=5, hold_time=2.5,
                                 hold_steps=15)
@@ -142,6 +145,31 @@ def test_quasi_static_relaxation_matches_the_explicit_run():
     rms = np.sqrt(np.mean((explicit - quasi) ** 2)) / np.sqrt(np.mean(quasi ** 2))
     assert rms < 0.01
     assert quasi[section.ramp_steps - 1] > 1.3 * quasi[-1]  # it does relax
+
+
+def test_many_parameter_sets_in_one_call_equal_one_call_each():
+    """evaluate_many is the sequence of single calls (same warm starts, same results, bitwise);
+    a non-physical set anywhere in the sequence is refused before any work."""
+    model = box_model((3, 3, 2), a=-30.0, b=400.0)
+    x = model.rest_positions
+    top = np.nonzero(np.isclose(x[:, 2], x[:, 2].max()))[0][[1, 4]]
+    normals = np.tile(DOWN, (2, 1))
+    sets = [dataclasses.replace(model.params, K0=model.params.K0 * s) for s in (1.0, 1.1, 0.9)]
+    times, rdepths = relaxation_schedule(RelaxationSection(depth=0.002, ramp_time=0.05,
+                                                           ramp_steps=3, hold_time=2.5,
+                                                           hold_steps=6))
+    for make in (lambda: IndentationEvaluator(model, top, normals, [0.001, 0.002, 0.003]),
+                 lambda: RelaxationEvaluator(model, top, normals, times, rdepths)):
+        one_each = make()
+        expected = np.stack([one_each(p, [1, 0]) for p in sets])
+        batch = make()
+        np.testing.assert_array_equal(batch.evaluate_many(sets, [1, 0]), expected)
+        assert batch.evaluate_many([]).shape == (0, 2, len(batch.depths))
+        bad = dataclasses.replace(model.params, b2=-model.params.b2)
+        fresh = make()
+        with pytest.raises(ParameterError, match="connector 0 .*: b2 = .* must be > 0"):
+            fresh.evaluate_many([sets[0], bad])
+        assert not fresh._warm  # nothing was evaluated
 
 
 def test_evaluators_points_warm_starts_and_pickling():
