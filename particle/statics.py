@@ -225,7 +225,11 @@ class EquilibriumSolver:
         except RuntimeError:
             # exactly singular, e.g. a hanging string at rest has no transverse stiffness yet:
             # a tiny diagonal shift only changes the iteration matrix, not the equilibrium
-            data[pat.diagonal] += 1e-6 * np.abs(data[pat.diagonal]).max()
+            shift = 1e-6 * np.abs(data[pat.diagonal]).max()
+            log.debug("prescribed particles %s: tangent stiffness exactly singular; factorising "
+                      "it with its diagonal shifted by %.3g N/m (changes the Newton iteration, "
+                      "not the equilibrium it converges to)", self.prescribed.tolist(), shift)
+            data[pat.diagonal] += shift
             try:
                 lu = self._lu_of(data)
             except RuntimeError as exc:

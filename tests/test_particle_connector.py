@@ -1,4 +1,6 @@
 """One Maxwell-Solid connector against closed-form answers: force law, arms, gravity."""
+import logging
+
 import numpy as np
 import pytest
 
@@ -105,14 +107,20 @@ def test_quasi_static_relaxation_is_exact_for_a_single_connector(a, b):
     np.testing.assert_allclose(curve, expected, rtol=1e-12)
 
 
-def test_hanging_spring_settles_at_mg_over_k():
-    """A mass on a vertical linear spring comes to rest at elongation m g / K0 (arms relaxed)."""
+def test_hanging_spring_settles_at_mg_over_k(caplog):
+    """A mass on a vertical linear spring comes to rest at elongation m g / K0 (arms relaxed).
+
+    At rest the single spring has no transverse stiffness: the Newton tangent is exactly
+    singular and is factorised with a shifted diagonal, which is logged."""
+    caplog.set_level(logging.DEBUG, logger="particle.statics")
     mass, g = 0.01, 9.81
     params = viscoelastic_params(1, K0, g=G, tau=(0.01, 0.05))
     model = two_particle_model(L0, mass=mass, params=params, direction=(0.0, 0.0, -1.0))
     gravity = np.array([0.0, 0.0, -g])
     sag = mass * g / K0
     u = gravity_static(model, gravity)
+    assert "tangent stiffness exactly singular; factorising it with its diagonal shifted" in (
+        caplog.text)
     # Newton converges to round-off for one spring (tolerance 1e-10 of the weight)
     np.testing.assert_allclose(u[1], [0.0, 0.0, -sag], rtol=1e-9, atol=1e-15)
     np.testing.assert_array_equal(u[0], 0.0)
