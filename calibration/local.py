@@ -147,7 +147,7 @@ def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.nda
     kind = STAGE_KIND[stage]
     n_points = model.rings.n_points
     points = np.arange(n_points)
-    record = saved or {"sweeps": [], "done": False}
+    record = saved or {"sweeps": []}
     sweeps: list[Sweep] = []
     for k in range(settings.local_max_sweeps):
         if k < len(record["sweeps"]):
@@ -177,8 +177,6 @@ def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.nda
         if (not sweep.accepted or sweep.start_cost - sweep.end_cost < tolerance
                 or sweep.end_cost < tolerance):
             break
-    record["done"] = True
-    save(record)
     return model, sweeps
 
 
@@ -228,10 +226,10 @@ def _damped_update(pool: Pool, start: LocalModel, stage: str, reference: np.ndar
     points = np.arange(len(fits))
     for halvings in range(MAX_HALVINGS + 1):
         z = z0 + step / 2 ** halvings
-        trial = start.with_offsets(stage, z)
+        params = start.with_offsets(stage, z).params()
         try:
-            check_feasible(trial.params(), start.strain, start.floor)
-            cost = pool.total_cost(kind, trial.params(), points, reference)
+            check_feasible(params, start.strain, start.floor)
+            cost = pool.total_cost(kind, params, points, reference)
         except INFEASIBLE as exc:  # e.g. a blend of feasible rings that is not: damp further
             log.info("local %s update x 1/%d is infeasible: %s", stage, 2 ** halvings, exc)
             continue

@@ -14,7 +14,6 @@ it twice, one sparse solve per test point:
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,9 +22,6 @@ from scipy.sparse.linalg import splu
 
 from forcecal.errors import MeshError
 from forcecal.mesh import TetMesh
-
-log = logging.getLogger(__name__)
-
 
 @dataclass(frozen=True, eq=False)
 class LinearIndentation:
