@@ -8,6 +8,7 @@ import scipy.linalg
 from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle import kernels
+from particle.haptics import HapticSession
 from particle.integrator import (Prescribed, VerletIntegrator, critical_time_step,
                                  resolve_time_step)
 from particle.model import Model, State
@@ -253,13 +254,18 @@ def test_a_state_of_another_dtype_or_layout_is_refused(field, convert, what):
     ("k2", np.nan, "k2 = nan is not finite"),
 ])
 def test_explicit_runs_refuse_non_physical_parameters(name, value, message):
+    """simulate, an unchecked prepare and a haptic session all refuse, naming the connector."""
     model = box_model()
     values = getattr(model.params, name).copy()
     values[7] = value
     bad = model.with_params(dataclasses.replace(model.params, **{name: values}))
     i, j = model.edges[7]
-    with pytest.raises(ParameterError, match=rf"connector 7 \(particles {i}-{j}\): {message}"):
-        VerletIntegrator().simulate(bad, bad.state(), 1e-5, 10, gravity=GRAVITY)
+    for run in (lambda: VerletIntegrator().simulate(bad, bad.state(), 1e-5, 10, gravity=GRAVITY),
+                lambda: VerletIntegrator().prepare(bad, 1e-5, _check_dt=False),
+                lambda: HapticSession(bad, 1e-5)):
+        with pytest.raises(ParameterError, match=rf"connector 7 \(particles {i}-{j}\): "
+                           f"{message}"):
+            run()
 
 
 def test_explicit_runs_refuse_springs_that_go_soft_in_their_own_strain_range():
