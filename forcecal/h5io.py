@@ -145,21 +145,26 @@ def attr(obj: h5py.Group | h5py.File, name: str) -> Any:
     DataFileError naming the file, group and attribute if it is missing or unreadable."""
     where = f"{obj.file.filename}:{obj.name} attribute {name!r}"
     try:
-        if name not in obj.attrs:
-            raise DataFileError(f"{where} is missing")
-        value = obj.attrs[name]
-    except DataFileError:
-        raise
-    except Exception as exc:
+        present = name in obj.attrs
+        value = obj.attrs[name] if present else None
+    except Exception as exc:  # h5py raises several types on damaged metadata
         raise DataFileError(f"{where} cannot be read (corrupt file?): {exc}") from exc
+    if not present:
+        raise DataFileError(f"{where} is missing")
     return value.item() if isinstance(value, np.generic) else value
 
 
 def write_section(g: h5py.Group, section: Any) -> None:
-    """Every key of a scene section as an attribute of ``g`` (lists as float arrays)."""
+    """Every key of a scene section as an attribute of ``g`` (lists as float arrays), and
+    their units (from the key declarations) as the JSON attribute ``units``."""
+    units = {}
     for f in dataclasses.fields(section):
         value = getattr(section, f.name)
         g.attrs[f.name] = np.asarray(value, dtype=float) if isinstance(value, tuple) else value
+        if f.metadata["unit"]:
+            units[f.name] = f.metadata["unit"]
+    if units:
+        g.attrs["units"] = json.dumps(units)
 
 
 def read_section(g: h5py.Group, name: str) -> Any:
@@ -351,10 +356,7 @@ def write_reference(path: str | Path, ref: Reference) -> None:
         for k, v in ref.meta.items():
             fh.attrs[k] = v
         write_problem(fh, p)
-        g = fh.create_group("material")
-        write_section(g, ref.material)
-        g.attrs["units"] = json.dumps({"C10": "Pa", "C01": "Pa", "kappa": "Pa",
-                                       "density": "kg/m^3", "prony_g": "1", "prony_tau": "s"})
+        write_section(fh.create_group("material"), ref.material)
         if ref.fe is not None:
             write_section(fh.create_group("fe"), ref.fe)
         g = fh.create_group("indentation")
@@ -373,8 +375,6 @@ def write_reference(path: str | Path, ref: Reference) -> None:
             _check_shape("gravity.displacement", gr.displacement, (len(gr.time), n_v, 3))
             g = fh.create_group("gravity")
             write_section(g, gr.settings)
-            g.attrs["units"] = json.dumps({"acceleration": "m/s^2", "duration": "s",
-                                           "fe_dt": "s", "record_interval": "s"})
             put(g, "static_displacement", gr.static_displacement, "m",
                 "static sag of every vertex (N, 3)")
             put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
@@ -411,7 +411,7 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
         gravity = None
         if "gravity" in fh:
             n_v = problem.mesh.n_vertices
-            settings = read_section(fh["gravity"], "gravity")
+            settings = read_section(group(fh, "gravity"), "gravity")
             if settings.tracked_node != problem.tracked_node:
                 raise DataFileError(f"{path}:/gravity tracked_node {settings.tracked_node!r} "
                                     f"differs from /test_points' {problem.tracked_node}")
