@@ -203,9 +203,11 @@ def run_calibrate(ctx: Context) -> list[str]:
 def run_gravity_stage(ctx: Context) -> list[str]:
     """Particle gravity runs of the calibrated and baseline models -> ``gravity.h5``."""
     from calibration import read_params
-    from forcecal.h5io import read_reference
+    from forcecal.h5io import check_reference_settings, read_reference
     from pipelines.gravity import run_gravity, write_gravity
     reference = read_reference(ctx.out / REFERENCE)
+    # the particle runs use the scene's gravity and compare with the reference's FE runs
+    check_reference_settings(reference, ctx.scene, ctx.out / REFERENCE)
     params = read_params(ctx.out / PARAMS)
     check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS)
     runs = run_gravity(ctx.scene, reference, params.connectors, params.strain.bounds,

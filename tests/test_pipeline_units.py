@@ -185,8 +185,9 @@ def test_gravity_runs_of_one_free_particle_match_the_closed_form(corner):
 
 def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
     n = len(corner.mesh.edges)
-    # K(eps) = 100 (1 - 5 eps): positive on [-0.1, 0.1], zero at eps = 0.2
-    soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -500.0), b=np.zeros(n),
+    # K(eps) = 100 (1 - 2 eps): positive on [-0.1, 0.1] and on the release's range (the tiny
+    # sag's strains widened by particle.strain_margin = 0.2), zero at eps = 0.5
+    soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -200.0), b=np.zeros(n),
                            k1=np.full(n, 50.0), b1=np.full(n, 5.0), k2=np.full(n, 20.0),
                            b2=np.full(n, 40.0))
     scene = scene_from_dict({})
