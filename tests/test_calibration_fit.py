@@ -22,7 +22,7 @@ from forcecal.scene import replace
 from particle.model import PARAM_NAMES
 from tests.conftest import ROOT
 
-# quick budgets: the box has 4 calibration + 2 held-out points and 197 connectors
+# quick budgets: the box has 4 calibration + 8 held-out points and 197 connectors
 SETTINGS = {"static_max_evaluations": 80, "relaxation_max_evaluations": 160,
             "local_max_evaluations": 60, "local_max_sweeps": 3, "local_sweep_tolerance": 1e-4,
             "workers": 1}
@@ -31,7 +31,7 @@ STRAIN = StrainRange(-0.2, 0.05)  # what the box's 2 mm indentation reaches (lin
 
 
 def _box_scene(directory, **calibration):
-    return box_scene(directory, test_points={"n_calibration": 4, "n_held_out": 2},
+    return box_scene(directory, test_points={"n_calibration": 4, "n_held_out": 8},
                      indentation={"depth": 0.002}, relaxation={"depth": 0.002},
                      calibration={**SETTINGS, **calibration})
 

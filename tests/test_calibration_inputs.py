@@ -13,7 +13,7 @@ from forcecal.problem import build_problem
 from forcecal.scene import replace
 from particle.model import ConnectorParams
 
-TABLES = dict(test_points={"n_calibration": 4, "n_held_out": 2},
+TABLES = dict(test_points={"n_calibration": 4, "n_held_out": 8},
               indentation={"depth": 0.002}, relaxation={"depth": 0.002},
               calibration={"local": False, "workers": 1})
 
@@ -55,7 +55,7 @@ def test_reference_of_another_scene_is_refused(case, tmp_path):
     with pytest.raises(DataFileError, match="different mesh"):
         _run(other_mesh, reference, tmp_path)
     with pytest.raises(DataFileError, match="held_out nodes differ"):
-        _run(replace(scene, test_points={"n_held_out": 3}), reference, tmp_path)
+        _run(replace(scene, test_points={"n_held_out": 9}), reference, tmp_path)
     with pytest.raises(DataFileError, match="indentation/displacement does not match"):
         _run(replace(scene, indentation={"depth": 0.003}), reference, tmp_path)
     with pytest.raises(DataFileError, match="computed with material"):
