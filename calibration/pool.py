@@ -137,10 +137,16 @@ def _run(worker: PointWorker, message: tuple) -> tuple[str, Any]:
 
 
 def serve(receive: Callable[[], Any], send: Callable[[Any], None]) -> None:
-    """Worker loop: first message is a WorkerSpec, then calls until None."""
+    """Worker loop: first message is a WorkerSpec, then calls until None.
+
+    A None first message releases a worker the pool has no points for (an MPI
+    rank beyond the number of test points).
+    """
+    spec = receive()
+    if spec is None:
+        return
     import numba
     numba.set_num_threads(1)  # one core per worker; the pool is the parallelism
-    spec = receive()
     if not logging.getLogger().handlers:
         logging.basicConfig(level=spec.log_level,
                             format=f"%(levelname)s %(name)s [worker {os.getpid()}]: %(message)s")
@@ -251,12 +257,19 @@ def mpi_world():
 
 
 class MpiTransport:
-    """Ranks 1..n-1 of ``comm`` are the workers; this rank (0) is the master."""
+    """Ranks 1..len(specs) of ``comm`` are the workers; this rank (0) is the master.
+
+    Ranks beyond them (more ranks than test points) are released at once with
+    the stop message, instead of waiting (and spinning) until the pool closes.
+    """
 
     def __init__(self, specs: list[WorkerSpec], comm):
         self.comm = comm
+        self.n_workers = len(specs)
         for w, spec in enumerate(specs):
             comm.send(spec, dest=w + 1)
+        for rank in range(self.n_workers + 1, comm.Get_size()):
+            comm.send(None, dest=rank)
         for _ in specs:
             _check_reply(self.receive()[1])
 
@@ -270,7 +283,7 @@ class MpiTransport:
         return status.Get_source() - 1, reply
 
     def close(self) -> None:
-        for w in range(self.comm.Get_size() - 1):
+        for w in range(self.n_workers):
             self.comm.send(None, dest=w + 1)
 
 
@@ -300,8 +313,12 @@ class Pool:
                  backend: Backend = particle_backend, workers: int = 2):
         n_points = len(experiments.problem.test_points)
         comm = mpi_world()
-        n = comm.Get_size() - 1 if comm is not None else workers
-        n = max(1, min(n, n_points))
+        asked = comm.Get_size() - 1 if comm is not None else workers
+        n = max(1, min(asked, n_points))
+        if n < asked:
+            log.info("evaluation pool: %d workers asked for, %d used (one per test point at "
+                     "most)%s", asked, n, "; the other MPI ranks are released"
+                     if comm is not None else "")
         self.owner = np.arange(n_points) % n
         level = logging.getLogger().getEffectiveLevel()
         specs = [WorkerSpec(experiments, np.nonzero(self.owner == w)[0], backend, params, level)

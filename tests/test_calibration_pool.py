@@ -1,0 +1,72 @@
+"""The calibration's evaluation pool with more workers than test points: the extra MPI ranks
+are released at once, the clamp is logged."""
+import logging
+import sys
+import types
+
+import numpy as np
+
+from calibration.pool import Experiments, MpiTransport, Pool, serve
+from calibration.synthetic import box_scene
+from forcecal.problem import Problem, build_problem
+from particle.model import ConnectorParams
+
+
+def test_an_idle_worker_is_released_by_its_first_message():
+    sent = []
+    serve(iter([None]).__next__, sent.append)  # no spec: return before building anything
+    assert sent == []
+
+
+class FakeComm:
+    """Rank 0's view of an MPI world of ``size`` ranks whose workers accept any spec."""
+
+    def __init__(self, size: int):
+        self.size, self.sent, self.replies = size, [], []
+
+    def Get_size(self) -> int:
+        return self.size
+
+    def send(self, obj, dest: int) -> None:
+        self.sent.append((dest, obj))
+        if obj is not None:
+            self.replies.append((dest, ("ok", None)))
+
+    def recv(self, source, status):
+        status.source, reply = self.replies.pop(0)
+        return reply
+
+
+class FakeStatus:
+    source = -1
+
+    def Get_source(self) -> int:
+        return self.source
+
+
+def test_mpi_ranks_beyond_the_workers_are_released_at_once(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mpi4py",
+                        types.SimpleNamespace(MPI=types.SimpleNamespace(Status=FakeStatus,
+                                                                        ANY_SOURCE=-1)))
+    comm = FakeComm(size=5)  # 4 worker ranks for 2 workers' worth of points
+    transport = MpiTransport(["spec 0", "spec 1"], comm)
+    assert comm.sent == [(1, "spec 0"), (2, "spec 1"), (3, None), (4, None)]
+    transport.close()
+    assert comm.sent[4:] == [(1, None), (2, None)]  # the released ranks get nothing more
+
+
+def test_pool_uses_at_most_one_worker_per_test_point(tmp_path, caplog):
+    p = build_problem(box_scene(tmp_path, test_points={"n_calibration": 4, "n_held_out": 8}))
+    one = Problem(p.mesh, p.fixed, p.calibration[:1], p.held_out[:0], p.tracked_node)
+    experiments = Experiments(one, 1000.0, np.array([1e-3]), np.array([0.0]), np.array([0.0]),
+                              (-0.5, 0.5))
+
+    def backend(experiments, points, params):
+        return {"indentation": lambda params, pts=None: np.ones((len(pts), 1))}
+
+    params = ConnectorParams.uniform(len(p.mesh.edges), K0=1.0, k1=1.0, b1=1.0, k2=1.0, b2=10.0)
+    caplog.set_level(logging.INFO, logger="calibration.pool")
+    with Pool(experiments, params, backend=backend, workers=3) as pool:
+        assert pool.n_workers == 1
+        np.testing.assert_array_equal(pool.curves("indentation", params, [0]), [[1.0]])
+    assert "3 workers asked for, 1 used (one per test point at most)" in caplog.text
