@@ -220,7 +220,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         stage_times["validation"] = time.perf_counter() - t
 
     warnings = [w for fit in global_fits.values() for w in fit.warnings]
-    warnings += _local_warnings(local_sweeps)
+    warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
     result = CalibrationResult(
         problem=problem, initial=initial, global_params=glob, connectors=connectors,
         variants=variants, z_static=model.z_static, z_relaxation=model.z_relaxation,
@@ -237,26 +237,36 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     return result
 
 
-def _local_warnings(local_sweeps: dict[str, list[Sweep]]) -> list[str]:
-    """One line per local stage and sweep summarising its points' warnings."""
+def _local_warnings(local_sweeps: dict[str, list[Sweep]], budget: int) -> list[str]:
+    """At most one line per local stage and kind of problem, counting the sweeps' fits.
+
+    The per-point warnings stay with each fit in ``params.h5``. After the first
+    sweep, a fit that met the tolerances without lowering its cost was already
+    at its optimum, so only unconverged ones count as "did not reduce".
+    """
     out = []
     for stage, sweeps in local_sweeps.items():
+        budgeted, stuck = [], []
         for k, sweep in enumerate(sweeps):
-            budget = [j for j, f in enumerate(sweep.fits) if not f.converged]
-            stuck = [j for j, f in enumerate(sweep.fits) if f.cost >= f.initial_cost > 0]
             n = len(sweep.fits)
-            if budget:
-                out.append(f"local {stage} sweep {k + 1}: the fits of {_points(budget, n)} "
-                           "stopped at their budget without meeting the tolerances")
-            if stuck:
-                out.append(f"local {stage} sweep {k + 1}: the fits of {_points(stuck, n)} did "
-                           "not reduce their cost")
-            if not sweep.accepted and k == 0:  # later rejections just mean converged
-                out.append(f"local {stage} sweep {k + 1}: no damped Jacobi update lowered the "
-                           "total cost; the stage stopped there")
+            at_budget = [j for j, f in enumerate(sweep.fits) if not f.converged]
+            no_gain = [j for j, f in enumerate(sweep.fits)
+                       if f.cost >= f.initial_cost > 0 and (k == 0 or not f.converged)]
+            budgeted += [f"sweep {k + 1} {_count(at_budget, n)}"] if at_budget else []
+            stuck += [f"sweep {k + 1} {_count(no_gain, n)}"] if no_gain else []
+        if budgeted:
+            out.append(f"local {stage} stage: fits that stopped at their budget of {budget} "
+                       "evaluations without meeting the tolerances: " + ", ".join(budgeted))
+        if stuck:
+            out.append(f"local {stage} stage: fits that did not reduce their cost: "
+                       + ", ".join(stuck))
+        if sweeps and not sweeps[0].accepted:  # later rejections just mean converged
+            out.append(f"local {stage} sweep 1: no damped Jacobi update lowered the total cost; "
+                       "the stage stopped there")
     return out
 
 
-def _points(points: list[int], n: int) -> str:
-    return (f"all {n} calibration points" if len(points) == n
-            else f"calibration point(s) {points}")
+def _count(points: list[int], n: int) -> str:
+    """``"3/31 (points [0, 4, 7])"``; the points are named only when few."""
+    named = f" (points {points})" if len(points) <= 8 and len(points) < n else ""
+    return f"{len(points)}/{n}{named}"

@@ -46,6 +46,11 @@ def test_missing_corrupt_and_nan_references(case, tmp_path):
         fh["indentation/force_normal"][1, 3] = np.nan
     with pytest.raises(DataFileError, match="indentation/force_normal contains 1 NaN"):
         _run(scene, nan, tmp_path)
+    nan.write_bytes(reference.read_bytes())
+    with h5py.File(nan, "a") as fh:
+        fh["relaxation/force_normal"][2, 5] = np.nan
+    with pytest.raises(DataFileError, match="relaxation/force_normal contains 1 NaN"):
+        _run(scene, nan, tmp_path)
     assert not (tmp_path / "params.h5").exists()
 
 
@@ -94,3 +99,31 @@ def test_exhausted_budgets_are_recorded_as_warnings(case, tmp_path):
     assert not result.global_fits["static"].converged
     assert read_params(tmp_path / "params.h5").warnings == result.warnings
     assert "warning: global static fit" in result.summary()
+
+
+def constant_backend(experiments, points, params):
+    """Evaluators whose curves do not depend on the parameters: no optimiser can gain."""
+    def constant(samples):
+        return lambda params, pts=None: np.full((len(pts), samples), 1e-3)
+    return {"indentation": constant(len(experiments.depths)),
+            "relaxation": constant(len(experiments.times))}
+
+
+def test_an_optimiser_that_cannot_reduce_the_cost_is_reported(case, tmp_path):
+    scene, reference = case
+    flat = replace(scene, calibration={"local": True, "local_max_evaluations": 20,
+                                       "local_max_sweeps": 2})
+    result = calibrate(flat, reference, tmp_path / "params.h5", progress=False,
+                       backend=constant_backend)
+    expected = ["global static fit: Nelder-Mead did not reduce the cost",
+                "global relaxation fit: Nelder-Mead did not reduce the cost",
+                "local static stage: fits that did not reduce their cost: sweep 1 4/4",
+                "local static sweep 1: no damped Jacobi update lowered the total cost",
+                "local relaxation stage: fits that did not reduce their cost: sweep 1 4/4",
+                "local relaxation sweep 1: no damped Jacobi update lowered the total cost"]
+    for start in expected:
+        assert any(w.startswith(start) for w in result.warnings), start
+    # a rejected first sweep ends the stage
+    assert [len(result.local_sweeps[s]) for s in ("static", "relaxation")] == [1, 1]
+    assert read_params(tmp_path / "params.h5").warnings == result.warnings
+
