@@ -1,11 +1,14 @@
 """Resumable calibration: a JSON checkpoint written atomically after every step that matters.
 
-The checkpoint is a JSON object ``{"fingerprint": ..., "stages": {...}}``; the
+The checkpoint is a JSON object ``{"inputs": {...}, "stages": {...}}``; the
 stages store exactly what the next step needs (coordinates, costs, histories),
-with floats written by ``repr`` so they read back bit for bit. A checkpoint
-whose fingerprint (reference file + calibration settings) differs from the
-current run's is ignored and overwritten, so a changed input never resumes a
-stale fit. It is removed once ``params.h5`` has been written.
+with floats written by ``repr`` so they read back bit for bit. ``inputs`` are
+the fingerprints of everything the result depends on
+(:func:`calibration.provenance.fit_inputs`: the reference file, the scene
+sections the fit reads, the forcecal version, the code); a checkpoint whose
+inputs differ from the current run's is discarded with a warning naming what
+changed, so a changed input never resumes a stale fit. It is removed once
+``params.h5`` has been written.
 """
 
 from __future__ import annotations
@@ -24,9 +27,9 @@ log = logging.getLogger(__name__)
 class Checkpoint:
     """Key-value store of completed calibration steps, persisted at every :meth:`put`."""
 
-    def __init__(self, path: str | Path, fingerprint: str):
+    def __init__(self, path: str | Path, inputs: dict[str, str]):
         self.path = Path(path)
-        self.fingerprint = fingerprint
+        self.inputs = dict(inputs)
         self.stages: dict[str, Any] = {}
         if not self.path.is_file():
             return
@@ -35,9 +38,16 @@ class Checkpoint:
         except (OSError, ValueError) as exc:
             log.warning("ignoring unreadable checkpoint %s (%s)", self.path, exc)
             return
-        if data.get("fingerprint") != fingerprint:
-            log.warning("ignoring checkpoint %s: it belongs to another reference or other "
-                        "calibration settings", self.path)
+        saved = data.get("inputs") if isinstance(data, dict) else None
+        if not isinstance(saved, dict):
+            log.warning("discarding checkpoint %s: it records no inputs (older format)",
+                        self.path)
+            return
+        changed = [k for k in sorted(set(saved) | set(self.inputs))
+                   if saved.get(k) != self.inputs.get(k)]
+        if changed:
+            log.warning("discarding checkpoint %s: %s changed since it was written", self.path,
+                        ", ".join(changed))
             return
         self.stages = data.get("stages", {})
         log.info("resuming from checkpoint %s (completed: %s)", self.path,
@@ -49,7 +59,7 @@ class Checkpoint:
     def put(self, stage: str, value: Any) -> None:
         """Store ``value`` (JSON-able) under ``stage`` and write the file atomically."""
         self.stages[stage] = value
-        text = json.dumps({"fingerprint": self.fingerprint, "stages": self.stages})
+        text = json.dumps({"inputs": self.inputs, "stages": self.stages})
         try:
             with atomic_path(self.path) as tmp:
                 tmp.write_text(text)

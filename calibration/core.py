@@ -21,16 +21,12 @@ scene whose test points are fixed or off the surface is refused by
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import logging
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
-import forcecal
 from calibration.baseline import van_gelder_params
 from calibration.checkpoint import Checkpoint
 from calibration.global_fit import fe_initial_slopes, fit_relaxation, fit_static, initial_guess
@@ -41,6 +37,7 @@ from calibration.optimize import Fit
 from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParams, StrainRange,
                                          build_rings)
 from calibration.pool import Backend, Experiments, Pool, particle_backend
+from calibration.provenance import file_fingerprint, fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import Reference, read_reference
@@ -49,15 +46,6 @@ from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 
 log = logging.getLogger(__name__)
-
-
-def file_fingerprint(path: str | Path) -> str:
-    """SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def load_checked_reference(scene: Scene, reference_path: str | Path) -> Reference:
@@ -101,18 +89,6 @@ def strain_range(strain_per_depth: np.ndarray, depth: float, margin: float) -> S
     return StrainRange(low, high)
 
 
-def _settings(scene: Scene) -> dict:
-    return dataclasses.asdict(scene.calibration)
-
-
-def _versions() -> dict[str, str]:
-    import numba
-    import scipy
-    return {"python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "numba": numba.__version__,
-            "forcecal": forcecal.__version__}
-
-
 def checkpoint_path(out_path: Path) -> Path:
     """Where the checkpoint of a calibration writing ``out_path`` lives."""
     return out_path.parent / "checkpoints" / f"{out_path.name}.json"
@@ -125,6 +101,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
     Args:
         scene: the scene (or its TOML path); its ``[calibration]`` table holds the settings.
+            The sections the fit reads are recorded in ``params.h5`` and key the checkpoint
+            (:mod:`calibration.provenance`).
         reference_path: ``reference.h5`` of that scene.
         out_path: the ``params.h5`` to write (atomically); the checkpoint lives in
             ``<out dir>/checkpoints/`` and is removed at the end.
@@ -147,7 +125,6 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     problem, material = ref.problem, ref.material
     mesh = problem.mesh
     n_conn, n_cal = len(mesh.edges), len(problem.calibration)
-    cal = np.arange(n_cal)
     ref_static = ref.indentation.force_normal
     ref_relax = ref.relaxation.force_normal
     linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals)
@@ -159,11 +136,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal])
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
 
-    fingerprint = hashlib.sha256(json.dumps({
-        "reference": file_fingerprint(reference_path),
-        "settings": {k: v for k, v in _settings(scene).items() if k != "workers"}},
-        sort_keys=True).encode()).hexdigest()
-    checkpoint = Checkpoint(checkpoint_path(out_path), fingerprint)
+    checkpoint = Checkpoint(checkpoint_path(out_path), fit_inputs(scene, reference_path))
     evaluations: dict[str, int] = {}
     stage_times: dict[str, float] = {}
     rings = build_rings(mesh, problem.calibration)
@@ -225,10 +198,10 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         problem=problem, initial=initial, global_params=glob, connectors=connectors,
         variants=variants, z_static=model.z_static, z_relaxation=model.z_relaxation,
         strain=strain, fe_slope=fe_slope, unit_slope=linear.slope, global_fits=global_fits,
-        local_sweeps=local_sweeps, settings=_settings(scene),
+        local_sweeps=local_sweeps, settings=fit_settings(scene),
         reference_fingerprint=file_fingerprint(reference_path),
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
-        wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=_versions())
+        wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions())
     write_params(out_path, result)
     checkpoint.remove()
     for w in warnings:

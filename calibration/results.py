@@ -5,7 +5,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference file), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON of ``[calibration]``), ``versions`` (JSON: python, numpy, scipy, numba, forcecal) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference file), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
 | ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local) |
 | ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s | ``K0, alpha, beta, k1, tau1, k2, tau2`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``) |
@@ -76,14 +76,14 @@ class CalibrationResult:
         fe_slope: (Pc,) FE initial static slopes [N/m]; unit_slope: (P,) unit-network slopes [N/m].
         global_fits: stage -> Nelder-Mead result of the global stage.
         local_sweeps: stage -> Jacobi sweeps (empty when local tuning is off).
-        settings: the ``[calibration]`` settings used.
+        settings: section -> table of the scene sections the fit read.
         reference_fingerprint: SHA-256 of the reference file fitted to.
         reference_path: its path.
         evaluations: evaluation counts (see :func:`write_params`).
         stage_times: stage -> wall time in this run [s] (0 when resumed from a checkpoint).
         wall_time: wall-clock time of the calibration [s].
         warnings: every warning of the run.
-        versions: software versions.
+        versions: software versions and the git commit (None outside a checkout).
     """
     problem: Problem
     initial: GlobalParams
@@ -104,7 +104,7 @@ class CalibrationResult:
     stage_times: dict[str, float]
     wall_time: float
     warnings: tuple[str, ...] = field(default=())
-    versions: dict[str, str] = field(default_factory=dict)
+    versions: dict[str, str | None] = field(default_factory=dict)
 
     @property
     def is_calibration(self) -> np.ndarray:

@@ -10,7 +10,6 @@ import sys
 import numpy as np
 import pytest
 
-from calibration.checkpoint import Checkpoint
 from calibration.core import calibrate, checkpoint_path
 from calibration.local import LocalModel, run_local_stage
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings
@@ -177,13 +176,6 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     assert not checkpoint_path(out).exists()
 
 
-def test_stale_checkpoint_is_ignored(tmp_path):
-    path = tmp_path / "cp.json"
-    Checkpoint(path, "fingerprint-a").put("global_static", {"x": [1.0]})
-    assert Checkpoint(path, "fingerprint-a").get("global_static") == {"x": [1.0]}
-    assert Checkpoint(path, "fingerprint-b").get("global_static") is None
-
-
 def _local_static(problem: Problem, scene, reference_params, workers: int):
     """Local static sweeps on ``problem`` starting from the true global parameters."""
     from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -229,7 +221,9 @@ def test_command_line(nonuniform, tmp_path):
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "relative RMS error" in done.stdout and "held-out" in done.stdout
-    assert read_params(out).settings == dataclasses.asdict(scene.calibration)
+    settings = read_params(out).settings
+    assert settings["calibration"] == dataclasses.asdict(scene.calibration)
+    assert settings["mesh"] == dataclasses.asdict(scene.mesh) and "particle" not in settings
     bad = subprocess.run(cmd[:6] + [str(tmp_path / "missing.h5")] + cmd[7:], capture_output=True,
                          text=True, cwd=ROOT, timeout=600)
     assert bad.returncode == 2 and "missing.h5 does not exist" in bad.stderr

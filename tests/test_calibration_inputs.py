@@ -1,10 +1,13 @@
 """Bad input to the calibration: every case is a clear ForcecalError naming the problem, or a
 warning recorded in the result and in params.h5 -- never a silent success."""
+import json
+
 import h5py
 import numpy as np
 import pytest
 
-from calibration.core import calibrate
+from calibration.core import calibrate, checkpoint_path
+from calibration.pool import particle_backend
 from calibration.results import read_params
 from calibration.synthetic import box_scene, synthetic_reference
 from forcecal.errors import DataFileError, MeshError
@@ -127,3 +130,35 @@ def test_an_optimiser_that_cannot_reduce_the_cost_is_reported(case, tmp_path):
     assert [len(result.local_sweeps[s]) for s in ("static", "relaxation")] == [1, 1]
     assert read_params(tmp_path / "params.h5").warnings == result.warnings
 
+
+class Interrupted(Exception):
+    pass
+
+
+def interrupted_at_third_relaxation(experiments, points, params):
+    """The particle backend, raising at its third relaxation evaluation (global stage 2)."""
+    evaluators = particle_backend(experiments, points, params)
+    calls = []
+
+    def relaxation(p, pts=None):
+        calls.append(1)
+        if len(calls) == 3:
+            raise Interrupted("injected interruption")
+        return evaluators["relaxation"](p, pts)
+
+    return {"indentation": evaluators["indentation"], "relaxation": relaxation}
+
+
+def test_a_checkpoint_of_other_code_is_discarded(case, tmp_path, monkeypatch, caplog):
+    scene, reference = case
+    fresh = _run(scene, reference, tmp_path / "fresh")
+    out = tmp_path / "params.h5"
+    with pytest.raises(Interrupted):
+        calibrate(scene, reference, out, progress=False, backend=interrupted_at_third_relaxation)
+    assert "global_static" in json.loads(checkpoint_path(out).read_text())["stages"]
+    monkeypatch.setattr("calibration.provenance.code_fingerprint", lambda: "edited code")
+    result = _run(scene, reference, tmp_path)
+    assert (f"discarding checkpoint {checkpoint_path(out)}: code changed since it was written"
+            in caplog.text)
+    # nothing was loaded: the global static fit was computed again
+    assert result.evaluations == fresh.evaluations

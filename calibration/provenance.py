@@ -1,0 +1,110 @@
+"""What a calibration depends on and what produced it: input fingerprints and software versions.
+
+* :func:`fit_inputs`: the fingerprints a calibration's result is a function of
+  (the reference file, the scene sections the fit reads, the forcecal version
+  and the fit's code); the checkpoint is keyed on them, so a changed input never
+  resumes a stale fit (:class:`calibration.checkpoint.Checkpoint`).
+* :func:`versions`: the software that produced a ``params.h5``, with the git
+  commit of the checkout (or None outside one).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import platform
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+import forcecal
+from forcecal.scene import Scene
+
+#: the scene sections a calibration reads (the same as the pipeline's calibrate stage)
+FIT_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
+                "calibration")
+#: the packages whose code runs in a calibration (it imports nothing else of the project)
+FIT_PACKAGES = ("forcecal", "particle", "calibration")
+#: settings that change how fast a fit runs, not its result
+NOT_RESULT_SETTINGS = ("workers",)
+ROOT = Path(__file__).resolve().parents[1]  # the checkout (or site-packages) holding the code
+
+
+def file_fingerprint(path: str | Path) -> str:
+    """SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=list).encode()).hexdigest()
+
+
+def fit_settings(scene: Scene) -> dict[str, dict]:
+    """The scene sections a calibration reads, as plain dicts (recorded in ``params.h5``)."""
+    return {s: scene.section_dict(s) for s in FIT_SECTIONS}
+
+
+def code_fingerprint(packages: tuple[str, ...] = FIT_PACKAGES) -> str:
+    """SHA-256 over the path and bytes of every ``.py`` file of ``packages`` (found unimported).
+
+    Byte-exact and so conservative: a comment edit also counts as a change (a
+    checkpoint is then discarded, which costs a rerun, never a wrong result).
+    """
+    h = hashlib.sha256()
+    for package in packages:
+        folder = Path(next(iter(importlib.util.find_spec(package).submodule_search_locations)))
+        for path in sorted(folder.rglob("*.py")):
+            h.update(f"{package}/{path.relative_to(folder)}".encode() + b"\0"
+                     + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:
+    """Fingerprints of everything a calibration's result depends on.
+
+    Keys: ``reference`` (the file's SHA-256), ``scene [<section>]`` for each of
+    :data:`FIT_SECTIONS` (``[calibration]`` without :data:`NOT_RESULT_SETTINGS`),
+    ``forcecal`` (the version) and ``code`` (:func:`code_fingerprint`).
+    """
+    inputs = {"reference": file_fingerprint(reference_path)}
+    for section, table in fit_settings(scene).items():
+        if section == "calibration":
+            table = {k: v for k, v in table.items() if k not in NOT_RESULT_SETTINGS}
+        inputs[f"scene [{section}]"] = _digest(table)
+    inputs["forcecal"] = forcecal.__version__
+    inputs["code"] = code_fingerprint()
+    return inputs
+
+
+def git_commit(root: Path = ROOT) -> str | None:
+    """``git rev-parse HEAD`` of the checkout holding ``root`` (``+dirty`` if tracked files
+    differ from it); None outside a git checkout or without git."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root,
+                               capture_output=True).returncode
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def versions() -> dict[str, str | None]:
+    """Software versions of a calibration run (``mpi4py`` None when it is not installed)."""
+    import h5py
+    import numba
+    import scipy
+    try:
+        import mpi4py  # the package only: importing mpi4py.MPI would initialise MPI
+        mpi = mpi4py.__version__
+    except ImportError:
+        mpi = None
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "numba": numba.__version__, "h5py": h5py.__version__,
+            "mpi4py": mpi, "forcecal": forcecal.__version__, "git_commit": git_commit()}
