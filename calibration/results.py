@@ -18,7 +18,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/history/global_<stage>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); stages ``static``, ``relaxation`` |
 | ``/history/local_<stage>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
 | ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per stage |
-| ``/stage_times`` attrs | | s | wall time of each stage in this run (0 for stages resumed from a checkpoint) |
+| ``/stage_times`` attrs | | s | wall time this run spent on each stage (a stage loaded from a checkpoint: the time to load it, about 0; a stage resumed part-way: the rest of its work) |
 | ``/warnings`` | (n,) | | every warning of the run (strings) |
 """
 
@@ -80,7 +80,8 @@ class CalibrationResult:
         reference_fingerprint: SHA-256 of the reference file fitted to.
         reference_path: its path.
         evaluations: evaluation counts (see :func:`write_params`).
-        stage_times: stage -> wall time in this run [s] (0 when resumed from a checkpoint).
+        stage_times: stage -> wall time this run spent on it [s] (about 0 for a stage loaded
+            from a checkpoint, the remaining work for one resumed part-way).
         wall_time: wall-clock time of the calibration [s].
         warnings: every warning of the run.
         versions: software versions and the git commit (None outside a checkout).
