@@ -20,7 +20,8 @@ from collections import OrderedDict
 import numpy as np
 
 from forcecal.errors import MeshError, ParameterError
-from particle.integrator import Prescribed, Run, VerletIntegrator, check_time_step, energy_bound
+from particle.integrator import (Prescribed, Run, VerletIntegrator, check_threads,
+                                 check_time_step, energy_bound)
 from particle.model import Model
 
 log = logging.getLogger(__name__)
@@ -40,6 +41,15 @@ class HapticSession:
         period: simulated time per :meth:`step` [s] (the device period).
         gravity: (3,) gravitational acceleration [m/s^2], or None.
         damping: mass-proportional damping [1/s].
+        threads: threads per step (default 1: the serial loop). ``threads`` > 1
+            splits every substep over that many threads (:class:`Run`), for
+            large models on a machine whose cores are dedicated to the haptic
+            loop, as a device loop has: each substep opens two numba parallel
+            regions, and a region waits for every thread of the pool, so on a
+            core that another process keeps busy a call can take milliseconds
+            instead of microseconds. It must not exceed
+            ``numba.config.NUMBA_NUM_THREADS``; on small models the serial
+            loop is faster (the regions' launch cost exceeds the gain).
 
     Attributes:
         state: the model's State (starts undeformed, at rest).
@@ -47,15 +57,17 @@ class HapticSession:
 
     Raises :class:`~forcecal.errors.StabilityError` for a ``dt`` that is not a
     finite number > 0 or is above the stability limit,
-    :class:`~forcecal.errors.ParameterError` for a bad period or non-physical
-    connector parameters.
+    :class:`~forcecal.errors.ParameterError` for a bad period, a bad ``threads``
+    or non-physical connector parameters.
     """
 
     def __init__(self, model: Model, dt: float, *, period: float = 1e-3,
-                 gravity: np.ndarray | None = None, damping: float = 0.0) -> None:
+                 gravity: np.ndarray | None = None, damping: float = 0.0,
+                 threads: int = 1) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError(f"haptic period = {period} s must be > 0")
         check_time_step(dt, math.inf)  # a finite step > 0; the limit is checked below
+        self.threads = check_threads(threads)
         self.model = model
         self.period = float(period)
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
@@ -73,7 +85,7 @@ class HapticSession:
             self._runs.move_to_end(node)
             return self._runs[node]
         run = self.integrator.prepare(self.model, self.dt, gravity=self.gravity,
-                                      prescribed_nodes=[node])
+                                      prescribed_nodes=[node], threads=self.threads)
         # divergence bound for the worst drag: the tool crossing the whole organ in one period
         x0 = self.model.rest_positions[node]
         size = float(np.linalg.norm(np.ptp(self.model.rest_positions, axis=0)))

@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import ArpackNoConvergence, eigsh
@@ -192,6 +194,37 @@ def check_time_step(dt: float, critical: float) -> None:
                              "smaller step)")
 
 
+def check_threads(threads: int) -> int:
+    """``threads`` as an int, if it is an integer in 1 .. ``numba.config.NUMBA_NUM_THREADS``
+    (numba's thread pool, fixed at start-up by the NUMBA_NUM_THREADS environment variable);
+    else :class:`ParameterError`."""
+    try:
+        n = operator.index(threads)
+    except TypeError:
+        n = None
+    limit = numba.config.NUMBA_NUM_THREADS
+    if n is None or not 1 <= n <= limit:
+        raise ParameterError(f"threads = {threads!r} must be an integer in 1..{limit} (numba's "
+                             "thread pool; set NUMBA_NUM_THREADS before start-up for more)")
+    return int(n)
+
+
+def thread_blocks(model: Model, active: np.ndarray, threads: int) -> tuple:
+    """Work split and scratch of the ``threads``-thread step (see :class:`Run`).
+
+    Returns (thread_forces (T, N, 3) [N], edge_starts (T+1,) uint64, node_starts
+    (T+1,) uint64, outside (T,) int64, energy (T,)): thread t takes the connectors
+    ``edge_starts[t] ..`` and the ``active`` nodes (k,) ``node_starts[t] ..``
+    (contiguous blocks of equal size); the last two are its strain-check and
+    energy results.
+    """
+    def starts(n: int) -> np.ndarray:  # unsigned, as the index views (kernels.index_view)
+        return np.linspace(0, n, threads + 1).round().astype(np.uint64)
+
+    return (np.zeros((threads, model.n_particles, 3)), starts(model.n_connectors),
+            starts(len(active)), np.empty(threads, np.int64), np.empty(threads))
+
+
 @dataclass(frozen=True)
 class Terms:
     """Force terms compiled into a run (chosen once per run, never tested in the inner loop)."""
@@ -335,29 +368,32 @@ class VerletIntegrator:
 
     def prepare(self, model: Model, dt: float, *, gravity: np.ndarray | None = None,
                 prescribed_nodes: np.ndarray | None = None, arms: bool = True,
-                skip: bool = True, _check_dt: bool = True) -> "Run":
+                skip: bool = True, threads: int = 1, _check_dt: bool = True) -> "Run":
         """A :class:`Run`: everything fixed between calls of the compiled loop, set up once.
 
+        ``threads`` > 1 splits each step over that many threads (see :class:`Run`).
         Raises :class:`ParameterError` if the model's connector parameters are
         non-physical on this integrator's strain range (see
-        :meth:`ConnectorParams.validate`), :class:`StabilityError` if ``dt`` is
+        :meth:`ConnectorParams.validate`) or ``threads`` is not in 1 ..
+        ``numba.config.NUMBA_NUM_THREADS``, :class:`StabilityError` if ``dt`` is
         above the stability limit (``_check_dt=False`` bypasses the step check
         and the strain-range monitoring, not the parameter check; tests use it
         to provoke divergence).
         """
         dt = float(dt)
+        threads = check_threads(threads)
         model.params.validate(self.strain_range, model.edges)
         monitored = None
         if _check_dt:
             check_time_step(dt, self.critical_time_step(model))
             monitored = connector_strain_bounds(self.strain_range, model.n_connectors,
                                                 model.edges)
-        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip, monitored)
+        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip, monitored, threads)
 
     def simulate(self, model: Model, state: State, dt: float, n_steps: int, *,
                  gravity: np.ndarray | None = None, prescribed: Prescribed | None = None,
                  record_nodes: np.ndarray | None = None, record_steps: np.ndarray | None = None,
-                 arms: bool = True, skip: bool = True,
+                 arms: bool = True, skip: bool = True, threads: int = 1,
                  _check_dt: bool = True) -> np.ndarray | None:
         """Advance ``state`` by ``n_steps`` steps of ``dt`` [s] in place.
 
@@ -368,13 +404,15 @@ class VerletIntegrator:
             record_steps: (S,) increasing step indices to record after (0 = now).
             arms: False runs the purely elastic model (arm forces held at zero).
             skip: compile out the terms the run does not need (False: keep all).
+            threads: threads per step (1: the serial loop; see :class:`Run`).
         Returns:
             (S, R, 3) recorded positions [m], or None without ``record_nodes``.
         Raises:
             StabilityError: dt above the stability limit, the run diverged, or a
                 connector left the strain range the step was verified for.
         """
-        run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, _check_dt=_check_dt,
+        run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, threads=threads,
+                           _check_dt=_check_dt,
                            prescribed_nodes=None if prescribed is None else prescribed.nodes)
         record = None
         if record_nodes is not None:
@@ -398,11 +436,22 @@ class Run:
     Preparing once and calling many times keeps per-call overhead to one
     kernel dispatch (the haptic loop relies on this). ``monitored`` (lo (E,),
     hi (E,)) is the strain range the step was verified for (None: not checked).
+
+    ``threads`` = T > 1 (opt-in, for large models on a dedicated core set):
+    each step's connector pass is split into T contiguous connector blocks,
+    each accumulating into its own force buffer (T, N, 3), preallocated here,
+    and the reduction of the buffers with the position update is split into T
+    blocks of nodes (:func:`particle.kernels.parallel_forces`,
+    :func:`~particle.kernels.parallel_advance`): two numba parallel regions per
+    step, with numba's thread count set to T for the call and restored after.
+    The same physics and checks as the serial loop (T = 1, the default and the
+    reference); the forces differ from it by the summation order only (round-off).
     """
 
     def __init__(self, integrator: VerletIntegrator, model: Model, dt: float,
                  gravity: np.ndarray | None, prescribed_nodes: np.ndarray | None, arms: bool,
-                 skip: bool, monitored: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 skip: bool, monitored: tuple[np.ndarray, np.ndarray] | None = None,
+                 threads: int = 1) -> None:
         p = model.params
         g = None if gravity is None else np.asarray(gravity, dtype=np.float64).reshape(3)
         if g is not None and not np.all(np.isfinite(g)):
@@ -432,6 +481,9 @@ class Run:
         self._active = kernels.index_view(self.active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
+        self.threads = check_threads(threads)
+        self._blocks = None if self.threads == 1 else thread_blocks(model, self.active,
+                                                                     self.threads)
         self._node_edges: dict[int, np.ndarray] = {}
         self._state_shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
                               ("arm_force", (model.n_connectors, 2)),
@@ -465,12 +517,19 @@ class Run:
         out = node_edges = None
         if probe is not None:
             node_edges, out = self._incident(probe), np.empty(3)
-        status = kernels.run_verlet(
-            state.x, state.x_prev, state.arm_force, state.dx_prev, self._edges,
-            model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
-            *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
-            float(state.t), *record, self.integrator.check_every, float(energy_bound),
-            *self._elongation_limits, self._forces, probe, node_edges, out)
+        pool = None if self._blocks is None else numba.get_num_threads()
+        if pool is not None:
+            numba.set_num_threads(self.threads)  # the caller's pool size is restored below
+        try:
+            status = kernels.run_verlet(
+                state.x, state.x_prev, state.arm_force, state.dx_prev, self._edges,
+                model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
+                *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
+                float(state.t), *record, self.integrator.check_every, float(energy_bound),
+                *self._elongation_limits, self._forces, probe, node_edges, out, self._blocks)
+        finally:
+            if pool is not None:
+                numba.set_num_threads(pool)
         code, step, node = status.tolist()
         if code == kernels.STRAIN:
             self._raise_strain_exit(state, node, state.t + (step - 1) * dt)

@@ -5,11 +5,11 @@ specialisation per argument-type combination and prunes ``if arg is None``
 branches at compile time, so a run that has no gravity, no Maxwell arms,
 linear springs (a = b = 0) or no recording executes a loop without those
 terms at all; the choice is made once per run by :class:`particle.integrator.Terms`,
-never inside the inner loop. Every kernel is serial: a parallel version needs a second,
-gather pass over a node -> connector incidence (a scatter would race); measured
-on the 12k-connector liver, one force evaluation took 74 us serial, 106 us for
-the two-pass version on one thread and several ms on the project's two shared,
-busy cores.
+never inside the inner loop. The step is serial by default (the reference); an
+opt-in multi-threaded step (``blocks``, :func:`explicit_step`) splits the connector
+pass into contiguous blocks, one per thread, each scattering into its own force
+buffer (no race, no node -> connector gather pass), then sums the buffers and
+advances the positions in blocks of nodes: two numba parallel regions per step.
 
 Index arrays (connector ends, node lists) may be passed as unsigned views
 (:func:`index_view`): numba then drops the wrap-around handling of negative
@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 # numpy's error model: a degenerate input gives inf/NaN, which the divergence check turns
 # into a StabilityError, instead of an exception raised from inside compiled code
@@ -99,13 +99,25 @@ def internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx
     each elongation is at hand rather than in a second pass over the connectors).
     """
     forces[:] = 0.0
+    return add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev,
+                                dx_prev, forces, tension, arm_out, dx_out, dx_lo, dx_hi, 0,
+                                edges.shape[0])
+
+
+@njit(**JIT)
+def add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev,
+                         forces, tension, arm_out, dx_out, dx_lo, dx_hi, first, stop):
+    """:func:`internal_forces` of the connectors ``first .. stop-1``, added to ``forces``.
+
+    Returns the first of them outside ``[dx_lo, dx_hi]``, -1 if none (or ``dx_lo`` None).
+    """
     outside = -1
-    for e in range(edges.shape[0]):
+    for e in range(first, stop):
         i, j, d0, d1, d2, length = connector_vector(x, edges, e)
         dx = length - rest_lengths[e]
         if dx_lo is not None:
             if outside < 0 and not dx_lo[e] <= dx <= dx_hi[e]:
-                outside = e
+                outside = np.int64(e)  # e may be unsigned (blocks of connectors)
         f = spring_tension(e, dx, dx / rest_lengths[e], K0, a, b)
         if arm_r is not None:
             f1, f2 = arm_forces(e, dx, arm_r, arm_c, arm_prev, dx_prev)
@@ -186,18 +198,16 @@ def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
 
 
 @njit(**JIT)
-def advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses, dt,
-                      energy_bound, status):
-    """Position update ``x^{n+1} = 2 x^n - x^{n-1} + scale f^n/m`` of the ``active`` nodes.
+def advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses):
+    """Position update ``x^{n+1} = 2 x^n - x^{n-1} + scale f^n/m`` of ``nodes``.
 
-    If ``check``, the divergence check of the new positions in the same pass
-    (the values are at hand): the kinetic energy ``sum m |x^{n+1} - x^n|^2 /
-    (2 dt^2)`` [J] must not exceed ``energy_bound``; a non-finite position
-    makes it non-finite. Only a failed check looks at the nodes again
-    (:func:`divergent_node`).
+    Returns ``sum m |x^{n+1} - x^n|^2`` [kg m^2] over ``nodes`` if ``check``
+    (0 otherwise): the kinetic energy times ``2 dt^2``, accumulated in the same
+    pass (the values are at hand) for the divergence check; a non-finite
+    position makes it non-finite.
     """
     energy = 0.0
-    for n in active:
+    for n in nodes:
         v2 = 0.0
         for c in range(3):
             new = 2.0 * x[n, c] - x_prev[n, c] + scale * forces[n, c] * inv_masses[n]
@@ -208,8 +218,104 @@ def advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masse
             x[n, c] = new
         if check:
             energy += masses[n] * v2
+    return energy
+
+
+@njit(**JIT)
+def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                  masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
+                  check, dt, energy_bound, status, blocks):
+    """One explicit step in place: :func:`net_forces` at ``x``, then :func:`advance_positions`.
+
+    If ``check``, the divergence check of the new positions: the kinetic
+    energy ``sum m |x^{n+1} - x^n|^2 / (2 dt^2)`` [J] must not exceed
+    ``energy_bound``, else ``status`` is set (:func:`divergent_node`, the only
+    part that looks at the nodes again). Returns the first connector outside
+    ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None). ``blocks`` None runs the
+    serial passes, else the same passes split over threads
+    (:func:`parallel_forces`, :func:`parallel_advance`).
+    """
+    if blocks is None:
+        outside = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b,
+                             arm_r, arm_c, masses, active, gravity, damping_rate, forces, dx_lo,
+                             dx_hi)
+        energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
+    else:
+        outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
+                                  arm_c, dx_lo, dx_hi, blocks)
+        energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity,
+                                  damping_rate, scale, check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
         divergent_node(x, x_prev, active, status)
+    return outside
+
+
+@njit(parallel=True, **JIT)
+def parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c, dx_lo,
+                    dx_hi, blocks):
+    """The connector pass of :func:`net_forces` split over ``T`` threads (one parallel region).
+
+    ``blocks`` = (thread_forces (T, N, 3), edge_starts (T+1,), node_starts
+    (T+1,), outside (T,) int64, energy (T,)) (see
+    :meth:`particle.integrator.Run`): thread t adds connectors
+    ``edge_starts[t] .. edge_starts[t+1]-1`` into its own zeroed
+    ``thread_forces[t]`` (no two threads write the same memory; arm forces
+    and elongations are per connector). Returns the first connector outside
+    ``[dx_lo, dx_hi]`` in connector order, as the serial pass.
+    """
+    thread_forces, edge_starts, _, outside, _ = blocks
+    for t in prange(thread_forces.shape[0]):
+        own = thread_forces[t]
+        own[:] = 0.0
+        outside[t] = add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                                          arm_force, dx_prev, own, None, arm_force, dx_prev,
+                                          dx_lo, dx_hi, edge_starts[t], edge_starts[t + 1])
+    for t in range(outside.shape[0]):
+        if outside[t] >= 0:
+            return outside[t]
+    return -1
+
+
+@njit(**JIT)
+def sum_thread_forces(thread_forces, forces, nodes):
+    """forces[n] = sum over t of thread_forces[t, n] (T, N, 3) [N], in thread order, for ``nodes``."""
+    for n in nodes:
+        f0 = thread_forces[0, n, 0]
+        f1 = thread_forces[0, n, 1]
+        f2 = thread_forces[0, n, 2]
+        for k in range(1, thread_forces.shape[0]):  # three scalars: 2x faster than a c loop
+            f0 += thread_forces[k, n, 0]
+            f1 += thread_forces[k, n, 1]
+            f2 += thread_forces[k, n, 2]
+        forces[n, 0] = f0
+        forces[n, 1] = f1
+        forces[n, 2] = f2
+
+
+@njit(parallel=True, **JIT)
+def parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity, damping_rate, scale,
+                     check, blocks):
+    """Reduction of the thread forces, the node loads and the position update, split over nodes.
+
+    Thread t takes the active nodes ``active[node_starts[t] .. node_starts[t+1]-1]``:
+    ``forces[n] = sum_t thread_forces[t, n]`` (in thread order, a fixed
+    summation order: the result does not depend on the scheduling), then
+    :func:`add_gravity`, :func:`add_damping` and :func:`advance_positions` of
+    those nodes. Returns the summed energy of :func:`advance_positions`.
+    """
+    thread_forces, _, node_starts, _, energy = blocks
+    for t in prange(thread_forces.shape[0]):
+        nodes = active[node_starts[t]:node_starts[t + 1]]
+        sum_thread_forces(thread_forces, forces, nodes)
+        if gravity is not None:
+            add_gravity(forces, masses, gravity, nodes)
+        if damping_rate is not None:
+            add_damping(forces, masses, x, x_prev, damping_rate, nodes)
+        energy[t] = advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses)
+    total = 0.0
+    for t in range(energy.shape[0]):
+        total += energy[t]
+    return total
 
 
 @njit(**JIT)
@@ -257,7 +363,7 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
                presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
                check_every, energy_bound, dx_lo, dx_hi, forces, probe_node, probe_edges,
-               probe_out):
+               probe_out, blocks):
     """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
@@ -273,6 +379,8 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     Unless ``probe_out`` is None, a run that ends normally writes the
     connector force on ``probe_node`` at the final state into it (see
     :func:`node_force`; ``probe_edges`` are the node's connectors).
+    ``blocks`` None: every step is serial; else the work split and scratch of
+    a multi-threaded step (see :func:`explicit_step`).
 
     The checks ride on the force and position passes of the checked steps
     (no extra pass over the model), so a checked step costs about an unchecked one.
@@ -287,17 +395,17 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     h2 = dt * dt
     for step in range(n_steps):
         check = (step + 1) % check_every == 0 or step + 1 == n_steps
-        if check:
-            outside = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b,
-                                 arm_r, arm_c, masses, active, gravity, damping_rate, forces,
-                                 dx_lo, dx_hi)
-        else:
-            outside = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b,
-                                 arm_r, arm_c, masses, active, gravity, damping_rate, forces,
-                                 None, None)
         scale = 0.5 * h2 if (startup and step == 0) else h2
-        advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses, dt,
-                          energy_bound, status)
+        if check:
+            outside = explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a,
+                                    b, arm_r, arm_c, masses, inv_masses, active, gravity,
+                                    damping_rate, forces, dx_lo, dx_hi, scale, True, dt,
+                                    energy_bound, status, blocks)
+        else:
+            outside = explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a,
+                                    b, arm_r, arm_c, masses, inv_masses, active, gravity,
+                                    damping_rate, forces, None, None, scale, False, dt,
+                                    energy_bound, status, blocks)
         prescribe(x, x_prev, presc_nodes, presc_times, presc_pos, t0 + (step + 1) * dt)
         if rec_nodes is not None:
             while slot < rec_steps.shape[0] and rec_steps[slot] == step + 1:
