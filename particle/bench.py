@@ -3,9 +3,9 @@
 ``pipelines`` wires :func:`run_all` into ``make bench`` (-> ``runs/bench/bench.json``);
 every function can also be called alone. Timings are wall-clock
 (``time.perf_counter``) *and* CPU time of this process (``time.process_time``):
-on a shared machine the CPU time is the better measure of the code. Every
-kernel is serial, so the numbers are single-core. Nothing here asserts a
-timing; the goals are reported next to the measurements.
+on a shared machine the CPU time is the better measure of the code. The
+numbers are single-core, except :func:`haptic_latency` with ``threads`` > 1.
+Nothing here asserts a timing; the goals are reported next to the measurements.
 
 Parameters are uniform (the scene's Prony split of a spring stiffness ``K0``,
 30 N/m on the default liver, scaled with the mean edge length on other meshes
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
 from typing import Callable
 
@@ -142,13 +143,16 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 
 
 def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 2000,
-                   depth: float = 0.005, safety: float = DT_SAFETY) -> dict:
+                   depth: float = 0.005, safety: float = DT_SAFETY, threads: int = 1) -> dict:
     """Per-call latency [us] of :meth:`HapticSession.step` (1 ms of simulated time per call).
 
     The largest step is ``safety`` x the stability limit over the default strain range
-    (+-0.5), which the session monitors.
+    (+-0.5), which the session monitors. ``threads`` > 1: the session's multi-threaded
+    step (numba's thread count is set for each call and restored), whose latency depends
+    on every thread's core being free; ``load_average`` (1 min, from os.getloadavg) is
+    reported next to it.
     """
-    session = HapticSession(model, safety * critical_time_step(model))
+    session = HapticSession(model, safety * critical_time_step(model), threads=threads)
     start = model.rest_positions[node]
     session.step(node, start)  # compile outside the clock
     latencies = np.empty(calls)
@@ -159,6 +163,7 @@ def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 
         latencies[k] = time.perf_counter() - t0
     us = 1e6 * latencies
     return {"connectors": model.n_connectors, "substeps": session.substeps, "dt_s": session.dt,
+            "threads": session.threads, "load_average": os.getloadavg()[0],
             "median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
             "max_us": float(us.max()), "goal_us": 100.0}
 
