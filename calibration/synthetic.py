@@ -4,8 +4,11 @@ A calibration fitted to curves that the particle model produced with known
 parameters must give those curves (and, where identifiable, those parameters)
 back: :func:`synthetic_reference` writes such a ``reference.h5``;
 :func:`ring_perturbed_params` makes known non-uniform parameters of exactly the
-form local tuning searches; :func:`box_scene` makes a small scene on a
-structured box mesh to run it on.
+form local tuning searches (global values times ring factors), and
+:func:`noisy_params` ones that are not (an independent random factor on every
+connector, which neither the global nor the local parametrisation can
+represent); :func:`box_scene` makes a small scene on a structured box mesh to
+run them on.
 """
 
 from __future__ import annotations
@@ -92,3 +95,19 @@ def ring_perturbed_params(problem: Problem, glob: GlobalParams, strain: StrainRa
     z_relaxation = rng.uniform(-amplitude, amplitude, (n, 4))
     rings = build_rings(problem.mesh, problem.calibration)
     return local_params(glob, rings, strain, z_static, z_relaxation), z_static, z_relaxation
+
+
+def noisy_params(glob: GlobalParams, n_connectors: int, *, sigma: float = 0.1,
+                 seed: int = 1) -> ConnectorParams:
+    """Global parameters with an independent log-normal factor per connector and quantity.
+
+    ``K0``, ``k1``, ``tau1``, ``k2`` and ``tau2`` of every connector are multiplied by
+    ``exp(N(0, sigma^2))`` (x0.90..x1.11 at one standard deviation by default);
+    ``alpha`` and ``beta`` stay global (``a = alpha K0``, ``b = beta K0``), so every
+    spring keeps the global shape ``K(eps) / K0``.
+    """
+    rng = np.random.default_rng(seed)
+    K0, k1, tau1, k2, tau2 = (value * np.exp(rng.normal(0.0, sigma, n_connectors))
+                              for value in (glob.K0, glob.k1, glob.tau1, glob.k2, glob.tau2))
+    return ConnectorParams(K0=K0, a=glob.alpha * K0, b=glob.beta * K0, k1=k1, b1=tau1 * k1,
+                           k2=k2, b2=tau2 * k2)

@@ -10,12 +10,17 @@ import sys
 import numpy as np
 import pytest
 
-from calibration.core import calibrate, checkpoint_path
-from calibration.local import LocalModel, run_local_stage
+from calibration.core import calibrate, checkpoint_path, strain_range
+from calibration.local import STAGE_KIND, LocalModel, run_local_stage
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings
+from calibration.metrics import relative_rms_error
+from calibration.network import linear_indentation
 from calibration.pool import Experiments, Pool, particle_backend
-from calibration.results import read_params
-from calibration.synthetic import box_scene, ring_perturbed_params, synthetic_reference
+from calibration.provenance import code_fingerprint
+from calibration.results import EXPERIMENTS, read_params
+from calibration.synthetic import (box_scene, noisy_params, ring_perturbed_params,
+                                   synthetic_reference)
+from forcecal.h5io import read_reference
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import replace
 from particle.model import PARAM_NAMES
@@ -27,6 +32,7 @@ SETTINGS = {"static_max_evaluations": 80, "relaxation_max_evaluations": 160,
             "workers": 1}
 TRUE_GLOBAL = GlobalParams(K0=30.0, alpha=1.0, beta=10.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)
 STRAIN = StrainRange(-0.2, 0.05)  # what the box's 2 mm indentation reaches (linear estimate)
+NOISE = 0.1  # log-normal sigma of the per-connector factors of the non-uniform truth
 
 
 def _box_scene(directory, **calibration):
@@ -47,13 +53,43 @@ def box_problem(box):
 
 @pytest.fixture(scope="module")
 def nonuniform(box, box_problem):
-    """Reference from global + ring factors, and the uninterrupted calibration fitted to it."""
-    # K0, k_i, tau_i x0.74..x1.35 per ring, alpha/beta shifted too
-    true, _, _ = ring_perturbed_params(box_problem, TRUE_GLOBAL, STRAIN)
+    """Reference from per-connector random factors (a form neither tuning stage can represent),
+    and the uninterrupted calibration fitted to it."""
+    true = noisy_params(TRUE_GLOBAL, len(box_problem.mesh.edges), sigma=NOISE)
     d = box.path.parent / "nonuniform"
     synthetic_reference(box, true, d / "reference.h5")
     result = calibrate(box, d / "reference.h5", d / "params.h5", progress=False)
     return d, true, result
+
+
+@pytest.fixture(scope="module")
+def oracle_errors(box, box_problem, nonuniform):
+    """Errors of the truth's own global part (uniform TRUE_GLOBAL) against the non-uniform
+    truth at every test point: what the best possible global model gets wrong."""
+    d, _, _ = nonuniform
+    uniform = synthetic_reference(box, TRUE_GLOBAL.connector_params(len(box_problem.mesh.edges)),
+                                  d / "uniform.h5")
+    truth = read_reference(d / "reference.h5")
+    return {e: relative_rms_error(getattr(uniform, e).force_normal, getattr(truth, e).force_normal)
+            for e in EXPERIMENTS}
+
+
+def _reached(problem: Problem, depth: float) -> StrainRange:
+    """The strains the experiments reach (linear network at ``depth``, no margin)."""
+    lin = linear_indentation(problem.mesh, problem.fixed, problem.test_points, problem.normals)
+    return strain_range(lin.strain, depth, 1.0)
+
+
+def _spring_error(got, want, strain: StrainRange) -> np.ndarray:
+    """(E,) per connector, max over ``strain`` of |K_got(eps) / K_want(eps) - 1|."""
+    eps = np.linspace(strain.low, strain.high, 101)
+    K = lambda p: p.K0[:, None] + p.a[:, None] * eps + p.b[:, None] * eps ** 2  # noqa: E731
+    return np.max(np.abs(K(got) / K(want) - 1.0), axis=1)
+
+
+def _tau_error(got, want) -> np.ndarray:
+    return np.abs(np.concatenate([(got.b1 / got.k1) / (want.b1 / want.k1),
+                                  (got.b2 / got.k2) / (want.b2 / want.k2)]) - 1.0)
 
 
 def test_global_fit_recovers_uniform_parameters(box, box_problem, tmp_path):
@@ -62,31 +98,79 @@ def test_global_fit_recovers_uniform_parameters(box, box_problem, tmp_path):
     synthetic_reference(scene, true, tmp_path / "reference.h5")
     result = calibrate(scene, tmp_path / "reference.h5", tmp_path / "params.h5", progress=False)
     got, want = result.global_params.as_dict(), TRUE_GLOBAL.as_dict()
-    # K0, the arms and the relaxation times are pinned by the curves' scale and time constants
-    # (0.5 %); alpha and beta trade off against each other over the strains reached, which the
-    # 10 indentation samples constrain less (3 %)
+    # the truth is in the searched family, so its global parameters are the exact optimum and
+    # the fit stops at the tolerances: measured K0, the arms and the relaxation times within
+    # 2e-5, alpha and beta (which trade off along a weakly determined direction, see below)
+    # within 1.2e-3, the spring law K(eps) over the strains reached within 6e-5, every test
+    # point's curves within 1e-5; asserted with 10-50x margins
     for k in ("K0", "k1", "tau1", "k2", "tau2"):
-        assert got[k] == pytest.approx(want[k], rel=5e-3), k
+        assert got[k] == pytest.approx(want[k], rel=1e-3), k
     for k in ("alpha", "beta"):
-        assert got[k] == pytest.approx(want[k], rel=3e-2), k
-    for experiment in ("indentation", "relaxation"):
-        assert result.variants["global"].errors[experiment].max() < 1e-3
+        assert got[k] == pytest.approx(want[k], rel=1e-2), k
+    reached = _reached(box_problem, 0.002)
+    assert _spring_error(result.connectors["global"], true, reached).max() < 1e-3
+    for experiment in ("indentation", "relaxation"):  # calibration and held-out points
+        assert result.variants["global"].errors[experiment].max() < 1e-4
     assert not result.local_sweeps["static"] and not result.local_sweeps["relaxation"]
 
 
-def test_local_tuning_recovers_nonuniform_curves(nonuniform):
-    _, _, result = nonuniform
+def test_calibration_recovers_nonuniform_parameters(nonuniform, oracle_errors):
+    """Every connector's K0, k_i and tau_i carries its own random factor (sigma 0.1): neither
+    one global set nor ring offsets can represent that, and 4 curves cannot identify 197
+    connectors, so what can be recovered is (a) the calibration curves, (b) the global
+    parameters as the central values of the factors, (c) the held-out curves to the accuracy
+    the truth's own global part has there (the factors shift each point's curve by up to 6 %,
+    which no model fitted elsewhere can know; measured: calibrated 1.9 % / 1.5 % mean against
+    1.7 % / 1.3 % for the truth's global part, indentation / relaxation).
+
+    alpha and beta are not asserted one by one: in the static coordinates (alpha s, beta s^2)
+    the direction (0.50, 0.86) moves the box's curves by only 0.5 % RMS per unit (condition
+    number 93 of the sensitivities of (log K0, alpha s, beta s^2)), so any misfit of the
+    global model slides them along it: here alpha x3.6 and beta x2.4 while the global
+    model's curves stay within 1.6 % (mean). K0 moves with them (+6.5 %)."""
+    _, true, result = nonuniform
     cal = result.is_calibration
     calibrated, glob = result.variants["calibrated"], result.variants["global"]
+    g, t = result.global_params.as_dict(), TRUE_GLOBAL.as_dict()
     for experiment in ("indentation", "relaxation"):
-        # the fitted curves match the known model's to <= 0.5 % relative RMS
+        # (a) the fitted curves match the known model's to <= 0.5 % relative RMS
         assert calibrated.errors[experiment][cal].max() <= 5e-3, experiment
         # and local tuning is what gets them there: the uniform model cannot
         assert glob.errors[experiment][cal].mean() > 3 * calibrated.errors[experiment][cal].mean()
+        # (c) held-out points, never fitted, against the truth's global part there
+        held_out, oracle = calibrated.errors[experiment][~cal], oracle_errors[experiment][~cal]
+        assert held_out.mean() <= 1.5 * oracle.mean(), experiment
+    # (b) measured: K0 +6.5 %, the arms and times within 5.4 %
+    for k in ("K0", "k1", "tau1", "k2", "tau2"):
+        assert g[k] == pytest.approx(t[k], rel=0.1), k
     for stage in ("static", "relaxation"):
         sweeps = result.local_sweeps[stage]
         assert sweeps and sweeps[0].accepted and sweeps[0].end_cost < sweeps[0].start_cost
-    assert result.evaluations["point_curves"] > 0
+
+
+def test_local_tuning_recovers_ring_parameters_given_the_global_part(box, box_problem):
+    """A truth of exactly the searched form (global values times ring factors x0.74..x1.35,
+    alpha/beta shifted too) and local tuning started from its global part: the ring offsets
+    are then identified, connector by connector.
+
+    Started from global tuning instead, the global stage absorbs the calibration points' ring
+    factors into its one set (alpha 15.6 and beta 157 for 1 and 10, K0 +26 %: the weak
+    direction of the docstring above), and the rings then compensate for that: the curves
+    match to 0.4 % but ring springs differ by up to 18 % and held-out curves by up to 7 %.
+    Hence the end-to-end case above uses a truth whose global part global tuning recovers.
+    """
+    true, _, _ = ring_perturbed_params(box_problem, TRUE_GLOBAL, STRAIN)
+    got, _, errors = _local_stages(box_problem, box, true, 1, ("static", "relaxation"))
+    reached = _reached(box_problem, 0.002)
+    # measured: K(eps) <= 1.1 % over the strains reached, K0 <= 0.15 %, k_i and tau_i <= 1.1 %,
+    # every test point's curves (held-out included) <= 0.02 %
+    assert _spring_error(got, true, reached).max() < 3e-2
+    np.testing.assert_allclose(got.K0, true.K0, rtol=5e-3)
+    np.testing.assert_allclose(got.k1, true.k1, rtol=3e-2)
+    np.testing.assert_allclose(got.k2, true.k2, rtol=3e-2)
+    assert _tau_error(got, true).max() < 3e-2
+    for experiment, error in errors.items():
+        assert error.max() < 5e-4, experiment
 
 
 def test_params_file_round_trip(nonuniform):
@@ -146,8 +230,12 @@ class InterruptingBackend:
         return {"indentation": indentation, "relaxation": relax}
 
 
-def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp_path):
+def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp_path,
+                                                            monkeypatch):
     d, _, reference_run = nonuniform
+    # the code does not change between the two runs (in a working tree others edit, it may)
+    code = code_fingerprint()
+    monkeypatch.setattr("calibration.provenance.code_fingerprint", lambda: code)
     out = tmp_path / "params.h5"
     # 1 sweep-start evaluation + point 0's fit (<= 60) + some of the next points'
     with pytest.raises(Interrupted):
@@ -176,33 +264,48 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     assert not checkpoint_path(out).exists()
 
 
-def _local_static(problem: Problem, scene, reference_params, workers: int):
-    """Local static sweeps on ``problem`` starting from the true global parameters."""
+def _local_stages(problem: Problem, scene, reference_params, workers: int,
+                  stages: tuple[str, ...]):
+    """The local ``stages`` of ``problem`` fitted in turn to ``reference_params``' curves,
+    starting from the true global parameters with zero ring offsets.
+
+    Returns the fitted parameters, the last stage's sweeps and the relative errors of the
+    fitted curves at every test point."""
     from forcecal.schedules import indentation_depths, relaxation_schedule
     times, depths = relaxation_schedule(scene.relaxation)
     exp = Experiments(problem, scene.material.density, indentation_depths(scene.indentation),
                       times, depths, STRAIN.bounds)
     n_cal = len(problem.calibration)
+    model = LocalModel(TRUE_GLOBAL, build_rings(problem.mesh, problem.calibration), STRAIN,
+                       scene.calibration.stiffness_floor * TRUE_GLOBAL.K0,
+                       np.zeros((n_cal, 3)), np.zeros((n_cal, 4)))
+    everything = np.arange(len(problem.test_points))
     with Pool(exp, reference_params, workers=workers) as pool:
-        reference = pool.curves("indentation", reference_params, np.arange(n_cal))
-        model = LocalModel(TRUE_GLOBAL, build_rings(problem.mesh, problem.calibration), STRAIN,
-                           scene.calibration.stiffness_floor * TRUE_GLOBAL.K0,
-                           np.zeros((n_cal, 3)), np.zeros((n_cal, 4)))
-        model, sweeps = run_local_stage(pool, model, "static", reference, scene.calibration,
-                                        None, lambda record: None, progress=False)
-    return model.params(), sweeps
+        for stage in stages:
+            reference = pool.curves(STAGE_KIND[stage], reference_params, np.arange(n_cal))
+            model, sweeps = run_local_stage(pool, model, stage, reference, scene.calibration,
+                                            None, lambda record: None, progress=False)
+        errors = {e: relative_rms_error(pool.curves(e, model.params(), everything),
+                                        pool.curves(e, reference_params, everything))
+                  for e in EXPERIMENTS}
+    return model.params(), sweeps, errors
 
 
-def test_local_tuning_is_independent_of_point_order_and_workers(box, box_problem, nonuniform):
+@pytest.mark.parametrize("stage", ["static", "relaxation"])
+def test_local_tuning_is_independent_of_point_order_and_workers(box, box_problem, nonuniform,
+                                                                stage):
     _, true, _ = nonuniform
     p = box_problem
-    scene = replace(box, calibration={"local_max_sweeps": 1, "local_max_evaluations": 25})
-    sorted_run, _ = _local_static(p, scene, true, workers=1)
+    # tolerance 0: both sweeps run, so the second sweep's per-point starts (simplex sizes
+    # from the first sweep's corrections, fatol scales) are exercised in every order too
+    scene = replace(box, calibration={"local_max_sweeps": 2, "local_max_evaluations": 25,
+                                      "local_sweep_tolerance": 0.0})
+    sorted_run, sweeps, _ = _local_stages(p, scene, true, 1, (stage,))
     order = np.array([2, 0, 3, 1])
     permuted = Problem(p.mesh, p.fixed, p.calibration[order], p.held_out, p.tracked_node)
-    permuted_run, _ = _local_static(permuted, scene, true, workers=1)
-    parallel_run, sweeps = _local_static(p, scene, true, workers=2)
-    assert sweeps[0].end_cost < sweeps[0].start_cost
+    permuted_run, _, _ = _local_stages(permuted, scene, true, 1, (stage,))
+    parallel_run, _, _ = _local_stages(p, scene, true, 2, (stage,))
+    assert len(sweeps) == 2 and all(s.accepted and s.end_cost < s.start_cost for s in sweeps)
     # the Jacobi update sees the same per-point problems in any order, on any worker; only the
     # summation order of the total cost differs (round-off)
     for name in PARAM_NAMES:
