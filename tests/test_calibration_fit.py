@@ -4,8 +4,10 @@ command line and MPI."""
 import dataclasses
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -291,6 +293,56 @@ def _local_stages(problem: Problem, scene, reference_params, workers: int,
     return model.params(), sweeps, errors
 
 
+def _cli(scene_path, reference, out, *extra) -> list[str]:
+    return [sys.executable, "-m", "calibration", "--scene", str(scene_path), "--reference",
+            str(reference), "--out", str(out), "--no-progress", *extra]
+
+
+def _cost_evaluations(result) -> dict[str, int]:
+    return {k: v for k, v in result.evaluations.items() if k.endswith("_cost_evaluations")}
+
+
+def test_killed_command_line_run_resumes_to_the_same_result(box, nonuniform, tmp_path):
+    """SIGKILL the whole process group (master + 2 worker processes) once the local relaxation
+    stage has checkpointed its first point fit, rerun the same command, compare."""
+    d, _, reference_run = nonuniform
+    out = tmp_path / "params.h5"
+    cmd = _cli(box.path, d / "reference.h5", out, "--workers", "2")
+    saved = checkpoint_path(out)
+    with open(tmp_path / "killed.log", "w") as log:
+        run = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=log, start_new_session=True)
+        try:
+            stages, reached = {}, False
+            deadline = time.monotonic() + 300  # a hang guard, not a timing assert
+            while not reached and run.poll() is None and time.monotonic() < deadline:
+                if saved.exists():  # written atomically: never half a file
+                    stages = json.loads(saved.read_text())["stages"]
+                    sweeps = stages.get("local_relaxation", {}).get("sweeps", [])
+                    reached = bool(sweeps and sweeps[0]["fits"])
+                time.sleep(0.02)
+            reached = reached and run.poll() is None
+        finally:
+            os.killpg(run.pid, signal.SIGKILL)  # the run's own session: master and workers
+            run.wait()
+    assert reached, (tmp_path / "killed.log").read_text()[-3000:]
+    assert run.returncode == -signal.SIGKILL and not out.exists()
+    assert {"global_static", "global_relaxation", "local_static"} <= set(stages)
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "resuming from checkpoint" in done.stderr
+    result = read_params(out)
+    # the same fits: only the particle solver's warm starts differ (Newton rtol 1e-8)
+    for name in PARAM_NAMES:
+        np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
+                                   getattr(reference_run.connectors["calibrated"], name),
+                                   rtol=1e-6)
+    assert result.global_params == reference_run.global_params
+    assert _cost_evaluations(result) == _cost_evaluations(reference_run)
+    # the finished work was loaded, not recomputed
+    assert result.evaluations["point_curves"] < reference_run.evaluations["point_curves"]
+    assert not saved.exists()
+
+
 @pytest.mark.parametrize("stage", ["static", "relaxation"])
 def test_local_tuning_is_independent_of_point_order_and_workers(box, box_problem, nonuniform,
                                                                 stage):
@@ -319,8 +371,7 @@ def test_command_line(nonuniform, tmp_path):
     d, _, _ = nonuniform
     scene = _box_scene(tmp_path, local=False, relaxation_max_evaluations=40)
     out = tmp_path / "params.h5"
-    cmd = [sys.executable, "-m", "calibration", "--scene", str(scene.path), "--reference",
-           str(d / "reference.h5"), "--out", str(out), "--no-progress", "--workers", "2"]
+    cmd = _cli(scene.path, d / "reference.h5", out, "--workers", "2")
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "relative RMS error" in done.stdout and "held-out" in done.stdout
