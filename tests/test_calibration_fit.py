@@ -203,6 +203,15 @@ def test_params_file_round_trip(nonuniform):
     assert not checkpoint_path(d / "params.h5").exists()  # removed after success
 
 
+def _assert_same_fit(result, reference_run) -> None:
+    """The same fits as ``reference_run``: only the particle solver's warm starts differ
+    (Newton rtol 1e-8), so the per-connector parameters agree to 1e-6."""
+    for name in PARAM_NAMES:
+        np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
+                                   getattr(reference_run.connectors["calibrated"], name),
+                                   rtol=1e-6)
+
+
 class Interrupted(Exception):
     pass
 
@@ -247,11 +256,7 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     assert {"global_static", "global_relaxation", "local_static"} <= set(saved)
     assert "0" in saved["local_static"]["sweeps"][0]["fits"]
     result = calibrate(box, d / "reference.h5", out, progress=False)
-    # same fits; only the particle solver's warm starts differ (Newton rtol 1e-8)
-    for name in PARAM_NAMES:
-        np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
-                                   getattr(reference_run.connectors["calibrated"], name),
-                                   rtol=1e-6)
+    _assert_same_fit(result, reference_run)
     assert result.global_params == reference_run.global_params
     # the global stages and point 0's local fit were loaded, not recomputed; an infeasible
     # point (cost +inf) is refused before any curve is computed
@@ -331,11 +336,7 @@ def test_killed_command_line_run_resumes_to_the_same_result(box, nonuniform, tmp
     assert done.returncode == 0, done.stderr[-3000:]
     assert "resuming from checkpoint" in done.stderr
     result = read_params(out)
-    # the same fits: only the particle solver's warm starts differ (Newton rtol 1e-8)
-    for name in PARAM_NAMES:
-        np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
-                                   getattr(reference_run.connectors["calibrated"], name),
-                                   rtol=1e-6)
+    _assert_same_fit(result, reference_run)
     assert result.global_params == reference_run.global_params
     assert _cost_evaluations(result) == _cost_evaluations(reference_run)
     # the finished work was loaded, not recomputed
@@ -388,13 +389,9 @@ def test_mpi_ranks_give_the_serial_result(box, nonuniform, tmp_path):
     d, _, reference_run = nonuniform
     out = tmp_path / "params.h5"
     env = {**os.environ, "OMPI_MCA_rmaps_base_oversubscribe": "1"}
-    cmd = ["mpirun", "-n", "3", sys.executable, "-m", "calibration", "--scene", str(box.path),
-           "--reference", str(d / "reference.h5"), "--out", str(out), "--no-progress"]
+    cmd = ["mpirun", "-n", "3", *_cli(box.path, d / "reference.h5", out)]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "MpiTransport" in done.stderr
     result = read_params(out)
-    for name in PARAM_NAMES:
-        np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
-                                   getattr(reference_run.connectors["calibrated"], name),
-                                   rtol=1e-6)
+    _assert_same_fit(result, reference_run)
