@@ -37,7 +37,7 @@ from calibration.optimize import Fit
 from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParams, StrainRange,
                                          build_rings)
 from calibration.pool import Backend, Experiments, Pool, particle_backend
-from calibration.provenance import file_fingerprint, fit_inputs, fit_settings, versions
+from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import Reference, read_reference
@@ -136,7 +136,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal])
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
 
-    checkpoint = Checkpoint(checkpoint_path(out_path), fit_inputs(scene, reference_path))
+    inputs = fit_inputs(scene, reference_path)
+    checkpoint = Checkpoint(checkpoint_path(out_path), inputs)
     evaluations: dict[str, int] = {}
     stage_times: dict[str, float] = {}
     rings = build_rings(mesh, problem.calibration)
@@ -199,7 +200,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         variants=variants, z_static=model.z_static, z_relaxation=model.z_relaxation,
         strain=strain, fe_slope=fe_slope, unit_slope=linear.slope, global_fits=global_fits,
         local_sweeps=local_sweeps, settings=fit_settings(scene),
-        reference_fingerprint=file_fingerprint(reference_path),
+        reference_fingerprint=inputs["reference"],
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
         wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions())
     write_params(out_path, result)
