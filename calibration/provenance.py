@@ -14,12 +14,12 @@ import hashlib
 import importlib.util
 import json
 import platform
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
 import forcecal
+from forcecal.provenance import file_digest, git_commit
 from forcecal.scene import Scene
 
 #: the scene sections a calibration reads (the same as the pipeline's calibrate stage)
@@ -29,16 +29,6 @@ FIT_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "rela
 FIT_PACKAGES = ("forcecal", "particle", "calibration")
 #: settings that change how fast a fit runs, not its result
 NOT_RESULT_SETTINGS = ("workers",)
-ROOT = Path(__file__).resolve().parents[1]  # the checkout (or site-packages) holding the code
-
-
-def file_fingerprint(path: str | Path) -> str:
-    """SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _digest(obj) -> str:
@@ -72,7 +62,7 @@ def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:
     :data:`FIT_SECTIONS` (``[calibration]`` without :data:`NOT_RESULT_SETTINGS`),
     ``forcecal`` (the version) and ``code`` (:func:`code_fingerprint`).
     """
-    inputs = {"reference": file_fingerprint(reference_path)}
+    inputs = {"reference": file_digest(reference_path)}
     for section, table in fit_settings(scene).items():
         if section == "calibration":
             table = {k: v for k, v in table.items() if k not in NOT_RESULT_SETTINGS}
@@ -80,19 +70,6 @@ def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:
     inputs["forcecal"] = forcecal.__version__
     inputs["code"] = code_fingerprint()
     return inputs
-
-
-def git_commit(root: Path = ROOT) -> str | None:
-    """``git rev-parse HEAD`` of the checkout holding ``root`` (``+dirty`` if tracked files
-    differ from it); None outside a git checkout or without git."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root,
-                               capture_output=True).returncode
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return head + ("+dirty" if dirty else "")
 
 
 def versions() -> dict[str, str | None]:

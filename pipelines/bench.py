@@ -55,10 +55,11 @@ import numpy as np
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.problem import build_problem, load_mesh
+from forcecal.provenance import git_commit
 from forcecal.scene import Scene, load_scene
 from pipelines import bench_configs as bc
 from pipelines.cache import code_digest
-from pipelines.report import git_commit, gravity_dynamic_error, read_report
+from pipelines.report import gravity_dynamic_error, read_report
 from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS, mpirun_environment
 
 log = logging.getLogger(__name__)

@@ -42,8 +42,8 @@ from forcecal.errors import ForcecalError
 from forcecal.h5io import Reference, read_reference, write_reference
 from forcecal.mesh import fixed_nodes, select_held_out_points
 from forcecal.problem import load_mesh
+from forcecal.provenance import file_digest
 from forcecal.scene import Scene, load_scene, scene_from_dict
-from pipelines.cache import file_digest
 from pipelines.report import fe_timings, read_report
 from pipelines.stages import PARAMS, REFERENCE, REFERENCE_SECTIONS, run_pipeline
 

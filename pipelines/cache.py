@@ -34,23 +34,11 @@ from typing import Any
 from forcecal import PROJECT_PACKAGES
 from forcecal.errors import DataFileError
 from forcecal.h5io import atomic_path
+from forcecal.provenance import file_digest
 
 log = logging.getLogger(__name__)
 
 RECORD_VERSION = 3
-CHUNK = 1 << 20
-
-
-def file_digest(path: str | Path) -> str:
-    """SHA-256 of a file's bytes (hex)."""
-    h = hashlib.sha256()
-    try:
-        with open(path, "rb") as fh:
-            while chunk := fh.read(CHUNK):
-                h.update(chunk)
-    except OSError as exc:
-        raise DataFileError(f"cannot read {path} to fingerprint it: {exc}") from exc
-    return h.hexdigest()
 
 
 def package_root(package: str) -> Path:

@@ -57,6 +57,8 @@ def _parser() -> argparse.ArgumentParser:
                        help=f"rerun {'every stage' if name == 'demo' else 'this stage'} even if "
                        "its cache says it is up to date")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        p.add_argument("--verbose", action="store_true",
+                       help="log every Nelder-Mead iteration of the calibration")
         p.add_argument("--ranks", type=_positive_int, default=2,
                        help="MPI ranks of the FE reference when not already under mpirun "
                        "(1 = in-process; default 2)")
@@ -96,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         until = STAGE_COMMANDS[args.stage]
         force = (ORDER if args.stage == "demo" else (until,)) if args.force else ()
         outcomes = run_pipeline(scene, out, until=until, force=force,
-                                progress=not args.no_progress, ranks=args.ranks)
+                                progress=not args.no_progress, ranks=args.ranks,
+                                verbose=args.verbose)
         if rank == 0:
             for o in outcomes:
                 print(f"{o.stage:<10} {'ran' if o.ran else 'skipped':<8} "

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import logging
 import platform
-import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +34,7 @@ from calibration.metrics import relative_rms_error
 from calibration.results import EXPERIMENTS, CalibrationResult
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
+from forcecal.provenance import git_commit
 from pipelines.gravity import GravityRuns, ParticleGravity
 
 log = logging.getLogger(__name__)
@@ -107,17 +107,6 @@ def fe_timings(reference: Reference) -> dict[str, float]:
                             f"of stage timings the FE stage writes ({exc})") from None
 
 
-def git_commit(root: Path) -> str | None:
-    """``git rev-parse HEAD`` of the project (with ``+dirty`` if tracked files differ)."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root).returncode
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return head + ("+dirty" if dirty else "")
-
-
 def versions(reference: Reference) -> dict[str, str | None]:
     """Software versions of the run (dolfinx from the reference file that used it)."""
     import gmsh
@@ -131,7 +120,7 @@ def versions(reference: Reference) -> dict[str, str | None]:
             "dolfinx": str(reference.meta.get("dolfinx_version")), "gmsh": gmsh.__version__,
             "h5py": h5py.__version__, "meshio": meshio.__version__,
             "matplotlib": matplotlib.__version__,
-            "git_commit": git_commit(Path(__file__).resolve().parents[1])}
+            "git_commit": git_commit()}
 
 
 def build_report(scene_name: str, reference: Reference, calibration: CalibrationResult,

@@ -39,8 +39,8 @@ import h5py
 from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
-from pipelines.cache import (Cache, StageInputs, code_digests, file_digest, import_closure,
-                             source_digest)
+from forcecal.provenance import file_digest
+from pipelines.cache import Cache, StageInputs, code_digests, import_closure, source_digest
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +68,15 @@ class Context:
         progress: show progress bars (on a terminal).
         ranks: MPI ranks for a spawned FE reference (1 = in-process).
         comm: the MPI world communicator under ``mpirun`` with > 1 rank, else None.
+        verbose: log every Nelder-Mead iteration of the calibration (no effect on results,
+            so not part of any cache key).
     """
     scene: Scene
     out: Path
     progress: bool
     ranks: int
     comm: Any = None
+    verbose: bool = False
 
     @property
     def rank(self) -> int:
@@ -194,7 +197,8 @@ def run_calibrate(ctx: Context) -> list[str]:
         serve_mpi(ctx.comm)
         return []
     from calibration import calibrate
-    calibrate(ctx.scene, ctx.out / REFERENCE, ctx.out / PARAMS, progress=ctx.progress)
+    calibrate(ctx.scene, ctx.out / REFERENCE, ctx.out / PARAMS, progress=ctx.progress,
+              verbose=ctx.verbose)
     return [PARAMS]
 
 
@@ -287,10 +291,11 @@ class Outcome:
 
 def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report",
                  force: tuple[str, ...] = (), progress: bool = True,
-                 ranks: int = 2) -> list[Outcome]:
+                 ranks: int = 2, verbose: bool = False) -> list[Outcome]:
     """Bring ``until`` and every stage before it up to date in ``out``; see module docstring.
 
-    ``force`` names stages to rerun even if their cache says they are up to date.
+    ``force`` names stages to rerun even if their cache says they are up to date;
+    ``verbose`` logs every Nelder-Mead iteration of the calibration.
     Returns one :class:`Outcome` per stage (on every MPI rank).
     """
     from calibration.pool import mpi_world
@@ -301,7 +306,7 @@ def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report",
     unknown = sorted(set(force) - set(STAGES)) + ([until] if until not in STAGES else [])
     if unknown:
         raise ValueError(f"unknown stage(s) {unknown}; stages are {list(ORDER)}")
-    ctx = Context(scene, Path(out), progress, ranks, mpi_world())
+    ctx = Context(scene, Path(out), progress, ranks, mpi_world(), verbose)
     cache = Cache(ctx.out)
     outcomes = []
     for stage in ORDER[:ORDER.index(until) + 1]:

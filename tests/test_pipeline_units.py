@@ -11,8 +11,8 @@ from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
 from forcecal.scene import scene_from_dict
 from particle.model import ConnectorParams, build_model
-from pipelines.cache import (Cache, StageInputs, code_digest, code_digests, file_digest,
-                             import_closure)
+from forcecal.provenance import file_digest
+from pipelines.cache import Cache, StageInputs, code_digest, code_digests, import_closure
 from pipelines.gravity import (GravityRuns, ParticleGravity, connector_strains, read_gravity,
                                run_model, write_gravity)
 from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
@@ -116,6 +116,15 @@ def test_every_stage_key_holds_the_runners_module_and_the_report_holds_the_scene
                                               progress=False, ranks=1))
     assert renamed.changes_from({"scene": keys["report"].scene, "upstream": renamed.upstream,
                                  "code": renamed.code}) == ["scene [name] changed"]
+
+
+def test_verbose_reaches_the_calibration(tmp_path, monkeypatch):
+    import calibration
+    from pipelines.stages import Context, run_calibrate
+    seen = {}
+    monkeypatch.setattr(calibration, "calibrate", lambda *a, **kw: seen.update(kw))
+    run_calibrate(Context(scene_from_dict({}), tmp_path, progress=False, ranks=1, verbose=True))
+    assert seen == {"progress": False, "verbose": True}
 
 
 def test_file_digest_of_missing_file_is_a_data_file_error(tmp_path):

@@ -1,0 +1,41 @@
+"""Where results come from: content digests of files and the git commit of the checkout.
+
+Shared by the calibration (its checkpoint key, ``params.h5`` versions) and the
+pipelines (stage cache keys, ``report.json``, ``bench.json``).
+"""
+from __future__ import annotations
+
+import hashlib
+import subprocess
+from pathlib import Path
+
+from forcecal.errors import DataFileError
+
+#: the checkout (or site-packages folder) holding the project's packages
+ROOT = Path(__file__).resolve().parents[1]
+CHUNK = 1 << 20
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (hex); DataFileError if it cannot be read."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            while chunk := fh.read(CHUNK):
+                h.update(chunk)
+    except OSError as exc:
+        raise DataFileError(f"cannot read {path} to fingerprint it: {exc}") from exc
+    return h.hexdigest()
+
+
+def git_commit(root: str | Path = ROOT) -> str | None:
+    """``git rev-parse HEAD`` of the checkout holding ``root`` (``+dirty`` if tracked files
+    differ from it); None outside a git checkout or without git."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root,
+                               capture_output=True).returncode
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
