@@ -2,7 +2,8 @@
 
 :class:`FEModel` turns a :class:`~forcecal.mesh.TetMesh` into dolfinx objects
 on ``MPI.COMM_SELF``, once per process: function space, compiled residual and
-Jacobian forms, Newton solver (GMRES on a kept MUMPS LU factorisation). Every experiment then reuses them; only the
+Jacobian forms, Newton solver (GMRES on a kept MUMPS LU factorisation). Every
+experiment then reuses them; only the
 Dirichlet conditions, the constants (load, material scaling, time step) and
 the coefficient arrays change between steps, so forms are compiled once.
 
