@@ -40,7 +40,7 @@ from calibration.pool import Backend, Experiments, Pool, particle_backend
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
-from forcecal.h5io import Reference, read_reference
+from forcecal.h5io import Reference, check_reference_settings, read_reference
 from forcecal.problem import build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -52,6 +52,7 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
     """Read the reference and check it belongs to ``scene`` (module docstring)."""
     problem = build_problem(scene)
     ref = read_reference(reference_path, expect_mesh=problem.mesh.fingerprint())
+    check_reference_settings(ref, scene, reference_path)  # [fe], [gravity], indenter
     rp = ref.problem
     for what in ("fixed", "calibration", "held_out"):
         if not np.array_equal(np.sort(getattr(rp, what)), np.sort(getattr(problem, what))):

@@ -1,5 +1,6 @@
 """Bad input to the calibration: every case is a clear ForcecalError naming the problem, or a
 warning recorded in the result and in params.h5 -- never a silent success."""
+import dataclasses
 import json
 
 import h5py
@@ -68,6 +69,12 @@ def test_reference_of_another_scene_is_refused(case, tmp_path):
         _run(replace(scene, indentation={"depth": 0.003}), reference, tmp_path)
     with pytest.raises(DataFileError, match="computed with material"):
         _run(replace(scene, material={"C10": 2500.0}), reference, tmp_path)
+    # curves of another FE discretisation are another target
+    ref = read_reference(reference)
+    p2 = tmp_path / "p2.h5"
+    write_reference(p2, dataclasses.replace(ref, fe=scene.fe))
+    with pytest.raises(DataFileError, match="fe.element = 'P2' \\(scene: 'TH'\\)"):
+        _run(replace(scene, fe={"element": "TH"}), p2, tmp_path)
 
 
 def test_fixed_calibration_point_is_refused(case, tmp_path):
