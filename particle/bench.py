@@ -30,7 +30,7 @@ from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic
 from particle.haptics import HapticSession
 from particle.integrator import DEFAULT_STRAIN_RANGE, VerletIntegrator, critical_time_step
-from particle.model import ConnectorParams, Model, StrainBounds, build_model
+from particle.model import ConnectorParams, Model, StrainBounds, build_model, spatial_order
 from particle.reference_numpy import step_numpy
 from particle.testing import viscoelastic_params
 
@@ -143,15 +143,22 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 
 
 def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 2000,
-                   depth: float = 0.005, safety: float = DT_SAFETY, threads: int = 1) -> dict:
+                   depth: float = 0.005, safety: float = DT_SAFETY, threads: int = 1,
+                   renumber: bool = False) -> dict:
     """Per-call latency [us] of :meth:`HapticSession.step` (1 ms of simulated time per call).
 
     The largest step is ``safety`` x the stability limit over the default strain range
     (+-0.5), which the session monitors. ``threads`` > 1: the session's multi-threaded
     step (numba's thread count is set for each call and restored), whose latency depends
     on every thread's core being free; ``load_average`` (1 min, from os.getloadavg) is
-    reported next to it.
+    reported next to it. ``renumber``: measure the model with its particles renumbered
+    along its longest axis (:func:`~particle.model.spatial_order`, the tool node mapped), the
+    numbering in which the threads' connector blocks share the fewest particles.
     """
+    if renumber:
+        order = spatial_order(model)
+        model, _ = model.renumbered(order)
+        node = int(np.nonzero(order == node)[0][0])
     session = HapticSession(model, safety * critical_time_step(model), threads=threads)
     start = model.rest_positions[node]
     session.step(node, start)  # compile outside the clock
@@ -163,7 +170,8 @@ def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 
         latencies[k] = time.perf_counter() - t0
     us = 1e6 * latencies
     return {"connectors": model.n_connectors, "substeps": session.substeps, "dt_s": session.dt,
-            "threads": session.threads, "load_average": os.getloadavg()[0],
+            "threads": session.threads, "renumbered": renumber,
+            "load_average": os.getloadavg()[0],
             "median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
             "max_us": float(us.max()), "goal_us": 100.0}
 

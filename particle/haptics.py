@@ -49,7 +49,9 @@ class HapticSession:
             core that another process keeps busy a call can take milliseconds
             instead of microseconds. It must not exceed
             ``numba.config.NUMBA_NUM_THREADS``; on small models the serial
-            loop is faster (the regions' launch cost exceeds the gain).
+            loop is faster (the regions' launch cost exceeds the gain), and it
+            pays only on a model whose particle ids follow space
+            (:meth:`Model.renumbered`, :func:`~particle.model.spatial_order`).
 
     Attributes:
         state: the model's State (starts undeformed, at rest).

@@ -317,6 +317,31 @@ class Model:
         object.__setattr__(new, "params", params)
         return new
 
+    def renumbered(self, order: np.ndarray) -> tuple["Model", np.ndarray]:
+        """The same model with particle ``order[k]`` as particle k; returns (model, connectors).
+
+        The connectors are re-sorted by their new ends (i < j, lexicographic, as
+        a mesh's edges), with their rest lengths and parameters; ``connectors``
+        (E,) int64 is the old id of each new connector (for a state's
+        ``arm_force``/``dx_prev``). Physics unchanged: only the summation order of
+        the particles' forces differs. ``order`` must be a permutation of 0..N-1
+        (e.g. :func:`spatial_order`).
+        """
+        n = self.n_particles
+        order = np.asarray(order)
+        if (order.shape != (n,) or not np.issubdtype(order.dtype, np.integer)
+                or not np.array_equal(np.sort(order), np.arange(n))):
+            raise ParameterError(f"a particle order must be a permutation of 0..{n - 1}")
+        new_id = np.empty(n, dtype=np.int64)
+        new_id[order] = np.arange(n)
+        ends = np.sort(new_id[self.edges], axis=1)
+        connectors = np.lexsort((ends[:, 1], ends[:, 0]))
+        params = ConnectorParams(**{name: getattr(self.params, name)[connectors]
+                                    for name in PARAM_NAMES})
+        return Model(rest_positions=self.rest_positions[order], edges=ends[connectors],
+                     rest_lengths=self.rest_lengths[connectors], masses=self.masses[order],
+                     fixed=self.fixed[order], params=params), connectors
+
     def state(self) -> "State":
         """A fresh State: at rest in the undeformed configuration, arms unloaded, t = 0."""
         return State(x=self.rest_positions.copy(), x_prev=self.rest_positions.copy(),
@@ -344,6 +369,18 @@ class Model:
         return np.array([self.rest_lengths[self.incidence_edge[self.incidence_ptr[n]:
                                                                self.incidence_ptr[n + 1]]].min()
                          for n in nodes])
+
+
+def spatial_order(model: Model) -> np.ndarray:
+    """(N,) particle ids sorted along the longest axis of the model's bounding box (stable).
+
+    Renumbered so (:meth:`Model.renumbered`), a contiguous block of connectors
+    (sorted by their ends) is a slab of the body: the multi-threaded step's
+    blocks then share only the particles near the slabs' faces, which is what
+    its threads exchange every step (see :class:`particle.integrator.Run`).
+    """
+    x = model.rest_positions
+    return np.argsort(x[:, int(np.argmax(np.ptp(x, axis=0)))], kind="stable")
 
 
 @dataclass

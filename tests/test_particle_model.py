@@ -7,8 +7,9 @@ import pytest
 
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import box_mesh
-from particle.model import ConnectorParams, ModelBuilder, build_model
-from particle.testing import viscoelastic_params
+from particle.integrator import VerletIntegrator, critical_time_step
+from particle.model import ConnectorParams, ModelBuilder, build_model, spatial_order
+from particle.testing import box_model, viscoelastic_params
 
 
 def test_uniform_params_shapes_and_relaxation_times():
@@ -184,3 +185,35 @@ def test_unknown_and_fixed_nodes_are_refused():
         model.check_nodes([0], "test points")
     with pytest.raises(MeshError, match="not vertices"):
         build_model(mesh, 1.0, viscoelastic_params(len(mesh.edges)), fixed=[99])
+
+
+def test_a_renumbered_model_is_the_same_model_and_moves_the_same():
+    """Particles renumbered along the longest axis: the same particles, connectors (re-sorted,
+    with their parameters) and, stepped, the same motion up to the force summation order."""
+    model = box_model((4, 2, 2), a=-20.0, b=300.0)
+    model = model.with_params(dataclasses.replace(  # every connector different
+        model.params, K0=model.params.K0 * np.linspace(1.0, 2.0, model.n_connectors)))
+    order = spatial_order(model)
+    assert np.all(np.diff(model.rest_positions[order, 0]) >= 0)  # x: the first longest axis
+    new, connectors = model.renumbered(order)
+    np.testing.assert_array_equal(new.rest_positions, model.rest_positions[order])
+    np.testing.assert_array_equal(new.fixed, model.fixed[order])
+    assert np.all(new.edges[:, 0] < new.edges[:, 1])
+    assert np.all(np.diff(new.edges[:, 0]) >= 0)
+    np.testing.assert_array_equal(np.sort(order[new.edges], axis=1),
+                                  np.sort(model.edges[connectors], axis=1))
+    np.testing.assert_array_equal(new.params.K0, model.params.K0[connectors])
+    np.testing.assert_array_equal(new.rest_lengths, model.rest_lengths[connectors])
+    gravity = np.array([0.0, 0.0, -9.81])
+    dt = 0.5 * critical_time_step(model)
+    states = [model.state(), new.state()]
+    for m, state in zip((model, new), states):
+        VerletIntegrator().simulate(m, state, dt, 500, gravity=gravity)
+    u = states[0].x - model.rest_positions
+    np.testing.assert_allclose(states[1].x - new.rest_positions, u[order], rtol=0,
+                               atol=1e-12 * np.abs(u).max())
+    np.testing.assert_allclose(states[1].arm_force, states[0].arm_force[connectors], rtol=0,
+                               atol=1e-12 * np.abs(states[0].arm_force).max())
+    for bad in (order[:-1], np.zeros_like(order), order + 0.5):
+        with pytest.raises(ParameterError, match="must be a permutation of 0"):
+            model.renumbered(bad)
