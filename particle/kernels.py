@@ -10,6 +10,23 @@ opt-in multi-threaded step (``blocks``, :func:`explicit_step`) splits the connec
 pass into contiguous blocks, one per thread, each scattering into its own force
 buffer (no race, no node -> connector gather pass), then sums the buffers and
 advances the positions in blocks of nodes: two numba parallel regions per step.
+Measured on the 12k-connector liver (2 cores, numba's omp layer, other core idle):
+the connector pass over unchanged positions takes 58 us on one thread, 32 us on
+two, but a whole step 56-60 us serial, 56 us on two threads in gmsh's particle
+numbering and 43-45 us with the particles renumbered along the longest axis
+(:meth:`particle.model.Model.renumbered`): each step the threads exchange the
+positions and force-buffer rows of the particles both blocks touch (634 of 2033
+particles in gmsh's order, 116 renumbered), and those cache-line transfers, not
+the arithmetic, are the cost. A step's two regions cost 4.6 us together on a
+tiny model (an empty region 1.2 us with both threads ready, 0.4 us on one); with
+the other core busy, a region waits for it, up to a scheduler time slice
+(milliseconds). :meth:`particle.haptics.HapticSession.step` (2 substeps per ms),
+median (p99) over 5 x 1000 calls (liver 2000), load 0.36: 128-130 (182-250) us
+serial, 121-122 (155-178) us on two threads, 99 (135-143) us on two threads
+renumbered (125 us serial); on the 1400-connector liver 13.6 (17-19) us serial,
+20 (26-34) us on two threads, so the serial loop stays the choice there. An
+earlier two-pass version (a scatter-free gather over a node -> connector
+incidence) took 106 us per force evaluation on one thread against 74 us serial.
 
 Index arrays (connector ends, node lists) may be passed as unsigned views
 (:func:`index_view`): numba then drops the wrap-around handling of negative
@@ -278,7 +295,10 @@ def parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
 
 @njit(**JIT)
 def sum_thread_forces(thread_forces, forces, nodes):
-    """forces[n] = sum over t of thread_forces[t, n] (T, N, 3) [N], in thread order, for ``nodes``."""
+    """forces[n] = sum over t of thread_forces[t, n] [N] for ``nodes``, in thread order.
+
+    ``thread_forces`` (T, N, 3), ``forces`` (N, 3).
+    """
     for n in nodes:
         f0 = thread_forces[0, n, 0]
         f1 = thread_forces[0, n, 1]
