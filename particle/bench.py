@@ -218,7 +218,8 @@ def evaluator_timings(model: Model, problem: Problem, scene: Scene, *, points: i
 
 
 def run_all(scene_path: str = "scenes/liver.toml", *, quick: bool = False) -> dict:
-    """Every benchmark on the scene's liver and on a >= 10k-connector liver (one core)."""
+    """Every benchmark on the scene's liver and on a >= 10k-connector liver (one core, except
+    the two-thread haptic session on the renumbered large liver)."""
     import numba
     numba.set_num_threads(1)
     scene = load_scene(scene_path)
@@ -238,7 +239,10 @@ def run_all(scene_path: str = "scenes/liver.toml", *, quick: bool = False) -> di
         "skip": skip_timings(liver, gravity, duration=1.0 if quick else 3.0),
         "haptic": {"liver": haptic_latency(liver, node, normal, calls=500 if quick else 2000),
                    "large": haptic_latency(large, large_node, np.array([0.0, 0.0, -1.0]),
-                                           calls=200 if quick else 1000)},
+                                           calls=200 if quick else 1000),
+                   "large_2threads": haptic_latency(large, large_node, np.array([0.0, 0.0, -1.0]),
+                                                    calls=200 if quick else 1000, threads=2,
+                                                    renumber=True)},
         "evaluators": evaluator_timings(liver, problem, scene, points=2 if quick else 4),
     }
     log.info("particle bench done")
