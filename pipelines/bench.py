@@ -394,6 +394,10 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
                                          problem.normals[0], calls=500 if quick else 2000),
               "large": pb.haptic_latency(large, top, np.array([0.0, 0.0, -1.0]),
                                          calls=200 if quick else 1000)}
+    if numba.config.NUMBA_NUM_THREADS >= 2:  # the opt-in 2-thread session, mesh renumbered
+        haptic["large_2threads"] = pb.haptic_latency(
+            large, top, np.array([0.0, 0.0, -1.0]), calls=200 if quick else 1000, threads=2,
+            renumber=True)
     return {
         "kernel": {"connectors": liver_rate["connectors"],
                    "updates_per_s": liver_rate["compiled_updates_per_s"],
