@@ -33,3 +33,18 @@ def test_readme_file_schemas_match_the_code():
     for module in (calibration.results, pipelines.gravity):
         for line in _table(module):
             assert line in README, f"README lacks {module.__name__} schema row {line}"
+
+
+def test_readme_particle_model_example_runs(monkeypatch):
+    block = README.split("## The particle model", 1)[1].split("```python\n", 1)[1]
+    code = block.split("```", 1)[0]
+    monkeypatch.chdir(ROOT)
+    namespace: dict = {}
+    exec(compile(code, "README.md: The particle model", "exec"), namespace)
+    # what the comments say the objects are
+    problem = namespace["problem"]
+    assert namespace["sag"].shape == (problem.mesh.n_vertices, 3)
+    assert namespace["forces"].shape == (len(problem.test_points), 10)
+    assert namespace["stiffer"].shape == (2, len(problem.test_points), 10)
+    assert (namespace["stiffer"][1] > namespace["stiffer"][0]).all()  # stiffer springs push harder
+    assert namespace["force"].shape == (3,)
