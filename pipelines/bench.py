@@ -157,14 +157,14 @@ def default_run(scene: Scene, root: Path, *, ranks: int, progress: bool
 def calibrated_release(scene: Scene, folder: Path, reference: Reference):
     """(calibrated Model, per-connector strain range of its release) as the gravity stage has them.
 
-    The range is :func:`~particle.integrator.strain_range_for_release` of the stage's own
+    The range is :func:`~pipelines.gravity.release_strain_range` of the stage's own
     static sag (``gravity.h5``), so steps chosen for it are the ones ``make demo`` uses;
     without that file (the gravity stage failed) the default range +-0.5, with a warning.
     """
     from calibration import read_params
-    from particle.integrator import DEFAULT_STRAIN_RANGE, strain_range_for_release
+    from particle.integrator import DEFAULT_STRAIN_RANGE
     from particle.model import build_model
-    from pipelines.gravity import read_gravity
+    from pipelines.gravity import read_gravity, release_strain_range
 
     model = build_model(reference.problem, scene.material.density,
                         read_params(folder / PARAMS).connectors["calibrated"])
@@ -173,7 +173,7 @@ def calibrated_release(scene: Scene, folder: Path, reference: Reference):
                     "default strain range %s", folder / GRAVITY, DEFAULT_STRAIN_RANGE)
         return model, DEFAULT_STRAIN_RANGE
     static = read_gravity(folder / GRAVITY).models["calibrated"].static_displacement
-    return model, strain_range_for_release(model, static, scene.particle.strain_margin)
+    return model, release_strain_range(model, static, scene.particle.strain_margin)
 
 
 def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[dict[str, Any]]:

@@ -247,7 +247,7 @@ def configs(scene: Scene, quick: bool) -> list[Config]:
                           {"test_points": {"calibration": picked, "held_out": held}},
                           reference="slice"))
     c = scene.calibration
-    for scale in ((0.25,) if quick else (0.25, 0.5)):
+    for scale in ((0.25,) if quick else (0.1, 0.25)):
         budgets = {k: max(1, round(scale * getattr(c, k))) for k in BUDGET_KEYS}
         out.append(Config("Nelder-Mead budget", f"x{scale:g}", {"budget_scale": scale, **budgets},
                           {"calibration": budgets}))

@@ -194,9 +194,10 @@ def test_gravity_runs_of_one_free_particle_match_the_closed_form(corner):
 
 def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
     n = len(corner.mesh.edges)
-    # K(eps) = 100 (1 - 2 eps): positive on [-0.1, 0.1] and on the release's range (the tiny
-    # sag's strains widened by particle.strain_margin = 0.2), zero at eps = 0.5
-    soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -200.0), b=np.zeros(n),
+    # K(eps) = 100 (1 - 5 eps): positive on [-0.1, 0.1], zero at eps = 0.2, inside the release's
+    # range (the tiny sag's strains +- particle.strain_margin = 0.2): the release is verified
+    # on the range cut short of 0.2 instead (release_strain_range) and runs
+    soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -500.0), b=np.zeros(n),
                            k1=np.full(n, 50.0), b1=np.full(n, 5.0), k2=np.full(n, 20.0),
                            b2=np.full(n, 40.0))
     scene = scene_from_dict({})
@@ -206,6 +207,26 @@ def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
     assert np.all(np.isfinite(run.displacement))
     with pytest.raises(ParameterError, match=r"K\(eps\).*<= 0 in the strain range"):
         run_model(scene, corner, soft, g, times, (-0.5, 0.5), "soft")
+
+
+@pytest.mark.parametrize("K0, a, b, lo, hi", [
+    (100.0, -200.0, 0.0, -np.inf, 0.5),            # linear, softening in tension
+    (100.0, 200.0, 0.0, -0.5, np.inf),             # linear, softening in compression
+    (100.0, 0.0, 0.0, -np.inf, np.inf),            # constant
+    (100.0, 0.0, 400.0, -np.inf, np.inf),          # stiffening, never zero
+    (100.0, 0.0, -400.0, -0.5, 0.5),               # softening both ways
+    (100.0, -50.0, 5.0, -np.inf, 5.0 - 5.0 ** 0.5),  # both roots in tension: the nearer one
+    (100.0, 50.0, 5.0, -5.0 + 5.0 ** 0.5, np.inf),   # both roots in compression
+])
+def test_positive_spring_range_is_the_interval_between_the_nearest_roots(K0, a, b, lo, hi):
+    from pipelines.gravity import positive_spring_range
+    params = ConnectorParams(K0=np.array([K0]), a=np.array([a]), b=np.array([b]),
+                             k1=np.ones(1), b1=np.ones(1), k2=np.ones(1), b2=np.ones(1))
+    got_lo, got_hi = positive_spring_range(params)
+    np.testing.assert_allclose([got_lo[0], got_hi[0]], [lo, hi], rtol=1e-12)
+    for eps in (got_lo[0], got_hi[0]):
+        if np.isfinite(eps):
+            assert abs(params.stiffness(np.array([eps]))[0]) < 1e-9 * K0
 
 
 def test_gravity_file_round_trip_and_refusals(tmp_path, column):
