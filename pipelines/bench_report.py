@@ -34,11 +34,14 @@ WHY_DEFAULT = {
                           "few of them; differences of about 0.01 are within the spread "
                           "between points and the calibration times were measured under "
                           "different loads",
-    "Nelder-Mead budget": "the budget is an upper bound: fits that converge earlier cost the same, "
-                          "and a smaller budget risks stopping fits on harder scenes",
-    "local tuning": "local tuning is what fits the calibration points themselves; the "
-                    "held-out points measure how that carries over to points it was not "
-                    "fitted to",
+    "Nelder-Mead budget": "what the budget buys is the fit at the calibration points (the "
+                          "*_calibrated columns), not the held-out error, which the local "
+                          "fits barely move; the default lets every local fit of the liver "
+                          "meet its tolerance (a smaller budget stops them part-way: "
+                          "a warning per stage)",
+    "local tuning": "local tuning is what fits the calibration points themselves (the "
+                    "*_calibrated columns); the held-out points measure how that carries over "
+                    "to points it was not fitted to, and it does not",
     "FE discretisation": "the particle model fitted to the Taylor-Hood reference's (softer) "
                          "indentation curves cannot carry the organ's weight: its static sag "
                          "has no equilibrium beyond about 0.85 g (README, 'Limitations'), so "
