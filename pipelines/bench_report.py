@@ -94,7 +94,9 @@ def _merged_labels(labels: list[str], screen: np.ndarray) -> dict[int, str]:
         dx, dy = np.abs(screen - screen[k]).T
         near = (dx < 60.0) & (dy < 12.0) & ~taken  # about a label's width and height
         taken |= near
-        out[k] = " / ".join(labels[i] for i in np.nonzero(near)[0])
+        group = np.nonzero(near)[0]
+        # written right of the group's rightmost point, clear of the others' markers
+        out[int(group[np.argmax(screen[group, 0])])] = " / ".join(labels[i] for i in group)
     return out
 
 
