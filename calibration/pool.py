@@ -35,6 +35,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 import numpy as np
 
 from calibration.metrics import point_costs
+from forcecal.logs import configure_logging
 from forcecal.problem import Problem
 from particle.model import ConnectorParams
 
@@ -147,9 +148,8 @@ def serve(receive: Callable[[], Any], send: Callable[[Any], None]) -> None:
         return
     import numba
     numba.set_num_threads(1)  # one core per worker; the pool is the parallelism
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=spec.log_level,
-                            format=f"%(levelname)s %(name)s [worker {os.getpid()}]: %(message)s")
+    if not logging.getLogger().handlers:  # a fresh worker process: the master's set-up
+        configure_logging(spec.log_level, prefix=f"[worker {os.getpid()}] ")
     try:
         worker = PointWorker(spec)
     except Exception as exc:
@@ -320,7 +320,8 @@ class Pool:
                      "most)%s", asked, n, "; the other MPI ranks are released"
                      if comm is not None else "")
         self.owner = np.arange(n_points) % n
-        level = logging.getLogger().getEffectiveLevel()
+        # the project's level (configure_logging keeps the root logger at WARNING)
+        level = logging.getLogger("calibration").getEffectiveLevel()
         specs = [WorkerSpec(experiments, np.nonzero(self.owner == w)[0], backend, params, level)
                  for w in range(n)]
         if comm is not None:

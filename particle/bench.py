@@ -1,6 +1,6 @@
 """Benchmarks of the particle engine: functions that return JSON-ready dicts.
 
-``pipelines`` wires :func:`run_all` into ``make bench`` (-> ``runs/bench/bench.json``);
+``pipelines.bench`` calls them for ``make bench`` (-> ``runs/bench/bench.json``);
 every function can also be called alone. Timings are wall-clock
 (``time.perf_counter``) *and* CPU time of this process (``time.process_time``):
 on a shared machine the CPU time is the better measure of the code. The
@@ -22,9 +22,9 @@ from typing import Callable
 
 import numpy as np
 
-from forcecal.mesh import TetMesh, fixed_nodes, generate_liver
+from forcecal.mesh import TetMesh, fixed_nodes
 from forcecal.problem import Problem, build_problem
-from forcecal.scene import ParticleSection, Scene, load_scene
+from forcecal.scene import ParticleSection, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic
@@ -214,36 +214,4 @@ def evaluator_timings(model: Model, problem: Problem, scene: Scene, *, points: i
                      "warm_ms_per_point_cpu": float(np.median(cpu)),
                      "factorizations": sum(s.factorizations for s in ev._solvers.values()),
                      "goal_ms": target}
-    return out
-
-
-def run_all(scene_path: str = "scenes/liver.toml", *, quick: bool = False) -> dict:
-    """Every benchmark on the scene's liver and on a >= 10k-connector liver (one core, except
-    the two-thread haptic session on the renumbered large liver)."""
-    import numba
-    numba.set_num_threads(1)
-    scene = load_scene(scene_path)
-    problem = build_problem(scene)
-    liver = scene_model(scene, problem.mesh, problem.fixed)
-    large_mesh = generate_liver(LARGE_MESH_LENGTH)
-    large = scene_model(scene, large_mesh)
-    gravity = np.asarray(scene.gravity.acceleration)
-    node, normal = int(problem.test_points[0]), problem.normals[0]
-    large_node = int(np.argmax(large_mesh.vertices[:, 2]))  # top of the organ
-    steps = 500 if quick else 2000
-    out = {
-        "throughput": {"liver": step_throughput(liver, steps=steps),
-                       "large": step_throughput(large, steps=steps // 4)},
-        "gravity_3s_liver": gravity_realtime(liver, gravity, duration=scene.gravity.duration,
-                                             record_interval=scene.gravity.record_interval),
-        "skip": skip_timings(liver, gravity, duration=1.0 if quick else 3.0),
-        "haptic": {"liver": haptic_latency(liver, node, normal, calls=500 if quick else 2000),
-                   "large": haptic_latency(large, large_node, np.array([0.0, 0.0, -1.0]),
-                                           calls=200 if quick else 1000),
-                   "large_2threads": haptic_latency(large, large_node, np.array([0.0, 0.0, -1.0]),
-                                                    calls=200 if quick else 1000, threads=2,
-                                                    renumber=True)},
-        "evaluators": evaluator_timings(liver, problem, scene, points=2 if quick else 4),
-    }
-    log.info("particle bench done")
     return out
