@@ -486,7 +486,7 @@ class Run:
         self._active = kernels.index_view(self.active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
-        self.threads = check_threads(threads)
+        self.threads = threads  # checked by VerletIntegrator.prepare, which builds every Run
         self._blocks = None if self.threads == 1 else thread_blocks(model, self.active,
                                                                      self.threads)
         self._node_edges: dict[int, np.ndarray] = {}

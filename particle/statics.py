@@ -30,7 +30,7 @@ from scipy.sparse.linalg import splu
 
 from forcecal.errors import ConvergenceError, ParameterError
 from particle import kernels
-from particle.model import ConnectorParams, Model
+from particle.model import ConnectorParams, Model, connector_name
 
 log = logging.getLogger(__name__)
 
@@ -365,5 +365,5 @@ def check_stiffness(model: Model, strain: np.ndarray, what: str) -> None:
     bad = np.nonzero(model.params.stiffness(strain) <= 0.0)[0]
     if len(bad):
         e = int(bad[0])
-        raise ParameterError(f"{what}: connector {e} (particles {model.edges[e].tolist()}) "
-                             f"reaches strain {strain[e]:.3g} where its stiffness K(eps) <= 0")
+        raise ParameterError(f"{what}: {connector_name(e, model.edges)} reaches strain "
+                             f"{strain[e]:.3g} where its stiffness K(eps) <= 0")
