@@ -1,6 +1,6 @@
 """``make bench``: run time vs error, kernel throughput, term skipping, reference timings.
 
-``python -m pipelines bench [--quick] [--out DIR] [--scene FILE] [--ranks K] [--no-progress]``
+``python -m pipelines bench [--quick] [--out DIR] [--scene FILE] [--ranks K] [--no-progress] [--only ITEMS]``
 writes ``DIR/bench.json`` (keys below), ``DIR/pareto.png`` and ``DIR/BENCH.md``.
 ``--quick`` benchmarks ``scenes/tiny.toml`` with small sizes (development, a few
 minutes); the default is the default liver.
@@ -23,7 +23,11 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
    (3 s of the calibrated model, against the FE's time and error),
    ``skip`` (the same runs with and without the terms they do not need),
    haptic latency, evaluator times;
-5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench_stability`).
+5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench_stability`);
+6. every study of :data:`STUDIES` (one module each).
+
+``--only ITEM[,ITEM]`` runs only those items and keeps the other keys of the
+``bench.json`` already in the folder (each item records its own time in ``item_s``).
 
 Fixed keys of ``bench.json``: ``kernel {connectors, updates_per_s, numpy_ratio}``,
 ``gravity_dynamic {particle_s, fe_s, speedup, error}``, ``calibration {wall_s,
@@ -39,6 +43,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import hashlib
+import importlib
 import json
 import logging
 import os
@@ -70,6 +75,14 @@ DT_FRACTIONS = {False: (0.1, 0.25, 0.5, 0.75, 1.0), True: (0.25, 0.5, 1.0)}
 GOALS = {"numpy_ratio": 20.0, "gravity_3s_s": 0.05, "haptic_us": 100.0, "calibration_s": 300.0,
          "reference_2ranks_s": 900.0}
 PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
+
+
+# Studies after the five items above: item name -> "module:function", a function
+# study(scene, cache folder, quick) -> the bench.json keys it owns. Each lives in a module of
+# its own (imported only when it runs), so adding a study adds one line here.
+STUDIES: dict[str, str] = {}
+# items that need the default pipeline run (its folder is in ``state["default"]``)
+NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
 
 
 # the fixed keys of bench.json (issue: benchmarks), checked before it is written
@@ -444,8 +457,15 @@ def machine() -> dict[str, Any]:
 
 
 def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
-              ranks: int = 2, progress: bool = True) -> dict[str, Any]:
-    """Every item of the module docstring; writes bench.json, pareto.png, BENCH.md in ``out``."""
+              ranks: int = 2, progress: bool = True, only: tuple[str, ...] = ()
+              ) -> dict[str, Any]:
+    """Every item of the module docstring, then every study of :data:`STUDIES`; writes
+    bench.json, pareto.png, BENCH.md in ``out``.
+
+    ``only`` names the items to run (their keys replace those of the ``bench.json``
+    already in ``out``, the rest are kept as they are; the default pipeline run is
+    brought up to date first when an item needs it).
+    """
     from pipelines.bench_report import write_markdown, write_pareto_plot
     from pipelines.bench_stability import stability_table
 
@@ -484,7 +504,23 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     items = [("default pipeline run", default_item), ("run time vs error", pareto_item),
              ("reference timings", reference_item), ("particle engine", particle_item),
              ("stability limits", stability_item)]
-    bench["item_s"] = {}
+    for name, target in STUDIES.items():
+        def study_item(target=target):
+            module, function = target.split(":")
+            bench.update(getattr(importlib.import_module(module), function)(scene, cache, quick))
+        items.append((name, study_item))
+    if only:
+        unknown = sorted(set(only) - {name for name, _ in items})
+        if unknown:
+            raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
+                                f"{[name for name, _ in items]}")
+        # the other keys come from the last full run in out/ (each item records its own time)
+        previous = json.loads((out / "bench.json").read_text()) if (
+            out / "bench.json").is_file() else {}
+        bench = {**previous, "machine": bench["machine"], "scene": scene.name, "quick": quick}
+        keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
+        items = [(name, fn) for name, fn in items if name in set(only) | keep]
+    bench["item_s"] = dict(bench.get("item_s", {}))
     start = time.perf_counter()
     for k, (name, fn) in enumerate(items, 1):
         log.info("bench [%d/%d] %s ...", k, len(items), name)
@@ -492,7 +528,8 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         fn()
         bench["item_s"][name] = time.perf_counter() - t0
         log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, bench["item_s"][name])
-    bench["wall_s"] = time.perf_counter() - start
+    if not only:  # a partial run keeps the full run's wall time
+        bench["wall_s"] = time.perf_counter() - start
     bench["machine"]["load_average_end"] = list(os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
     check_bench(bench)
@@ -513,12 +550,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default=None, help="scene to benchmark (default: the liver)")
     parser.add_argument("--ranks", type=int, default=2, help="MPI ranks of FE references")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--only", default="",
+                        help="comma-separated items to run (e.g. 'stability limits'); the other "
+                             "keys of DIR/bench.json are kept")
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark from parsed ``args`` (see :func:`add_arguments`)."""
     out = Path(args.out or ("runs/bench-quick" if args.quick else "runs/bench"))
     run_bench(out, quick=args.quick, scene_path=Path(args.scene) if args.scene else None,
-              ranks=args.ranks, progress=not args.no_progress)
+              ranks=args.ranks, progress=not args.no_progress,
+              only=tuple(name.strip() for name in args.only.split(",") if name.strip()))
     print(f"bench: outputs in {out}/ (bench.json, pareto.png, BENCH.md)")
     return 0
