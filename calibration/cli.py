@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 
-from forcecal.errors import ForcecalError
+from forcecal.failures import run_command
 from forcecal.logs import configure_logging
 
 
@@ -23,20 +22,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
 
+    return run_command(lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
     from calibration.pool import mpi_world, serve_mpi
     comm = mpi_world()
     if comm is not None and comm.Get_rank() > 0:
         serve_mpi(comm)
         return 0
     configure_logging(logging.INFO)
+    if args.verbose:
+        logging.getLogger("forcecal.failures").setLevel(logging.DEBUG)
     from calibration.core import calibrate
-    try:
-        result = calibrate(args.scene, args.reference, args.out, progress=not args.no_progress,
-                           verbose=args.verbose, workers=args.workers)
-    except ForcecalError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        if comm is not None:  # release the worker ranks waiting for work
-            comm.Abort(2)
-        return 2
+    result = calibrate(args.scene, args.reference, args.out, progress=not args.no_progress,
+                       verbose=args.verbose, workers=args.workers)
     print(result.summary())
     return 0

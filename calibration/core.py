@@ -151,6 +151,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             saved = checkpoint.get(f"global_{stage}")
             t = time.perf_counter()
             if saved is None:
+                pool.forget_warm_starts()  # as a resumed run starts (identical resumes)
                 glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
                                    progress=progress, verbose=verbose)
                 checkpoint.put(f"global_{stage}", {"params": glob.as_dict(),
@@ -184,6 +185,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                       "global": glob.connector_params(n_conn),
                       "calibrated": model.params()}
         t = time.perf_counter()
+        pool.forget_warm_starts()  # the stages before may have been loaded (identical resumes)
         variants = {}
         all_points = np.arange(len(problem.test_points))
         for variant, params in connectors.items():

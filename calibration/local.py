@@ -38,7 +38,7 @@ import numpy as np
 from calibration.optimize import INFEASIBLE, Fit, nelder_mead
 from calibration.parametrisation import (GlobalParams, Rings, StrainRange, check_feasible,
                                          local_params)
-from calibration.pool import Pool, PointWorker
+from calibration.pool import Pool, PointWorker, forget_warm_starts
 from calibration.progress import progress_bar
 from forcecal.scene import CalibrationSection
 from particle.model import ConnectorParams
@@ -115,6 +115,8 @@ def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
     kind = STAGE_KIND[stage]
     z = model.offsets(stage)
     node = int(worker.experiments.problem.test_points[point])
+    # each fit is checkpointed: start cold, as a resumed run does (identical resumes)
+    forget_warm_starts(worker)
 
     def cost(zj: np.ndarray) -> float:
         trial = z.copy()
@@ -153,6 +155,8 @@ def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.nda
         if k < len(record["sweeps"]):
             entry = record["sweeps"][k]
         else:
+            if not sweeps:
+                pool.forget_warm_starts()  # as after a resume (identical resumes)
             start_cost = (sweeps[-1].end_cost if sweeps else
                           pool.total_cost(kind, model.params(), points, reference))
             entry = {"start": model.offsets(stage).tolist(), "start_cost": start_cost,
@@ -163,6 +167,7 @@ def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.nda
         fits = _sweep_fits(pool, start, stage, reference, settings, _point_starts(record, k),
                            entry, record, save, f"local {stage} sweep {k + 1}", progress, verbose)
         if "end" not in entry:
+            pool.forget_warm_starts()  # the fits before may have been loaded (resume)
             entry.update(_damped_update(pool, start, stage, reference, fits, entry["start_cost"]))
             save(record)
         sweep = Sweep(entry["start_cost"], entry["end_cost"], entry["halvings"], tuple(fits))

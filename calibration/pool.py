@@ -123,6 +123,16 @@ def point_curves(worker: PointWorker, kind: str, params: ConnectorParams,
     return worker.curves(kind, params, points)
 
 
+def forget_warm_starts(worker: PointWorker) -> None:
+    """Call run on a worker: its evaluators start cold at their next call (see
+    :meth:`particle.evaluators._PointEvaluator.forget`; a backend without ``forget`` has no
+    warm starts)."""
+    for evaluator in worker.evaluators.values():
+        forget = getattr(evaluator, "forget", None)
+        if forget is not None:
+            forget()
+
+
 def evaluation_count(worker: PointWorker) -> int:
     """Call run on a worker: point-curves it has computed so far."""
     return worker.evaluations
@@ -391,6 +401,18 @@ class Pool:
                    reference: np.ndarray) -> float:
         """Sum of the points' costs ``G_j`` against ``reference`` (len(points), S) [N^2]."""
         return float(np.sum(point_costs(self.curves(kind, params, points), reference)))
+
+    def forget_warm_starts(self) -> None:
+        """Every worker's evaluators start cold at their next call.
+
+        Called wherever calibration checkpoints (before each fit, sweep-start cost,
+        damped update and the validation), so what follows a checkpoint does not depend
+        on the evaluations before it and a resumed run repeats an uninterrupted one
+        exactly, not to the Newton tolerance.
+        """
+        calls = [(int(np.nonzero(self.owner == w)[0][0]), ()) for w in range(self.n_workers)]
+        for _ in self.map(forget_warm_starts, calls):
+            pass
 
     def evaluations(self) -> int:
         """Point-curves computed by all workers so far."""

@@ -50,13 +50,46 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise DataFileError(f"cannot create output folder {path.parent}: {exc}") from exc
     if not os.access(path.parent, os.W_OK):
         raise DataFileError(f"output folder {path.parent} is not writable")
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    tmp = path.with_name(f"{path.name}{TMP_MARK}{os.getpid()}")
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:  # disk full, quota, I/O error: nothing is left half-written
+        raise DataFileError(f"cannot write {path}: {exc.strerror or exc} (nothing was written; "
+                            "free space or fix the folder, then rerun)") from exc
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+#: what :func:`atomic_path` puts between a file's name and the writing process's id
+TMP_MARK = ".tmp-"
+
+
+def remove_stale_temporaries(folder: str | Path) -> list[Path]:
+    """Delete the temporary files of :func:`atomic_path` under ``folder`` whose writer is gone
+    (a killed run, a machine switched off); returns them. A live writer's file is kept."""
+    removed = []
+    for tmp in Path(folder).rglob(f"*{TMP_MARK}*"):
+        pid = tmp.name.rpartition(TMP_MARK)[2]
+        if not pid.isdigit() or _process_alive(int(pid)) or not tmp.is_file():
+            continue
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except OSError:
+            pass
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 @contextlib.contextmanager

@@ -240,8 +240,9 @@ def read_mesh(path: str | Path, scale: float = 1.0) -> TetMesh:
         raise MeshError(f"mesh file {path} does not exist")
     try:
         m = meshio.read(path)
-    except Exception as exc:  # meshio raises many types for bad files
-        raise MeshError(f"{path}: meshio could not read it: {exc}") from exc
+    except (Exception, SystemExit) as exc:  # many types for bad files; sys.exit for some
+        raise MeshError(f"{path}: meshio could not read it: {type(exc).__name__}: "
+                        f"{exc}") from None
     blocks = [c.data for c in m.cells if c.type == "tetra"]
     if not blocks:
         kinds = sorted({c.type for c in m.cells})

@@ -9,6 +9,7 @@ particle side never re-derives geometry on its own.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,8 +64,33 @@ def load_mesh(scene: Scene) -> TetMesh:
         mesh = generate_liver(scene.mesh.characteristic_length)
     else:
         mesh = read_mesh(path, scale=scene.mesh.scale)
+        check_organ_scale(mesh, f"{path} (x mesh.scale = {scene.mesh.scale:g})")
     log.info("mesh: %s", mesh.summary())
     return mesh
+
+
+#: bounding-box diagonals of a plausible organ [m]: outside, the file's unit is likely not metres
+ORGAN_SIZE = (0.005, 3.0)
+
+
+def check_organ_scale(mesh: TetMesh, what: str) -> None:
+    """Refuse a mesh whose size is no organ's in metres (a file in mm or um without
+    ``mesh.scale``), before any FE work would fail to converge on it.
+
+    Raises:
+        MeshError: naming the bounding box, the mean edge length and the ``mesh.scale``
+            that would bring the diagonal to about 0.2 m.
+    """
+    diagonal = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    low, high = ORGAN_SIZE
+    if low <= diagonal <= high:
+        return
+    edge = float(np.mean(np.linalg.norm(mesh.vertices[mesh.edges[:, 1]]
+                                        - mesh.vertices[mesh.edges[:, 0]], axis=1)))
+    factor = 10.0 ** round(math.log10(0.2 / diagonal)) if diagonal > 0 else 1.0
+    raise MeshError(f"{what}: bounding-box diagonal {diagonal:.4g} m, mean edge length "
+                    f"{edge:.4g} m: not an organ's size in metres (expected {low}-{high} m); "
+                    f"is the file in other units? set mesh.scale (e.g. mesh.scale = {factor:g})")
 
 
 def tracked_node_by_rule(mesh: TetMesh, fixed: np.ndarray, rule: str) -> int:

@@ -16,6 +16,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -251,6 +252,12 @@ SECTIONS: dict[str, type] = {
 }
 
 TRACKED_RULES = ("farthest_from_support", "max_x")
+#: Maxwell arms of the particle connector: the scene's Prony series must have this many terms
+MAXWELL_ARMS = 2
+#: fewest records of the dynamic gravity run the comparison uses (t = 0 and three more)
+MIN_RECORDS = 4
+#: a scene name: it names runs/<name>/, so ".", ".." and hidden or nested names are refused
+SCENE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
 
 TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
                   "description": "free text"}
@@ -391,6 +398,10 @@ def _cross_checks(scene: Scene, origin: str) -> None:
     problem = m.prony_error()
     if problem:
         raise SceneError(f"{origin}: {problem}")
+    if len(m.prony_g) != MAXWELL_ARMS:
+        raise SceneError(f"{origin}: material.prony_g has {len(m.prony_g)} term(s); the "
+                         f"particle model has exactly {MAXWELL_ARMS} Maxwell arms, one per "
+                         f"Prony term, so give {MAXWELL_ARMS} (prony_g and prony_tau)")
     r = scene.relaxation
     if m.prony_tau and r.hold_time < 5 * max(m.prony_tau) * (1 - 1e-12):
         raise SceneError(f"{origin}: relaxation.hold_time = {r.hold_time} s is shorter than "
@@ -402,6 +413,16 @@ def _cross_checks(scene: Scene, origin: str) -> None:
     if g.record_interval < g.fe_dt * (1 - 1e-9):
         raise SceneError(f"{origin}: gravity.record_interval ({g.record_interval} s) is shorter "
                          f"than gravity.fe_dt ({g.fe_dt} s)")
+    if not any(g.acceleration):
+        raise SceneError(f"{origin}: gravity.acceleration = {list(g.acceleration)}: the FE "
+                         "reference's static sag and dynamic release need a non-zero gravity "
+                         "(e.g. [0.0, 0.0, -9.81])")
+    records = int(math.floor(g.duration / g.record_interval * (1 + 1e-12))) + 1
+    if records < MIN_RECORDS:
+        raise SceneError(f"{origin}: gravity.duration = {g.duration} s holds {records} "
+                         f"record(s) of gravity.record_interval = {g.record_interval} s; at "
+                         f"least {MIN_RECORDS} are needed: lengthen gravity.duration or shorten "
+                         "gravity.record_interval")
     if isinstance(scene.gravity.tracked_node, str) and scene.gravity.tracked_node not in TRACKED_RULES:
         raise SceneError(f"{origin}: gravity.tracked_node must be one of {list(TRACKED_RULES)} "
                          "or a vertex id")
@@ -428,9 +449,11 @@ def scene_from_dict(data: dict[str, Any], *, path: Path | None = None,
         raise SceneError(f"{origin}: unknown top-level key(s) or table(s) {unknown}; "
                          f"known: {sorted(allowed)}")
     name = data.get("name", default_name)
-    if not isinstance(name, str) or not name or any(c in name for c in "/\\ "):
-        raise SceneError(f"{origin}: name = {name!r} must be a non-empty string without "
-                         "slashes or spaces (it names the output folder)")
+    if not isinstance(name, str) or not SCENE_NAME.fullmatch(name):
+        raise SceneError(f"{origin}: name = {name!r} must be a non-empty string of letters, "
+                         "digits, '_', '-' and '.', not starting with '.' and without slashes "
+                         "or spaces (it names the output folder runs/<name>/, which must stay "
+                         "inside runs/)")
     description = data.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{origin}: description must be a string")
@@ -448,8 +471,13 @@ def load_scene(path: str | Path) -> Scene:
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason}); save the "
+                         "scene file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
+    except OSError as exc:
+        raise SceneError(f"scene file {path} cannot be read: {exc.strerror or exc}") from None
     return scene_from_dict(data, path=path, default_name=path.stem)
 
 

@@ -61,6 +61,17 @@ class _PointEvaluator:
         self._warm: dict[int, np.ndarray] = {}
         self._factors: dict[int, list] = {}
 
+    def forget(self) -> None:
+        """Drop every point's warm start and factorisations: the next call starts cold.
+
+        Warm starts make a result depend (within the Newton tolerance) on the calls
+        before it; calibration forgets them wherever it checkpoints, so a resumed fit
+        repeats the uninterrupted one bit for bit.
+        """
+        self._solvers.clear()
+        self._warm.clear()
+        self._factors.clear()
+
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_factors"] = {}  # LU factorisations do not pickle; rebuilt on demand

@@ -133,8 +133,14 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     of the same matrix (the largest row sum), usually well below. With
     mass-proportional damping gamma the central-difference limit becomes
     ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
+
+    Raises:
+        ParameterError: the parameters are non-physical on ``strain_range``
+            (:meth:`ConnectorParams.validate`, e.g. a negative K0), naming the connector.
     """
     p = model.params if params is None else params
+    # a non-physical model (K0 <= 0, ...) has no meaningful limit: refused, naming the connector
+    p.validate(strain_range, model.edges)
     if not (~model.fixed).any():
         return math.inf  # nothing moves
     lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)

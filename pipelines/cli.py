@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from pathlib import Path
 
 from forcecal.errors import ForcecalError
+from forcecal.failures import collective, run_command
 from forcecal.logs import configure_logging
 
 STAGE_COMMANDS = {"reference": "reference", "calibrate": "calibrate", "gravity": "gravity",
@@ -67,47 +67,50 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    comm = None
-    try:
-        if args.stage == "scene-keys":
-            from forcecal.scene import keys_table
-            print(keys_table())
-            return 0
-        if args.stage == "results-table":
-            from pipelines.report import read_report, results_markdown
-            print(results_markdown(read_report(args.report)))
-            return 0
-        if args.stage == "bench-table":
-            from pipelines.bench import read_bench
-            from pipelines.bench_report import goals_markdown
-            print(goals_markdown(read_bench(args.bench)))
-            return 0
-        if args.stage == "bench":
-            from pipelines.bench import main as bench_main
-            configure_logging(logging.INFO)
-            return bench_main(args)
-        from calibration.pool import mpi_world
-        from forcecal.scene import load_scene
-        from pipelines.stages import ORDER, run_pipeline
-        comm = mpi_world()
-        rank = 0 if comm is None else comm.Get_rank()
-        # INFO on rank 0, warnings only on the other MPI ranks
-        configure_logging(logging.INFO if rank == 0 else logging.WARNING)
-        scene = load_scene(args.scene)
-        out = Path(args.out) if args.out else default_out(scene.name)
-        until = STAGE_COMMANDS[args.stage]
-        force = (ORDER if args.stage == "demo" else (until,)) if args.force else ()
-        outcomes = run_pipeline(scene, out, until=until, force=force,
-                                progress=not args.no_progress, ranks=args.ranks,
-                                verbose=args.verbose)
-        if rank == 0:
-            for o in outcomes:
-                print(f"{o.stage:<10} {'ran' if o.ran else 'skipped':<8} "
-                      f"{o.seconds:8.1f} s  {'; '.join(o.reasons) or 'up to date'}")
-            print(f"outputs in {out}/")
+    return run_command(lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.stage == "scene-keys":
+        from forcecal.scene import keys_table
+        print(keys_table())
         return 0
-    except ForcecalError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        if comm is not None:
-            comm.Abort(2)  # the other ranks may be waiting for this one
-        return 2
+    if args.stage == "results-table":
+        from pipelines.report import read_report, results_markdown
+        print(results_markdown(read_report(args.report)))
+        return 0
+    if args.stage == "bench-table":
+        from pipelines.bench import read_bench
+        from pipelines.bench_report import goals_markdown
+        print(goals_markdown(read_bench(args.bench)))
+        return 0
+    if args.stage == "bench":
+        from pipelines.bench import main as bench_main
+        configure_logging(logging.INFO)
+        return bench_main(args)
+    from calibration.pool import mpi_world
+    from forcecal.scene import load_scene
+    from pipelines.stages import ORDER, run_pipeline
+    comm = mpi_world()
+    rank = 0 if comm is None else comm.Get_rank()
+    # INFO on rank 0, warnings only on the other MPI ranks
+    configure_logging(logging.INFO if rank == 0 else logging.WARNING)
+    if args.verbose:  # tracebacks of failures, mpirun's own text
+        for name in ("forcecal.failures", "pipelines.stages"):
+            logging.getLogger(name).setLevel(logging.DEBUG)
+    try:
+        scene = load_scene(args.scene)
+    except ForcecalError as exc:  # every MPI rank reads the same file
+        raise collective(exc) from None
+    out = Path(args.out) if args.out else default_out(scene.name)
+    until = STAGE_COMMANDS[args.stage]
+    force = (ORDER if args.stage == "demo" else (until,)) if args.force else ()
+    outcomes = run_pipeline(scene, out, until=until, force=force,
+                            progress=not args.no_progress, ranks=args.ranks,
+                            verbose=args.verbose)
+    if rank == 0:
+        for o in outcomes:
+            print(f"{o.stage:<10} {'ran' if o.ran else 'skipped':<8} "
+                  f"{o.seconds:8.1f} s  {'; '.join(o.reasons) or 'up to date'}")
+        print(f"outputs in {out}/")
+    return 0

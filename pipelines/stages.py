@@ -26,9 +26,12 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +40,8 @@ from typing import Any, Callable
 import h5py
 
 from forcecal.errors import DataFileError, ForcecalError, SceneError
+from forcecal.failures import collective, note_stage
+from forcecal.cost import check_cost
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
 from forcecal.provenance import file_digest
@@ -120,8 +125,12 @@ class Stage:
         # this module holds every stage's runner, so it is part of every stage's code (its
         # lazy imports are not followed: each stage names the modules it runs in `code`)
         code = {**code_digests(self.code), "pipelines/stages.py": source_digest(Path(__file__))}
+        mesh = None
+        if self.reads_mesh:  # the first stage: absurd work is refused before any is done
+            mesh = load_mesh(ctx.scene)
+            check_cost(ctx.scene, mesh.n_vertices, len(mesh.edges))
         return StageInputs(scene=scene,
-                           mesh=load_mesh(ctx.scene).fingerprint() if self.reads_mesh else None,
+                           mesh=mesh.fingerprint() if mesh is not None else None,
                            upstream={n: file_digest(ctx.out / n) for n in self.upstream},
                            code=code)
 
@@ -143,12 +152,84 @@ def run_reference(ctx: Context) -> list[str]:
     if not ctx.progress:
         cmd.append("--no-progress")
     log.info("running %s", " ".join(cmd))
-    rc = subprocess.run(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL).returncode
+    rc, error = run_mpirun(cmd)
     if rc != 0:
-        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}); its message is "
-                          "printed above. Finished work items are kept in "
-                          f"{path}.parts/ and reused by a rerun")
+        kept = f"finished work items are kept in {path}.parts/ and reused by a rerun"
+        if error is not None:  # the ranks' own refusal, printed once by the pipeline
+            raise StageFailed(f"{error} ({kept})")
+        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}; --verbose shows "
+                          f"mpirun's own text); {kept}")
     return [REFERENCE]
+
+
+#: a line of mpirun's (OpenMPI's) own text: its boxed help messages are delimited by dashes
+_MPIRUN_RULE = re.compile(r"^-{20,}$")
+_RANK_ERROR = re.compile(r"^(\[rank \d+\] )?error: ")
+_MPIRUN_LINE = re.compile(r"^(\[[^\]\s]+:\d+\]|mpirun|Primary job|prterun)")
+
+
+def run_mpirun(cmd: list[str]) -> tuple[int, str | None]:
+    """Run a spawned ``mpirun`` and return (exit code, the ranks' ``error:`` message or None).
+
+    The ranks' stderr is read line by line: their ``error: ...`` line is returned
+    (the pipeline prints it once, as its own), mpirun's boilerplate goes to the log
+    at DEBUG (``--verbose``), everything else (the ranks' log lines) passes through.
+    mpirun runs in its own process group, is asked to die with this process
+    (PR_SET_PDEATHSIG on Linux, so even a SIGKILLed pipeline ends its ranks) and is
+    terminated (then killed) when this process is interrupted or fails.
+    """
+    error: list[str] = []
+    proc = subprocess.Popen(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, start_new_session=True,
+                            preexec_fn=_die_with_parent)
+
+    def forward() -> None:
+        boxed = False
+        for raw in proc.stderr:
+            line = raw.decode(errors="replace").rstrip("\n")
+            if _MPIRUN_RULE.match(line.strip()):
+                boxed = not boxed
+                log.debug("mpirun: %s", line)
+            elif _RANK_ERROR.match(line):
+                error.append(_RANK_ERROR.sub("", line))
+            elif boxed or _MPIRUN_LINE.match(line) or not line.strip():
+                log.debug("mpirun: %s", line)
+            else:
+                print(line, file=sys.stderr, flush=True)
+
+    reader = threading.Thread(target=forward, name="mpirun-stderr", daemon=True)
+    reader.start()
+    try:
+        rc = proc.wait()
+    except BaseException:  # Ctrl-C, SIGTERM, a failure here: end the ranks with us
+        _end_process_group(proc)
+        raise
+    finally:
+        reader.join(timeout=5)
+    return rc, (error[0] if error else None)
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: receive SIGTERM when the parent dies (Linux only)."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: a killed pipeline may leave ranks running
+        pass
+
+
+def _end_process_group(proc: subprocess.Popen, grace: float = 10.0) -> None:
+    """SIGTERM the child's process group (mpirun and its ranks), SIGKILL after ``grace`` s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            return
+        try:
+            proc.wait(timeout=grace)
+            return
+        except subprocess.TimeoutExpired:
+            continue
 
 
 def mpirun_environment() -> dict[str, str]:
@@ -183,8 +264,14 @@ def adopt_reference(ctx: Context, stage: Stage, inputs: StageInputs) -> bool:
     if (a.get("scene_fingerprint") != ctx.scene.fingerprint(*REFERENCE_SECTIONS)
             or a.get("mesh_fingerprint") != inputs.mesh or newest_source > started):
         return False
-    log.info("reference: adopting the existing %s (its scene and mesh fingerprints match and "
-             "the FE code is older than it)", path)
+    from forcecal.h5io import read_reference
+    try:  # the content too: a NaN-filled or damaged file would fail every later stage
+        read_reference(path, expect_mesh=inputs.mesh)
+    except DataFileError as exc:
+        raise DataFileError(f"{path} matches this scene but cannot be adopted: {exc}; delete "
+                            "it or recompute it with `reference --force`") from None
+    log.info("reference: adopting the existing %s (its scene and mesh fingerprints match, the "
+             "FE code is older than it and its content is valid)", path)
     return True
 
 
@@ -308,24 +395,89 @@ def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report",
         raise ValueError(f"unknown stage(s) {unknown}; stages are {list(ORDER)}")
     ctx = Context(scene, Path(out), progress, ranks, mpi_world(), verbose)
     cache = Cache(ctx.out)
-    outcomes = []
-    for stage in ORDER[:ORDER.index(until) + 1]:
-        outcomes.append(_run_stage(ctx, cache, STAGES[stage], stage in force))
-    return outcomes
+    lock = _lock_folder(ctx) if ctx.rank == 0 else None
+    try:
+        outcomes = []
+        for stage in ORDER[:ORDER.index(until) + 1]:
+            outcomes.append(_run_stage(ctx, cache, STAGES[stage], stage in force))
+        return outcomes
+    finally:
+        if lock is not None:
+            lock.close()
+
+
+LOCK = ".lock"
+
+
+def _lock_folder(ctx: Context):
+    """Hold ``<out>/.lock`` (an flock, released when this process ends however it ends) so
+    two runs on one output folder cannot both run a stage; then delete the temporary files
+    an earlier killed run left. Returns the open lock file.
+
+    Raises:
+        DataFileError: another live run holds the folder, or it cannot be created.
+    """
+    import fcntl
+    from forcecal.h5io import remove_stale_temporaries
+    try:
+        ctx.out.mkdir(parents=True, exist_ok=True)
+        fh = open(ctx.out / LOCK, "a+")
+    except OSError as exc:
+        raise DataFileError(f"cannot create the output folder {ctx.out}: "
+                            f"{exc.strerror or exc}") from None
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        owner = fh.read().strip() or "another process"
+        fh.close()
+        raise DataFileError(f"{ctx.out} is in use by another forcecal run ({owner}); wait for "
+                            "it to finish (two runs on one output folder would both run its "
+                            "stages)") from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"pid {os.getpid()}")
+    fh.flush()
+    for tmp in remove_stale_temporaries(ctx.out):
+        log.info("removed %s, left half-written by an interrupted run", tmp)
+    return fh
 
 
 def _run_stage(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Outcome:
     """Check, run and record one stage (decisions made on rank 0 and broadcast)."""
-    inputs, reasons = None, []
+    try:
+        return _decide_and_run(ctx, cache, stage, force)
+    except Exception as exc:
+        raise note_stage(exc, stage.name, _kept(ctx, stage.name)) from None
+
+
+def _kept(ctx: Context, stage: str) -> str:
+    """What a failed ``stage`` leaves for a rerun (the error line says it)."""
+    done = [n for n in (REFERENCE, PARAMS, GRAVITY) if (ctx.out / n).is_file()]
+    kept = ", ".join(done) or "nothing finished"
+    if stage == "reference":
+        kept += f"; finished FE work items in {ctx.out / REFERENCE}.parts/"
+    elif stage == "calibrate":
+        kept += f"; the calibration checkpoint in {ctx.out / 'checkpoints'}/"
+    return kept
+
+
+def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Outcome:
+    inputs, reasons, error = None, [], None
     if ctx.rank == 0:
-        inputs = stage.inputs(ctx)
-        reasons = ["--force"] if force else cache.check(stage.name, inputs)
-        if reasons and not force and stage.name == "reference" and adopt_reference(ctx, stage,
-                                                                                     inputs):
-            cache.store(stage.name, inputs, [REFERENCE], 0.0, note="adopted")
-            reasons = []
+        try:
+            inputs = stage.inputs(ctx)
+            reasons = ["--force"] if force else cache.check(stage.name, inputs)
+            if (reasons and not force and stage.name == "reference"
+                    and adopt_reference(ctx, stage, inputs)):
+                cache.store(stage.name, inputs, [REFERENCE], 0.0, note="adopted")
+                reasons = []
+        except Exception as exc:  # noqa: BLE001 - raised on every rank below
+            error = exc
     if ctx.comm is not None:
-        reasons = ctx.comm.bcast(reasons, root=0)
+        reasons, error = ctx.comm.bcast((reasons, error), root=0)
+    if error is not None:
+        raise collective(error)
     if not reasons:
         log.info("%-9s up to date, skipped (inputs and outputs match %s)", stage.name,
                  cache.record_path(stage.name))

@@ -9,6 +9,7 @@ import logging
 import sys
 
 from forcecal.errors import ForcecalError
+from forcecal.failures import collective, run_command
 from forcecal.logs import configure_logging
 
 
@@ -20,6 +21,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
 
+    return run_command(lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
     from mpi4py import MPI
 
     from forcecal.scene import load_scene
@@ -28,12 +33,10 @@ def main(argv: list[str] | None = None) -> int:
     rank = MPI.COMM_WORLD.rank
     configure_logging(logging.INFO if rank == 0 else logging.WARNING, prefix=f"[rank {rank}] ")
     try:
-        compute_reference(load_scene(args.scene), out_path=args.out,
-                          progress=not args.no_progress)
-    except ForcecalError as exc:
-        if rank == 0:
-            print(f"error: {exc}", file=sys.stderr)
-        return 2
+        scene = load_scene(args.scene)
+    except ForcecalError as exc:  # every rank reads the same file
+        raise collective(exc) from None
+    compute_reference(scene, out_path=args.out, progress=not args.no_progress)
     return 0
 
 

@@ -23,7 +23,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from forcecal.errors import ConvergenceError, SceneError
+from forcecal.errors import ConvergenceError, SceneError, StabilityError
 from forcecal.schedules import record_times
 from reference_fe.model import (FEModel, FEState, Load, StepFailed, clamp, initial_state,
                                 nodal_force, prescribe_vertex, solve_step)
@@ -31,6 +31,21 @@ from reference_fe.model import (FEModel, FEState, Load, StepFailed, clamp, initi
 log = logging.getLogger(__name__)
 
 Step = Callable[[FEState, FEState | None, float], FEState]
+
+
+class Stopped(Exception):
+    """Raised between two steps when the stop check says so (another rank's item failed)."""
+
+
+_stop_check: Callable[[], bool] | None = None
+
+
+def set_stop_check(check: Callable[[], bool] | None) -> None:
+    """Install ``check`` (None: remove it), asked before every step of every experiment: a
+    failed work item on one rank stops the others at their next step, not after their item
+    (:func:`reference_fe.run.compute_reference`)."""
+    global _stop_check
+    _stop_check = check
 
 
 def march(state: FEState, targets: np.ndarray, step: Step, *, max_cuts: int, what: str,
@@ -46,6 +61,8 @@ def march(state: FEState, targets: np.ndarray, step: Step, *, max_cuts: int, wha
         increment = target - state.progress
         cuts = 0
         while state.progress < target:
+            if _stop_check is not None and _stop_check():
+                raise Stopped(what)
             nxt = state.progress + increment
             if target - nxt <= 1e-9 * abs(increment):  # land exactly on the target
                 nxt = target
@@ -146,9 +163,44 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
         return solve_step(model, state, Load(held, factor * g), factor, dt=None, guess=guess)
 
     factors = np.arange(1, load_steps + 1) / load_steps
-    *_, final = march(initial_state(model), factors, step, max_cuts=model.fe.max_step_cuts,
-                      what="gravity static", unit="x gravity")
-    return model.vertex_values(final.u)
+    extent = float(np.linalg.norm(np.ptp(model.mesh.vertices, axis=0)))
+    first = None  # sag per unit load of the first step
+    for factor, state in zip(factors, march(initial_state(model), factors, step,
+                                            max_cuts=model.fe.max_step_cuts,
+                                            what="gravity static", unit="x gravity")):
+        u = model.vertex_values(state.u)
+        sag = float(np.linalg.norm(u, axis=1).max())
+        first = sag / factor if first is None else first
+        check_sag(sag, factor, first, extent, len(fixed))
+    return u
+
+
+#: the static sag per unit load may grow this much over the load steps before the support is
+#: called unstable (a hyperelastic body hung from a sound support stiffens instead)
+SAG_GROWTH_LIMIT = 5.0
+
+
+def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: int) -> None:
+    """Refuse a static sag that grows much faster than the load or exceeds half the body.
+
+    Args:
+        sag: largest vertex displacement at this load step [m].
+        factor: fraction of the full gravity applied.
+        first: sag per unit load of the first load step [m].
+        extent: diagonal of the mesh's bounding box [m].
+        n_fixed: number of fixed vertices (named in the message).
+
+    Raises:
+        StabilityError: the support does not hold the body.
+    """
+    growth = (sag / factor) / first if first > 0 else 1.0
+    if growth > SAG_GROWTH_LIMIT or sag > 0.5 * extent:
+        raise StabilityError(
+            f"gravity static: unstable support: the sag grows much faster than the load "
+            f"({sag * 1e3:.3g} mm at {factor:.3g} x gravity, {growth:.3g} x the first load "
+            f"step's sag per unit load; body size {extent * 1e3:.3g} mm): the {n_fixed} fixed "
+            "vertices of the [fixed] section do not hold the body; clamp a larger patch "
+            "(fixed.tolerance) or another side (fixed.axis, fixed.side)")
 
 
 def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,

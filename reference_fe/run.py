@@ -36,6 +36,8 @@ from tqdm import tqdm
 import dolfinx
 from forcecal import errors
 from forcecal.errors import DataFileError, ForcecalError, SceneError
+from forcecal.cost import check_cost
+from forcecal.failures import collective
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            atomic_path, write_reference)
 from forcecal.problem import Problem, build_problem
@@ -160,8 +162,10 @@ class _Parts:
                 if str(data["run_key"]) != self.key:
                     return None
                 return {k: data[k] for k in data.files if k != "run_key"}
-        except (OSError, ValueError, KeyError) as exc:  # damaged part: compute it again
-            log.warning("ignoring unreadable checkpoint %s: %s", path, exc)
+        except Exception as exc:  # noqa: BLE001 - truncated (BadZipFile, EOFError), damaged
+            log.warning("discarding the unreadable checkpoint part %s (%s: %s); its work item "
+                        "is computed again", path, type(exc).__name__, exc)
+            path.unlink(missing_ok=True)
             return None
 
     def save(self, item: WorkItem, arrays: dict) -> None:
@@ -324,6 +328,10 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     indenter_experiments(scene)  # an unknown indenter fails here, before any work
     if problem is None:
         problem = _on_root(comm, lambda: build_problem(scene))
+    try:  # before any FE work
+        check_cost(scene, problem.mesh.n_vertices, len(problem.mesh.edges))
+    except SceneError as exc:  # every rank decides the same
+        raise collective(exc) from None
     parts = _Parts(out_path, run_key(scene, problem))
     items = work_items(scene, len(problem.test_points))
     _on_root(comm, parts.start)
@@ -338,8 +346,9 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     if failures:
         kind = getattr(errors, failures[0][0], None)
         kind = kind if isinstance(kind, type) and issubclass(kind, ForcecalError) else RuntimeError
-        raise kind("FE reference failed: " + "; ".join(m for _, m in failures)
-                   + f" (finished items are kept in {parts.folder}/ and reused by a rerun)")
+        raise collective(kind("FE reference failed: " + "; ".join(m for _, m in failures)
+                              + f" (finished items are kept in {parts.folder}/ and reused by "
+                              "a rerun)"))
 
     def finish() -> Reference:
         reference = _assemble(scene, problem, items, parts, comm.size,
@@ -354,17 +363,22 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
 
 
 def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
-    """``task()`` run on rank 0, its result broadcast; a ForcecalError there is raised on
+    """``task()`` run on rank 0, its result broadcast; any exception there is raised on
     every rank (the others would otherwise wait for rank 0 forever)."""
     result, error = None, None
     if comm.rank == 0:
         try:
             result = task()
-        except ForcecalError as exc:
+        except Exception as exc:  # noqa: BLE001 - any error, or the others wait forever
             error = exc
-    result, error = comm.bcast((result, error), root=0)
+    if comm.size > 1:
+        try:
+            result, error = comm.bcast((result, error), root=0)
+        except Exception:  # an exception that does not pickle: send its text
+            result, error = comm.bcast((None, RuntimeError(f"{type(error).__name__}: "
+                                                           f"{error}")), root=0)
     if error is not None:
-        raise error
+        raise collective(error)
     return result
 
 
@@ -375,6 +389,19 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
     Returns ``(failure, build_seconds)``: ``failure`` is None or (exception class
     name, message); ``build_seconds`` the time spent building the FE model.
     """
+    model, build_seconds = None, 0.0
+    experiments.set_stop_check(lambda: parts.failed)
+    try:
+        return _claim_and_compute(scene, problem, items, parts, bar)
+    except experiments.Stopped:  # another rank failed: its message is reported
+        log.info("stopping: another rank's work item failed")
+        return None, 0.0
+    finally:
+        experiments.set_stop_check(None)
+
+
+def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+                       bar: _Progress) -> tuple[tuple[str, str] | None, float]:
     model, build_seconds = None, 0.0
     for item in items:
         if parts.failed:  # another rank failed: stop early, its message is reported
@@ -388,6 +415,8 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
                 build_seconds = time.perf_counter() - t0
                 t0 = time.perf_counter()
             arrays = compute_item(model, scene, problem, item)
+        except experiments.Stopped:
+            raise
         except Exception as exc:  # reported on every rank, not left to hang the others
             message = f"{item.name}: {exc}"
             parts.fail(message)

@@ -204,12 +204,17 @@ def test_params_file_round_trip(nonuniform):
 
 
 def _assert_same_fit(result, reference_run) -> None:
-    """The same fits as ``reference_run``: only the particle solver's warm starts differ
-    (Newton rtol 1e-8), so the per-connector parameters agree to 1e-6."""
-    for name in PARAM_NAMES:
-        np.testing.assert_allclose(getattr(result.connectors["calibrated"], name),
-                                   getattr(reference_run.connectors["calibrated"], name),
-                                   rtol=1e-6)
+    """The same fits as ``reference_run`` to round-off (issue 12: 1e-10 relative): the
+    evaluators forget their warm starts wherever calibration checkpoints, so a resumed run
+    makes the same evaluations as an uninterrupted one."""
+    for variant in ("global", "calibrated"):
+        for name in PARAM_NAMES:
+            np.testing.assert_allclose(getattr(result.connectors[variant], name),
+                                       getattr(reference_run.connectors[variant], name),
+                                       rtol=1e-10, atol=0.0)
+    for variant, curves in reference_run.variants.items():
+        for e, error in curves.errors.items():
+            np.testing.assert_allclose(result.variants[variant].errors[e], error, rtol=1e-10)
 
 
 class Interrupted(Exception):
