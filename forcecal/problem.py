@@ -64,7 +64,7 @@ def load_mesh(scene: Scene) -> TetMesh:
         mesh = generate_liver(scene.mesh.characteristic_length)
     else:
         mesh = read_mesh(path, scale=scene.mesh.scale)
-        check_organ_scale(mesh, f"{path} (x mesh.scale = {scene.mesh.scale:g})")
+        check_organ_scale(mesh, str(path), scene.mesh.scale)
     log.info("mesh: %s", mesh.summary())
     return mesh
 
@@ -73,13 +73,19 @@ def load_mesh(scene: Scene) -> TetMesh:
 ORGAN_SIZE = (0.005, 3.0)
 
 
-def check_organ_scale(mesh: TetMesh, what: str) -> None:
+def check_organ_scale(mesh: TetMesh, what: str, scale: float = 1.0) -> None:
     """Refuse a mesh whose size is no organ's in metres (a file in mm or um without
     ``mesh.scale``), before any FE work would fail to converge on it.
 
+    Args:
+        mesh: the mesh, coordinates already multiplied by ``scale``.
+        what: the file (for the message).
+        scale: the scene's ``mesh.scale``.
+
     Raises:
         MeshError: naming the bounding box, the mean edge length and the ``mesh.scale``
-            that would bring the diagonal to about 0.2 m.
+            (this one times a power of 1000: a unit conversion) that brings the diagonal
+            nearest to 0.2 m.
     """
     diagonal = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
     low, high = ORGAN_SIZE
@@ -87,10 +93,11 @@ def check_organ_scale(mesh: TetMesh, what: str) -> None:
         return
     edge = float(np.mean(np.linalg.norm(mesh.vertices[mesh.edges[:, 1]]
                                         - mesh.vertices[mesh.edges[:, 0]], axis=1)))
-    factor = 10.0 ** round(math.log10(0.2 / diagonal)) if diagonal > 0 else 1.0
+    factor = 1000.0 ** round(math.log(0.2 / diagonal, 1000)) if diagonal > 0 else 1.0
     raise MeshError(f"{what}: bounding-box diagonal {diagonal:.4g} m, mean edge length "
-                    f"{edge:.4g} m: not an organ's size in metres (expected {low}-{high} m); "
-                    f"is the file in other units? set mesh.scale (e.g. mesh.scale = {factor:g})")
+                    f"{edge:.4g} m (with mesh.scale = {scale:g}): not an organ's size in "
+                    f"metres (expected {low}-{high} m); is the file in other units? set "
+                    f"mesh.scale (e.g. mesh.scale = {scale * factor:g})")
 
 
 def tracked_node_by_rule(mesh: TetMesh, fixed: np.ndarray, rule: str) -> int:

@@ -40,7 +40,7 @@ from typing import Any, Callable
 import h5py
 
 from forcecal.errors import DataFileError, ForcecalError, SceneError
-from forcecal.failures import collective, note_stage
+from forcecal.failures import INTERRUPTED, collective, note_stage
 from forcecal.cost import check_cost
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
@@ -192,7 +192,8 @@ def run_mpirun(cmd: list[str]) -> tuple[int, str | None]:
                 log.debug("mpirun: %s", line)
             elif _RANK_ERROR.match(line):
                 error.append(_RANK_ERROR.sub("", line))
-            elif boxed or _MPIRUN_LINE.match(line) or not line.strip():
+            elif (boxed or _MPIRUN_LINE.match(line) or not line.strip()
+                  or line.endswith(INTERRUPTED)):  # the pipeline says it once
                 log.debug("mpirun: %s", line)
             else:
                 print(line, file=sys.stderr, flush=True)
@@ -453,13 +454,14 @@ def _run_stage(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Outcome
 
 def _kept(ctx: Context, stage: str) -> str:
     """What a failed ``stage`` leaves for a rerun (the error line says it)."""
-    done = [n for n in (REFERENCE, PARAMS, GRAVITY) if (ctx.out / n).is_file()]
-    kept = ", ".join(done) or "nothing finished"
-    if stage == "reference":
-        kept += f"; finished FE work items in {ctx.out / REFERENCE}.parts/"
-    elif stage == "calibrate":
-        kept += f"; the calibration checkpoint in {ctx.out / 'checkpoints'}/"
-    return kept
+    kept = [n for n in (REFERENCE, PARAMS, GRAVITY) if (ctx.out / n).is_file()]
+    parts = ctx.out / f"{REFERENCE}.parts"
+    if stage == "reference" and parts.is_dir() and any(parts.glob("*.npz")):
+        kept.append(f"finished FE work items in {parts}/")
+    checkpoints = ctx.out / "checkpoints"
+    if stage == "calibrate" and checkpoints.is_dir() and any(checkpoints.iterdir()):
+        kept.append(f"the calibration checkpoint in {checkpoints}/")
+    return (", ".join(kept) + "; rerun the same command to resume") if kept else "nothing"
 
 
 def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Outcome:
