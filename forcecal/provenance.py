@@ -6,6 +6,7 @@ pipelines (stage cache keys, ``report.json``, ``bench.json``).
 from __future__ import annotations
 
 import hashlib
+import os
 import subprocess
 from pathlib import Path
 
@@ -30,12 +31,15 @@ def file_digest(path: str | Path) -> str:
 
 def git_commit(root: str | Path = ROOT) -> str | None:
     """``git rev-parse HEAD`` of the checkout holding ``root`` (``+dirty`` if tracked files
-    differ from it); None outside a git checkout or without git."""
+    differ from it); None outside a git checkout or without git. For the project itself
+    without its ``.git`` (the container image), the commit recorded at build time in
+    ``FORCECAL_GIT_COMMIT`` (the Dockerfile's ``GIT_COMMIT`` build argument), if any."""
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                               text=True, check=True).stdout.strip()
         dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root,
                                capture_output=True).returncode
     except (OSError, subprocess.CalledProcessError):
-        return None
+        recorded = os.environ.get("FORCECAL_GIT_COMMIT", "").strip()
+        return recorded if recorded and Path(root).resolve() == ROOT.resolve() else None
     return head + ("+dirty" if dirty else "")
