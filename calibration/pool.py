@@ -35,6 +35,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol, Sequence
 import numpy as np
 
 from calibration.metrics import point_costs
+from forcecal.failures import die_with_parent
 from forcecal.logs import configure_logging
 from forcecal.problem import Problem
 from particle.model import ConnectorParams
@@ -202,8 +203,11 @@ class ProcessTransport:
         self._conns, self._procs = [], []
         for spec in specs:
             parent, child = socket.socketpair()
+            # a worker dies with its master, even a SIGKILLed one (mid-fit it would not
+            # notice the closed socket until its call ends)
             proc = subprocess.Popen([sys.executable, "-m", "calibration.worker",
-                                     str(child.fileno())], pass_fds=(child.fileno(),))
+                                     str(child.fileno())], pass_fds=(child.fileno(),),
+                                    preexec_fn=die_with_parent)
             child.close()
             conn = Connection(parent.detach())
             conn.send(spec)

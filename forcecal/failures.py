@@ -92,6 +92,17 @@ def _abort(code: int) -> None:
         mpi.COMM_WORLD.Abort(code)
 
 
+def die_with_parent() -> None:
+    """Run in a child process before exec (``Popen(preexec_fn=...)``): it receives SIGTERM
+    when its parent dies, even of SIGKILL (Linux PR_SET_PDEATHSIG; elsewhere nothing), so a
+    killed pipeline leaves no mpirun rank or calibration worker running."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def _on_sigterm(signum, frame) -> None:
     raise Interrupted(signum)
 

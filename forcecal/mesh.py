@@ -327,6 +327,9 @@ def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
     if len(ids) < 3:
         raise MeshError(f"{rule} selects {len(ids)} vertices; at least 3 non-collinear ones are "
                         "needed to hold the organ")
+    if len(ids) == mesh.n_vertices:
+        raise MeshError(f"{rule} selects all {len(ids)} vertices: nothing is left free to "
+                        "indent or to sag; lower fixed.tolerance")
     # clamped points on one line leave the rotation about it free (a singular problem); they
     # are collinear when the second principal extent is below 1e-6 of the first
     x = mesh.vertices[ids]

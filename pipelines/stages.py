@@ -40,7 +40,7 @@ from typing import Any, Callable
 import h5py
 
 from forcecal.errors import DataFileError, ForcecalError, SceneError
-from forcecal.failures import INTERRUPTED, collective, note_stage
+from forcecal.failures import INTERRUPTED, collective, die_with_parent, note_stage
 from forcecal.cost import check_cost
 from forcecal.problem import load_mesh
 from forcecal.scene import Scene
@@ -181,7 +181,7 @@ def run_mpirun(cmd: list[str]) -> tuple[int, str | None]:
     error: list[str] = []
     proc = subprocess.Popen(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, start_new_session=True,
-                            preexec_fn=_die_with_parent)
+                            preexec_fn=die_with_parent)
 
     def forward() -> None:
         boxed = False
@@ -208,15 +208,6 @@ def run_mpirun(cmd: list[str]) -> tuple[int, str | None]:
     finally:
         reader.join(timeout=5)
     return rc, (error[0] if error else None)
-
-
-def _die_with_parent() -> None:
-    """In the child before exec: receive SIGTERM when the parent dies (Linux only)."""
-    try:
-        import ctypes
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux: a killed pipeline may leave ranks running
-        pass
 
 
 def _end_process_group(proc: subprocess.Popen, grace: float = 10.0) -> None:

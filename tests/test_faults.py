@@ -592,6 +592,35 @@ def test_unstable_support_is_named(sag, factor, first, cause):
     check_sag(0.004, 1.0, 0.0039, 0.2, 5)  # a sound support: nearly linear
 
 
+def test_a_failed_item_stops_the_other_ranks_at_their_next_step():
+    """The FE ranks ask the stop check (another rank's FAILED note) before every load or time
+    step: a long item is abandoned at its next step, not finished."""
+    from reference_fe import experiments
+
+    @dataclasses.dataclass
+    class State:
+        progress: float
+
+    failed = {"now": False}
+    steps = []
+
+    def step(state, previous, target):
+        steps.append(target)
+        if len(steps) == 3:
+            failed["now"] = True  # another rank fails while this one is at its third step
+        return State(target)
+
+    experiments.set_stop_check(lambda: failed["now"])
+    CASES["fault"] += 1
+    try:
+        with pytest.raises(experiments.Stopped):
+            list(experiments.march(State(0.0), np.arange(1.0, 1001.0), step, max_cuts=0,
+                                   what="gravity dynamic", unit="s"))
+    finally:
+        experiments.set_stop_check(None)
+    assert len(steps) == 3  # not 1000
+
+
 def test_stability_limit_of_a_model_with_negative_k0_is_refused():
     from particle.integrator import critical_time_step
     from particle.model import build_model
@@ -814,3 +843,12 @@ def test_fuzzed_meshes_are_accepted_or_refused_cleanly(n, tets, coords, scale, t
         check_organ_scale(mesh, str(path))
     except MeshError:
         pass
+
+
+def test_a_fixed_rule_selecting_every_vertex_is_refused():
+    """Every vertex fixed: refused naming fixed.tolerance (a scipy ValueError before)."""
+    from forcecal.mesh import fixed_nodes
+    CASES["table"] += 1
+    with pytest.raises(MeshError, match=r"selects all 27 vertices: nothing is left free.*"
+                       r"lower fixed.tolerance"):
+        fixed_nodes(BOX, "z", "min", 1.0)
