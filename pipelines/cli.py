@@ -4,6 +4,8 @@
 with stages ``reference``, ``calibrate``, ``gravity``, ``report`` (each brings the
 stages before it up to date first, like make) and ``demo`` (all of them).
 ``python -m pipelines scene-keys`` prints the README's table of scene keys.
+Every command ends through :func:`forcecal.failures.run_command`: one ``error:`` line
+and exit code 2 on any failure, exit code 130 on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -58,7 +60,8 @@ def _parser() -> argparse.ArgumentParser:
                        "its cache says it is up to date")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         p.add_argument("--verbose", action="store_true",
-                       help="log every Nelder-Mead iteration of the calibration")
+                       help="log every Nelder-Mead iteration of the calibration, the "
+                       "traceback of a failure and mpirun's own text")
         p.add_argument("--ranks", type=_positive_int, default=2,
                        help="MPI ranks of the FE reference when not already under mpirun "
                        "(1 = in-process; default 2)")
