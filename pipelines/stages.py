@@ -224,12 +224,19 @@ def _end_process_group(proc: subprocess.Popen, grace: float = 10.0) -> None:
             continue
 
 
+#: variables an initialised OpenMPI job (or singleton) sets; a spawned mpirun must not see them
+_INHERITED_MPI_JOB = ("PMIX_", "ORTE_", "OMPI_MCA_orte_", "OMPI_MCA_ess", "OMPI_MCA_pmix",
+                      "OMPI_APP_CTX_", "OMPI_COMM_WORLD_", "OMPI_UNIVERSE_SIZE", "OMPI_FILE_LOCATION")
+
+
 def mpirun_environment() -> dict[str, str]:
     """Environment of a spawned ``mpirun``: this process's, with OpenMPI allowed to run as
     root and to oversubscribe the cores (unless the caller set those variables)."""
     # an explicit copy of os.environ also leaves out what MPI, if this process initialised it
-    # (e.g. dolfinx imported in-process), set in the C environment: mpirun fails with those
-    env = dict(os.environ)
+    # (e.g. dolfinx imported in-process), set in the C environment: mpirun fails with those;
+    # the same variables inherited from a parent that initialised MPI (a test runner, a
+    # notebook) are dropped too (mpirun is spawned only outside an MPI job)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(_INHERITED_MPI_JOB)}
     for k in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
               "OMPI_MCA_rmaps_base_oversubscribe"):
         env.setdefault(k, "1")

@@ -68,10 +68,12 @@ def _print_case_count(request):
     reporter = request.config.pluginmanager.get_plugin("terminalreporter")
     line = (f"fault suite: {CASES['table'] + CASES['fault']} cases ({CASES['table']} bad inputs, "
             f"{CASES['fault']} injected faults) + {CASES['fuzz examples']} fuzzed examples")
-    if reporter is not None:
-        reporter.write_line(line)
-    else:
+    capture = request.config.pluginmanager.getplugin("capturemanager")
+    if reporter is None or capture is None:
         print(line)
+        return
+    with capture.global_and_fixture_disabled():  # past pytest's output capture
+        reporter.write_line(line)
 
 
 # ---------------------------------------------------------------------------- helpers
