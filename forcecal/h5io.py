@@ -304,7 +304,8 @@ def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> 
                       f"(scene: {scene.indentation.indenter!r})")
     if ref.fe is not None:
         compare("fe", ref.fe, scene.fe, tuple(f.name for f in dataclasses.fields(FESection)))
-    if ref.gravity is not None:
+    # a reference may hold gravity runs the scene does not ask for (a superset): not compared
+    if ref.gravity is not None and (scene.runs("gravity_static") or scene.runs("gravity_dynamic")):
         wanted = scene.gravity
         if isinstance(wanted.tracked_node, str):
             wanted = dataclasses.replace(wanted, tracked_node=tracked_node_by_rule(

@@ -350,7 +350,8 @@ ORDER = tuple(STAGES)
 
 @dataclass(frozen=True)
 class Outcome:
-    """What happened to one stage: ``ran`` or skipped, and why."""
+    """What happened to one stage: ``ran`` or skipped, and why (a skipped stage has no
+    reasons when it is up to date, one when the scene's experiments leave it nothing to do)."""
     stage: str
     ran: bool
     reasons: tuple[str, ...]
@@ -387,7 +388,8 @@ def _run_stage(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Outcome
     if not stage.used(ctx.scene):
         log.info("%-9s not run: the scene's experiments %s include none of %s", stage.name,
                  list(ctx.scene.experiments), list(stage.experiments))
-        return Outcome(stage.name, False, (), 0.0)
+        # skipped (ran False); the reason is what the command line prints for it
+        return Outcome(stage.name, False, ("none of its experiments in the scene's list",), 0.0)
     inputs, reasons = None, []
     if ctx.rank == 0:
         inputs = stage.inputs(ctx)

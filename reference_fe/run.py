@@ -432,9 +432,9 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
 def previous_results(out_path: Path, keys: dict[str, str], problem: Problem
                      ) -> dict[str, dict]:
     """The experiments of an existing ``out_path`` whose stored key equals ``keys``':
-    ``{experiment: {"arrays": {...}, "seconds": compute seconds}}`` with the arrays
-    :func:`_experiment_arrays` gives (rank 0). Nothing when the file is absent, unreadable,
-    older than per-experiment keys, or on other test points."""
+    ``{experiment: {"arrays": {...}, "seconds": compute seconds}}``, the arrays as
+    :func:`experiment_arrays` gives them (rank 0). Nothing when the file is absent,
+    unreadable, older than per-experiment keys, or on other test points."""
     if not out_path.is_file():
         return {}
     try:
@@ -446,17 +446,19 @@ def previous_results(out_path: Path, keys: dict[str, str], problem: Problem
         return {}
     if not np.array_equal(old.problem.test_points, problem.test_points):
         return {}
-    out = {}
-    for e in old.experiments:
-        if stored.get(e) == keys[e]:
-            g = old.gravity
-            arrays = {"indentation": lambda: {"force": old.indentation.force},
-                      "relaxation": lambda: {"force": old.relaxation.force},
-                      "gravity_static": lambda: {"displacement": g.static_displacement},
-                      "gravity_dynamic": lambda: {"time": g.time, "displacement": g.displacement},
-                      }[e]()
-            out[e] = {"arrays": arrays, "seconds": float(seconds.get(e, 0.0))}
-    return out
+    return {e: {"arrays": experiment_arrays(old, e), "seconds": float(seconds.get(e, 0.0))}
+            for e in old.experiments if stored.get(e) == keys[e]}
+
+
+def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.ndarray]:
+    """The results of one experiment of ``reference``, named like its work items' parts
+    (curves stacked over the test points)."""
+    g = reference.gravity
+    if experiment == "gravity_static":
+        return {"displacement": g.static_displacement}
+    if experiment == "gravity_dynamic":
+        return {"time": g.time, "displacement": g.displacement}
+    return {"force": getattr(reference, experiment).force}
 
 
 def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
