@@ -5,6 +5,7 @@ indentation-only scene computes no relaxation or gravity; adding
 ``gravity_static`` computes that one FE item and reruns no calibration;
 removing it again recomputes nothing upstream.
 """
+import dataclasses
 import json
 
 import h5py
@@ -13,8 +14,8 @@ import pytest
 
 from calibration import read_params
 from calibration.core import ARMS_NOT_CALIBRATED
-from forcecal.errors import SceneError
-from forcecal.h5io import read_reference
+from forcecal.errors import DataFileError, SceneError
+from forcecal.h5io import read_reference, reference_digest, write_reference
 from forcecal.problem import build_problem
 from forcecal.scene import EXPERIMENTS, load_scene, replace, scene_from_dict
 from pipelines.report import ERROR_KEYS, read_report
@@ -43,6 +44,55 @@ def test_default_is_every_experiment_and_the_order_does_not_matter():
 def test_impossible_lists_are_refused_at_load_with_the_reason(value, message):
     with pytest.raises(SceneError, match=message):
         scene_from_dict({"experiments": value})
+
+
+def test_a_partial_reference_round_trips_and_keys_each_experiment_on_its_own_content(
+        tmp_path, liver_problem, liver_scene):
+    from tests.test_h5io import _fake_reference
+    full = _fake_reference(liver_problem, liver_scene.material)
+    write_reference(tmp_path / "full.h5", full)
+    static_only = dataclasses.replace(full.gravity, time=None, displacement=None)
+    part = dataclasses.replace(full, relaxation=None, gravity=static_only)
+    write_reference(tmp_path / "part.h5", part)
+    back = read_reference(tmp_path / "part.h5")
+    assert back.experiments == ("indentation", "gravity_static") and back.relaxation is None
+    assert back.gravity.time is None
+    np.testing.assert_array_equal(back.gravity.static_displacement,
+                                  full.gravity.static_displacement)
+    with pytest.raises(DataFileError, match="has no relaxation results"):
+        back.require("relaxation", "part.h5")
+    assert read_reference(tmp_path / "full.h5").experiments == EXPERIMENTS
+    # a stage reading some experiments keys on their content, not on the file's bytes
+    for experiments in (("indentation",), ("indentation", "gravity_static"), ("gravity_static",)):
+        assert (reference_digest(tmp_path / "part.h5", experiments)
+                == reference_digest(tmp_path / "full.h5", experiments))
+    assert (reference_digest(tmp_path / "full.h5", ("indentation", "relaxation"))
+            != reference_digest(tmp_path / "full.h5", ("indentation",)))
+    with pytest.raises(DataFileError, match=r"has no \['relaxation'\] results"):
+        reference_digest(tmp_path / "part.h5", ("indentation", "relaxation"))
+    bent = dataclasses.replace(part, indentation=dataclasses.replace(
+        part.indentation, force_normal=part.indentation.force_normal * (1 + 1e-12)))
+    write_reference(tmp_path / "bent.h5", bent)
+    assert (reference_digest(tmp_path / "bent.h5", ("gravity_static",))
+            == reference_digest(tmp_path / "part.h5", ("gravity_static",)))
+    assert (reference_digest(tmp_path / "bent.h5", ("indentation",))
+            != reference_digest(tmp_path / "part.h5", ("indentation",)))
+
+
+def test_fe_keys_follow_each_experiments_own_sections(liver_scene):
+    from reference_fe.keys import experiment_keys
+    base = experiment_keys(liver_scene, "mesh")
+    assert experiment_keys(replace(liver_scene, experiments=["indentation"]), "mesh") == base
+
+    def changed(**sections):
+        keys = experiment_keys(replace(liver_scene, **sections), "mesh")
+        return sorted(e for e in EXPERIMENTS if keys[e] != base[e])
+    assert changed(gravity={"duration": 1.0}) == ["gravity_dynamic", "gravity_static"]
+    assert changed(relaxation={"hold_steps": 20}) == ["relaxation"]
+    assert changed(indentation={"steps": 12}) == ["indentation", "relaxation"]
+    assert changed(material={"C10": 2100.0}) == list(sorted(EXPERIMENTS))
+    assert sorted(e for e, k in experiment_keys(liver_scene, "other mesh").items()
+                  if k != base[e]) == sorted(EXPERIMENTS)
 
 
 def _groups(path) -> set[str]:
