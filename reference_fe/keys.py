@@ -17,10 +17,9 @@ work items' checkpoint parts and the experiments of an earlier
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
-from pathlib import Path
 
+from forcecal.provenance import packages_digest
 from forcecal.scene import EXPERIMENTS, Scene
 
 #: scene sections every experiment reads (geometry, material, discretisation)
@@ -36,13 +35,7 @@ FE_PACKAGES = ("reference_fe", "forcecal")
 
 def fe_code_digest() -> str:
     """SHA-256 over the path and bytes of every ``.py`` file of :data:`FE_PACKAGES`."""
-    h = hashlib.sha256()
-    for package in FE_PACKAGES:
-        folder = Path(next(iter(importlib.util.find_spec(package).submodule_search_locations)))
-        for path in sorted(folder.rglob("*.py")):
-            h.update(f"{package}/{path.relative_to(folder)}".encode() + b"\0"
-                     + path.read_bytes() + b"\0")
-    return h.hexdigest()
+    return packages_digest(FE_PACKAGES)
 
 
 def experiment_keys(scene: Scene, mesh_fingerprint: str) -> dict[str, str]:
