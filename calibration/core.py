@@ -11,6 +11,11 @@ resumes where it stopped and ends with the same result:
    global-only and the calibrated (global + local) models are evaluated at every
    test point; held-out points, never used by any fit, give the honest accuracy.
 
+Only the experiments of the scene's ``experiments`` list are fitted and
+evaluated: without ``relaxation`` the relaxation stages (3, 5) are skipped, the
+springs alone are fitted, and the result says (a warning in ``params.h5``) that
+the Maxwell arms keep their closed-form initial guess, uncalibrated.
+
 The reference must match the scene: same mesh, fixed nodes, test points,
 material and sample schedules; a mismatch, a corrupt file or a non-physical
 curve raises :class:`~forcecal.errors.DataFileError` before any fitting (a
@@ -40,18 +45,30 @@ from calibration.pool import Backend, Experiments, Pool, particle_backend
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
-from forcecal.h5io import Reference, check_reference_settings, read_reference
+from forcecal.h5io import Reference, check_reference_settings, read_reference, reference_digest
 from forcecal.problem import build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 
 log = logging.getLogger(__name__)
 
+#: the warning of a calibration without relaxation data (params.h5, report.json)
+ARMS_NOT_CALIBRATED = ("the Maxwell arms are not calibrated (the scene's experiments do not "
+                       "include 'relaxation'): only the springs were fitted; the arms keep the "
+                       "closed-form initial guess (k_i = g_i / g_inf K0, tau_i the Prony times)")
+
+
+def fitted_experiments(scene: Scene) -> tuple[str, ...]:
+    """The experiments of ``scene`` a calibration fits (some of :data:`EXPERIMENTS`)."""
+    return tuple(e for e in EXPERIMENTS if scene.runs(e))
+
 
 def load_checked_reference(scene: Scene, reference_path: str | Path) -> Reference:
     """Read the reference and check it belongs to ``scene`` (module docstring)."""
     problem = build_problem(scene)
     ref = read_reference(reference_path, expect_mesh=problem.mesh.fingerprint())
+    for e in fitted_experiments(scene):
+        ref.require(e, reference_path)
     check_reference_settings(ref, scene, reference_path)  # [fe], [gravity], indenter
     rp = ref.problem
     for what in ("fixed", "calibration", "held_out"):
@@ -62,15 +79,17 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
         raise DataFileError(f"{reference_path}: computed with material {ref.material} but the "
                             f"scene has {scene.material}")
     times, depths = relaxation_schedule(scene.relaxation)
+    relax = scene.runs("relaxation")
     for name, got, want in (
             ("indentation/displacement", ref.indentation.displacement,
              indentation_depths(scene.indentation)),
-            ("relaxation/time", ref.relaxation.time, times),
-            ("relaxation/displacement", ref.relaxation.displacement, depths)):
+            *((("relaxation/time", ref.relaxation.time, times),
+               ("relaxation/displacement", ref.relaxation.displacement, depths)) if relax
+              else ())):
         if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=0.0):
             raise DataFileError(f"{reference_path}:/{name} does not match the scene's schedule")
     for name, curves in (("indentation", ref.indentation.force_normal),
-                         ("relaxation", ref.relaxation.force_normal)):
+                         *((("relaxation", ref.relaxation.force_normal),) if relax else ())):
         bad = np.nonzero(np.max(curves, axis=1) <= 0.0)[0]
         if len(bad):
             raise DataFileError(f"{reference_path}: {name} force of test point(s) "
@@ -123,21 +142,27 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     out_path = Path(out_path)
     settings = scene.calibration
     ref = load_checked_reference(scene, reference_path)
+    fitted = fitted_experiments(scene)
+    relax = "relaxation" in fitted
     problem, material = ref.problem, ref.material
     mesh = problem.mesh
     n_conn, n_cal = len(mesh.edges), len(problem.calibration)
-    ref_static = ref.indentation.force_normal
-    ref_relax = ref.relaxation.force_normal
+    ref_curves = {e: getattr(ref, e).force_normal for e in fitted}
+    ref_static = ref_curves["indentation"]
+    # without relaxation data the evaluators still get the scene's schedule (never run)
+    times, relax_depths = ((ref.relaxation.time, ref.relaxation.displacement) if relax
+                           else relaxation_schedule(scene.relaxation))
     linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals)
-    depth = float(max(ref.indentation.displacement.max(), ref.relaxation.displacement.max()))
+    depth = float(max(ref.indentation.displacement.max(),
+                      relax_depths.max() if relax else 0.0))
     strain = strain_range(linear.strain, depth, settings.strain_margin)
     experiments = Experiments(problem, material.density, ref.indentation.displacement,
-                              ref.relaxation.time, ref.relaxation.displacement, strain.bounds)
+                              times, relax_depths, strain.bounds)
     fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal])
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
 
-    inputs = fit_inputs(scene, reference_path)
+    inputs = {**fit_inputs(scene, reference_path), "experiments": ",".join(fitted)}
     checkpoint = Checkpoint(checkpoint_path(out_path), inputs)
     evaluations: dict[str, int] = {}
     stage_times: dict[str, float] = {}
@@ -146,8 +171,12 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
               workers=settings.workers if workers is None else workers) as pool:
         glob = initial
         global_fits: dict[str, Fit] = {}
-        for stage, fit_fn, reference in (("static", fit_static, ref_static[:n_cal]),
-                                         ("relaxation", fit_relaxation, ref_relax[:n_cal])):
+        stages = (("static", fit_static, "indentation"), ("relaxation", fit_relaxation,
+                                                          "relaxation"))
+        for stage, fit_fn, experiment in stages:
+            if experiment not in fitted:
+                continue
+            reference = ref_curves[experiment][:n_cal]
             saved = checkpoint.get(f"global_{stage}")
             t = time.perf_counter()
             if saved is None:
@@ -169,8 +198,10 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                            np.zeros((n_cal, STATIC_DIM)), np.zeros((n_cal, RELAXATION_DIM)))
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         if settings.local:
-            for stage, reference in (("static", ref_static[:n_cal]),
-                                     ("relaxation", ref_relax[:n_cal])):
+            for stage, _, experiment in stages:
+                if experiment not in fitted:
+                    continue
+                reference = ref_curves[experiment][:n_cal]
                 key = f"local_{stage}"
                 t = time.perf_counter()
                 model, local_sweeps[stage] = run_local_stage(
@@ -189,21 +220,22 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         variants = {}
         all_points = np.arange(len(problem.test_points))
         for variant, params in connectors.items():
-            curves = {e: pool.curves(e, params, all_points) for e in EXPERIMENTS}
-            errors = {"indentation": relative_rms_error(curves["indentation"], ref_static),
-                      "relaxation": relative_rms_error(curves["relaxation"], ref_relax)}
+            curves = {e: pool.curves(e, params, all_points) for e in fitted}
+            errors = {e: relative_rms_error(curves[e], ref_curves[e]) for e in fitted}
             variants[variant] = VariantCurves(curves, errors)
         evaluations["point_curves"] = pool.evaluations()
         stage_times["validation"] = time.perf_counter() - t
 
     warnings = [w for fit in global_fits.values() for w in fit.warnings]
+    if not relax:
+        warnings.append(ARMS_NOT_CALIBRATED)
     warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
     result = CalibrationResult(
         problem=problem, initial=initial, global_params=glob, connectors=connectors,
         variants=variants, z_static=model.z_static, z_relaxation=model.z_relaxation,
         strain=strain, fe_slope=fe_slope, unit_slope=linear.slope, global_fits=global_fits,
         local_sweeps=local_sweeps, settings=fit_settings(scene),
-        reference_fingerprint=inputs["reference"],
+        reference_fingerprint=reference_digest(reference_path, fitted), experiments=fitted,
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
         wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions())
     write_params(out_path, result)

@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 import platform
 from pathlib import Path
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 import forcecal
-from forcecal.provenance import file_digest, git_commit
+from forcecal.provenance import file_digest, git_commit, packages_digest
 from forcecal.scene import Scene
 
 #: the scene sections a calibration reads (the same as the pipeline's calibrate stage)
@@ -46,13 +45,7 @@ def code_fingerprint(packages: tuple[str, ...] = FIT_PACKAGES) -> str:
     Byte-exact and so conservative: a comment edit also counts as a change (a
     checkpoint is then discarded, which costs a rerun, never a wrong result).
     """
-    h = hashlib.sha256()
-    for package in packages:
-        folder = Path(next(iter(importlib.util.find_spec(package).submodule_search_locations)))
-        for path in sorted(folder.rglob("*.py")):
-            h.update(f"{package}/{path.relative_to(folder)}".encode() + b"\0"
-                     + path.read_bytes() + b"\0")
-    return h.hexdigest()
+    return packages_digest(packages)
 
 
 def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:

@@ -5,7 +5,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference file), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
 | ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local) |
 | ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s | ``K0, alpha, beta, k1, tau1, k2, tau2`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``) |
@@ -13,7 +13,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/initial_guess/unit_slope`` | (P,) | N/m | unit-stiffness network slope per test point |
 | ``/strain_range`` attrs | | 1 | ``low``, ``high``: where K(eps) > 0 is required |
 | ``/local/z_static``, ``/local/z_relaxation`` | (Pc, 3), (Pc, 4) | 1 | ring offsets (see :mod:`calibration.parametrisation`) |
-| ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` |
+| ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` (those fitted) |
 | ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples |
 | ``/history/global_<stage>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); stages ``static``, ``relaxation`` |
 | ``/history/local_<stage>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
@@ -34,6 +34,7 @@ import numpy as np
 from calibration.local import Sweep
 from calibration.optimize import Fit, History
 from calibration.parametrisation import GlobalParams, StrainRange
+from forcecal.errors import DataFileError
 from forcecal.h5io import atomic_h5, get, open_h5, put, read_problem, write_problem
 from forcecal.problem import Problem
 from particle.model import PARAM_NAMES, ConnectorParams
@@ -85,6 +86,8 @@ class CalibrationResult:
         wall_time: wall-clock time of the calibration [s].
         warnings: every warning of the run.
         versions: software versions and the git commit (None outside a checkout).
+        experiments: the experiments fitted and evaluated (``variants`` hold their curves
+            and errors only); without ``relaxation`` the arms are not calibrated.
     """
     problem: Problem
     initial: GlobalParams
@@ -106,6 +109,7 @@ class CalibrationResult:
     wall_time: float
     warnings: tuple[str, ...] = field(default=())
     versions: dict[str, str | None] = field(default_factory=dict)
+    experiments: tuple[str, ...] = EXPERIMENTS
 
     @property
     def is_calibration(self) -> np.ndarray:
@@ -236,6 +240,7 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
         fh.attrs["wall_time"] = result.wall_time
         fh.attrs["settings"] = json.dumps(result.settings)
         fh.attrs["versions"] = json.dumps(result.versions)
+        fh.attrs["experiments"] = json.dumps(list(result.experiments))
         write_problem(fh, result.problem)
         for variant, params in result.connectors.items():
             g = fh.create_group(f"connectors/{variant}")
@@ -252,7 +257,7 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
         put(g, "z_static", result.z_static, "1", "static ring offsets (Pc, 3)")
         put(g, "z_relaxation", result.z_relaxation, "1", "relaxation ring offsets (Pc, 4)")
         for variant, vc in result.variants.items():
-            for e in EXPERIMENTS:
+            for e in result.experiments:
                 put(fh, f"errors/{variant}/{e}", vc.errors[e], "1", "relative RMS error (P,)")
                 put(fh, f"curves/{variant}/{e}", vc.curves[e], "N", "normal-force curves (P, S)")
         for stage, fit in result.global_fits.items():
@@ -274,13 +279,19 @@ def read_params(path: str | Path) -> CalibrationResult:
     with open_h5(path, PARAMS_KIND, PARAMS_SCHEMA) as fh:
         problem = read_problem(fh)
         n_e, n_p, n_c = len(problem.mesh.edges), len(problem.test_points), len(problem.calibration)
+        # a file without the attribute predates optional experiments: it has both
+        fitted = tuple(json.loads(fh.attrs["experiments"])) if "experiments" in fh.attrs \
+            else EXPERIMENTS
+        if not set(fitted) <= set(EXPERIMENTS) or "indentation" not in fitted:
+            raise DataFileError(f"{path}: attribute experiments = {list(fitted)} is not "
+                                f"'indentation' and maybe 'relaxation'")
         connectors = {v: ConnectorParams(**{n: get(fh, f"connectors/{v}/{n}", (n_e,),
                                                      dtype="float") for n in PARAM_NAMES})
                       for v in VARIANTS}
         variants = {v: VariantCurves(
             curves={e: get(fh, f"curves/{v}/{e}", (n_p, None), dtype="float")
-                    for e in EXPERIMENTS},
-            errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in EXPERIMENTS})
+                    for e in fitted},
+            errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in fitted})
             for v in VARIANTS}
         local_sweeps = {}
         for stage in STAGES:
@@ -297,7 +308,8 @@ def read_params(path: str | Path) -> CalibrationResult:
                                float(fh["strain_range"].attrs["high"])),
             fe_slope=get(fh, "initial_guess/fe_slope", (n_c,), dtype="float"),
             unit_slope=get(fh, "initial_guess/unit_slope", (n_p,), dtype="float"),
-            global_fits={s: _get_fit(fh, f"history/global_{s}") for s in STAGES},
+            global_fits={s: _get_fit(fh, f"history/global_{s}") for s in STAGES
+                         if f"history/global_{s}" in fh},
             local_sweeps=local_sweeps, settings=json.loads(a["settings"]),
             reference_fingerprint=str(a["reference_fingerprint"]),
             reference_path=str(a["reference_path"]),
@@ -306,4 +318,4 @@ def read_params(path: str | Path) -> CalibrationResult:
             wall_time=float(a["wall_time"]),
             warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
                            for s in fh["warnings"][()]),
-            versions=json.loads(a["versions"]))
+            versions=json.loads(a["versions"]), experiments=fitted)

@@ -34,20 +34,23 @@ def n_test_points(scene: Scene) -> int:
 
 
 def fe_work(scene: Scene, n_vertices: int) -> dict[str, float]:
-    """Vertex-steps of each FE experiment, keyed by the scene key that sets its step count."""
+    """Vertex-steps of each FE experiment the scene runs (``experiments``), keyed by the
+    scene key that sets its step count."""
     points = n_test_points(scene)
     r, g = scene.relaxation, scene.gravity
-    return {"indentation.steps": scene.indentation.steps * points * n_vertices,
-            "relaxation.hold_steps": (r.ramp_steps + r.hold_steps) * points * n_vertices,
-            "gravity.fe_dt": math.ceil(g.duration / g.fe_dt) * n_vertices,
-            "gravity.static_load_steps": g.static_load_steps * n_vertices}
+    work = {"indentation": ("indentation.steps", scene.indentation.steps * points),
+            "relaxation": ("relaxation.hold_steps", (r.ramp_steps + r.hold_steps) * points),
+            "gravity_dynamic": ("gravity.fe_dt", math.ceil(g.duration / g.fe_dt)),
+            "gravity_static": ("gravity.static_load_steps", g.static_load_steps)}
+    return {key: steps * n_vertices for experiment, (key, steps) in work.items()
+            if experiment in scene.experiments}
 
 
 def particle_work(scene: Scene, n_connectors: int) -> dict[str, float]:
     """Connector-steps of the particle gravity release (calibrated + baseline models) when
     ``particle.dt`` is a number (``"auto"`` is the stability limit: bounded by construction)."""
     dt = scene.particle.dt
-    if isinstance(dt, str):
+    if isinstance(dt, str) or "gravity_dynamic" not in scene.experiments:
         return {}
     return {"particle.dt": 2.0 * scene.gravity.duration / dt * n_connectors}
 

@@ -11,6 +11,13 @@ kind or mismatched file, or one missing a dataset or attribute, raises
 A reference stores the scene settings it was computed with (``[material]``,
 ``[fe]``, ``[gravity]``, the indenter) as attributes; readers check them
 against their scene with :func:`check_reference_settings`.
+
+A reference holds the experiments its scene asked for (``experiments``): the
+``/indentation`` group always, ``/relaxation`` and the datasets of ``/gravity``
+only when computed; the root attribute ``experiments`` (JSON list) names those
+present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
+A file without the attribute (written before experiments were optional) holds
+all four.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -31,8 +39,8 @@ import forcecal
 from forcecal.errors import DataFileError, MeshError, SceneError
 from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, tracked_node_by_rule
-from forcecal.scene import (SECTIONS, FESection, GravitySection, MaterialSection, Scene,
-                            section_from_values)
+from forcecal.scene import (EXPERIMENTS, SECTIONS, FESection, GravitySection, MaterialSection,
+                            Scene, section_from_values)
 from forcecal.schedules import record_times
 
 REFERENCE_KIND = "forcecal.reference"
@@ -252,16 +260,17 @@ class GravityResult:
 
     Attributes:
         static_displacement: (N, 3) float64, static equilibrium displacement of every vertex [m]
-            (long-term material).
-        time: (S,) float64, sample times of the dynamic run [s], starting at 0 (rest).
+            (long-term material); None when ``gravity_static`` was not computed.
+        time: (S,) float64, sample times of the dynamic run [s], starting at 0 (rest); None
+            when ``gravity_dynamic`` was not computed (and so is ``displacement``).
         displacement: (S, N, 3) float64, vertex displacements of the dynamic run [m].
         settings: the scene's ``[gravity]`` keys the runs were computed with (acceleration,
             load steps, duration, FE step, record interval), ``tracked_node`` resolved to the
             vertex whose history the reports compare.
     """
-    static_displacement: np.ndarray
-    time: np.ndarray
-    displacement: np.ndarray
+    static_displacement: np.ndarray | None
+    time: np.ndarray | None
+    displacement: np.ndarray | None
     settings: GravitySection
 
     @property
@@ -276,14 +285,32 @@ class Reference:
 
     ``fe`` is the ``[fe]`` section the curves were computed with (None for a reference not
     computed by the FE, e.g. :func:`calibration.synthetic.synthetic_reference`).
+    ``relaxation`` is None, and ``gravity`` None or partly None, for experiments not
+    computed (:attr:`experiments` lists those present).
     """
     problem: Problem
     material: MaterialSection
     indentation: IndentationCurves
-    relaxation: RelaxationCurves
+    relaxation: RelaxationCurves | None
     gravity: GravityResult | None
     meta: dict[str, Any] = field(default_factory=dict)
     fe: FESection | None = None
+
+    @property
+    def experiments(self) -> tuple[str, ...]:
+        """The experiments this reference holds, in :data:`~forcecal.scene.EXPERIMENTS` order."""
+        g = self.gravity
+        present = {"indentation": True, "relaxation": self.relaxation is not None,
+                   "gravity_static": g is not None and g.static_displacement is not None,
+                   "gravity_dynamic": g is not None and g.time is not None}
+        return tuple(e for e in EXPERIMENTS if present[e])
+
+    def require(self, experiment: str, path: str | Path = "reference.h5") -> None:
+        """Raise :class:`DataFileError` if ``experiment`` is not in this reference."""
+        if experiment not in self.experiments:
+            raise DataFileError(f"{path} has no {experiment} results (it holds "
+                                f"{list(self.experiments)}); add {experiment!r} to the scene's "
+                                "experiments and rerun the reference")
 
 
 def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> None:
@@ -310,7 +337,8 @@ def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> 
                       f"(scene: {scene.indentation.indenter!r})")
     if ref.fe is not None:
         compare("fe", ref.fe, scene.fe, tuple(f.name for f in dataclasses.fields(FESection)))
-    if ref.gravity is not None:
+    # a reference may hold gravity runs the scene does not ask for (a superset): not compared
+    if ref.gravity is not None and (scene.runs("gravity_static") or scene.runs("gravity_dynamic")):
         wanted = scene.gravity
         if isinstance(wanted.tracked_node, str):
             wanted = dataclasses.replace(wanted, tracked_node=tracked_node_by_rule(
@@ -375,11 +403,13 @@ def write_reference(path: str | Path, ref: Reference) -> None:
     ind, rel = ref.indentation, ref.relaxation
     _check_shape("indentation.force", ind.force, (n_pts, len(ind.displacement), 3))
     _check_shape("indentation.force_normal", ind.force_normal, (n_pts, len(ind.displacement)))
-    _check_shape("relaxation.force", rel.force, (n_pts, len(rel.time), 3))
-    _check_shape("relaxation.force_normal", rel.force_normal, (n_pts, len(rel.time)))
-    _check_shape("relaxation.displacement", rel.displacement, (len(rel.time),))
-    for name, arr in (("indentation", ind.force), ("relaxation", rel.force)):
-        if not np.all(np.isfinite(arr)):
+    if rel is not None:
+        _check_shape("relaxation.force", rel.force, (n_pts, len(rel.time), 3))
+        _check_shape("relaxation.force_normal", rel.force_normal, (n_pts, len(rel.time)))
+        _check_shape("relaxation.displacement", rel.displacement, (len(rel.time),))
+    for name, arr in (("indentation", ind.force), ("relaxation", None if rel is None
+                                                   else rel.force)):
+        if arr is not None and not np.all(np.isfinite(arr)):
             raise DataFileError(f"refusing to write {path}: {name} forces contain NaN/inf")
     if ref.gravity is not None and ref.gravity.settings.tracked_node != p.tracked_node:
         raise DataFileError(f"refusing to write {path}: gravity tracked node "
@@ -388,6 +418,7 @@ def write_reference(path: str | Path, ref: Reference) -> None:
     with atomic_h5(path, REFERENCE_KIND, REFERENCE_SCHEMA) as fh:
         for k, v in ref.meta.items():
             fh.attrs[k] = v
+        fh.attrs["experiments"] = json.dumps(list(ref.experiments))
         write_problem(fh, p)
         write_section(fh.create_group("material"), ref.material)
         if ref.fe is not None:
@@ -397,21 +428,25 @@ def write_reference(path: str | Path, ref: Reference) -> None:
         put(g, "displacement", ind.displacement, "m", "depth along the inward normal (S,)")
         put(g, "force", ind.force, "N", "indenter force on the test vertex (P, S, 3)")
         put(g, "force_normal", ind.force_normal, "N", "force . inward normal (P, S)")
-        g = fh.create_group("relaxation")
-        put(g, "time", rel.time, "s", "sample times (S,)")
-        put(g, "displacement", rel.displacement, "m", "prescribed depth (S,)")
-        put(g, "force", rel.force, "N", "indenter force on the test vertex (P, S, 3)")
-        put(g, "force_normal", rel.force_normal, "N", "force . inward normal (P, S)")
+        if rel is not None:
+            g = fh.create_group("relaxation")
+            put(g, "time", rel.time, "s", "sample times (S,)")
+            put(g, "displacement", rel.displacement, "m", "prescribed depth (S,)")
+            put(g, "force", rel.force, "N", "indenter force on the test vertex (P, S, 3)")
+            put(g, "force_normal", rel.force_normal, "N", "force . inward normal (P, S)")
         if ref.gravity is not None:
             gr = ref.gravity
-            _check_shape("gravity.static_displacement", gr.static_displacement, (n_v, 3))
-            _check_shape("gravity.displacement", gr.displacement, (len(gr.time), n_v, 3))
             g = fh.create_group("gravity")
             write_section(g, gr.settings)
-            put(g, "static_displacement", gr.static_displacement, "m",
-                "static sag of every vertex (N, 3)")
-            put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
-            put(g, "displacement", gr.displacement, "m", "dynamic vertex displacements (S, N, 3)")
+            if gr.static_displacement is not None:
+                _check_shape("gravity.static_displacement", gr.static_displacement, (n_v, 3))
+                put(g, "static_displacement", gr.static_displacement, "m",
+                    "static sag of every vertex (N, 3)")
+            if gr.time is not None:
+                _check_shape("gravity.displacement", gr.displacement, (len(gr.time), n_v, 3))
+                put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
+                put(g, "displacement", gr.displacement, "m",
+                    "dynamic vertex displacements (S, N, 3)")
 
 
 def _check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
@@ -434,33 +469,112 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                                 get(fh, "indentation/force_normal", (n_pts, len(d)),
                                     dtype="float"),
                                 indenter=str(attr(group(fh, "indentation"), "indenter")))
-        t = get(fh, "relaxation/time", (None,), dtype="float")
-        rel = RelaxationCurves(t, get(fh, "relaxation/displacement", (len(t),), dtype="float"),
-                               get(fh, "relaxation/force", (n_pts, len(t), 3), dtype="float"),
-                               get(fh, "relaxation/force_normal", (n_pts, len(t)), dtype="float"))
+        stored = stored_experiments(fh)
+        rel, t = None, None
+        if "relaxation" in stored:
+            t = get(fh, "relaxation/time", (None,), dtype="float")
+            rel = RelaxationCurves(t, get(fh, "relaxation/displacement", (len(t),),
+                                          dtype="float"),
+                                   get(fh, "relaxation/force", (n_pts, len(t), 3), dtype="float"),
+                                   get(fh, "relaxation/force_normal", (n_pts, len(t)),
+                                       dtype="float"))
         for name, arr in (("indentation/displacement", d), ("relaxation/time", t)):
-            if len(arr) == 0 or np.any(np.diff(arr) <= 0) or arr[0] <= 0:
+            if arr is not None and (len(arr) == 0 or np.any(np.diff(arr) <= 0) or arr[0] <= 0):
                 raise DataFileError(f"{path}:/{name} must be positive and increasing")
         gravity = None
-        if "gravity" in fh:
+        if "gravity_static" in stored or "gravity_dynamic" in stored:
             n_v = problem.mesh.n_vertices
             settings = read_section(group(fh, "gravity"), "gravity")
             if settings.tracked_node != problem.tracked_node:
                 raise DataFileError(f"{path}:/gravity tracked_node {settings.tracked_node!r} "
                                     f"differs from /test_points' {problem.tracked_node}")
-            gt = get(fh, "gravity/time", (None,), dtype="float")
-            expected = record_times(settings.duration, settings.record_interval)
-            if gt.shape != expected.shape or not np.allclose(gt, expected, rtol=1e-12,
-                                                             atol=1e-12 * settings.duration):
-                raise DataFileError(f"{path}:/gravity/time does not match its duration "
-                                    f"({settings.duration} s) and record_interval "
-                                    f"({settings.record_interval} s)")
-            gravity = GravityResult(
-                static_displacement=get(fh, "gravity/static_displacement", (n_v, 3),
-                                        dtype="float"),
-                time=gt, displacement=get(fh, "gravity/displacement", (len(gt), n_v, 3),
-                                          dtype="float"),
-                settings=settings)
+            static, gt, gu = None, None, None
+            if "gravity_static" in stored:
+                static = get(fh, "gravity/static_displacement", (n_v, 3), dtype="float")
+            if "gravity_dynamic" in stored:
+                gt = get(fh, "gravity/time", (None,), dtype="float")
+                expected = record_times(settings.duration, settings.record_interval)
+                if gt.shape != expected.shape or not np.allclose(
+                        gt, expected, rtol=1e-12, atol=1e-12 * settings.duration):
+                    raise DataFileError(f"{path}:/gravity/time does not match its duration "
+                                        f"({settings.duration} s) and record_interval "
+                                        f"({settings.record_interval} s)")
+                gu = get(fh, "gravity/displacement", (len(gt), n_v, 3), dtype="float")
+            gravity = GravityResult(static_displacement=static, time=gt, displacement=gu,
+                                    settings=settings)
         meta = {k: attr(fh, k) for k in fh.attrs}
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
                      gravity=gravity, meta=meta, fe=fe)
+
+
+def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
+    """The experiments an open ``reference.h5`` holds: its ``experiments`` attribute (all four
+    in a file written before the attribute existed); DataFileError if it names an unknown
+    experiment or a group it lists is missing."""
+    if "experiments" not in fh.attrs:
+        return EXPERIMENTS
+    raw = attr(fh, "experiments")
+    try:
+        listed = json.loads(raw)
+    except (TypeError, ValueError):
+        listed = None
+    if not isinstance(listed, list) or not set(listed) <= set(EXPERIMENTS) or not listed:
+        raise DataFileError(f"{fh.filename}: attribute experiments = {raw!r} is not a JSON list "
+                            f"of some of {list(EXPERIMENTS)}")
+    for e, where in (("indentation", "indentation"), ("relaxation", "relaxation"),
+                     ("gravity_static", "gravity/static_displacement"),
+                     ("gravity_dynamic", "gravity/time")):
+        if e in listed and where not in fh:
+            raise DataFileError(f"{fh.filename}:/{where} is missing (the file lists {e!r} in "
+                                "its experiments)")
+    return tuple(e for e in EXPERIMENTS if e in listed)
+
+
+#: what each experiment's results are in ``reference.h5`` (groups or datasets)
+EXPERIMENT_PATHS = {"indentation": ("indentation",), "relaxation": ("relaxation",),
+                    "gravity_static": ("gravity/static_displacement",),
+                    "gravity_dynamic": ("gravity/time", "gravity/displacement")}
+#: what every experiment's results depend on (hashed by :func:`reference_digest` too)
+SHARED_PATHS = ("mesh", "test_points", "material", "fe")
+
+
+def reference_digest(path: str | Path, experiments: tuple[str, ...]) -> str:
+    """SHA-256 of the content of ``reference.h5`` that ``experiments`` read: the shared
+    groups (:data:`SHARED_PATHS`), the ``/gravity`` settings when a gravity experiment is
+    named, and each named experiment's datasets (names, attributes, shapes, dtypes, bytes).
+
+    A stage that reads only some experiments keys on this rather than on the whole file,
+    so adding another experiment to the reference (which rewrites the file) does not
+    rerun it. DataFileError if the file cannot be read or lacks a named experiment.
+    """
+    h = hashlib.sha256()
+
+    def visit(name: str, obj: Any) -> None:
+        h.update(name.encode() + b"\0")
+        for k in sorted(obj.attrs):
+            h.update(k.encode() + b"=" + repr(np.asarray(obj.attrs[k]).tolist()).encode())
+        if isinstance(obj, h5py.Dataset):
+            data = np.ascontiguousarray(obj[()])
+            h.update(f"{data.dtype.str}{data.shape}".encode() + data.tobytes())
+
+    with open_h5(path, REFERENCE_KIND, REFERENCE_SCHEMA) as fh:
+        stored = stored_experiments(fh)
+        missing = [e for e in experiments if e not in stored]
+        if missing:
+            raise DataFileError(f"{path} has no {missing} results (it holds {list(stored)})")
+        names = list(SHARED_PATHS) + [p for e in EXPERIMENTS if e in experiments
+                                      for p in EXPERIMENT_PATHS[e]]
+        try:
+            if any(e.startswith("gravity") for e in experiments):
+                visit("gravity", fh["gravity"])  # its attributes: the settings
+            for name in names:
+                if name not in fh:
+                    continue
+                obj = fh[name]
+                visit(name, obj)
+                if isinstance(obj, h5py.Group):
+                    obj.visititems(lambda sub, o, name=name: visit(f"{name}/{sub}", o))
+        except (OSError, KeyError, RuntimeError) as exc:
+            raise DataFileError(f"{path} cannot be read to fingerprint it (corrupt file?): "
+                                f"{exc}") from exc
+    return h.hexdigest()

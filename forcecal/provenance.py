@@ -6,6 +6,7 @@ pipelines (stage cache keys, ``report.json``, ``bench.json``).
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
 import subprocess
 from pathlib import Path
@@ -26,6 +27,21 @@ def file_digest(path: str | Path) -> str:
                 h.update(chunk)
     except OSError as exc:
         raise DataFileError(f"cannot read {path} to fingerprint it: {exc}") from exc
+    return h.hexdigest()
+
+
+def packages_digest(packages: tuple[str, ...]) -> str:
+    """SHA-256 over the path and bytes of every ``.py`` file of ``packages`` (found unimported).
+
+    Byte-exact and so conservative: a comment edit also counts as a change (what is keyed
+    on it is then recomputed, which costs a rerun, never a wrong result).
+    """
+    h = hashlib.sha256()
+    for package in packages:
+        folder = Path(next(iter(importlib.util.find_spec(package).submodule_search_locations)))
+        for path in sorted(folder.rglob("*.py")):
+            h.update(f"{package}/{path.relative_to(folder)}".encode() + b"\0"
+                     + path.read_bytes() + b"\0")
     return h.hexdigest()
 
 

@@ -262,6 +262,26 @@ SCENE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
 TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
                   "description": "free text"}
 
+#: the experiments a scene can ask for (top-level key ``experiments``), in pipeline order
+EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+#: experiment -> the experiments it cannot do without, and why (checked at load)
+EXPERIMENT_NEEDS = {
+    "indentation": (),
+    # the relaxation fit keeps the springs of the static fit, and every later stage uses them
+    "relaxation": (("indentation", "the relaxation fit holds the springs the static "
+                    "(indentation) fit gives"),),
+    "gravity_static": (("indentation", "the particle model's springs are calibrated on the "
+                        "indentation curves"),),
+    "gravity_dynamic": (("indentation", "the particle model's springs are calibrated on the "
+                         "indentation curves"),
+                        ("relaxation", "the release is damped only by the Maxwell arms, which "
+                         "are calibrated on the relaxation curves")),
+}
+EXPERIMENTS_DOC = ("experiments the scene computes, stores and reports, in any order: "
+                   "'indentation' (required: it calibrates the springs), 'relaxation' (the "
+                   "Maxwell arms; needs indentation), 'gravity_static', 'gravity_dynamic' "
+                   "(needs relaxation); the others are skipped by every stage")
+
 
 @dataclass(frozen=True)
 class Scene:
@@ -280,12 +300,18 @@ class Scene:
     calibration: CalibrationSection
     outputs: OutputsSection
     path: Path | None = None
+    experiments: tuple[str, ...] = EXPERIMENTS
+
+    def runs(self, experiment: str) -> bool:
+        """Whether ``experiment`` is in the scene's ``experiments`` list."""
+        return experiment in self.experiments
 
     def section_dict(self, name: str) -> dict[str, Any]:
         return dataclasses.asdict(getattr(self, name))
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"name": self.name, "description": self.description}
+        out: dict[str, Any] = {"name": self.name, "description": self.description,
+                               "experiments": list(self.experiments)}
         out.update({s: self.section_dict(s) for s in SECTIONS})
         return out
 
@@ -439,11 +465,36 @@ def _cross_checks(scene: Scene, origin: str) -> None:
                              f"ids, got {v!r}")
 
 
+def check_experiments(value: Any, origin: str) -> tuple[str, ...]:
+    """The validated ``experiments`` list in :data:`EXPERIMENTS` order: a non-empty list of
+    known names without duplicates, each with the experiments it needs
+    (:data:`EXPERIMENT_NEEDS`); SceneError with the reason otherwise."""
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise SceneError(f"{origin}: experiments = {value!r}: expected a list of strings, "
+                         f"some of {list(EXPERIMENTS)}")
+    if not value:
+        raise SceneError(f"{origin}: experiments is empty; list at least 'indentation' "
+                         f"(known: {list(EXPERIMENTS)})")
+    unknown = [v for v in value if v not in EXPERIMENTS]
+    if unknown:
+        raise SceneError(f"{origin}: experiments: unknown name(s) {unknown}; known: "
+                         f"{list(EXPERIMENTS)}")
+    twice = sorted({v for v in value if value.count(v) > 1})
+    if twice:
+        raise SceneError(f"{origin}: experiments lists {twice} more than once")
+    for e in value:
+        for needed, why in EXPERIMENT_NEEDS[e]:
+            if needed not in value:
+                raise SceneError(f"{origin}: experiments: {e!r} needs {needed!r} ({why}); add "
+                                 f"{needed!r} to the list or remove {e!r}")
+    return tuple(e for e in EXPERIMENTS if e in value)
+
+
 def scene_from_dict(data: dict[str, Any], *, path: Path | None = None,
                     default_name: str = "scene") -> Scene:
     """Validate a parsed TOML document and build a :class:`Scene`."""
     origin = str(path) if path is not None else "scene"
-    allowed = set(SECTIONS) | set(TOP_LEVEL_KEYS)
+    allowed = set(SECTIONS) | set(TOP_LEVEL_KEYS) | {"experiments"}
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise SceneError(f"{origin}: unknown top-level key(s) or table(s) {unknown}; "
@@ -457,8 +508,10 @@ def scene_from_dict(data: dict[str, Any], *, path: Path | None = None,
     description = data.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{origin}: description must be a string")
+    experiments = check_experiments(data.get("experiments", list(EXPERIMENTS)), origin)
     sections = {s: _build_section(s, cls, data.get(s, {}), origin) for s, cls in SECTIONS.items()}
-    scene = Scene(name=name, description=description, path=path, **sections)
+    scene = Scene(name=name, description=description, path=path, experiments=experiments,
+                  **sections)
     _cross_checks(scene, origin)
     return scene
 
@@ -489,7 +542,7 @@ def replace(scene: Scene, **sections: dict[str, Any]) -> Scene:
     """
     data = scene.to_dict()
     for sec, changes in sections.items():
-        if sec in TOP_LEVEL_KEYS:
+        if sec in TOP_LEVEL_KEYS or sec == "experiments":
             data[sec] = changes
             continue
         data[sec] = {**data[sec], **changes}
@@ -502,6 +555,7 @@ def keys_table() -> str:
     rows = ["| key | default | unit | meaning |", "|---|---|---|---|"]
     for k, doc in TOP_LEVEL_KEYS.items():
         rows.append(f"| `{k}` | file name | | {doc} |")
+    rows.append(f"| `experiments` | `{json.dumps(list(EXPERIMENTS))}` | | {EXPERIMENTS_DOC} |")
     for sec, cls in SECTIONS.items():
         for f in dataclasses.fields(cls):
             default = json.dumps(f.default if not isinstance(f.default, tuple) else list(f.default))

@@ -80,7 +80,9 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 # Studies after the five items above: item name -> "module:function", a function
 # study(scene, cache folder, quick) -> the bench.json keys it owns. Each lives in a module of
 # its own (imported only when it runs), so adding a study adds one line here.
-STUDIES: dict[str, str] = {}
+STUDIES: dict[str, str] = {
+    "experiments": "pipelines.bench_experiments:study",
+}
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
 
@@ -496,7 +498,9 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         bench["reference"] = reference_timings(scene, state["default"], cache, progress)
 
     def particle_item():
-        bench.update(particle_items(scene, state["default"], quick))
+        keys = particle_items(scene, state["default"], quick)
+        keys["skip"] += [r for r in bench.get("skip", []) if "study" in r]  # the studies' rows
+        bench.update(keys)
 
     def stability_item():
         bench["stability"] = stability_table(quick)
@@ -505,9 +509,14 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
              ("reference timings", reference_item), ("particle engine", particle_item),
              ("stability limits", stability_item)]
     for name, target in STUDIES.items():
-        def study_item(target=target):
+        def study_item(target=target, name=name):
             module, function = target.split(":")
-            bench.update(getattr(importlib.import_module(module), function)(scene, cache, quick))
+            keys = getattr(importlib.import_module(module), function)(scene, cache, quick)
+            for k, rows in keys.items():
+                if k in ROW_KEYS:  # a shared list of rows: the study's replace its earlier ones
+                    rows = [r for r in bench.get(k, []) if r.get("study") != name] + [
+                        {**r, "study": name} for r in rows]
+                bench[k] = rows
         items.append((name, study_item))
     if only:
         unknown = sorted(set(only) - {name for name, _ in items})

@@ -270,6 +270,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
     """``BENCH.md``: every number of ``bench.json`` with how it was measured."""
     m, k, g = b["machine"], b["kernel"], b["gravity_dynamic"]
     c, r = b["calibration"], b["reference"]
+    particle_skip = [s for s in b["skip"] if "study" not in s]  # the studies' rows follow
     cmd = "make bench-quick" if b["quick"] else "make bench"
     lines = [
         "# forcecal benchmarks", "",
@@ -338,13 +339,23 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               "baseline); the FE's own discretisation error is the FE panel above.", "",
               "## Skipping what a scene does not need", "",
               "The same explicit run (default liver, linear springs, "
-              f"{b['skip'][0]['steps']} steps) with the unneeded terms compiled out (skipped) "
+              f"{particle_skip[0]['steps']} steps) with the unneeded terms compiled out (skipped) "
               "and kept at zero (full); CPU seconds.", ""]
     lines += _table(["run", "terms it needs", "full [s]", "skipped [s]", "saved"],
                     [[s["scene"], {"viscoelastic": "gravity, arms", "elastic": "gravity",
                                    "free": "none (no load)"}.get(s["scene"], ""),
                       s["full_s"], s["skipped_s"],
-                      f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"] for s in b["skip"]])
+                      f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"] for s in particle_skip])
+    studied = [s for s in b["skip"] if "study" in s]
+    if studied:
+        lines += ["", "Whole stages: the scene's `experiments` list (study `experiments`: "
+                  "the FE reference and the calibration with the full list against a reduced "
+                  "one, each from scratch; wall seconds).", ""]
+        lines += _table(["stage, experiments kept", "left out", "full [s]", "reduced [s]",
+                         "saved"],
+                        [[s["scene"], s.get("skipped", ""), s["full_s"], s["skipped_s"],
+                          f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"]
+                         for s in studied])
     h = b["haptic"]
     lines += ["", "## Haptic latency", "",
               "`HapticSession.step`: 1 ms of simulated time per call (explicit substeps), the "

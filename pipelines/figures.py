@@ -12,6 +12,10 @@
 
 The example points are the calibration (held-out) point with the *median*
 calibrated indentation error, so the figure shows a typical point, not the best.
+
+Only what the scene's experiments produced is drawn: without relaxation the
+relaxation panels say so (and tau1 is the uncalibrated initial guess); without
+a gravity experiment its figure is not written.
 """
 
 from __future__ import annotations
@@ -70,20 +74,39 @@ def _curves(ax_force, ax_relax, k: int, reference: Reference, cal: CalibrationRe
             variants: tuple[str, ...]) -> None:
     """Force-displacement (ax_force) and relaxation (ax_relax) curves of test point index k."""
     ind, rel = reference.indentation, reference.relaxation
+    relax = "relaxation" in cal.experiments
     ax_force.plot(MM * ind.displacement, ind.force_normal[k], "o-", ms=3, **STYLE["fe"])
-    ax_relax.plot(rel.time, rel.force_normal[k], "o-", ms=3, **STYLE["fe"])
+    if relax:
+        ax_relax.plot(rel.time, rel.force_normal[k], "o-", ms=3, **STYLE["fe"])
     for v in variants:
         curves = cal.variants[v].curves
         ax_force.plot(MM * ind.displacement, curves["indentation"][k], **STYLE[v])
-        ax_relax.plot(rel.time, curves["relaxation"][k], **STYLE[v])
+        if relax:
+            ax_relax.plot(rel.time, curves["relaxation"][k], **STYLE[v])
     ax_force.set(xlabel="indentation depth [mm]", ylabel="normal force [N]")
+    if not relax:
+        _not_run(ax_relax)
+        ax_force.grid(alpha=0.3)
+        ax_force.legend(fontsize=7)
+        return
     ax_relax.set(xlabel="time [s]", ylabel="normal force [N]", xscale="log")
     for ax in (ax_force, ax_relax):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
 
 
+def _not_run(ax, what: str = "relaxation") -> None:
+    """An empty panel saying the experiment was not run."""
+    ax.text(0.5, 0.5, f"no {what}: not in the scene's experiments", ha="center",
+            va="center", transform=ax.transAxes)
+    ax.set(xticks=[], yticks=[])
+
+
 def _cost(ax, cal: CalibrationResult, stage: str, title: str) -> None:
+    if stage not in cal.global_fits:
+        _not_run(ax)
+        ax.set_title(title)
+        return
     cost = cal.global_fits[stage].history.iteration_cost
     ax.plot(np.arange(1, len(cost) + 1), cost, color="tab:orange")
     ax.set(xlabel="Nelder-Mead iteration", ylabel="cost G = sum (F_FE - F)^2 [N^2]", title=title,
@@ -121,7 +144,8 @@ def calibration_figure(path: Path, reference: Reference, cal: CalibrationResult)
                    cal.global_params.K0, "K0 [N/m]", "(e) spring stiffness K0 per connector")
     _per_connector(axes[2, 1], {"calibrated": conn["calibrated"].tau1},
                    cal.global_params.tau1, "tau1 = b1/k1 [s]",
-                   "(f) relaxation time tau1 per connector")
+                   "(f) relaxation time tau1 per connector" + (
+                       "" if "relaxation" in cal.experiments else " (not calibrated)"))
     fig.suptitle("Calibration against the FE reference")
     return _save(fig, path)
 
@@ -206,8 +230,11 @@ def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> P
     nodes = reference.problem.test_points
     n_cal = int(cal.is_calibration.sum())
     x = np.arange(len(nodes))
-    fig, axes = plt.subplots(2, 1, figsize=(max(10, 0.28 * len(nodes)), 7), sharex=True)
-    for ax, e in zip(axes, ("indentation", "relaxation")):
+    n = len(cal.experiments)
+    fig, axes = plt.subplots(n, 1, figsize=(max(10, 0.28 * len(nodes)), 3.5 * n), sharex=True,
+                             squeeze=False)
+    axes = axes[:, 0]
+    for ax, e in zip(axes, cal.experiments):
         for offset, v in ((-0.2, "calibrated"), (0.2, "baseline")):
             err = 100 * cal.variants[v].errors[e]
             ax.bar(x[:n_cal] + offset, err[:n_cal], 0.4, color=STYLE[v]["color"],
@@ -230,12 +257,15 @@ def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> P
 
 
 def write_figures(folder: str | Path, reference: Reference, cal: CalibrationResult,
-                  gravity: GravityRuns) -> list[Path]:
-    """Write every figure into ``folder``; returns the files written."""
+                  gravity: GravityRuns | None) -> list[Path]:
+    """Write every figure of what was run into ``folder``; returns the files written."""
     folder = Path(folder)
+    ran = () if gravity is None else gravity.experiments
     written = [calibration_figure(folder / "calibration.png", reference, cal),
                held_out_figure(folder / "held_out.png", reference, cal),
-               gravity_static_figure(folder / "gravity_static.png", reference, gravity),
-               gravity_dynamic_figure(folder / "gravity_dynamic.png", reference, gravity),
+               gravity_static_figure(folder / "gravity_static.png", reference, gravity)
+               if "gravity_static" in ran else None,
+               gravity_dynamic_figure(folder / "gravity_dynamic.png", reference, gravity)
+               if "gravity_dynamic" in ran else None,
                errors_figure(folder / "errors.png", reference, cal)]
     return [p for p in written if p is not None]

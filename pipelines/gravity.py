@@ -12,18 +12,22 @@ exactly the FE's record times, so the comparison needs no interpolation.
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``acceleration`` (3,) m/s^2, ``reference_fingerprint``, ``params_fingerprint`` (SHA-256 of the files used) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``acceleration`` (3,) m/s^2, ``reference_fingerprint`` (SHA-256 of the reference's gravity content, :func:`forcecal.h5io.reference_digest`), ``params_fingerprint`` (SHA-256 of the file), ``experiments`` (JSON list of the gravity experiments run; absent = both) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` |
-| ``/time`` | (S,) | s | sample times of the dynamic run (the FE's), from rest at 0 |
+| ``/time`` | (S,) | s | sample times of the dynamic run (the FE's), from rest at 0 (only with ``gravity_dynamic``, like ``displacement``) |
 | ``/<model>/static_displacement`` | (N, 3) | m | static sag of every vertex |
 | ``/<model>/displacement`` | (S, N, 3) | m | dynamic vertex displacements |
 | ``/<model>`` attrs | | | ``dt`` [s] explicit step used, ``critical_dt`` [s] its stability limit, ``static_time``, ``dynamic_time`` [s] wall times, ``strain_min``, ``strain_max`` [1] connector strain extremes over both runs |
 
 ``<model>`` is ``calibrated`` (global + local tuning) and ``baseline`` (Van Gelder).
+The static sag is always computed (the release's time step is chosen from its
+strains); the dynamic release only when the scene's experiments include
+``gravity_dynamic`` (otherwise ``dynamic_time`` is 0).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass
@@ -45,6 +49,7 @@ log = logging.getLogger(__name__)
 GRAVITY_KIND = "forcecal.gravity"
 GRAVITY_SCHEMA = 1
 MODELS = ("calibrated", "baseline")
+GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 SCALARS = ("dt", "critical_dt", "static_time", "dynamic_time", "strain_min", "strain_max")
 
 
@@ -54,7 +59,8 @@ class ParticleGravity:
 
     Attributes:
         static_displacement: (N, 3) float64, static sag [m].
-        displacement: (S, N, 3) float64, dynamic displacements at the FE's record times [m].
+        displacement: (S, N, 3) float64, dynamic displacements at the FE's record times [m];
+            None without the dynamic release.
         dt: explicit time step used [s].
         critical_dt: stability limit of that step [s].
         static_time: wall time of the static solve [s].
@@ -62,7 +68,7 @@ class ParticleGravity:
         strain_min, strain_max: most compressive / most tensile connector strain reached [1].
     """
     static_displacement: np.ndarray
-    displacement: np.ndarray
+    displacement: np.ndarray | None
     dt: float
     critical_dt: float
     static_time: float
@@ -81,13 +87,16 @@ class GravityRuns:
         acceleration: (3,) float64, gravitational acceleration [m/s^2].
         models: model name (:data:`MODELS`) -> its runs.
         reference_fingerprint, params_fingerprint: SHA-256 of the input files.
+        experiments: the gravity experiments run (``time`` is None without
+            ``gravity_dynamic``).
     """
     problem: Problem
-    time: np.ndarray
+    time: np.ndarray | None
     acceleration: np.ndarray
     models: dict[str, ParticleGravity]
     reference_fingerprint: str = ""
     params_fingerprint: str = ""
+    experiments: tuple[str, ...] = GRAVITY_EXPERIMENTS
 
 
 #: a release range ends this fraction of the way to the strain where a spring's K(eps) is 0
@@ -148,9 +157,10 @@ def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:
 
 
 def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: np.ndarray,
-              times: np.ndarray, strain_range: tuple[float, float], name: str
+              times: np.ndarray | None, strain_range: tuple[float, float], name: str
               ) -> ParticleGravity:
-    """Static sag and dynamic release of one parameter set.
+    """Static sag and dynamic release of one parameter set (``times`` None: the static sag
+    only, with the step the release would take).
 
     ``strain_range`` is where the springs were calibrated (and must be
     positive); the runs are refused (:class:`ParameterError`) if a spring's
@@ -173,6 +183,13 @@ def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: 
                    np.maximum(release[1], strain_range[1]))
     critical = critical_time_step(model, strain_range=release, damping=scene.particle.damping)
     dt = resolve_time_step(scene.particle, critical)
+    if times is None:
+        eps = connector_strains(model, static)
+        log.info("gravity, %s model: max static sag %.3g mm, strains [%.3g, %.3g], static "
+                 "%.2f s (no dynamic release: not in the scene's experiments)", name,
+                 1e3 * np.linalg.norm(static, axis=1).max(), eps.min(), eps.max(), t1 - t0)
+        return ParticleGravity(static, None, dt, critical, t1 - t0, 0.0, float(eps.min()),
+                               float(eps.max()))
     # a few steps first so that dynamic_time measures the simulation, not numba compiling
     # (or loading from its cache) this model's kernel specialisation
     gravity_dynamic(model, gravity, float(times[1]), dt, times[:2],
@@ -199,18 +216,18 @@ def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, Connec
 
     ``strain_range`` is the calibration's: where the calibrated springs are valid.
     """
-    if reference.gravity is None:
-        raise DataFileError("reference.h5 has no /gravity group; recompute the reference with "
-                            "the gravity experiments")
+    experiments = tuple(e for e in GRAVITY_EXPERIMENTS if scene.runs(e))
+    for e in experiments:
+        reference.require(e)
     g = np.asarray(scene.gravity.acceleration, dtype=np.float64)
-    times = reference.gravity.time
+    times = reference.gravity.time if "gravity_dynamic" in experiments else None
     missing = [m for m in MODELS if m not in connectors]
     if missing:
         raise DataFileError(f"params.h5 lacks connector parameters {missing}")
     models = {m: run_model(scene, reference.problem, connectors[m], g, times, strain_range, m)
               for m in MODELS}
     return GravityRuns(reference.problem, times, g, models, reference_fingerprint,
-                       params_fingerprint)
+                       params_fingerprint, experiments)
 
 
 def write_gravity(path: str | Path, runs: GravityRuns) -> None:
@@ -219,12 +236,15 @@ def write_gravity(path: str | Path, runs: GravityRuns) -> None:
         fh.attrs["acceleration"] = runs.acceleration
         fh.attrs["reference_fingerprint"] = runs.reference_fingerprint
         fh.attrs["params_fingerprint"] = runs.params_fingerprint
+        fh.attrs["experiments"] = json.dumps(list(runs.experiments))
         write_problem(fh, runs.problem)
-        put(fh, "time", runs.time, "s", "sample times of the dynamic run (S,)")
+        if runs.time is not None:
+            put(fh, "time", runs.time, "s", "sample times of the dynamic run (S,)")
         for name, r in runs.models.items():
             g = fh.create_group(name)
             put(g, "static_displacement", r.static_displacement, "m", "static sag (N, 3)")
-            put(g, "displacement", r.displacement, "m", "dynamic displacements (S, N, 3)")
+            if r.displacement is not None:
+                put(g, "displacement", r.displacement, "m", "dynamic displacements (S, N, 3)")
             for k in SCALARS:
                 g.attrs[k] = getattr(r, k)
 
@@ -233,7 +253,10 @@ def read_gravity(path: str | Path) -> GravityRuns:
     """Read ``gravity.h5`` back (kind, schema, shapes and finiteness checked)."""
     with open_h5(path, GRAVITY_KIND, GRAVITY_SCHEMA) as fh:
         problem = read_problem(fh)
-        times = get(fh, "time", (None,), dtype="float")
+        experiments = (tuple(json.loads(fh.attrs["experiments"])) if "experiments" in fh.attrs
+                       else GRAVITY_EXPERIMENTS)
+        dynamic = "gravity_dynamic" in experiments
+        times = get(fh, "time", (None,), dtype="float") if dynamic else None
         n = problem.mesh.n_vertices
         models = {}
         for name in MODELS:
@@ -242,8 +265,9 @@ def read_gravity(path: str | Path) -> GravityRuns:
             a = fh[name].attrs
             models[name] = ParticleGravity(
                 get(fh, f"{name}/static_displacement", (n, 3), dtype="float"),
-                get(fh, f"{name}/displacement", (len(times), n, 3), dtype="float"),
+                get(fh, f"{name}/displacement", (len(times), n, 3), dtype="float")
+                if dynamic else None,
                 *(float(a[k]) for k in SCALARS))
         return GravityRuns(problem, times, np.asarray(fh.attrs["acceleration"], dtype=float),
                            models, str(fh.attrs["reference_fingerprint"]),
-                           str(fh.attrs["params_fingerprint"]))
+                           str(fh.attrs["params_fingerprint"]), experiments)

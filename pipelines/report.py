@@ -17,6 +17,11 @@ Errors (all dimensionless):
 ``baseline_errors`` repeats every key with the closed-form (Van Gelder) model,
 which is the same model on every point set ("global", "calibrated" and
 "held_out" only select the points).
+
+Experiments the scene does not run (its ``experiments`` list) keep their keys
+with ``null``; ``not_run`` maps each such experiment to the reason, and
+``experiments`` lists those that ran. The gravity timings are ``null`` without
+any gravity experiment, and so is the ``gravity`` block.
 """
 
 from __future__ import annotations
@@ -31,10 +36,11 @@ import numpy as np
 
 import forcecal
 from calibration.metrics import relative_rms_error
-from calibration.results import EXPERIMENTS, CalibrationResult
+from calibration.results import CalibrationResult
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
+from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS
 from pipelines.gravity import GravityRuns, ParticleGravity
 
 log = logging.getLogger(__name__)
@@ -77,22 +83,26 @@ def _mean(values: np.ndarray) -> float | None:
 
 
 def model_errors(reference: Reference, calibration: CalibrationResult,
-                 gravity: ParticleGravity, variants: dict[str, str]) -> dict[str, float | None]:
+                 gravity: ParticleGravity | None, variants: dict[str, str],
+                 ran: tuple[str, ...] = ALL_EXPERIMENTS) -> dict[str, float | None]:
     """The :data:`ERROR_KEYS` for one model; ``variants`` maps global/calibrated/held_out to the
-    params.h5 variant evaluated on that point set."""
+    params.h5 variant evaluated on that point set. The keys of experiments not in ``ran``
+    are None."""
     cal = calibration.is_calibration
-    out: dict[str, float | None] = {}
-    for experiment in EXPERIMENTS:
+    out: dict[str, float | None] = dict.fromkeys(ERROR_KEYS)
+    for experiment in calibration.experiments:
         for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
             err = curve_errors(reference, calibration, variants[key], experiment)
             out[f"{experiment}_{key}"] = _mean(err[points])
     fe = reference.gravity
     node = reference.problem.tracked_node
-    out["gravity_static"] = gravity_static_error(fe.static_displacement,
-                                                 gravity.static_displacement,
-                                                 reference.problem.free)
-    out["gravity_dynamic"] = gravity_dynamic_error(fe.displacement[:, node],
-                                                   gravity.displacement[:, node])
+    if "gravity_static" in ran:
+        out["gravity_static"] = gravity_static_error(fe.static_displacement,
+                                                     gravity.static_displacement,
+                                                     reference.problem.free)
+    if "gravity_dynamic" in ran:
+        out["gravity_dynamic"] = gravity_dynamic_error(fe.displacement[:, node],
+                                                       gravity.displacement[:, node])
     return out
 
 
@@ -123,31 +133,70 @@ def versions(reference: Reference) -> dict[str, str | None]:
             "git_commit": git_commit()}
 
 
+def experiments_run(experiments: tuple[str, ...], calibration: CalibrationResult,
+                    gravity: GravityRuns | None) -> tuple[tuple[str, ...], dict[str, str]]:
+    """(the experiments compared in the report, {experiment not compared: why})."""
+    done = set(calibration.experiments) | set(() if gravity is None else gravity.experiments)
+    ran = tuple(e for e in ALL_EXPERIMENTS if e in done and e in experiments)
+    why = {}
+    for e in ALL_EXPERIMENTS:
+        if e not in experiments:
+            why[e] = (f"not in the scene's experiments {list(experiments)}: not computed "
+                      "(FE or particle), not compared")
+        elif e not in done:  # a stage that did not produce what the scene asks for
+            why[e] = "in the scene's experiments but its stage produced no results"
+    return ran, why
+
+
 def build_report(scene_name: str, reference: Reference, calibration: CalibrationResult,
-                 gravity: GravityRuns) -> dict[str, Any]:
-    """The report dictionary (fixed keys of the README plus documented extras)."""
+                 gravity: GravityRuns | None,
+                 experiments: tuple[str, ...] = ALL_EXPERIMENTS) -> dict[str, Any]:
+    """The report dictionary (fixed keys of the README plus documented extras) of the scene's
+    ``experiments``; ``gravity`` is None when they include no gravity experiment."""
     p = reference.problem
     fe_t = fe_timings(reference)
-    calibrated = model_errors(reference, calibration, gravity.models["calibrated"],
+    ran, not_run = experiments_run(experiments, calibration, gravity)
+    models = gravity.models if gravity is not None else dict.fromkeys(("calibrated",
+                                                                      "baseline"))
+    calibrated = model_errors(reference, calibration, models["calibrated"],
                               {"global": "global", "calibrated": "calibrated",
-                               "held_out": "calibrated"})
-    baseline = model_errors(reference, calibration, gravity.models["baseline"],
-                            dict.fromkeys(("global", "calibrated", "held_out"), "baseline"))
+                               "held_out": "calibrated"}, ran)
+    baseline = model_errors(reference, calibration, models["baseline"],
+                            dict.fromkeys(("global", "calibrated", "held_out"), "baseline"), ran)
     held = ~calibration.is_calibration
     per_point = {f"{v}_{e}": curve_errors(reference, calibration, v, e).tolist()
-                 for v in ("baseline", "global", "calibrated") for e in EXPERIMENTS}
+                 for v in ("baseline", "global", "calibrated") for e in calibration.experiments}
     warnings = list(calibration.warnings)
     if not held.any():
         warnings.append("the scene has no held-out points: the *_held_out errors are null")
     lo, hi = calibration.strain.bounds
-    run = gravity.models["calibrated"]  # the baseline's linear springs have no such range
-    if run.strain_min < lo or run.strain_max > hi:
+    run = models["calibrated"]  # the baseline's linear springs have no such range
+    if run is not None and (run.strain_min < lo or run.strain_max > hi):
         warnings.append(f"gravity test, calibrated model: connector strains [{run.strain_min:.3g}, "
                         f"{run.strain_max:.3g}] leave the calibrated range [{lo:.3g}, {hi:.3g}] "
                         "(the springs are extrapolated there)")
     node = p.tracked_node
+    gravity_block = None if gravity is None else {
+        "tracked_node": int(node),
+        "duration_s": None if gravity.time is None else float(gravity.time[-1]),
+        "fe_max_static_sag_m": (None if reference.gravity.static_displacement is None
+                                or "gravity_static" not in ran else float(np.linalg.norm(
+                                    reference.gravity.static_displacement, axis=1).max())),
+        **{f"{m}_max_static_sag_m": float(np.linalg.norm(
+            r.static_displacement, axis=1).max()) for m, r in gravity.models.items()},
+        **{f"{m}_dt_s": r.dt for m, r in gravity.models.items()},
+        **{f"{m}_critical_dt_s": r.critical_dt for m, r in gravity.models.items()},
+        **{f"{m}_strain_range": [r.strain_min, r.strain_max]
+           for m, r in gravity.models.items()},
+        # where the calibrated springs were required to stay positive (the
+        # runs' own extremes are the *_strain_range keys above)
+        "calibration_strain_bounds": [lo, hi],
+        **({"particle_dynamic_s": run.dynamic_time, "fe_dynamic_s": fe_t["gravity_dynamic"]}
+           if "gravity_dynamic" in ran else {})}
     return {
         "scene": scene_name,
+        "experiments": list(ran),
+        "not_run": not_run,
         "mesh": {"nodes": int(p.mesh.n_vertices), "tets": int(p.mesh.n_tets),
                  "connectors": int(len(p.mesh.edges))},
         "test_points": {"calibration": p.calibration.tolist(), "held_out": p.held_out.tolist()},
@@ -155,43 +204,37 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "baseline_errors": baseline,
         "timings_s": {"mesh": fe_t["mesh"], "reference": fe_t["total"],
                       "calibration": float(calibration.wall_time),
-                      "gravity_particle": run.static_time + run.dynamic_time,
-                      "gravity_fe": fe_t["gravity_static"] + fe_t["gravity_dynamic"]},
+                      "gravity_particle": None if run is None else (run.static_time
+                                                                    + run.dynamic_time),
+                      "gravity_fe": None if run is None else sum(
+                          fe_t[e] for e in ("gravity_static", "gravity_dynamic") if e in ran)},
         "versions": versions(reference),
-        "held_out_global": {e: _mean(curve_errors(reference, calibration, "global", e)[held])
-                            for e in EXPERIMENTS},
+        "held_out_global": {e: (_mean(curve_errors(reference, calibration, "global", e)[held])
+                                if e in calibration.experiments else None)
+                            for e in ("indentation", "relaxation")},
         "per_point_errors": {"test_points": p.test_points.tolist(),
                              "is_calibration": calibration.is_calibration.tolist(), **per_point},
-        "gravity": {"tracked_node": int(node),
-                    "duration_s": float(gravity.time[-1]),
-                    "fe_max_static_sag_m": float(np.linalg.norm(
-                        reference.gravity.static_displacement, axis=1).max()),
-                    **{f"{m}_max_static_sag_m": float(np.linalg.norm(
-                        r.static_displacement, axis=1).max()) for m, r in gravity.models.items()},
-                    **{f"{m}_dt_s": r.dt for m, r in gravity.models.items()},
-                    **{f"{m}_critical_dt_s": r.critical_dt for m, r in gravity.models.items()},
-                    **{f"{m}_strain_range": [r.strain_min, r.strain_max]
-                       for m, r in gravity.models.items()},
-                    # where the calibrated springs were required to stay positive (the
-                    # runs' own extremes are the *_strain_range keys above)
-                    "calibration_strain_bounds": [lo, hi],
-                    "particle_dynamic_s": run.dynamic_time,
-                    "fe_dynamic_s": fe_t["gravity_dynamic"]},
+        "gravity": gravity_block,
         "global_parameters": calibration.global_params.as_dict(),
         "warnings": warnings,
     }
 
 
 def check_report(report: dict[str, Any]) -> None:
-    """Raise :class:`DataFileError` if a fixed key is missing or a number is not finite."""
+    """Raise :class:`DataFileError` if a fixed key is missing or a number is not finite (or
+    null without a reason: an experiment in ``not_run``, or no held-out points)."""
+    not_run = report.get("not_run", {})
+    no_gravity = {"gravity_static", "gravity_dynamic"} <= set(not_run)
     for group, keys in (("errors", ERROR_KEYS), ("baseline_errors", ERROR_KEYS),
                         ("timings_s", TIMING_KEYS)):
         for k in keys:
             if k not in report.get(group, {}):
                 raise DataFileError(f"report.json: {group}.{k} is missing")
             v = report[group][k]
-            held_out_absent = v is None and k.endswith("held_out")
-            if not held_out_absent and not (isinstance(v, float) and np.isfinite(v)):
+            explained = v is None and (k.endswith("held_out") or any(
+                k.startswith(e) for e in not_run) or (no_gravity and k.startswith("gravity")))
+            if not explained and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                      and np.isfinite(v)):
                 raise DataFileError(f"report.json: {group}.{k} = {v!r} is not a finite number")
 
 
@@ -238,8 +281,10 @@ def results_markdown(report: dict[str, Any]) -> str:
     rows += [f"| {label} | {_percent(report['errors'][k])} | "
              f"{_percent(report['baseline_errors'][k])} |" for k, label in ERROR_ROWS]
     rows += ["", "| step | time [s] |", "|---|---|"]
-    rows += [f"| {label} | {report['timings_s'][k]:.1f} |" for k, label in TIMING_ROWS]
-    g = report.get("gravity", {})
+    rows += [f"| {label} | "
+             f"{'n/a' if report['timings_s'][k] is None else format(report['timings_s'][k], '.1f')}"
+             " |" for k, label in TIMING_ROWS]
+    g = report.get("gravity") or {}
     if "particle_dynamic_s" in g:
         rows.append(f"| particle gravity dynamics alone ({g['duration_s']:g} s simulated) | "
                     f"{g['particle_dynamic_s']:.2f} |")

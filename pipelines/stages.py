@@ -11,6 +11,16 @@ Outputs in ``<out>/``: ``reference.h5`` (FE), ``params.h5`` (calibration),
 ``gravity.h5`` (particle gravity runs), ``report.json``, ``figures/*.png``,
 ``gravity_fe.xdmf`` / ``gravity_particle.xdmf`` (+ their ``.h5``).
 
+Experiments: every stage reads only the experiments of the scene's
+``experiments`` list it uses (:attr:`Stage.experiments`); they, the scene
+sections they need and the part of ``reference.h5`` that holds them
+(:func:`forcecal.h5io.reference_digest`) are its cache key, so adding an
+experiment reruns only the stages that use it (the FE stage computes only its
+work items), and a stage with none of its experiments in the list does not
+run. A ``reference.h5`` holding more experiments than the scene asks for is
+kept as it is (:func:`adopt_reference`): removing an experiment recomputes
+nothing upstream.
+
 MPI: run as ``mpirun -n K python -m pipelines ...``, rank 0 decides what to run
 and broadcasts it; the FE reference spreads its work items over every rank,
 the calibration uses ranks 1..K-1 as its workers, the other stages run on
@@ -40,10 +50,11 @@ from typing import Any, Callable
 import h5py
 
 from forcecal.errors import DataFileError, ForcecalError, SceneError
-from forcecal.failures import INTERRUPTED, collective, die_with_parent, note_stage
 from forcecal.cost import check_cost
+from forcecal.failures import INTERRUPTED, collective, die_with_parent, note_stage
+from forcecal.h5io import reference_digest
 from forcecal.problem import load_mesh
-from forcecal.scene import Scene
+from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.provenance import file_digest
 from pipelines.cache import Cache, StageInputs, code_digests, import_closure, source_digest
 
@@ -105,6 +116,8 @@ class Stage:
         run: ``run(ctx) -> output file names`` (relative to ``ctx.out``); called on every
             rank under MPI, returns the outputs on rank 0.
         reads_mesh: the stage builds the mesh itself (its fingerprint is an input).
+        experiments: the experiments it uses when the scene lists them; it does not run
+            when the scene lists none of them.
     """
     name: str
     sections: tuple[str, ...]
@@ -112,16 +125,32 @@ class Stage:
     upstream: tuple[str, ...]
     run: Callable[[Context], list[str]]
     reads_mesh: bool = False
+    experiments: tuple[str, ...] = EXPERIMENTS
+
+    def used(self, scene: Scene) -> tuple[str, ...]:
+        """The experiments of ``scene`` this stage uses."""
+        return tuple(e for e in scene.experiments if e in self.experiments)
+
+    def upstream_files(self, scene: Scene) -> tuple[str, ...]:
+        """The upstream files it reads for ``scene`` (no ``gravity.h5`` without gravity)."""
+        return tuple(n for n in self.upstream
+                     if n != GRAVITY or any(e.startswith("gravity") for e in scene.experiments))
 
     def inputs(self, ctx: Context) -> StageInputs:
         """Fingerprints of everything this stage reads, now."""
-        for name in self.upstream:
+        used = self.used(ctx.scene)
+        for name in self.upstream_files(ctx.scene):
             if not (ctx.out / name).is_file():
                 raise DataFileError(f"stage {self.name} needs {ctx.out / name}, which does not "
                                     "exist")
+        # an experiment's own section is read only when the experiment runs
+        skipped = {"relaxation": "relaxation" not in used,
+                   "gravity": not any(e.startswith("gravity") for e in used)}
         # "name" stands for the scene's top-level name (written into the report)
         scene = {s: (hashlib.sha256(ctx.scene.name.encode()).hexdigest() if s == "name"
-                     else ctx.scene.fingerprint(s)) for s in self.sections}
+                     else ctx.scene.fingerprint(s)) for s in self.sections
+                 if not skipped.get(s, False)}
+        scene["experiments"] = hashlib.sha256(json.dumps(used).encode()).hexdigest()
         # this module holds every stage's runner, so it is part of every stage's code (its
         # lazy imports are not followed: each stage names the modules it runs in `code`)
         code = {**code_digests(self.code), "pipelines/stages.py": source_digest(Path(__file__))}
@@ -131,7 +160,10 @@ class Stage:
             check_cost(ctx.scene, mesh.n_vertices, len(mesh.edges))
         return StageInputs(scene=scene,
                            mesh=mesh.fingerprint() if mesh is not None else None,
-                           upstream={n: file_digest(ctx.out / n) for n in self.upstream},
+                           # of reference.h5, only the experiments it uses
+                           upstream={n: (reference_digest(ctx.out / n, used) if n == REFERENCE
+                                         else file_digest(ctx.out / n))
+                                     for n in self.upstream_files(ctx.scene)},
                            code=code)
 
 
@@ -244,21 +276,37 @@ def mpirun_environment() -> dict[str, str]:
 
 
 def adopt_reference(ctx: Context, stage: Stage, inputs: StageInputs) -> bool:
-    """Accept a ``reference.h5`` computed outside the pipeline (``python -m reference_fe``).
+    """Accept a ``reference.h5`` computed outside the pipeline (``python -m reference_fe``)
+    or for another experiments list.
 
-    It is adopted when its stored scene and mesh fingerprints equal the current
+    It is adopted when it holds every experiment the scene asks for with the
+    current key (:func:`reference_fe.keys.experiment_keys`: scene sections, mesh
+    and FE code), whatever else it holds: a superset is kept as it is, so
+    removing an experiment from the list recomputes nothing. A file without
+    keys is adopted when its stored scene and mesh fingerprints equal the current
     ones and every source file the FE stage runs is older than the start of
-    that computation (``created`` minus the total time it reports): the file
+    that computation (``created`` minus the total time it reports): such a file
     does not record the code version, so newer code means it may be stale.
     """
+    from reference_fe.keys import experiment_keys
     path = ctx.out / REFERENCE
     try:
         with h5py.File(path, "r") as fh:
             a = dict(fh.attrs)
         started = (datetime.datetime.fromisoformat(a["created"]).timestamp()
                    - float(json.loads(a["timings_s"])["total"]))
+        stored = json.loads(a.get("experiment_keys", "{}"))
     except (OSError, KeyError, ValueError, TypeError):  # absent, foreign or damaged: recompute
         return False
+    if stored:
+        keys = experiment_keys(ctx.scene, inputs.mesh)
+        if any(stored.get(e) != keys[e] for e in ctx.scene.experiments):
+            return False
+        extra = sorted(set(stored) - set(ctx.scene.experiments))
+        log.info("reference: %s already holds %s with the current keys%s: not recomputed",
+                 path, ", ".join(ctx.scene.experiments),
+                 f" (and {', '.join(extra)}, which the scene does not ask for)" if extra else "")
+        return True
     newest_source = max(f.stat().st_mtime for f in import_closure(stage.code).values())
     if (a.get("scene_fingerprint") != ctx.scene.fingerprint(*REFERENCE_SECTIONS)
             or a.get("mesh_fingerprint") != inputs.mesh or newest_source > started):
@@ -299,17 +347,20 @@ def run_gravity_stage(ctx: Context) -> list[str]:
     # the particle runs use the scene's gravity and compare with the reference's FE runs
     check_reference_settings(reference, ctx.scene, ctx.out / REFERENCE)
     params = read_params(ctx.out / PARAMS)
-    check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS)
+    check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS, params.experiments)
+    used = STAGES["gravity"].used(ctx.scene)
     runs = run_gravity(ctx.scene, reference, params.connectors, params.strain.bounds,
-                       reference_fingerprint=file_digest(ctx.out / REFERENCE),
+                       reference_fingerprint=reference_digest(ctx.out / REFERENCE, used),
                        params_fingerprint=file_digest(ctx.out / PARAMS))
     write_gravity(ctx.out / GRAVITY, runs)
     return [GRAVITY]
 
 
-def check_fitted_to(reference_fingerprint: str, out: Path, what: str) -> None:
-    """Refuse a file derived from another ``reference.h5`` than the one in ``out``."""
-    if reference_fingerprint != file_digest(out / REFERENCE):
+def check_fitted_to(reference_fingerprint: str, out: Path, what: str,
+                    experiments: tuple[str, ...]) -> None:
+    """Refuse a file derived from another ``reference.h5`` than the one in ``out`` (compared
+    on the ``experiments`` it read: :func:`forcecal.h5io.reference_digest`)."""
+    if reference_fingerprint != reference_digest(out / REFERENCE, experiments):
         raise DataFileError(f"{out / what} was computed from a different {REFERENCE} than the "
                             f"one in {out}; rerun the pipeline (or --force)")
 
@@ -326,18 +377,24 @@ def run_report(ctx: Context) -> list[str]:
     from pipelines.report import build_report, write_report
     reference = read_reference(ctx.out / REFERENCE)
     params = read_params(ctx.out / PARAMS)
-    gravity = read_gravity(ctx.out / GRAVITY)
-    check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS)
-    check_fitted_to(gravity.reference_fingerprint, ctx.out, GRAVITY)
-    if gravity.params_fingerprint != file_digest(ctx.out / PARAMS):
-        raise DataFileError(f"{ctx.out / GRAVITY} was computed from another {PARAMS}; rerun "
-                            "the gravity stage")
+    check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS, params.experiments)
+    gravity = None
+    if GRAVITY in STAGES["report"].upstream_files(ctx.scene):
+        gravity = read_gravity(ctx.out / GRAVITY)
+        check_fitted_to(gravity.reference_fingerprint, ctx.out, GRAVITY, gravity.experiments)
+        if gravity.params_fingerprint != file_digest(ctx.out / PARAMS):
+            raise DataFileError(f"{ctx.out / GRAVITY} was computed from another {PARAMS}; "
+                                "rerun the gravity stage")
     outputs = [REPORT]
-    write_report(ctx.out / REPORT, build_report(ctx.scene.name, reference, params, gravity))
+    write_report(ctx.out / REPORT, build_report(ctx.scene.name, reference, params, gravity,
+                                                ctx.scene.experiments))
     if ctx.scene.outputs.figures:
         written = write_figures(ctx.out / "figures", reference, params, gravity)
         outputs += [str(p.relative_to(ctx.out)) for p in written]
-    if ctx.scene.outputs.fields:
+    if ctx.scene.outputs.fields and gravity is not None and gravity.time is None:
+        log.info("report: no ParaView fields (they show the dynamic release, which the "
+                 "scene's experiments do not include)")
+    elif ctx.scene.outputs.fields and gravity is not None:
         mesh = reference.problem.mesh
         fe = reference.gravity
         particle = gravity.models["calibrated"]
@@ -347,7 +404,16 @@ def run_report(ctx: Context) -> list[str]:
                  particle.static_displacement)):
             written = write_time_series(ctx.out / name, mesh, times, u, static)
             outputs += [str(p.relative_to(ctx.out)) for p in written]
+    for name in REPORT_FILES:  # left by a run with other experiments: not this scene's
+        if name not in outputs:
+            (ctx.out / name).unlink(missing_ok=True)
     return outputs
+
+
+#: every file the report stage may write (one it did not write this time is removed)
+REPORT_FILES = tuple(f"figures/{n}.png" for n in ("calibration", "held_out", "gravity_static",
+                                                   "gravity_dynamic", "errors")) + tuple(
+    f"gravity_{m}.{x}" for m in ("fe", "particle") for x in ("xdmf", "h5"))
 
 
 STAGES: dict[str, Stage] = {s.name: s for s in (
@@ -355,10 +421,12 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           run_reference, reads_mesh=True),
     Stage("calibrate", ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
                         "calibration"),
-          ("calibration.core", "calibration.worker"), (REFERENCE,), run_calibrate),
+          ("calibration.core", "calibration.worker"), (REFERENCE,), run_calibrate,
+          experiments=("indentation", "relaxation")),
     Stage("gravity", ("material", "gravity", "particle"),
           ("pipelines.gravity", "calibration.results"),
-          (REFERENCE, PARAMS), run_gravity_stage),
+          (REFERENCE, PARAMS), run_gravity_stage,
+          experiments=("gravity_static", "gravity_dynamic")),
     Stage("report", ("name", "outputs"),
           ("pipelines.report", "pipelines.figures", "pipelines.fields"),
           (REFERENCE, PARAMS, GRAVITY), run_report),
@@ -368,7 +436,8 @@ ORDER = tuple(STAGES)
 
 @dataclass(frozen=True)
 class Outcome:
-    """What happened to one stage: ``ran`` or skipped, and why."""
+    """What happened to one stage: ``ran`` or skipped, and why (a skipped stage has no
+    reasons when it is up to date, one when the scene's experiments leave it nothing to do)."""
     stage: str
     ran: bool
     reasons: tuple[str, ...]
@@ -463,6 +532,11 @@ def _kept(ctx: Context, stage: str) -> str:
 
 
 def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Outcome:
+    if not stage.used(ctx.scene):
+        log.info("%-9s not run: the scene's experiments %s include none of %s", stage.name,
+                 list(ctx.scene.experiments), list(stage.experiments))
+        # skipped (ran False); the reason is what the command line prints for it
+        return Outcome(stage.name, False, ("none of its experiments in the scene's list",), 0.0)
     inputs, reasons, error = None, [], None
     if ctx.rank == 0:
         try:

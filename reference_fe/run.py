@@ -1,7 +1,8 @@
 """Compute a scene's whole FE reference and write ``reference.h5``: :func:`compute_reference`.
 
 Work items are the indentation curve and the relaxation curve of every test
-point, the static sag and the dynamic gravity run. Under ``mpirun -n K`` every
+point, the static sag and the dynamic gravity run, of the experiments the
+scene asks for (``experiments``; the others are not computed). Under ``mpirun -n K`` every
 rank builds one :class:`~reference_fe.model.FEModel` on ``MPI.COMM_SELF``
 (forms compiled once per process) and claims items one at a time, largest
 first, by creating ``<item>.claim`` exclusively in the checkpoint folder
@@ -11,12 +12,20 @@ them. Rank 0 then gathers the parts, writes ``reference.h5`` atomically and
 deletes the folder. Items never depend on the rank that computed them, so the
 result equals the serial one. Ranks share the output folder's filesystem (one
 machine, as ``mpirun`` is used here).
+
+Parts and stored results are keyed per experiment (:mod:`reference_fe.keys`:
+the scene sections it reads, the mesh, the FE code), not on the experiments
+list. An experiment that ``<out>`` (the previous ``reference.h5``) already
+holds with the same key is taken from it instead of being recomputed, and
+is kept in the new file even if the scene no longer asks for it: the file is
+a superset of what the scene needs (its ``experiments`` attribute lists what
+it holds, ``reused`` what was taken over and ``items_computed`` the items
+this run computed).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import os
@@ -39,11 +48,12 @@ from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.cost import check_cost
 from forcecal.failures import collective
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
-                           atomic_path, write_reference)
+                           atomic_path, read_reference, write_reference)
 from forcecal.problem import Problem, build_problem
-from forcecal.scene import Scene
+from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from reference_fe import experiments
+from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
 
 log = logging.getLogger(__name__)
@@ -73,8 +83,11 @@ class WorkItem:
         return self.kind if self.point < 0 else f"{self.kind}-{self.point:04d}"
 
 
-def work_items(scene: Scene, n_points: int) -> list[WorkItem]:
-    """Every item of a reference, largest estimated cost first (better load balance)."""
+def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
+               ) -> list[WorkItem]:
+    """The items of the experiments ``kinds`` (default: the scene's ``experiments``),
+    largest estimated cost first (better load balance)."""
+    kinds = scene.experiments if kinds is None else kinds
     g = scene.gravity
     # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
     items = [WorkItem("gravity_dynamic", -1, 3.0 * g.duration / g.fe_dt),
@@ -83,17 +96,13 @@ def work_items(scene: Scene, n_points: int) -> list[WorkItem]:
     for p in range(n_points):
         items.append(WorkItem("relaxation", p, 2.0 * n_rel))
         items.append(WorkItem("indentation", p, 2.0 * scene.indentation.steps))
-    return sorted(items, key=lambda it: -it.cost)
+    return sorted((it for it in items if it.kind in kinds), key=lambda it: -it.cost)
 
 
-def run_key(scene: Scene, problem: Problem) -> str:
-    """Identity of a reference computation: checkpoint parts with another key are ignored."""
-    h = hashlib.sha256(scene.fingerprint(*REFERENCE_SECTIONS).encode())
-    h.update(problem.mesh.fingerprint().encode())
-    for arr in (problem.fixed, problem.test_points, problem.normals):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    h.update(str(problem.tracked_node).encode())
-    return h.hexdigest()
+def run_keys(scene: Scene, problem: Problem) -> dict[str, str]:
+    """Identity of each experiment's computation (:func:`reference_fe.keys.experiment_keys`):
+    checkpoint parts and stored results with another key are ignored."""
+    return experiment_keys(scene, problem.mesh.fingerprint())
 
 
 def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
@@ -141,9 +150,12 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem)
 class _Parts:
     """The checkpoint folder ``<out>.parts/``: finished items, claims and a failure note."""
 
-    def __init__(self, out_path: Path, key: str):
+    def __init__(self, out_path: Path, key: str | dict[str, str]):
         self.folder = out_path.with_name(out_path.name + ".parts")
-        self.key = key
+        self.key = key  # one key, or one per experiment (:func:`run_keys`)
+
+    def key_of(self, item: WorkItem) -> str:
+        return self.key[item.kind] if isinstance(self.key, dict) else self.key
 
     def _path(self, item: WorkItem, suffix: str) -> Path:
         return self.folder / f"{item.name}.{suffix}"
@@ -159,7 +171,7 @@ class _Parts:
             return None
         try:
             with np.load(path) as data:
-                if str(data["run_key"]) != self.key:
+                if str(data["run_key"]) != self.key_of(item):
                     return None
                 return {k: data[k] for k in data.files if k != "run_key"}
         except Exception as exc:  # noqa: BLE001 - truncated (BadZipFile, EOFError), damaged
@@ -170,7 +182,7 @@ class _Parts:
 
     def save(self, item: WorkItem, arrays: dict) -> None:
         with atomic_path(self.path(item)) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, run_key=self.key, **arrays)
+            np.savez(fh, run_key=self.key_of(item), **arrays)
 
     def claim(self, item: WorkItem) -> bool:
         """True if this process is the first to claim ``item``."""
@@ -303,7 +315,9 @@ def _alive(host: str, pid: int) -> bool:
 
 def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path: str | Path,
                       progress: bool = True) -> Reference:
-    """Compute every test point's indentation and relaxation curves plus the gravity runs.
+    """Compute the scene's experiments: every test point's indentation and relaxation curves,
+    the gravity runs (those of ``scene.experiments``; an experiment ``out_path`` already
+    holds with the same key is reused, see the module docstring).
 
     Serial, or under ``mpirun -n K`` (items distributed over the ranks of
     ``MPI.COMM_WORLD``, see the module docstring). Writes ``out_path``
@@ -332,16 +346,28 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         check_cost(scene, problem.mesh.n_vertices, len(problem.mesh.edges))
     except SceneError as exc:  # every rank decides the same
         raise collective(exc) from None
-    parts = _Parts(out_path, run_key(scene, problem))
-    items = work_items(scene, len(problem.test_points))
+    keys = run_keys(scene, problem)
+    parts = _Parts(out_path, keys)
+    previous: dict[str, dict] = {}
+
+    def take_previous() -> list[str]:
+        previous.update(previous_results(out_path, keys, problem))
+        return sorted(previous)
+    reused = _on_root(comm, take_previous)  # the arrays stay on rank 0, which assembles
+    items = work_items(scene, len(problem.test_points),
+                       tuple(e for e in scene.experiments if e not in reused))
+    if reused:
+        log.info("reusing %s from %s (same keys); computing %d work item(s)",
+                 ", ".join(reused), out_path, len(items))
     _on_root(comm, parts.start)
     mesh_seconds = time.perf_counter() - start
 
     bar = _Progress(parts, items, progress_stream(progress, comm.rank))
     try:
-        failure, build_seconds = _work(scene, problem, items, parts, bar)
+        failure, build_seconds, computed = _work(scene, problem, items, parts, bar)
     finally:
         bar.close()
+    computed = [name for names in comm.allgather(computed) for name in names]
     failures = [f for f in comm.allgather(failure) if f is not None]
     if failures:
         kind = getattr(errors, failures[0][0], None)
@@ -351,7 +377,7 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
                               "a rerun)"))
 
     def finish() -> Reference:
-        reference = _assemble(scene, problem, items, parts, comm.size,
+        reference = _assemble(scene, problem, items, parts, previous, computed, keys, comm.size,
                               mesh_seconds + build_seconds, time.perf_counter() - start)
         write_reference(out_path, reference)
         shutil.rmtree(parts.folder)
@@ -383,26 +409,26 @@ def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
 
 
 def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
-          bar: _Progress) -> tuple[tuple[str, str] | None, float]:
+          bar: _Progress) -> tuple[tuple[str, str] | None, float, list[str]]:
     """Claim and compute items until none is left.
 
-    Returns ``(failure, build_seconds)``: ``failure`` is None or (exception class
-    name, message); ``build_seconds`` the time spent building the FE model.
+    Returns ``(failure, build_seconds, computed)``: ``failure`` is None or (exception
+    class name, message); ``build_seconds`` the time spent building the FE model;
+    ``computed`` the names of the items this rank computed.
     """
-    model, build_seconds = None, 0.0
     experiments.set_stop_check(lambda: parts.failed)
     try:
         return _claim_and_compute(scene, problem, items, parts, bar)
     except experiments.Stopped:  # another rank failed: its message is reported
         log.info("stopping: another rank's work item failed")
-        return None, 0.0
+        return None, 0.0, []
     finally:
         experiments.set_stop_check(None)
 
 
 def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
-                       bar: _Progress) -> tuple[tuple[str, str] | None, float]:
-    model, build_seconds = None, 0.0
+                       bar: _Progress) -> tuple[tuple[str, str] | None, float, list[str]]:
+    model, build_seconds, computed = None, 0.0, []
     for item in items:
         if parts.failed:  # another rank failed: stop early, its message is reported
             break
@@ -421,18 +447,53 @@ def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], pa
             message = f"{item.name}: {exc}"
             parts.fail(message)
             log.error("%s", message)
-            return (type(exc).__name__, message), build_seconds
+            return (type(exc).__name__, message), build_seconds, computed
         arrays["seconds"] = np.float64(time.perf_counter() - t0)
         parts.save(item, arrays)
+        computed.append(item.name)
         log.debug("%s done in %.2f s (%d Newton iterations so far on this rank)", item.name,
                   float(arrays["seconds"]), model.newton_iterations)
         bar.poll()
-    return None, build_seconds
+    return None, build_seconds, computed
+
+
+def previous_results(out_path: Path, keys: dict[str, str], problem: Problem
+                     ) -> dict[str, dict]:
+    """The experiments of an existing ``out_path`` whose stored key equals ``keys``':
+    ``{experiment: {"arrays": {...}, "seconds": compute seconds}}``, the arrays as
+    :func:`experiment_arrays` gives them (rank 0). Nothing when the file is absent,
+    unreadable, older than per-experiment keys, or on other test points."""
+    if not out_path.is_file():
+        return {}
+    try:
+        old = read_reference(out_path)
+        stored = json.loads(old.meta.get("experiment_keys", "{}"))
+        seconds = json.loads(old.meta.get("timings_s", "{}"))
+    except (ForcecalError, TypeError, ValueError) as exc:
+        log.info("not reusing %s: %s", out_path, exc)
+        return {}
+    if not np.array_equal(old.problem.test_points, problem.test_points):
+        return {}
+    return {e: {"arrays": experiment_arrays(old, e), "seconds": float(seconds.get(e, 0.0))}
+            for e in old.experiments if stored.get(e) == keys[e]}
+
+
+def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.ndarray]:
+    """The results of one experiment of ``reference``, named like its work items' parts
+    (curves stacked over the test points)."""
+    g = reference.gravity
+    if experiment == "gravity_static":
+        return {"displacement": g.static_displacement}
+    if experiment == "gravity_dynamic":
+        return {"time": g.time, "displacement": g.displacement}
+    return {"force": getattr(reference, experiment).force}
 
 
 def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+              previous: dict[str, dict], computed: list[str], keys: dict[str, str],
               n_ranks: int, mesh_seconds: float, total_seconds: float) -> Reference:
-    """Build the :class:`Reference` from the checkpoint parts (rank 0)."""
+    """Build the :class:`Reference` from the checkpoint parts and the reused experiments
+    of the previous file (rank 0)."""
     data = {}
     for item in items:
         arrays = parts.load(item)
@@ -442,34 +503,51 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
     seconds = {k: 0.0 for k in KINDS}
     for item in items:
         seconds[item.kind] += float(data[item.name]["seconds"])
-    by_kind = {k: sorted((it for it in items if it.kind == k), key=lambda it: it.point)
-               for k in ("indentation", "relaxation")}
+    results = {e: p["arrays"] for e, p in previous.items()}
+    seconds.update({e: p["seconds"] for e, p in previous.items()})
+    for kind in ("indentation", "relaxation"):
+        of_kind = sorted((it for it in items if it.kind == kind), key=lambda it: it.point)
+        if of_kind:
+            results[kind] = {"force": np.stack([data[it.name]["force"] for it in of_kind])}
+    for kind in ("gravity_static", "gravity_dynamic"):
+        if kind in data:
+            results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
+    present = [e for e in EXPERIMENTS if e in results]
     normals = problem.normals
 
-    def forces(kind: str) -> tuple[np.ndarray, np.ndarray]:
-        f = np.stack([data[it.name]["force"] for it in by_kind[kind]])
-        return f, np.einsum("psk,pk->ps", f, normals)
+    def normal(force: np.ndarray) -> np.ndarray:
+        return np.einsum("psk,pk->ps", force, normals)
 
-    f_ind, fn_ind = forces("indentation")
-    f_rel, fn_rel = forces("relaxation")
-    times, depths = relaxation_schedule(scene.relaxation)
-    dyn = data["gravity_dynamic"]
+    f_ind = results["indentation"]["force"]
+    relaxation = None
+    if "relaxation" in results:
+        f_rel = results["relaxation"]["force"]
+        times, depths = relaxation_schedule(scene.relaxation)
+        relaxation = RelaxationCurves(times, depths, f_rel, normal(f_rel))
+    gravity = None
+    if "gravity_static" in results or "gravity_dynamic" in results:
+        static = results.get("gravity_static", {}).get("displacement")
+        dyn = results.get("gravity_dynamic", {})
+        gravity = GravityResult(static_displacement=static, time=dyn.get("time"),
+                                displacement=dyn.get("displacement"),
+                                settings=dataclasses.replace(scene.gravity,
+                                                             tracked_node=problem.tracked_node))
+    counted = {k: sum(1 for name in computed if name.split("-")[0] == k) for k in KINDS}
     meta = {
         "dolfinx_version": dolfinx.__version__,
         "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
         "mesh_fingerprint": problem.mesh.fingerprint(),
         # item times are compute seconds summed over ranks (and over an interrupted
-        # earlier run for resumed items); total is this call's wall time
+        # earlier run for resumed items, or the run that computed a reused experiment);
+        # total is this call's wall time
         "timings_s": json.dumps({"mesh": mesh_seconds, **seconds, "total": total_seconds}),
         "n_ranks": n_ranks,
+        "experiment_keys": json.dumps({e: keys[e] for e in present}),
+        "reused": json.dumps([e for e in present if e in previous]),
+        "items_computed": json.dumps({k: n for k, n in counted.items() if n}),
     }
     return Reference(
         problem=problem, material=scene.material,
-        indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind, fn_ind,
-                                      indenter=scene.indentation.indenter),
-        relaxation=RelaxationCurves(times, depths, f_rel, fn_rel),
-        gravity=GravityResult(static_displacement=data["gravity_static"]["displacement"],
-                              time=dyn["time"], displacement=dyn["displacement"],
-                              settings=dataclasses.replace(scene.gravity,
-                                                           tracked_node=problem.tracked_node)),
-        meta=meta, fe=scene.fe)
+        indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind,
+                                      normal(f_ind), indenter=scene.indentation.indenter),
+        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe)

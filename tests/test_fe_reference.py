@@ -19,7 +19,7 @@ from forcecal.h5io import check_reference_settings, read_reference  # noqa: E402
 from forcecal.problem import build_problem  # noqa: E402
 from forcecal.scene import load_scene, replace  # noqa: E402
 from reference_fe.run import (WorkItem, _Parts, _Progress, compute_item,  # noqa: E402
-                              compute_reference, progress_stream, run_key, work_items)
+                              compute_reference, progress_stream, run_keys, work_items)
 
 from tests.conftest import ROOT, SCENES  # noqa: E402
 
@@ -39,7 +39,7 @@ def serial(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("serial") / "reference.h5"
     parts = out.with_name("reference.h5.parts")
     parts.mkdir()
-    key = run_key(tiny_scene, build_problem(tiny_scene))
+    key = run_keys(tiny_scene, build_problem(tiny_scene))["indentation"]
     steps = tiny_scene.indentation.steps
     np.savez(parts / "indentation-0000.npz", run_key=key, force=np.full((steps, 3), FAKE),
              seconds=0.0)

@@ -110,6 +110,8 @@ def test_every_stage_key_holds_the_runners_module_and_the_report_holds_the_scene
     for name in ("reference.h5", "params.h5", "gravity.h5"):
         (tmp_path / name).write_bytes(b"stand-in")
     monkeypatch.setattr("pipelines.stages.load_mesh", lambda scene: box_mesh((1, 1, 1), (1, 1, 1)))
+    # the stand-in is no HDF5 file: its experiments' content digest is stood in for too
+    monkeypatch.setattr("pipelines.stages.reference_digest", lambda path, experiments: "ref")
     keys = {name: stage.inputs(ctx) for name, stage in STAGES.items()}
     assert all("pipelines/stages.py" in k.code for k in keys.values())
     renamed = STAGES["report"].inputs(Context(scene_from_dict({"name": "other"}), tmp_path,

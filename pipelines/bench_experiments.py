@@ -1,0 +1,83 @@
+"""Bench study "experiments": what a scene saves by listing only the experiments it needs.
+
+The bench scene is run three times, each in a fresh folder of its own (no
+reuse between them): the full list, ``indentation`` + ``relaxation`` and
+``indentation`` alone, up to the calibration. Its rows go to ``bench.json``
+``skip`` (next to the particle engine's term-skipping rows), two per reduced
+list: the FE reference's wall time (``stage`` "reference") and the
+calibration's (``stage`` "calibration"), full list against reduced list, with
+``skipped`` naming the experiments left out and ``saved_s`` the difference.
+``experiments`` (a key of its own) has the three runs' details, with the FE's
+compute seconds per experiment. The times are the stages' recorded wall times
+(``cache/<stage>.json``), so a rerun with nothing changed reports the runs it
+reuses.
+
+Run: ``python -m pipelines bench --only experiments`` (``--quick``: the tiny scene).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from forcecal.h5io import read_reference
+from forcecal.scene import EXPERIMENTS, Scene, load_scene
+from pipelines.bench_configs import scene_toml
+from pipelines.cache import Cache
+from pipelines.stages import REFERENCE, run_pipeline
+
+log = logging.getLogger(__name__)
+
+#: the lists compared with the full one
+REDUCED = (("indentation", "relaxation"), ("indentation",))
+
+
+def list_scene(base: Scene, experiments: tuple[str, ...], folder: Path) -> Scene:
+    """``base`` with ``experiments``, no figures or fields, written to ``folder/scene.toml``."""
+    data = json.loads(json.dumps(base.to_dict(), default=list))
+    data["name"] = f"{base.name}-{'-'.join(experiments)}"
+    data["experiments"] = list(experiments)
+    if base.mesh_source_path() is not None:
+        data["mesh"]["source"] = str(base.mesh_source_path())
+    data["outputs"] = {"figures": False, "fields": False}
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "scene.toml"
+    text = scene_toml(data)
+    if not path.is_file() or path.read_text() != text:
+        path.write_text(text)
+    return load_scene(path)
+
+
+def run_list(base: Scene, experiments: tuple[str, ...], folder: Path, ranks: int = 2
+             ) -> dict[str, Any]:
+    """Reference and calibration of ``base`` restricted to ``experiments`` in ``folder``:
+    their recorded wall times [s] and the FE's compute seconds per experiment."""
+    scene = list_scene(base, experiments, folder)
+    run_pipeline(scene, folder, until="calibrate", progress=False, ranks=ranks)
+    cache = Cache(folder)
+    timings = json.loads(read_reference(folder / REFERENCE).meta["timings_s"])
+    return {"experiments": list(experiments), "reference_s": cache.elapsed("reference"),
+            "calibration_s": cache.elapsed("calibrate"),
+            "fe_compute_s": {e: timings[e] for e in EXPERIMENTS}}
+
+
+def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
+    """The ``skip`` rows and the ``experiments`` details (module docstring)."""
+    root = cache / "experiments"
+    runs = {experiments: run_list(scene, experiments, root / "-".join(experiments))
+            for experiments in (EXPERIMENTS, *REDUCED)}
+    full = runs[EXPERIMENTS]
+    rows = []
+    for experiments in REDUCED:
+        skipped = ", ".join(e for e in EXPERIMENTS if e not in experiments)
+        for stage, key in (("reference", "reference_s"), ("calibration", "calibration_s")):
+            row = {"scene": f"{scene.name}: {stage}, {' + '.join(experiments)}",
+                   "full_s": full[key], "skipped_s": runs[experiments][key],
+                   "stage": stage, "skipped": skipped,
+                   "saved_s": full[key] - runs[experiments][key]}
+            rows.append(row)
+            log.info("experiments: %s without %s: %.1f s instead of %.1f s", stage, skipped,
+                     row["skipped_s"], row["full_s"])
+    return {"skip": rows, "experiments": [runs[e] for e in (EXPERIMENTS, *REDUCED)]}
