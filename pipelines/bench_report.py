@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.h5io import atomic_path
+from pipelines import bench_haptic
 
 log = logging.getLogger(__name__)
 
@@ -358,6 +359,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
                     [[name, row["connectors"], row["substeps"], row.get("threads", 1),
                       row.get("renumbered", False), row["median_us"], row["p99_us"],
                       row["max_us"], row.get("load_average")] for name, row in h.items()])
+    lines += bench_haptic.markdown(b)
     ev = b["evaluators"]
     lines += ["", "## Curve evaluators (calibration's inner loop)", ""]
     lines += _table(["curve", "samples", "cold [ms/point]", "warm [ms/point]", "goal [ms]"],
