@@ -23,6 +23,7 @@ from typing import Callable
 
 import numpy as np
 
+from forcecal.errors import ParameterError
 from forcecal.mesh import TetMesh, fixed_nodes
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import ParticleSection, Scene
@@ -221,6 +222,9 @@ def relative_history_error(history: np.ndarray, reference: np.ndarray) -> float:
     """RMS over samples of ``|history - reference|`` over ``max |reference|`` [1]; inputs (S, 3)
     (the README's dynamic-error definition, applied to a variant against the float64 run)."""
     scale = float(np.max(np.linalg.norm(reference, axis=1)))
+    if not scale > 0.0:
+        raise ParameterError("the reference history is identically zero: no scale to compare "
+                             "against (a fixed particle?)")
     return float(np.sqrt(np.mean(np.sum((history - reference) ** 2, axis=1)))) / scale
 
 
