@@ -200,6 +200,7 @@ def _goals_section(b: dict) -> list[str]:
             f"{h['large_2threads']['p99_us']:.0f} us (median "
             f"{h['large_2threads']['median_us']:.0f})",
             _goal(h["large_2threads"]["p99_us"], 100.0)]] if "large_2threads" in h else []),
+        *bench_haptic.goal_rows(b),
         [f"calibration, {b['scene']} scene", "<= 300 s", f"{c['wall_s']:.0f} s",
          _goal(c["wall_s"], 300.0)],
         ["full FE reference, 2 ranks", "<= 15 min", f"{r['wall_s_2ranks'] / 60:.1f} min",
