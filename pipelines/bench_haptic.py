@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.mesh import fixed_nodes, generate_liver
-from forcecal.problem import build_problem, tracked_node_by_rule
+from forcecal.problem import load_mesh, tracked_node_by_rule
 from forcecal.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -58,12 +58,9 @@ ERROR_GOAL = 1e-3  # relative error against float64 a variant may cost (issue 14
 
 def _mesh_model(scene: Scene, length: float | None):
     from particle import bench as pb
-    if length is None:
-        problem = build_problem(scene)
-        mesh, fixed = problem.mesh, problem.fixed
-    else:
-        mesh = generate_liver(length)
-        fixed = fixed_nodes(mesh, scene.fixed.axis, scene.fixed.side, scene.fixed.tolerance)
+    # the mesh only: the scene's test points (a covering problem) are not needed here
+    mesh = load_mesh(scene) if length is None else generate_liver(length)
+    fixed = fixed_nodes(mesh, scene.fixed.axis, scene.fixed.side, scene.fixed.tolerance)
     return pb.scene_model(scene, mesh, fixed), mesh, fixed
 
 
