@@ -41,7 +41,12 @@ ALPHA_TOLERANCE = 0.01
 
 def stiffness_weights(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE
                       ) -> np.ndarray:
-    """(N,) ``w_n`` = sum of the stiffness bounds kappa_e [N/m] of particle n's connectors."""
+    """(N,) ``w_n`` = sum of the stiffness bounds kappa_e [N/m] of particle n's connectors.
+
+    Only steers where mass goes; the acceptance test is the rigorous limit. Another force
+    term (e.g. a per-tet volume term) adds its per-particle stiffness bound here, once its
+    stiffness is part of :func:`~particle.integrator.critical_time_step`.
+    """
     lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
     kappa = connector_stiffness_bound(model.params, lo, hi)
     return np.bincount(model.edges.ravel(), np.repeat(kappa, 2), model.n_particles)
