@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import time
 from typing import Callable
 
 import numpy as np
 
+from forcecal.errors import ParameterError
 from forcecal.mesh import TetMesh, fixed_nodes
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import ParticleSection, Scene
@@ -142,6 +144,35 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
     return out
 
 
+def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls: int = 1000,
+                depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None
+                ) -> dict:
+    """``calls`` periods (1 ms each) of :class:`HapticSession` dragging ``node`` ``depth`` [m]
+    along ``normal`` (linearly over the first quarter, then held), timed call by call.
+
+    ``dt`` is the session's largest step [s], ``threads`` and ``inertia`` go to the
+    session. Returns the session's ``substeps`` and ``dt_s``, ``latencies_us`` (calls,)
+    [us] of wall time per call, ``cpu_us`` [us] the process CPU time per call over the
+    whole drag (less sensitive to a busy machine than wall time: time spent waiting
+    for a core is not counted) and ``forces`` (calls, 3) [N], the force on the tool
+    after each call. One call before the clock compiles the kernels.
+    """
+    session = HapticSession(model, dt, threads=threads, inertia=inertia)
+    start = model.rest_positions[node]
+    session.step(node, start)  # compile outside the clock (the tissue stays at rest)
+    latencies = np.empty(calls)
+    forces = np.empty((calls, 3))
+    cpu = time.process_time()
+    for k in range(calls):
+        target = start + depth * min(1.0, k / (calls / 4)) * normal
+        t0 = time.perf_counter()
+        forces[k] = session.step(node, target)
+        latencies[k] = time.perf_counter() - t0
+    cpu = time.process_time() - cpu
+    return {"substeps": session.substeps, "dt_s": session.dt, "latencies_us": 1e6 * latencies,
+            "cpu_us": 1e6 * cpu / calls, "forces": forces}
+
+
 def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 2000,
                    depth: float = 0.005, safety: float = DT_SAFETY, threads: int = 1,
                    renumber: bool = False) -> dict:
@@ -159,21 +190,42 @@ def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 
         order = spatial_order(model)
         model, _ = model.renumbered(order)
         node = int(np.nonzero(order == node)[0][0])
-    session = HapticSession(model, safety * critical_time_step(model), threads=threads)
-    start = model.rest_positions[node]
-    session.step(node, start)  # compile outside the clock
-    latencies = np.empty(calls)
-    for k in range(calls):
-        target = start + depth * min(1.0, k / (calls / 4)) * normal
-        t0 = time.perf_counter()
-        session.step(node, target)
-        latencies[k] = time.perf_counter() - t0
-    us = 1e6 * latencies
-    return {"connectors": model.n_connectors, "substeps": session.substeps, "dt_s": session.dt,
-            "threads": session.threads, "renumbered": renumber,
+    drag = haptic_drag(model, node, normal, safety * critical_time_step(model), calls=calls,
+                       depth=depth, threads=threads)
+    us = drag["latencies_us"]
+    return {"connectors": model.n_connectors, "substeps": drag["substeps"],
+            "dt_s": drag["dt_s"], "threads": threads, "renumbered": renumber,
             "load_average": os.getloadavg()[0],
             "median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
             "max_us": float(us.max()), "goal_us": 100.0}
+
+
+def release_history(model: Model, gravity: np.ndarray, dt: float, node: int, *,
+                    duration: float = 3.0, record_interval: float = 0.005,
+                    strain_range: StrainBounds = THROUGHPUT_STRAIN_RANGE,
+                    inertia: np.ndarray | None = None) -> np.ndarray:
+    """(S, 3) displacement [m] of particle ``node`` every ``record_interval`` over
+    ``duration`` s of release from rest under ``gravity`` (explicit steps of at most ``dt``
+    that divide the interval; strains verified in ``strain_range``; optional mass
+    scaling ``inertia``)."""
+    steps_per_record = math.ceil(record_interval / dt * (1.0 - 1e-12))
+    step = record_interval / steps_per_record
+    samples = int(round(duration / record_interval))
+    record_steps = steps_per_record * np.arange(samples + 1)
+    history = VerletIntegrator(strain_range=strain_range).simulate(
+        model, model.state(), step, int(record_steps[-1]), gravity=gravity,
+        record_nodes=np.array([node]), record_steps=record_steps, inertia=inertia)
+    return history[:, 0] - model.rest_positions[node]
+
+
+def relative_history_error(history: np.ndarray, reference: np.ndarray) -> float:
+    """RMS over samples of ``|history - reference|`` over ``max |reference|`` [1]; inputs (S, 3)
+    (the README's dynamic-error definition, applied to a variant against the float64 run)."""
+    scale = float(np.max(np.linalg.norm(reference, axis=1)))
+    if not scale > 0.0:
+        raise ParameterError("the reference history is identically zero: no scale to compare "
+                             "against (a fixed particle?)")
+    return float(np.sqrt(np.mean(np.sum((history - reference) ** 2, axis=1)))) / scale
 
 
 def _perturbed(params: ConnectorParams, rng: np.random.Generator, rel: float) -> ConnectorParams:

@@ -52,6 +52,12 @@ class HapticSession:
             loop is faster (the regions' launch cost exceeds the gain), and it
             pays only on a model whose particle ids follow space
             (:meth:`Model.renumbered`, :func:`~particle.model.spatial_order`).
+        inertia: (N,) inertial masses [kg] for mass scaling (default None: the
+            physical masses), e.g. :func:`particle.mass_scaling.scaled_inertia`
+            for ``dt`` = the period: one substep per call on a model whose
+            limit is below the period, at the cost of a slower transient
+            (measured in ``runs/bench/BENCH.md``, "Haptic variants"); ``dt`` is
+            checked against the limit with this inertia.
 
     Attributes:
         state: the model's State (starts undeformed, at rest).
@@ -65,7 +71,7 @@ class HapticSession:
 
     def __init__(self, model: Model, dt: float, *, period: float = 1e-3,
                  gravity: np.ndarray | None = None, damping: float = 0.0,
-                 threads: int = 1) -> None:
+                 threads: int = 1, inertia: np.ndarray | None = None) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError(f"haptic period = {period} s must be > 0")
         check_time_step(dt, math.inf)  # a finite step > 0; the limit is checked below
@@ -76,10 +82,12 @@ class HapticSession:
         self.dt = self.period / self.substeps
         self.gravity = gravity
         self.integrator = VerletIntegrator(damping)
+        self.inertia = None if inertia is None else np.asarray(inertia, dtype=np.float64)
         self.state = model.state()
         self._runs: OrderedDict[int, tuple[Run, float]] = OrderedDict()
         self._keyframes = (np.zeros(2), np.zeros((2, 1, 3)))
-        self.integrator.prepare(model, self.dt)  # refuse an unstable dt now, not mid-session
+        # refuse an unstable dt (or a bad inertia) now, not mid-session
+        self.integrator.prepare(model, self.dt, inertia=self.inertia)
 
     def _run(self, node: int) -> tuple[Run, float]:
         """The prepared run and divergence bound of tool particle ``node`` (LRU cached)."""
@@ -87,7 +95,8 @@ class HapticSession:
             self._runs.move_to_end(node)
             return self._runs[node]
         run = self.integrator.prepare(self.model, self.dt, gravity=self.gravity,
-                                      prescribed_nodes=[node], threads=self.threads)
+                                      prescribed_nodes=[node], threads=self.threads,
+                                      inertia=self.inertia)
         # divergence bound for the worst drag: the tool crossing the whole organ in one period
         x0 = self.model.rest_positions[node]
         size = float(np.linalg.norm(np.ptp(self.model.rest_positions, axis=0)))

@@ -10,6 +10,7 @@ can run the same experiment both ways.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import operator
@@ -215,6 +216,28 @@ def check_threads(threads: int) -> int:
     return int(n)
 
 
+def inertial_model(model: Model, inertia: np.ndarray) -> Model:
+    """``model`` with the inertial masses ``inertia`` (N,) [kg] as its masses (mass scaling).
+
+    What the stability analysis of a mass-scaled run sees (:func:`critical_time_step`
+    of it is the limit of the run); the run itself keeps ``model`` for the loads
+    (gravity, damping act on the physical masses). ``inertia`` must be finite and at
+    least the physical mass of every particle (scaling only adds mass), else
+    :class:`ParameterError` naming the first particle that is not.
+    """
+    inertia = np.asarray(inertia, dtype=np.float64)
+    if inertia.shape != model.masses.shape:
+        raise ParameterError(f"inertia of shape {inertia.shape} does not fit the model's "
+                             f"{model.n_particles} particles")
+    bad = np.nonzero(~(np.isfinite(inertia) & (inertia >= model.masses)))[0]
+    if len(bad):
+        n = int(bad[0])
+        raise ParameterError(f"particle {n}: inertia {inertia[n]:.6g} kg must be finite and at "
+                             f"least its mass {model.masses[n]:.6g} kg (mass scaling only adds "
+                             "mass)")
+    return dataclasses.replace(model, masses=inertia)
+
+
 def thread_blocks(model: Model, active: np.ndarray, threads: int) -> tuple:
     """Work split and scratch of the ``threads``-thread step (see :class:`Run`).
 
@@ -363,6 +386,7 @@ class VerletIntegrator:
         self.check_every = int(check_every)
         self.strain_range = strain_range
         self._critical: tuple[Model, float] | None = None
+        self._inertial: tuple[Model, np.ndarray, Model] | None = None
 
     def critical_time_step(self, model: Model) -> float:
         """:func:`critical_time_step` of ``model`` (cached for the last model seen)."""
@@ -372,14 +396,30 @@ class VerletIntegrator:
             self._critical = (model, value)
         return self._critical[1]
 
+    def stability_model(self, model: Model, inertia: np.ndarray | None) -> Model:
+        """The model whose stability limit bounds a run of ``model`` with ``inertia`` (N,) [kg]:
+        ``model`` itself without mass scaling, else :func:`inertial_model` (cached for the
+        last pair seen, so that :meth:`critical_time_step` is computed once per pair)."""
+        if inertia is None:
+            return model
+        cached = self._inertial
+        if cached is None or cached[0] is not model or cached[1] is not inertia:
+            cached = (model, inertia, inertial_model(model, inertia))
+            self._inertial = cached
+        return cached[2]
+
     def prepare(self, model: Model, dt: float, *, gravity: np.ndarray | None = None,
                 prescribed_nodes: np.ndarray | None = None, arms: bool = True,
-                skip: bool = True, threads: int = 1, _check_dt: bool = True) -> "Run":
+                skip: bool = True, threads: int = 1, inertia: np.ndarray | None = None,
+                _check_dt: bool = True) -> "Run":
         """A :class:`Run`: everything fixed between calls of the compiled loop, set up once.
 
         ``threads`` > 1 splits each step over that many threads (see :class:`Run`).
-        Raises :class:`ParameterError` if the model's connector parameters are
-        non-physical on this integrator's strain range (see
+        ``inertia`` (N,) [kg]: mass scaling, the inertial mass of each particle (at
+        least its mass, e.g. :func:`particle.mass_scaling.scaled_inertia`); the loads
+        keep the physical masses and the step is checked against the limit of
+        :func:`inertial_model`. Raises :class:`ParameterError` if the model's
+        connector parameters are non-physical on this integrator's strain range (see
         :meth:`ConnectorParams.validate`) or ``threads`` is not in 1 ..
         ``numba.config.NUMBA_NUM_THREADS``, :class:`StabilityError` if ``dt`` is
         above the stability limit (``_check_dt=False`` bypasses the step check
@@ -389,18 +429,21 @@ class VerletIntegrator:
         dt = float(dt)
         threads = check_threads(threads)
         model.params.validate(self.strain_range, model.edges)
+        stability = self.stability_model(model, inertia)
         monitored = None
         if _check_dt:
-            check_time_step(dt, self.critical_time_step(model))
+            check_time_step(dt, self.critical_time_step(stability))
             monitored = connector_strain_bounds(self.strain_range, model.n_connectors,
                                                 model.edges)
-        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip, monitored, threads)
+        return Run(self, model, dt, gravity, prescribed_nodes, arms, skip, monitored, threads,
+                   stability)
 
     def simulate(self, model: Model, state: State, dt: float, n_steps: int, *,
                  gravity: np.ndarray | None = None, prescribed: Prescribed | None = None,
                  record_nodes: np.ndarray | None = None, record_steps: np.ndarray | None = None,
                  arms: bool = True, skip: bool = True, threads: int = 1,
-                 _check_dt: bool = True) -> np.ndarray | None:
+                 inertia: np.ndarray | None = None, _check_dt: bool = True
+                 ) -> np.ndarray | None:
         """Advance ``state`` by ``n_steps`` steps of ``dt`` [s] in place.
 
         Args:
@@ -411,6 +454,7 @@ class VerletIntegrator:
             arms: False runs the purely elastic model (arm forces held at zero).
             skip: compile out the terms the run does not need (False: keep all).
             threads: threads per step (1: the serial loop; see :class:`Run`).
+            inertia: (N,) inertial masses [kg] of a mass-scaled run (see :meth:`prepare`).
         Returns:
             (S, R, 3) recorded positions [m], or None without ``record_nodes``.
         Raises:
@@ -418,7 +462,7 @@ class VerletIntegrator:
                 connector left the strain range the step was verified for.
         """
         run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, threads=threads,
-                           _check_dt=_check_dt,
+                           inertia=inertia, _check_dt=_check_dt,
                            prescribed_nodes=None if prescribed is None else prescribed.nodes)
         record = None
         if record_nodes is not None:
@@ -462,7 +506,7 @@ class Run:
     def __init__(self, integrator: VerletIntegrator, model: Model, dt: float,
                  gravity: np.ndarray | None, prescribed_nodes: np.ndarray | None, arms: bool,
                  skip: bool, monitored: tuple[np.ndarray, np.ndarray] | None = None,
-                 threads: int = 1) -> None:
+                 threads: int = 1, stability: Model | None = None) -> None:
         p = model.params
         g = None if gravity is None else np.asarray(gravity, dtype=np.float64).reshape(3)
         if g is not None and not np.all(np.isfinite(g)):
@@ -477,7 +521,12 @@ class Run:
         else:
             self.prescribed = model.check_nodes(prescribed_nodes, "prescribed motion")
         self.active = np.setdiff1d(model.free_nodes, self.prescribed)
-        self.inv_masses = 1.0 / model.masses
+        # mass scaling: the stability model's masses are the inertia (the update divides by
+        # them); gravity and damping act on the physical masses, and so does the divergence
+        # check's kinetic energy (at most the inertial one: no false alarm; a divergence
+        # grows exponentially and trips it all the same)
+        self.stability_model = model if stability is None else stability
+        self.inv_masses = 1.0 / self.stability_model.masses
         self._forces = np.empty((model.n_particles, 3))
         t = self.terms
         self._springs = (p.K0, p.a if t.nonlinear else None, p.b if t.nonlinear else None,
@@ -550,7 +599,7 @@ class Run:
             raise StabilityError(
                 f"explicit run diverged at step {step} (t = {state.t + step * dt:.6g} s): "
                 f"particle {node} {what}; dt = {dt:.4g} s, stability limit "
-                f"{self.integrator.critical_time_step(model):.4g} s")
+                f"{self.integrator.critical_time_step(self.stability_model):.4g} s")
         state.t += n_steps * dt
         if n_steps:
             state.dt = dt
@@ -564,7 +613,8 @@ class Run:
         raise StabilityError(
             f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
             f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {self.dt:.4g} s was "
-            f"verified stable for (limit {self.integrator.critical_time_step(self.model):.4g} "
+            f"verified stable for (limit "
+            f"{self.integrator.critical_time_step(self.stability_model):.4g} "
             "s); the run stopped rather than continue with an unverified step. Widen the "
             "range (in a scene: a larger particle.strain_margin) or use a smaller explicit "
             "step verified for a wider range (particle.dt)")

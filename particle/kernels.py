@@ -35,6 +35,36 @@ force evaluation 61 -> 50 us, results bitwise identical.
 
 The force terms are small functions composed in :func:`net_forces`; the
 plain-numpy twin used as the reference in tests is :mod:`particle.reference_numpy`.
+
+Haptic rate at scale (issue 14). The connector pass is bound by issue slots, not
+memory: per connector 2 index + 6 position loads, 9 stores (6 force read-modify-
+writes, 2 arm forces, 1 elongation), one sqrt and one division. Measured with
+the machine shared (load 4-8, so indicative only; 12k-connector liver, one core,
+minimum over 300-1000 repetitions), each variant bitwise or round-off equal:
+connector data in float32 (parameters, rest lengths, arm state; the same kernels
+compiled for those dtypes, positions and forces float64) 350 vs 303 us per two
+steps (slower: conversions, no fewer instructions on the critical path); a
+blocked pass with the sqrt and the division in separate vectorised loops
+(``vsqrtpd``/``vdivpd``, bitwise equal) 140 vs 142 us per force evaluation
+(the scalar sqrt/div overlap the loads and stores anyway); keeping the running
+sum of particle i in registers while consecutive connectors share it (bitwise
+equal, ~2.5 fewer stores per connector) 188 vs 186 us. None is kept. What halves
+the cost of a device period is one substep instead of two: mass scaling
+(:mod:`particle.mass_scaling`, the inertia enters only through ``inv_masses``,
+so no kernel changes), measured with its error in ``runs/bench/BENCH.md``.
+
+Where another force term plugs in (e.g. a per-tet volume term): a function
+``add_<term>_forces(x, ..., forces)`` that adds into ``forces`` (N, 3) [N],
+called in :func:`net_forces` after :func:`internal_forces` (the serial path,
+which every haptic and dynamic run uses by default) and, for the threaded path,
+per block in :func:`parallel_forces` into the thread's own buffer (tets split
+in contiguous blocks like the connectors); its term selector joins
+:class:`particle.integrator.Terms`, its arrays the ``Run``'s ``_springs``-like
+tuples. Mass scaling then needs nothing new as long as the term's stiffness is
+in :func:`particle.integrator.critical_time_step` (the acceptance test of
+:func:`particle.mass_scaling.scaled_inertia`); adding it to
+:func:`particle.mass_scaling.stiffness_weights` makes the added mass go where
+the volume term stiffens the model.
 """
 
 from __future__ import annotations

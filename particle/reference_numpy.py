@@ -15,13 +15,14 @@ from particle.model import Model, State
 
 def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
                damping: float = 0.0, arms: bool = True,
-               prescribed: Prescribed | None = None) -> None:
+               prescribed: Prescribed | None = None, inertia: np.ndarray | None = None) -> None:
     """Advance ``state`` by one position-Verlet step of ``dt`` [s] in place.
 
     A state that was never stepped (``state.dt is None``) takes the start-up
     step from rest, ``x^1 = x^0 + dt^2/2 a^0``. ``state.dt`` must otherwise equal ``dt``.
     ``prescribed`` particles are moved to their keyframe positions at ``t + dt``
-    instead of being integrated.
+    instead of being integrated. ``inertia`` (N,) [kg]: mass scaling, the masses the
+    update divides by (the loads keep the physical masses).
     """
     if state.dt is not None and state.dt != dt:
         raise ValueError("step_numpy does not change the step size of a running state")
@@ -49,7 +50,8 @@ def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | N
     scale = 0.5 if state.dt is None else 1.0
     free = model.free_nodes if prescribed is None else np.setdiff1d(model.free_nodes,
                                                                      prescribed.nodes)
-    new = 2.0 * x[free] - x_prev[free] + scale * dt * dt * forces[free] / m[free]
+    inertial = m if inertia is None else np.asarray(inertia)[:, None]
+    new = 2.0 * x[free] - x_prev[free] + scale * dt * dt * forces[free] / inertial[free]
     x_prev[free] = x[free]
     x[free] = new
     if prescribed is not None:

@@ -82,6 +82,7 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 # its own (imported only when it runs), so adding a study adds one line here.
 STUDIES: dict[str, str] = {
     "experiments": "pipelines.bench_experiments:study",
+    "haptic scale": "pipelines.bench_haptic:study",
 }
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}

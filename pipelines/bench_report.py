@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.h5io import atomic_path
+from pipelines import bench_haptic
 
 log = logging.getLogger(__name__)
 
@@ -199,6 +200,7 @@ def _goals_section(b: dict) -> list[str]:
             f"{h['large_2threads']['p99_us']:.0f} us (median "
             f"{h['large_2threads']['median_us']:.0f})",
             _goal(h["large_2threads"]["p99_us"], 100.0)]] if "large_2threads" in h else []),
+        *bench_haptic.goal_rows(b),
         [f"calibration, {b['scene']} scene", "<= 300 s", f"{c['wall_s']:.0f} s",
          _goal(c["wall_s"], 300.0)],
         ["full FE reference, 2 ranks", "<= 15 min", f"{r['wall_s_2ranks'] / 60:.1f} min",
@@ -369,6 +371,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
                     [[name, row["connectors"], row["substeps"], row.get("threads", 1),
                       row.get("renumbered", False), row["median_us"], row["p99_us"],
                       row["max_us"], row.get("load_average")] for name, row in h.items()])
+    lines += bench_haptic.markdown(b)
     ev = b["evaluators"]
     lines += ["", "## Curve evaluators (calibration's inner loop)", ""]
     lines += _table(["curve", "samples", "cold [ms/point]", "warm [ms/point]", "goal [ms]"],

@@ -134,3 +134,27 @@ def test_read_bench_refuses_a_damaged_file(tmp_path):
     (tmp_path / "bench.json").write_text("[1, 2]")
     with pytest.raises(DataFileError, match="not a bench.json"):
         read_bench(tmp_path / "bench.json")
+
+
+def test_haptic_scale_rows_state_each_variants_substeps_and_error():
+    """The haptic variants benchmark on a small box whose limit needs 3 substeps per ms: the
+    renumbered variant differs by round-off only, the mass-scaled ones take fewer substeps
+    with their added mass and error stated."""
+    from pipelines.bench_haptic import mesh_rows
+    from particle.testing import box_model, top_centre
+
+    model = box_model((3, 3, 2), K0=200.0)
+    rows = {r["variant"]: r for r in mesh_rows("box", model, top_centre(model),
+                                                int(model.free_nodes[-1]),
+                                                np.array([0.0, 0.0, -9.81]))}
+    assert set(rows) == {"float64", "renumbered", "mass-scaled 1", "mass-scaled 1, renumbered",
+                         "mass-scaled 2", "mass-scaled 2, renumbered"}
+    assert rows["float64"]["substeps"] == 3 and rows["float64"]["error_drag"] == 0.0
+    assert rows["renumbered"]["error_drag"] < 1e-12 and rows["renumbered"]["error_release"] < 1e-12
+    for k in (1, 2):
+        row = rows[f"mass-scaled {k}"]
+        assert row["substeps"] == k and row["added_mass"] > 0.0
+        assert 0.0 < row["error_drag"] < 1.0 and 0.0 < row["error_release"] < 1.0
+        assert rows[f"mass-scaled {k}, renumbered"]["error_drag"] == pytest.approx(
+            row["error_drag"], rel=1e-6)
+    assert rows["mass-scaled 1"]["added_mass"] > rows["mass-scaled 2"]["added_mass"]

@@ -54,6 +54,25 @@ def test_the_threaded_haptic_session_matches_the_serial_one_over_many_calls():
            sessions[0].state.x - model.rest_positions)
 
 
+def test_the_threaded_mass_scaled_session_matches_the_serial_one():
+    """Mass scaling (one substep per period) on two threads: the inertia reaches the node
+    blocks' position update as in the serial loop."""
+    from particle.mass_scaling import scaled_inertia
+
+    model = box_model((4, 4, 3), tau=(0.01, 0.05))
+    node = top_centre(model)
+    period = 2.0 * critical_time_step(model)
+    inertia = scaled_inertia(model, period)
+    sessions = [HapticSession(model, period, period=period, gravity=GRAVITY, threads=t,
+                              inertia=inertia) for t in (1, 2)]
+    assert sessions[0].substeps == 1
+    forces = np.array([[s.step(node, model.rest_positions[node] + min(1.0, k / 50) * 2e-3
+                               * DOWN) for s in sessions] for k in range(200)])
+    _close(forces[:, 1], forces[:, 0])
+    _close(sessions[1].state.x - model.rest_positions,
+           sessions[0].state.x - model.rest_positions)
+
+
 def test_the_threaded_result_does_not_depend_on_the_scheduling_and_the_pool_is_restored():
     """The blocks' forces are summed in block order: run on one pool thread (both blocks in
     turn) or two, the result is bitwise the same; each call sets numba's thread count to the
