@@ -41,6 +41,7 @@ from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import Reference, check_reference_settings, read_reference
+from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -128,11 +129,16 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     n_conn, n_cal = len(mesh.edges), len(problem.calibration)
     ref_static = ref.indentation.force_normal
     ref_relax = ref.relaxation.force_normal
-    linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals)
+    footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
+        mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
+        scene.indentation.radius))
+    linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals,
+                                footprints=footprints)
     depth = float(max(ref.indentation.displacement.max(), ref.relaxation.displacement.max()))
     strain = strain_range(linear.strain, depth, settings.strain_margin)
     experiments = Experiments(problem, material.density, ref.indentation.displacement,
-                              ref.relaxation.time, ref.relaxation.displacement, strain.bounds)
+                              ref.relaxation.time, ref.relaxation.displacement, strain.bounds,
+                              footprints)
     fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal])
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)

@@ -195,6 +195,7 @@ class IndentationCurves:
     force: np.ndarray
     force_normal: np.ndarray
     indenter: str = "vertex"  # ``indentation.indenter`` (relaxation uses the same one)
+    radius: float = 0.0  # ``indentation.radius`` [m] (punch; 0 for the vertex)
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,6 +276,9 @@ def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> 
     if ref.indentation.indenter != scene.indentation.indenter:
         differ.append(f"indentation.indenter = {ref.indentation.indenter!r} "
                       f"(scene: {scene.indentation.indenter!r})")
+    if ref.indentation.radius != scene.indentation.radius:
+        differ.append(f"indentation.radius = {ref.indentation.radius!r} "
+                      f"(scene: {scene.indentation.radius!r})")
     if ref.fe is not None:
         compare("fe", ref.fe, scene.fe, tuple(f.name for f in dataclasses.fields(FESection)))
     if ref.gravity is not None:
@@ -361,6 +365,7 @@ def write_reference(path: str | Path, ref: Reference) -> None:
             write_section(fh.create_group("fe"), ref.fe)
         g = fh.create_group("indentation")
         g.attrs["indenter"] = ind.indenter
+        g.attrs["radius"] = float(ind.radius)
         put(g, "displacement", ind.displacement, "m", "depth along the inward normal (S,)")
         put(g, "force", ind.force, "N", "indenter force on the test vertex (P, S, 3)")
         put(g, "force_normal", ind.force_normal, "N", "force . inward normal (P, S)")
@@ -400,7 +405,9 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
         ind = IndentationCurves(d, get(fh, "indentation/force", (n_pts, len(d), 3), dtype="float"),
                                 get(fh, "indentation/force_normal", (n_pts, len(d)),
                                     dtype="float"),
-                                indenter=str(attr(group(fh, "indentation"), "indenter")))
+                                indenter=str(attr(group(fh, "indentation"), "indenter")),
+                                # files written before the punch have no radius: a vertex's 0
+                                radius=float(group(fh, "indentation").attrs.get("radius", 0.0)))
         t = get(fh, "relaxation/time", (None,), dtype="float")
         rel = RelaxationCurves(t, get(fh, "relaxation/displacement", (len(t),), dtype="float"),
                                get(fh, "relaxation/force", (n_pts, len(t), 3), dtype="float"),

@@ -16,6 +16,7 @@ machine, as ``mpirun`` is used here).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -38,11 +39,13 @@ from forcecal import errors
 from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            atomic_path, write_reference)
+from forcecal.indenter import indenter_footprints
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from reference_fe import experiments
 from reference_fe.model import FEModel
+from reference_fe.refine import FEProblem, check_memory, fe_problem
 
 log = logging.getLogger(__name__)
 
@@ -99,10 +102,10 @@ def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
     """The FE experiments of ``indentation.indenter``: (static curve, relaxation curve).
 
     Each takes ``(model, fixed, vertex, normal, depths)`` or ``(model, fixed, vertex,
-    normal, times, depths)`` and returns the (S, 3) force on the test vertex, like
+    normal, times, depths)`` and returns the (S, 3) indenter force, like
     :func:`~reference_fe.experiments.indentation_curve` and
-    :func:`~reference_fe.experiments.relaxation_curve`. A physical indenter (a rigid
-    sphere or flat punch with local refinement) is another branch here.
+    :func:`~reference_fe.experiments.relaxation_curve` (``"vertex"``) or their punch
+    versions with the scene's ``indentation.radius`` (``"punch"``).
 
     Raises:
         SceneError: an indenter with no FE experiment.
@@ -110,29 +113,45 @@ def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
     indenter = scene.indentation.indenter
     if indenter == "vertex":  # the test vertex itself is displaced along its inward normal
         return experiments.indentation_curve, experiments.relaxation_curve
+    if indenter == "punch":  # every FE node of the footprint is held (forcecal.indenter)
+        radius = scene.indentation.radius
+        return (functools.partial(experiments.punch_indentation_curve, radius=radius),
+                functools.partial(experiments.punch_relaxation_curve, radius=radius))
     raise SceneError(f"indentation.indenter = {indenter!r}: the FE reference has no experiment "
-                     "for it (known: 'vertex')")
+                     "for it (known: 'vertex', 'punch')")
 
 
-def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem) -> dict:
-    """Arrays of one work item (keys as stored in its checkpoint part)."""
+def check_indenter(scene: Scene, problem: Problem) -> None:
+    """Refuse, before any FE work, a punch whose footprint on the particle mesh holds fewer than
+    3 particles or touches the clamp (SceneError naming ``indentation.radius``)."""
+    ind = scene.indentation
+    indenter_footprints(problem.mesh, problem.fixed, problem.test_points, problem.normals,
+                        ind.indenter, ind.radius)
+
+
+def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
+                 fe: FEProblem | None = None) -> dict:
+    """Arrays of one work item (keys as stored in its checkpoint part), at the particle
+    vertices; ``fe`` is the FE mesh's problem ``model`` was built on (default: ``problem``
+    itself, ``fe.refine = 0``)."""
+    fe = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0) if fe is None else fe
+    fixed, at_particles = fe.problem.fixed, fe.vertex_map
     g = scene.gravity
     if item.kind == "gravity_static":
-        return {"displacement": experiments.gravity_static(model, problem.fixed, g.acceleration,
-                                                           g.static_load_steps)}
+        disp = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps)
+        return {"displacement": disp[at_particles]}
     if item.kind == "gravity_dynamic":
-        times, disp = experiments.gravity_dynamic(model, problem.fixed, g.acceleration,
+        times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
-        return {"time": times, "displacement": disp}
+        return {"time": times, "displacement": disp[:, at_particles]}
     static_curve, relaxation_curve = indenter_experiments(scene)
-    vertex = int(problem.test_points[item.point])
-    normal = problem.normals[item.point]
+    vertex = int(at_particles[problem.test_points[item.point]])
+    normal = problem.normals[item.point]  # refinement keeps it (coplanar sub-faces)
     if item.kind == "indentation":
-        force = static_curve(model, problem.fixed, vertex, normal,
-                             indentation_depths(scene.indentation))
+        force = static_curve(model, fixed, vertex, normal, indentation_depths(scene.indentation))
     else:
         times, depths = relaxation_schedule(scene.relaxation)
-        force = relaxation_curve(model, problem.fixed, vertex, normal, times, depths)
+        force = relaxation_curve(model, fixed, vertex, normal, times, depths)
     return {"force": force}
 
 
@@ -324,6 +343,8 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     indenter_experiments(scene)  # an unknown indenter fails here, before any work
     if problem is None:
         problem = _on_root(comm, lambda: build_problem(scene))
+    check_indenter(scene, problem)
+    check_memory(problem.mesh, scene.fe, comm.size)  # a refinement that cannot fit: refused
     parts = _Parts(out_path, run_key(scene, problem))
     items = work_items(scene, len(problem.test_points))
     _on_root(comm, parts.start)
@@ -375,7 +396,7 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
     Returns ``(failure, build_seconds)``: ``failure`` is None or (exception class
     name, message); ``build_seconds`` the time spent building the FE model.
     """
-    model, build_seconds = None, 0.0
+    model, fe, build_seconds = None, None, 0.0
     for item in items:
         if parts.failed:  # another rank failed: stop early, its message is reported
             break
@@ -384,10 +405,11 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
         t0 = time.perf_counter()
         try:
             if model is None:
-                model = FEModel(problem.mesh, scene.material, scene.fe)
+                fe = fe_problem(problem, scene.fe)
+                model = FEModel(fe.problem.mesh, scene.material, scene.fe)
                 build_seconds = time.perf_counter() - t0
                 t0 = time.perf_counter()
-            arrays = compute_item(model, scene, problem, item)
+            arrays = compute_item(model, scene, problem, item, fe)
         except Exception as exc:  # reported on every rank, not left to hang the others
             message = f"{item.name}: {exc}"
             parts.fail(message)
@@ -437,7 +459,8 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
     return Reference(
         problem=problem, material=scene.material,
         indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind, fn_ind,
-                                      indenter=scene.indentation.indenter),
+                                      indenter=scene.indentation.indenter,
+                                      radius=scene.indentation.radius),
         relaxation=RelaxationCurves(times, depths, f_rel, fn_rel),
         gravity=GravityResult(static_displacement=data["gravity_static"]["displacement"],
                               time=dyn["time"], displacement=dyn["displacement"],
