@@ -177,3 +177,17 @@ def test_particle_punch_slope_is_the_linear_network_punch():
     linear = linear_indentation(mesh, fixed, [centre], [DOWN], 25.0 * np.ones(len(mesh.edges)),
                                 footprints=[held])
     assert got / depth == pytest.approx(linear.slope[0], rel=1e-5)
+
+
+def test_convergence_changes_are_against_the_finest_level():
+    from pipelines.fe_convergence import summarise
+
+    rows = [{"level": 0, "punch_force": [1.10, 2.0], "max_sag": 0.030},
+            {"level": 1, "punch_force": [1.02, 2.02], "max_sag": 0.0345},
+            {"level": 2, "punch_force": [1.00, 2.00], "max_sag": 0.035}]
+    out = summarise(rows, default_level=1)
+    assert out["finest_level"] == 2 and out["levels"] is rows
+    assert out["punch_force_change"] == pytest.approx(0.02)  # the largest over the points
+    assert out["sag_change"] == pytest.approx(0.5 / 35)
+    assert out["punch_force_change_two_finest"] == out["punch_force_change"]
+    assert summarise(rows, default_level=0)["punch_force_change"] == pytest.approx(0.10)
