@@ -32,7 +32,7 @@ from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene, replace
 from forcecal.schedules import indentation_depths
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("pipelines.fe_convergence")  # also when run as __main__
 
 ROOT = Path(__file__).resolve().parents[1]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--element", help="override fe.element (P2, TH)")
     parser.add_argument("--out", help="JSON file, rewritten after every level")
     args = parser.parse_args(argv)
-    configure_logging(loggers=(__name__,))
+    configure_logging(loggers=(log.name,))
     try:
         scene = load_scene(args.scene)
         if args.element:
