@@ -36,17 +36,32 @@ log = logging.getLogger("pipelines.fe_convergence")  # also when run as __main__
 
 ROOT = Path(__file__).resolve().parents[1]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
-LEVELS = {False: (0, 1, 2), True: (0, 1, 2)}
+LEVELS = (0, 1, 2)  # the default liver's TH: 5k, 36k, 261k dofs
 
 
-def study_points(problem: Problem, n: int = 3) -> np.ndarray:
-    """``n`` test points spread through the scene's list (first, middle, last)."""
-    points = problem.test_points
-    return points[np.linspace(0, len(points) - 1, n).round().astype(int)]
+def study_points(problem: Problem, radius: float, n: int = 3) -> np.ndarray:
+    """``n`` test points spread through the scene's list (first, middle, last) among those
+    whose punch footprint is valid (>= 3 particles, off the clamp)."""
+    from forcecal.errors import SceneError
+    from forcecal.indenter import punch_footprint
+
+    valid = []
+    for vertex, normal in zip(problem.test_points, problem.normals):
+        try:
+            punch_footprint(problem.mesh, vertex, normal, radius, fixed=problem.fixed)
+        except SceneError:
+            continue
+        valid.append(int(vertex))
+    if len(valid) < n:
+        raise SceneError(f"only {len(valid)} test points have a valid footprint of "
+                         f"indentation.radius = {radius} m; the study needs {n}")
+    return np.asarray(valid)[np.linspace(0, len(valid) - 1, n).round().astype(int)]
 
 
-def measure_level(scene: Scene, problem: Problem, points: np.ndarray, level: int) -> dict:
-    """Full-depth punch force at ``points`` and the largest static sag on ``fe.refine = level``."""
+def measure_level(scene: Scene, problem: Problem, points: np.ndarray, level: int, *,
+                  sag: bool = True) -> dict:
+    """Full-depth punch force at ``points`` and (``sag``) the largest static sag on
+    ``fe.refine = level``."""
     from reference_fe import experiments
     from reference_fe.model import FEModel
     from reference_fe.refine import check_memory, fe_problem
@@ -66,13 +81,16 @@ def measure_level(scene: Scene, problem: Problem, points: np.ndarray, level: int
         log.info("fe_convergence: level %d, point %d: %.6g N", level, vertex, forces[-1])
     t1 = time.perf_counter()
     g = scene.gravity
-    sag = experiments.gravity_static(model, fe.problem.fixed, g.acceleration,
-                                     g.static_load_steps)[fe.vertex_map]
+    max_sag = None
+    if sag:
+        u = experiments.gravity_static(model, fe.problem.fixed, g.acceleration,
+                                       g.static_load_steps)[fe.vertex_map]
+        max_sag = float(np.linalg.norm(u, axis=1).max())
     t2 = time.perf_counter()
     return {"level": level, "element": fe_section.element, "dofs": model.n_dofs,
             "fe_vertices": fe.problem.mesh.n_vertices, "wall_s": t2 - t0,
-            "wall_s_punch_per_point": (t1 - t0) / len(points), "wall_s_sag": t2 - t1,
-            "punch_force": forces, "max_sag": float(np.linalg.norm(sag, axis=1).max())}
+            "wall_s_punch_per_point": (t1 - t0) / max(len(points), 1), "wall_s_sag": t2 - t1,
+            "punch_force": forces, "max_sag": max_sag}
 
 
 def summarise(rows: list[dict], default_level: int) -> dict:
@@ -94,16 +112,22 @@ def summarise(rows: list[dict], default_level: int) -> dict:
     return out
 
 
-def convergence(scene: Scene, levels: Sequence[int], *, out: Path | None = None) -> dict:
-    """The study on ``scene`` (a punch scene), one level after the other, coarsest first."""
+def convergence(scene: Scene, levels: Sequence[int], *, out: Path | None = None,
+                points: Sequence[int] | None = None, sag: bool = True) -> dict:
+    """The study on ``scene`` (a punch scene), one level after the other, coarsest first.
+
+    ``points`` and ``sag=False`` restrict it (to split a level over several processes: the
+    changes are then left out, :func:`summarise` needs every quantity)."""
     problem = build_problem(scene)
-    points = study_points(problem)
-    rows = []
+    points = (study_points(problem, scene.indentation.radius) if points is None
+              else np.asarray(points, dtype=np.int64))
+    rows: list[dict] = []
+    result: dict = {}
     for level in sorted(levels):
-        rows.append(measure_level(scene, problem, points, level))
+        rows.append(measure_level(scene, problem, points, level, sag=sag))
         result = {"scene": scene.name, "points": points.tolist(),
                   "radius_m": scene.indentation.radius, "depth_m": scene.indentation.depth,
-                  **summarise(rows, scene.fe.refine)}
+                  **(summarise(rows, scene.fe.refine) if sag else {"levels": rows})}
         if out is not None:
             out.write_text(json.dumps(result, indent=1))
         log.info("fe_convergence: level %d done (%d dofs, %.0f s)", level, rows[-1]["dofs"],
@@ -115,7 +139,7 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict:
     """``make bench`` item: ``{"fe_convergence": ...}`` on the punch scene (the bench scene
     with ``--quick``, given a punch of 1.5 mean surface edge lengths if it has none)."""
     punch = load_scene(PUNCH_SCENE) if not quick else _with_punch(scene)
-    return {"fe_convergence": convergence(punch, LEVELS[quick],
+    return {"fe_convergence": convergence(punch, LEVELS,
                                           out=Path(cache_folder) / "fe_convergence.json")}
 
 
@@ -135,16 +159,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipelines.fe_convergence",
                                      description="FE convergence of the punch reference (JSON)")
     parser.add_argument("--scene", default=str(PUNCH_SCENE), help="a punch scene TOML file")
-    parser.add_argument("--levels", type=int, nargs="+", default=list(LEVELS[False]))
+    parser.add_argument("--levels", type=int, nargs="+", default=list(LEVELS))
     parser.add_argument("--element", help="override fe.element (P2, TH)")
     parser.add_argument("--out", help="JSON file, rewritten after every level")
+    parser.add_argument("--points", type=int, nargs="*", help="test vertices (default: 3 "
+                        "spread through the scene's list); a partial run has no summary")
+    parser.add_argument("--no-sag", action="store_true", help="skip the static sag")
     args = parser.parse_args(argv)
     configure_logging(loggers=(log.name,))
     try:
         scene = load_scene(args.scene)
         if args.element:
             scene = replace(scene, fe={"element": args.element})
-        result = convergence(scene, args.levels, out=Path(args.out) if args.out else None)
+        result = convergence(scene, args.levels, out=Path(args.out) if args.out else None,
+                             points=args.points, sag=not args.no_sag)
     except ForcecalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -59,15 +59,17 @@ def test_punch_refusals_name_the_radius_key():
     for bad in (0.0, -0.1):
         with pytest.raises(SceneError, match=r"indentation\.radius = .* must be > 0"):
             punch_footprint(mesh, centre, DOWN, bad)
-    with pytest.raises(SceneError, match=rf"indentation\.radius = 0\.1 m: the punch footprint of "
-                                         rf"test point {centre} holds 1 particle.*at least 0\.25 m"):
+    with pytest.raises(SceneError, match=rf"indentation\.radius = 0\.1 m: the punch footprint "
+                                         rf"of test point {centre} holds 1 particle.*"
+                                         rf"at least 0\.25 m"):
         punch_footprint(mesh, centre, DOWN, 0.1)
     # a punch on a side face that reaches the clamped base
     tall = box_mesh((4, 4, 4), (1.0, 1.0, 1.0))
     fixed = np.nonzero(np.isclose(tall.vertices[:, 2], 0.0))[0]
     side, inward = _vertex_at(tall, (0.0, 0.5, 0.5)), np.array([1.0, 0.0, 0.0])
-    with pytest.raises(SceneError, match=rf"indentation\.radius = 0\.55 m: the punch footprint of "
-                                         rf"test point {side} reaches clamped vertices.*below 0\.5 m"):
+    with pytest.raises(SceneError, match=rf"indentation\.radius = 0\.55 m: the punch footprint "
+                                         rf"of test point {side} reaches clamped vertices.*"
+                                         rf"below 0\.5 m"):
         punch_footprint(tall, side, inward, 0.55, fixed=fixed)
     assert len(punch_footprint(tall, side, inward, 0.3, fixed=fixed)) == 5
 
