@@ -65,18 +65,22 @@ def measure_level(scene: Scene, problem: Problem, points: np.ndarray, level: int
     from reference_fe import experiments
     from reference_fe.model import FEModel
     from reference_fe.refine import check_memory, fe_problem
-    from reference_fe.run import indenter_experiments
+    from reference_fe.run import indenter_dofs
 
     fe_section = dataclasses.replace(scene.fe, refine=level)
     check_memory(problem.mesh, fe_section)
     t0 = time.perf_counter()
     fe = fe_problem(problem, fe_section)
     model = FEModel(fe.problem.mesh, scene.material, fe_section)
-    static_curve, _ = indenter_experiments(scene)
     depths = indentation_depths(scene.indentation)
+    index = {int(v): k for k, v in enumerate(problem.test_points)}
     forces = []
-    for vertex, normal in zip(points, problem.mesh.inward_normals(points)):
-        curve = static_curve(model, fe.problem.fixed, int(fe.vertex_map[vertex]), normal, depths)
+    for vertex in points:
+        k = index[int(vertex)]
+        dofs = indenter_dofs(model, scene, problem, fe, k)
+        normal = problem.normals[k]
+        curve = experiments.held_indentation_curve(model, fe.problem.fixed, dofs, normal, depths,
+                                                   f"punch at vertex {vertex}")
         forces.append(float(curve[-1] @ normal))
         log.info("fe_convergence: level %d, point %d: %.6g N", level, vertex, forces[-1])
     t1 = time.perf_counter()

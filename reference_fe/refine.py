@@ -161,3 +161,44 @@ def fe_problem(problem: Problem, fe: FESection) -> FEProblem:
     if fe.refine:
         log.info("FE mesh: %d uniform refinement(s): %s", fe.refine, current.mesh.summary())
     return FEProblem(current, vertex_map, fe.refine)
+
+
+def patch_on_fe_mesh(fe: FEProblem, mesh: TetMesh, footprint: np.ndarray) -> tuple[np.ndarray,
+                                                                                    np.ndarray]:
+    """The FE nodes of a particle footprint's surface patch: (FE vertex ids, FE surface edges).
+
+    The patch is the particle mesh's surface triangles with three footprint vertices and its
+    surface edges with two; uniform refinement puts FE vertices on them (edge midpoints of
+    flat triangles), and those, with the FE surface edges between two of them (their P2
+    mid-edge nodes), are the FE nodes of the patch. The same polygon at every level: a punch
+    the particle model can hold exactly, whose FE force converges with the level.
+    """
+    from forcecal.indenter import footprint_edges, surface_edges
+
+    footprint = np.asarray(footprint, dtype=np.int64)
+    fine = fe.problem.mesh
+    if fe.levels == 0:
+        return footprint, footprint_edges(mesh, footprint)
+    inside = np.zeros(mesh.n_vertices, dtype=bool)
+    inside[footprint] = True
+    triangles = mesh.surface_faces[inside[mesh.surface_faces].all(axis=1)]
+    segments = footprint_edges(mesh, footprint)
+    candidates = fine.surface_vertices
+    x = fine.vertices[candidates]
+    tol = 1e-9 * float(np.ptp(mesh.vertices, axis=0).max())
+    on = np.zeros(len(candidates), dtype=bool)
+    for p, q in mesh.vertices[segments]:
+        d = q - p
+        s = np.clip((x - p) @ d / (d @ d), 0.0, 1.0)
+        on |= np.linalg.norm(x - p - s[:, None] * d, axis=1) <= tol
+    for a, b, c in mesh.vertices[triangles]:
+        e1, e2 = b - a, c - a
+        gram = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
+        st = np.linalg.solve(gram, np.stack([(x - a) @ e1, (x - a) @ e2]))
+        distance = np.linalg.norm(x - a - np.outer(st[0], e1) - np.outer(st[1], e2), axis=1)
+        on |= (distance <= tol) & (st[0] >= -1e-9) & (st[1] >= -1e-9) & (st.sum(0) <= 1 + 1e-9)
+    nodes = np.union1d(candidates[on], fe.vertex_map[footprint])
+    held = np.zeros(fine.n_vertices, dtype=bool)
+    held[nodes] = True
+    edges = surface_edges(fine)
+    return nodes, edges[held[edges].all(axis=1)]

@@ -39,13 +39,13 @@ from forcecal import errors
 from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            atomic_path, write_reference)
-from forcecal.indenter import indenter_footprints
+from forcecal.indenter import indenter_footprints, punch_footprint
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from reference_fe import experiments
 from reference_fe.model import FEModel
-from reference_fe.refine import FEProblem, check_memory, fe_problem
+from reference_fe.refine import FEProblem, check_memory, fe_problem, patch_on_fe_mesh
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +129,21 @@ def check_indenter(scene: Scene, problem: Problem) -> None:
                         ind.indenter, ind.radius)
 
 
+def indenter_dofs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem,
+                  point: int) -> np.ndarray:
+    """(K, 3) FE dofs the indenter of test point ``point`` (index into ``problem.test_points``)
+    holds: the vertex (``"vertex"``), or every FE node of the particle footprint's surface
+    patch (``"punch"``, :func:`~reference_fe.refine.patch_on_fe_mesh`: at ``fe.refine = 0``
+    the footprint's vertices and the mid-edge nodes of the surface edges between them)."""
+    indenter_experiments(scene)  # an indenter without FE experiment is refused here
+    vertex = int(problem.test_points[point])
+    if scene.indentation.indenter == "vertex":
+        return model.vertex_dofs[[int(fe.vertex_map[vertex])]]
+    held = punch_footprint(problem.mesh, vertex, problem.normals[point],
+                           scene.indentation.radius, fixed=problem.fixed)
+    return model.surface_patch_dofs(*patch_on_fe_mesh(fe, problem.mesh, held))
+
+
 def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
                  fe: FEProblem | None = None) -> dict:
     """Arrays of one work item (keys as stored in its checkpoint part), at the particle
@@ -144,14 +159,16 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
         times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
         return {"time": times, "displacement": disp[:, at_particles]}
-    static_curve, relaxation_curve = indenter_experiments(scene)
-    vertex = int(at_particles[problem.test_points[item.point]])
+    dofs = indenter_dofs(model, scene, problem, fe, item.point)
     normal = problem.normals[item.point]  # refinement keeps it (coplanar sub-faces)
+    what = f"{scene.indentation.indenter} {item.kind} at vertex {problem.test_points[item.point]}"
     if item.kind == "indentation":
-        force = static_curve(model, fixed, vertex, normal, indentation_depths(scene.indentation))
+        force = experiments.held_indentation_curve(model, fixed, dofs, normal,
+                                                   indentation_depths(scene.indentation), what)
     else:
         times, depths = relaxation_schedule(scene.relaxation)
-        force = relaxation_curve(model, fixed, vertex, normal, times, depths)
+        force = experiments.held_relaxation_curve(model, fixed, dofs, normal, times, depths,
+                                                  what)
     return {"force": force}
 
 
