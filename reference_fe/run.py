@@ -105,7 +105,11 @@ def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
     normal, times, depths)`` and returns the (S, 3) indenter force, like
     :func:`~reference_fe.experiments.indentation_curve` and
     :func:`~reference_fe.experiments.relaxation_curve` (``"vertex"``) or their punch
-    versions with the scene's ``indentation.radius`` (``"punch"``).
+    versions with the scene's ``indentation.radius`` (``"punch"``: the footprint rule applied
+    on the given FE mesh, for a model on the particle mesh or on a mesh fitted to the disc).
+    The reference itself goes through :func:`indenter_dofs`, which on a refined FE mesh
+    holds the particle footprint's patch instead (the same punch as the particle model's);
+    at ``fe.refine = 0`` the two hold the same nodes.
 
     Raises:
         SceneError: an indenter with no FE experiment.
