@@ -46,6 +46,18 @@ def test_fe_punch_holds_every_node_of_its_footprint(element):
     x = _dof_coordinates(model, dofs)
     assert np.allclose(x[:, 2], 0.5)
     assert np.all(np.linalg.norm(x[:, :2] - 0.5, axis=1) <= 0.25 + 1e-12)
+    # on the particle mesh (fe.refine = 0) the reference's patch punch holds the same nodes
+    from forcecal.scene import load_scene, replace
+    from reference_fe.run import indenter_dofs
+
+    from tests.conftest import SCENES
+
+    scene = replace(load_scene(SCENES / "tiny.toml"), fe={"element": element},
+                    indentation={"indenter": "punch", "radius": 0.25})
+    problem = Problem(mesh=mesh, fixed=fixed, calibration=np.array([centre]),
+                      held_out=np.zeros(0, np.int64), tracked_node=centre)
+    patch = indenter_dofs(model, scene, problem, fe_problem(problem, scene.fe), 0)
+    assert np.array_equal(np.sort(patch, axis=0), np.sort(dofs, axis=0))
 
 
 def _quarter_halfspace(radius: float, h_rim: float, growth: float = 0.3) -> TetMesh:
