@@ -46,6 +46,7 @@ from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import Reference, check_reference_settings, read_reference, reference_digest
+from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -152,12 +153,16 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     # without relaxation data the evaluators still get the scene's schedule (never run)
     times, relax_depths = ((ref.relaxation.time, ref.relaxation.displacement) if relax
                            else relaxation_schedule(scene.relaxation))
-    linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals)
+    footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
+        mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
+        scene.indentation.radius))
+    linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals,
+                                footprints=footprints)
     depth = float(max(ref.indentation.displacement.max(),
                       relax_depths.max() if relax else 0.0))
     strain = strain_range(linear.strain, depth, settings.strain_margin)
     experiments = Experiments(problem, material.density, ref.indentation.displacement,
-                              times, relax_depths, strain.bounds)
+                              times, relax_depths, strain.bounds, footprints)
     fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal])
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)

@@ -15,6 +15,7 @@ it twice, one sparse solve per test point:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -56,9 +57,12 @@ def stiffness_matrix(mesh: TetMesh, stiffness: np.ndarray) -> sp.csc_matrix:
 
 
 def linear_indentation(mesh: TetMesh, fixed: np.ndarray, nodes: np.ndarray,
-                       normals: np.ndarray, stiffness: np.ndarray | None = None
-                       ) -> LinearIndentation:
+                       normals: np.ndarray, stiffness: np.ndarray | None = None,
+                       footprints: Sequence[np.ndarray] | None = None) -> LinearIndentation:
     """Indent each node along its normal (vertex fully prescribed, ``fixed`` clamped).
+
+    With ``footprints`` (one array of held vertices per node, a flat punch) every held
+    vertex is moved along the node's normal and the slope is the sum of their reactions.
 
     Args:
         mesh: the mesh (connectors = ``mesh.edges``).
@@ -74,13 +78,15 @@ def linear_indentation(mesh: TetMesh, fixed: np.ndarray, nodes: np.ndarray,
     slope = np.empty(len(nodes))
     strain = np.empty((len(nodes), len(e)))
     for p, (node, normal) in enumerate(zip(nodes, normals)):
+        punch = np.atleast_1d(node) if footprints is None else np.asarray(footprints[p])
+        punch_dofs = (3 * punch[:, None] + np.arange(3)).ravel()
         held = np.zeros(mesh.n_vertices, dtype=bool)
         held[fixed] = True
-        held[node] = True
+        held[punch] = True
         free_dofs = np.nonzero(np.repeat(~held, 3))[0]
         u = np.zeros(3 * mesh.n_vertices)
-        u[3 * node:3 * node + 3] = normal
-        rhs = -(K[free_dofs][:, 3 * node:3 * node + 3] @ normal)
+        u[punch_dofs] = np.tile(normal, len(punch))
+        rhs = -(K[free_dofs][:, punch_dofs] @ u[punch_dofs])
         try:
             u[free_dofs] = splu(K[free_dofs][:, free_dofs].tocsc()).solve(rhs)
         except RuntimeError as exc:  # "Factor is exactly singular"
@@ -88,7 +94,7 @@ def linear_indentation(mesh: TetMesh, fixed: np.ndarray, nodes: np.ndarray,
                             f"(singular stiffness: {exc})") from None
         if not np.all(np.isfinite(u)):
             raise MeshError(f"the connector network is not rigid when vertex {node} is indented")
-        slope[p] = normal @ (K[3 * node:3 * node + 3] @ u)
+        slope[p] = normal @ (K[punch_dofs] @ u).reshape(-1, 3).sum(axis=0)
         du = u.reshape(-1, 3)
         strain[p] = np.einsum("ij,ij->i", du[e[:, 1]] - du[e[:, 0]], direction) / mesh.edge_lengths
     return LinearIndentation(slope=slope, strain=strain)

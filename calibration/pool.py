@@ -56,6 +56,8 @@ class Experiments:
         relaxation_depths: (Sr,) float64, prescribed depth at those times [m].
         strain_range: (low, high) strains over which the spring K(eps) must stay
             positive (the evaluators refuse parameters that violate it).
+        footprints: per test point, the particles the indenter holds (a flat punch,
+            :func:`forcecal.indenter.indenter_footprints`); None: the test point alone.
     """
     problem: Problem
     density: float
@@ -63,6 +65,7 @@ class Experiments:
     times: np.ndarray
     relaxation_depths: np.ndarray
     strain_range: tuple[float, float]
+    footprints: tuple[np.ndarray, ...] | None = None
 
 
 class PointEvaluator(Protocol):
@@ -83,11 +86,13 @@ def particle_backend(experiments: Experiments, points: np.ndarray,
     model = build_model(p, experiments.density, params)
     nodes, normals = p.test_points[points], p.normals[points]
     strain = experiments.strain_range
+    held = (None if experiments.footprints is None
+            else [experiments.footprints[int(k)] for k in points])
     return {"indentation": IndentationEvaluator(model, nodes, normals, experiments.depths,
-                                                strain_range=strain),
+                                                strain_range=strain, footprints=held),
             "relaxation": RelaxationEvaluator(model, nodes, normals, experiments.times,
                                               experiments.relaxation_depths,
-                                              strain_range=strain)}
+                                              strain_range=strain, footprints=held)}
 
 
 @dataclass(frozen=True, eq=False)

@@ -22,6 +22,7 @@ import numpy as np
 
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings, local_params
 from forcecal.h5io import IndentationCurves, Reference, RelaxationCurves, write_reference
+from forcecal.indenter import indenter_footprints
 from forcecal.mesh import box_mesh
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
@@ -66,11 +67,17 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path)
     nodes, normals = problem.test_points, problem.normals
     depths = indentation_depths(scene.indentation)
     times, relax_depths = relaxation_schedule(scene.relaxation)
-    static = IndentationEvaluator(model, nodes, normals, depths).force_vectors(params)
-    relax = RelaxationEvaluator(model, nodes, normals, times, relax_depths).force_vectors(params)
+    ind = scene.indentation
+    held = indenter_footprints(problem.mesh, problem.fixed, nodes, normals, ind.indenter,
+                               ind.radius)
+    static = IndentationEvaluator(model, nodes, normals, depths,
+                                  footprints=held).force_vectors(params)
+    relax = RelaxationEvaluator(model, nodes, normals, times, relax_depths,
+                                footprints=held).force_vectors(params)
     normal = lambda f: np.einsum("psc,pc->ps", f, normals)  # noqa: E731
     ref = Reference(problem=problem, material=scene.material,
-                    indentation=IndentationCurves(depths, static, normal(static)),
+                    indentation=IndentationCurves(depths, static, normal(static),
+                                                  indenter=ind.indenter, radius=ind.radius),
                     relaxation=RelaxationCurves(times, relax_depths, relax, normal(relax)),
                     gravity=None, meta={"source": "particle model (synthetic reference)"})
     write_reference(path, ref)

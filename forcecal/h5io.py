@@ -236,6 +236,7 @@ class IndentationCurves:
     force: np.ndarray
     force_normal: np.ndarray
     indenter: str = "vertex"  # ``indentation.indenter`` (relaxation uses the same one)
+    radius: float = 0.0  # ``indentation.radius`` [m] (punch; 0 for the vertex)
 
 
 @dataclass(frozen=True, eq=False)
@@ -335,6 +336,9 @@ def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> 
     if ref.indentation.indenter != scene.indentation.indenter:
         differ.append(f"indentation.indenter = {ref.indentation.indenter!r} "
                       f"(scene: {scene.indentation.indenter!r})")
+    if ref.indentation.radius != scene.indentation.radius:
+        differ.append(f"indentation.radius = {ref.indentation.radius!r} "
+                      f"(scene: {scene.indentation.radius!r})")
     if ref.fe is not None:
         compare("fe", ref.fe, scene.fe, tuple(f.name for f in dataclasses.fields(FESection)))
     # a reference may hold gravity runs the scene does not ask for (a superset): not compared
@@ -425,6 +429,7 @@ def write_reference(path: str | Path, ref: Reference) -> None:
             write_section(fh.create_group("fe"), ref.fe)
         g = fh.create_group("indentation")
         g.attrs["indenter"] = ind.indenter
+        g.attrs["radius"] = float(ind.radius)
         put(g, "displacement", ind.displacement, "m", "depth along the inward normal (S,)")
         put(g, "force", ind.force, "N", "indenter force on the test vertex (P, S, 3)")
         put(g, "force_normal", ind.force_normal, "N", "force . inward normal (P, S)")
@@ -468,7 +473,9 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
         ind = IndentationCurves(d, get(fh, "indentation/force", (n_pts, len(d), 3), dtype="float"),
                                 get(fh, "indentation/force_normal", (n_pts, len(d)),
                                     dtype="float"),
-                                indenter=str(attr(group(fh, "indentation"), "indenter")))
+                                indenter=str(attr(group(fh, "indentation"), "indenter")),
+                                # files written before the punch have no radius: a vertex's 0
+                                radius=float(group(fh, "indentation").attrs.get("radius", 0.0)))
         stored = stored_experiments(fh)
         rel, t = None, None
         if "relaxation" in stored:

@@ -114,7 +114,13 @@ class TestPointsSection:
 @dataclass(frozen=True)
 class IndentationSection:
     indenter: str = key("vertex", "'vertex': the test vertex itself is displaced along its inward "
-                        "normal (the paper's definition)", choices=("vertex",))
+                        "normal (the paper's definition); 'punch': a rigid, bonded, flat circular "
+                        "punch of indentation.radius centred on it (forcecal/indenter.py)",
+                        choices=("vertex", "punch"))
+    radius: float = key(0.0, "punch radius (indenter = 'punch' only, then > 0): its footprint is "
+                        "the surface nodes within this distance of the test vertex in its tangent "
+                        "plane, facing the same way and connected to it by surface edges", "m",
+                        minimum=0.0)
     depth: float = key(0.005, "final indentation depth", "m", exclusive_minimum=0.0)
     steps: int = key(10, "quasi-static displacement steps = samples of the force curve", minimum=10)
 
@@ -173,6 +179,10 @@ class FESection:
                        choices=("P1", "P2", "TH"))
     quadrature_degree: int = key(4, "quadrature degree of the residual and of the Prony "
                                  "internal variables", minimum=1)
+    refine: int = key(0, "uniform refinements of the particle mesh the FE reference runs on "
+                      "(each splits every tet into 8, keeps the original vertices; results are "
+                      "read back at them); the FE mesh is independent of the particle mesh",
+                      minimum=0)
     newton_rtol: float = key(1e-8, "Newton relative tolerance", exclusive_minimum=0.0)
     newton_atol: float = key(1e-10, "Newton absolute tolerance", exclusive_minimum=0.0)
     newton_max_it: int = key(25, "Newton iteration limit before the step is cut", minimum=1)
@@ -452,6 +462,13 @@ def _cross_checks(scene: Scene, origin: str) -> None:
     if isinstance(scene.gravity.tracked_node, str) and scene.gravity.tracked_node not in TRACKED_RULES:
         raise SceneError(f"{origin}: gravity.tracked_node must be one of {list(TRACKED_RULES)} "
                          "or a vertex id")
+    ind = scene.indentation
+    if ind.indenter == "punch" and not ind.radius > 0:
+        raise SceneError(f"{origin}: indentation.radius = {ind.radius} m must be > 0 for "
+                         "indentation.indenter = 'punch'")
+    if ind.indenter == "vertex" and ind.radius != 0:
+        raise SceneError(f"{origin}: indentation.radius = {ind.radius} m is set but "
+                         "indentation.indenter = 'vertex' has no radius (use 'punch')")
     p = scene.particle
     if isinstance(p.dt, str) and p.dt != "auto":
         raise SceneError(f"{origin}: particle.dt must be 'auto' or a number of seconds, "

@@ -6,7 +6,8 @@ with many parameter sets (one per call, or a sequence of them in one call,
 exactly the samples the FE reference uses (sign conventions as in the README:
 the test vertex is pushed along its inward normal by depth d >= 0, the
 reported force is the force the indenter applies to it, ``force_normal =
-force . inward_normal``; no gravity).
+force . inward_normal``; no gravity). A flat punch holds several particles (its
+footprint, all moved by ``depth * normal``) and its force is the sum of their reactions.
 
 Each test point keeps a cache: its Newton solver with the last LU
 factorisation, and the equilibria of the previous call, which warm-start the
@@ -35,9 +36,11 @@ class _PointEvaluator:
     """Test points, their caches, parameter checks; subclasses define one point's curve."""
 
     def __init__(self, model: Model, nodes: np.ndarray, normals: np.ndarray,
-                 depths: np.ndarray, *, strain_range: tuple[float, float] | None, rtol: float):
+                 depths: np.ndarray, *, strain_range: tuple[float, float] | None, rtol: float,
+                 footprints: Sequence[np.ndarray] | None = None):
         self.model = model
         self.nodes = model.check_nodes(nodes, "test points")
+        self.footprints = self._check_footprints(footprints)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         if len(normals) != len(self.nodes):
             raise ParameterError(f"{len(self.nodes)} test points but {len(normals)} normals")
@@ -72,6 +75,21 @@ class _PointEvaluator:
         self._warm.clear()
         self._factors.clear()
 
+    def _check_footprints(self, footprints: Sequence[np.ndarray] | None) -> tuple[np.ndarray, ...]:
+        """Held particles of each test point (default: the point alone, the paper's indenter)."""
+        if footprints is None:
+            return tuple(self.nodes[k:k + 1] for k in range(len(self.nodes)))
+        if len(footprints) != len(self.nodes):
+            raise ParameterError(f"{len(self.nodes)} test points but {len(footprints)} "
+                                 "footprints")
+        out = []
+        for node, held in zip(self.nodes, footprints):
+            held = self.model.check_nodes(held, f"footprint of test point {node}")
+            if node not in held:
+                raise ParameterError(f"the footprint of test point {node} does not hold it")
+            out.append(held)
+        return tuple(out)
+
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_factors"] = {}  # LU factorisations do not pickle; rebuilt on demand
@@ -89,7 +107,7 @@ class _PointEvaluator:
 
     def _solver(self, k: int) -> EquilibriumSolver:
         if k not in self._solvers:
-            self._solvers[k] = EquilibriumSolver(self.model, self.nodes[k:k + 1], self._pattern,
+            self._solvers[k] = EquilibriumSolver(self.model, self.footprints[k], self._pattern,
                                                  rtol=self.rtol)
         return self._solvers[k]
 
@@ -162,7 +180,12 @@ class _PointEvaluator:
         return warm[s] if s == 0 else warm[s] + (solutions[s - 1] - warm[s - 1])
 
     def _target(self, k: int, depth: float) -> np.ndarray:
-        return self.model.rest_positions[self.nodes[k]] + depth * self.normals[k]
+        """(K, 3) positions of point ``k``'s held particles at ``depth`` [m]."""
+        return self.model.rest_positions[self.footprints[k]] + depth * self.normals[k]
+
+    def _force(self, eq: Equilibrium, k: int) -> np.ndarray:
+        """(3,) indenter force [N]: the sum of the held particles' reactions."""
+        return eq.reaction(self.footprints[k]).sum(axis=0)
 
 
 class IndentationEvaluator(_PointEvaluator):
@@ -176,21 +199,27 @@ class IndentationEvaluator(_PointEvaluator):
         strain_range: range over which K(eps) must stay positive; default
             +-(max depth / shortest connector at a test point).
         rtol: Newton tolerance relative to the indenter force.
+        footprints: (P,) arrays of the particles each indenter holds (the test point
+            among them), all moved by ``depth * normal``; the force is the sum of their
+            reactions (a flat punch, :func:`forcecal.indenter.indenter_footprints`).
+            None: the test point alone (the paper's indenter).
     """
 
     def __init__(self, model: Model, nodes: np.ndarray, normals: np.ndarray, depths: np.ndarray,
-                 *, strain_range: tuple[float, float] | None = None, rtol: float = 1e-8):
-        super().__init__(model, nodes, normals, depths, strain_range=strain_range, rtol=rtol)
+                 *, strain_range: tuple[float, float] | None = None, rtol: float = 1e-8,
+                 footprints: Sequence[np.ndarray] | None = None):
+        super().__init__(model, nodes, normals, depths, strain_range=strain_range, rtol=rtol,
+                         footprints=footprints)
 
     def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
         solver = self._solver(k)
-        node = self.nodes[k]
+        node, held = self.nodes[k], self.footprints[k]
         warm = self._warm.get(k)
         params = model.params
 
         def solve_at(x: np.ndarray, depth: float) -> Equilibrium:
             guess = x.copy()
-            guess[node] = self._target(k, depth)
+            guess[held] = self._target(k, depth)
             return solver.solve(guess, params)
 
         def step(eq: Equilibrium, _: float, depth: float) -> Equilibrium:
@@ -212,7 +241,7 @@ class IndentationEvaluator(_PointEvaluator):
             check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             reached = depth
             solutions[s] = eq.x
-            forces[s] = eq.reaction(node)
+            forces[s] = self._force(eq, k)
         self._warm[k] = solutions
         return forces
 
@@ -242,15 +271,16 @@ class RelaxationEvaluator(_PointEvaluator):
     runs keep the paper's recursion.
 
     Args:
-        model, nodes, normals, strain_range, rtol: as :class:`IndentationEvaluator`.
+        model, nodes, normals, strain_range, rtol, footprints: as :class:`IndentationEvaluator`.
         times: (S,) increasing sample times [s] (first > 0; the test starts at rest at 0).
         depths: (S,) indentation depth at those times [m].
     """
 
     def __init__(self, model: Model, nodes: np.ndarray, normals: np.ndarray, times: np.ndarray,
                  depths: np.ndarray, *, strain_range: tuple[float, float] | None = None,
-                 rtol: float = 1e-8):
-        super().__init__(model, nodes, normals, depths, strain_range=strain_range, rtol=rtol)
+                 rtol: float = 1e-8, footprints: Sequence[np.ndarray] | None = None):
+        super().__init__(model, nodes, normals, depths, strain_range=strain_range, rtol=rtol,
+                         footprints=footprints)
         times = np.asarray(times, dtype=np.float64).reshape(-1)
         if times.shape != self.depths.shape or not np.all(np.diff(np.r_[0.0, times]) > 0):
             raise ParameterError("relaxation times must be increasing, > 0 and match the depths")
@@ -262,7 +292,7 @@ class RelaxationEvaluator(_PointEvaluator):
 
     def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
         solver = self._solver(k)
-        node = self.nodes[k]
+        node, held = self.nodes[k], self.footprints[k]
         params = model.params
         warm = self._warm.get(k)
         times = np.r_[0.0, self.times]
@@ -277,13 +307,13 @@ class RelaxationEvaluator(_PointEvaluator):
                 full = (t0, t1) == whole
                 guess = (self._warm_guess(warm, solutions, sample) if full and warm is not None
                          else eq.x).copy()
-                guess[node] = self._target(k, np.interp(t1, times, depths))
+                guess[held] = self._target(k, np.interp(t1, times, depths))
                 coeffs = prepared[sample] if full else params.arm_recursion(t1 - t0, exact=True)
                 return solver.solve(guess, params, arms=ArmStep(*coeffs, eq.arm_force, eq.dx))
 
             eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
             check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             solutions[sample] = eq.x
-            forces[sample] = eq.reaction(node)
+            forces[sample] = self._force(eq, k)
         self._warm[k] = solutions
         return forces

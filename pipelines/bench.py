@@ -83,6 +83,7 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 STUDIES: dict[str, str] = {
     "experiments": "pipelines.bench_experiments:study",
     "haptic scale": "pipelines.bench_haptic:study",
+    "fe_convergence": "pipelines.fe_convergence:study",
 }
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}

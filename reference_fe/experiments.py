@@ -1,7 +1,8 @@
 """The four experiments of the FE reference, each a march of Newton steps with step cutting.
 
 * :func:`indentation_curve` - one vertex pushed along its inward normal,
-  quasi-static, long-term material, no gravity.
+  quasi-static, long-term material, no gravity; :func:`punch_indentation_curve`
+  the same with a rigid flat punch (every FE node of its footprint held).
 * :func:`relaxation_curve` - ramp-and-hold indentation, quasi-static (no
   inertia, like a static analysis with a time-dependent material), viscoelastic.
 * :func:`gravity_static` - sag under gravity, long-term material, load-stepped.
@@ -25,8 +26,9 @@ import numpy as np
 
 from forcecal.errors import ConvergenceError, SceneError, StabilityError
 from forcecal.schedules import record_times
+from forcecal.indenter import footprint_edges, punch_footprint
 from reference_fe.model import (FEModel, FEState, Load, StepFailed, clamp, initial_state,
-                                nodal_force, prescribe_vertex, solve_step)
+                                prescribe_dofs, solve_step)
 
 log = logging.getLogger(__name__)
 
@@ -100,34 +102,46 @@ def extrapolate(state: FEState, previous: FEState | None, drive: Callable[[float
     return state.u + ratio * (state.u - previous.u)
 
 
-def _indent(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+def _indent(model: FEModel, fixed: np.ndarray, dofs: np.ndarray, normal: np.ndarray,
             depth: float) -> Load:
-    return Load(clamp(model.clamp_dofs(fixed)) + prescribe_vertex(model, vertex, depth * normal))
+    return Load(clamp(model.clamp_dofs(fixed)) + prescribe_dofs(dofs, depth * normal))
 
 
-def indentation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
-                      depths: np.ndarray) -> np.ndarray:
-    """(S, 3) force the indenter applies to ``vertex`` at each depth [N] (long-term material).
+def punch_dofs(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+               radius: float) -> np.ndarray:
+    """(K, 3) dofs a rigid flat punch of ``radius`` [m] centred on ``vertex`` holds: every FE
+    node of its footprint (:func:`forcecal.indenter.punch_footprint` on the FE mesh; for
+    P2/TH the mid-edge nodes of the surface edges between two footprint vertices too)."""
+    nodes = punch_footprint(model.mesh, vertex, normal, radius, fixed=fixed, min_nodes=1)
+    return model.surface_patch_dofs(nodes, footprint_edges(model.mesh, nodes))
+
+
+def held_indentation_curve(model: FEModel, fixed: np.ndarray, dofs: np.ndarray,
+                           normal: np.ndarray, depths: np.ndarray, what: str) -> np.ndarray:
+    """(S, 3) total force on the held nodes ``dofs`` (K, 3), all moved by ``depth * normal``,
+    at each depth [N] (long-term material): the sum of their reactions.
 
     Args:
         fixed: (F,) clamped vertex ids.
-        normal: (3,) inward unit normal; the vertex is moved by ``depth * normal``.
+        normal: (3,) inward unit normal.
         depths: (S,) increasing depths > 0 [m].
+        what: names the experiment in a ConvergenceError.
     """
     def step(state: FEState, previous: FEState | None, depth: float) -> FEState:
         guess = extrapolate(state, previous, float, depth)
-        return solve_step(model, state, _indent(model, fixed, vertex, normal, depth), depth,
+        return solve_step(model, state, _indent(model, fixed, dofs, normal, depth), depth,
                           dt=None, guess=guess)
 
     states = march(initial_state(model), np.asarray(depths, float), step,
-                   max_cuts=model.fe.max_step_cuts, what=f"indentation of vertex {vertex}",
-                   unit="m")
-    return np.array([nodal_force(model, s, vertex) for s in states])
+                   max_cuts=model.fe.max_step_cuts, what=what, unit="m")
+    return np.array([s.force[dofs].sum(axis=0) for s in states])
 
 
-def relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
-                     times: np.ndarray, depths: np.ndarray) -> np.ndarray:
-    """(S, 3) indenter force at each sample time of a ramp-and-hold test [N] (viscoelastic).
+def held_relaxation_curve(model: FEModel, fixed: np.ndarray, dofs: np.ndarray,
+                          normal: np.ndarray, times: np.ndarray, depths: np.ndarray,
+                          what: str) -> np.ndarray:
+    """(S, 3) total force on the held nodes ``dofs`` at each sample time of a ramp-and-hold
+    test [N] (viscoelastic).
 
     The depth follows the piecewise-linear history through (0, 0) and the
     samples ``(times, depths)`` (from :func:`forcecal.schedules.relaxation_schedule`),
@@ -141,12 +155,42 @@ def relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.
 
     def step(state: FEState, previous: FEState | None, t: float) -> FEState:
         guess = extrapolate(state, previous, depth_at, t)
-        return solve_step(model, state, _indent(model, fixed, vertex, normal, depth_at(t)), t,
+        return solve_step(model, state, _indent(model, fixed, dofs, normal, depth_at(t)), t,
                           dt=t - state.progress, guess=guess)
 
     states = march(initial_state(model), t_knots[1:], step, max_cuts=model.fe.max_step_cuts,
-                   what=f"relaxation of vertex {vertex}", unit="s")
-    return np.array([nodal_force(model, s, vertex) for s in states])
+                   what=what, unit="s")
+    return np.array([s.force[dofs].sum(axis=0) for s in states])
+
+
+def indentation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+                      depths: np.ndarray) -> np.ndarray:
+    """(S, 3) force the indenter applies to ``vertex`` at each depth [N] (long-term material):
+    the paper's indenter, the vertex itself moved by ``depth * normal``."""
+    return held_indentation_curve(model, fixed, model.vertex_dofs[[vertex]], normal, depths,
+                                  f"indentation of vertex {vertex}")
+
+
+def relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+                     times: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """(S, 3) indenter force on ``vertex`` at each sample time of a ramp-and-hold test [N]."""
+    return held_relaxation_curve(model, fixed, model.vertex_dofs[[vertex]], normal, times,
+                                 depths, f"relaxation of vertex {vertex}")
+
+
+def punch_indentation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+                            depths: np.ndarray, *, radius: float) -> np.ndarray:
+    """(S, 3) force of a rigid flat punch of ``radius`` [m] centred on ``vertex`` pushed to each
+    depth along ``normal`` [N]: the sum of the reactions of its footprint (:func:`punch_dofs`)."""
+    return held_indentation_curve(model, fixed, punch_dofs(model, fixed, vertex, normal, radius),
+                                  normal, depths, f"punch indentation at vertex {vertex}")
+
+
+def punch_relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
+                           times: np.ndarray, depths: np.ndarray, *, radius: float) -> np.ndarray:
+    """(S, 3) punch force at each sample time of a ramp-and-hold test [N] (viscoelastic)."""
+    return held_relaxation_curve(model, fixed, punch_dofs(model, fixed, vertex, normal, radius),
+                                 normal, times, depths, f"punch relaxation at vertex {vertex}")
 
 
 def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,

@@ -292,6 +292,16 @@ class FEModel:
         edge_ids = _edge_entities(self.domain, self._vertex_entity[edges])
         return np.concatenate([dofs, self._component_dofs(1, edge_ids)])
 
+    def surface_patch_dofs(self, vertices: np.ndarray, edges: np.ndarray) -> np.ndarray:
+        """(K, 3) int32 dofs of a patch of nodes: the vertices' own and, for P2/TH, the
+        mid-edge dofs of ``edges`` (E', 2) vertex pairs (a punch face: every FE node on it)."""
+        dofs = self.vertex_dofs[np.asarray(vertices, dtype=np.int64)]
+        edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        if self.fe.element == "P1" or len(edges) == 0:
+            return dofs
+        edge_ids = _edge_entities(self.domain, self._vertex_entity[edges])
+        return np.concatenate([dofs, self._component_dofs(1, edge_ids)])
+
     def set_history(self, values: np.ndarray) -> None:
         """Store (n_cells, n_qp, 9) tensors [Pa] as the stress term H of the residual form."""
         self._hist.x.array.reshape(-1, 9)[self._qdofs] = values.reshape(-1, 9)
@@ -310,11 +320,9 @@ def clamp(dofs: np.ndarray) -> tuple[Constraint, ...]:
     return tuple(Constraint(k, dofs[:, k], 0.0) for k in range(3))
 
 
-def prescribe_vertex(model: FEModel, vertex: int,
-                     displacement: np.ndarray) -> tuple[Constraint, ...]:
-    """Constraints moving mesh vertex ``vertex`` by ``displacement`` (3,) [m]."""
-    dofs = model.vertex_dofs[vertex]
-    return tuple(Constraint(k, dofs[k:k + 1], float(displacement[k])) for k in range(3))
+def prescribe_dofs(dofs: np.ndarray, displacement: np.ndarray) -> tuple[Constraint, ...]:
+    """Constraints moving every node of (K, 3) ``dofs`` by the same ``displacement`` (3,) [m]."""
+    return tuple(Constraint(k, dofs[:, k], float(displacement[k])) for k in range(3))
 
 
 def initial_state(model: FEModel) -> FEState:
@@ -431,17 +439,6 @@ def _rest_force(model: FEModel, state: FEState) -> np.ndarray:
         raise ParameterError("a dynamic run without a stored force must start from rest")
     model.w.x.array[:] = state.u
     return _assemble_residual(model)
-
-
-def nodal_force(model: FEModel, state: FEState, vertex: int) -> np.ndarray:
-    """(3,) force applied to mesh vertex ``vertex`` to hold the converged ``state`` [N].
-
-    The residual assembled without Dirichlet rows is the nodal internal force
-    minus the body force; at a prescribed vertex of a quasi-static step the
-    indenter supplies it, so this is the force the indenter applies (positive
-    along the inward normal when pushing in).
-    """
-    return state.force[model.vertex_dofs[vertex]]
 
 
 def _vertex_entities(domain: dmesh.Mesh) -> np.ndarray:

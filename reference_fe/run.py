@@ -26,6 +26,7 @@ this run computed).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import os
@@ -49,12 +50,14 @@ from forcecal.cost import check_cost
 from forcecal.failures import collective
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            atomic_path, read_reference, write_reference)
+from forcecal.indenter import indenter_footprints, punch_footprint
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from reference_fe import experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
+from reference_fe.refine import FEProblem, check_memory, fe_problem, patch_on_fe_mesh
 
 log = logging.getLogger(__name__)
 
@@ -110,10 +113,14 @@ def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
     """The FE experiments of ``indentation.indenter``: (static curve, relaxation curve).
 
     Each takes ``(model, fixed, vertex, normal, depths)`` or ``(model, fixed, vertex,
-    normal, times, depths)`` and returns the (S, 3) force on the test vertex, like
+    normal, times, depths)`` and returns the (S, 3) indenter force, like
     :func:`~reference_fe.experiments.indentation_curve` and
-    :func:`~reference_fe.experiments.relaxation_curve`. A physical indenter (a rigid
-    sphere or flat punch with local refinement) is another branch here.
+    :func:`~reference_fe.experiments.relaxation_curve` (``"vertex"``) or their punch
+    versions with the scene's ``indentation.radius`` (``"punch"``: the footprint rule applied
+    on the given FE mesh, for a model on the particle mesh or on a mesh fitted to the disc).
+    The reference itself goes through :func:`indenter_dofs`, which on a refined FE mesh
+    holds the particle footprint's patch instead (the same punch as the particle model's);
+    at ``fe.refine = 0`` the two hold the same nodes.
 
     Raises:
         SceneError: an indenter with no FE experiment.
@@ -121,29 +128,62 @@ def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
     indenter = scene.indentation.indenter
     if indenter == "vertex":  # the test vertex itself is displaced along its inward normal
         return experiments.indentation_curve, experiments.relaxation_curve
+    if indenter == "punch":  # every FE node of the footprint is held (forcecal.indenter)
+        radius = scene.indentation.radius
+        return (functools.partial(experiments.punch_indentation_curve, radius=radius),
+                functools.partial(experiments.punch_relaxation_curve, radius=radius))
     raise SceneError(f"indentation.indenter = {indenter!r}: the FE reference has no experiment "
-                     "for it (known: 'vertex')")
+                     "for it (known: 'vertex', 'punch')")
 
 
-def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem) -> dict:
-    """Arrays of one work item (keys as stored in its checkpoint part)."""
+def check_indenter(scene: Scene, problem: Problem) -> None:
+    """Refuse, before any FE work, a punch whose footprint on the particle mesh holds fewer than
+    3 particles or touches the clamp (SceneError naming ``indentation.radius``)."""
+    ind = scene.indentation
+    indenter_footprints(problem.mesh, problem.fixed, problem.test_points, problem.normals,
+                        ind.indenter, ind.radius)
+
+
+def indenter_dofs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem,
+                  point: int) -> np.ndarray:
+    """(K, 3) FE dofs the indenter of test point ``point`` (index into ``problem.test_points``)
+    holds: the vertex (``"vertex"``), or every FE node of the particle footprint's surface
+    patch (``"punch"``, :func:`~reference_fe.refine.patch_on_fe_mesh`: at ``fe.refine = 0``
+    the footprint's vertices and the mid-edge nodes of the surface edges between them)."""
+    indenter_experiments(scene)  # an indenter without FE experiment is refused here
+    vertex = int(problem.test_points[point])
+    if scene.indentation.indenter == "vertex":
+        return model.vertex_dofs[[int(fe.vertex_map[vertex])]]
+    held = punch_footprint(problem.mesh, vertex, problem.normals[point],
+                           scene.indentation.radius, fixed=problem.fixed)
+    return model.surface_patch_dofs(*patch_on_fe_mesh(fe, problem.mesh, held))
+
+
+def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
+                 fe: FEProblem | None = None) -> dict:
+    """Arrays of one work item (keys as stored in its checkpoint part), at the particle
+    vertices; ``fe`` is the FE mesh's problem ``model`` was built on (default: ``problem``
+    itself, ``fe.refine = 0``)."""
+    fe = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0) if fe is None else fe
+    fixed, at_particles = fe.problem.fixed, fe.vertex_map
     g = scene.gravity
     if item.kind == "gravity_static":
-        return {"displacement": experiments.gravity_static(model, problem.fixed, g.acceleration,
-                                                           g.static_load_steps)}
+        disp = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps)
+        return {"displacement": disp[at_particles]}
     if item.kind == "gravity_dynamic":
-        times, disp = experiments.gravity_dynamic(model, problem.fixed, g.acceleration,
+        times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
-        return {"time": times, "displacement": disp}
-    static_curve, relaxation_curve = indenter_experiments(scene)
-    vertex = int(problem.test_points[item.point])
-    normal = problem.normals[item.point]
+        return {"time": times, "displacement": disp[:, at_particles]}
+    dofs = indenter_dofs(model, scene, problem, fe, item.point)
+    normal = problem.normals[item.point]  # refinement keeps it (coplanar sub-faces)
+    what = f"{scene.indentation.indenter} {item.kind} at vertex {problem.test_points[item.point]}"
     if item.kind == "indentation":
-        force = static_curve(model, problem.fixed, vertex, normal,
-                             indentation_depths(scene.indentation))
+        force = experiments.held_indentation_curve(model, fixed, dofs, normal,
+                                                   indentation_depths(scene.indentation), what)
     else:
         times, depths = relaxation_schedule(scene.relaxation)
-        force = relaxation_curve(model, problem.fixed, vertex, normal, times, depths)
+        force = experiments.held_relaxation_curve(model, fixed, dofs, normal, times, depths,
+                                                  what)
     return {"force": force}
 
 
@@ -346,6 +386,8 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         check_cost(scene, problem.mesh.n_vertices, len(problem.mesh.edges))
     except SceneError as exc:  # every rank decides the same
         raise collective(exc) from None
+    check_indenter(scene, problem)
+    check_memory(problem.mesh, scene.fe, comm.size)  # a refinement that cannot fit: refused
     keys = run_keys(scene, problem)
     parts = _Parts(out_path, keys)
     previous: dict[str, dict] = {}
@@ -428,7 +470,7 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
 
 def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
                        bar: _Progress) -> tuple[tuple[str, str] | None, float, list[str]]:
-    model, build_seconds, computed = None, 0.0, []
+    model, fe, build_seconds, computed = None, None, 0.0, []
     for item in items:
         if parts.failed:  # another rank failed: stop early, its message is reported
             break
@@ -437,10 +479,11 @@ def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], pa
         t0 = time.perf_counter()
         try:
             if model is None:
-                model = FEModel(problem.mesh, scene.material, scene.fe)
+                fe = fe_problem(problem, scene.fe)
+                model = FEModel(fe.problem.mesh, scene.material, scene.fe)
                 build_seconds = time.perf_counter() - t0
                 t0 = time.perf_counter()
-            arrays = compute_item(model, scene, problem, item)
+            arrays = compute_item(model, scene, problem, item, fe)
         except experiments.Stopped:
             raise
         except Exception as exc:  # reported on every rank, not left to hang the others
@@ -549,5 +592,6 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
     return Reference(
         problem=problem, material=scene.material,
         indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind,
-                                      normal(f_ind), indenter=scene.indentation.indenter),
+                                      normal(f_ind), indenter=scene.indentation.indenter,
+                                      radius=scene.indentation.radius),
         relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe)

@@ -26,67 +26,17 @@ import time
 from typing import Sequence
 
 import numpy as np
-import ufl
-from dolfinx import mesh as dmesh
-from mpi4py import MPI
 
-from forcecal.errors import ForcecalError, MeshError
+from forcecal.errors import ForcecalError
 from forcecal.logs import configure_logging
-from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths
 from reference_fe import experiments
 from reference_fe.model import FEModel
+from reference_fe.refine import refine_problem, refine_uniformly  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
-
-
-def refine_uniformly(mesh: TetMesh) -> TetMesh:
-    """Every tet split into 8 (dolfinx's plaza refinement); original vertices are kept."""
-    cell = ufl.Mesh(ufl.VectorElement("Lagrange", "tetrahedron", 1))
-    coarse = dmesh.create_mesh(MPI.COMM_SELF, mesh.tets, mesh.vertices, cell)
-    coarse.topology.create_entities(1)
-    fine = dmesh.refine(coarse, redistribute=False)
-    vertices = fine.geometry.x[:, :3].copy()
-    tets = fine.geometry.dofmap.array.reshape(-1, 4).astype(np.int64)
-    x = vertices[tets]
-    volume = np.einsum("ij,ij->i", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]),
-                       x[:, 3] - x[:, 0])
-    tets[volume < 0] = tets[volume < 0][:, [0, 2, 1, 3]]  # dolfinx does not orient cells
-    return check_mesh(TetMesh(vertices, tets))
-
-
-def _vertex_ids(mesh: TetMesh, points: np.ndarray) -> np.ndarray:
-    """Ids of the vertices of ``mesh`` at coordinates ``points`` (MeshError if one is missing)."""
-    from scipy.spatial import cKDTree
-
-    distance, ids = cKDTree(mesh.vertices).query(points)
-    scale = np.ptp(mesh.vertices, axis=0).max()
-    if np.any(distance > 1e-9 * scale):
-        raise MeshError("refined mesh lost a test point vertex")
-    return ids
-
-
-def _refined_problem(problem: Problem, points: np.ndarray) -> tuple[Problem, np.ndarray]:
-    """The problem on the refined mesh and the refined ids of ``points``.
-
-    The clamped set is the coarse P2 one: the fixed vertices and the midpoints
-    of the edges joining two of them (re-applying the fixed-node rule's distance
-    tolerance to the finer mesh could catch new vertices above the base).
-    """
-    coarse = problem.mesh
-    fine = refine_uniformly(coarse)
-    is_fixed = np.zeros(coarse.n_vertices, dtype=bool)
-    is_fixed[problem.fixed] = True
-    base_edges = coarse.edges[is_fixed[coarse.edges].all(axis=1)]
-    clamped = np.concatenate([coarse.vertices[problem.fixed],
-                              coarse.vertices[base_edges].mean(axis=1)])
-    ids = _vertex_ids(fine, coarse.vertices[points])
-    tracked = _vertex_ids(fine, coarse.vertices[[problem.tracked_node]])[0]
-    refined = Problem(mesh=fine, fixed=np.sort(_vertex_ids(fine, clamped)), calibration=ids,
-                      held_out=np.zeros(0, np.int64), tracked_node=int(tracked))
-    return refined, ids
 
 
 def _measure(scene: Scene, problem: Problem, points: np.ndarray, normals: np.ndarray,
@@ -141,7 +91,8 @@ def discretisation_study(scene: Scene, points: Sequence[int] | None = None, *,
     variants.update({f"P1 q={q}": ("coarse", {"element": "P1"}),
                      f"TH q={q}": ("coarse", {"element": "TH"}),
                      f"P2 q={q} refined": ("refined", {"element": "P2"})})
-    refined, refined_points = _refined_problem(problem, points)
+    refined, vertex_map = refine_problem(problem, points)
+    refined_points = vertex_map[points]
     results = {}
     for label, (which, changes) in variants.items():
         log.info("discretisation study: %s", label)

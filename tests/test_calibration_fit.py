@@ -400,3 +400,28 @@ def test_mpi_ranks_give_the_serial_result(box, nonuniform, tmp_path):
     assert "MpiTransport" in done.stderr
     result = read_params(out)
     _assert_same_fit(result, reference_run)
+
+
+def test_punch_calibration_recovers_uniform_parameters(tmp_path):
+    """A scene with ``indenter = "punch"``: the reference holds every particle of each
+    footprint (5 on this grid) and so does the calibration, which recovers the parameters."""
+    scene = box_scene(tmp_path, cells=(4, 4, 3), size=(0.08, 0.08, 0.03),
+                      test_points={"n_calibration": 4, "n_held_out": 8,
+                                   "calibration": [27, 35, 67, 75],
+                                   "held_out": [11, 31, 43, 47, 51, 55, 59, 71]},
+                      indentation={"depth": 0.002, "indenter": "punch", "radius": 0.02},
+                      relaxation={"depth": 0.002}, calibration={**SETTINGS, "local": False})
+    problem = build_problem(scene)
+    assert np.allclose(problem.mesh.vertices[problem.test_points, 2], 0.03)  # the top face
+    true = TRUE_GLOBAL.connector_params(len(problem.mesh.edges))
+    reference = synthetic_reference(scene, true, tmp_path / "reference.h5")
+    vertex = synthetic_reference(replace(scene, indentation={"indenter": "vertex", "radius": 0.0}),
+                                 true, tmp_path / "vertex.h5")
+    # a punch of 5 particles pushes back much harder than its centre alone
+    assert np.all(reference.indentation.force_normal > 2 * vertex.indentation.force_normal)
+    result = calibrate(scene, tmp_path / "reference.h5", tmp_path / "params.h5", progress=False)
+    got, want = result.global_params.as_dict(), TRUE_GLOBAL.as_dict()
+    for k in ("K0", "k1", "tau1", "k2", "tau2"):
+        assert got[k] == pytest.approx(want[k], rel=1e-3), k
+    for experiment in ("indentation", "relaxation"):
+        assert result.variants["global"].errors[experiment].max() < 1e-4

@@ -49,14 +49,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from forcecal.errors import (ConvergenceError, DataFileError, ForcecalError, MeshError,
+from forcecal.errors import (ConvergenceError, DataFileError, MeshError,
                              ParameterError, SceneError, StabilityError)
 from forcecal.failures import INTERRUPTED, Interrupted, run_command
 from forcecal.mesh import box_mesh
 from forcecal.scene import SECTIONS, load_scene
 from pipelines import stages
 from pipelines.cli import main as pipelines_main
-from tests.conftest import ROOT, SCENES
+from tests.conftest import SCENES
 
 TINY = tomllib.loads((SCENES / "tiny.toml").read_text())
 CASES = {"table": 0, "fault": 0, "fuzz examples": 0}

@@ -1,0 +1,132 @@
+"""The indenter's contact set: which surface nodes a rigid flat punch holds.
+
+One rule, shared by the FE reference (on its own, possibly refined, mesh) and the
+particle model (on the particle mesh). A rigid, bonded, flat circular punch of
+radius ``R`` centred on surface vertex ``i`` and pushed along its inward normal
+``n_i`` holds the *footprint*: the surface nodes ``j``
+
+* whose projection on the tangent plane at ``i`` lies within ``R`` of ``x_i``
+  (``|(x_j - x_i) - ((x_j - x_i) . n_i) n_i| <= R``),
+* that face the same way (``m_j . m_i > 0`` with ``m`` the area-weighted outward
+  vertex normals of :attr:`~forcecal.mesh.TetMesh.vertex_normals`), and
+* that are connected to ``i`` through surface edges between such nodes (a punch on
+  one lobe does not grab a fold of another one that happens to project inside).
+
+Every footprint node is displaced by ``d n_i``; the punch force is the sum of their
+reactions. ``indentation.indenter = "vertex"`` (the paper's) is the footprint ``{i}``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from forcecal.errors import SceneError
+from forcecal.mesh import TetMesh
+
+# a node exactly on the punch's rim (a mesh made to fit it) is inside, despite round-off
+RIM_TOLERANCE = 1e-9
+# fewer held particles than this is a point load, not a punch
+MIN_FOOTPRINT = 3
+
+
+def surface_edges(mesh: TetMesh) -> np.ndarray:
+    """(Es, 2) int64, unique edges (i < j) of the boundary triangles, sorted."""
+    f = mesh.surface_faces
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def _tangential_distance(mesh: TetMesh, vertex: int, normal: np.ndarray) -> np.ndarray:
+    """(N,) distance of every vertex's projection on the tangent plane at ``vertex`` [m]."""
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    d = mesh.vertices - mesh.vertices[vertex]
+    return np.linalg.norm(d - np.outer(d @ n, n), axis=1)
+
+
+def _footprint(mesh: TetMesh, edges: np.ndarray, vertex: int, distance: np.ndarray,
+               radius: float) -> np.ndarray:
+    """The rule of the module docstring for one radius, given the tangential distances."""
+    m = mesh.vertex_normals
+    candidate = np.zeros(mesh.n_vertices, dtype=bool)
+    candidate[mesh.surface_vertices] = True
+    candidate &= distance <= radius * (1.0 + RIM_TOLERANCE)
+    candidate &= m @ m[vertex] > 0.0
+    candidate[vertex] = True
+    keep = edges[candidate[edges].all(axis=1)]
+    graph = sp.coo_matrix((np.ones(len(keep)), (keep[:, 0], keep[:, 1])),
+                          shape=(mesh.n_vertices, mesh.n_vertices))
+    _, label = connected_components(graph, directed=False)
+    return np.nonzero(candidate & (label == label[vertex]))[0].astype(np.int64)
+
+
+def punch_footprint(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: float, *,
+                    fixed: np.ndarray | None = None,
+                    min_nodes: int = MIN_FOOTPRINT) -> np.ndarray:
+    """(K,) int64 sorted ids of the surface nodes a flat punch of ``radius`` holds (module
+    docstring), ``vertex`` included.
+
+    Args:
+        mesh: the mesh the punch acts on.
+        vertex: the test vertex (a surface vertex), the punch's centre.
+        normal: (3,) its indentation direction (inward normal; only the plane matters).
+        radius: punch radius [m].
+        fixed: clamped vertex ids; a footprint that holds one is refused.
+        min_nodes: smallest acceptable footprint (particle meshes: 3).
+
+    Raises:
+        SceneError: ``radius <= 0``, a footprint with fewer than ``min_nodes`` nodes (the
+            message gives the smallest radius that holds enough) or one that touches the
+            clamp (the message gives the largest radius that does not); each names
+            ``indentation.radius`` and the test point.
+    """
+    vertex = int(vertex)
+    if not radius > 0:
+        raise SceneError(f"indentation.radius = {radius} m: a punch radius must be > 0")
+    edges = surface_edges(mesh)
+    distance = _tangential_distance(mesh, vertex, normal)
+    nodes = _footprint(mesh, edges, vertex, distance, radius)
+    if fixed is not None and len(fixed):
+        touched = np.intersect1d(nodes, fixed)
+        if len(touched):
+            limit = float(distance[touched].min())
+            raise SceneError(f"indentation.radius = {radius:.4g} m: the punch footprint of test "
+                             f"point {vertex} reaches clamped vertices {touched[:5].tolist()}; "
+                             f"use a radius below {limit:.4g} m or another test point")
+    if len(nodes) < min_nodes:
+        need = None
+        same_side = np.nonzero(mesh.vertex_normals @ mesh.vertex_normals[vertex] > 0)[0]
+        for r in np.sort(distance[np.intersect1d(same_side, mesh.surface_vertices)]):
+            if r > radius and len(_footprint(mesh, edges, vertex, distance, r)) >= min_nodes:
+                need = r
+                break
+        hint = (f"use a radius of at least {need:.4g} m" if need is not None
+                else "no radius reaches that many on this side of the surface")
+        raise SceneError(f"indentation.radius = {radius:.4g} m: the punch footprint of test "
+                         f"point {vertex} holds {len(nodes)} particle(s), fewer than "
+                         f"{min_nodes}; {hint}")
+    return nodes
+
+
+def footprint_edges(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:
+    """(K', 2) int64 surface edges with both ends in ``nodes``: their mid-edge nodes (P2) lie
+    on the punch face too."""
+    inside = np.zeros(mesh.n_vertices, dtype=bool)
+    inside[np.asarray(nodes, dtype=np.int64)] = True
+    edges = surface_edges(mesh)
+    return edges[inside[edges].all(axis=1)]
+
+
+def indenter_footprints(mesh: TetMesh, fixed: np.ndarray, test_points: np.ndarray,
+                          normals: np.ndarray, indenter: str,
+                          radius: float) -> tuple[np.ndarray, ...]:
+    """The held particles of every test point: ``(vertex,)`` for ``"vertex"``, the punch
+    footprint for ``"punch"`` (checked: >= 3 particles, off the clamp)."""
+    if indenter == "vertex":
+        return tuple(np.array([int(p)], dtype=np.int64) for p in test_points)
+    if indenter != "punch":
+        raise SceneError(f"indentation.indenter = {indenter!r}: known indenters are "
+                         "'vertex' and 'punch'")
+    return tuple(punch_footprint(mesh, int(p), n, radius, fixed=fixed)
+                 for p, n in zip(test_points, normals))

@@ -1,0 +1,195 @@
+"""The flat punch: its footprint rule, its refusals and the particle punch against closed forms."""
+import numpy as np
+import pytest
+
+from calibration.network import linear_indentation
+from forcecal.errors import SceneError
+from forcecal.indenter import footprint_edges, indenter_footprints, punch_footprint
+from forcecal.mesh import TetMesh, box_mesh, check_mesh
+from forcecal.scene import load_scene, replace
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.model import ConnectorParams, build_model
+
+UP = np.array([0.0, 0.0, 1.0])
+DOWN = -UP
+
+
+def _vertex_at(mesh: TetMesh, point) -> int:
+    return int(np.argmin(np.linalg.norm(mesh.vertices - np.asarray(point), axis=1)))
+
+
+def test_footprint_is_the_disc_on_the_tangent_plane():
+    mesh = box_mesh((4, 4, 2), (1.0, 1.0, 0.5))  # top-face grid spacing 0.25
+    centre = _vertex_at(mesh, (0.5, 0.5, 0.5))
+    top = lambda ids: np.all(np.isclose(mesh.vertices[ids, 2], 0.5))  # noqa: E731
+    # the 4 neighbours lie exactly on the rim (0.25): inside
+    five = punch_footprint(mesh, centre, DOWN, 0.25)
+    assert len(five) == 5 and top(five) and centre in five
+    assert np.array_equal(punch_footprint(mesh, centre, DOWN, 0.3), five)  # diagonals at 0.354
+    assert len(punch_footprint(mesh, centre, DOWN, 0.36)) == 9
+    # a radius wider than the block: the whole top face (side nodes face sideways: n.n = 0)
+    whole = punch_footprint(mesh, centre, DOWN, 10.0)
+    assert len(whole) == 25 and top(whole)
+    # P2 mid-edge nodes on the punch face: the surface edges between two footprint nodes
+    edges = footprint_edges(mesh, five)
+    assert len(edges) == 6 and np.all(np.isin(edges, five))  # 4 spokes + 2 face diagonals
+
+
+def test_footprint_follows_the_surface_not_the_projection():
+    # a step two cells high: the lower terrace faces up and projects inside the radius, but
+    # the step face between them faces sideways, so the terrace is not connected to the punch
+    box = box_mesh((4, 4, 4), (1.0, 1.0, 1.0))
+    centroid = box.vertices[box.tets].mean(axis=1)
+    keep = box.tets[~((centroid[:, 0] > 0.5) & (centroid[:, 2] > 0.5))]
+    used = np.unique(keep)
+    mesh = check_mesh(TetMesh(box.vertices[used], np.searchsorted(used, keep)))
+    vertex = _vertex_at(mesh, (0.25, 0.5, 1.0))
+    held = punch_footprint(mesh, vertex, DOWN, 0.6)
+    x = mesh.vertices[held]
+    assert np.all(x[:, 2] > 0.99)  # the upper terrace only
+    assert np.any(np.isclose(x[:, 0], 0.5))  # up to its edge
+    lower = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.5) & (mesh.vertices[:, 0] > 0.7)
+                       & (np.abs(mesh.vertices[:, 1] - 0.5) < 0.3))[0]
+    assert len(lower) and not np.intersect1d(lower, held).size
+
+
+def test_punch_refusals_name_the_radius_key():
+    mesh = box_mesh((4, 4, 2), (1.0, 1.0, 0.5))
+    centre = _vertex_at(mesh, (0.5, 0.5, 0.5))
+    for bad in (0.0, -0.1):
+        with pytest.raises(SceneError, match=r"indentation\.radius = .* must be > 0"):
+            punch_footprint(mesh, centre, DOWN, bad)
+    with pytest.raises(SceneError, match=rf"indentation\.radius = 0\.1 m: the punch footprint "
+                                         rf"of test point {centre} holds 1 particle.*"
+                                         rf"at least 0\.25 m"):
+        punch_footprint(mesh, centre, DOWN, 0.1)
+    # a punch on a side face that reaches the clamped base
+    tall = box_mesh((4, 4, 4), (1.0, 1.0, 1.0))
+    fixed = np.nonzero(np.isclose(tall.vertices[:, 2], 0.0))[0]
+    side, inward = _vertex_at(tall, (0.0, 0.5, 0.5)), np.array([1.0, 0.0, 0.0])
+    with pytest.raises(SceneError, match=rf"indentation\.radius = 0\.55 m: the punch footprint "
+                                         rf"of test point {side} reaches clamped vertices.*"
+                                         rf"below 0\.5 m"):
+        punch_footprint(tall, side, inward, 0.55, fixed=fixed)
+    assert len(punch_footprint(tall, side, inward, 0.3, fixed=fixed)) == 5
+
+
+def test_scene_punch_keys(tmp_path):
+    scene = load_scene("scenes/tiny.toml")
+    punch = replace(scene, indentation={"indenter": "punch", "radius": 0.05})
+    assert punch.indentation.radius == 0.05
+    with pytest.raises(SceneError, match=r"indentation\.radius = 0\.0 m must be > 0"):
+        replace(scene, indentation={"indenter": "punch"})
+    with pytest.raises(SceneError, match=r"indentation\.radius"):
+        replace(scene, indentation={"radius": 0.02})  # a radius on the vertex indenter
+    with pytest.raises(SceneError, match=r"indentation\.radius"):
+        replace(scene, indentation={"indenter": "punch", "radius": -1.0})
+    assert [len(f) for f in indenter_footprints(box_mesh(), np.zeros(0, int), np.array([0]),
+                                                np.array([[1.0, 0, 0]]), "vertex", 0.0)] == [1]
+
+
+def _held_block():
+    """A 2x2x1-cell block (Kuhn split, one connector per edge), base clamped, punch over the
+    whole top face: every particle is clamped or held, so the force has a closed form."""
+    mesh = box_mesh((2, 2, 1), (0.02, 0.02, 0.01))
+    fixed = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.0))[0]
+    centre = _vertex_at(mesh, (0.01, 0.01, 0.01))
+    held = punch_footprint(mesh, centre, DOWN, 0.05, fixed=fixed)
+    assert len(held) == 9
+    return mesh, fixed, centre, held
+
+
+def _elongations(mesh, held, depth):
+    """(E,) connector elongations [m] with ``held`` moved by ``depth`` down, and unit vectors."""
+    x = mesh.vertices.copy()
+    x[held] += depth * DOWN
+    d = x[mesh.edges[:, 1]] - x[mesh.edges[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    return length - mesh.edge_lengths, d / length[:, None]
+
+
+def _punch_force(mesh, held, tension, unit):
+    """(3,) force the punch applies: minus the connectors' pull on the held particles."""
+    f = np.zeros_like(mesh.vertices)
+    np.add.at(f, mesh.edges[:, 0], tension[:, None] * unit)
+    np.add.at(f, mesh.edges[:, 1], -tension[:, None] * unit)
+    return -f[held].sum(axis=0)
+
+
+def test_particle_punch_static_matches_closed_form():
+    mesh, fixed, centre, held = _held_block()
+    K0, a, b = 40.0, -30.0, 400.0
+    params = ConnectorParams.uniform(len(mesh.edges), K0=K0, a=a, b=b, k1=10.0, b1=5.0,
+                                     k2=5.0, b2=25.0)
+    model = build_model(mesh, 1000.0, params, fixed=fixed)
+    depths = np.linspace(2e-4, 2e-3, 10)
+    ev = IndentationEvaluator(model, [centre], [DOWN], depths, footprints=[held])
+    got = ev.force_vectors(params)[0]
+    want = []
+    for d in depths:
+        dx, unit = _elongations(mesh, held, d)
+        eps = dx / mesh.edge_lengths
+        want.append(_punch_force(mesh, held, (K0 + a * eps + b * eps ** 2) * dx, unit))
+    np.testing.assert_allclose(got, np.array(want), rtol=1e-9, atol=1e-12)
+    # the sum over the footprint is a punch: twice the vertex-only force, at least
+    vertex_only = IndentationEvaluator(model, [centre], [DOWN], depths)(params)[0]
+    assert np.all(got @ DOWN > 2 * vertex_only)
+
+
+def test_particle_punch_relaxation_matches_hereditary_integral():
+    mesh, fixed, centre, held = _held_block()
+    k, tau = np.array([10.0, 5.0]), np.array([0.5, 5.0])
+    params = ConnectorParams.uniform(len(mesh.edges), K0=40.0, k1=k[0], b1=k[0] * tau[0],
+                                     k2=k[1], b2=k[1] * tau[1])
+    model = build_model(mesh, 1000.0, params, fixed=fixed)
+    ramp, depth = 0.5, 2e-3
+    times = np.r_[np.linspace(0.05, ramp, 10), ramp + np.geomspace(0.1, 20.0, 12)]
+    depths = depth * np.minimum(times / ramp, 1.0)
+    got = RelaxationEvaluator(model, [centre], [DOWN], times, depths,
+                              footprints=[held]).force_vectors(params)[0]
+    # independent: F_arm(t) = int_0^min(t, ramp) k exp(-(t-s)/tau) d(dx)/ds ds (the depth is
+    # constant after the ramp) on a fine grid, with the elongation dx(s) of the exact geometry
+    # (not linear in the depth)
+    s = np.linspace(0.0, ramp, 20001)
+    dx_s = np.array([_elongations(mesh, held, depth * si / ramp)[0] for si in s[::10]])
+    rate = np.gradient(dx_s, s[::10], axis=0)  # (S', E)
+    rate = np.array([np.interp(s, s[::10], rate[:, e]) for e in range(rate.shape[1])]).T
+    want = []
+    for t in times:
+        inside = s <= t
+        arm = sum(np.trapz(ki * np.exp(-(t - s[inside]) / ti)[:, None] * rate[inside], s[inside],
+                           axis=0) for ki, ti in zip(k, tau))
+        dx, unit = _elongations(mesh, held, np.interp(t, times, depths))
+        want.append(_punch_force(mesh, held, 40.0 * dx + arm, unit))
+    np.testing.assert_allclose(got @ DOWN, np.array(want) @ DOWN, rtol=2e-4)
+
+
+def test_particle_punch_slope_is_the_linear_network_punch():
+    # free particles under and around the punch: the evaluator's initial slope is the linear
+    # network's punch slope, which calibration's initial guess uses
+    mesh = box_mesh((4, 4, 2), (0.04, 0.04, 0.02))
+    fixed = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.0))[0]
+    centre = _vertex_at(mesh, (0.02, 0.02, 0.02))
+    held = punch_footprint(mesh, centre, DOWN, 0.011, fixed=fixed)
+    assert len(held) == 5
+    params = ConnectorParams.uniform(len(mesh.edges), K0=25.0, k1=1.0, b1=1.0, k2=1.0, b2=1.0)
+    model = build_model(mesh, 1000.0, params, fixed=fixed)
+    depth = 1e-7
+    got = IndentationEvaluator(model, [centre], [DOWN], [depth], footprints=[held])(params)[0, 0]
+    linear = linear_indentation(mesh, fixed, [centre], [DOWN], 25.0 * np.ones(len(mesh.edges)),
+                                footprints=[held])
+    assert got / depth == pytest.approx(linear.slope[0], rel=1e-5)
+
+
+def test_convergence_changes_are_against_the_finest_level():
+    from pipelines.fe_convergence import summarise
+
+    rows = [{"level": 0, "punch_force": [1.10, 2.0], "max_sag": 0.030},
+            {"level": 1, "punch_force": [1.02, 2.02], "max_sag": 0.0345},
+            {"level": 2, "punch_force": [1.00, 2.00], "max_sag": 0.035}]
+    out = summarise(rows, default_level=1)
+    assert out["finest_level"] == 2 and out["levels"] is rows
+    assert out["punch_force_change"] == pytest.approx(0.02)  # the largest over the points
+    assert out["sag_change"] == pytest.approx(0.5 / 35)
+    assert out["punch_force_change_two_finest"] == out["punch_force_change"]
+    assert summarise(rows, default_level=0)["punch_force_change"] == pytest.approx(0.10)
