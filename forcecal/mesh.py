@@ -337,8 +337,11 @@ def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
     return ids.astype(np.int64)
 
 
-# how long the exact minimum cover ("cover") may search before the scene is refused [s]
-COVER_TIME_LIMIT_S = 60.0
+# bounds of the exact minimum cover ("cover"): branch-and-bound nodes (deterministic: the same
+# graph stops at the same point on any machine; the default liver needs 13) and wall time [s]
+# (a last resort on a heavily loaded machine: the default liver needs 5 s of CPU)
+COVER_NODE_LIMIT = 1000
+COVER_TIME_LIMIT_S = 300.0
 
 
 def _closed_neighbourhoods(adj: sp.csr_matrix, vertices: np.ndarray) -> sp.csr_matrix:
@@ -352,28 +355,31 @@ def _minimum_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray, n: int) ->
 
     Solved exactly as a 0/1 integer programme (HiGHS through scipy.optimize.milp):
     minimise sum(x) subject to sum(x over the closed neighbourhood of v) >= 1 for
-    every v. Deterministic for a given graph. ``n`` (the budget) only words the
-    refusals: a cover that cannot fit in ``n`` points is refused before the solver runs.
+    every v. Deterministic for a given graph. Its linear relaxation, solved first
+    (milliseconds), bounds the cover's size from below: a cover that cannot fit in
+    the budget ``n`` is refused before the integer programme runs.
     """
-    from scipy.optimize import Bounds, LinearConstraint, milp
+    from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
-    sub = _closed_neighbourhoods(adj, vertices)
-    # each point covers at most its closed neighbourhood: a lower bound of any cover's size
-    at_least = -(-len(vertices) // int(sub.getnnz(axis=1).max()))
+    sub = _closed_neighbourhoods(adj, vertices).astype(np.float64)
+    relaxed = linprog(np.ones(len(vertices)), A_ub=-sub, b_ub=-np.ones(len(vertices)),
+                      bounds=(0, 1), method="highs")
+    at_least = int(np.ceil(relaxed.fun - 1e-6)) if relaxed.status == 0 else 1
     if at_least > n:
         raise MeshError(f"test_points.calibration = 'cover': covering the {len(vertices)} free "
                         f"surface vertices needs at least {at_least} calibration points but "
                         f"test_points.n_calibration = {n}; use 'auto' ({n} spread-out points, "
                         "coverage reported) or raise n_calibration")
     res = milp(c=np.ones(len(vertices)), integrality=np.ones(len(vertices)),
-               bounds=Bounds(0, 1), constraints=LinearConstraint(sub.astype(np.float64), lb=1.0),
-               options={"time_limit": COVER_TIME_LIMIT_S})
+               bounds=Bounds(0, 1), constraints=LinearConstraint(sub, lb=1.0),
+               options={"node_limit": COVER_NODE_LIMIT, "time_limit": COVER_TIME_LIMIT_S})
     # only a proven optimum is a function of the graph alone; a time-limited feasible answer
     # would depend on the machine's speed (and change the points and every cache key)
     if res.status != 0 or res.x is None:
         raise MeshError(f"test_points.calibration = 'cover': the minimum cover of "
-                        f"{len(vertices)} free surface vertices was not proven optimal within "
-                        f"{COVER_TIME_LIMIT_S:g} s ({res.message}); use 'auto' (fast, "
+                        f"{len(vertices)} free surface vertices (at least {at_least} points) was "
+                        f"not proven optimal within {COVER_NODE_LIMIT} branch-and-bound nodes "
+                        f"and {COVER_TIME_LIMIT_S:g} s ({res.message}); use 'auto' (fast, "
                         "coverage reported) or give test_points.calibration explicitly")
     return np.sort(vertices[res.x > 0.5])
 
@@ -478,8 +484,8 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
     * ``rule="cover"`` (the paper's): the proven *minimum* cover, topped up to
       ``n`` with the points farthest (straight line) from it and from each other.
       Refused when the cover needs more than ``n`` points or is not proven
-      minimal within :data:`COVER_TIME_LIMIT_S` (meshes of a few hundred free
-      surface vertices and more).
+      minimal within :data:`COVER_NODE_LIMIT` nodes or :data:`COVER_TIME_LIMIT_S`
+      (meshes of a few hundred free surface vertices and more).
     * ``rule="auto"`` (any mesh, milliseconds): a greedy cover topped up the same
       way but by distance along the surface when it fits in ``n``; otherwise
       ``n`` points by farthest-point sampling along the surface, starting from

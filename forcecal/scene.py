@@ -103,7 +103,8 @@ class TestPointsSection:
         "far-apart points if it fits in n_calibration, else n_calibration points spread by "
         "farthest-point sampling along the surface; the coverage is logged and reported), "
         "'cover' (the paper's: the proven minimum cover, topped up; refused if larger than "
-        "n_calibration or not proven within 60 s) or an explicit list of vertex ids")
+        "n_calibration or not proven within the solver's bounds) or an explicit list of "
+        "vertex ids")
     n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover'",
                              minimum=1)
     held_out: Union[str, tuple[int, ...]] = key(

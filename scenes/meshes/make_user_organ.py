@@ -24,7 +24,8 @@ OUT = Path(__file__).with_name("user_organ.vtu")
 MESH_SIZE_MM = 13.0  # gives ~520 vertices, mean edge ~ 15 mm (the indentation depth is 5 mm)
 
 
-def make() -> meshio.Mesh:
+def make(mesh_size_mm: float = MESH_SIZE_MM) -> meshio.Mesh:
+    """The organ meshed with gmsh at target edge length ``mesh_size_mm`` [mm] (coordinates in mm)."""
     gmsh.initialize()
     try:
         gmsh.option.setNumber("General.Terminal", 0)
@@ -43,8 +44,8 @@ def make() -> meshio.Mesh:
         cut, _ = occ.cut(cut, [(3, top)])
         occ.synchronize()
         gmsh.model.addPhysicalGroup(3, [tag for _, tag in gmsh.model.getEntities(3)], 1)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", MESH_SIZE_MM)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", MESH_SIZE_MM)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", mesh_size_mm)
+        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", mesh_size_mm)
         gmsh.option.setNumber("Mesh.CharacteristicLengthFromCurvature", 0)
         gmsh.option.setNumber("Mesh.Algorithm3D", 1)
         gmsh.model.mesh.generate(3)
