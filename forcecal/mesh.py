@@ -501,7 +501,8 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
         cover = _minimum_dominating_set(mesh.adjacency, free_surface, n)
         if len(cover) > n:
             raise MeshError(f"covering the free surface needs {len(cover)} calibration points "
-                            f"but test_points.n_calibration = {n}")
+                            f"but test_points.n_calibration = {n}; use 'auto' or raise "
+                            "n_calibration")
         distance_to = _euclidean(mesh, np.setdiff1d(free_surface, cover))
     else:
         cover = _greedy_dominating_set(mesh.adjacency, free_surface)
@@ -509,8 +510,8 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
             log.info("a greedy cover of the free surface needs %d points, more than "
                      "test_points.n_calibration = %d: sampling %d far-apart points instead",
                      len(cover), n, n)
-            cover = np.asarray(fixed if len(fixed) else free_surface[:1], dtype=np.int64)
-            chosen = _farthest_points(_geodesic(mesh, free_surface), free_surface, n, cover,
+            seeds = np.asarray(fixed, dtype=np.int64)  # the first point: farthest from them
+            chosen = _farthest_points(_geodesic(mesh, free_surface), free_surface, n, seeds,
                                       what)
             return np.sort(np.asarray(chosen, dtype=np.int64))
         distance_to = _geodesic(mesh, np.setdiff1d(free_surface, cover))

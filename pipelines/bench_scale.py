@@ -52,7 +52,7 @@ import numpy as np
 from forcecal.errors import DataFileError
 from forcecal.scene import Scene, replace
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("pipelines.bench_scale")  # also when run as __main__ (a child)
 
 LENGTHS = {False: (0.0182, 0.011, 0.0068, 0.0042), True: (0.04, 0.025, 0.0182, 0.011)}
 DEPTH_PER_EDGE = 0.25  # indentation depth / mean edge length (the default liver: 5 / 20.5 mm)
@@ -194,6 +194,51 @@ def growth_exponent(vertices: list[int], values: list[float | None]) -> float | 
     return float(np.polyfit(x, y, 1)[0])
 
 
+def scale_table(bench: dict[str, Any]) -> str:
+    """The README's Markdown table of ``bench["scale"]`` with the growth exponents."""
+    def cell(value: Any, fmt: str) -> str:
+        return "n/a" if value is None else format(value, fmt)
+
+    rows = ["| vertices | tets | connectors | auto points [s] (coverage) | particle step [us] "
+            "| calibration, short [s] (evaluations) | FE items [s]: indentation / relaxation "
+            "/ static / dynamic step | FE reference, 39 points, 1 rank (estimated) [s] "
+            "| peak memory [MB] |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in bench["scale"]:
+        estimated = "*" if r.get("fe_estimated_items") else ""
+        rows.append(
+            f"| {r['vertices']} | {r['tets']} | {r['connectors']} | {r['points_s']:.2f} "
+            f"({100 * r['coverage']:.0f} %) | {r['step_us']:.1f} | {r['calibration_s']:.0f} "
+            f"({r['evaluations']}) | {cell(r.get('fe_indentation_s'), '.1f')} / "
+            f"{cell(r.get('fe_relaxation_s'), '.1f')}{estimated} / "
+            f"{cell(r.get('fe_gravity_static_s'), '.1f')} / "
+            f"{cell(r.get('fe_dynamic_step_s'), '.2f')}{estimated} | "
+            f"{cell(r.get('fe_reference_s'), '.0f')} | {r['peak_rss_mb']:.0f} |")
+    exp = bench["scale_study"]["exponents"]
+    rows.append(f"| growth exponent | | | {cell(exp.get('points_s'), '.2f')} | "
+                f"{cell(exp.get('step_us'), '.2f')} | {cell(exp.get('calibration_s'), '.2f')} | "
+                f"{cell(exp.get('fe_indentation_s'), '.2f')} (indentation) | "
+                f"{cell(exp.get('fe_reference_s'), '.2f')} | "
+                f"{cell(exp.get('peak_rss_mb'), '.2f')} |")
+    return "\n".join(rows)
+
+
+def scale_section(bench: dict[str, Any]) -> list[str]:
+    """BENCH.md's lines of the scale study (table, failed sizes, ranks, method)."""
+    study_ = bench["scale_study"]
+    lines = ["", "## Scale (generated liver, 4 sizes)", "", scale_table(bench), "",
+             "`*`: estimated from the indentation's time per step (FE items skipped at that "
+             "size)."]
+    for f in study_["failed"]:
+        lines.append(f"- h = {f['characteristic_length_m']} m: {f['failed']}")
+    runs = study_["ranks"]["runs"]
+    lines += ["", f"One FE indentation item on {runs[0]['vertices']} vertices: "
+              f"{runs[0]['wall_s']:.1f} s on 1 rank; 2 ranks computing one item each at once: "
+              f"{runs[1]['wall_s']:.1f} s (throughput speed-up "
+              f"{study_['ranks']['speedup_2ranks']:.2f} of 2). Load averages (1, 5, 15 min) "
+              f"before and after each size: {study_['load_average']}.", ""]
+    return lines
+
+
 def _child(args: list[str], cwd: Path, mpi_ranks: int = 0) -> dict[str, Any]:
     """Run this module in a child process (under mpirun with ``mpi_ranks``); its JSON row."""
     import signal
@@ -269,7 +314,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--folder", default=None)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--ranks-item", action="store_true")
+    parser.add_argument("--table", action="store_true",
+                        help="print the Markdown table of the bench.json at --scene instead")
     args = parser.parse_args(argv)
+    if args.table:
+        print(scale_table(json.loads(Path(args.scene).read_text())))
+        return 0
     configure_logging(logging.INFO)
     scene = load_scene(args.scene)
     if args.ranks_item:
