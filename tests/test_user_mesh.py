@@ -25,7 +25,7 @@ from tests.test_pipeline_e2e import write_scene
 pytestmark = [pytest.mark.slow, pytest.mark.fe, pytest.mark.mpi]
 
 # (x, y, z) -> (x, z, -y): a proper rotation (tets keep their orientation) putting z up on y
-Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 @pytest.fixture(scope="module")
