@@ -324,6 +324,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--table", action="store_true",
                         help="print the Markdown table of the bench.json at --scene instead")
     args = parser.parse_args(argv)
+    # MPI first, while the process is small: Open MPI's singleton start forks a helper, which
+    # failed here ("system limit on number of children") once the calibration had run
+    from mpi4py import MPI  # noqa: F401
     if args.table:
         print(scale_table(json.loads(Path(args.scene).read_text())))
         return 0
