@@ -370,6 +370,8 @@ def write_problem(fh: h5py.File, problem: Problem) -> None:
         "True for calibration points, False for held-out points (P,)")
     put(t, "normals", problem.normals, "1", "inward unit normals = indentation directions (P, 3)")
     t.attrs["tracked_node"] = problem.tracked_node
+    for which, fraction in problem.coverage.items():  # derived, for readers (not read back)
+        t.attrs[f"{which}_coverage"] = fraction
 
 
 def read_problem(fh: h5py.File) -> Problem:

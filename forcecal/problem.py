@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from forcecal.errors import MeshError, SceneError
-from forcecal.mesh import (TetMesh, fixed_nodes, generate_liver, read_mesh,
+from forcecal.mesh import (TetMesh, coverage, fixed_nodes, generate_liver, read_mesh,
                            select_calibration_points, select_held_out_points, validate_test_points)
 from forcecal.scene import MIN_HELD_OUT, Scene
 
@@ -55,6 +55,13 @@ class Problem:
         m = np.ones(self.mesh.n_vertices, dtype=bool)
         m[self.fixed] = False
         return m
+
+    @property
+    def coverage(self) -> dict[str, float]:
+        """Fraction of the free surface vertices that are a calibration (held-out) point or
+        share a mesh edge with one (:func:`forcecal.mesh.coverage`), by point set."""
+        return {"calibration": coverage(self.mesh, self.fixed, self.calibration),
+                "held_out": coverage(self.mesh, self.fixed, self.held_out)}
 
 
 def load_mesh(scene: Scene) -> TetMesh:
@@ -152,7 +159,7 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     fixed = fixed_nodes(mesh, f.axis, f.side, f.tolerance)
     tp = scene.test_points
     if isinstance(tp.calibration, str):
-        calibration = select_calibration_points(mesh, fixed, tp.n_calibration)
+        calibration = select_calibration_points(mesh, fixed, tp.n_calibration, tp.calibration)
     else:
         calibration = validate_test_points(mesh, fixed, np.array(tp.calibration), "calibration")
     if isinstance(tp.held_out, str):
@@ -174,6 +181,11 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     problem = Problem(mesh=mesh, fixed=fixed, calibration=calibration, held_out=held_out,
                       tracked_node=int(tracked))
     _ = problem.normals  # surface check of every test point
-    log.info("problem: %d fixed nodes, %d calibration + %d held-out test points, tracked node %d",
-             len(fixed), len(calibration), len(held_out), tracked)
+    covered = problem.coverage
+    log.info("problem: %d fixed nodes, %d calibration + %d held-out test points, tracked node %d; "
+             "the calibration points cover %.0f %% of the free surface (%s, a point or an edge "
+             "neighbour of one), the held-out points %.0f %%", len(fixed), len(calibration),
+             len(held_out), tracked, 100 * covered["calibration"],
+             tp.calibration if isinstance(tp.calibration, str) else "listed",
+             100 * covered["held_out"])
     return problem

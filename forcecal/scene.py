@@ -100,13 +100,17 @@ MIN_HELD_OUT = 8
 @dataclass(frozen=True)
 class TestPointsSection:
     calibration: Union[str, tuple[int, ...]] = key(
-        "auto", "'auto' (every free surface vertex is a calibration point or shares an edge "
-        "with one) or an explicit list of vertex ids")
-    n_calibration: int = key(31, "number of calibration points when 'auto' (error if it cannot "
-                             "cover the surface)", minimum=1)
+        "auto", "'auto' (any mesh, fast: a greedy cover of the free surface topped up with "
+        "far-apart points if it fits in n_calibration, else n_calibration points spread by "
+        "farthest-point sampling along the surface; the coverage is logged and reported), "
+        "'cover' (the paper's: the proven minimum cover, topped up; refused if larger than "
+        "n_calibration or not proven within the solver's bounds) or an explicit list of "
+        "vertex ids")
+    n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover'",
+                             minimum=1)
     held_out: Union[str, tuple[int, ...]] = key(
-        "auto", "'auto' (spread-out surface vertices that are not calibration points) or a list "
-        "of vertex ids, used only for validation")
+        "auto", "'auto' (the free surface vertices farthest from the calibration points and "
+        "from each other; fast on any mesh) or a list of vertex ids, used only for validation")
     n_held_out: int = key(8, "number of held-out points when 'auto'; at least "
                           f"{MIN_HELD_OUT} (an explicit held_out list too)", minimum=MIN_HELD_OUT)
 
@@ -475,11 +479,12 @@ def _cross_checks(scene: Scene, origin: str) -> None:
                          f"got {p.dt!r}")
     if isinstance(p.dt, float) and p.dt <= 0:
         raise SceneError(f"{origin}: particle.dt = {p.dt} must be > 0")
-    for which in ("calibration", "held_out"):
+    for which, rules in (("calibration", ("auto", "cover")), ("held_out", ("auto",))):
         v = getattr(scene.test_points, which)
-        if isinstance(v, str) and v != "auto":
-            raise SceneError(f"{origin}: test_points.{which} must be 'auto' or a list of vertex "
-                             f"ids, got {v!r}")
+        if isinstance(v, str) and v not in rules:
+            raise SceneError(f"{origin}: test_points.{which} must be "
+                             + " or ".join(repr(r) for r in rules)
+                             + f" or a list of vertex ids, got {v!r}")
 
 
 def check_experiments(value: Any, origin: str) -> tuple[str, ...]:

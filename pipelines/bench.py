@@ -84,6 +84,7 @@ STUDIES: dict[str, str] = {
     "experiments": "pipelines.bench_experiments:study",
     "haptic scale": "pipelines.bench_haptic:study",
     "fe_convergence": "pipelines.fe_convergence:study",
+    "scale": "pipelines.bench_scale:study",
 }
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}

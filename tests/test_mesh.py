@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from forcecal.errors import MeshError
-from forcecal.mesh import (TetMesh, box_mesh, check_mesh, fixed_nodes, generate_liver, read_mesh,
+from forcecal.mesh import (TetMesh, box_mesh, check_mesh, coverage, fixed_nodes,
+                           free_surface_vertices, generate_liver, read_mesh,
                            select_calibration_points, select_held_out_points,
                            validate_test_points)
 from forcecal.scene import FixedSection
@@ -67,9 +68,86 @@ def test_calibration_points_dominate_the_free_surface(liver_problem):
     assert np.allclose(np.linalg.norm(p.normals, axis=1), 1.0)
 
 
-def test_too_few_calibration_points_is_refused(liver_problem):
-    with pytest.raises(MeshError, match="covering the free surface needs"):
-        select_calibration_points(liver_problem.mesh, liver_problem.fixed, 10)
+def test_the_paper_points_of_the_default_liver_are_unchanged(liver_problem):
+    """scenes/liver.toml's test points are the paper's definition (proven minimum cover of 29,
+    topped up to 31, then 8 far points): the ids the rule gave before 'auto' existed."""
+    assert liver_problem.calibration.tolist() == [
+        3, 30, 37, 40, 45, 51, 57, 60, 63, 69, 78, 100, 101, 102, 106, 112, 119, 121, 122, 137,
+        138, 179, 183, 189, 194, 203, 204, 208, 216, 220, 232]
+    assert liver_problem.held_out.tolist() == [29, 70, 71, 86, 91, 181, 190, 206]
+    assert liver_problem.coverage["calibration"] == 1.0
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    """(mesh, fixed) of the tiny scene's liver: 58 free surface vertices, minimum cover 9."""
+    mesh = generate_liver(0.04)
+    return mesh, fixed_nodes(mesh, "z", "min", 0.001)
+
+
+def test_tiny_scene_points_are_unchanged(coarse):
+    mesh, fixed = coarse
+    cal = select_calibration_points(mesh, fixed, 9, "cover")
+    assert cal.tolist() == [3, 14, 20, 34, 38, 47, 49, 61, 64]
+    assert select_held_out_points(mesh, fixed, cal, 8).tolist() == [1, 17, 21, 26, 28, 32, 58,
+                                                                     70]
+
+
+def test_a_cover_larger_than_the_budget_is_refused_with_its_size(coarse):
+    # far too few: refused from the linear relaxation's bound, before the integer programme
+    mesh, fixed = coarse
+    with pytest.raises(MeshError, match=r"covering the 58 free surface vertices needs at least 9 "
+                       r"calibration points but test_points.n_calibration = 8; use 'auto'"):
+        select_calibration_points(mesh, fixed, 8, "cover")
+    # the bound says 14 (relaxation 13.9) but the minimum cover is 15: the solver tells
+    mesh = generate_liver(0.03)
+    fixed = fixed_nodes(mesh, "z", "min", 0.001)
+    with pytest.raises(MeshError, match="covering the free surface needs 15 calibration points "
+                       "but test_points.n_calibration = 14"):
+        select_calibration_points(mesh, fixed, 14, "cover")
+    assert len(select_calibration_points(mesh, fixed, 15, "cover")) == 15
+
+
+def test_auto_covers_the_surface_when_a_greedy_cover_fits(coarse):
+    mesh, fixed = coarse
+    free_surface = free_surface_vertices(mesh, fixed)
+    cal = select_calibration_points(mesh, fixed, 14, "auto")
+    assert len(cal) == 14 and len(np.unique(cal)) == 14 and set(cal) <= set(free_surface)
+    assert coverage(mesh, fixed, cal) == 1.0
+    assert np.array_equal(cal, select_calibration_points(mesh, fixed, 14, "auto"))
+
+
+def test_auto_spreads_points_by_farthest_point_sampling_when_no_cover_fits(coarse):
+    """Farthest-point sampling's guarantee: no free surface vertex is farther (along the surface)
+    from the points and fixed nodes than the closest two chosen points are from each other."""
+    from scipy.sparse.csgraph import dijkstra
+
+    mesh, fixed = coarse
+    free_surface = free_surface_vertices(mesh, fixed)
+    cal = select_calibration_points(mesh, fixed, 5, "auto")
+    assert len(cal) == 5 and set(cal) <= set(free_surface)
+    assert 0 < coverage(mesh, fixed, cal) < 1
+    f = mesh.surface_faces
+    e = np.unique(np.sort(np.r_[f[:, :2], f[:, 1:], f[:, ::2]], axis=1), axis=0)
+    n = mesh.n_vertices
+    import scipy.sparse as sp
+    w = np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1)
+    d = dijkstra(sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr(), directed=False)
+    farthest_left = d[np.r_[cal, fixed]][:, free_surface].min(axis=0).max()
+    closest_pair = min(d[a, np.r_[np.setdiff1d(cal, a), fixed]].min() for a in cal)
+    assert farthest_left <= closest_pair * (1 + 1e-12)
+
+
+def test_coverage_counts_points_and_their_edge_neighbours():
+    mesh = box_mesh((2, 2, 2))
+    fixed = np.nonzero(mesh.vertices[:, 2] == 0.0)[0]
+    free_surface = free_surface_vertices(mesh, fixed)  # 26 surface - 9 bottom = 17
+    top_centre = int(np.argmin(np.linalg.norm(mesh.vertices - [0.5, 0.5, 1.0], axis=1)))
+    ring = set(mesh.edges[mesh.edges[:, 0] == top_centre, 1]) | set(
+        mesh.edges[mesh.edges[:, 1] == top_centre, 0]) | {top_centre}
+    expected = len(ring & set(free_surface)) / len(free_surface)
+    assert coverage(mesh, fixed, [top_centre]) == pytest.approx(expected, abs=0)
+    assert len(free_surface) == 17 and expected < 1
 
 
 def test_bad_user_test_points_are_refused(liver_problem):
@@ -94,7 +172,7 @@ def test_too_few_vertices_left_for_the_held_out_points(liver_problem):
         select_held_out_points(p.mesh, p.fixed, p.calibration, left + 1)
 
 
-def test_a_cover_not_proven_optimal_is_refused(liver_problem, monkeypatch):
+def test_a_cover_not_proven_optimal_is_refused(coarse, monkeypatch):
     """A time-limited MILP answer (status 1) would make the points depend on the machine."""
     import scipy.optimize
 
@@ -103,8 +181,11 @@ def test_a_cover_not_proven_optimal_is_refused(liver_problem, monkeypatch):
                                              message="Time limit reached. (HiGHS Status 13)")
 
     monkeypatch.setattr(scipy.optimize, "milp", time_limited)
-    with pytest.raises(MeshError, match="was not proven optimal \\(Time limit reached"):
-        select_calibration_points(liver_problem.mesh, liver_problem.fixed, 31)
+    mesh, fixed = coarse
+    with pytest.raises(MeshError, match=r"was not proven optimal within 1000 branch-and-bound "
+                       r"nodes and 300 s \(Time limit reached.*use 'auto'"):
+        select_calibration_points(mesh, fixed, 9, "cover")
+    assert len(select_calibration_points(mesh, fixed, 9, "auto")) == 9  # needs no solver
 
 
 # --- every mesh-check error ---------------------------------------------------------------
