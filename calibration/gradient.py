@@ -90,7 +90,8 @@ def point_jacobian(worker: PointWorker, kind: str, params: ConnectorParams,
     """Call run on a worker: curves (P', S) and Jacobians (P', S, 7, E) of owned points."""
     local = [worker._local[int(p)] for p in points]
     worker.evaluations += len(local)
-    return worker.evaluators[kind].jacobian(params, local)
+    sens = worker.evaluators[kind].jacobian(params, local)
+    return sens.forces, sens.connectors
 
 
 @dataclass(frozen=True)

@@ -32,14 +32,17 @@ sub-steps are the path the evaluator actually took, halved intervals
 included (recorded by :class:`_RecordingSolver`), so the derivatives are those
 of the curves returned, to round-off (tests compare with finite differences).
 
-Extra parameters (e.g. a volume term) plug in at :meth:`_Adjoint._partials`:
-each term returns the derivative of its force pattern at fixed positions
-contracted with the virtual field ``omega``.
+The volume term's ``kv`` (:mod:`particle.volume`) enters the same way: its
+tangent is in ``K``, and ``dF/dkv_t = omega . df/dkv_t`` with ``df/dkv_t =
+-(V/V0 - 1) dV/dx`` at fixed positions (it does not relax, so it carries no
+history). Another term plugs in likewise: its tangent in the assembly, its
+force derivative contracted with ``omega``.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -50,10 +53,27 @@ from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import PARAM_NAMES, ConnectorParams, Model
 from particle import kernels
 from particle.statics import ArmStep, Equilibrium, EquilibriumSolver
+from particle.volume import add_volume_tangent, signed_volumes, volume_gradients_numpy
 
 log = logging.getLogger(__name__)
 
 N_PARAMS = len(PARAM_NAMES)
+
+
+@dataclass(frozen=True, eq=False)
+class Sensitivities:
+    """Curves of some test points and their exact derivatives.
+
+    Attributes:
+        forces: (P', S) normal forces [N], exactly what the evaluator's ``__call__`` returns.
+        connectors: (P', S, 7, E) derivatives [N per unit of each parameter] with respect to
+            ``K0, a, b, k1, b1, k2, b2`` of every connector (PARAM_NAMES order).
+        kv: (P', S, T) derivatives [N/Pa] with respect to each tet's ``kv``, or None when
+            the volume term is off.
+    """
+    forces: np.ndarray
+    connectors: np.ndarray
+    kv: np.ndarray | None
 
 
 class _RecordingSolver(EquilibriumSolver):
@@ -94,25 +114,21 @@ class _Adjoint:
         self._ends[k] = ends
 
     def jacobian(self, params: ConnectorParams, points: Sequence[int] | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Curves and their derivatives at the selected points (all if None).
-
-        Returns:
-            forces: (P', S) normal forces [N], exactly what ``__call__`` returns;
-            jac: (P', S, 7, E) derivatives [N per unit of each parameter] with respect
-                to ``K0, a, b, k1, b1, k2, b2`` of every connector (PARAM_NAMES order).
-        """
+                 ) -> Sensitivities:
+        """Curves and their derivatives at the selected points (all if None)."""
         idx = self._indices(points)
         forces = self(params, idx)
         model = self.model.with_params(params)
-        jac = np.stack([self._point_jacobian(model, int(k)) for k in idx])
-        return forces, jac
+        parts = [self._point_jacobian(model, int(k)) for k in idx]
+        return Sensitivities(forces, np.stack([c for c, _ in parts]),
+                             None if params.kv is None else np.stack([v for _, v in parts]))
 
     def _steps(self, k: int) -> tuple[list[tuple[ArmStep | None, Equilibrium]], list[int]]:
         """The (sub)steps whose equilibria make point k's curve, and the step of each sample."""
         raise NotImplementedError
 
-    def _point_jacobian(self, model: Model, k: int) -> np.ndarray:
+    def _point_jacobian(self, model: Model, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(S, 7, E) connector derivatives and (S, T) kv derivatives (None without kv)."""
         solver = self._solvers[k]
         steps, ends = self._steps(k)
         n_out, e = len(self.depths), model.n_connectors
@@ -121,6 +137,8 @@ class _Adjoint:
         prescribed = solver.prescribed
         pdofs = pat.dofs(prescribed)
         jac = np.zeros((n_out, N_PARAMS, e))
+        kv = model.params.kv
+        jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
         abar = np.zeros((e, 2, n_out))  # adjoint of the arm forces passed to the next step
         dbar = np.zeros((e, n_out))  # adjoint of the elongation passed to the next step
         end_of = {s: j for j, s in enumerate(ends)}
@@ -138,6 +156,8 @@ class _Adjoint:
                                      model.params.a, model.params.b,
                                      None if arms is None else arms.stiffness, it.tension,
                                      pat.slots, data)
+            if kv is not None:
+                add_volume_tangent(eq.x, model.tets, model.rest_volumes, kv, pat.tet_slots, data)
             full = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
             push = np.zeros(pat.n_dofs)
             push[pdofs] = np.tile(normal, len(prescribed))
@@ -153,11 +173,23 @@ class _Adjoint:
             lam[pdofs] = -push[pdofs, None] * w[None, :]
             tau = G.T @ lam  # (E, S) adjoint of each connector's tension
             jac += self._partials(model, geo, arms, tau, abar)
+            if kv is not None:
+                jac_kv += self._volume_partials(model, eq.x, pat, lam)
             if arms is not None:
                 mu = abar + tau[:, None, :]
                 abar = arms.r[:, :, None] * mu
                 dbar = -np.einsum("ei,eis->es", arms.c, mu)
-        return jac
+        return jac, jac_kv
+
+    @staticmethod
+    def _volume_partials(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
+        """(S, T): ``omega . df/dkv_t`` with ``df/dkv_t = -(V/V0 - 1) dV/dx`` at fixed x."""
+        strain = signed_volumes(x, model.tets) / model.rest_volumes - 1.0
+        grad = volume_gradients_numpy(x, model.tets)  # (T, 4, 3)
+        virtual = np.zeros((model.n_particles, 3, omega.shape[1]))
+        moving = pat.node_dof >= 0
+        virtual[moving] = omega[pat.node_dof[moving][:, None] + np.arange(3)]
+        return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
 
     @staticmethod
     def pattern_for(solver: EquilibriumSolver):

@@ -45,13 +45,18 @@ def box(tmp_path_factory):
     return _box(tmp_path_factory.mktemp("gradient_box"))
 
 
-def test_sensitivities_match_finite_differences(box):
+@pytest.mark.parametrize("volume", [False, True], ids=["springs", "springs+kv"])
+def test_sensitivities_match_finite_differences(box, volume):
     """Directional derivatives J v along a random direction of every parameter of every
-    connector, against 4th-order central differences of the curves. Newton is converged to
-    1e-11 of the force scale so the differences resolve 1e-8; measured agreement 1e-8..3e-7."""
+    connector (and every tet's kv), against 4th-order central differences of the curves.
+    Newton is converged to 1e-11 of the force scale so the differences resolve 1e-8."""
     problem = build_problem(box)
     n = len(problem.mesh.edges)
     params = noisy_params(GLOBAL, n, sigma=0.1)
+    if volume:  # a non-uniform kv of the order of the springs' own bulk modulus
+        n_tets = len(problem.mesh.tets)
+        params = dataclasses.replace(params, kv=800.0 * np.exp(
+            np.random.default_rng(5).normal(0.0, 0.2, n_tets)))
     model = build_model(problem, box.material.density, params)
     times, relax_depths = relaxation_schedule(box.relaxation)
     kw = dict(strain_range=(-0.3, 0.3), rtol=1e-11)
@@ -62,19 +67,22 @@ def test_sensitivities_match_finite_differences(box):
                                                       **kw)}
     rng = np.random.default_rng(0)
     for kind, ev in evaluators.items():
-        forces, jac = ev.jacobian(params)
-        np.testing.assert_array_equal(forces, ev(params))  # the curves __call__ returns
-        for q, name in enumerate(PARAM_NAMES):
+        sens = ev.jacobian(params)
+        np.testing.assert_array_equal(sens.forces, ev(params))  # the curves __call__ returns
+        assert (sens.kv is not None) == volume
+        names = PARAM_NAMES + (("kv",) if volume else ())
+        for q, name in enumerate(names):
             value = getattr(params, name)
-            direction = rng.normal(size=n) * value
+            direction = rng.normal(size=len(value)) * value
+            jac = sens.kv if name == "kv" else sens.connectors[:, :, q]
             h = 1e-3
 
             def at(t):
                 return ev(dataclasses.replace(params, **{name: value + t * direction}))
 
             fd = (8 * (at(h) - at(-h)) - (at(2 * h) - at(-2 * h))) / (12 * h)
-            exact = np.einsum("pse,e->ps", jac[:, :, q], direction)
-            if kind == "indentation" and name not in ("K0", "a", "b"):
+            exact = np.einsum("pse,e->ps", jac, direction)
+            if kind == "indentation" and name not in ("K0", "a", "b", "kv"):
                 assert not exact.any() and not fd.any()  # springs only: no arms
                 continue
             assert np.abs(exact).max() > 0, (kind, name)
