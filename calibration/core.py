@@ -181,6 +181,9 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             gfit = fit_gradient(pool, glob, strain, {"indentation": ref_static[:n_cal],
                                                     "relaxation": ref_relax[:n_cal]},
                                validity, mesh.edges, mesh.n_vertices, folds=settings.cv_folds,
+                               # per-tet kv too when the global fit carries the volume term
+                               tets=mesh.tets if glob.connector_params(n_conn).kv is not None
+                               else None,
                                max_iterations=settings.gradient_max_iterations,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()

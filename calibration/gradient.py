@@ -42,6 +42,7 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import time
@@ -91,37 +92,57 @@ def point_jacobian(worker: PointWorker, kind: str, params: ConnectorParams,
     local = [worker._local[int(p)] for p in points]
     worker.evaluations += len(local)
     sens = worker.evaluators[kind].jacobian(params, local)
-    return sens.forces, sens.connectors
+    return sens.forces, sens.connectors, sens.kv
 
 
 @dataclass(frozen=True)
 class Coordinates:
-    """Per-connector optimiser coordinates <-> connector parameters (module docstring).
+    """Per-connector (and per-tet) optimiser coordinates <-> parameters (module docstring).
+
+    ``theta`` is flat: seven blocks of E connector coordinates ``(log K0, alpha s,
+    beta s^2, log k1, log tau1, log k2, log tau2)``, then ``log kv`` of the T tets
+    when the volume term is on (T = 0 otherwise).
 
     Attributes:
         scale: strain scale s of the experiments [1].
+        n_connectors: E.
+        n_tets: T, 0 without the volume term.
     """
     scale: float
+    n_connectors: int
+    n_tets: int = 0
 
-    def of_global(self, glob: GlobalParams, n_connectors: int) -> np.ndarray:
-        """(7, E) coordinates of the uniform parameters ``glob``."""
-        s = self.scale
-        row = [np.log(glob.K0), glob.alpha * s, glob.beta * s * s, np.log(glob.k1),
-               np.log(glob.tau1), np.log(glob.k2), np.log(glob.tau2)]
-        return np.repeat(np.array(row, dtype=float)[:, None], n_connectors, axis=1)
+    @property
+    def size(self) -> int:
+        return N_COORDS * self.n_connectors + self.n_tets
+
+    def block(self, theta: np.ndarray, q: int) -> np.ndarray:
+        """(E,) coordinate q of every connector."""
+        return theta[q * self.n_connectors:(q + 1) * self.n_connectors]
+
+    def theta_of(self, params: ConnectorParams) -> np.ndarray:
+        """(size,) coordinates of ``params`` (with kv iff ``n_tets``)."""
+        s, p = self.scale, params
+        blocks = [np.log(p.K0), p.a / p.K0 * s, p.b / p.K0 * s * s, np.log(p.k1),
+                  np.log(p.tau1), np.log(p.k2), np.log(p.tau2)]
+        if self.n_tets:
+            blocks.append(np.log(p.kv))
+        return np.concatenate(blocks).astype(float)
 
     def params(self, theta: np.ndarray) -> ConnectorParams:
-        s = self.scale
-        K0 = np.exp(theta[0])
-        k1, k2 = np.exp(theta[3]), np.exp(theta[5])
-        return ConnectorParams(K0=K0, a=theta[1] / s * K0, b=theta[2] / (s * s) * K0, k1=k1,
-                               b1=np.exp(theta[4]) * k1, k2=k2, b2=np.exp(theta[6]) * k2)
+        s, b = self.scale, lambda q: self.block(theta, q)  # noqa: E731
+        K0 = np.exp(b(0))
+        k1, k2 = np.exp(b(3)), np.exp(b(5))
+        kv = np.exp(theta[N_COORDS * self.n_connectors:]) if self.n_tets else None
+        return ConnectorParams(K0=K0, a=b(1) / s * K0, b=b(2) / (s * s) * K0, k1=k1,
+                               b1=np.exp(b(4)) * k1, k2=k2, b2=np.exp(b(6)) * k2, kv=kv)
 
-    def chain(self, jac: np.ndarray, params: ConnectorParams) -> np.ndarray:
-        """(..., 7, E) derivatives with respect to the coordinates from those (..., 7, E) with
-        respect to ``K0, a, b, k1, b1, k2, b2``."""
+    def chain(self, jac: np.ndarray, jac_kv: np.ndarray | None,
+              params: ConnectorParams) -> np.ndarray:
+        """(..., size) derivatives with respect to the coordinates, from those (..., 7, E)
+        with respect to ``K0, a, b, k1, b1, k2, b2`` and (..., T) to kv."""
         s, p = self.scale, params
-        out = np.empty_like(jac)
+        out = np.empty(jac.shape[:-2] + (N_COORDS, jac.shape[-1]))
         out[..., 0, :] = jac[..., 0, :] * p.K0 + jac[..., 1, :] * p.a + jac[..., 2, :] * p.b
         out[..., 1, :] = jac[..., 1, :] * (p.K0 / s)
         out[..., 2, :] = jac[..., 2, :] * (p.K0 / (s * s))
@@ -129,24 +150,33 @@ class Coordinates:
         out[..., 4, :] = jac[..., 4, :] * p.b1
         out[..., 5, :] = jac[..., 5, :] * p.k2 + jac[..., 6, :] * p.b2
         out[..., 6, :] = jac[..., 6, :] * p.b2
+        out = out.reshape(jac.shape[:-2] + (-1,))
+        if self.n_tets:
+            out = np.concatenate([out, jac_kv * p.kv], axis=-1)
         return out
 
 
-def neighbour_laplacian(edges: np.ndarray, n_particles: int) -> sp.csc_matrix:
-    """(E, E) Laplacian of "shares a particle" between connectors, divided by the mean degree.
+def shared_laplacian(members: np.ndarray, n_particles: int, shared: int) -> sp.csc_matrix:
+    """(M, M) Laplacian of "shares at least ``shared`` particles" between members (M, k)
+    (connectors: 1 particle, tets: a face = 3), divided by the mean number of neighbours.
 
-    ``theta^T L theta = sum over pairs sharing a particle (theta_e - theta_f)^2 / mean degree``.
+    ``x^T L x = sum over neighbour pairs (x_e - x_f)^2 / mean degree``.
     """
-    n = len(edges)
-    inc = sp.csr_matrix((np.ones(2 * n), (np.repeat(np.arange(n), 2), edges.ravel())),
-                        shape=(n, n_particles))
+    m, k = members.shape
+    inc = sp.csr_matrix((np.ones(m * k), (np.repeat(np.arange(m), k), members.ravel())),
+                        shape=(m, n_particles))
     adj = (inc @ inc.T).tocsr()
     adj.setdiag(0.0)
+    adj.data[:] = np.where(adj.data >= shared, 1.0, 0.0)
     adj.eliminate_zeros()
-    adj.data[:] = 1.0
     degree = np.asarray(adj.sum(axis=1)).ravel()
     lap = sp.diags(degree) - adj
     return (lap / max(degree.mean(), 1.0)).tocsc()
+
+
+def neighbour_laplacian(edges: np.ndarray, n_particles: int) -> sp.csc_matrix:
+    """(E, E) :func:`shared_laplacian` of connectors sharing a particle."""
+    return shared_laplacian(edges, n_particles, 1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,13 +212,14 @@ class Validity:
                                  "connectors); the arms must stay ordered")
 
     def hinge(self, theta: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
-        """Hinge residuals (E*H,) and their sparse Jacobian (E*H, 7E) in the coordinates."""
-        n = theta.shape[1]
+        """Hinge residuals (E*H,) and their sparse Jacobian (E*H, size) in the coordinates."""
+        n = len(self.low)
+        t0, t1, t2 = theta[:n], theta[n:2 * n], theta[2 * n:3 * n]
         frac = np.linspace(0.0, 1.0, HINGE_STRAINS)
         eps = self.low[:, None] + frac[None, :] * (self.high - self.low)[:, None]  # (E, H)
         s = self.scale
-        K0 = np.exp(theta[0])[:, None]
-        q = 1.0 + 2.0 * theta[1][:, None] * eps / s + 3.0 * theta[2][:, None] * (eps / s) ** 2
+        K0 = np.exp(t0)[:, None]
+        q = 1.0 + 2.0 * t1[:, None] * eps / s + 3.0 * t2[:, None] * (eps / s) ** 2
         tangent = K0 * q / self.K0_global
         target = HINGE_FACTOR * self.floor / self.K0_global
         active = tangent < target
@@ -200,7 +231,7 @@ class Validity:
         vals = np.concatenate([(w * q).ravel(), (w * 2.0 * eps / s).ravel(),
                                (w * 3.0 * (eps / s) ** 2).ravel()])
         jac = sp.csr_matrix((vals, (np.tile(rows.ravel(), 3), cols)),
-                            shape=(n * HINGE_STRAINS, N_COORDS * n))
+                            shape=(n * HINGE_STRAINS, len(theta)))
         return res.ravel(), jac
 
 
@@ -235,7 +266,7 @@ class Data:
         return np.concatenate(parts, axis=1).ravel()
 
     def jacobian(self, jacs: dict[str, np.ndarray], points: np.ndarray) -> np.ndarray:
-        """(rows, 7E) from per-experiment (P', S, 7, E) coordinate Jacobians."""
+        """(rows, size) from per-experiment (P', S, size) coordinate Jacobians."""
         parts = [jacs[k].reshape(len(points), jacs[k].shape[1], -1)
                  * self.weight[k][points, None, None] for k in self.kinds]
         return np.concatenate(parts, axis=1).reshape(self.rows(points), -1)
@@ -254,7 +285,7 @@ class Evaluator:
         return self.data.residuals(curves, points)
 
     def linearise(self, theta: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (rows,) and Jacobian (rows, 7E) at ``theta``."""
+        """Residuals (rows,) and Jacobian (rows, size) at ``theta``."""
         params = self.coords.params(theta)
         curves, jacs = {}, {}
         for kind in self.data.kinds:
@@ -269,23 +300,37 @@ class Evaluator:
             pos = np.searchsorted(order[where], points)
             sel = where[pos]
             curves[kind] = np.concatenate([o[0] for o in out])[sel]
-            jacs[kind] = self.coords.chain(np.concatenate([o[1] for o in out])[sel], params)
+            kv = None if params.kv is None else np.concatenate([o[2] for o in out])[sel]
+            jacs[kind] = self.coords.chain(np.concatenate([o[1] for o in out])[sel], kv, params)
         self.jacobians += 1
         return self.data.residuals(curves, points), self.data.jacobian(jacs, points)
 
 
 @dataclass(frozen=True, eq=False)
 class Regulariser:
-    """``lambda (theta - theta0)^T A1 (theta - theta0)``, ``A1 = (1/E) I_7 (x) (L + rho I)``."""
+    """``lambda (theta - theta0)^T A1 (theta - theta0)`` with the block-diagonal metric
+    ``A1 = I_7 (x) (L + rho I)/E  (+)  (L_tets + rho I)/T`` (module docstring).
+
+    Attributes:
+        laplacian: (E, E) connectors sharing a particle (:func:`neighbour_laplacian`).
+        theta0: (size,) the start (the global fit), also the prior's centre.
+        tet_laplacian: (T, T) tets sharing a face, or None without the volume term.
+    """
     laplacian: sp.csc_matrix
     theta0: np.ndarray
+    tet_laplacian: sp.csc_matrix | None = None
 
     @functools.cached_property
     def metric(self) -> sp.csc_matrix:
-        """(7E, 7E) the penalty's metric A1 (also the LM damping metric)."""
-        n = self.laplacian.shape[0]
-        block = (self.laplacian + PRIOR_RATIO * sp.identity(n)) / n
-        return sp.kron(sp.identity(N_COORDS), block, format="csc")
+        """(size, size) the penalty's metric A1 (also the LM damping metric)."""
+        def block(lap):
+            n = lap.shape[0]
+            return (lap + PRIOR_RATIO * sp.identity(n)) / n
+
+        blocks = [sp.kron(sp.identity(N_COORDS), block(self.laplacian))]
+        if self.tet_laplacian is not None:
+            blocks.append(block(self.tet_laplacian))
+        return sp.block_diag(blocks, format="csc")
 
     @functools.cached_property
     def lu(self):
@@ -301,10 +346,10 @@ class Linearisation:
     """Residuals and Jacobian at theta, with the products the steps need.
 
     Attributes:
-        theta: (7, E) coordinates.
+        theta: (size,) coordinates.
         r: (m,) residuals (data rows, then the active hinge rows).
-        J: (m, 7E) their Jacobian.
-        P: (7E, m) ``A1^-1 J^T``.
+        J: (m, size) their Jacobian.
+        P: (size, m) ``A1^-1 J^T``.
         C: (m, m) ``J A1^-1 J^T``.
     """
     theta: np.ndarray
@@ -324,7 +369,7 @@ class Linearisation:
                              self.C[np.ix_(keep, keep)])
 
     def step(self, reg: Regulariser, weight: float, damping: float) -> np.ndarray:
-        """(7, E) minimiser of ``|r + J d|^2 + weight reg(theta + d) + damping d^T A1 d``.
+        """(size,) minimiser of ``|r + J d|^2 + weight reg(theta + d) + damping d^T A1 d``.
 
         ``(J^T J + alpha A1) d = -(J^T r + weight A1 d0)``, alpha = weight + damping, by
         Woodbury: ``d = -(1/alpha) [P r + w d0 - P (alpha I + C)^-1 (C r + w J d0)]``.
@@ -501,20 +546,27 @@ class GradientResult:
 def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  reference: dict[str, np.ndarray], validity: Validity, edges: np.ndarray,
                  n_particles: int, *, folds: int, max_iterations: int,
+                 tets: np.ndarray | None = None, kv0: float | None = None,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
     """CV for lambda, then the regularised LM fit (module docstring); checkpointed.
 
     ``reference``: experiment -> (Pc, S) curves of the calibration points (test points
-    0..Pc-1 of the pool).
+    0..Pc-1 of the pool). ``tets`` (T, 4): fit a per-tet kv of the volume term too, starting
+    from the global fit's kv (or ``kv0`` [Pa] if the global parameters carry none); None:
+    springs only.
     """
-    coords = Coordinates(strain.scale)
-    theta0 = coords.of_global(glob, len(edges))
+    start_params = glob.connector_params(len(edges))
+    coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
+    if coords.n_tets and start_params.kv is None:
+        start_params = dataclasses.replace(start_params, kv=np.full(coords.n_tets, kv0))
+    theta0 = coords.theta_of(start_params)
     data = Data.of(reference)
     ev = Evaluator(pool, data, coords)
     points = np.arange(len(next(iter(reference.values()))))
-    reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0)
+    reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
+                      None if tets is None else shared_laplacian(tets, n_particles, 3))
     saved_cv = checkpoint_get("gradient_cv")
     start = None
     if saved_cv is None:

@@ -89,21 +89,32 @@ def test_sensitivities_match_finite_differences(box, volume):
             assert np.abs(fd - exact).max() <= 1e-6 * np.abs(exact).max(), (kind, name)
 
 
-def test_coordinates_chain_rule():
+@pytest.mark.parametrize("n_tets", [0, 4])
+def test_coordinates_chain_rule(n_tets):
     """Coordinates <-> parameters round trip, and the chain rule against differences."""
-    coords = Coordinates(0.1)
-    theta = coords.of_global(GLOBAL, 5) + np.random.default_rng(1).normal(0, 0.1, (7, 5))
+    n = 5
+    coords = Coordinates(0.1, n, n_tets)
+    start = GLOBAL.connector_params(n)
+    if n_tets:
+        start = dataclasses.replace(start, kv=np.full(n_tets, 900.0))
+    theta = coords.theta_of(start) + np.random.default_rng(1).normal(0, 0.1, coords.size)
     p = coords.params(theta)
-    jac_p = np.random.default_rng(2).normal(size=(3, 7, 5))  # any linear functional of params
-    value = lambda t: np.einsum("sqe,qe->s", jac_p, np.array(  # noqa: E731
-        [getattr(coords.params(t), n) for n in PARAM_NAMES]))
-    got = coords.chain(jac_p, p)
-    for q in range(7):
-        for e in range(5):
-            d = np.zeros_like(theta)
-            d[q, e] = 1e-6
-            fd = (value(theta + d) - value(theta - d)) / 2e-6
-            np.testing.assert_allclose(got[:, q, e], fd, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(coords.theta_of(p), theta, rtol=1e-12, atol=1e-14)
+    rng = np.random.default_rng(2)
+    jac_p = rng.normal(size=(3, 7, n))  # any linear functional of the parameters
+    jac_kv = rng.normal(size=(3, n_tets)) if n_tets else None
+
+    def value(t):
+        q = coords.params(t)
+        out = np.einsum("sqe,qe->s", jac_p, np.array([getattr(q, m) for m in PARAM_NAMES]))
+        return out + (jac_kv @ q.kv if n_tets else 0.0)
+
+    got = coords.chain(jac_p, jac_kv, p)
+    for i in range(coords.size):
+        d = np.zeros(coords.size)
+        d[i] = 1e-6
+        fd = (value(theta + d) - value(theta - d)) / 2e-6
+        np.testing.assert_allclose(got[:, i], fd, rtol=1e-6, atol=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +155,7 @@ def test_cross_validation_picks_a_finite_weight(box):
     mid = problem.mesh.vertices[edges].mean(axis=1)
     truth = np.zeros((7, n))
     truth[0] = 0.3 * np.sin(np.pi * mid[:, 0] / 0.06) * np.cos(np.pi * mid[:, 1] / 0.06)
-    theta0 = np.zeros((7, n))
+    theta0 = np.zeros(7 * n)
     n_points, rows = 12, 40
     J = np.zeros((n_points * rows, 7 * n))
     centres = rng.choice(problem.mesh.n_vertices, n_points, replace=False)
@@ -172,7 +183,7 @@ def test_validity_refuses_soft_springs():
     soft = dataclasses.replace(good, a=np.array([0.0, 0.0, 150.0]))  # tangent 30 - 90 at -0.3
     with pytest.raises(ParameterError, match="connector 2"):
         validity.check(soft)
-    theta = Coordinates(0.1).of_global(linear, n)
-    theta[1, 2] = 0.5  # alpha s = 0.5: tangent 1 + 10 eps < 2 x floor / K0 at eps = -0.3
+    theta = Coordinates(0.1, n).theta_of(good)
+    theta[n + 2] = 0.5  # alpha s = 0.5: tangent 1 + 10 eps < 2 x floor / K0 at eps = -0.3
     h, jac = validity.hinge(theta)
     assert h[:5].max() == 0 and h[10:].max() > 0 and jac.shape == (15, 21)
