@@ -65,10 +65,13 @@ log = logging.getLogger(__name__)
 N_COORDS = 7
 #: prior weight relative to the smoothness weight (a mild pull towards the global fit that
 #: fixes the level of each smooth field where the data say nothing)
-PRIOR_RATIO = 0.05
+PRIOR_RATIO = 1e-3
 #: smoothness weights lambda tried by cross-validation (data cost = sum of squared relative
 #: RMS errors; lambda multiplies the mean squared neighbour difference per connector)
 WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))
+#: cross-validation rounds: the first on the linearisation at the global fit, the next at the
+#: previous round's fit (where the linear model is closer to the fitted curves)
+CV_ROUNDS = 2
 HINGE_FACTOR = 2.0  # the hinge pushes springs back above this multiple of the floor
 HINGE_WEIGHT = 1.0
 HINGE_STRAINS = 5  # strains per connector where the hinge looks (the hard check is exact)
@@ -456,27 +459,30 @@ def linearise(ev: Evaluator, theta: np.ndarray, points: np.ndarray, reg: Regular
 
 
 def levenberg_marquardt(ev: Evaluator, points: np.ndarray, reg: Regulariser, weight: float,
-                        validity: Validity, state: LMState | None, *, max_iterations: int,
+                        validity: Validity, state: LMState | None, *,
+                        theta_start: np.ndarray | None = None, max_iterations: int,
                         tolerance: float = 1e-3,
                         save: Callable[[LMState], None] = lambda s: None,
                         start: Linearisation | None = None) -> LMState:
-    """Regularised LM from ``state`` (or ``reg.theta0``); ``save`` after every iteration.
+    """Regularised LM from ``state`` (or ``theta_start``, default ``reg.theta0``); ``save``
+    after every iteration.
 
     The damping is ``damping x A1`` (the regulariser's metric), adapted by the
     gain ratio. Stops when an accepted step lowers the objective by less than
     ``tolerance`` of it, after ``max_iterations`` iterations, or when no damping
     makes a step acceptable. ``start`` is the linearisation at ``reg.theta0`` if
-    already computed.
+    already computed (at ``theta_start``).
     """
     def objective(theta: np.ndarray, r: np.ndarray) -> float:
         h, _ = validity.hinge(theta)
         return float(r @ r + reg.value(theta, weight) + h @ h)
 
     if state is None:
-        lin = start if start is not None else linearise(ev, reg.theta0, points, reg, validity)
+        theta = reg.theta0 if theta_start is None else theta_start
+        lin = start if start is not None else linearise(ev, theta, points, reg, validity)
         n_data = ev.data.rows(points)
-        cost = objective(reg.theta0, lin.r[:n_data])
-        state = LMState(reg.theta0.copy(), weight, cost, [cost])
+        cost = objective(theta, lin.r[:n_data])
+        state = LMState(theta.copy(), weight, cost, [cost])
     elif not state.done:
         lin = linearise(ev, state.theta, points, reg, validity)
     while not state.done and state.iteration < max_iterations:
@@ -525,8 +531,9 @@ class GradientResult:
 
     Attributes:
         params: the fitted per-connector parameters.
-        weight: the smoothness weight lambda chosen by cross-validation.
-        grid, cv_costs: the weights tried and their predicted fold costs [1].
+        weight: the smoothness weight lambda of the final fit (chosen by cross-validation).
+        grid, cv_costs: the weights tried and, per round, their predicted fold costs [1].
+        weights: the weight chosen in each round.
         state: the final LM state (objective history [1]).
         jacobians: Jacobian evaluations (all calibration points each).
     """
@@ -536,9 +543,10 @@ class GradientResult:
     cv_costs: np.ndarray
     state: LMState
     jacobians: int
+    weights: tuple[float, ...] = ()
 
     def summary(self) -> dict:
-        return {"weight": self.weight, "grid": list(self.grid),
+        return {"weight": self.weight, "weights": list(self.weights), "grid": list(self.grid),
                 "cv_costs": self.cv_costs.tolist(), "objective": self.state.history,
                 "iterations": self.state.iteration, "jacobians": self.jacobians}
 
@@ -567,25 +575,32 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
                       None if tets is None else shared_laplacian(tets, n_particles, 3))
-    saved_cv = checkpoint_get("gradient_cv")
-    start = None
-    if saved_cv is None:
-        t = time.perf_counter()
-        rows = ev.linearise(theta0, points)
-        lin = Linearisation.of(theta0, *rows, reg)
-        weight, costs = cross_validate(lin, data.rows(points[:1]), reg,
-                                       folds_of(len(points), folds), grid)
-        checkpoint_put("gradient_cv", {"weight": weight, "costs": costs.tolist()})
-        log.info("gradient fit: smoothness weight %g by %d-fold cross-validation (%.1f s)",
-                 weight, folds, time.perf_counter() - t)
-        hinge, _ = validity.hinge(theta0)
-        start = lin if not hinge.any() else linearise(ev, theta0, points, reg, validity, rows)
-    else:
-        weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)
-    saved = checkpoint_get("gradient_fit")
-    state = levenberg_marquardt(
-        ev, points, reg, weight, validity, None if saved is None else LMState.from_dict(saved),
-        max_iterations=max_iterations, save=lambda s: checkpoint_put("gradient_fit", s.as_dict()),
-        start=start)
-    return GradientResult(coords.params(state.theta), weight, tuple(grid), costs, state,
-                          ev.jacobians)
+    theta, state, weights, cv_costs = theta0, None, [], []
+    for k in range(CV_ROUNDS):
+        saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")
+        start = None
+        if saved_cv is None:
+            t = time.perf_counter()
+            rows = ev.linearise(theta, points)
+            lin = Linearisation.of(theta, *rows, reg)
+            weight, costs = cross_validate(lin, data.rows(points[:1]), reg,
+                                           folds_of(len(points), folds), grid)
+            checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
+            log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
+                     "(%.1f s)", k + 1, weight, folds, time.perf_counter() - t)
+            hinge, _ = validity.hinge(theta)
+            start = lin if not hinge.any() else linearise(ev, theta, points, reg, validity, rows)
+        else:
+            weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)
+        weights.append(weight)
+        cv_costs.append(costs)
+        state = levenberg_marquardt(
+            ev, points, reg, weight, validity,
+            None if saved is None else LMState.from_dict(saved), theta_start=theta,
+            max_iterations=max_iterations, start=start,
+            save=lambda s, k=k: checkpoint_put(f"gradient_fit_{k}", s.as_dict()))
+        if k > 0 and weight == weights[-2]:
+            break  # the same weight again: the round's fit continued the last one's
+        theta = state.theta
+    return GradientResult(coords.params(state.theta), weights[-1], tuple(grid),
+                          np.array(cv_costs), state, ev.jacobians, tuple(weights))
