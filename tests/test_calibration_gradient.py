@@ -207,3 +207,41 @@ def test_validity_refuses_soft_springs():
     theta[n + 2] = 0.5  # alpha s = 0.5: tangent 1 + 10 eps < 2 x floor / K0 at eps = -0.3
     h, jac = validity.hinge(theta)
     assert h[:5].max() == 0 and h[10:].max() > 0 and jac.shape == (15, 21)
+
+
+def test_gradient_fit_resumes_from_its_checkpoint(box):
+    """A fit whose every stage is in the checkpoint returns the same parameters without
+    computing a single Jacobian; one whose last round is missing recomputes only that."""
+    from calibration.gradient import fit_gradient, gradient_backend
+    from calibration.pool import Experiments, Pool
+
+    problem = build_problem(box)
+    n = len(problem.mesh.edges)
+    truth = smooth_truth(problem)
+    depths = indentation_depths(box.indentation)
+    times, relax_depths = relaxation_schedule(box.relaxation)
+    strain = StrainRange(-0.2, 0.05)
+    experiments = Experiments(problem, box.material.density, depths, times, relax_depths,
+                              strain.bounds)
+    cal = np.arange(len(problem.calibration))
+    validity = Validity(np.full(n, strain.low), np.full(n, strain.high), 0.1 * GLOBAL.K0,
+                        GLOBAL.K0, strain.scale)
+    with Pool(experiments, truth, backend=gradient_backend, workers=1) as pool:
+        reference = {k: pool.curves(k, truth, cal) for k in ("indentation", "relaxation")}
+        store: dict = {}
+
+        def fit(saved):
+            return fit_gradient(pool, GLOBAL, strain, reference, validity, problem.mesh.edges,
+                                problem.mesh.n_vertices, folds=2, max_iterations=3,
+                                checkpoint_get=saved.get, checkpoint_put=saved.__setitem__)
+
+        first = fit(store)
+        again = fit(dict(store))
+        assert again.jacobians == 0
+        for name in PARAM_NAMES:
+            np.testing.assert_array_equal(getattr(again.params, name),
+                                          getattr(first.params, name))
+        partial = {k: v for k, v in store.items() if not k.endswith("_1")}
+        resumed = fit(partial)
+        assert 0 < resumed.jacobians < first.jacobians
+        assert resumed.weights == first.weights
