@@ -78,7 +78,8 @@ HINGE_STRAINS = 5  # strains per connector where the hinge looks (the hard check
 
 
 def gradient_backend(experiments: Experiments, points: np.ndarray, params: ConnectorParams):
-    """Pool backend: the particle evaluators with adjoint Jacobians (:mod:`particle.sensitivity`)."""
+    """Pool backend: the particle evaluators with adjoint Jacobians
+    (:mod:`particle.sensitivity`)."""
     from particle.model import build_model
     from particle.sensitivity import sensitivity_evaluators
 

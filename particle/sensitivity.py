@@ -49,9 +49,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
+from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import PARAM_NAMES, ConnectorParams, Model
-from particle import kernels
 from particle.statics import ArmStep, Equilibrium, EquilibriumSolver
 from particle.volume import add_volume_tangent, signed_volumes, volume_gradients_numpy
 

@@ -9,12 +9,12 @@ import pytest
 from calibration.core import calibrate
 from calibration.gradient import (Coordinates, Linearisation, Regulariser, Validity,
                                   cross_validate, folds_of, neighbour_laplacian)
+from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
 from calibration.synthetic import box_scene, noisy_params, synthetic_reference
 from forcecal.errors import ParameterError
 from forcecal.problem import build_problem
 from forcecal.scene import replace
-from calibration.network import linear_indentation
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.model import PARAM_NAMES, ConnectorParams, build_model
 from particle.sensitivity import IndentationSensitivity, RelaxationSensitivity
@@ -165,7 +165,8 @@ def test_gradient_recovers_smooth_truth(recovered):
 
 def test_cross_validation_picks_a_finite_weight(box):
     """Linear synthetic case: a smooth truth seen through random point-local sensitivities
-    (12 points x 40 samples, like relaxation curves), with noise of 0.3 x the signal. Too little smoothing fits the noise and too much flattens the truth; both
+    (12 points x 40 samples, like relaxation curves), with noise of 0.3 x the signal. Too
+    little smoothing fits the noise and too much flattens the truth; both
     predict the held-back folds worse than the weight CV picks (inside the grid)."""
     problem = build_problem(box)
     edges = problem.mesh.edges
