@@ -159,8 +159,12 @@ def test_gradient_recovers_smooth_truth(recovered):
     for name in ("k1", "tau1", "k2", "tau2"):
         assert np.median(np.abs(getattr(got, name) / getattr(truth, name) - 1.0)) < 0.05, name
     assert 0 < result.gradient["weight"] < max(result.gradient["grid"])
-    # every spring stays above the stiffness floor on its strain range
-    assert not any("floor" in w for w in result.warnings)
+    # every spring stays above the stiffness floor on the calibrated strain range (no gravity
+    # run in a synthetic reference, so that is the range the fit kept)
+    n = len(got.K0)
+    Validity(np.full(n, result.strain.low), np.full(n, result.strain.high),
+             0.1 * result.global_params.K0, result.global_params.K0, result.strain.scale
+             ).check(got)
 
 
 def test_cross_validation_picks_a_finite_weight(box):
