@@ -250,3 +250,31 @@ def test_gradient_fit_resumes_from_its_checkpoint(box):
         resumed = fit(partial)
         assert 0 < resumed.jacobians < first.jacobians
         assert resumed.weights == first.weights
+
+
+def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
+    """Each connector's range = the experiments' range united with twice the strain of the FE
+    static sag widened by the margin (what the gravity release verifies)."""
+    from types import SimpleNamespace
+
+    from calibration.core import gradient_validity
+    from particle.integrator import strain_range_for_release
+    from particle.statics import gravity_static
+
+    problem = build_problem(box)
+    glob = dataclasses.replace(GLOBAL, alpha=0.0, beta=0.0)
+    n = len(problem.mesh.edges)
+    model = build_model(problem, box.material.density, glob.connector_params(n))
+    sag = gravity_static(model, np.array([0.0, 0.0, -9.81]))
+    ref = SimpleNamespace(problem=problem, material=box.material,
+                          gravity=SimpleNamespace(static_displacement=sag))
+    strain = StrainRange(-0.05, 0.02)
+    validity = gradient_validity(ref, glob, strain, 0.1, 0.2)
+    lo, hi = strain_range_for_release(model, sag, 0.2)
+    np.testing.assert_array_equal(validity.low, np.minimum(lo, strain.low))
+    np.testing.assert_array_equal(validity.high, np.maximum(hi, strain.high))
+    assert validity.low.min() < strain.low and validity.high.max() > strain.high
+    assert validity.floor == pytest.approx(0.1 * glob.K0)
+    without = gradient_validity(SimpleNamespace(problem=problem, material=box.material,
+                                                gravity=None), glob, strain, 0.1, 0.2)
+    assert np.all(without.low == strain.low) and np.all(without.high == strain.high)
