@@ -72,6 +72,9 @@ WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))
 #: cross-validation rounds: the first on the linearisation at the global fit, the next at the
 #: previous round's fit (where the linear model is closer to the fitted curves)
 CV_ROUNDS = 2
+#: rows kept per calibration point in the Gauss-Newton model (:func:`compress`; its curves
+#: have 50 samples on the default liver)
+ROWS_KEPT = 12
 HINGE_FACTOR = 2.0  # the hinge pushes springs back above this multiple of the floor
 HINGE_WEIGHT = 1.0
 HINGE_STRAINS = 5  # strains per connector where the hinge looks (the hard check is exact)
@@ -355,18 +358,21 @@ class Linearisation:
         J: (m, size) their Jacobian.
         P: (size, m) ``A1^-1 J^T``.
         C: (m, m) ``J A1^-1 J^T``.
+        offset: squared norm of the residual left out of the rows [1] (:func:`compress`):
+            ``|r_full + J_full d|^2 ~ |r + J d|^2 + offset``.
     """
     theta: np.ndarray
     r: np.ndarray
     J: np.ndarray
     P: np.ndarray
     C: np.ndarray
+    offset: float = 0.0
 
     @classmethod
-    def of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser
-           ) -> "Linearisation":
+    def of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
+           offset: float = 0.0) -> "Linearisation":
         P = reg.lu.solve(np.ascontiguousarray(J.T)) if len(J) else np.zeros((J.shape[1], 0))
-        return cls(theta, r, J, P, J @ P)
+        return cls(theta, r, J, P, J @ P, offset)
 
     def rows(self, keep: np.ndarray) -> "Linearisation":
         return Linearisation(self.theta, self.r[keep], self.J[keep], self.P[:, keep],
@@ -390,6 +396,32 @@ class Linearisation:
 
     def predict(self, d: np.ndarray) -> np.ndarray:
         return self.r + self.J @ d.ravel()
+
+
+def compress(r: np.ndarray, J: np.ndarray, rows_per_point: int, keep: int
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each point's rows projected on the ``keep`` leading left singular vectors of its block.
+
+    A point's samples move together (a curve has few independent shapes), so its
+    Jacobian block (S, size) is numerically of low rank; projecting the rows on the
+    leading singular directions ``U_k`` keeps the Gauss-Newton model
+    ``|U_k^T (r + J d)|^2`` (exact for ``J d`` in their span) at a fraction of the
+    dense algebra (which grows with the square of the rows). The accept/reject
+    test of every step uses the exact objective. Returns the rows (P k,), (P k, size)
+    and the squared norm of the residual left out.
+    """
+    if keep >= rows_per_point:
+        return r, J, 0.0
+    n_points = len(r) // rows_per_point
+    r_out = np.empty(n_points * keep)
+    J_out = np.empty((n_points * keep, J.shape[1]))
+    for p in range(n_points):
+        block = slice(p * rows_per_point, (p + 1) * rows_per_point)
+        values, vectors = np.linalg.eigh(J[block] @ J[block].T)  # ascending
+        U = vectors[:, ::-1][:, :keep]
+        r_out[p * keep:(p + 1) * keep] = U.T @ r[block]
+        J_out[p * keep:(p + 1) * keep] = U.T @ J[block]
+    return r_out, J_out, float(r @ r - r_out @ r_out)
 
 
 def folds_of(n_points: int, k: int) -> list[np.ndarray]:
@@ -459,12 +491,13 @@ def linearise(ev: Evaluator, theta: np.ndarray, points: np.ndarray, reg: Regular
               ) -> Linearisation:
     """Data rows (computed, or ``data_rows``) plus the active hinge rows at ``theta``."""
     r, J = ev.linearise(theta, points) if data_rows is None else data_rows
+    r, J, offset = compress(r, J, ev.data.rows(points[:1]), ROWS_KEPT)
     h, Jh = validity.hinge(theta)
     active = np.nonzero(h)[0]
     if len(active):
         r = np.concatenate([r, h[active]])
         J = np.vstack([J, Jh[active].toarray()])
-    return Linearisation.of(theta, r, J, reg)
+    return Linearisation.of(theta, r, J, reg, offset)
 
 
 def levenberg_marquardt(ev: Evaluator, points: np.ndarray, reg: Regulariser, weight: float,
@@ -489,8 +522,10 @@ def levenberg_marquardt(ev: Evaluator, points: np.ndarray, reg: Regulariser, wei
     if state is None:
         theta = reg.theta0 if theta_start is None else theta_start
         lin = start if start is not None else linearise(ev, theta, points, reg, validity)
-        n_data = ev.data.rows(points)
-        cost = objective(theta, lin.r[:n_data])
+        n_data = ROWS_KEPT * len(points) if ROWS_KEPT < ev.data.rows(points[:1]) else \
+            ev.data.rows(points)
+        data = lin.r[:n_data]
+        cost = objective(theta, data) + lin.offset
         state = LMState(theta.copy(), weight, cost, [cost])
     elif not state.done:
         lin = linearise(ev, state.theta, points, reg, validity)
@@ -508,7 +543,8 @@ def levenberg_marquardt(ev: Evaluator, points: np.ndarray, reg: Regulariser, wei
                 continue
             new = objective(trial, r_new)
             lin_new = lin.predict(d)
-            predicted = state.cost - float(lin_new @ lin_new + reg.value(trial, weight))
+            predicted = state.cost - float(lin_new @ lin_new + lin.offset
+                                           + reg.value(trial, weight))
             gain = (state.cost - new) / predicted if predicted > 0 else -1.0
             if new < state.cost:
                 accepted = True
@@ -591,8 +627,10 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
         if saved_cv is None:
             t = time.perf_counter()
             rows = ev.linearise(theta, points)
-            lin = Linearisation.of(theta, *rows, reg)
-            weight, costs = cross_validate(lin, data.rows(points[:1]), reg,
+            per_point = data.rows(points[:1])
+            r_c, J_c, offset = compress(*rows, per_point, ROWS_KEPT)
+            lin = Linearisation.of(theta, r_c, J_c, reg, offset)
+            weight, costs = cross_validate(lin, min(ROWS_KEPT, per_point), reg,
                                            folds_of(len(points), folds), grid)
             checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
             log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
