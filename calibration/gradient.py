@@ -24,7 +24,9 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   linearisation at the global fit, each fold's points are predicted by the step
   fitted to the other points, for every lambda of :data:`WEIGHT_GRID`; the
   lambda with the smallest predicted fold error wins (the linear model is exact
-  for small changes and costs one Jacobian; the fit itself is nonlinear).
+  for small changes and costs one Jacobian; the fit itself is nonlinear). A
+  second round repeats the cross-validation on the linearisation at the first
+  round's fit (:data:`CV_ROUNDS`) and refits from there if it picks another lambda.
 * **Valid where it is used**: every spring's tangent stiffness ``K0 + 2 a eps
   + 3 b eps^2`` must stay >= ``calibration.stiffness_floor`` x the global K0 on
   its connector's strain range (:class:`Validity`): the experiments' range
@@ -33,10 +35,12 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   ``particle.strain_margin``). A step that violates it is rejected like one that
   raises the cost; a hinge penalty keeps springs above twice the floor before
   they reach it.
-* **Step**: ``(J^T J + A) delta = -grad`` with the sparse ``A`` = regulariser +
-  hinge + ``mu I``, solved by the Woodbury identity (J has as many rows as
-  curve samples, far fewer than parameters); ``mu`` is adapted by the gain
-  ratio. One Jacobian per accepted step; the points are spread over the
+* **Step**: ``(J^T J + A) delta = -grad`` with the sparse ``A`` = regulariser (+ hinge) +
+  ``damping x A1``, solved by the Woodbury identity (J has as many rows as
+  curve samples, far fewer than parameters; each point's rows projected on
+  their :data:`ROWS_KEPT` leading singular directions, :func:`compress`); the
+  damping is adapted by the gain ratio and a step is accepted on the exact
+  objective. One Jacobian per accepted step; the points are spread over the
   calibration pool's workers.
 """
 
