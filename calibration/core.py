@@ -34,6 +34,7 @@ import numpy as np
 
 from calibration.baseline import van_gelder_params
 from calibration.checkpoint import Checkpoint
+from calibration.gradient import Validity, fit_gradient, gradient_backend
 from calibration.global_fit import fe_initial_slopes, fit_relaxation, fit_static, initial_guess
 from calibration.local import LocalModel, Sweep, run_local_stage
 from calibration.metrics import relative_rms_error
@@ -168,6 +169,11 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
 
     inputs = {**fit_inputs(scene, reference_path), "experiments": ",".join(fitted)}
+    gradient = settings.method == "gradient"
+    if gradient:  # the gradient fit's validity range also reads the gravity release margin
+        inputs["particle.strain_margin"] = repr(scene.particle.strain_margin)
+        if backend is particle_backend:
+            backend = gradient_backend
     checkpoint = Checkpoint(checkpoint_path(out_path), inputs)
     evaluations: dict[str, int] = {}
     stage_times: dict[str, float] = {}
@@ -202,7 +208,22 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         model = LocalModel(glob, rings, strain, settings.stiffness_floor * glob.K0,
                            np.zeros((n_cal, STATIC_DIM)), np.zeros((n_cal, RELAXATION_DIM)))
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
-        if settings.local:
+        gradient_summary: dict = {}
+        if gradient:
+            t = time.perf_counter()
+            validity = gradient_validity(ref, glob, strain, settings.stiffness_floor,
+                                         scene.particle.strain_margin)
+            gfit = fit_gradient(pool, glob, strain, {e: ref_curves[e][:n_cal] for e in fitted},
+                               validity, mesh.edges, mesh.n_vertices, folds=settings.cv_folds,
+                               # per-tet kv too when the global fit carries the volume term
+                               tets=mesh.tets if glob.connector_params(n_conn).kv is not None
+                               else None,
+                               max_iterations=settings.gradient_max_iterations,
+                               checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
+            gradient_summary = gfit.summary()
+            evaluations["gradient_jacobians"] = gfit.jacobians
+            stage_times["gradient"] = time.perf_counter() - t
+        elif settings.local:
             for stage, _, experiment in stages:
                 if experiment not in fitted:
                     continue
@@ -219,7 +240,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
         connectors = {"baseline": van_gelder_params(mesh, material),
                       "global": glob.connector_params(n_conn),
-                      "calibrated": model.params()}
+                      "calibrated": gfit.params if gradient else model.params()}
         t = time.perf_counter()
         pool.forget_warm_starts()  # the stages before may have been loaded (identical resumes)
         variants = {}
@@ -242,7 +263,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         local_sweeps=local_sweeps, settings=fit_settings(scene),
         reference_fingerprint=reference_digest(reference_path, fitted), experiments=fitted,
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
-        wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions())
+        wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions(),
+        gradient=gradient_summary)
     write_params(out_path, result)
     checkpoint.remove()
     for w in warnings:
@@ -284,3 +306,23 @@ def _count(points: list[int], n: int) -> str:
     """``"3/31 (points [0, 4, 7])"``; the points are named only when few."""
     named = f" (points {points})" if len(points) <= 8 and len(points) < n else ""
     return f"{len(points)}/{n}{named}"
+
+
+def gradient_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
+                      gravity_margin: float) -> Validity:
+    """Where the gradient fit keeps every spring stiff: the experiments' strain range united,
+    per connector, with the gravity release range of the FE static sag
+    (:func:`particle.integrator.strain_range_for_release` with ``gravity_margin``; the
+    experiments' range alone if the reference has no gravity run)."""
+    from particle.integrator import strain_range_for_release
+    from particle.model import build_model
+
+    n = len(ref.problem.mesh.edges)
+    low, high = np.full(n, strain.low), np.full(n, strain.high)
+    if ref.gravity is not None:
+        model = build_model(ref.problem, ref.material.density, glob.connector_params(n))
+        lo, hi = strain_range_for_release(model, ref.gravity.static_displacement, gravity_margin)
+        low, high = np.minimum(low, lo), np.maximum(high, hi)
+        log.info("gradient fit: springs kept stiff on the experiments' strains and the gravity "
+                 "release range of the FE sag, [%.3g, %.3g] overall", low.min(), high.max())
+    return Validity(low, high, floor * glob.K0, glob.K0, strain.scale)

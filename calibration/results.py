@@ -5,7 +5,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``gradient`` (JSON: the gradient method's smoothness weight, CV costs and objective history; ``{}`` for the paper's method), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
 | ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local) |
 | ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s | ``K0, alpha, beta, k1, tau1, k2, tau2`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``) |
@@ -88,6 +88,8 @@ class CalibrationResult:
         versions: software versions and the git commit (None outside a checkout).
         experiments: the experiments fitted and evaluated (``variants`` hold their curves
             and errors only); without ``relaxation`` the arms are not calibrated.
+        gradient: the gradient method's summary (smoothness weight, CV costs, objective
+            history; empty for the paper's method).
     """
     problem: Problem
     initial: GlobalParams
@@ -110,6 +112,7 @@ class CalibrationResult:
     warnings: tuple[str, ...] = field(default=())
     versions: dict[str, str | None] = field(default_factory=dict)
     experiments: tuple[str, ...] = EXPERIMENTS
+    gradient: dict = field(default_factory=dict)
 
     @property
     def is_calibration(self) -> np.ndarray:
@@ -241,6 +244,7 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
         fh.attrs["settings"] = json.dumps(result.settings)
         fh.attrs["versions"] = json.dumps(result.versions)
         fh.attrs["experiments"] = json.dumps(list(result.experiments))
+        fh.attrs["gradient"] = json.dumps(result.gradient)
         write_problem(fh, result.problem)
         for variant, params in result.connectors.items():
             g = fh.create_group(f"connectors/{variant}")
@@ -318,4 +322,5 @@ def read_params(path: str | Path) -> CalibrationResult:
             wall_time=float(a["wall_time"]),
             warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
                            for s in fh["warnings"][()]),
-            versions=json.loads(a["versions"]), experiments=fitted)
+            versions=json.loads(a["versions"]), experiments=fitted,
+            gradient=json.loads(a["gradient"]) if "gradient" in a else {})

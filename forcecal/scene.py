@@ -217,6 +217,10 @@ class ParticleSection:
 
 @dataclass(frozen=True)
 class CalibrationSection:
+    method: str = key("paper", "after the global fit: \"paper\" = local ring tuning (Nelder-Mead "
+                      "Jacobi sweeps); \"gradient\" = every connector's parameters by "
+                      "regularised Levenberg-Marquardt with adjoint Jacobians (README, "
+                      "Calibration)", choices=("paper", "gradient"))
     local: bool = key(True, "run local tuning after global tuning")
     static_max_evaluations: int = key(200, "Nelder-Mead budget of the global static fit "
                                       "(cost evaluations)", minimum=1)
@@ -241,6 +245,11 @@ class CalibrationSection:
                                  "K0 on that strain range (local tuning may soften a ring "
                                  "10-fold, not to a nearly stiffness-less or snapping spring)",
                                  minimum=0.0)
+    cv_folds: int = key(5, "gradient method: folds of the cross-validation over the calibration "
+                        "points that picks the smoothness weight", minimum=2)
+    gradient_max_iterations: int = key(12, "gradient method: Levenberg-Marquardt iterations "
+                                       "(one Jacobian of every calibration point each)",
+                                       minimum=1)
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
 

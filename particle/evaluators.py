@@ -115,7 +115,7 @@ class _PointEvaluator:
                       points: Sequence[int] | None = None) -> np.ndarray:
         """(P', S, 3) indenter forces [N] of the selected points (indices into ``nodes``)."""
         idx = self._indices(points)
-        params.validate(self.strain_range, self.model.edges)
+        params.validate(self.strain_range, self.model.edges, self.model.tets)
         model = self.model.with_params(params)
         prepared = self._prepare(params)
         return np.stack([self._curve(model, prepared, int(k)) for k in idx])
@@ -141,7 +141,7 @@ class _PointEvaluator:
         idx = self._indices(points)
         sets = list(param_sets)
         for params in sets:
-            params.validate(self.strain_range, self.model.edges)
+            params.validate(self.strain_range, self.model.edges, self.model.tets)
         if not sets:
             return np.empty((0, len(idx), len(self.depths)))
         return np.stack([self(params, idx) for params in sets])

@@ -26,7 +26,8 @@ from forcecal.scene import ParticleSection
 from particle import kernels
 from particle.model import (ConnectorParams, Model, State, StrainBounds,
                             connector_strain_bounds)
-from particle.statics import check_stiffness
+from particle.statics import check_stiffness, check_volumes
+from particle.volume import tet_name, tet_stiffness_bound, volume_energy
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,7 @@ def mass_scaled_laplacian(model: Model, kappa: np.ndarray) -> sp.csr_matrix:
     index = np.full(model.n_particles, -1, dtype=np.int64)
     index[free] = np.arange(int(free.sum()))
     i, j = model.edges[:, 0], model.edges[:, 1]
+    kappa = np.asarray(kappa, dtype=np.float64)
     m = model.masses
     both = free[i] & free[j]
     rows = np.concatenate([index[i], index[j], index[i][both], index[j][both]])
@@ -135,23 +137,40 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     mass-proportional damping gamma the central-difference limit becomes
     ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
 
+    With the volume term (``params.kv`` given), each tet's 12x12 tangent H_t
+    annihilates translations and ``H_t <= c_t I`` (:func:`particle.volume.tet_stiffness_bound`),
+    so ``H_t <= (c_t/4) L_K4 (x) I_3`` (the complete graph of its 4 vertices has
+    the eigenvalue 4 on every non-translation mode): ``c_t/4`` is added to the
+    weight of each of its six edges (:func:`volume_edge_weights`) and the same
+    Laplacian bound holds.
+
     Raises:
         ParameterError: the parameters are non-physical on ``strain_range``
             (:meth:`ConnectorParams.validate`, e.g. a negative K0), naming the connector.
     """
     p = model.params if params is None else params
     # a non-physical model (K0 <= 0, ...) has no meaningful limit: refused, naming the connector
-    p.validate(strain_range, model.edges)
+    p.validate(strain_range, model.edges, model.tets)
     if not (~model.fixed).any():
         return math.inf  # nothing moves
     lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
     kappa = connector_stiffness_bound(p, lo, hi)
+    if p.kv is not None:
+        kappa = kappa + volume_edge_weights(model.with_params(p), lo, hi)
     omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
     if not omega2 > 0.0:
         return math.inf  # no stiffness at all: nothing oscillates
     omega = math.sqrt(omega2)
     xi = damping / (2.0 * omega)
     return 2.0 / omega * (math.sqrt(1.0 + xi * xi) - xi)
+
+
+def volume_edge_weights(model: Model, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(E,) connector weights [N/m] that bound the volume term's tangent (see
+    :func:`critical_time_step`): ``c_t/4`` summed over the tets of each connector."""
+    c = tet_stiffness_bound(model, lo, hi)
+    return np.bincount(model.tet_connectors.ravel(), np.repeat(0.25 * c, 6),
+                       minlength=model.n_connectors)
 
 
 def strain_range_for_release(model: Model, static_displacement: np.ndarray, margin: float
@@ -328,12 +347,19 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
     # (an unmonitored run) where one does is refused too, not bounded with |K|
     check_stiffness(model, strain, f"explicit run from t = {state.t:.6g} s")
     energy += float(np.sum(0.5 * p.stiffness(strain) * dx ** 2))
+    if p.kv is not None:
+        check_volumes(model, state.x, f"explicit run from t = {state.t:.6g} s")
+        energy += volume_energy(state.x, model.tets, model.rest_volumes, p.kv)
     energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
     if gravity is not None:
         g = float(np.linalg.norm(gravity))
         energy += total_mass * g * (size + 0.5 * g * duration ** 2)
     if prescribed is not None:
-        stiff = np.bincount(model.edges.ravel(), np.repeat(p.K0 + p.k1 + p.k2, 2),
+        weights = p.K0 + p.k1 + p.k2
+        if p.kv is not None:  # a stiffness scale of the volume term, per connector
+            weights = weights + volume_edge_weights(model, *connector_strain_bounds(
+                DEFAULT_STRAIN_RANGE, model.n_connectors, model.edges))
+        stiff = np.bincount(model.edges.ravel(), np.repeat(weights, 2),
                             model.n_particles)[prescribed.nodes]
         reach = np.linalg.norm(prescribed.positions - state.x[prescribed.nodes][None], axis=2)
         energy += float(np.sum(stiff * (reach.max(axis=0) + size) ** 2))
@@ -428,7 +454,7 @@ class VerletIntegrator:
         """
         dt = float(dt)
         threads = check_threads(threads)
-        model.params.validate(self.strain_range, model.edges)
+        model.params.validate(self.strain_range, model.edges, model.tets)
         stability = self.stability_model(model, inertia)
         monitored = None
         if _check_dt:
@@ -538,13 +564,15 @@ class Run:
         self._elongation_limits = ((None, None) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
         self._edges = kernels.index_view(model.edges)
+        self._volume = (None if p.kv is None else
+                        (kernels.index_view(model.tets), model.rest_volumes, p.kv))
         self._active = kernels.index_view(self.active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
         self.threads = threads  # checked by VerletIntegrator.prepare, which builds every Run
         self._blocks = None if self.threads == 1 else thread_blocks(model, self.active,
                                                                      self.threads)
-        self._node_edges: dict[int, np.ndarray] = {}
+        self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._state_shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
                               ("arm_force", (model.n_connectors, 2)),
                               ("dx_prev", (model.n_connectors,)))
@@ -574,9 +602,9 @@ class Run:
                 self._close_arm_step(state)
         if not self.arms:
             state.arm_force[:] = 0.0
-        out = node_edges = None
+        out = node_edges = node_tets = None
         if probe is not None:
-            node_edges, out = self._incident(probe), np.empty(3)
+            (node_edges, node_tets), out = self._incident(probe), np.empty(3)
         pool = None if self._blocks is None else numba.get_num_threads()
         if pool is not None:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
@@ -586,11 +614,18 @@ class Run:
                 model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
                 *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
                 float(state.t), *record, self.integrator.check_every, float(energy_bound),
-                *self._elongation_limits, self._forces, probe, node_edges, out, self._blocks)
+                *self._elongation_limits, self._forces, probe, node_edges, out, self._blocks,
+                self._volume, node_tets)
         finally:
             if pool is not None:
                 numba.set_num_threads(pool)
         code, step, node = status.tolist()
+        if code == kernels.INVERTED:
+            raise StabilityError(
+                f"{tet_name(node, model.tets)} inverted (volume <= 0) at step {step} (t = "
+                f"{state.t + step * dt:.6g} s) of the explicit run; dt = {dt:.4g} s, stability "
+                f"limit {self.integrator.critical_time_step(model):.4g} s; the run stopped (the "
+                "volume term is not defined for an inverted tet)")
         if code == kernels.STRAIN:
             self._raise_strain_exit(state, node, state.t + (step - 1) * dt)
         if code != kernels.OK:
@@ -656,15 +691,18 @@ class Run:
         if not math.isfinite(state.t):
             raise ParameterError(f"the state's time t = {state.t} s is not finite")
 
-    def _incident(self, node: int) -> np.ndarray:
-        """The connectors touching particle ``node`` (index view for the kernels; cached)."""
-        edges = self._node_edges.get(node)
-        if edges is None:
+    def _incident(self, node: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The connectors and tets (None without the volume term) touching particle ``node``
+        (index views for the kernels; cached)."""
+        found = self._node_edges.get(node)
+        if found is None:
             node = int(self.model.check_nodes([node], "force_on", movable=False)[0])
             ptr = self.model.incidence_ptr
             edges = kernels.index_view(self.model.incidence_edge[ptr[node]:ptr[node + 1]])
-            self._node_edges[node] = edges
-        return edges
+            tets = (None if self._volume is None else kernels.index_view(
+                np.nonzero(np.any(self.model.tets == node, axis=1))[0]))
+            found = self._node_edges[node] = (edges, tets)
+        return found
 
     def force_on(self, state: State, node: int) -> np.ndarray:
         """(3,) connector force on particle ``node`` at ``state`` [N], arm step not committed.
@@ -673,7 +711,9 @@ class Run:
         the arms advanced by this run's recursion into scratch (state unchanged).
         """
         out = np.empty(3)
-        kernels.node_force(state.x, node, self._incident(node), self._edges,
-                           self.model.rest_lengths, *self._springs, state.arm_force,
-                           state.dx_prev, out)
+        edges, tets = self._incident(node)
+        kernels.node_force(state.x, node, edges, self._edges, self.model.rest_lengths,
+                           *self._springs, state.arm_force, state.dx_prev, out)
+        if self._volume is not None:
+            kernels.node_volume_force(state.x, node, tets, *self._volume, out)
         return out

@@ -74,6 +74,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from particle.volume import add_volume_forces, node_volume_force
+
 # numpy's error model: a degenerate input gives inf/NaN, which the divergence check turns
 # into a StabilityError, instead of an exception raised from inside compiled code
 JIT = dict(cache=True, error_model="numpy")
@@ -91,6 +93,7 @@ OK = 0
 NONFINITE = 1
 ENERGY = 2
 STRAIN = 3
+INVERTED = 4
 
 
 @njit(**JIT)
@@ -230,18 +233,24 @@ def add_damping(forces, masses, x, x_prev, rate, nodes):
 
 @njit(**JIT)
 def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-               masses, active, gravity, damping_rate, forces, dx_lo, dx_hi):
+               masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, volume):
     """All force terms of one explicit step, composed; commits the arm recursion in place.
 
-    Returns the first connector outside ``[dx_lo, dx_hi]`` (see :func:`internal_forces`).
+    ``volume`` = (tets (T, 4), rest_volumes (T,), kv (T,)) adds the volume term
+    (:func:`particle.volume.add_volume_forces`), None compiles it out.
+    Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
+    :func:`internal_forces`), the first inverted tet), -1 for none.
     """
     outside = internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force,
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)
+    inverted = -1
+    if volume is not None:
+        inverted = add_volume_forces(x, volume[0], volume[1], volume[2], forces)
     if gravity is not None:
         add_gravity(forces, masses, gravity, active)
     if damping_rate is not None:
         add_damping(forces, masses, x, x_prev, damping_rate, active)
-    return outside
+    return outside, inverted
 
 
 @njit(**JIT)
@@ -271,30 +280,34 @@ def advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses
 @njit(**JIT)
 def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                   masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
-                  check, dt, energy_bound, status, blocks):
+                  check, dt, energy_bound, status, blocks, volume):
     """One explicit step in place: :func:`net_forces` at ``x``, then :func:`advance_positions`.
 
     If ``check``, the divergence check of the new positions: the kinetic
     energy ``sum m |x^{n+1} - x^n|^2 / (2 dt^2)`` [J] must not exceed
     ``energy_bound``, else ``status`` is set (:func:`divergent_node`, the only
-    part that looks at the nodes again). Returns the first connector outside
-    ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None). ``blocks`` None runs the
+    part that looks at the nodes again). Returns (the first connector outside
+    ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None), the first tet inverted at
+    ``x`` (-1: none or no volume term)). ``blocks`` None runs the
     serial passes, else the same passes split over threads
     (:func:`parallel_forces`, :func:`parallel_advance`).
     """
     if blocks is None:
-        outside = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b,
-                             arm_r, arm_c, masses, active, gravity, damping_rate, forces, dx_lo,
-                             dx_hi)
+        outside, inverted = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0,
+                                       a, b, arm_r, arm_c, masses, active, gravity, damping_rate,
+                                       forces, dx_lo, dx_hi, volume)
         energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
     else:
         outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
                                   arm_c, dx_lo, dx_hi, blocks)
+        inverted = -1
+        if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
+            inverted = add_volume_forces(x, volume[0], volume[1], volume[2], blocks[0][0])
         energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity,
                                   damping_rate, scale, check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
         divergent_node(x, x_prev, active, status)
-    return outside
+    return outside, inverted
 
 
 @njit(parallel=True, **JIT)
@@ -413,7 +426,7 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
                presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
                check_every, energy_bound, dx_lo, dx_hi, forces, probe_node, probe_edges,
-               probe_out, blocks):
+               probe_out, blocks, volume, probe_tets):
     """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
@@ -430,7 +443,10 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     connector force on ``probe_node`` at the final state into it (see
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
-    a multi-threaded step (see :func:`explicit_step`).
+    a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
+    rest_volumes, kv) adds the volume term (None: compiled out); a tet found
+    inverted at any step (V <= 0) stops the run at once with code INVERTED
+    (id = the tet); ``probe_tets`` are the probe node's tets.
 
     The checks ride on the force and position passes of the checked steps
     (no extra pass over the model), so a checked step costs about an unchecked one.
@@ -447,15 +463,20 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
         check = (step + 1) % check_every == 0 or step + 1 == n_steps
         scale = 0.5 * h2 if (startup and step == 0) else h2
         if check:
-            outside = explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a,
-                                    b, arm_r, arm_c, masses, inv_masses, active, gravity,
-                                    damping_rate, forces, dx_lo, dx_hi, scale, True, dt,
-                                    energy_bound, status, blocks)
+            outside, inverted = explicit_step(
+                x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
+                True, dt, energy_bound, status, blocks, volume)
         else:
-            outside = explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a,
-                                    b, arm_r, arm_c, masses, inv_masses, active, gravity,
-                                    damping_rate, forces, None, None, scale, False, dt,
-                                    energy_bound, status, blocks)
+            outside, inverted = explicit_step(
+                x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                masses, inv_masses, active, gravity, damping_rate, forces, None, None, scale,
+                False, dt, energy_bound, status, blocks, volume)
+        if volume is not None and inverted >= 0:
+            status[0] = INVERTED
+            status[1] = step  # the tet was inverted at the positions the step started from
+            status[2] = inverted
+            return status
         prescribe(x, x_prev, presc_nodes, presc_times, presc_pos, t0 + (step + 1) * dt)
         if rec_nodes is not None:
             while slot < rec_steps.shape[0] and rec_steps[slot] == step + 1:
@@ -472,6 +493,9 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     if probe_out is not None:
         node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                    arm_force, dx_prev, probe_out)
+        if volume is not None:
+            node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
+                              probe_out)
     return status
 
 

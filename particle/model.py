@@ -30,6 +30,7 @@ import numpy as np
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import TetMesh
 from forcecal.problem import Problem
+from particle.volume import check_kv, signed_volumes, tet_edge_connectors, tet_name
 
 log = logging.getLogger(__name__)
 
@@ -116,9 +117,13 @@ class ConnectorParams:
         b: (E,) float64, quadratic strain coefficient of the spring stiffness [N/m].
         k1, k2: (E,) float64, spring stiffness of Maxwell arm 1 and 2 [N/m].
         b1, b2: (E,) float64, dashpot coefficient of Maxwell arm 1 and 2 [N s/m].
+        kv: (T,) float64, volume stiffness of each tetrahedron [Pa = N/m^2] (the
+            elastic volume term of :mod:`particle.volume`, energy ``kv/2 V0 (V/V0 -
+            1)^2``), or None: the volume term is off (the paper's springs-only
+            model). It does not relax (the arms act on the connectors only).
 
     Instances are immutable; calibration builds new ones with
-    ``dataclasses.replace(params, K0=...)``.
+    ``dataclasses.replace(params, K0=...)`` (``kv=...`` likewise).
     """
     K0: np.ndarray
     a: np.ndarray
@@ -127,6 +132,7 @@ class ConnectorParams:
     b1: np.ndarray
     k2: np.ndarray
     b2: np.ndarray
+    kv: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         arrays = [np.atleast_1d(np.asarray(getattr(self, n), dtype=np.float64))
@@ -137,6 +143,11 @@ class ConnectorParams:
                                  + ", ".join(f"{n} {a.shape}" for n, a in zip(PARAM_NAMES, arrays)))
         for name, arr in zip(PARAM_NAMES, arrays):
             object.__setattr__(self, name, _frozen(arr, np.float64))
+        if self.kv is not None:
+            kv = np.atleast_1d(np.asarray(self.kv, dtype=np.float64))
+            if kv.ndim != 1:
+                raise ParameterError(f"kv must be a 1-D array (one value per tet), got {kv.shape}")
+            object.__setattr__(self, "kv", _frozen(kv, np.float64))
 
     @classmethod
     def uniform(cls, n_connectors: int, *, K0: float, a: float = 0.0, b: float = 0.0,
@@ -148,6 +159,16 @@ class ConnectorParams:
     @property
     def n_connectors(self) -> int:
         return self.K0.shape[0]
+
+    @property
+    def has_volume(self) -> bool:
+        """True when the volume term is on (``kv`` given)."""
+        return self.kv is not None
+
+    def connectors(self, index: np.ndarray) -> "ConnectorParams":
+        """The parameters of connectors ``index`` (reordered/selected); ``kv`` kept as is."""
+        return ConnectorParams(**{name: getattr(self, name)[index] for name in PARAM_NAMES},
+                               kv=self.kv)
 
     @property
     def tau1(self) -> np.ndarray:
@@ -195,10 +216,12 @@ class ConnectorParams:
         return _quadratic_extremes(self.K0, 2.0 * self.a, 3.0 * self.b, *strain_range)
 
     def validate(self, strain_range: StrainBounds = (-0.5, 0.5),
-                 edges: np.ndarray | None = None) -> "ConnectorParams":
-        """Raise :class:`ParameterError` naming the first non-physical connector; return self.
+                 edges: np.ndarray | None = None, tets: np.ndarray | None = None
+                 ) -> "ConnectorParams":
+        """Raise :class:`ParameterError` naming the first non-physical connector or tet; return self.
 
-        Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, and a secant
+        Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, kv <= 0 (naming
+        the tet, with its particles if ``tets`` (T, 4) is given), and a secant
         stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
         the quadratic's ends and vertex). ``strain_range`` is one (lo, hi) pair
         or per-connector (lo (E,), hi (E,)) arrays [1], checked by
@@ -220,6 +243,8 @@ class ConnectorParams:
             if len(bad):
                 raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]:g} "
                                      "must be > 0")
+        if self.kv is not None:
+            check_kv(self.kv, tets)
         kmin, _ = self.extreme_stiffness((lo, hi))
         bad = np.nonzero(kmin <= 0.0)[0]
         if len(bad):
@@ -267,7 +292,12 @@ class Model:
         rest_lengths: (E,) float64, connector rest lengths L0 [m].
         masses: (N,) float64, particle masses [kg] (> 0).
         fixed: (N,) bool, True for clamped particles (never move).
-        params: connector parameters (:class:`ConnectorParams`, E entries).
+        params: connector parameters (:class:`ConnectorParams`, E entries; its
+            ``kv`` (T,) switches the volume term on).
+        tets: (T, 4) int64, particle ids of each tetrahedron of the volume term,
+            positively oriented; every tet edge must be a connector. (0, 4) if none.
+        rest_volumes: (T,) float64, rest volume V0 of each tet [m^3] (> 0); computed
+            from ``rest_positions`` when not given.
         free_nodes: (Nf,) int64, ids of the particles that are not fixed.
         incidence_ptr: (N + 1,) int64, CSR row pointer of the particle -> connector incidence.
         incidence_edge: (2E,) int64, connector ids touching each particle (CSR order).
@@ -278,18 +308,37 @@ class Model:
     masses: np.ndarray
     fixed: np.ndarray
     params: ConnectorParams
+    tets: np.ndarray | None = None
+    rest_volumes: np.ndarray | None = None
     free_nodes: np.ndarray = field(init=False)
     incidence_ptr: np.ndarray = field(init=False)
     incidence_edge: np.ndarray = field(init=False)
+    tet_connectors: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         for name, dtype in (("rest_positions", np.float64), ("edges", np.int64),
                             ("rest_lengths", np.float64), ("masses", np.float64),
                             ("fixed", bool)):
             object.__setattr__(self, name, _frozen(getattr(self, name), dtype))
-        if self.params.n_connectors != self.n_connectors:
-            raise ParameterError(f"parameters have {self.params.n_connectors} entries but the "
-                                 f"model has {self.n_connectors} connectors")
+        tets = np.zeros((0, 4), np.int64) if self.tets is None else np.asarray(self.tets)
+        tets = _frozen(tets.reshape(-1, 4), np.int64)
+        bad = np.nonzero(np.any((tets < 0) | (tets >= self.n_particles), axis=1))[0]
+        if len(bad):
+            raise MeshError(f"{tet_name(bad[0], tets)} refers to unknown particles; particles are "
+                            f"0..{self.n_particles - 1}")
+        volumes = (signed_volumes(self.rest_positions, tets) if self.rest_volumes is None
+                   else np.asarray(self.rest_volumes, dtype=np.float64).reshape(-1))
+        if volumes.shape != (len(tets),):
+            raise MeshError(f"{len(volumes)} rest volumes for {len(tets)} tets")
+        bad = np.nonzero(~(volumes > 0.0) | ~np.isfinite(volumes))[0]
+        if len(bad):
+            raise MeshError(f"{tet_name(bad[0], tets)}: rest volume {volumes[bad[0]]:.3g} m^3 "
+                            "must be > 0 (inverted or degenerate tet)")
+        object.__setattr__(self, "tets", tets)
+        object.__setattr__(self, "rest_volumes", _frozen(volumes, np.float64))
+        object.__setattr__(self, "tet_connectors", _frozen(
+            tet_edge_connectors(tets, self.edges) if len(tets) else np.zeros((0, 6)), np.int64))
+        self._check_params(self.params)
         ends = self.edges.ravel()
         order = np.argsort(ends, kind="stable")
         ptr = np.zeros(self.n_particles + 1, dtype=np.int64)
@@ -306,11 +355,27 @@ class Model:
     def n_connectors(self) -> int:
         return self.edges.shape[0]
 
-    def with_params(self, params: ConnectorParams) -> "Model":
-        """A new Model with other connector parameters, sharing every topology array."""
+    @property
+    def n_tets(self) -> int:
+        return self.tets.shape[0]
+
+    @property
+    def has_volume(self) -> bool:
+        """True when the volume term is on (the parameters carry ``kv``)."""
+        return self.params.kv is not None
+
+    def _check_params(self, params: ConnectorParams) -> None:
         if params.n_connectors != self.n_connectors:
             raise ParameterError(f"parameters have {params.n_connectors} entries but the model "
                                  f"has {self.n_connectors} connectors")
+        tets = self.tets if isinstance(self.tets, np.ndarray) else None
+        if params.kv is not None and tets is not None and params.kv.shape != (len(tets),):
+            raise ParameterError(f"kv has {params.kv.shape[0]} entries but the model has "
+                                 f"{len(tets)} tets (the volume term needs one kv per tet)")
+
+    def with_params(self, params: ConnectorParams) -> "Model":
+        """A new Model with other connector parameters (and kv), sharing every topology array."""
+        self._check_params(params)
         new = object.__new__(Model)
         for f in dataclasses.fields(Model):
             object.__setattr__(new, f.name, getattr(self, f.name))
@@ -336,11 +401,10 @@ class Model:
         new_id[order] = np.arange(n)
         ends = np.sort(new_id[self.edges], axis=1)
         connectors = np.lexsort((ends[:, 1], ends[:, 0]))
-        params = ConnectorParams(**{name: getattr(self.params, name)[connectors]
-                                    for name in PARAM_NAMES})
         return Model(rest_positions=self.rest_positions[order], edges=ends[connectors],
                      rest_lengths=self.rest_lengths[connectors], masses=self.masses[order],
-                     fixed=self.fixed[order], params=params), connectors
+                     fixed=self.fixed[order], params=self.params.connectors(connectors),
+                     tets=new_id[self.tets], rest_volumes=self.rest_volumes), connectors
 
     def state(self) -> "State":
         """A fresh State: at rest in the undeformed configuration, arms unloaded, t = 0."""
@@ -473,8 +537,12 @@ class ModelBuilder:
         self._edges.append(pairs)
         return np.arange(first, first + len(pairs), dtype=np.int64)
 
-    def finalize(self, params: ConnectorParams) -> Model:
-        """Freeze into a :class:`Model` (rest lengths from the current positions)."""
+    def finalize(self, params: ConnectorParams, tets: np.ndarray | None = None) -> Model:
+        """Freeze into a :class:`Model` (rest lengths and volumes from the current positions).
+
+        ``tets`` (T, 4): particle ids of the volume term's tetrahedra (positively
+        oriented, edges among the connectors), or None.
+        """
         if self._n == 0 or not self._edges:
             raise MeshError("ModelBuilder.finalize: the model needs particles and connectors")
         x = np.concatenate(self._x)
@@ -491,7 +559,7 @@ class ModelBuilder:
                             "zero rest length")
         model = Model(rest_positions=x, edges=edges, rest_lengths=lengths,
                       masses=np.concatenate(self._m), fixed=np.concatenate(self._fixed),
-                      params=params)
+                      params=params, tets=tets)
         log.debug("model: %d particles (%d fixed), %d connectors", model.n_particles,
                   int(model.fixed.sum()), model.n_connectors)
         return model
@@ -503,7 +571,8 @@ def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: Conn
 
     Masses are lumped (each tet's mass split equally over its 4 vertices).
     ``fixed`` (vertex ids) defaults to ``problem.fixed`` for a Problem and to
-    no fixed vertex for a bare mesh.
+    no fixed vertex for a bare mesh. The model always carries the mesh's tets
+    (``Model.tets``, ``rest_volumes``); the volume term is on when ``params.kv`` is given.
     """
     if isinstance(problem_or_mesh, Problem):
         mesh = problem_or_mesh.mesh
@@ -522,4 +591,4 @@ def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: Conn
     builder = ModelBuilder()
     builder.add_particles(mesh.vertices, mesh.lumped_masses(density), mask)
     builder.add_connectors(mesh.edges)
-    return builder.finalize(params)
+    return builder.finalize(params, tets=mesh.tets)

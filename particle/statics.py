@@ -6,7 +6,9 @@ Each connector contributes the 3x3 tangent block ``s e e^T + (F/l)(I - e e^T)``
 step, the arm coefficients ``sum_i c_i``; geometric term F/l). The matrix is
 assembled by a compiled kernel straight into CSC storage through a
 precomputed index map (:class:`TangentPattern`, no Python loop over
-connectors); prescribed particles keep their rows and columns with an identity
+connectors); with the volume term (``params.kv``) each tet adds its 12x12
+block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2`` (:func:`particle.volume.add_volume_tangent`)
+through the same map (a tet's vertex pairs are connectors); prescribed particles keep their rows and columns with an identity
 block, so one pattern serves every test point. ``scipy.sparse.linalg.splu``
 factorises it.
 
@@ -28,9 +30,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from forcecal.errors import ConvergenceError, ParameterError
+from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle import kernels
 from particle.model import ConnectorParams, Model, connector_name
+from particle.volume import add_volume_forces, add_volume_tangent, signed_volumes, tet_name
+from particle.volume import tet_slots as volume_tet_slots
 
 log = logging.getLogger(__name__)
 
@@ -47,11 +51,14 @@ class TangentPattern:
         indices: (nnz,) int32, CSC row indices.
         slots: (E, 4, 3, 3) int64, data index of each entry of the connector blocks
             (i,i), (j,j), (i,j), (j,i); -1 where a fixed particle is involved.
+        tet_slots: (T, 4, 4, 3, 3) int64, data index of each entry of the tets'
+            vertex blocks (a, b) (:func:`particle.volume.tet_slots`), -1 likewise.
     """
     node_dof: np.ndarray
     indptr: np.ndarray
     indices: np.ndarray
     slots: np.ndarray
+    tet_slots: np.ndarray | None = None
 
     @classmethod
     def of(cls, model: Model) -> "TangentPattern":
@@ -71,8 +78,9 @@ class TangentPattern:
         slots = np.full(rows.shape, -1, dtype=np.int64)
         slots[valid] = np.searchsorted(unique, keys)
         indptr = np.searchsorted(unique // n, np.arange(n + 1)).astype(np.int32)
-        return cls(node_dof=node_dof, indptr=indptr, indices=(unique % n).astype(np.int32),
-                   slots=slots)
+        indices = (unique % n).astype(np.int32)
+        return cls(node_dof=node_dof, indptr=indptr, indices=indices, slots=slots,
+                   tet_slots=volume_tet_slots(model.tets, node_dof, indptr, indices))
 
     @property
     def n_dofs(self) -> int:
@@ -206,6 +214,12 @@ class EquilibriumSolver:
             p.b if nonlinear else None, None if arms is None else arms.r,
             None if arms is None else arms.c, None if arms is None else arms.force_prev,
             None if arms is None else arms.dx_prev, forces, tension, arm_out, dx)
+        if p.kv is not None:
+            m = self.model
+            if add_volume_forces(x, m.tets, m.rest_volumes, p.kv, forces) >= 0:
+                # an inverted tet is no admissible iterate: an infinite residual makes the
+                # line search shorten the step (and a converged state is never inverted)
+                forces[:] = np.inf
         if gravity is not None:
             forces += self.model.masses[:, None] * gravity
         return _Iterate(x, forces, tension, arm_out, dx, forces.ravel()[self._flat])
@@ -218,6 +232,9 @@ class EquilibriumSolver:
                                  p.a if nonlinear else None, p.b if nonlinear else None,
                                  None if arms is None else arms.stiffness, it.tension, pat.slots,
                                  data)
+        if p.kv is not None:
+            m = self.model
+            add_volume_tangent(it.x, m.tets, m.rest_volumes, p.kv, pat.tet_slots, data)
         data[self._zero_slots] = 0.0
         data[self._diag_slots] = 1.0
         try:
@@ -345,7 +362,7 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
     if not len(model.free_nodes) < model.n_particles:
         raise ParameterError("gravity_static needs fixed particles: a free body under gravity "
                              "has no static equilibrium")
-    model.params.validate(strain_range, model.edges)
+    model.params.validate(strain_range, model.edges, model.tets)
     solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
                                rtol=rtol, refactor_ratio=0.1)
 
@@ -357,6 +374,8 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
         x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
     d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
     check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0, "gravity_static")
+    if model.has_volume:
+        check_volumes(model, x, "gravity_static")
     return x - model.rest_positions
 
 
@@ -367,3 +386,11 @@ def check_stiffness(model: Model, strain: np.ndarray, what: str) -> None:
         e = int(bad[0])
         raise ParameterError(f"{what}: {connector_name(e, model.edges)} reaches strain "
                              f"{strain[e]:.3g} where its stiffness K(eps) <= 0")
+
+
+def check_volumes(model: Model, x: np.ndarray, what: str) -> None:
+    """Raise :class:`~forcecal.errors.StabilityError` naming the first tet inverted (V <= 0) at ``x``."""
+    bad = np.nonzero(~(signed_volumes(x, model.tets) > 0.0))[0]
+    if len(bad):
+        t = int(bad[0])
+        raise StabilityError(f"{what}: {tet_name(t, model.tets)} is inverted (volume <= 0)")

@@ -85,6 +85,7 @@ STUDIES: dict[str, str] = {
     "haptic scale": "pipelines.bench_haptic:study",
     "fe_convergence": "pipelines.fe_convergence:study",
     "scale": "pipelines.bench_scale:study",
+    "calibration methods": "pipelines.bench_calibration_methods:study",
 }
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}

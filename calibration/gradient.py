@@ -1,0 +1,657 @@
+"""Gradient calibration of every connector (``calibration.method = "gradient"``).
+
+Starting from the paper's global fit (:mod:`calibration.global_fit`), all seven
+parameters of every connector are fitted at once to the indentation and
+relaxation curves of the calibration points by a regularised Levenberg-Marquardt
+iteration with the exact Jacobian of :mod:`particle.sensitivity`.
+
+* **Coordinates** (:class:`Coordinates`), O(1) per relative change and feasible
+  by construction where they can be: ``theta = (log K0, alpha s, beta s^2,
+  log k1, log tau1, log k2, log tau2)`` per connector (``a = alpha K0``, ``b =
+  beta K0``, ``b_i = tau_i k_i``, ``s`` the experiments' strain scale), the paper's
+  global coordinates made per connector.
+* **Residuals**: per point and experiment ``(F_sim - F_ref) / (max|F_ref| sqrt(S))``,
+  so a point's squared residual norm is its squared relative RMS error (the
+  number every report quotes), summed over both experiments.
+* **Regulariser** ``(lambda / E) sum_q (theta_q - theta_glob_q)^T (L + rho I)
+  (theta_q - theta_glob_q)`` over the seven coordinates q: ``L`` the graph
+  Laplacian of the connectors that share a particle (each pair's squared
+  difference), normalised by the mean number of such neighbours, i.e. a
+  smoothness penalty between connectors sharing a particle; ``rho I`` a prior
+  towards the global fit (:data:`PRIOR_RATIO`).
+* **lambda by k-fold cross-validation over the calibration points only**
+  (:func:`cross_validate`; held-out points are never used): on the Gauss-Newton
+  linearisation at the global fit, each fold's points are predicted by the step
+  fitted to the other points, for every lambda of :data:`WEIGHT_GRID`; the
+  lambda with the smallest predicted fold error wins (the linear model is exact
+  for small changes and costs one Jacobian; the fit itself is nonlinear). A
+  second round repeats the cross-validation on the linearisation at the first
+  round's fit (:data:`CV_ROUNDS`) and refits from there if it picks another lambda.
+* **Valid where it is used**: every spring's tangent stiffness ``K0 + 2 a eps
+  + 3 b eps^2`` must stay >= ``calibration.stiffness_floor`` x the global K0 on
+  its connector's strain range (:class:`Validity`): the experiments' range
+  united with the range of the gravity release the FE static sag implies
+  (:func:`particle.integrator.strain_range_for_release` of the FE sag with
+  ``particle.strain_margin``). A step that violates it is rejected like one that
+  raises the cost; a hinge penalty keeps springs above twice the floor before
+  they reach it.
+* **Step**: ``(J^T J + A) delta = -grad`` with the sparse ``A`` = regulariser (+ hinge) +
+  ``damping x A1``, solved by the Woodbury identity (J has as many rows as
+  curve samples, far fewer than parameters; each point's rows projected on
+  their :data:`ROWS_KEPT` leading singular directions, :func:`compress`); the
+  damping is adapted by the gain ratio and a step is accepted on the exact
+  objective. One Jacobian per accepted step; the points are spread over the
+  calibration pool's workers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse.linalg import splu
+
+from calibration.optimize import INFEASIBLE
+from calibration.parametrisation import GlobalParams, StrainRange
+from calibration.pool import Experiments, Pool, PointWorker
+from forcecal.errors import ParameterError
+from particle.model import ConnectorParams
+
+log = logging.getLogger(__name__)
+
+N_COORDS = 7
+#: prior weight relative to the smoothness weight (a mild pull towards the global fit that
+#: fixes the level of each smooth field where the data say nothing)
+PRIOR_RATIO = 1e-3
+#: smoothness weights lambda tried by cross-validation (data cost = sum of squared relative
+#: RMS errors; lambda multiplies the mean squared neighbour difference per connector)
+WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))
+#: cross-validation rounds: the first on the linearisation at the global fit, the next at the
+#: previous round's fit (where the linear model is closer to the fitted curves)
+CV_ROUNDS = 2
+#: rows kept per calibration point in the Gauss-Newton model (:func:`compress`; its curves
+#: have 50 samples on the default liver)
+ROWS_KEPT = 12
+HINGE_FACTOR = 2.0  # the hinge pushes springs back above this multiple of the floor
+HINGE_WEIGHT = 1.0
+HINGE_STRAINS = 5  # strains per connector where the hinge looks (the hard check is exact)
+
+
+def gradient_backend(experiments: Experiments, points: np.ndarray, params: ConnectorParams):
+    """Pool backend: the particle evaluators with adjoint Jacobians
+    (:mod:`particle.sensitivity`)."""
+    from particle.model import build_model
+    from particle.sensitivity import sensitivity_evaluators
+
+    p = experiments.problem
+    model = build_model(p, experiments.density, params)
+    return sensitivity_evaluators(model, p.test_points[points], p.normals[points],
+                                  experiments.depths, experiments.times,
+                                  experiments.relaxation_depths, experiments.strain_range)
+
+
+def point_jacobian(worker: PointWorker, kind: str, params: ConnectorParams,
+                   points: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Call run on a worker: curves (P', S) and Jacobians (P', S, 7, E) of owned points."""
+    local = [worker._local[int(p)] for p in points]
+    worker.evaluations += len(local)
+    sens = worker.evaluators[kind].jacobian(params, local)
+    return sens.forces, sens.connectors, sens.kv
+
+
+@dataclass(frozen=True)
+class Coordinates:
+    """Per-connector (and per-tet) optimiser coordinates <-> parameters (module docstring).
+
+    ``theta`` is flat: seven blocks of E connector coordinates ``(log K0, alpha s,
+    beta s^2, log k1, log tau1, log k2, log tau2)``, then ``log kv`` of the T tets
+    when the volume term is on (T = 0 otherwise).
+
+    Attributes:
+        scale: strain scale s of the experiments [1].
+        n_connectors: E.
+        n_tets: T, 0 without the volume term.
+    """
+    scale: float
+    n_connectors: int
+    n_tets: int = 0
+
+    @property
+    def size(self) -> int:
+        return N_COORDS * self.n_connectors + self.n_tets
+
+    def block(self, theta: np.ndarray, q: int) -> np.ndarray:
+        """(E,) coordinate q of every connector."""
+        return theta[q * self.n_connectors:(q + 1) * self.n_connectors]
+
+    def theta_of(self, params: ConnectorParams) -> np.ndarray:
+        """(size,) coordinates of ``params`` (with kv iff ``n_tets``)."""
+        s, p = self.scale, params
+        blocks = [np.log(p.K0), p.a / p.K0 * s, p.b / p.K0 * s * s, np.log(p.k1),
+                  np.log(p.tau1), np.log(p.k2), np.log(p.tau2)]
+        if self.n_tets:
+            blocks.append(np.log(p.kv))
+        return np.concatenate(blocks).astype(float)
+
+    def params(self, theta: np.ndarray) -> ConnectorParams:
+        s, b = self.scale, lambda q: self.block(theta, q)  # noqa: E731
+        K0 = np.exp(b(0))
+        k1, k2 = np.exp(b(3)), np.exp(b(5))
+        kv = np.exp(theta[N_COORDS * self.n_connectors:]) if self.n_tets else None
+        return ConnectorParams(K0=K0, a=b(1) / s * K0, b=b(2) / (s * s) * K0, k1=k1,
+                               b1=np.exp(b(4)) * k1, k2=k2, b2=np.exp(b(6)) * k2, kv=kv)
+
+    def chain(self, jac: np.ndarray, jac_kv: np.ndarray | None,
+              params: ConnectorParams) -> np.ndarray:
+        """(..., size) derivatives with respect to the coordinates, from those (..., 7, E)
+        with respect to ``K0, a, b, k1, b1, k2, b2`` and (..., T) to kv."""
+        s, p = self.scale, params
+        out = np.empty(jac.shape[:-2] + (N_COORDS, jac.shape[-1]))
+        out[..., 0, :] = jac[..., 0, :] * p.K0 + jac[..., 1, :] * p.a + jac[..., 2, :] * p.b
+        out[..., 1, :] = jac[..., 1, :] * (p.K0 / s)
+        out[..., 2, :] = jac[..., 2, :] * (p.K0 / (s * s))
+        out[..., 3, :] = jac[..., 3, :] * p.k1 + jac[..., 4, :] * p.b1
+        out[..., 4, :] = jac[..., 4, :] * p.b1
+        out[..., 5, :] = jac[..., 5, :] * p.k2 + jac[..., 6, :] * p.b2
+        out[..., 6, :] = jac[..., 6, :] * p.b2
+        out = out.reshape(jac.shape[:-2] + (-1,))
+        if self.n_tets:
+            out = np.concatenate([out, jac_kv * p.kv], axis=-1)
+        return out
+
+
+def shared_laplacian(members: np.ndarray, n_particles: int, shared: int) -> sp.csc_matrix:
+    """(M, M) Laplacian of "shares at least ``shared`` particles" between members (M, k)
+    (connectors: 1 particle, tets: a face = 3), divided by the mean number of neighbours.
+
+    ``x^T L x = sum over neighbour pairs (x_e - x_f)^2 / mean degree``.
+    """
+    m, k = members.shape
+    inc = sp.csr_matrix((np.ones(m * k), (np.repeat(np.arange(m), k), members.ravel())),
+                        shape=(m, n_particles))
+    adj = (inc @ inc.T).tocsr()
+    adj.setdiag(0.0)
+    adj.data[:] = np.where(adj.data >= shared, 1.0, 0.0)
+    adj.eliminate_zeros()
+    degree = np.asarray(adj.sum(axis=1)).ravel()
+    lap = sp.diags(degree) - adj
+    return (lap / max(degree.mean(), 1.0)).tocsc()
+
+
+def neighbour_laplacian(edges: np.ndarray, n_particles: int) -> sp.csc_matrix:
+    """(E, E) :func:`shared_laplacian` of connectors sharing a particle."""
+    return shared_laplacian(edges, n_particles, 1)
+
+
+@dataclass(frozen=True, eq=False)
+class Validity:
+    """Where each spring must stay stiff: per-connector strain range and stiffness floor.
+
+    Attributes:
+        low, high: (E,) float64 strain range of each connector [1].
+        floor: smallest allowed spring tangent stiffness [N/m].
+        K0_global: the global fit's K0 [N/m] (hinge scale).
+        scale: strain scale of the coordinates [1].
+    """
+    low: np.ndarray
+    high: np.ndarray
+    floor: float
+    K0_global: float
+    scale: float
+
+    def check(self, params: ConnectorParams, edges: np.ndarray | None = None) -> None:
+        """Raise :class:`ParameterError` naming the first spring below the floor, or arms
+        out of order."""
+        tangent, _ = params.extreme_tangent_stiffness((self.low, self.high))
+        soft = np.nonzero(~(tangent >= self.floor))[0]
+        if len(soft):
+            e = int(soft[0])
+            raise ParameterError(
+                f"connector {e}: spring tangent stiffness reaches {tangent[e]:g} N/m < the floor "
+                f"{self.floor:g} N/m on its strain range [{self.low[e]:.3g}, {self.high[e]:.3g}] "
+                f"(experiments and gravity; {len(soft)} connectors)")
+        order = np.nonzero(~(params.tau1 < params.tau2))[0]
+        if len(order):
+            raise ParameterError(f"connector {int(order[0])}: tau1 >= tau2 ({len(order)} "
+                                 "connectors); the arms must stay ordered")
+
+    def hinge(self, theta: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        """Hinge residuals (E*H,) and their sparse Jacobian (E*H, size) in the coordinates."""
+        n = len(self.low)
+        t0, t1, t2 = theta[:n], theta[n:2 * n], theta[2 * n:3 * n]
+        frac = np.linspace(0.0, 1.0, HINGE_STRAINS)
+        eps = self.low[:, None] + frac[None, :] * (self.high - self.low)[:, None]  # (E, H)
+        s = self.scale
+        K0 = np.exp(t0)[:, None]
+        q = 1.0 + 2.0 * t1[:, None] * eps / s + 3.0 * t2[:, None] * (eps / s) ** 2
+        tangent = K0 * q / self.K0_global
+        target = HINGE_FACTOR * self.floor / self.K0_global
+        active = tangent < target
+        res = HINGE_WEIGHT * np.where(active, target - tangent, 0.0)
+        w = -HINGE_WEIGHT * active * K0 / self.K0_global
+        rows = np.arange(n * HINGE_STRAINS).reshape(n, HINGE_STRAINS)
+        e = np.repeat(np.arange(n)[:, None], HINGE_STRAINS, axis=1)
+        cols = np.concatenate([(0 * n + e).ravel(), (1 * n + e).ravel(), (2 * n + e).ravel()])
+        vals = np.concatenate([(w * q).ravel(), (w * 2.0 * eps / s).ravel(),
+                               (w * 3.0 * (eps / s) ** 2).ravel()])
+        jac = sp.csr_matrix((vals, (np.tile(rows.ravel(), 3), cols)),
+                            shape=(n * HINGE_STRAINS, len(theta)))
+        return res.ravel(), jac
+
+
+@dataclass(frozen=True, eq=False)
+class Data:
+    """The calibration curves and how residuals are scaled.
+
+    Attributes:
+        reference: experiment -> (Pc, S) reference curves of the calibration points [N].
+        weight: experiment -> (Pc,) 1 / (max|F_ref| sqrt(S)) per point [1/N].
+    """
+    reference: dict[str, np.ndarray]
+    weight: dict[str, np.ndarray]
+
+    @classmethod
+    def of(cls, reference: dict[str, np.ndarray]) -> "Data":
+        weight = {k: 1.0 / (np.max(np.abs(v), axis=1) * np.sqrt(v.shape[1]))
+                  for k, v in reference.items()}
+        return cls(reference, weight)
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(self.reference)
+
+    def rows(self, points: np.ndarray) -> int:
+        return len(points) * sum(v.shape[1] for v in self.reference.values())
+
+    def residuals(self, curves: dict[str, np.ndarray], points: np.ndarray) -> np.ndarray:
+        """(rows,) residuals of ``points``: point-major, experiments in order, samples."""
+        parts = [(curves[k] - self.reference[k][points]) * self.weight[k][points, None]
+                 for k in self.kinds]
+        return np.concatenate(parts, axis=1).ravel()
+
+    def jacobian(self, jacs: dict[str, np.ndarray], points: np.ndarray) -> np.ndarray:
+        """(rows, size) from per-experiment (P', S, size) coordinate Jacobians."""
+        parts = [jacs[k].reshape(len(points), jacs[k].shape[1], -1)
+                 * self.weight[k][points, None, None] for k in self.kinds]
+        return np.concatenate(parts, axis=1).reshape(self.rows(points), -1)
+
+
+class Evaluator:
+    """Residuals and Jacobians of the calibration points through the pool."""
+
+    def __init__(self, pool: Pool, data: Data, coords: Coordinates):
+        self.pool, self.data, self.coords = pool, data, coords
+        self.jacobians = 0
+
+    def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray:
+        params = self.coords.params(theta)
+        curves = {k: self.pool.curves(k, params, points) for k in self.data.kinds}
+        return self.data.residuals(curves, points)
+
+    def linearise(self, theta: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (rows,) and Jacobian (rows, size) at ``theta``."""
+        params = self.coords.params(theta)
+        curves, jacs = {}, {}
+        for kind in self.data.kinds:
+            groups = [points[self.pool.owner[points] == w] for w in range(self.pool.n_workers)]
+            groups = [g for g in groups if len(g)]
+            out = [None] * len(groups)
+            for i, value in self.pool.map(point_jacobian,
+                                          [(int(g[0]), (kind, params, g)) for g in groups]):
+                out[i] = value
+            order = np.concatenate(groups)
+            where = np.argsort(order)
+            pos = np.searchsorted(order[where], points)
+            sel = where[pos]
+            curves[kind] = np.concatenate([o[0] for o in out])[sel]
+            kv = None if params.kv is None else np.concatenate([o[2] for o in out])[sel]
+            jacs[kind] = self.coords.chain(np.concatenate([o[1] for o in out])[sel], kv, params)
+        self.jacobians += 1
+        return self.data.residuals(curves, points), self.data.jacobian(jacs, points)
+
+
+@dataclass(frozen=True, eq=False)
+class Regulariser:
+    """``lambda (theta - theta0)^T A1 (theta - theta0)`` with the block-diagonal metric
+    ``A1 = I_7 (x) (L + rho I)/E  (+)  (L_tets + rho I)/T`` (module docstring).
+
+    Attributes:
+        laplacian: (E, E) connectors sharing a particle (:func:`neighbour_laplacian`).
+        theta0: (size,) the start (the global fit), also the prior's centre.
+        tet_laplacian: (T, T) tets sharing a face, or None without the volume term.
+    """
+    laplacian: sp.csc_matrix
+    theta0: np.ndarray
+    tet_laplacian: sp.csc_matrix | None = None
+
+    @functools.cached_property
+    def metric(self) -> sp.csc_matrix:
+        """(size, size) the penalty's metric A1 (also the LM damping metric)."""
+        def block(lap):
+            n = lap.shape[0]
+            return (lap + PRIOR_RATIO * sp.identity(n)) / n
+
+        blocks = [sp.kron(sp.identity(N_COORDS), block(self.laplacian))]
+        if self.tet_laplacian is not None:
+            blocks.append(block(self.tet_laplacian))
+        return sp.block_diag(blocks, format="csc")
+
+    @functools.cached_property
+    def lu(self):
+        return splu(self.metric)
+
+    def value(self, theta: np.ndarray, weight: float) -> float:
+        d = (theta - self.theta0).ravel()
+        return float(weight * d @ (self.metric @ d))
+
+
+@dataclass(frozen=True, eq=False)
+class Linearisation:
+    """Residuals and Jacobian at theta, with the products the steps need.
+
+    Attributes:
+        theta: (size,) coordinates.
+        r: (m,) residuals (data rows, then the active hinge rows).
+        J: (m, size) their Jacobian.
+        P: (size, m) ``A1^-1 J^T``.
+        C: (m, m) ``J A1^-1 J^T``.
+        offset: squared norm of the residual left out of the rows [1] (:func:`compress`):
+            ``|r_full + J_full d|^2 ~ |r + J d|^2 + offset``.
+    """
+    theta: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    P: np.ndarray
+    C: np.ndarray
+    offset: float = 0.0
+
+    @classmethod
+    def of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
+           offset: float = 0.0) -> "Linearisation":
+        P = reg.lu.solve(np.ascontiguousarray(J.T)) if len(J) else np.zeros((J.shape[1], 0))
+        return cls(theta, r, J, P, J @ P, offset)
+
+    def rows(self, keep: np.ndarray) -> "Linearisation":
+        return Linearisation(self.theta, self.r[keep], self.J[keep], self.P[:, keep],
+                             self.C[np.ix_(keep, keep)])
+
+    def step(self, reg: Regulariser, weight: float, damping: float) -> np.ndarray:
+        """(size,) minimiser of ``|r + J d|^2 + weight reg(theta + d) + damping d^T A1 d``.
+
+        ``(J^T J + alpha A1) d = -(J^T r + weight A1 d0)``, alpha = weight + damping, by
+        Woodbury: ``d = -(1/alpha) [P r + w d0 - P (alpha I + C)^-1 (C r + w J d0)]``.
+        """
+        alpha = weight + damping
+        d0 = (self.theta - reg.theta0).ravel()
+        if len(self.r):
+            inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
+                              self.C @ self.r + weight * (self.J @ d0))
+            d = self.P @ (self.r - inner) + weight * d0
+        else:
+            d = weight * d0
+        return (-d / alpha).reshape(self.theta.shape)
+
+    def predict(self, d: np.ndarray) -> np.ndarray:
+        return self.r + self.J @ d.ravel()
+
+
+def compress(r: np.ndarray, J: np.ndarray, rows_per_point: int, keep: int
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each point's rows projected on the ``keep`` leading left singular vectors of its block.
+
+    A point's samples move together (a curve has few independent shapes), so its
+    Jacobian block (S, size) is numerically of low rank; projecting the rows on the
+    leading singular directions ``U_k`` keeps the Gauss-Newton model
+    ``|U_k^T (r + J d)|^2`` (exact for ``J d`` in their span) at a fraction of the
+    dense algebra (which grows with the square of the rows). The accept/reject
+    test of every step uses the exact objective. Returns the rows (P k,), (P k, size)
+    and the squared norm of the residual left out.
+    """
+    if keep >= rows_per_point:
+        return r, J, 0.0
+    n_points = len(r) // rows_per_point
+    r_out = np.empty(n_points * keep)
+    J_out = np.empty((n_points * keep, J.shape[1]))
+    for p in range(n_points):
+        block = slice(p * rows_per_point, (p + 1) * rows_per_point)
+        values, vectors = np.linalg.eigh(J[block] @ J[block].T)  # ascending
+        U = vectors[:, ::-1][:, :keep]
+        r_out[p * keep:(p + 1) * keep] = U.T @ r[block]
+        J_out[p * keep:(p + 1) * keep] = U.T @ J[block]
+    return r_out, J_out, float(r @ r - r_out @ r_out)
+
+
+def folds_of(n_points: int, k: int) -> list[np.ndarray]:
+    """k folds of point indices 0..n-1 (a fixed shuffle, so folds mix regions of the mesh)."""
+    order = np.random.default_rng(0).permutation(n_points)
+    return [np.sort(order[f::k]) for f in range(min(k, n_points))]
+
+
+def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
+                   folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID
+                   ) -> tuple[float, np.ndarray]:
+    """Smoothness weight by k-fold CV on the linearisation ``lin`` at the start.
+
+    ``lin`` holds the data rows of every calibration point (point-major,
+    ``rows_per_point`` each). For each weight and fold, the Gauss-Newton step
+    fitted to the other folds' rows predicts the fold's residuals ``r_f + J_f
+    delta``; returns the weight with the smallest total predicted squared fold
+    residual and the (len(grid),) CV costs.
+    """
+    point_of_row = np.repeat(np.arange(len(lin.r) // rows_per_point), rows_per_point)
+    d0 = lin.theta - reg.theta0
+    Jd0 = lin.J @ d0
+    costs = np.zeros(len(grid))
+    for fold in folds:
+        test = np.isin(point_of_row, fold)
+        train = ~test
+        # everything in the rows' space: with C_TT = U diag(e) U^T, (alpha I + C_TT)^-1 costs
+        # nothing per weight, and the fold's prediction r_F + J_F d needs only C_FT
+        e, U = np.linalg.eigh(lin.C[np.ix_(train, train)])
+        C_FT = lin.C[np.ix_(test, train)]
+        r_T, r_F = lin.r[train], lin.r[test]
+        for g, weight in enumerate(grid):
+            alpha = weight  # no damping
+            rhs = lin.C[np.ix_(train, train)] @ r_T + weight * Jd0[train]
+            X = U @ ((U.T @ rhs) / (alpha + e))
+            Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
+            costs[g] += float(np.sum((r_F + Jd) ** 2))
+    best = int(np.argmin(costs))
+    if best in (0, len(grid) - 1):
+        log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
+                    "[%g, %g]", grid[best], grid[0], grid[-1])
+    return float(grid[best]), costs
+
+
+@dataclass
+class LMState:
+    """Where the Levenberg-Marquardt iteration stands (what the checkpoint stores)."""
+    theta: np.ndarray
+    damping: float
+    cost: float
+    history: list[float]
+    iteration: int = 0
+    done: bool = False
+
+    def as_dict(self) -> dict:
+        return {"theta": self.theta.tolist(), "damping": self.damping, "cost": self.cost,
+                "history": list(self.history), "iteration": self.iteration, "done": self.done}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LMState":
+        return cls(np.asarray(d["theta"], dtype=float), float(d["damping"]), float(d["cost"]),
+                   [float(c) for c in d["history"]], int(d["iteration"]), bool(d["done"]))
+
+
+def linearise(ev: Evaluator, theta: np.ndarray, points: np.ndarray, reg: Regulariser,
+              validity: Validity, data_rows: tuple[np.ndarray, np.ndarray] | None = None
+              ) -> Linearisation:
+    """Data rows (computed, or ``data_rows``) plus the active hinge rows at ``theta``."""
+    r, J = ev.linearise(theta, points) if data_rows is None else data_rows
+    r, J, offset = compress(r, J, ev.data.rows(points[:1]), ROWS_KEPT)
+    h, Jh = validity.hinge(theta)
+    active = np.nonzero(h)[0]
+    if len(active):
+        r = np.concatenate([r, h[active]])
+        J = np.vstack([J, Jh[active].toarray()])
+    return Linearisation.of(theta, r, J, reg, offset)
+
+
+def levenberg_marquardt(ev: Evaluator, points: np.ndarray, reg: Regulariser, weight: float,
+                        validity: Validity, state: LMState | None, *,
+                        theta_start: np.ndarray | None = None, max_iterations: int,
+                        tolerance: float = 1e-3,
+                        save: Callable[[LMState], None] = lambda s: None,
+                        start: Linearisation | None = None) -> LMState:
+    """Regularised LM from ``state`` (or ``theta_start``, default ``reg.theta0``); ``save``
+    after every iteration.
+
+    The damping is ``damping x A1`` (the regulariser's metric), adapted by the
+    gain ratio. Stops when an accepted step lowers the objective by less than
+    ``tolerance`` of it, after ``max_iterations`` iterations, or when no damping
+    makes a step acceptable. ``start`` is the linearisation at ``reg.theta0`` if
+    already computed (at ``theta_start``).
+    """
+    def objective(theta: np.ndarray, r: np.ndarray) -> float:
+        h, _ = validity.hinge(theta)
+        return float(r @ r + reg.value(theta, weight) + h @ h)
+
+    if state is None:
+        theta = reg.theta0 if theta_start is None else theta_start
+        lin = start if start is not None else linearise(ev, theta, points, reg, validity)
+        n_data = ROWS_KEPT * len(points) if ROWS_KEPT < ev.data.rows(points[:1]) else \
+            ev.data.rows(points)
+        data = lin.r[:n_data]
+        cost = objective(theta, data) + lin.offset
+        state = LMState(theta.copy(), weight, cost, [cost])
+    elif not state.done:
+        lin = linearise(ev, state.theta, points, reg, validity)
+    while not state.done and state.iteration < max_iterations:
+        accepted = False
+        for _ in range(12):
+            d = lin.step(reg, weight, state.damping)
+            trial = state.theta + d
+            try:
+                validity.check(ev.coords.params(trial))
+                r_new = ev.residuals(trial, points)
+            except INFEASIBLE as exc:
+                log.info("gradient fit: step rejected (%s); more damping", exc)
+                state.damping *= 4.0
+                continue
+            new = objective(trial, r_new)
+            lin_new = lin.predict(d)
+            predicted = state.cost - float(lin_new @ lin_new + lin.offset
+                                           + reg.value(trial, weight))
+            gain = (state.cost - new) / predicted if predicted > 0 else -1.0
+            if new < state.cost:
+                accepted = True
+                state.damping *= 1.0 / 3.0 if gain > 0.75 else (2.0 if gain < 0.25 else 1.0)
+                break
+            state.damping *= 4.0
+        state.iteration += 1
+        if not accepted:
+            log.info("gradient fit: no damped step lowers the objective; stopping")
+            state.done = True
+            save(state)
+            break
+        gained = state.cost - new
+        state.theta, state.cost = trial, new
+        state.history.append(new)
+        log.info("gradient fit iteration %d: objective %.6g (damping %.3g)", state.iteration,
+                 new, state.damping)
+        if gained < tolerance * new:
+            state.done = True
+        save(state)
+        if not state.done and state.iteration < max_iterations:
+            lin = linearise(ev, state.theta, points, reg, validity)
+    return state
+
+
+@dataclass(frozen=True, eq=False)
+class GradientResult:
+    """Outcome of :func:`fit_gradient`.
+
+    Attributes:
+        params: the fitted per-connector parameters.
+        weight: the smoothness weight lambda of the final fit (chosen by cross-validation).
+        grid, cv_costs: the weights tried and, per round, their predicted fold costs [1].
+        weights: the weight chosen in each round.
+        state: the final LM state (objective history [1]).
+        jacobians: Jacobian evaluations (all calibration points each).
+    """
+    params: ConnectorParams
+    weight: float
+    grid: tuple[float, ...]
+    cv_costs: np.ndarray
+    state: LMState
+    jacobians: int
+    weights: tuple[float, ...] = ()
+
+    def summary(self) -> dict:
+        return {"weight": self.weight, "weights": list(self.weights), "grid": list(self.grid),
+                "cv_costs": self.cv_costs.tolist(), "objective": self.state.history,
+                "iterations": self.state.iteration, "jacobians": self.jacobians}
+
+
+def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
+                 reference: dict[str, np.ndarray], validity: Validity, edges: np.ndarray,
+                 n_particles: int, *, folds: int, max_iterations: int,
+                 tets: np.ndarray | None = None, kv0: float | None = None,
+                 checkpoint_get: Callable[[str], object],
+                 checkpoint_put: Callable[[str, object], None],
+                 grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
+    """CV for lambda, then the regularised LM fit (module docstring); checkpointed.
+
+    ``reference``: experiment -> (Pc, S) curves of the calibration points (test points
+    0..Pc-1 of the pool). ``tets`` (T, 4): fit a per-tet kv of the volume term too, starting
+    from the global fit's kv (or ``kv0`` [Pa] if the global parameters carry none); None:
+    springs only.
+    """
+    start_params = glob.connector_params(len(edges))
+    coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
+    if coords.n_tets and start_params.kv is None:
+        start_params = dataclasses.replace(start_params, kv=np.full(coords.n_tets, kv0))
+    theta0 = coords.theta_of(start_params)
+    data = Data.of(reference)
+    ev = Evaluator(pool, data, coords)
+    points = np.arange(len(next(iter(reference.values()))))
+    reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
+                      None if tets is None else shared_laplacian(tets, n_particles, 3))
+    theta, state, weights, cv_costs = theta0, None, [], []
+    for k in range(CV_ROUNDS):
+        saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")
+        start = None
+        if saved_cv is None:
+            t = time.perf_counter()
+            rows = ev.linearise(theta, points)
+            per_point = data.rows(points[:1])
+            r_c, J_c, offset = compress(*rows, per_point, ROWS_KEPT)
+            lin = Linearisation.of(theta, r_c, J_c, reg, offset)
+            weight, costs = cross_validate(lin, min(ROWS_KEPT, per_point), reg,
+                                           folds_of(len(points), folds), grid)
+            checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
+            log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
+                     "(%.1f s)", k + 1, weight, folds, time.perf_counter() - t)
+            hinge, _ = validity.hinge(theta)
+            start = lin if not hinge.any() else linearise(ev, theta, points, reg, validity, rows)
+        else:
+            weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)
+        weights.append(weight)
+        cv_costs.append(costs)
+        state = levenberg_marquardt(
+            ev, points, reg, weight, validity,
+            None if saved is None else LMState.from_dict(saved), theta_start=theta,
+            max_iterations=max_iterations, start=start,
+            save=lambda s, k=k: checkpoint_put(f"gradient_fit_{k}", s.as_dict()))
+        if k > 0 and weight == weights[-2]:
+            break  # the same weight again: the round's fit continued the last one's
+        theta = state.theta
+    return GradientResult(coords.params(state.theta), weights[-1], tuple(grid),
+                          np.array(cv_costs), state, ev.jacobians, tuple(weights))

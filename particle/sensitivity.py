@@ -1,0 +1,280 @@
+"""Exact sensitivities of the calibration curves to every per-connector parameter (adjoint method).
+
+:class:`IndentationSensitivity` and :class:`RelaxationSensitivity` are the
+evaluators of :mod:`particle.evaluators` (same curves, same caches, same
+refusals) with one more method, :meth:`~_Adjoint.jacobian`: the curves of some
+test points together with their derivatives with respect to every connector's
+``K0, a, b, k1, b1, k2, b2`` (:data:`~particle.model.PARAM_NAMES`), through the
+equilibria the curves are made of.
+
+Method (reverse mode through the quasi-static path; all equilibria are the
+ones the evaluator just solved, nothing is re-solved):
+
+* each (sub)step s of a curve is an equilibrium ``f_a(x^s, T^s) = 0`` of the
+  active particles, with connector tensions ``T^s = K(eps) dx + sum_i A_i^s``
+  and the arm forces ``A_i^s = r_i A_i^(s-1) + c_i (dx^s - dx^(s-1))``
+  (:meth:`ConnectorParams.arm_recursion`, exact form); the output of a sample is
+  ``F = -n . f_node`` (the normal indenter force);
+* one adjoint solve per step with the exact tangent ``K = -df/dx`` at the
+  equilibrium (refactorised there; one right-hand side per output sample):
+  ``K_aa lam = w K_aP n - sum_e beta_e g_e`` with ``g_e`` the force pattern of a
+  unit tension of connector e (``+u_e`` on i, ``-u_e`` on j) and ``beta_e`` the
+  adjoint of its elongation carried back from later steps; the virtual field
+  ``omega`` (``lam`` on the active dofs, ``-w n`` on the indented particle)
+  gives the adjoint of each tension ``tau_e = omega . g_e``;
+* then ``dF/dp_e += tau_e dT_e/dp_e`` for the spring (``dx, eps dx, eps^2 dx``),
+  ``mu_i = abar_i + tau_e`` times ``dA_i/dk_i, dA_i/db_i`` for the arms, and the
+  history adjoints step back: ``abar_i <- r_i mu_i``,
+  ``dbar <- -sum_i c_i mu_i``.
+
+An indentation sample is elastic (no history): one step per sample. Relaxation
+sub-steps are the path the evaluator actually took, halved intervals
+included (recorded by :class:`_RecordingSolver`), so the derivatives are those
+of the curves returned, to round-off (tests compare with finite differences).
+
+The volume term's ``kv`` (:mod:`particle.volume`) enters the same way: its
+tangent is in ``K``, and ``dF/dkv_t = omega . df/dkv_t`` with ``df/dkv_t =
+-(V/V0 - 1) dV/dx`` at fixed positions (it does not relax, so it carries no
+history). Another term plugs in likewise: its tangent in the assembly, its
+force derivative contracted with ``omega``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from forcecal.errors import ParameterError
+from particle import kernels
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.model import PARAM_NAMES, ConnectorParams, Model
+from particle.statics import ArmStep, Equilibrium, EquilibriumSolver
+from particle.volume import add_volume_tangent, signed_volumes, volume_gradients_numpy
+
+log = logging.getLogger(__name__)
+
+N_PARAMS = len(PARAM_NAMES)
+
+
+@dataclass(frozen=True, eq=False)
+class Sensitivities:
+    """Curves of some test points and their exact derivatives.
+
+    Attributes:
+        forces: (P', S) normal forces [N], exactly what the evaluator's ``__call__`` returns.
+        connectors: (P', S, 7, E) derivatives [N per unit of each parameter] with respect to
+            ``K0, a, b, k1, b1, k2, b2`` of every connector (PARAM_NAMES order).
+        kv: (P', S, T) derivatives [N/Pa] with respect to each tet's ``kv``, or None when
+            the volume term is off.
+    """
+    forces: np.ndarray
+    connectors: np.ndarray
+    kv: np.ndarray | None
+
+
+class _RecordingSolver(EquilibriumSolver):
+    """An :class:`EquilibriumSolver` that remembers every successful solve (its arms and result)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.path: list[tuple[ArmStep | None, Equilibrium]] = []
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state["path"] = []
+        return state
+
+    def solve(self, x, params, *, arms=None, gravity=None):
+        eq = super().solve(x, params, arms=arms, gravity=gravity)
+        self.path.append((arms, eq))
+        return eq
+
+
+class _Adjoint:
+    """Mixin: the adjoint pass shared by the two evaluators (module docstring)."""
+
+    def _solver(self, k: int) -> EquilibriumSolver:
+        if k not in self._solvers:
+            self._solvers[k] = _RecordingSolver(self.model, self.nodes[k:k + 1], self._pattern,
+                                                rtol=self.rtol)
+        return self._solvers[k]
+
+    def _samples(self, k: int, solver: EquilibriumSolver, n: int):
+        # the path of this call only, and where each sample ends in it
+        solver.path.clear()
+        ends = []
+        for s in super()._samples(k, solver, n):
+            yield s
+            ends.append(len(solver.path) - 1)
+        self._ends = getattr(self, "_ends", {})
+        self._ends[k] = ends
+
+    def jacobian(self, params: ConnectorParams, points: Sequence[int] | None = None
+                 ) -> Sensitivities:
+        """Curves and their derivatives at the selected points (all if None)."""
+        idx = self._indices(points)
+        forces = self(params, idx)
+        model = self.model.with_params(params)
+        parts = [self._point_jacobian(model, int(k)) for k in idx]
+        return Sensitivities(forces, np.stack([c for c, _ in parts]),
+                             None if params.kv is None else np.stack([v for _, v in parts]))
+
+    def _steps(self, k: int) -> tuple[list[tuple[ArmStep | None, Equilibrium]], list[int]]:
+        """The (sub)steps whose equilibria make point k's curve, and the step of each sample."""
+        raise NotImplementedError
+
+    def _point_jacobian(self, model: Model, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(S, 7, E) connector derivatives and (S, T) kv derivatives (None without kv)."""
+        solver = self._solvers[k]
+        steps, ends = self._steps(k)
+        n_out, e = len(self.depths), model.n_connectors
+        pat = self.pattern_for(solver)
+        normal = self.normals[k]
+        prescribed = solver.prescribed
+        pdofs = pat.dofs(prescribed)
+        jac = np.zeros((n_out, N_PARAMS, e))
+        kv = model.params.kv
+        jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
+        abar = np.zeros((e, 2, n_out))  # adjoint of the arm forces passed to the next step
+        dbar = np.zeros((e, n_out))  # adjoint of the elongation passed to the next step
+        end_of = {s: j for j, s in enumerate(ends)}
+        for s in range(len(steps) - 1, -1, -1):
+            arms, eq = steps[s]
+            w = np.zeros(n_out)
+            if s in end_of:
+                w[end_of[s]] = 1.0
+            if not w.any() and not abar.any() and not dbar.any():
+                continue
+            geo = _Geometry(model, eq.x)
+            it = solver._evaluate(eq.x, model.params, not model.params.is_linear, arms, None)
+            data = np.empty(len(pat.indices))
+            kernels.assemble_tangent(eq.x, model.edges, model.rest_lengths, model.params.K0,
+                                     model.params.a, model.params.b,
+                                     None if arms is None else arms.stiffness, it.tension,
+                                     pat.slots, data)
+            if kv is not None:
+                add_volume_tangent(eq.x, model.tets, model.rest_volumes, kv, pat.tet_slots, data)
+            full = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
+            push = np.zeros(pat.n_dofs)
+            push[pdofs] = np.tile(normal, len(prescribed))
+            G = geo.pattern_matrix(pat)  # (n_dofs, E): force of a unit tension
+            beta = dbar.copy()
+            if arms is not None:
+                beta += np.einsum("ei,eis->es", arms.c, abar)
+            rhs = (full @ push)[:, None] * w[None, :] - G @ beta
+            rhs[pdofs] = 0.0
+            data[solver._zero_slots] = 0.0
+            data[solver._diag_slots] = 1.0
+            lam = solver._lu_of(data).solve(rhs)
+            lam[pdofs] = -push[pdofs, None] * w[None, :]
+            tau = G.T @ lam  # (E, S) adjoint of each connector's tension
+            jac += self._partials(model, geo, arms, tau, abar)
+            if kv is not None:
+                jac_kv += self._volume_partials(model, eq.x, pat, lam)
+            if arms is not None:
+                mu = abar + tau[:, None, :]
+                abar = arms.r[:, :, None] * mu
+                dbar = -np.einsum("ei,eis->es", arms.c, mu)
+        return jac, jac_kv
+
+    @staticmethod
+    def _volume_partials(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
+        """(S, T): ``omega . df/dkv_t`` with ``df/dkv_t = -(V/V0 - 1) dV/dx`` at fixed x."""
+        strain = signed_volumes(x, model.tets) / model.rest_volumes - 1.0
+        grad = volume_gradients_numpy(x, model.tets)  # (T, 4, 3)
+        virtual = np.zeros((model.n_particles, 3, omega.shape[1]))
+        moving = pat.node_dof >= 0
+        virtual[moving] = omega[pat.node_dof[moving][:, None] + np.arange(3)]
+        return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
+
+    @staticmethod
+    def pattern_for(solver: EquilibriumSolver):
+        return solver.pattern
+
+    @staticmethod
+    def _partials(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np.ndarray,
+                  abar: np.ndarray) -> np.ndarray:
+        """(S, 7, E): this step's explicit parameter derivatives contracted with the adjoints.
+
+        ``tau`` (E, S) adjoint of the tensions, ``abar`` (E, 2, S) of the new arm forces
+        (from later steps).
+        """
+        p = model.params
+        out = np.zeros((tau.shape[1], N_PARAMS, model.n_connectors))
+        dx, eps = geo.dx, geo.dx / model.rest_lengths
+        out[:, 0] = (tau * dx[:, None]).T
+        out[:, 1] = (tau * (eps * dx)[:, None]).T
+        out[:, 2] = (tau * (eps * eps * dx)[:, None]).T
+        if arms is not None:
+            mu = abar + tau[:, None, :]  # (E, 2, S)
+            k, b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
+            r, c = arms.r, arms.c
+            log_r = np.log(r)
+            step = geo.dx[:, None] - arms.dx_prev[:, None]
+            dA_dk = (log_r * r / k) * arms.force_prev + r * step
+            dA_db = (-log_r * r / b) * arms.force_prev + ((c - r * k) / b) * step
+            for i, (ki, bi) in enumerate(((3, 4), (5, 6))):
+                out[:, ki] = (mu[:, i, :] * dA_dk[:, i, None]).T
+                out[:, bi] = (mu[:, i, :] * dA_db[:, i, None]).T
+        return out
+
+
+class _Geometry:
+    """Connector directions and elongations at positions x (N, 3)."""
+
+    def __init__(self, model: Model, x: np.ndarray):
+        i, j = model.edges[:, 0], model.edges[:, 1]
+        d = x[j] - x[i]
+        length = np.linalg.norm(d, axis=1)
+        self.model = model
+        self.unit = d / length[:, None]
+        self.dx = length - model.rest_lengths
+
+    def pattern_matrix(self, pat) -> sp.csr_matrix:
+        """(n_dofs, E) forces on the matrix dofs of a unit tension in each connector."""
+        e = np.arange(self.model.n_connectors)
+        rows, cols, vals = [], [], []
+        for end, sign in ((0, 1.0), (1, -1.0)):
+            dof0 = pat.node_dof[self.model.edges[:, end]]
+            keep = dof0 >= 0
+            for c in range(3):
+                rows.append(dof0[keep] + c)
+                cols.append(e[keep])
+                vals.append(sign * self.unit[keep, c])
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(pat.n_dofs, self.model.n_connectors))
+
+
+class IndentationSensitivity(_Adjoint, IndentationEvaluator):
+    """:class:`IndentationEvaluator` with :meth:`jacobian` (module docstring)."""
+
+    def _steps(self, k):
+        solver = self._solvers[k]
+        steps = [solver.path[s] for s in self._ends[k]]  # elastic: each sample on its own
+        return steps, list(range(len(steps)))
+
+
+class RelaxationSensitivity(_Adjoint, RelaxationEvaluator):
+    """:class:`RelaxationEvaluator` with :meth:`jacobian` (module docstring)."""
+
+    def _steps(self, k):
+        solver = self._solvers[k]
+        path = list(solver.path)
+        if any(arms is None for arms, _ in path):
+            raise ParameterError("relaxation path without arm steps; cannot differentiate it")
+        return path, list(self._ends[k])
+
+
+def sensitivity_evaluators(model: Model, nodes: np.ndarray, normals: np.ndarray,
+                           depths: np.ndarray, times: np.ndarray, relaxation_depths: np.ndarray,
+                           strain_range: tuple[float, float] | None = None
+                           ) -> dict[str, _Adjoint]:
+    """Both experiments' evaluators with :meth:`~_Adjoint.jacobian`, keyed like the pool's."""
+    return {"indentation": IndentationSensitivity(model, nodes, normals, depths,
+                                                  strain_range=strain_range),
+            "relaxation": RelaxationSensitivity(model, nodes, normals, times, relaxation_depths,
+                                                strain_range=strain_range)}

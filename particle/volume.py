@@ -1,0 +1,322 @@
+"""Per-tetrahedron volume term of the particle model (in the spirit of Teschner et al. 2004).
+
+Each tetrahedron t of the mesh (vertices p0..p3, positively oriented) with rest
+volume ``V0`` and present volume ``V = (p1 - p0) . ((p2 - p0) x (p3 - p0)) / 6``
+stores the energy
+
+    E_t = kv_t / 2 * V0 * (V/V0 - 1)^2        [J],   kv_t [Pa = N/m^2]
+
+and pushes its four particles with ``f_a = -dE_t/dp_a = -kv_t (V/V0 - 1) dV/dp_a``,
+``dV/dp_1 = (p2 - p0) x (p3 - p0)/6`` (cyclically; ``dV/dp_0 = -(sum of the others)``).
+Under a small uniform dilation by strain eps, ``V/V0 - 1 = 3 eps`` and the term
+adds exactly ``kv`` to the body's bulk modulus (``E = 9/2 kv eps^2`` per unit
+volume), which is how ``kv`` is read and initialised (:func:`network_bulk_modulus`).
+
+The term is *elastic*: the Maxwell arms (the Prony series) act on the
+connectors, i.e. the deviatoric-like part of the response, and the volumetric
+response does not relax. This matches the FE material, whose Prony series acts
+on the deviatoric stress only (the bulk modulus is long-term).
+
+``kv`` lives in :class:`particle.model.ConnectorParams` (field ``kv``, (T,) or
+None = volume term off), so :meth:`Model.with_params` and ``dataclasses.replace``
+carry it with the other parameters; the tetrahedra (``Model.tets``) and rest
+volumes (``Model.rest_volumes``) live in the Model. When ``kv`` is None the
+kernels receive None and numba compiles the term out.
+
+Functions:
+
+* :func:`add_volume_forces` (numba) / :func:`volume_forces_numpy` (twin): forces;
+* :func:`volume_energy`: the energy (numpy);
+* :func:`add_volume_tangent` (numba) / :func:`volume_hessian_numpy`: the tangent
+  ``d^2 E/dx^2 = kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2`` (``g = dV/dx``);
+* :func:`tet_stiffness_bound`: per tet, an upper bound of the tangent's largest
+  eigenvalue over the states whose connector strains stay in a range (for the
+  rigorous stable-step bound of :func:`particle.integrator.critical_time_step`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from forcecal.errors import MeshError, ParameterError
+
+JIT = dict(cache=True, error_model="numpy")
+
+# the six edges of a tet as vertex-slot pairs (the mesh's TET_EDGES order is not needed here)
+TET_PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+
+
+def tet_name(t: int, tets: np.ndarray | None = None) -> str:
+    """``tet t``, with its four particles when ``tets`` (T, 4) is given (for messages)."""
+    if tets is None:
+        return f"tet {int(t)}"
+    return f"tet {int(t)} (particles {'-'.join(str(int(v)) for v in tets[t])})"
+
+
+def signed_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(T,) signed volumes [m^3] of ``tets`` (T, 4) at positions ``x`` (N, 3)."""
+    p = x[tets]
+    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0],
+                     np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+
+
+def volume_gradients_numpy(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(T, 4, 3) dV/dp_a [m^2] of every tet's four vertices."""
+    p = x[tets]
+    e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+    g = np.empty((len(tets), 4, 3))
+    g[:, 1] = np.cross(e2, e3) / 6.0
+    g[:, 2] = np.cross(e3, e1) / 6.0
+    g[:, 3] = np.cross(e1, e2) / 6.0
+    g[:, 0] = -(g[:, 1] + g[:, 2] + g[:, 3])
+    return g
+
+
+def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray,
+                  kv: np.ndarray) -> float:
+    """Total volume energy ``sum kv/2 V0 (V/V0 - 1)^2`` [J] at positions ``x`` (N, 3)."""
+    j = signed_volumes(x, tets) / rest_volumes - 1.0
+    return float(np.sum(0.5 * kv * rest_volumes * j * j))
+
+
+def volume_forces_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray,
+                        kv: np.ndarray) -> np.ndarray:
+    """(N, 3) volume forces [N] (the plain-numpy twin of :func:`add_volume_forces`)."""
+    j = signed_volumes(x, tets) / rest_volumes - 1.0
+    f = -(kv * j)[:, None, None] * volume_gradients_numpy(x, tets)
+    out = np.zeros_like(x, dtype=np.float64)
+    np.add.at(out, tets.ravel(), f.reshape(-1, 3))
+    return out
+
+
+def volume_hessian_numpy(x: np.ndarray, tet: np.ndarray, rest_volume: float,
+                         kv: float) -> np.ndarray:
+    """(12, 12) d^2 E/dx^2 [N/m] of one tet (vertex-major: rows 3a..3a+2 are vertex a)."""
+    p = x[tet]
+    g = volume_gradients_numpy(p, np.arange(4)[None])[0].ravel()
+    j = signed_volumes(p, np.arange(4)[None])[0] / rest_volume - 1.0
+    # d^2 V / dp_a dp_b (a != b) = [s]_x / 6 with s the edge between the other two vertices
+    # oriented by the permutation's sign; built from the affine dependence of g_a on p_b
+    h = np.zeros((12, 12))
+    for b in range(4):
+        for q in range(3):
+            moved = p.copy()
+            moved[b, q] += 1.0
+            h[:, 3 * b + q] = (volume_gradients_numpy(moved, np.arange(4)[None])[0].ravel() - g)
+    for a in range(4):
+        h[3 * a:3 * a + 3, 3 * a:3 * a + 3] = 0.0  # g_a does not depend on p_a
+    return kv / rest_volume * np.outer(g, g) + kv * j * h
+
+
+@njit(**JIT)
+def _tet_gradient(x, tets, t, g):
+    """Writes dV/dp_a (4, 3) [m^2] of tet t into ``g``; returns its volume V [m^3]."""
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    a0 = x[i1, 0] - x[i0, 0]
+    a1 = x[i1, 1] - x[i0, 1]
+    a2 = x[i1, 2] - x[i0, 2]
+    b0 = x[i2, 0] - x[i0, 0]
+    b1 = x[i2, 1] - x[i0, 1]
+    b2 = x[i2, 2] - x[i0, 2]
+    c0 = x[i3, 0] - x[i0, 0]
+    c1 = x[i3, 1] - x[i0, 1]
+    c2 = x[i3, 2] - x[i0, 2]
+    s = 1.0 / 6.0
+    g[1, 0] = (b1 * c2 - b2 * c1) * s
+    g[1, 1] = (b2 * c0 - b0 * c2) * s
+    g[1, 2] = (b0 * c1 - b1 * c0) * s
+    g[2, 0] = (c1 * a2 - c2 * a1) * s
+    g[2, 1] = (c2 * a0 - c0 * a2) * s
+    g[2, 2] = (c0 * a1 - c1 * a0) * s
+    g[3, 0] = (a1 * b2 - a2 * b1) * s
+    g[3, 1] = (a2 * b0 - a0 * b2) * s
+    g[3, 2] = (a0 * b1 - a1 * b0) * s
+    for c in range(3):
+        g[0, c] = -(g[1, c] + g[2, c] + g[3, c])
+    return a0 * g[1, 0] + a1 * g[1, 1] + a2 * g[1, 2]
+
+
+@njit(**JIT)
+def add_volume_forces(x, tets, rest_volumes, kv, forces):
+    """forces += the volume forces of every tet [N]; returns the first inverted tet (V <= 0), -1 if none.
+
+    ``tets`` (T, 4), ``rest_volumes`` (T,) [m^3], ``kv`` (T,) [Pa], ``x``/``forces`` (N, 3).
+    An inverted tet still gets its (restoring) force; the caller decides to stop.
+    """
+    g = np.empty((4, 3))
+    inverted = -1
+    for t in range(tets.shape[0]):
+        v = _tet_gradient(x, tets, t, g)
+        if inverted < 0 and not v > 0.0:
+            inverted = np.int64(t)
+        s = -kv[t] * (v / rest_volumes[t] - 1.0)
+        for a in range(4):
+            n = tets[t, a]
+            forces[n, 0] += s * g[a, 0]
+            forces[n, 1] += s * g[a, 1]
+            forces[n, 2] += s * g[a, 2]
+    return inverted
+
+
+@njit(**JIT)
+def node_volume_force(x, node, node_tets, tets, rest_volumes, kv, out):
+    """out (3,) += the volume force [N] on particle ``node`` from its tets ``node_tets``."""
+    g = np.empty((4, 3))
+    for k in range(node_tets.shape[0]):
+        t = node_tets[k]
+        v = _tet_gradient(x, tets, t, g)
+        s = -kv[t] * (v / rest_volumes[t] - 1.0)
+        for a in range(4):
+            if tets[t, a] == node:
+                out[0] += s * g[a, 0]
+                out[1] += s * g[a, 1]
+                out[2] += s * g[a, 2]
+
+
+@njit(**JIT)
+def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data):
+    """data += the volume tangent d^2E/dx^2 [N/m] through ``tet_slots`` (T, 4, 4, 3, 3).
+
+    ``tet_slots[t, a, b, p, q]`` is the CSC data index of entry (3 tets[t,a] + p,
+    3 tets[t,b] + q), -1 where a fixed particle is involved. Per tet the block
+    (a, b) is ``kv/V0 g_a g_b^T + kv (V/V0 - 1) d^2V/dp_a dp_b``, the second
+    derivative being exact from the affine dependence of g_a on p_b (b != a).
+    """
+    g = np.empty((4, 3))
+    moved = np.empty((4, 3))
+    h = np.empty((4, 4, 3, 3))
+    local = np.empty((4, 3))
+    xs = np.empty((4, 3))
+    idx = np.arange(4).reshape(1, 4)
+    for t in range(tets.shape[0]):
+        for a in range(4):
+            for c in range(3):
+                xs[a, c] = x[tets[t, a], c]
+        v = _tet_gradient(xs, idx, 0, g)
+        j = v / rest_volumes[t] - 1.0
+        for b in range(4):
+            for q in range(3):
+                for a in range(4):
+                    for c in range(3):
+                        local[a, c] = xs[a, c]
+                local[b, q] += 1.0
+                _tet_gradient(local, idx, 0, moved)
+                for a in range(4):
+                    for p in range(3):
+                        h[a, b, p, q] = 0.0 if a == b else moved[a, p] - g[a, p]
+        k1 = kv[t] / rest_volumes[t]
+        k2 = kv[t] * j
+        for a in range(4):
+            for b in range(4):
+                for p in range(3):
+                    for q in range(3):
+                        idx_data = tet_slots[t, a, b, p, q]
+                        if idx_data >= 0:
+                            data[idx_data] += k1 * g[a, p] * g[b, q] + k2 * h[a, b, p, q]
+
+
+def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(T, 6) connector id of each tet edge (order :data:`TET_PAIRS`).
+
+    Raises :class:`MeshError` naming the first tet with an edge that is no
+    connector (the volume term's tangent pattern and stability bound use them).
+    """
+    n = int(max(edges.max(), tets.max())) + 1
+    key = np.sort(edges, axis=1)
+    keys = key[:, 0] * n + key[:, 1]
+    order = np.argsort(keys)
+    pairs = np.sort(tets[:, TET_PAIRS], axis=2)  # (T, 6, 2)
+    wanted = pairs[..., 0] * n + pairs[..., 1]
+    pos = np.clip(np.searchsorted(keys[order], wanted), 0, len(keys) - 1)
+    found = keys[order][pos] == wanted
+    if not found.all():
+        t = int(np.nonzero(~found.all(axis=1))[0][0])
+        raise MeshError(f"{tet_name(t, tets)}: an edge of the tet is not a connector; the volume "
+                        "term needs every tet edge to be one")
+    return order[pos]
+
+
+def tet_stiffness_bound(model, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(T,) c_t >= the largest eigenvalue of tet t's volume tangent [N/m], for strains in range.
+
+    Valid for every state whose connector strains lie in ``[lo, hi]`` (E,), so
+    that each tet edge is at most ``l_max = (1 + hi) L0`` long. The tangent is
+    ``kv/V0 g g^T + kv (J - 1) d^2V`` (``J = V/V0``):
+
+    * ``|g|^2 = sum_a |dV/dp_a|^2``, each ``|dV/dp_a|`` half the area of the face
+      opposite a over 3, at most ``l l'/6`` for two edges of that face;
+    * ``d^2V`` in the edge coordinates ``e_k = p_k - p_0`` has the blocks
+      ``+-[e_m]_x/6`` (k != l, m the third), spectral norm at most the largest
+      row sum of the block norms over 6, ``(l_i + l_j)/6`` for the two other edges;
+      the map from vertex coordinates (``e = G p``) has ``|G|^2 = 4``;
+    * ``|J - 1| <= max(1, |V|_max/V0 - 1)`` with ``|V| <= l01 l02 l03/6``.
+
+    Multiplied, ``c_t = kv (|g|^2_max/V0 + |J - 1|_max 4 max_k (l_i + l_j)/6)``.
+    """
+    kv = model.params.kv
+    tets = model.tets
+    conn = tet_edge_connectors(tets, model.edges)  # (T, 6) in TET_PAIRS order
+    lmax = (1.0 + hi[conn]) * model.rest_lengths[conn]  # (T, 6): 01 02 03 12 13 23
+    l01, l02, l03, l12, l13, l23 = lmax.T
+    # faces opposite 0 (123), 1 (023), 2 (013), 3 (012): two of their edges each
+    grad2 = ((l12 * l13) ** 2 + (l02 * l03) ** 2 + (l01 * l03) ** 2 + (l01 * l02) ** 2) / 36.0
+    row = np.maximum(np.maximum(l02 + l03, l01 + l03), l01 + l02) / 6.0
+    v0 = model.rest_volumes
+    dj = np.maximum(1.0, l01 * l02 * l03 / 6.0 / v0 - 1.0)
+    return kv * (grad2 / v0 + dj * 4.0 * row)
+
+
+def tet_slots(tets: np.ndarray, node_dof: np.ndarray, indptr: np.ndarray,
+              indices: np.ndarray) -> np.ndarray:
+    """(T, 4, 4, 3, 3) CSC data index of each tet block entry, -1 where a fixed particle is involved.
+
+    The pattern (``indptr``/``indices``, dofs ``node_dof``) must contain every
+    pair of a tet's vertices (true when the tet edges are connectors).
+    """
+    n = len(indptr) - 1
+    r0 = node_dof[tets][:, :, None, None, None] + np.arange(3)[:, None]  # (T, 4, 1, 3, 1)
+    c0 = node_dof[tets][:, None, :, None, None] + np.arange(3)[None, :]  # (T, 1, 4, 1, 3)
+    rows, cols = np.broadcast_arrays(r0, c0)
+    valid = (node_dof[tets][:, :, None] >= 0) & (node_dof[tets][:, None, :] >= 0)
+    valid = np.broadcast_to(valid[..., None, None], rows.shape)
+    col_of = np.repeat(np.arange(n), np.diff(indptr))
+    keys = col_of.astype(np.int64) * n + indices
+    want = cols[valid].astype(np.int64) * n + rows[valid]
+    pos = np.searchsorted(keys, want)  # keys are sorted: CSC with sorted row indices
+    if not np.array_equal(keys[np.clip(pos, 0, len(keys) - 1)], want):
+        raise MeshError("the tangent pattern lacks a pair of tet vertices; every tet edge must "
+                        "be a connector")
+    slots = np.full(rows.shape, -1, dtype=np.int64)
+    slots[valid] = pos
+    return slots
+
+
+def check_kv(kv: np.ndarray, tets: np.ndarray | None = None) -> None:
+    """Raise :class:`~forcecal.errors.ParameterError` naming the first tet with kv <= 0 or non-finite."""
+    bad = np.nonzero(~(np.isfinite(kv) & (kv > 0.0)))[0]
+    if len(bad):
+        t = int(bad[0])
+        raise ParameterError(f"{tet_name(t, tets)}: volume stiffness kv = {kv[t]} Pa must be a "
+                             "finite number > 0")
+
+
+def network_bulk_modulus(mesh_or_model, K0: float) -> float:
+    """Bulk modulus [Pa] of a uniform spring network of stiffness ``K0`` [N/m] under uniform dilation.
+
+    Every connector stretches by ``eps L``: energy ``sum K0 (eps L)^2/2 = 9/2 kappa
+    eps^2 V_total``, so ``kappa = K0 sum L^2 / (9 V_total)``.
+    """
+    lengths = getattr(mesh_or_model, "rest_lengths", None)
+    if lengths is None:
+        lengths = mesh_or_model.edge_lengths
+        volume = float(np.abs(mesh_or_model.signed_volumes).sum())
+    else:
+        volume = float(mesh_or_model.rest_volumes.sum())
+    return float(K0 * np.sum(np.asarray(lengths) ** 2) / (9.0 * volume))
+
+
+__all__ = ["add_volume_forces", "add_volume_tangent", "check_kv", "network_bulk_modulus",
+           "node_volume_force", "signed_volumes", "tet_edge_connectors", "tet_name", "tet_slots",
+           "tet_stiffness_bound", "volume_energy", "volume_forces_numpy", "volume_hessian_numpy"]
+

@@ -1,0 +1,280 @@
+"""Gradient calibration: adjoint sensitivities against finite differences, parameter recovery of a
+smooth per-connector truth made by the particle model itself, cross-validated smoothness weight,
+springs kept stiff over the gravity range."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calibration.core import calibrate
+from calibration.gradient import (Coordinates, Linearisation, Regulariser, Validity,
+                                  cross_validate, folds_of, neighbour_laplacian)
+from calibration.network import linear_indentation
+from calibration.parametrisation import GlobalParams, StrainRange
+from calibration.synthetic import box_scene, noisy_params, synthetic_reference
+from forcecal.errors import ParameterError
+from forcecal.problem import build_problem
+from forcecal.scene import replace
+from forcecal.schedules import indentation_depths, relaxation_schedule
+from particle.model import PARAM_NAMES, ConnectorParams, build_model
+from particle.sensitivity import IndentationSensitivity, RelaxationSensitivity
+
+GLOBAL = GlobalParams(K0=30.0, alpha=1.0, beta=10.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)
+SETTINGS = {"static_max_evaluations": 80, "relaxation_max_evaluations": 160, "workers": 1,
+            "method": "gradient"}
+
+
+def _box(directory, n_calibration=4):
+    return box_scene(directory, test_points={"n_calibration": n_calibration, "n_held_out": 8},
+                     indentation={"depth": 0.002}, relaxation={"depth": 0.002},
+                     calibration=SETTINGS)
+
+
+def smooth_truth(problem, amplitude=0.2) -> ConnectorParams:
+    """GLOBAL times smooth factors of the connector midpoints: K0 (hence the whole spring
+    K(eps)) and each arm with its own linear trend across the box (the spring's shape
+    K(eps)/K0, whose alpha and beta are not identifiable one by one, stays GLOBAL's)."""
+    mid = problem.mesh.vertices[problem.mesh.edges].mean(axis=1)
+    u, v = mid[:, 0] / 0.06 - 0.5, mid[:, 1] / 0.06 - 0.5
+    f, g, h = (np.exp(amplitude * w) for w in (u + v, u - v, v))
+    K0 = GLOBAL.K0 * f
+    return ConnectorParams(K0=K0, a=GLOBAL.alpha * K0, b=GLOBAL.beta * K0, k1=GLOBAL.k1 * g,
+                           b1=GLOBAL.k1 * GLOBAL.tau1 * g * h, k2=GLOBAL.k2 / h,
+                           b2=GLOBAL.k2 * GLOBAL.tau2 / h)
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    return _box(tmp_path_factory.mktemp("gradient_box"))
+
+
+@pytest.mark.parametrize("volume", [False, True], ids=["springs", "springs+kv"])
+def test_sensitivities_match_finite_differences(box, volume):
+    """Directional derivatives J v along a random direction of every parameter of every
+    connector (and every tet's kv), against 4th-order central differences of the curves.
+    Newton is converged to 1e-11 of the force scale so the differences resolve 1e-8."""
+    problem = build_problem(box)
+    n = len(problem.mesh.edges)
+    params = noisy_params(GLOBAL, n, sigma=0.1)
+    if volume:  # a non-uniform kv of the order of the springs' own bulk modulus
+        n_tets = len(problem.mesh.tets)
+        params = dataclasses.replace(params, kv=800.0 * np.exp(
+            np.random.default_rng(5).normal(0.0, 0.2, n_tets)))
+    model = build_model(problem, box.material.density, params)
+    times, relax_depths = relaxation_schedule(box.relaxation)
+    kw = dict(strain_range=(-0.3, 0.3), rtol=1e-11)
+    nodes, normals = problem.test_points[:2], problem.normals[:2]
+    evaluators = {"indentation": IndentationSensitivity(model, nodes, normals,
+                                                        indentation_depths(box.indentation), **kw),
+                  "relaxation": RelaxationSensitivity(model, nodes, normals, times, relax_depths,
+                                                      **kw)}
+    rng = np.random.default_rng(0)
+    for kind, ev in evaluators.items():
+        sens = ev.jacobian(params)
+        np.testing.assert_array_equal(sens.forces, ev(params))  # the curves __call__ returns
+        assert (sens.kv is not None) == volume
+        names = PARAM_NAMES + (("kv",) if volume else ())
+        for q, name in enumerate(names):
+            value = getattr(params, name)
+            direction = rng.normal(size=len(value)) * value
+            jac = sens.kv if name == "kv" else sens.connectors[:, :, q]
+            h = 1e-3
+
+            def at(t):
+                return ev(dataclasses.replace(params, **{name: value + t * direction}))
+
+            fd = (8 * (at(h) - at(-h)) - (at(2 * h) - at(-2 * h))) / (12 * h)
+            exact = np.einsum("pse,e->ps", jac, direction)
+            if kind == "indentation" and name not in ("K0", "a", "b", "kv"):
+                assert not exact.any() and not fd.any()  # springs only: no arms
+                continue
+            assert np.abs(exact).max() > 0, (kind, name)
+            assert np.abs(fd - exact).max() <= 1e-6 * np.abs(exact).max(), (kind, name)
+
+
+@pytest.mark.parametrize("n_tets", [0, 4])
+def test_coordinates_chain_rule(n_tets):
+    """Coordinates <-> parameters round trip, and the chain rule against differences."""
+    n = 5
+    coords = Coordinates(0.1, n, n_tets)
+    start = GLOBAL.connector_params(n)
+    if n_tets:
+        start = dataclasses.replace(start, kv=np.full(n_tets, 900.0))
+    theta = coords.theta_of(start) + np.random.default_rng(1).normal(0, 0.1, coords.size)
+    p = coords.params(theta)
+    np.testing.assert_allclose(coords.theta_of(p), theta, rtol=1e-12, atol=1e-14)
+    rng = np.random.default_rng(2)
+    jac_p = rng.normal(size=(3, 7, n))  # any linear functional of the parameters
+    jac_kv = rng.normal(size=(3, n_tets)) if n_tets else None
+
+    def value(t):
+        q = coords.params(t)
+        out = np.einsum("sqe,qe->s", jac_p, np.array([getattr(q, m) for m in PARAM_NAMES]))
+        return out + (jac_kv @ q.kv if n_tets else 0.0)
+
+    got = coords.chain(jac_p, jac_kv, p)
+    for i in range(coords.size):
+        d = np.zeros(coords.size)
+        d[i] = 1e-6
+        fd = (value(theta + d) - value(theta - d)) / 2e-6
+        np.testing.assert_allclose(got[:, i], fd, rtol=1e-6, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def recovered(tmp_path_factory):
+    """Smooth non-uniform truth on the box, 20 calibration points (every free surface vertex
+    but the 8 held out), fitted by the gradient method from a short global fit."""
+    d = tmp_path_factory.mktemp("recovery")
+    scene = replace(_box(d, n_calibration=20),
+                    calibration={"static_max_evaluations": 40, "relaxation_max_evaluations": 60})
+    problem = build_problem(scene)
+    truth = smooth_truth(problem)
+    synthetic_reference(scene, truth, d / "reference.h5")
+    result = calibrate(scene, d / "reference.h5", d / "params.h5", progress=False)
+    return scene, problem, truth, result
+
+
+def test_gradient_recovers_smooth_truth(recovered):
+    """Measured (box, 20 calibration points, 197 connectors x 7 parameters): calibration curves
+    to 0.08 % / 0.09 % (max), held-out to 2.5 % / 1.6 % where the global fit has 10.8 % / 4.8 %;
+    K(eps) over each connector's strains reached (linear network at full depth) within 4.6 %
+    (median) and 12 % (max) of the truth, K0 within 2.7 % (median), the arms' k_i, tau_i within
+    0.6-2.7 % (median). The issue's 2 % on every connector's K(eps) is not reached: 20 surface
+    curves (1000 samples, far fewer independent ones) do not determine 1148 per-connector
+    parameters; the smoothness prior fills in what they leave open (asserted with ~1.5x margins)."""
+    scene, problem, truth, result = recovered
+    got = result.connectors["calibrated"]
+    n_cal = len(problem.calibration)
+    errors = {v: result.variants[v].errors for v in ("global", "calibrated")}
+    for experiment in ("indentation", "relaxation"):
+        assert errors["calibrated"][experiment][:n_cal].max() < 0.002
+        assert (errors["calibrated"][experiment][n_cal:].max()
+                < 0.5 * errors["global"][experiment][n_cal:].max())
+    reach = np.abs(linear_indentation(problem.mesh, problem.fixed, problem.test_points,
+                                      problem.normals).strain[:n_cal]).max(axis=0)
+    eps = np.linspace(-1.0, 1.0, 21)[None, :] * (0.002 * reach)[:, None]
+    K = lambda p: p.K0[:, None] + p.a[:, None] * eps + p.b[:, None] * eps ** 2  # noqa: E731
+    error = np.abs(K(got) / K(truth) - 1.0).max(axis=1)
+    assert np.median(error) < 0.07 and error.max() < 0.2
+    for name in ("k1", "tau1", "k2", "tau2"):
+        assert np.median(np.abs(getattr(got, name) / getattr(truth, name) - 1.0)) < 0.05, name
+    assert 0 < result.gradient["weight"] < max(result.gradient["grid"])
+    # every spring stays above the stiffness floor on the calibrated strain range (no gravity
+    # run in a synthetic reference, so that is the range the fit kept)
+    n = len(got.K0)
+    Validity(np.full(n, result.strain.low), np.full(n, result.strain.high),
+             0.1 * result.global_params.K0, result.global_params.K0, result.strain.scale
+             ).check(got)
+
+
+def test_cross_validation_picks_a_finite_weight(box):
+    """Linear synthetic case: a smooth truth seen through random point-local sensitivities
+    (12 points x 40 samples, like relaxation curves), with noise of 0.3 x the signal. Too
+    little smoothing fits the noise and too much flattens the truth; both
+    predict the held-back folds worse than the weight CV picks (inside the grid)."""
+    problem = build_problem(box)
+    edges = problem.mesh.edges
+    n = len(edges)
+    lap = neighbour_laplacian(edges, problem.mesh.n_vertices)
+    rng = np.random.default_rng(3)
+    mid = problem.mesh.vertices[edges].mean(axis=1)
+    truth = np.zeros((7, n))
+    truth[0] = 0.3 * np.sin(np.pi * mid[:, 0] / 0.06) * np.cos(np.pi * mid[:, 1] / 0.06)
+    theta0 = np.zeros(7 * n)
+    n_points, rows = 12, 40
+    J = np.zeros((n_points * rows, 7 * n))
+    centres = rng.choice(problem.mesh.n_vertices, n_points, replace=False)
+    for p, c in enumerate(centres):  # each point senses the connectors around one vertex
+        near = np.exp(-np.sum((mid - problem.mesh.vertices[c]) ** 2, axis=1) / 0.02 ** 2)
+        J[p * rows:(p + 1) * rows, :n] = 0.05 * rng.normal(size=(rows, n)) * near
+    signal = J @ truth.ravel()
+    r = -signal + 0.3 * signal.std() * rng.normal(size=len(J))  # residuals at theta0 = 0
+    reg = Regulariser(lap, theta0)
+    weight, costs = cross_validate(Linearisation.of(theta0, r, J, reg), rows, reg,
+                                   folds_of(n_points, 4))
+    best = int(np.argmin(costs))
+    assert 0 < best < len(costs) - 1
+    # measured: the ends of the grid predict the folds 3.8x and 6.0x worse than weight 1
+    assert costs[0] > 2.0 * costs[best] and costs[-1] > 2.0 * costs[best]
+
+
+def test_validity_refuses_soft_springs():
+    n = 3
+    low, high = np.full(n, -0.3), np.full(n, 0.1)
+    validity = Validity(low, high, floor=3.0, K0_global=30.0, scale=0.1)
+    linear = dataclasses.replace(GLOBAL, alpha=0.0, beta=0.0)
+    good = linear.connector_params(n)
+    validity.check(good)
+    soft = dataclasses.replace(good, a=np.array([0.0, 0.0, 150.0]))  # tangent 30 - 90 at -0.3
+    with pytest.raises(ParameterError, match="connector 2"):
+        validity.check(soft)
+    theta = Coordinates(0.1, n).theta_of(good)
+    theta[n + 2] = 0.5  # alpha s = 0.5: tangent 1 + 10 eps < 2 x floor / K0 at eps = -0.3
+    h, jac = validity.hinge(theta)
+    assert h[:5].max() == 0 and h[10:].max() > 0 and jac.shape == (15, 21)
+
+
+def test_gradient_fit_resumes_from_its_checkpoint(box):
+    """A fit whose every stage is in the checkpoint returns the same parameters without
+    computing a single Jacobian; one whose last round is missing recomputes only that."""
+    from calibration.gradient import fit_gradient, gradient_backend
+    from calibration.pool import Experiments, Pool
+
+    problem = build_problem(box)
+    n = len(problem.mesh.edges)
+    truth = smooth_truth(problem)
+    depths = indentation_depths(box.indentation)
+    times, relax_depths = relaxation_schedule(box.relaxation)
+    strain = StrainRange(-0.2, 0.05)
+    experiments = Experiments(problem, box.material.density, depths, times, relax_depths,
+                              strain.bounds)
+    cal = np.arange(len(problem.calibration))
+    validity = Validity(np.full(n, strain.low), np.full(n, strain.high), 0.1 * GLOBAL.K0,
+                        GLOBAL.K0, strain.scale)
+    with Pool(experiments, truth, backend=gradient_backend, workers=1) as pool:
+        reference = {k: pool.curves(k, truth, cal) for k in ("indentation", "relaxation")}
+        store: dict = {}
+
+        def fit(saved):
+            return fit_gradient(pool, GLOBAL, strain, reference, validity, problem.mesh.edges,
+                                problem.mesh.n_vertices, folds=2, max_iterations=3,
+                                checkpoint_get=saved.get, checkpoint_put=saved.__setitem__)
+
+        first = fit(store)
+        again = fit(dict(store))
+        assert again.jacobians == 0
+        for name in PARAM_NAMES:
+            np.testing.assert_array_equal(getattr(again.params, name),
+                                          getattr(first.params, name))
+        partial = {k: v for k, v in store.items() if not k.endswith("_1")}
+        resumed = fit(partial)
+        assert 0 < resumed.jacobians < first.jacobians
+        assert resumed.weights == first.weights
+
+
+def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
+    """Each connector's range = the experiments' range united with twice the strain of the FE
+    static sag widened by the margin (what the gravity release verifies)."""
+    from types import SimpleNamespace
+
+    from calibration.core import gradient_validity
+    from particle.integrator import strain_range_for_release
+    from particle.statics import gravity_static
+
+    problem = build_problem(box)
+    glob = dataclasses.replace(GLOBAL, alpha=0.0, beta=0.0)
+    n = len(problem.mesh.edges)
+    model = build_model(problem, box.material.density, glob.connector_params(n))
+    sag = gravity_static(model, np.array([0.0, 0.0, -9.81]))
+    ref = SimpleNamespace(problem=problem, material=box.material,
+                          gravity=SimpleNamespace(static_displacement=sag))
+    strain = StrainRange(-0.05, 0.02)
+    validity = gradient_validity(ref, glob, strain, 0.1, 0.2)
+    lo, hi = strain_range_for_release(model, sag, 0.2)
+    np.testing.assert_array_equal(validity.low, np.minimum(lo, strain.low))
+    np.testing.assert_array_equal(validity.high, np.maximum(hi, strain.high))
+    assert validity.low.min() < strain.low and validity.high.max() > strain.high
+    assert validity.floor == pytest.approx(0.1 * glob.K0)
+    without = gradient_validity(SimpleNamespace(problem=problem, material=box.material,
+                                                gravity=None), glob, strain, 0.1, 0.2)
+    assert np.all(without.low == strain.low) and np.all(without.high == strain.high)
