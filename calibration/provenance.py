@@ -37,7 +37,9 @@ def _digest(obj) -> str:
 
 def fit_settings(scene: Scene) -> dict[str, dict]:
     """The scene sections a calibration reads, as plain dicts (recorded in ``params.h5``)."""
-    return {s: scene.section_dict(s) for s in FIT_SECTIONS}
+    settings = {s: scene.section_dict(s) for s in FIT_SECTIONS}
+    settings["particle"] = {"volume": scene.particle.volume}  # the model the fit fits
+    return settings
 
 
 def code_fingerprint(packages: tuple[str, ...] = FIT_PACKAGES) -> str:
