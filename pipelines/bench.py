@@ -80,7 +80,9 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 # Studies after the five items above: item name -> "module:function", a function
 # study(scene, cache folder, quick) -> the bench.json keys it owns. Each lives in a module of
 # its own (imported only when it runs), so adding a study adds one line here.
-STUDIES: dict[str, str] = {}
+STUDIES: dict[str, str] = {
+    "volume term": "pipelines.bench_volume:study",
+}
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
 
