@@ -51,3 +51,23 @@ def test_errors_are_signed_relative_differences_against_the_fe():
     assert m["first_peak_error"] > 0.0  # a larger static sag swings deeper despite more damping
     assert m["rms_error"] == 0.3
     assert out["direction"] == [0.0, 0.0, -1.0]
+
+
+def test_the_fe_p2_consistent_mass_condensed_onto_the_vertices_is_the_lumped_mass():
+    """Why there is no FE-like mass option: the P2 consistent mass's row sums are -1/20 of the
+    tet's mass at each vertex and 1/5 at each mid-edge node (exact, from the closed form
+    int l1^a l2^b l3^c l4^d = a! b! c! d! 3! V/(a+b+c+d+3)!); split between its two ends,
+    a vertex gets -1/20 + 3 x 1/10 = 1/4: the lumped masses the particle model already
+    uses. (P1 row sums are 1/4 too.)"""
+    from math import factorial
+
+    def integral(powers):  # of prod l_i^p_i over a tet, per unit volume
+        return (np.prod([factorial(p) for p in powers]) * factorial(3)
+                / factorial(sum(powers) + 3))
+    # row sum of node i = int phi_i (sum_j phi_j = 1): vertex l(2l - 1), edge 4 l_a l_b
+    vertex = 2 * integral([2, 0, 0, 0]) - integral([1, 0, 0, 0])
+    edge = 4 * integral([1, 1, 0, 0])
+    assert vertex == pytest.approx(-1 / 20, rel=1e-14)
+    assert edge == pytest.approx(1 / 5, rel=1e-14)
+    assert 4 * vertex + 6 * edge == pytest.approx(1.0, rel=1e-14)
+    assert vertex + 3 * edge / 2 == pytest.approx(1 / 4, rel=1e-14)  # = the lumped share
