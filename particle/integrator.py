@@ -665,9 +665,10 @@ class Run:
         return found
 
     def force_on(self, state: State, node: int) -> np.ndarray:
-        """(3,) connector force on particle ``node`` at ``state`` [N], arm step not committed.
+        """(3,) internal force on particle ``node`` at ``state`` [N], arm step not committed.
 
-        What the next step will apply to that particle: its connectors only,
+        What the next step will apply to that particle: its connectors (and its
+        tets' volume term when on) only,
         the arms advanced by this run's recursion into scratch (state unchanged).
         """
         out = np.empty(3)
