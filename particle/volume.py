@@ -27,6 +27,7 @@ Functions:
 
 * :func:`add_volume_forces` (numba) / :func:`volume_forces_numpy` (twin): forces;
 * :func:`volume_energy`: the energy (numpy);
+* :func:`volume_kv_sensitivity_numpy`: d(forces)/d(kv) per tet (numpy);
 * :func:`add_volume_tangent` (numba) / :func:`volume_hessian_numpy`: the tangent
   ``d^2 E/dx^2 = kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2`` (``g = dV/dx``);
 * :func:`volume_frequency_bound`: an upper bound of the term's largest mass-scaled
@@ -89,6 +90,18 @@ def volume_forces_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarra
     out = np.zeros_like(x, dtype=np.float64)
     np.add.at(out, tets.ravel(), f.reshape(-1, 3))
     return out
+
+
+def volume_kv_sensitivity_numpy(x: np.ndarray, tets: np.ndarray,
+                                rest_volumes: np.ndarray) -> np.ndarray:
+    """(T, 4, 3) d f_a / d kv_t [N/Pa = m^2]: the force on each tet's vertices per unit kv.
+
+    The forces are linear in kv: ``f_a = -kv_t (V/V0 - 1) dV/dp_a``, so this is
+    ``-(V/V0 - 1) dV/dp_a`` (for adjoint/direct sensitivities of the curves to kv;
+    a global kv's sensitivity is the sum over the tets).
+    """
+    j = signed_volumes(x, tets) / rest_volumes - 1.0
+    return -j[:, None, None] * volume_gradients_numpy(x, tets)
 
 
 def volume_hessian_numpy(x: np.ndarray, tet: np.ndarray, rest_volume: float,
@@ -370,5 +383,6 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
 
 __all__ = ["add_volume_forces", "add_volume_tangent", "check_kv", "network_bulk_modulus",
            "node_volume_force", "signed_volumes", "tet_edge_connectors", "tet_name", "tet_slots",
-           "volume_frequency_bound", "volume_ratio_range", "node_volume_stiffness", "volume_energy", "volume_forces_numpy", "volume_hessian_numpy"]
+           "volume_frequency_bound", "volume_ratio_range", "node_volume_stiffness", "volume_energy", "volume_forces_numpy", "volume_hessian_numpy",
+           "volume_kv_sensitivity_numpy"]
 

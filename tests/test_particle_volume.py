@@ -15,7 +15,8 @@ from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static
 from particle.testing import box_model, spring_energy, top_centre, viscoelastic_params
 from particle.volume import (add_volume_forces, network_bulk_modulus, signed_volumes,
-                             volume_energy, volume_forces_numpy, volume_hessian_numpy)
+                             volume_energy, volume_forces_numpy, volume_hessian_numpy,
+                             volume_kv_sensitivity_numpy)
 from pipelines.bench_stability import blows_up, bisect
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -95,6 +96,17 @@ def test_forces_are_minus_the_energy_gradient_and_numba_matches_numpy():
             fd[n, c] = -(volume_energy(xp, model.tets, model.rest_volumes, kv)
                          - volume_energy(xm, model.tets, model.rest_volumes, kv)) / (2 * h)
     np.testing.assert_allclose(numba, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+
+
+def test_the_kv_sensitivity_is_the_force_per_unit_kv():
+    """Forces are linear in kv: the sensitivity of each tet times its kv sums to the forces."""
+    model = with_kv(box_model((2, 2, 2), fixed_bottom=False), 3000.0)
+    x = deformed(model, 5e-4, seed=7)
+    sens = volume_kv_sensitivity_numpy(x, model.tets, model.rest_volumes)
+    f = np.zeros_like(x)
+    np.add.at(f, model.tets.ravel(), (model.params.kv[:, None, None] * sens).reshape(-1, 3))
+    twin = volume_forces_numpy(x, model.tets, model.rest_volumes, model.params.kv)
+    np.testing.assert_allclose(f, twin, rtol=0, atol=1e-13 * np.abs(twin).max())
 
 
 def test_the_static_tangent_with_the_volume_term_is_the_derivative_of_the_forces():
