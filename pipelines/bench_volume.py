@@ -4,7 +4,8 @@
 for the scene's liver (its mesh and fixed base) and the large liver of the
 particle-engine item (``particle.bench.LARGE_MESH_LENGTH``, ~12k connectors), the
 latency of :meth:`particle.haptics.HapticSession.step` (1 ms per call, median and
-p99 over the calls, :func:`particle.bench.haptic_latency`) with the uniform
+p99 over the calls, :func:`particle.bench.haptic_latency`; and the CPU time per call,
+:func:`cpu_per_call`, which a busy machine disturbs less) with the uniform
 benchmark springs alone and with the volume term added at ``kv`` = the spring
 network's bulk modulus (:func:`particle.volume.network_bulk_modulus`, the paper
 fit's starting value; ``kv_ratio`` says how many times that). Each session takes
@@ -36,6 +37,26 @@ def with_volume(model, kv_ratio: float = KV_RATIO):
     return model.with_params(dataclasses.replace(model.params, kv=np.full(model.n_tets, kv))), kv
 
 
+def cpu_per_call(model, node: int, normal: np.ndarray, calls: int) -> dict[str, Any]:
+    """CPU time [us] per :meth:`HapticSession.step` over ``calls`` calls (process time: on a
+    shared machine it counts this process's work only, not the time it waited for a core),
+    the step and substeps as :func:`particle.bench.haptic_latency` takes them."""
+    import time
+
+    from particle import bench as pb
+    from particle.haptics import HapticSession
+    from particle.integrator import critical_time_step
+
+    session = HapticSession(model, pb.DT_SAFETY * critical_time_step(model))
+    start = model.rest_positions[node]
+    session.step(node, start)  # compile outside the clock
+    cpu = time.process_time()
+    for k in range(calls):
+        session.step(node, start + 0.005 * min(1.0, k / (calls / 4)) * normal)
+    return {"substeps": session.substeps,
+            "cpu_us_per_call": 1e6 * (time.process_time() - cpu) / calls}
+
+
 def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
     import numba
 
@@ -56,10 +77,13 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
         volume, kv = with_volume(model)
         springs = pb.haptic_latency(model, node, normal, calls=calls)
         both = pb.haptic_latency(volume, node, normal, calls=calls)
+        cpu_springs = cpu_per_call(model, node, normal, calls)
+        cpu_both = cpu_per_call(volume, node, normal, calls)
         out[name] = {"connectors": model.n_connectors, "tets": model.n_tets, "kv_pa": kv,
-                     "springs": springs, "volume": both,
+                     "springs": {**springs, **cpu_springs}, "volume": {**both, **cpu_both},
                      "ratio_median": both["median_us"] / springs["median_us"],
-                     "ratio_per_substep": (both["median_us"] / both["substeps"])
-                     / (springs["median_us"] / springs["substeps"])}
+                     "ratio_cpu": cpu_both["cpu_us_per_call"] / cpu_springs["cpu_us_per_call"],
+                     "ratio_cpu_per_substep": (cpu_both["cpu_us_per_call"] / cpu_both["substeps"])
+                     / (cpu_springs["cpu_us_per_call"] / cpu_springs["substeps"])}
     out["load_average_end"] = os.getloadavg()[0]
     return {"volume_haptic": out}
