@@ -39,4 +39,4 @@ def test_global_fit_recovers_kv_from_a_uniform_block(tmp_path):
     assert back.global_params.kv == glob.kv
     assert back.connectors["global"].kv.tolist() == [glob.kv]
     assert back.connectors["baseline"].kv is None  # Van Gelder: springs only
-    assert back.settings["particle"] == {"volume": True}
+    assert back.settings["model"] == {"particle.volume": True}
