@@ -7,7 +7,8 @@ separate them. The history ``u(t)`` (S, 3) [m] is projected on the direction
 rest in the undeformed shape, ``s`` oscillates about the static sag ``s_eq``
 (the model's own) with a decaying amplitude:
 
-* ``period_s``: ``1/f`` with ``f`` the dominant frequency of ``s - mean`` over
+* ``period_s``: ``1/f`` (None if ``s`` does not oscillate) with ``f`` the dominant
+  frequency of ``s - mean`` over
   the first :data:`WINDOW_S` seconds (Hann window, zero-padded FFT, parabolic
   interpolation of the log magnitude around the peak bin);
 * ``first_peak_m``: the first local maximum of ``s`` (the deepest point of
@@ -96,7 +97,9 @@ def signal_metrics(time: np.ndarray, history: np.ndarray, direction: np.ndarray,
     """Period, first peak and decay rate of one history (S, 3) [m] along ``direction`` (3,),
     about the static displacement ``static`` (3,) [m]."""
     s = history @ direction
-    return {"period_s": dominant_period(time, s), "first_peak_m": first_peak(time, s),
+    period = dominant_period(time, s)
+    return {"period_s": period if math.isfinite(period) else None,  # None: no oscillation
+            "first_peak_m": first_peak(time, s),
             "decay_rate_1_per_s": decay_rate(time, s, float(static @ direction))}
 
 
