@@ -6,6 +6,15 @@
   slope of the unit-stiffness linear network (exactly the particle model's
   initial slope per unit K0, :mod:`calibration.network`); ``a = b = 0``; arms
   from the Prony series, ``k_i = g_i/g_inf K0``, ``tau_i`` from the material.
+  With the volume term (``particle.volume``), ``kv`` starts at the bulk modulus
+  of the spring network itself, ``K0 sum L^2/(9 V)``
+  (:func:`particle.volume.network_bulk_modulus`), i.e. the term doubles the
+  network's resistance to a uniform dilation. Why not the material's kappa: the
+  FE material is nearly incompressible (kappa/mu = 125 on the default liver)
+  and a kv that large locks the network as P1 tets lock (5-12x too stiff, see
+  the generalisation notes) and divides the explicit step by ~sqrt(kappa/mu);
+  the fitted kv lies between, and the static fit searches it in log
+  coordinates (first simplex step a factor 2).
 * Step 1, static: Nelder-Mead over ``x = (alpha s, beta s^2)`` on the static
   curves of all calibration points; for each x the curve of a uniform network
   is exactly proportional to K0, so K0 is solved in closed form (least squares)
@@ -24,9 +33,12 @@ from calibration.parametrisation import GlobalParams, StrainRange, check_feasibl
 from calibration.pool import Pool
 from calibration.progress import cost_ticker, progress_bar
 from forcecal.errors import DataFileError, ParameterError
+from forcecal.mesh import TetMesh
 from forcecal.scene import CalibrationSection, MaterialSection
+from particle.volume import network_bulk_modulus
 
 STATIC_STEP = 0.25  # initial simplex: K changes by 25 % at the largest strain
+VOLUME_STEP = float(np.log(2.0))  # initial simplex: kv/K0 doubled
 RELAXATION_STEP = 0.3  # initial simplex: arm stiffnesses and times change by a factor 1.35
 
 
@@ -40,22 +52,27 @@ def fe_initial_slopes(depths: np.ndarray, forces: np.ndarray) -> np.ndarray:
 
 
 def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
-                  unit_slope: np.ndarray) -> GlobalParams:
-    """Closed-form start (module docstring) from per-point FE and unit-network slopes [N/m]."""
+                  unit_slope: np.ndarray, mesh: TetMesh | None = None) -> GlobalParams:
+    """Closed-form start (module docstring) from per-point FE and unit-network slopes [N/m].
+
+    ``mesh`` given: the volume term is on and kv starts at the network's bulk modulus.
+    """
     K0 = float(np.dot(fe_slope, unit_slope) / np.dot(unit_slope, unit_slope))
     if not K0 > 0:
         raise DataFileError(f"the FE's initial static slopes {np.round(fe_slope, 6).tolist()} "
                             "N/m give no positive stiffness; are the reference forces signed "
                             "along the inward normal?")
     ratio, tau = prony_arms(material)
+    kv = 0.0 if mesh is None else network_bulk_modulus(mesh, K0)
     return GlobalParams(K0=K0, alpha=0.0, beta=0.0, k1=float(ratio[0] * K0), tau1=float(tau[0]),
-                        k2=float(ratio[1] * K0), tau2=float(tau[1]))
+                        k2=float(ratio[1] * K0), tau2=float(tau[1]), kv=kv)
 
 
 def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
                n_connectors: int, settings: CalibrationSection, *, progress: bool = True,
                verbose: bool = False) -> tuple[GlobalParams, Fit]:
-    """Step 1: spring ``K0, a, b`` on the static curves ``reference`` (Pc, S) [N]."""
+    """Step 1: spring ``K0, a, b`` (and ``kv`` if the volume term is on) on the static curves
+    ``reference`` (Pc, S) [N]."""
     points = np.arange(len(reference))
     K0_of: dict[bytes, float] = {}
     floor = settings.stiffness_floor * start.K0  # K(eps)/K0 does not depend on the K0 solved for
@@ -72,7 +89,9 @@ def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: 
         return float(np.sum((reference - scale * sim) ** 2))
 
     with progress_bar("global static", settings.static_max_evaluations, progress) as bar:
-        fit = nelder_mead(cost, start.static_coordinates(strain), np.full(2, STATIC_STEP),
+        x0 = start.static_coordinates(strain)
+        steps = np.r_[np.full(2, STATIC_STEP), np.full(len(x0) - 2, VOLUME_STEP)]
+        fit = nelder_mead(cost, x0, steps,
                           name="global static fit", xatol=settings.xatol, fatol=settings.fatol,
                           max_evaluations=settings.static_max_evaluations,
                           on_evaluation=cost_ticker(bar), verbose=verbose)

@@ -3,16 +3,19 @@
 Global parameters (one value for every connector), :class:`GlobalParams`:
 ``K0`` [N/m], ``alpha = a/K0`` and ``beta = b/K0`` [1] (so
 ``K(eps) = K0 (1 + alpha eps + beta eps^2)``), arm stiffnesses ``k1, k2`` [N/m]
-and relaxation times ``tau1 < tau2`` [s] (``b_i = tau_i k_i``).
+and relaxation times ``tau1 < tau2`` [s] (``b_i = tau_i k_i``); with the
+volume term (scene key ``particle.volume``) the volume stiffness ``kv`` [Pa] of
+every tet (0 = the term is off).
 
 Optimiser coordinates are dimensionless and O(1) per unit change:
 
 * static:  ``x = (alpha s, beta s^2)`` with ``s`` the strain scale of the
   experiments (:class:`StrainRange`), i.e. the relative change of K at the
-  largest strain. K0 is not searched: the static curve of a uniform network
-  with ``a = alpha K0, b = beta K0`` is exactly proportional to K0 (every force
-  scales, the equilibrium shape does not), so K0 is the closed-form least-squares
-  factor for each (alpha, beta);
+  largest strain; with the volume term a third coordinate ``log(kv/K0 x 1 m)``.
+  K0 is not searched: the static curve of a uniform network with ``a = alpha
+  K0, b = beta K0`` (and ``kv = (kv/K0) K0``) is exactly proportional to K0
+  (every force scales, the equilibrium shape does not), so K0 is the
+  closed-form least-squares factor for each (alpha, beta, kv/K0);
 * relaxation: ``y = (log k1, log tau1, log k2, log tau2)``; optimising log tau
   rather than log b keeps the two arms identifiable, and ``tau1 < tau2`` is
   required (the swapped half is the same model).
@@ -86,21 +89,36 @@ class GlobalParams:
     tau1: float
     k2: float
     tau2: float
+    kv: float = 0.0
+
+    @property
+    def has_volume(self) -> bool:
+        return self.kv > 0.0
 
     def connector_params(self, n_connectors: int) -> ConnectorParams:
-        return ConnectorParams.uniform(n_connectors, K0=self.K0, a=self.alpha * self.K0,
-                                       b=self.beta * self.K0, k1=self.k1, b1=self.tau1 * self.k1,
-                                       k2=self.k2, b2=self.tau2 * self.k2)
+        """Uniform connector parameters (and, with the volume term, one kv (1,) for every tet)."""
+        params = ConnectorParams.uniform(n_connectors, K0=self.K0, a=self.alpha * self.K0,
+                                         b=self.beta * self.K0, k1=self.k1,
+                                         b1=self.tau1 * self.k1, k2=self.k2,
+                                         b2=self.tau2 * self.k2)
+        return dataclasses.replace(params, kv=self.kv_array)
+
+    @property
+    def kv_array(self) -> np.ndarray | None:
+        """(1,) kv [Pa] for :class:`ConnectorParams` (one value for every tet), None if off."""
+        return np.array([self.kv]) if self.has_volume else None
 
     def static_coordinates(self, strain: StrainRange) -> np.ndarray:
         s = strain.scale
-        return np.array([self.alpha * s, self.beta * s * s])
+        x = [self.alpha * s, self.beta * s * s]
+        return np.array(x + [np.log(self.kv / self.K0)] if self.has_volume else x)
 
     def with_static_coordinates(self, x: np.ndarray, K0: float, strain: StrainRange
                                 ) -> "GlobalParams":
         s = strain.scale
+        kv = float(K0 * np.exp(x[2])) if self.has_volume else 0.0
         return dataclasses.replace(self, K0=float(K0), alpha=float(x[0]) / s,
-                                   beta=float(x[1]) / (s * s))
+                                   beta=float(x[1]) / (s * s), kv=kv)
 
     def relaxation_coordinates(self) -> np.ndarray:
         return np.log([self.k1, self.tau1, self.k2, self.tau2])
@@ -163,7 +181,7 @@ def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
     k1, tau1 = glob.k1 * np.exp(r[:, 0]), glob.tau1 * np.exp(r[:, 1])
     k2, tau2 = glob.k2 * np.exp(r[:, 2]), glob.tau2 * np.exp(r[:, 3])
     return ConnectorParams(K0=K0, a=alpha * K0, b=beta * K0, k1=k1, b1=tau1 * k1,
-                           k2=k2, b2=tau2 * k2)
+                           k2=k2, b2=tau2 * k2, kv=glob.kv_array)
 
 
 def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -> None:

@@ -36,7 +36,10 @@ def _digest(obj) -> str:
 
 def fit_settings(scene: Scene) -> dict[str, dict]:
     """The scene sections a calibration reads, as plain dicts (recorded in ``params.h5``)."""
-    return {s: scene.section_dict(s) for s in FIT_SECTIONS}
+    settings = {s: scene.section_dict(s) for s in FIT_SECTIONS}
+    # the model the fit fits (the rest of [particle] is about the explicit runs, not the fit)
+    settings["model"] = {"particle.volume": scene.particle.volume}
+    return settings
 
 
 def code_fingerprint(packages: tuple[str, ...] = FIT_PACKAGES) -> str:

@@ -5,10 +5,11 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``gradient`` (JSON: the gradient method's smoothness weight, CV costs and objective history; ``{}`` for the paper's method), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``; and ``model``: ``{"particle.volume": bool}``, the model fitted), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``gradient`` (JSON: the gradient method's smoothness weight, CV costs and objective history; ``{}`` for the paper's method), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
 | ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local) |
-| ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s | ``K0, alpha, beta, k1, tau1, k2, tau2`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``) |
+| ``/connectors/<variant>/kv`` | (T,) or (1,) | Pa | volume stiffness per tet ((1,): the same for every tet); only when the volume term is on (``particle.volume``) |
+| ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s, Pa | ``K0, alpha, beta, k1, tau1, k2, tau2, kv`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``; ``kv`` = 0: no volume term; absent in older files) |
 | ``/initial_guess/fe_slope`` | (Pc,) | N/m | FE initial static slope per calibration point |
 | ``/initial_guess/unit_slope`` | (P,) | N/m | unit-stiffness network slope per test point |
 | ``/strain_range`` attrs | | 1 | ``low``, ``high``: where K(eps) > 0 is required |
@@ -47,7 +48,7 @@ STAGES = ("static", "relaxation")
 PARAM_UNITS = {"K0": "N/m", "a": "N/m", "b": "N/m", "k1": "N/m", "b1": "N s/m", "k2": "N/m",
                "b2": "N s/m"}
 GLOBAL_UNITS = {"K0": "N/m", "alpha": "1", "beta": "1", "k1": "N/m", "tau1": "s", "k2": "N/m",
-                "tau2": "s"}
+                "tau2": "s", "kv": "Pa"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,7 +166,9 @@ def _put_global(group: h5py.Group, g: GlobalParams) -> None:
 
 
 def _get_global(fh: h5py.File, path: str) -> GlobalParams:
-    return GlobalParams(**{k: float(get(fh, f"{path}/{k}", ())) for k in GLOBAL_UNITS})
+    # kv is absent from files written before the volume term (springs only: kv = 0)
+    return GlobalParams(**{k: float(get(fh, f"{path}/{k}", ())) for k in GLOBAL_UNITS
+                           if k != "kv" or f"{path}/kv" in fh})
 
 
 def _put_history(group: h5py.Group, fit: Fit) -> None:
@@ -250,6 +253,8 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
             g = fh.create_group(f"connectors/{variant}")
             for name in PARAM_NAMES:
                 put(g, name, getattr(params, name), PARAM_UNITS[name])
+            if params.kv is not None:
+                put(g, "kv", params.kv, "Pa", "volume stiffness: one per tet, or (1,) for all")
         _put_global(fh.create_group("global"), result.global_params)
         g = fh.create_group("initial_guess")
         _put_global(g, result.initial)
@@ -289,9 +294,11 @@ def read_params(path: str | Path) -> CalibrationResult:
         if not set(fitted) <= set(EXPERIMENTS) or "indentation" not in fitted:
             raise DataFileError(f"{path}: attribute experiments = {list(fitted)} is not "
                                 f"'indentation' and maybe 'relaxation'")
-        connectors = {v: ConnectorParams(**{n: get(fh, f"connectors/{v}/{n}", (n_e,),
-                                                     dtype="float") for n in PARAM_NAMES})
-                      for v in VARIANTS}
+        connectors = {v: ConnectorParams(
+            **{n: get(fh, f"connectors/{v}/{n}", (n_e,), dtype="float") for n in PARAM_NAMES},
+            kv=(get(fh, f"connectors/{v}/kv", (None,), dtype="float")
+                if f"connectors/{v}/kv" in fh else None))
+            for v in VARIANTS}
         variants = {v: VariantCurves(
             curves={e: get(fh, f"curves/{v}/{e}", (n_p, None), dtype="float")
                     for e in fitted},

@@ -213,6 +213,9 @@ class ParticleSection:
                                minimum=0.0)
     damping: float = key(0.0, "global mass-proportional viscous damping (off for the gravity "
                          "comparison: the arms are the only physical damping)", "1/s", minimum=0.0)
+    volume: bool = key(False, "add the elastic per-tet volume term kv/2 V0 (V/V0 - 1)^2 "
+                       "(particle/volume.py) to the springs; calibration method 'paper' then "
+                       "fits kv [Pa] with K0, a, b (false: the paper's springs-only model)")
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,8 @@ builder, mutable State, integrators and solvers apart):
   :class:`RelaxationEvaluator` (batch force curves for calibration).
 - :mod:`particle.experiments`: :func:`gravity_dynamic`, :func:`relaxation_dynamic`.
 - :mod:`particle.haptics`: :class:`HapticSession`.
+- :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``):
+  forces, tangent, energy, its part of the stability bound.
 - :mod:`particle.bench`: benchmark functions returning dicts.
 """
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator

@@ -27,7 +27,8 @@ from particle import kernels
 from particle.model import (ConnectorParams, Model, State, StrainBounds,
                             connector_strain_bounds)
 from particle.statics import check_stiffness, check_volumes
-from particle.volume import tet_name, tet_stiffness_bound, volume_energy
+from particle.volume import (node_volume_stiffness, signed_volumes, tet_name,
+                             volume_energy, volume_frequency_bound, volume_ratio_range)
 
 log = logging.getLogger(__name__)
 
@@ -137,12 +138,13 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     mass-proportional damping gamma the central-difference limit becomes
     ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
 
-    With the volume term (``params.kv`` given), each tet's 12x12 tangent H_t
-    annihilates translations and ``H_t <= c_t I`` (:func:`particle.volume.tet_stiffness_bound`),
-    so ``H_t <= (c_t/4) L_K4 (x) I_3`` (the complete graph of its 4 vertices has
-    the eigenvalue 4 on every non-translation mode): ``c_t/4`` is added to the
-    weight of each of its six edges (:func:`volume_edge_weights`) and the same
-    Laplacian bound holds.
+    With the volume term (``params.kv`` given), ``K_t = K_springs + K_vol`` and
+    ``lambda_max(A + B) <= lambda_max(A) + lambda_max(B)``: Irons' element bound
+    of the volume term (:func:`particle.volume.volume_frequency_bound`, valid
+    while the tets' volume ratios stay in :func:`particle.volume.volume_ratio_range`,
+    which the runs verify) is added to omega_max^2. (A first version put each
+    tet's bound on its six edges of the Laplacian: 2x more pessimistic in
+    omega^2 on a Kuhn box.)
 
     Raises:
         ParameterError: the parameters are non-physical on ``strain_range``
@@ -155,22 +157,14 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
         return math.inf  # nothing moves
     lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
     kappa = connector_stiffness_bound(p, lo, hi)
-    if p.kv is not None:
-        kappa = kappa + volume_edge_weights(model.with_params(p), lo, hi)
     omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
+    if p.kv is not None:
+        omega2 += volume_frequency_bound(model.with_params(p), lo, hi)
     if not omega2 > 0.0:
         return math.inf  # no stiffness at all: nothing oscillates
     omega = math.sqrt(omega2)
     xi = damping / (2.0 * omega)
     return 2.0 / omega * (math.sqrt(1.0 + xi * xi) - xi)
-
-
-def volume_edge_weights(model: Model, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(E,) connector weights [N/m] that bound the volume term's tangent (see
-    :func:`critical_time_step`): ``c_t/4`` summed over the tets of each connector."""
-    c = tet_stiffness_bound(model, lo, hi)
-    return np.bincount(model.tet_connectors.ravel(), np.repeat(0.25 * c, 6),
-                       minlength=model.n_connectors)
 
 
 def strain_range_for_release(model: Model, static_displacement: np.ndarray, margin: float
@@ -355,12 +349,11 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
         g = float(np.linalg.norm(gravity))
         energy += total_mass * g * (size + 0.5 * g * duration ** 2)
     if prescribed is not None:
-        weights = p.K0 + p.k1 + p.k2
-        if p.kv is not None:  # a stiffness scale of the volume term, per connector
-            weights = weights + volume_edge_weights(model, *connector_strain_bounds(
-                DEFAULT_STRAIN_RANGE, model.n_connectors, model.edges))
-        stiff = np.bincount(model.edges.ravel(), np.repeat(weights, 2),
-                            model.n_particles)[prescribed.nodes]
+        stiff = np.bincount(model.edges.ravel(), np.repeat(p.K0 + p.k1 + p.k2, 2),
+                            model.n_particles)
+        if p.kv is not None:
+            stiff = stiff + node_volume_stiffness(model)
+        stiff = stiff[prescribed.nodes]
         reach = np.linalg.norm(prescribed.positions - state.x[prescribed.nodes][None], axis=2)
         energy += float(np.sum(stiff * (reach.max(axis=0) + size) ** 2))
         if len(prescribed.times) > 1:
@@ -564,8 +557,15 @@ class Run:
         self._elongation_limits = ((None, None) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
         self._edges = kernels.index_view(model.edges)
-        self._volume = (None if p.kv is None else
-                        (kernels.index_view(model.tets), model.rest_volumes, p.kv))
+        self._volume = None
+        if p.kv is not None:  # volumes outside (v_lo, v_hi] stop the run (v_lo >= 0: inverted)
+            if monitored is None:
+                ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
+            else:
+                ratio = volume_ratio_range(model, *monitored)
+            self.volume_ratio_range = ratio
+            self._volume = (kernels.index_view(model.tets), model.rest_volumes, p.kv,
+                            ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes)
         self._active = kernels.index_view(self.active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
@@ -620,12 +620,8 @@ class Run:
             if pool is not None:
                 numba.set_num_threads(pool)
         code, step, node = status.tolist()
-        if code == kernels.INVERTED:
-            raise StabilityError(
-                f"{tet_name(node, model.tets)} inverted (volume <= 0) at step {step} (t = "
-                f"{state.t + step * dt:.6g} s) of the explicit run; dt = {dt:.4g} s, stability "
-                f"limit {self.integrator.critical_time_step(model):.4g} s; the run stopped (the "
-                "volume term is not defined for an inverted tet)")
+        if code == kernels.VOLUME:
+            self._raise_volume_exit(state, node, step)
         if code == kernels.STRAIN:
             self._raise_strain_exit(state, node, state.t + (step - 1) * dt)
         if code != kernels.OK:
@@ -639,6 +635,26 @@ class Run:
         if n_steps:
             state.dt = dt
         return out
+
+    def _raise_volume_exit(self, state: State, t: int, step: int) -> None:
+        """StabilityError for tet ``t`` found outside its volume range at step ``step`` (the
+        kernel stopped right after advancing the free particles: their positions then are
+        the state's ``x_prev``, the prescribed ones' still ``x``)."""
+        model, dt = self.model, self.dt
+        x = state.x_prev.copy()
+        x[self.prescribed] = state.x[self.prescribed]
+        ratio = float(signed_volumes(x, model.tets[t:t + 1])[0] / model.rest_volumes[t])
+        where = (f"at step {step} (t = {state.t + step * dt:.6g} s) of the explicit run; dt = "
+                 f"{dt:.4g} s, stability limit {self.integrator.critical_time_step(model):.4g} s")
+        if not ratio > 0.0:
+            raise StabilityError(f"{tet_name(t, model.tets)} inverted (volume ratio V/V0 = "
+                                 f"{ratio:.3g} <= 0) {where}; the run stopped (the volume term "
+                                 "is not meant for inverted tets)")
+        lo, hi = self.volume_ratio_range
+        raise StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
+                             f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
+                             "was verified stable for; the run stopped rather than continue with "
+                             "an unverified step (widen the strain range: it sets this one)")
 
     def _raise_strain_exit(self, state: State, e: int, t: float) -> None:
         """StabilityError for connector ``e`` found outside its monitored range at time ``t``."""
@@ -705,9 +721,10 @@ class Run:
         return found
 
     def force_on(self, state: State, node: int) -> np.ndarray:
-        """(3,) connector force on particle ``node`` at ``state`` [N], arm step not committed.
+        """(3,) internal force on particle ``node`` at ``state`` [N], arm step not committed.
 
-        What the next step will apply to that particle: its connectors only,
+        What the next step will apply to that particle: its connectors (and its
+        tets' volume term when on) only,
         the arms advanced by this run's recursion into scratch (state unchanged).
         """
         out = np.empty(3)

@@ -33,6 +33,9 @@ Index arrays (connector ends, node lists) may be passed as unsigned views
 indices from every gathered index. Measured on the 12k-connector liver: one
 force evaluation 61 -> 50 us, results bitwise identical.
 
+The optional per-tet volume term (:mod:`particle.volume`) enters the same
+way: ``volume`` None compiles it out of :func:`net_forces` and the loop.
+
 The force terms are small functions composed in :func:`net_forces`; the
 plain-numpy twin used as the reference in tests is :mod:`particle.reference_numpy`.
 
@@ -93,7 +96,7 @@ OK = 0
 NONFINITE = 1
 ENERGY = 2
 STRAIN = 3
-INVERTED = 4
+VOLUME = 4
 
 
 @njit(**JIT)
@@ -236,21 +239,23 @@ def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, volume):
     """All force terms of one explicit step, composed; commits the arm recursion in place.
 
-    ``volume`` = (tets (T, 4), rest_volumes (T,), kv (T,)) adds the volume term
-    (:func:`particle.volume.add_volume_forces`), None compiles it out.
-    Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
-    :func:`internal_forces`), the first inverted tet), -1 for none.
+    ``volume`` = (tets (T, 4), rest_volumes (T,), kv (T,), v_lo (T,), v_hi (T,))
+    adds the volume term (:func:`particle.volume.add_volume_forces`), None
+    compiles it out. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
+    :func:`internal_forces`), the first tet whose volume is outside ``(v_lo,
+    v_hi]``), -1 for none.
     """
     outside = internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force,
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)
-    inverted = -1
+    bad = -1
     if volume is not None:
-        inverted = add_volume_forces(x, volume[0], volume[1], volume[2], forces)
+        bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
+                                   forces)
     if gravity is not None:
         add_gravity(forces, masses, gravity, active)
     if damping_rate is not None:
         add_damping(forces, masses, x, x_prev, damping_rate, active)
-    return outside, inverted
+    return outside, bad
 
 
 @njit(**JIT)
@@ -287,27 +292,28 @@ def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, 
     energy ``sum m |x^{n+1} - x^n|^2 / (2 dt^2)`` [J] must not exceed
     ``energy_bound``, else ``status`` is set (:func:`divergent_node`, the only
     part that looks at the nodes again). Returns (the first connector outside
-    ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None), the first tet inverted at
-    ``x`` (-1: none or no volume term)). ``blocks`` None runs the
+    ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None), the first tet whose volume
+    at ``x`` is outside its range (-1: none or no volume term)). ``blocks`` None runs the
     serial passes, else the same passes split over threads
     (:func:`parallel_forces`, :func:`parallel_advance`).
     """
     if blocks is None:
-        outside, inverted = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0,
+        outside, bad = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0,
                                        a, b, arm_r, arm_c, masses, active, gravity, damping_rate,
                                        forces, dx_lo, dx_hi, volume)
         energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
     else:
         outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
                                   arm_c, dx_lo, dx_hi, blocks)
-        inverted = -1
+        bad = -1
         if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
-            inverted = add_volume_forces(x, volume[0], volume[1], volume[2], blocks[0][0])
+            bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
+                                       blocks[0][0])
         energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity,
                                   damping_rate, scale, check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
         divergent_node(x, x_prev, active, status)
-    return outside, inverted
+    return outside, bad
 
 
 @njit(parallel=True, **JIT)
@@ -444,9 +450,11 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
     a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
-    rest_volumes, kv) adds the volume term (None: compiled out); a tet found
-    inverted at any step (V <= 0) stops the run at once with code INVERTED
-    (id = the tet); ``probe_tets`` are the probe node's tets.
+    rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out); a
+    tet whose volume leaves ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an
+    inverted tet always does) stops the run at once with code VOLUME (step = the
+    step whose start positions it was found at, id = the tet); ``probe_tets``
+    are the probe node's tets.
 
     The checks ride on the force and position passes of the checked steps
     (no extra pass over the model), so a checked step costs about an unchecked one.
@@ -473,7 +481,7 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                 masses, inv_masses, active, gravity, damping_rate, forces, None, None, scale,
                 False, dt, energy_bound, status, blocks, volume)
         if volume is not None and inverted >= 0:
-            status[0] = INVERTED
+            status[0] = VOLUME
             status[1] = step  # the tet was inverted at the positions the step started from
             status[2] = inverted
             return status

@@ -120,7 +120,9 @@ class ConnectorParams:
         kv: (T,) float64, volume stiffness of each tetrahedron [Pa = N/m^2] (the
             elastic volume term of :mod:`particle.volume`, energy ``kv/2 V0 (V/V0 -
             1)^2``), or None: the volume term is off (the paper's springs-only
-            model). It does not relax (the arms act on the connectors only).
+            model). It does not relax (the arms act on the connectors only). A
+            (1,) array is one value for every tet (a global fit's): a Model stores
+            it broadcast to (T,).
 
     Instances are immutable; calibration builds new ones with
     ``dataclasses.replace(params, K0=...)`` (``kv=...`` likewise).
@@ -338,7 +340,7 @@ class Model:
         object.__setattr__(self, "rest_volumes", _frozen(volumes, np.float64))
         object.__setattr__(self, "tet_connectors", _frozen(
             tet_edge_connectors(tets, self.edges) if len(tets) else np.zeros((0, 6)), np.int64))
-        self._check_params(self.params)
+        object.__setattr__(self, "params", self._check_params(self.params))
         ends = self.edges.ravel()
         order = np.argsort(ends, kind="stable")
         ptr = np.zeros(self.n_particles + 1, dtype=np.int64)
@@ -364,18 +366,23 @@ class Model:
         """True when the volume term is on (the parameters carry ``kv``)."""
         return self.params.kv is not None
 
-    def _check_params(self, params: ConnectorParams) -> None:
+    def _check_params(self, params: ConnectorParams) -> ConnectorParams:
+        """``params`` checked against this model, a (1,) kv broadcast to one per tet."""
         if params.n_connectors != self.n_connectors:
             raise ParameterError(f"parameters have {params.n_connectors} entries but the model "
                                  f"has {self.n_connectors} connectors")
-        tets = self.tets if isinstance(self.tets, np.ndarray) else None
-        if params.kv is not None and tets is not None and params.kv.shape != (len(tets),):
-            raise ParameterError(f"kv has {params.kv.shape[0]} entries but the model has "
-                                 f"{len(tets)} tets (the volume term needs one kv per tet)")
+        n_tets = len(self.tets)
+        if params.kv is not None and params.kv.shape != (n_tets,):
+            if params.kv.shape != (1,) or n_tets == 0:
+                raise ParameterError(f"kv has {params.kv.shape[0]} entries but the model has "
+                                     f"{n_tets} tets (the volume term needs one kv per tet, or "
+                                     "one for all)")
+            params = dataclasses.replace(params, kv=np.full(n_tets, params.kv[0]))
+        return params
 
     def with_params(self, params: ConnectorParams) -> "Model":
         """A new Model with other connector parameters (and kv), sharing every topology array."""
-        self._check_params(params)
+        params = self._check_params(params)
         new = object.__new__(Model)
         for f in dataclasses.fields(Model):
             object.__setattr__(new, f.name, getattr(self, f.name))

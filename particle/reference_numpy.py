@@ -11,6 +11,7 @@ import numpy as np
 
 from particle.integrator import Prescribed
 from particle.model import Model, State
+from particle.volume import volume_forces_numpy
 
 
 def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
@@ -42,6 +43,8 @@ def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | N
     forces = np.zeros_like(x)
     np.add.at(forces, i, pull)
     np.add.at(forces, j, -pull)
+    if p.kv is not None:
+        forces += volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv)
     m = model.masses[:, None]
     if gravity is not None:
         forces += m * np.asarray(gravity)

@@ -181,6 +181,7 @@ class EquilibriumSolver:
         self._flat = (3 * active[:, None] + np.arange(3)).ravel()
         self._mat = pattern.dofs(active)
         self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
+        self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
         self._lu = None
         self._stale = True  # refactorise before the next step
         self.factorizations = 0
@@ -216,7 +217,9 @@ class EquilibriumSolver:
             None if arms is None else arms.dx_prev, forces, tension, arm_out, dx)
         if p.kv is not None:
             m = self.model
-            if add_volume_forces(x, m.tets, m.rest_volumes, p.kv, forces) >= 0:
+            bad, _ = add_volume_forces(x, m.tets, m.rest_volumes, p.kv, self._no_volume_limit[0],
+                                       self._no_volume_limit[1], forces)
+            if bad >= 0:
                 # an inverted tet is no admissible iterate: an infinite residual makes the
                 # line search shorten the step (and a converged state is never inverted)
                 forces[:] = np.inf

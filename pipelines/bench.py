@@ -86,6 +86,7 @@ STUDIES: dict[str, str] = {
     "fe_convergence": "pipelines.fe_convergence:study",
     "scale": "pipelines.bench_scale:study",
     "calibration methods": "pipelines.bench_calibration_methods:study",
+    "volume term": "pipelines.bench_volume:study",
 }
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}

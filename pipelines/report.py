@@ -14,6 +14,10 @@ Errors (all dimensionless):
 * ``gravity_dynamic``: RMS over the sample times of ``|u_p(t) - u_FE(t)|`` of the
   tracked vertex divided by ``max_t |u_FE(t)|``.
 
+``gravity.dynamic_metrics`` separates the tracked vertex's dynamic error into
+period, first-peak displacement and decay rate errors (:mod:`pipelines.dynamics`),
+for the calibrated and the baseline model, next to the RMS error.
+
 ``baseline_errors`` repeats every key with the closed-form (Van Gelder) model,
 which is the same model on every point set ("global", "calibrated" and
 "held_out" only select the points).
@@ -41,6 +45,7 @@ from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS
+from pipelines.dynamics import dynamic_metrics
 from pipelines.gravity import GravityRuns, ParticleGravity
 
 log = logging.getLogger(__name__)
@@ -192,7 +197,15 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         # runs' own extremes are the *_strain_range keys above)
         "calibration_strain_bounds": [lo, hi],
         **({"particle_dynamic_s": run.dynamic_time, "fe_dynamic_s": fe_t["gravity_dynamic"]}
-           if "gravity_dynamic" in ran else {})}
+           if "gravity_dynamic" in ran else {}),
+        # period, first peak and decay need the release and the static sag it swings about
+        "dynamic_metrics": dynamic_metrics(
+            gravity.time, reference.gravity.displacement[:, node],
+            reference.gravity.static_displacement[node],
+            {m: (r.displacement[:, node], r.static_displacement[node])
+             for m, r in gravity.models.items()},
+            {"calibrated": calibrated["gravity_dynamic"], "baseline": baseline["gravity_dynamic"]})
+        if {"gravity_dynamic", "gravity_static"} <= set(ran) else None}
     return {
         "scene": scene_name,
         "experiments": list(ran),

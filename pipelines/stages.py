@@ -420,7 +420,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("reference", REFERENCE_SECTIONS, ("reference_fe.__main__", "reference_fe.run"), (),
           run_reference, reads_mesh=True),
     Stage("calibrate", ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                        "calibration"),
+                        "calibration", "particle"),  # particle.volume: the model fitted
           ("calibration.core", "calibration.worker"), (REFERENCE,), run_calibrate,
           experiments=("indentation", "relaxation")),
     Stage("gravity", ("material", "gravity", "particle"),

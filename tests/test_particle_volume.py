@@ -1,0 +1,355 @@
+"""The per-tet volume term (particle/volume.py): closed forms, twins, tangent, stability, refusals."""
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from forcecal.errors import MeshError, ParameterError, StabilityError
+from particle import kernels
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.haptics import HapticSession
+from particle.integrator import Prescribed, VerletIntegrator, critical_time_step
+from particle.model import ModelBuilder
+from particle.reference_numpy import step_numpy
+from particle.statics import EquilibriumSolver, TangentPattern, gravity_static
+from particle.testing import box_model, spring_energy, top_centre, viscoelastic_params
+from particle.volume import (add_volume_forces, network_bulk_modulus, signed_volumes,
+                             volume_energy, volume_forces_numpy, volume_hessian_numpy,
+                             volume_kv_sensitivity_numpy)
+from pipelines.bench_stability import blows_up, bisect
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+ELASTIC = dict(g=(1e-12, 1e-12))  # arms of negligible stiffness: a purely elastic model
+TET = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.003, 0.018, 0.0], [0.004, 0.006, 0.017]])
+
+
+def with_kv(model, kv):
+    """The model with a volume stiffness kv [Pa] on every tet."""
+    return model.with_params(dataclasses.replace(model.params, kv=np.full(model.n_tets, kv)))
+
+
+def single_tet(kv=1000.0, K0=1e-9, fixed=(False,) * 4):
+    """One tet (edges as connectors, springs negligible unless K0 is given)."""
+    builder = ModelBuilder()
+    builder.add_particles(TET, np.full(4, 1e-3), np.array(fixed))
+    builder.add_connectors([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    params = dataclasses.replace(viscoelastic_params(6, K0, **ELASTIC), kv=np.array([kv]))
+    return builder.finalize(params, tets=np.array([[0, 1, 2, 3]]))
+
+
+def deformed(model, amplitude=1e-3, seed=0):
+    rng = np.random.default_rng(seed)
+    return model.rest_positions + amplitude * rng.standard_normal(model.rest_positions.shape)
+
+
+def test_uniform_dilation_of_one_tet_gives_the_closed_form_force_and_energy():
+    """x -> c + s (x - c): V/V0 = s^3, f_a = -kv (s^3 - 1) s^2 g0_a with g0_a the rest gradient
+    (|g0_a| = area of the opposite face / 3), E = kv/2 V0 (s^3 - 1)^2. Round-off only."""
+    kv = 2500.0
+    model = single_tet(kv)
+    v0 = model.rest_volumes[0]
+    assert v0 == pytest.approx(abs(np.linalg.det(TET[1:] - TET[0])) / 6, rel=1e-14)
+    g0 = volume_forces_numpy(TET + 0.0, model.tets, model.rest_volumes, np.array([1.0]))
+    assert np.allclose(g0, 0.0)  # at rest: no force
+    centre = TET.mean(axis=0)
+    for s in (0.9, 0.99, 1.01, 1.2):
+        x = centre + s * (TET - centre)
+        f = np.zeros((4, 3))
+        none = (np.zeros(1), np.full(1, np.inf))
+        assert add_volume_forces(x, model.tets, model.rest_volumes, model.params.kv, *none,
+                                 f)[0] == -1
+        # the rest gradients: each vertex's opposite face normal (area vector)/3, inward
+        grad_rest = np.array([np.cross(TET[3] - TET[1], TET[2] - TET[1]),
+                              np.cross(TET[2] - TET[0], TET[3] - TET[0]),
+                              np.cross(TET[3] - TET[0], TET[1] - TET[0]),
+                              np.cross(TET[1] - TET[0], TET[2] - TET[0])]) / 6.0
+        expect = -kv * (s ** 3 - 1.0) * s ** 2 * grad_rest
+        np.testing.assert_allclose(f, expect, rtol=1e-12, atol=1e-14 * np.abs(expect).max())
+        energy = volume_energy(x, model.tets, model.rest_volumes, model.params.kv)
+        assert energy == pytest.approx(0.5 * kv * v0 * (s ** 3 - 1) ** 2, rel=1e-12)
+    # small strain: the term adds exactly kv to the bulk modulus, E/V0 = 9/2 kv eps^2
+    eps = 1e-6
+    x = centre + (1 + eps) * (TET - centre)
+    assert volume_energy(x, model.tets, model.rest_volumes, model.params.kv) / v0 == \
+        pytest.approx(4.5 * kv * eps ** 2, rel=1e-5)
+
+
+def test_forces_are_minus_the_energy_gradient_and_numba_matches_numpy():
+    """Central differences of the energy (O(h^2) error, h = 1e-7 m: ~1e-7 relative) and the
+    numpy twin (same formulas: round-off) on a randomly deformed box."""
+    model = with_kv(box_model((2, 2, 2), fixed_bottom=False), 3000.0)
+    x = deformed(model, 5e-4)
+    kv = model.params.kv
+    numba = np.zeros_like(x)
+    none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
+    assert add_volume_forces(x, model.tets, model.rest_volumes, kv, *none, numba)[0] == -1
+    twin = volume_forces_numpy(x, model.tets, model.rest_volumes, kv)
+    np.testing.assert_allclose(numba, twin, rtol=0, atol=1e-13 * np.abs(twin).max())
+    h = 1e-7
+    fd = np.empty_like(x)
+    for n in range(model.n_particles):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[n, c] += h
+            xm[n, c] -= h
+            fd[n, c] = -(volume_energy(xp, model.tets, model.rest_volumes, kv)
+                         - volume_energy(xm, model.tets, model.rest_volumes, kv)) / (2 * h)
+    np.testing.assert_allclose(numba, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+
+
+def test_the_kv_sensitivity_is_the_force_per_unit_kv():
+    """Forces are linear in kv: the sensitivity of each tet times its kv sums to the forces."""
+    model = with_kv(box_model((2, 2, 2), fixed_bottom=False), 3000.0)
+    x = deformed(model, 5e-4, seed=7)
+    sens = volume_kv_sensitivity_numpy(x, model.tets, model.rest_volumes)
+    f = np.zeros_like(x)
+    np.add.at(f, model.tets.ravel(), (model.params.kv[:, None, None] * sens).reshape(-1, 3))
+    twin = volume_forces_numpy(x, model.tets, model.rest_volumes, model.params.kv)
+    np.testing.assert_allclose(f, twin, rtol=0, atol=1e-13 * np.abs(twin).max())
+
+
+def test_the_static_tangent_with_the_volume_term_is_the_derivative_of_the_forces():
+    """The assembled CSC tangent (springs + volume, nonlinear springs, fixed bottom) against
+    central differences of the compiled forces (forces are smooth: O(h^2) ~ 1e-8 relative),
+    and one tet's block against the numpy Hessian."""
+    model = box_model((2, 2, 2), a=-20.0, b=300.0)
+    model = with_kv(model, 4000.0)
+    p = model.params
+    x = deformed(model, 5e-4, seed=3)
+    x[model.fixed] = model.rest_positions[model.fixed]
+    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
+    it = solver._evaluate(x, p, True, None, None)
+    captured = {}
+    solver._lu_of = lambda data: captured.setdefault("data", data.copy())
+    solver._factorize(it, p, True, None)
+    pat = solver.pattern
+    tangent = sp.csc_matrix((captured["data"], pat.indices, pat.indptr),
+                            shape=(pat.n_dofs, pat.n_dofs)).toarray()
+    free = model.free_nodes
+    h = 1e-8
+    fd = np.empty((3 * len(free), 3 * len(free)))
+    for k, n in enumerate(free):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[n, c] += h
+            xm[n, c] -= h
+            df = (solver._evaluate(xp, p, True, None, None).forces
+                  - solver._evaluate(xm, p, True, None, None).forces)[free].ravel() / (2 * h)
+            fd[:, 3 * k + c] = -df
+    np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+    # the volume term alone, one tet, numpy Hessian vs central differences of its forces
+    tet = single_tet(4000.0)
+    xt = deformed(tet, 2e-3, seed=5)
+    hess = volume_hessian_numpy(xt, tet.tets[0], tet.rest_volumes[0], 4000.0)
+    fd = np.empty((12, 12))
+    for k in range(12):
+        xp, xm = xt.copy(), xt.copy()
+        xp.ravel()[k] += 1e-8
+        xm.ravel()[k] -= 1e-8
+        fd[:, k] = -(volume_forces_numpy(xp, tet.tets, tet.rest_volumes, tet.params.kv)
+                     - volume_forces_numpy(xm, tet.tets, tet.rest_volumes,
+                                           tet.params.kv)).ravel() / 2e-8
+    np.testing.assert_allclose(hess, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+    np.testing.assert_allclose(hess, hess.T, atol=1e-12 * np.abs(hess).max())
+
+
+def test_compiled_step_with_the_volume_term_matches_the_numpy_step():
+    """All terms (nonlinear springs, arms, gravity, damping, a prescribed particle) + volume:
+    same formulas, same order, round-off only (as the springs-only twin test)."""
+    model = with_kv(box_model(a=-20.0, b=300.0), 2000.0)
+    dt = 0.5 * critical_time_step(model, damping=3.0)
+    compiled = model.state()
+    compiled.x[model.free_nodes] += 1e-4 * np.random.default_rng(2).standard_normal(
+        (len(model.free_nodes), 3))
+    compiled.x_prev[:] = compiled.x
+    reference = compiled.copy()
+    node = top_centre(model)
+    start = compiled.x[node]
+    motion = Prescribed([node], [0.0, 20 * dt], [[start], [start + [0.0, 0.0, -1e-3]]])
+    VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY, prescribed=motion)
+    for _ in range(50):
+        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
+    scale = np.abs(reference.x - model.rest_positions).max()
+    np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
+
+
+def test_threaded_step_with_the_volume_term_matches_the_serial_one():
+    model = with_kv(box_model(), 2000.0)
+    dt = 0.5 * critical_time_step(model)
+    runs = []
+    for threads in (1, 2):
+        state = model.state()
+        VerletIntegrator().simulate(model, state, dt, 200, gravity=GRAVITY, threads=threads)
+        runs.append(state.x)
+    scale = np.abs(runs[0] - model.rest_positions).max()
+    np.testing.assert_allclose(runs[1], runs[0], rtol=0, atol=1e-10 * scale)
+
+
+def test_an_elastic_tet_vibrates_with_constant_energy():
+    """Springs + volume, arms negligible, one fixed face: kinetic + spring + volume energy is
+    conserved by position Verlet up to its bounded O((omega dt)^2) error (below 1 % at
+    dt = 0.2 x the limit), over 20000 steps; and it oscillates (energy moves)."""
+    model = single_tet(kv=5000.0, K0=20.0, fixed=(True, True, True, False))
+    dt = 0.2 * critical_time_step(model)
+    state = model.state()
+    state.x[3] += [1e-3, -5e-4, 8e-4]
+    state.x_prev[:] = state.x
+
+    def energy(s):
+        v = (s.x - s.x_prev) / dt
+        mid = [s.x, s.x_prev]
+        pot = np.mean([spring_energy(model, y) + volume_energy(y, model.tets, model.rest_volumes,
+                                                               model.params.kv) for y in mid])
+        return 0.5 * float(np.sum(model.masses[:, None] * v ** 2)) + pot
+
+    integrator = VerletIntegrator()
+    integrator.simulate(model, state, dt, 1)
+    e0 = energy(state)
+    values = []
+    for _ in range(200):
+        integrator.simulate(model, state, dt, 100)
+        values.append(energy(state))
+    assert np.max(np.abs(np.array(values) - e0)) < 1e-2 * e0
+    assert e0 > 0
+
+
+@pytest.mark.parametrize("kv", [2e3, 2e4])
+def test_the_stability_bound_with_the_volume_term_is_below_the_bisected_limit(kv):
+    """Rigorous: never above the limit found by bisection (3000 steps from a state at rest,
+    perturbed by 1e-6 m, 0.1 %). The bound covers every state of its strain range, where
+    faces grow by (1 + hi)^2 and |V/V0 - 1| up to (1 + hi)^3 - 1, so on the default range
+    +-0.5 it is well below the limit at rest; on a narrow range it must be close to it
+    (> 0.5: Irons' element bound of the volume term added to the springs' one)."""
+    model = with_kv(box_model((3, 3, 2), **ELASTIC), kv)
+    estimate = critical_time_step(model)
+    empirical = bisect(lambda dt: blows_up(model, dt), estimate)
+    assert estimate <= empirical
+    narrow = critical_time_step(model, strain_range=(-1e-3, 1e-3))
+    assert estimate < narrow <= empirical
+    assert narrow / empirical > 0.5
+    springs_only = critical_time_step(model.with_params(dataclasses.replace(model.params,
+                                                                            kv=None)))
+    assert estimate < springs_only
+
+
+def test_bad_kv_is_refused_naming_the_tet():
+    model = box_model()
+    kv = np.full(model.n_tets, 1000.0)
+    for bad in (0.0, -1.0, np.nan, np.inf):
+        kv_bad = kv.copy()
+        kv_bad[7] = bad
+        params = dataclasses.replace(model.params, kv=kv_bad)
+        with pytest.raises(ParameterError, match=r"tet 7 \(particles [0-9-]+\): volume stiffness"):
+            VerletIntegrator().prepare(model.with_params(params), 1e-5)
+    with pytest.raises(ParameterError, match="kv has 3 entries but the model has"):
+        model.with_params(dataclasses.replace(model.params, kv=np.ones(3)))
+
+
+def test_a_tet_edge_that_is_no_connector_is_refused():
+    builder = ModelBuilder()
+    builder.add_particles(TET, np.full(4, 1e-3))
+    builder.add_connectors([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3]])
+    with pytest.raises(MeshError, match=r"tet 0 \(particles 0-1-2-3\): an edge of the tet is not"):
+        builder.finalize(viscoelastic_params(5), tets=np.array([[0, 1, 2, 3]]))
+
+
+@pytest.mark.parametrize("monitored", [True, False])
+def test_a_tet_leaving_its_volume_range_or_inverting_stops_the_run_naming_tet_and_step(monitored):
+    """The free vertex driven through its opposite face in 100 steps (prescribed motion): V/V0
+    falls linearly, 1 - 2 s/100 after step s. A monitored run stops when V/V0 leaves the
+    range its step was verified for ((1 - 0.5)^3 = 0.125 on the default strain range, at
+    step 44: 1 - 88/100 = 0.12); an unmonitored one (_check_dt=False) when the tet inverts
+    (step 50: V/V0 = 0). StabilityError naming the tet and the step, never NaN."""
+    model = single_tet(kv=1000.0, K0=1.0, fixed=(True, True, True, False))
+    dt = 0.5 * critical_time_step(model)
+    x3 = model.rest_positions[3]
+    through = x3 - [0.0, 0.0, 2 * x3[2]]
+    motion = Prescribed([3], [0.0, 100 * dt], [[x3], [through]])
+    state = model.state()
+    expect = (r"tet 0 \(particles 0-1-2-3\) reached volume ratio V/V0 = 0.12 at step 44 .*"
+              r"outside \[0.125, 3.375\]" if monitored else
+              r"tet 0 \(particles 0-1-2-3\) inverted \(volume ratio V/V0 = [-0-9.e]+ <= 0\) at "
+              r"step 50 ")
+    with pytest.raises(StabilityError, match=expect):
+        VerletIntegrator().simulate(model, state, dt, 200, prescribed=motion,
+                                    _check_dt=monitored)
+    assert np.all(np.isfinite(state.x))
+
+
+def test_static_solutions_balance_forces_and_the_volume_term_stiffens_the_sag():
+    model = box_model((3, 3, 2), density=1000.0)
+    sag = gravity_static(model, GRAVITY)
+    stiff = gravity_static(with_kv(model, 5000.0), GRAVITY)
+    assert 0 < np.abs(stiff).max() < np.abs(sag).max()
+    m = with_kv(model, 5000.0)
+    x = m.rest_positions + stiff
+    f = np.empty_like(x)
+    kernels.internal_forces(x, m.edges, m.rest_lengths, m.params.K0, None, None, None, None,
+                            None, None, f, None, np.zeros((m.n_connectors, 2)),
+                            np.empty(m.n_connectors))
+    f += volume_forces_numpy(x, m.tets, m.rest_volumes, m.params.kv)
+    f += m.masses[:, None] * GRAVITY
+    weight = m.masses.sum() * 9.81
+    assert np.abs(f[m.free_nodes]).max() < 1e-8 * weight
+
+
+def test_the_volume_term_does_not_relax():
+    """Ramp-and-hold at 20 tau2: the relaxation curve's end equals the static (long-term)
+    indentation force, springs + volume (the arms have relaxed, the volume term has not), and
+    the volume term adds > 10 % to it (it is really there)."""
+    model = box_model((3, 3, 2))
+    node = top_centre(model)
+    normal = np.array([0.0, 0.0, -1.0])
+    params = dataclasses.replace(model.params, kv=np.full(model.n_tets, 4000.0))
+    depth = 1e-3
+    static = IndentationEvaluator(model, [node], normal[None], [depth])
+    relax = RelaxationEvaluator(model, [node], normal[None], [0.05, 1.0, 5.0, 10.0],
+                                [depth] * 4)
+    f_static = static(params)[0, 0]
+    f_relax = relax(params)[0]
+    # within 1e-5 (measured 9e-6 at 10 s, 3e-6 at 20 s; springs-only 1e-9 at 10 s): with the
+    # volume term holding the shape, the internal particles still creep slowly late in the hold
+    assert f_relax[-1] == pytest.approx(f_static, rel=2e-5)
+    assert f_static > 1.1 * static(model.params)[0, 0]  # +12.6 % from the volume term
+    assert f_relax[0] > f_relax[-1]  # the arms still hold force early in the hold
+
+
+def test_the_haptic_force_includes_the_volume_term():
+    """The force returned by a haptic step is minus the net internal force (springs + volume)
+    on the tool particle at the step's end (numpy twin)."""
+    model = with_kv(box_model(), 3000.0)
+    node = top_centre(model)
+    session = HapticSession(model, 0.5 * critical_time_step(model))
+    target = model.rest_positions[node] + [0.0, 0.0, -5e-4]
+    for _ in range(3):
+        force = session.step(node, target)
+    s = session.state
+    x = s.x
+    p = model.params
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    dx = length - model.rest_lengths
+    r, c = p.arm_recursion(session.dt)
+    arms = r * s.arm_force + c * (dx - s.dx_prev)[:, None]
+    tension = p.stiffness(dx / model.rest_lengths) * dx + arms.sum(axis=1)
+    pull = (tension / length)[:, None] * d
+    f = np.zeros_like(x)
+    np.add.at(f, model.edges[:, 0], pull)
+    np.add.at(f, model.edges[:, 1], -pull)
+    vol = volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv)
+    np.testing.assert_allclose(force, (f + vol)[node], rtol=1e-9,
+                               atol=1e-12 * np.abs(f[node]).max())
+    assert np.linalg.norm(vol[node]) > 0.05 * np.linalg.norm(force)
+
+
+def test_kv_is_the_added_bulk_modulus_and_the_network_one_is_closed_form():
+    """network_bulk_modulus: K0 sum L^2/(9 V) equals the energy of a uniform dilation of the
+    spring network per (9/2 eps^2 V) (exactly, up to O(eps))."""
+    model = box_model((2, 2, 2), fixed_bottom=False)
+    eps = 1e-6
+    x = (1 + eps) * model.rest_positions
+    energy = spring_energy(model, x)
+    volume = float(signed_volumes(model.rest_positions, model.tets).sum())
+    kappa = network_bulk_modulus(model, float(model.params.K0[0]))
+    assert energy / (4.5 * eps ** 2 * volume) == pytest.approx(kappa, rel=1e-5)
