@@ -26,3 +26,14 @@ def liver_problem(liver_scene):
 @pytest.fixture(autouse=True)
 def _quiet_logs(caplog):
     caplog.set_level(logging.WARNING)
+
+
+@pytest.fixture(autouse=True)
+def _restore_root_handlers():
+    """A command line run in-process (``configure_logging``) replaces the root logger's
+    handlers with one bound to that test's captured stderr; put the previous ones back, so
+    a later test's records never go to a stream pytest has closed."""
+    handlers, level = list(logging.root.handlers), logging.root.level
+    yield
+    logging.root.handlers[:] = handlers
+    logging.root.setLevel(level)

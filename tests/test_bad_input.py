@@ -94,8 +94,8 @@ def test_unusable_mesh_files_are_refused_by_the_pipeline(case, tmp_path, capsys)
     ('[material]\nkappa = 0.0\n', r"material.kappa = 0.0: must be > 0"),
     ('[mesh]\ncharacteristic_length = 0.04\n[test_points]\ncalibration = [0, 1]\n',
      r"calibration test point\(s\) \[0\] are fixed nodes"),
-    ('[mesh]\ncharacteristic_length = 0.04\n[test_points]\nn_calibration = 2\n',
-     r"covering the free surface needs"),
+    ('[mesh]\ncharacteristic_length = 0.04\n[test_points]\ncalibration = "cover"\nn_calibration = 2\n',
+     r"covering the 58 free surface vertices needs at least 9"),
 ])
 def test_bad_scenes_are_refused_by_the_pipeline(text, message, tmp_path, capsys):
     err = run_cli(capsys, tmp_path, text)
