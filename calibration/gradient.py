@@ -618,6 +618,12 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
     if coords.n_tets and start_params.kv is None:
         start_params = dataclasses.replace(start_params, kv=np.full(coords.n_tets, kv0))
+    elif coords.n_tets and len(start_params.kv) != coords.n_tets:
+        # the global fit's kv is one value for every tet ((1,), broadcast by the Model): the
+        # gradient fit starts each tet's own kv from it
+        start_params = dataclasses.replace(start_params,
+                                           kv=np.broadcast_to(start_params.kv,
+                                                              (coords.n_tets,)).copy())
     theta0 = coords.theta_of(start_params)
     data = Data.of(reference)
     ev = Evaluator(pool, data, coords)
