@@ -1,7 +1,7 @@
 """Scale study of ``make bench`` (issue 16): what each stage costs as the organ mesh grows.
 
-The generated liver at several characteristic lengths (about 300, 1k, 3k and
-10k vertices; ``--quick``: smaller), each size measured in a child process of
+The generated liver at five characteristic lengths (282, 491, 866, 1,691 and
+2,936 vertices; ``--quick``: smaller), each size measured in a child process of
 its own so its peak memory is its own:
 
 * ``points_s``: mesh + fixed nodes + ``"auto"`` test points (31 + 8) and their coverage;
@@ -53,7 +53,7 @@ from forcecal.scene import Scene, replace
 
 log = logging.getLogger("pipelines.bench_scale")  # also when run as __main__ (a child)
 
-LENGTHS = {False: (0.0182, 0.011, 0.0083, 0.0068), True: (0.04, 0.025, 0.0182, 0.011)}
+LENGTHS = {False: (0.0182, 0.0142, 0.011, 0.0083, 0.0068), True: (0.04, 0.025, 0.0182, 0.011)}
 DEPTH_PER_EDGE = 0.25  # indentation depth / mean edge length (the default liver: 5 / 20.5 mm)
 DYNAMIC_STEPS = 4  # FE dynamic time steps timed (per-step time x the scene's steps)
 FE_MAX_VERTICES = 1000  # above: only the indentation item is run (the others estimated)
