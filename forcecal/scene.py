@@ -13,7 +13,6 @@ All values are SI (m, s, kg, Pa, N).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import re
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
 from forcecal.errors import SceneError
+from forcecal.provenance import section_fingerprint
 
 
 def key(default: Any, doc: str, unit: str = "", *, minimum: float | None = None,
@@ -343,9 +343,7 @@ class Scene:
 
     def fingerprint(self, *sections: str) -> str:
         """SHA-256 of the named sections (all if none): the cache key of a stage."""
-        names = sections or tuple(SECTIONS)
-        blob = json.dumps({s: self.section_dict(s) for s in names}, sort_keys=True, default=list)
-        return hashlib.sha256(blob.encode()).hexdigest()
+        return section_fingerprint(self, *(sections or tuple(SECTIONS)))
 
     def mesh_source_path(self) -> Path | None:
         """Absolute path of the mesh file, or None for the generated liver."""

@@ -54,6 +54,7 @@ from forcecal.indenter import indenter_footprints, punch_footprint
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
+from forcecal.sections import REFERENCE_SECTIONS
 from reference_fe import experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
@@ -61,9 +62,6 @@ from reference_fe.refine import FEProblem, check_memory, fe_problem, patch_on_fe
 
 log = logging.getLogger(__name__)
 
-# the scene sections a reference depends on (its cache key)
-REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                      "gravity", "fe")
 KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
 T = TypeVar("T")
 
