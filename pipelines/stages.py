@@ -19,8 +19,8 @@ sections they need and the part of ``reference.h5`` that holds them
 experiment reruns only the stages that use it (the FE stage computes only its
 work items), and a stage with none of its experiments in the list does not
 run. A ``reference.h5`` holding more experiments than the scene asks for is
-kept as it is (:func:`pipelines.runners.reference.adopt_reference`): removing an experiment recomputes
-nothing upstream.
+kept as it is (:func:`pipelines.runners.reference.adopt_reference`): removing
+an experiment recomputes nothing upstream.
 
 MPI: run as ``mpirun -n K python -m pipelines ...``, rank 0 decides what to run
 and broadcasts it; the FE reference spreads its work items over every rank,

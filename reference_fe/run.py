@@ -186,7 +186,11 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
 
 
 class _Parts:
-    """The checkpoint folder ``<out>.parts/``: finished items, claims and a failure note."""
+    """The checkpoint folder ``<out>.parts/``: finished items, claims and a failure note.
+
+    One ``.npz`` per work item, each holding its experiment's key, because the ranks
+    write them concurrently (why the calibration's single-writer JSON checkpoint is
+    another mechanism: :mod:`calibration.checkpoint`)."""
 
     def __init__(self, out_path: Path, key: str | dict[str, str]):
         self.folder = out_path.with_name(out_path.name + ".parts")
