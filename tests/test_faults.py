@@ -683,7 +683,7 @@ def test_mpirun_boilerplate_is_kept_for_the_log(text, error, shown, tmp_path, ca
     script = tmp_path / "fake_mpirun.py"
     script.write_text(f"import sys\nsys.stderr.write({text!r})\nsys.exit(2)\n")
     CASES["fault"] += 1
-    with caplog.at_level("DEBUG", logger="pipelines.stages"):
+    with caplog.at_level("DEBUG", logger="pipelines.runners.reference"):
         rc, message = stages.run_mpirun([sys.executable, str(script)])
     err = capfd.readouterr().err
     assert rc == 2 and message == error
