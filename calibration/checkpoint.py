@@ -1,7 +1,8 @@
 """Resumable calibration: a JSON checkpoint written atomically after every step that matters.
 
-The checkpoint is a JSON object ``{"inputs": {...}, "stages": {...}}``; the
-stages store exactly what the next step needs (coordinates, costs, histories),
+The checkpoint is a JSON object ``{"inputs": {...}, "stages": {...}}``; ``stages``
+holds one entry per finished calibration phase (the file's key keeps its
+original name), exactly what the next phase needs (coordinates, costs, histories),
 with floats written by ``repr`` so they read back bit for bit. ``inputs`` are
 the fingerprints of everything the result depends on
 (:func:`calibration.provenance.fit_inputs`: the reference file, the scene
@@ -9,6 +10,16 @@ sections the fit reads, the forcecal version, the code); a checkpoint whose
 inputs differ from the current run's is discarded with a warning naming what
 changed, so a changed input never resumes a stale fit. It is removed once
 ``params.h5`` has been written.
+
+Why this is not the FE reference's checkpoint (``<out>.parts/``,
+:class:`reference_fe.run._Parts`), though both are atomic records keyed on the
+same fingerprints (:mod:`forcecal.provenance`) and written with
+:func:`forcecal.h5io.atomic_path`: the FE parts are large arrays written
+concurrently by several MPI ranks, one file per work item claimed without
+messages, so each part carries its own key and no shared manifest is
+rewritten; the calibration has one writer and small, ordered records (a phase
+resumes part-way, from its last point fit) whose floats must read back bit for
+bit, which one JSON file with one inputs record gives most simply.
 """
 
 from __future__ import annotations
@@ -30,7 +41,7 @@ class Checkpoint:
     def __init__(self, path: str | Path, inputs: dict[str, str]):
         self.path = Path(path)
         self.inputs = dict(inputs)
-        self.stages: dict[str, Any] = {}
+        self.phases: dict[str, Any] = {}
         if not self.path.is_file():
             return
         try:
@@ -49,17 +60,17 @@ class Checkpoint:
             log.warning("discarding checkpoint %s: %s changed since it was written", self.path,
                         ", ".join(changed))
             return
-        self.stages = data.get("stages", {})
+        self.phases = data.get("stages", {})
         log.info("resuming from checkpoint %s (completed: %s)", self.path,
-                 ", ".join(self.stages) or "nothing")
+                 ", ".join(self.phases) or "nothing")
 
-    def get(self, stage: str, default: Any = None) -> Any:
-        return self.stages.get(stage, default)
+    def get(self, phase: str, default: Any = None) -> Any:
+        return self.phases.get(phase, default)
 
-    def put(self, stage: str, value: Any) -> None:
-        """Store ``value`` (JSON-able) under ``stage`` and write the file atomically."""
-        self.stages[stage] = value
-        text = json.dumps({"inputs": self.inputs, "stages": self.stages})
+    def put(self, phase: str, value: Any) -> None:
+        """Store ``value`` (JSON-able) under ``phase`` and write the file atomically."""
+        self.phases[phase] = value
+        text = json.dumps({"inputs": self.inputs, "stages": self.phases})
         try:
             with atomic_path(self.path) as tmp:
                 tmp.write_text(text)

@@ -1,6 +1,6 @@
 """``calibrate``: initial guess -> global tuning -> local tuning -> validation -> params.h5.
 
-Stages, each checkpointed (:mod:`calibration.checkpoint`) so an interrupted run
+Phases, each checkpointed (:mod:`calibration.checkpoint`) so an interrupted run
 resumes where it stopped and ends with the same result:
 
 1. closed-form initial guess (:func:`calibration.global_fit.initial_guess`);
@@ -12,7 +12,7 @@ resumes where it stopped and ends with the same result:
    test point; held-out points, never used by any fit, give the honest accuracy.
 
 Only the experiments of the scene's ``experiments`` list are fitted and
-evaluated: without ``relaxation`` the relaxation stages (3, 5) are skipped, the
+evaluated: without ``relaxation`` the relaxation phases (3, 5) are skipped, the
 springs alone are fitted, and the result says (a warning in ``params.h5``) that
 the Maxwell arms keep their closed-form initial guess, uncalibrated.
 
@@ -36,7 +36,7 @@ from calibration.baseline import van_gelder_params
 from calibration.checkpoint import Checkpoint
 from calibration.gradient import Validity, fit_gradient, gradient_backend
 from calibration.global_fit import fe_initial_slopes, fit_relaxation, fit_static, initial_guess
-from calibration.local import LocalModel, Sweep, run_local_stage
+from calibration.local import LocalParametrisation, Sweep, run_local_phase
 from calibration.metrics import relative_rms_error
 from calibration.network import linear_indentation
 from calibration.optimize import Fit
@@ -183,31 +183,32 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
               workers=settings.workers if workers is None else workers) as pool:
         glob = initial
         global_fits: dict[str, Fit] = {}
-        stages = (("static", fit_static, "indentation"), ("relaxation", fit_relaxation,
+        phases = (("static", fit_static, "indentation"), ("relaxation", fit_relaxation,
                                                           "relaxation"))
-        for stage, fit_fn, experiment in stages:
+        for phase, fit_fn, experiment in phases:
             if experiment not in fitted:
                 continue
             reference = ref_curves[experiment][:n_cal]
-            saved = checkpoint.get(f"global_{stage}")
+            saved = checkpoint.get(f"global_{phase}")
             t = time.perf_counter()
             if saved is None:
                 pool.forget_warm_starts()  # as a resumed run starts (identical resumes)
                 glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
                                    progress=progress, verbose=verbose)
-                checkpoint.put(f"global_{stage}", {"params": glob.as_dict(),
+                checkpoint.put(f"global_{phase}", {"params": glob.as_dict(),
                                                    "fit": fit.as_dict()})
             else:
                 glob, fit = GlobalParams(**saved["params"]), Fit.from_dict(saved["fit"])
-            global_fits[stage] = fit
-            stage_times[f"global_{stage}"] = time.perf_counter() - t
-            evaluations[f"global_{stage}_cost_evaluations"] = fit.evaluations
-            log.info("global %s fit: cost %.6g -> %.6g in %d evaluations", stage,
+            global_fits[phase] = fit
+            stage_times[f"global_{phase}"] = time.perf_counter() - t
+            evaluations[f"global_{phase}_cost_evaluations"] = fit.evaluations
+            log.info("global %s fit: cost %.6g -> %.6g in %d evaluations", phase,
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
-        model = LocalModel(glob, rings, strain, settings.stiffness_floor * glob.K0,
-                           np.zeros((n_cal, STATIC_DIM)), np.zeros((n_cal, RELAXATION_DIM)))
+        local = LocalParametrisation(glob, rings, strain, settings.stiffness_floor * glob.K0,
+                                     np.zeros((n_cal, STATIC_DIM)),
+                                     np.zeros((n_cal, RELAXATION_DIM)))
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         gradient_summary: dict = {}
         if gradient:
@@ -225,25 +226,25 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             evaluations["gradient_jacobians"] = gfit.jacobians
             stage_times["gradient"] = time.perf_counter() - t
         elif settings.local:
-            for stage, _, experiment in stages:
+            for phase, _, experiment in phases:
                 if experiment not in fitted:
                     continue
                 reference = ref_curves[experiment][:n_cal]
-                key = f"local_{stage}"
+                key = f"local_{phase}"
                 t = time.perf_counter()
-                model, local_sweeps[stage] = run_local_stage(
-                    pool, model, stage, reference, settings, checkpoint.get(key),
+                local, local_sweeps[phase] = run_local_phase(
+                    pool, local, phase, reference, settings, checkpoint.get(key),
                     lambda record, key=key: checkpoint.put(key, record),
                     progress=progress, verbose=verbose)
                 evaluations[f"{key}_cost_evaluations"] = sum(
-                    f.evaluations for s in local_sweeps[stage] for f in s.fits)
+                    f.evaluations for s in local_sweeps[phase] for f in s.fits)
                 stage_times[key] = time.perf_counter() - t
 
         connectors = {"baseline": van_gelder_params(mesh, material),
                       "global": glob.connector_params(n_conn),
-                      "calibrated": gfit.params if gradient else model.params()}
+                      "calibrated": gfit.params if gradient else local.params()}
         t = time.perf_counter()
-        pool.forget_warm_starts()  # the stages before may have been loaded (identical resumes)
+        pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)
         variants = {}
         all_points = np.arange(len(problem.test_points))
         for variant, params in connectors.items():
@@ -259,7 +260,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
     result = CalibrationResult(
         problem=problem, initial=initial, global_params=glob, connectors=connectors,
-        variants=variants, z_static=model.z_static, z_relaxation=model.z_relaxation,
+        variants=variants, z_static=local.z_static, z_relaxation=local.z_relaxation,
         strain=strain, fe_slope=fe_slope, unit_slope=linear.slope, global_fits=global_fits,
         local_sweeps=local_sweeps, settings=fit_settings(scene),
         reference_fingerprint=reference_digest(reference_path, fitted), experiments=fitted,
@@ -275,14 +276,14 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
 
 def _local_warnings(local_sweeps: dict[str, list[Sweep]], budget: int) -> list[str]:
-    """At most one line per local stage and kind of problem, counting the sweeps' fits.
+    """At most one line per local phase and kind of problem, counting the sweeps' fits.
 
     The per-point warnings stay with each fit in ``params.h5``. After the first
     sweep, a fit that met the tolerances without lowering its cost was already
     at its optimum, so only unconverged ones count as "did not reduce".
     """
     out = []
-    for stage, sweeps in local_sweeps.items():
+    for phase, sweeps in local_sweeps.items():
         budgeted, stuck = [], []
         for k, sweep in enumerate(sweeps):
             n = len(sweep.fits)
@@ -292,14 +293,14 @@ def _local_warnings(local_sweeps: dict[str, list[Sweep]], budget: int) -> list[s
             budgeted += [f"sweep {k + 1} {_count(at_budget, n)}"] if at_budget else []
             stuck += [f"sweep {k + 1} {_count(no_gain, n)}"] if no_gain else []
         if budgeted:
-            out.append(f"local {stage} stage: fits that stopped at their budget of {budget} "
+            out.append(f"local {phase} phase: fits that stopped at their budget of {budget} "
                        "evaluations without meeting the tolerances: " + ", ".join(budgeted))
         if stuck:
-            out.append(f"local {stage} stage: fits that did not reduce their cost: "
+            out.append(f"local {phase} phase: fits that did not reduce their cost: "
                        + ", ".join(stuck))
         if sweeps and not sweeps[0].accepted:  # later rejections just mean converged
-            out.append(f"local {stage} sweep 1: no damped Jacobi update lowered the total cost; "
-                       "the stage stopped there")
+            out.append(f"local {phase} sweep 1: no damped Jacobi update lowered the total cost; "
+                       "the phase stopped there")
     return out
 
 

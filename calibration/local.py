@@ -1,6 +1,6 @@
 """Local tuning: per-point ring offsets fitted by Jacobi sweeps of small Nelder-Mead problems.
 
-Design (the recommended one of the issue, as implemented):
+Method:
 
 * each calibration point j owns offsets ``z_j`` for the connectors of its first
   ring (the connectors incident to j), in the coordinates of
@@ -13,14 +13,14 @@ Design (the recommended one of the issue, as implemented):
   worker that owns the point), then applies all new offsets at once. If the total
   cost over the calibration points does not decrease, the update is halved (in
   the offset coordinates, i.e. in log space for the factors) up to
-  :data:`MAX_HALVINGS` times; if it still does not decrease, the stage stops at
+  :data:`MAX_HALVINGS` times; if it still does not decrease, the phase stops at
   the sweep's start. The result does not depend on the order of the points by
   construction;
 * sweeps repeat until one lowers the total cost by less than
-  ``calibration.local_sweep_tolerance`` times the total cost at the stage's
+  ``calibration.local_sweep_tolerance`` times the total cost at the phase's
   start, or less than that is left to gain, or ``local_max_sweeps`` is reached;
-  likewise each point's ``fatol`` is relative to its cost at the stage's start
-  (later sweeps do not chase residues negligible against the misfit the stage
+  likewise each point's ``fatol`` is relative to its cost at the phase's start
+  (later sweeps do not chase residues negligible against the misfit the phase
   began with), and its initial simplex has the size of the point's correction
   in the previous sweep (clipped to [10 xatol, LOCAL_STEP]).
   A checkpoint is written after every point's fit and every sweep.
@@ -45,15 +45,15 @@ from particle.model import ConnectorParams
 
 log = logging.getLogger(__name__)
 
-MAX_HALVINGS = 4  # an update damped to 1/16 that still raises the total cost ends the stage
+MAX_HALVINGS = 4  # an update damped to 1/16 that still raises the total cost ends the phase
 # initial simplex step of every offset coordinate in the first sweep (a 22 % factor, or
 # 0.2 s dalpha); later sweeps start at the size of the point's previous correction
 LOCAL_STEP = 0.2
-STAGE_KIND = {"static": "indentation", "relaxation": "relaxation"}
+PHASE_KIND = {"static": "indentation", "relaxation": "relaxation"}
 
 
 @dataclass(frozen=True, eq=False)
-class LocalModel:
+class LocalParametrisation:
     """Global parameters + ring offsets -> connector parameters (picklable, sent to workers).
 
     Attributes:
@@ -72,11 +72,11 @@ class LocalModel:
     z_static: np.ndarray
     z_relaxation: np.ndarray
 
-    def offsets(self, stage: str) -> np.ndarray:
-        return self.z_static if stage == "static" else self.z_relaxation
+    def offsets(self, phase: str) -> np.ndarray:
+        return self.z_static if phase == "static" else self.z_relaxation
 
-    def with_offsets(self, stage: str, z: np.ndarray) -> "LocalModel":
-        key = "z_static" if stage == "static" else "z_relaxation"
+    def with_offsets(self, phase: str, z: np.ndarray) -> "LocalParametrisation":
+        key = "z_static" if phase == "static" else "z_relaxation"
         return dataclasses.replace(self, **{key: np.asarray(z, dtype=float)})
 
     def params(self) -> ConnectorParams:
@@ -85,7 +85,7 @@ class LocalModel:
 
 @dataclass(frozen=True, eq=False)
 class Sweep:
-    """One Jacobi sweep of a local stage.
+    """One Jacobi sweep of a local phase.
 
     Attributes:
         start_cost: total cost over the calibration points at the sweep's start [N^2].
@@ -103,17 +103,17 @@ class Sweep:
         return self.halvings >= 0
 
 
-def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
+def fit_point(worker: PointWorker, local: LocalParametrisation, phase: str, point: int,
               reference: np.ndarray, settings: CalibrationSection, scale: float | None,
               step: np.ndarray, verbose: bool) -> Fit:
     """Call run on the worker owning ``point``: fit its offsets, the others' frozen (Jacobi).
 
-    ``scale`` is the point's cost at the start of the stage (None in the first
+    ``scale`` is the point's cost at the start of the phase (None in the first
     sweep, where it is the fit's own start): ``fatol`` is relative to it.
     ``step`` is the initial simplex step of each offset coordinate.
     """
-    kind = STAGE_KIND[stage]
-    z = model.offsets(stage)
+    kind = PHASE_KIND[phase]
+    z = local.offsets(phase)
     node = int(worker.experiments.problem.test_points[point])
     # each fit is checkpointed: start cold, as a resumed run does (identical resumes)
     forget_warm_starts(worker)
@@ -121,33 +121,33 @@ def fit_point(worker: PointWorker, model: LocalModel, stage: str, point: int,
     def cost(zj: np.ndarray) -> float:
         trial = z.copy()
         trial[point] = zj
-        params = model.with_offsets(stage, trial).params()
-        check_feasible(params, model.strain, model.floor)
+        params = local.with_offsets(phase, trial).params()
+        check_feasible(params, local.strain, local.floor)
         sim = worker.curves(kind, params, [point])[0]
         return float(np.sum((reference - sim) ** 2))
 
     return nelder_mead(cost, z[point], step,
-                       name=f"local {stage} fit of point {point} (vertex {node})",
+                       name=f"local {phase} fit of point {point} (vertex {node})",
                        xatol=settings.xatol, fatol=settings.fatol, scale=scale,
                        max_evaluations=settings.local_max_evaluations, verbose=verbose)
 
 
-def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.ndarray,
+def run_local_phase(pool: Pool, local: LocalParametrisation, phase: str, reference: np.ndarray,
                     settings: CalibrationSection, saved: dict | None,
                     save: Callable[[dict], None], *, progress: bool = True,
-                    verbose: bool = False) -> tuple[LocalModel, list[Sweep]]:
-    """Jacobi sweeps of one stage (module docstring).
+                    verbose: bool = False) -> tuple[LocalParametrisation, list[Sweep]]:
+    """Jacobi sweeps of one phase (module docstring).
 
     Args:
         pool: evaluation pool (calibration points are test points 0..Pc-1).
-        model: starting model; its offsets of ``stage`` are the sweeps' start.
-        stage: "static" or "relaxation".
+        local: the starting parametrisation; its offsets of ``phase`` are the sweeps' start.
+        phase: "static" or "relaxation".
         reference: (Pc, S) reference curves of the calibration points [N].
-        saved: this stage's checkpoint record (None for a fresh start).
-        save: stores the stage's record in the checkpoint.
+        saved: this phase's checkpoint record (None for a fresh start).
+        save: stores the phase's record in the checkpoint.
     """
-    kind = STAGE_KIND[stage]
-    n_points = model.rings.n_points
+    kind = PHASE_KIND[phase]
+    n_points = local.rings.n_points
     points = np.arange(n_points)
     record = saved or {"sweeps": []}
     sweeps: list[Sweep] = []
@@ -158,35 +158,35 @@ def run_local_stage(pool: Pool, model: LocalModel, stage: str, reference: np.nda
             if not sweeps:
                 pool.forget_warm_starts()  # as after a resume (identical resumes)
             start_cost = (sweeps[-1].end_cost if sweeps else
-                          pool.total_cost(kind, model.params(), points, reference))
-            entry = {"start": model.offsets(stage).tolist(), "start_cost": start_cost,
+                          pool.total_cost(kind, local.params(), points, reference))
+            entry = {"start": local.offsets(phase).tolist(), "start_cost": start_cost,
                      "fits": {}}
             record["sweeps"].append(entry)
             save(record)
-        start = model.with_offsets(stage, entry["start"])
-        fits = _sweep_fits(pool, start, stage, reference, settings, _point_starts(record, k),
-                           entry, record, save, f"local {stage} sweep {k + 1}", progress, verbose)
+        start = local.with_offsets(phase, entry["start"])
+        fits = _sweep_fits(pool, start, phase, reference, settings, _point_starts(record, k),
+                           entry, record, save, f"local {phase} sweep {k + 1}", progress, verbose)
         if "end" not in entry:
             pool.forget_warm_starts()  # the fits before may have been loaded (resume)
-            entry.update(_damped_update(pool, start, stage, reference, fits, entry["start_cost"]))
+            entry.update(_damped_update(pool, start, phase, reference, fits, entry["start_cost"]))
             save(record)
         sweep = Sweep(entry["start_cost"], entry["end_cost"], entry["halvings"], tuple(fits))
         sweeps.append(sweep)
-        model = start.with_offsets(stage, entry["end"])
+        local = start.with_offsets(phase, entry["end"])
         # stop when this sweep gained, or the next could gain (at most what is left),
-        # less than the tolerance times the stage's starting cost
+        # less than the tolerance times the phase's starting cost
         tolerance = settings.local_sweep_tolerance * record["sweeps"][0]["start_cost"]
-        log.info("local %s sweep %d: total cost %.6g -> %.6g (%s)", stage, k + 1,
+        log.info("local %s sweep %d: total cost %.6g -> %.6g (%s)", phase, k + 1,
                  sweep.start_cost, sweep.end_cost,
                  f"update halved {sweep.halvings} times" if sweep.accepted else "rejected")
         if (not sweep.accepted or sweep.start_cost - sweep.end_cost < tolerance
                 or sweep.end_cost < tolerance):
             break
-    return model, sweeps
+    return local, sweeps
 
 
 def _point_starts(record: dict, k: int) -> list[tuple[float | None, np.ndarray | None]]:
-    """Per point (fatol scale, initial simplex step) for sweep ``k`` of a stage record."""
+    """Per point (fatol scale, initial simplex step) for sweep ``k`` of a phase record."""
     if k == 0:
         return [(None, None)] * len(record["sweeps"][0]["start"])
     first, previous = record["sweeps"][0], record["sweeps"][k - 1]
@@ -197,7 +197,7 @@ def _point_starts(record: dict, k: int) -> list[tuple[float | None, np.ndarray |
     return starts
 
 
-def _sweep_fits(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray,
+def _sweep_fits(pool: Pool, start: LocalParametrisation, phase: str, reference: np.ndarray,
                 settings: CalibrationSection,
                 starts: list[tuple[float | None, np.ndarray | None]], entry: dict,
                 record: dict, save: Callable[[dict], None], desc: str, progress: bool,
@@ -206,14 +206,14 @@ def _sweep_fits(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray
     n_points = start.rings.n_points
     todo = [j for j in range(n_points) if str(j) not in entry["fits"]]
     with progress_bar(desc, n_points, progress, initial=n_points - len(todo)) as bar:
-        dim = start.offsets(stage).shape[1]
+        dim = start.offsets(phase).shape[1]
         calls = []
         for j in todo:
             scale, moved = starts[j]
             size = LOCAL_STEP if moved is None else np.clip(moved.max(), 10 * settings.xatol,
                                                             LOCAL_STEP)
             step = np.full(dim, size)
-            calls.append((j, (start, stage, j, reference[j], settings, scale, step, verbose)))
+            calls.append((j, (start, phase, j, reference[j], settings, scale, step, verbose)))
         for i, fit in pool.map(fit_point, calls):
             entry["fits"][str(todo[i])] = fit.as_dict()
             save(record)
@@ -222,25 +222,25 @@ def _sweep_fits(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray
     return [Fit.from_dict(entry["fits"][str(j)]) for j in range(n_points)]
 
 
-def _damped_update(pool: Pool, start: LocalModel, stage: str, reference: np.ndarray,
+def _damped_update(pool: Pool, start: LocalParametrisation, phase: str, reference: np.ndarray,
                    fits: list[Fit], start_cost: float) -> dict:
     """Apply all points' new offsets at once, halving the step until the total cost drops."""
-    kind = STAGE_KIND[stage]
-    z0 = start.offsets(stage)
+    kind = PHASE_KIND[phase]
+    z0 = start.offsets(phase)
     step = np.array([f.x for f in fits]) - z0
     points = np.arange(len(fits))
     for halvings in range(MAX_HALVINGS + 1):
         z = z0 + step / 2 ** halvings
-        params = start.with_offsets(stage, z).params()
+        params = start.with_offsets(phase, z).params()
         try:
             check_feasible(params, start.strain, start.floor)
             cost = pool.total_cost(kind, params, points, reference)
         except INFEASIBLE as exc:  # e.g. a blend of feasible rings that is not: damp further
-            log.info("local %s update x 1/%d is infeasible: %s", stage, 2 ** halvings, exc)
+            log.info("local %s update x 1/%d is infeasible: %s", phase, 2 ** halvings, exc)
             continue
         if cost < start_cost:
             return {"end": z.tolist(), "end_cost": cost, "halvings": halvings}
     log.info("local %s sweep: no damped update lowers the total cost; keeping the sweep's start",
-             stage)
+             phase)
     return {"end": z0.tolist(), "end_cost": start_cost, "halvings": -1}
 

@@ -4,8 +4,8 @@
 
 * the objective is the cost divided by a scale, by default the cost at the
   start, so ``fatol`` is relative to the initial cost (``xatol`` acts on the
-  transformed coordinates); the local stage passes the point's cost at the
-  start of the stage, so later sweeps do not chase ever smaller residues;
+  transformed coordinates); the local phase passes the point's cost at the
+  start of the phase, so later sweeps do not chase ever smaller residues;
 * the initial simplex is ``x0 + step_i e_i`` (steps chosen per coordinate by the
   caller; scipy's default 5 % of each entry is useless at 0);
 * a cost function raising one of :data:`INFEASIBLE` gives +inf there (reason

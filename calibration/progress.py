@@ -1,4 +1,4 @@
-"""Progress bars of the calibration stages (tqdm on a terminal, silent otherwise)."""
+"""Progress bars of the calibration phases (tqdm on a terminal, silent otherwise)."""
 
 from __future__ import annotations
 

@@ -10,28 +10,20 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 import platform
 from pathlib import Path
 
 import numpy as np
 
 import forcecal
-from forcecal.provenance import file_digest, git_commit, packages_digest
+from forcecal.provenance import code_digest, file_digest, git_commit, json_digest
 from forcecal.scene import Scene
+from forcecal.sections import FIT_SECTIONS
 
-#: the scene sections a calibration reads (the same as the pipeline's calibrate stage)
-FIT_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                "calibration")
-#: the packages whose code runs in a calibration (it imports nothing else of the project)
-FIT_PACKAGES = ("forcecal", "particle", "calibration")
+#: the modules a calibration runs (in-process, and as its worker processes' entry point)
+FIT_ENTRIES = ("calibration.core", "calibration.worker")
 #: settings that change how fast a fit runs, not its result
 NOT_RESULT_SETTINGS = ("workers",)
-
-
-def _digest(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=list).encode()).hexdigest()
 
 
 def fit_settings(scene: Scene) -> dict[str, dict]:
@@ -42,13 +34,10 @@ def fit_settings(scene: Scene) -> dict[str, dict]:
     return settings
 
 
-def code_fingerprint(packages: tuple[str, ...] = FIT_PACKAGES) -> str:
-    """SHA-256 over the path and bytes of every ``.py`` file of ``packages`` (found unimported).
-
-    Byte-exact and so conservative: a comment edit also counts as a change (a
-    checkpoint is then discarded, which costs a rerun, never a wrong result).
-    """
-    return packages_digest(packages)
+def code_fingerprint(entries: tuple[str, ...] = FIT_ENTRIES) -> str:
+    """Code fingerprint of ``entries`` (:func:`forcecal.provenance.code_digest`): every module
+    they import, without comments, formatting or docstrings, which cannot change a fit."""
+    return code_digest(*entries)
 
 
 def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:
@@ -62,7 +51,7 @@ def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:
     for section, table in fit_settings(scene).items():
         if section == "calibration":
             table = {k: v for k, v in table.items() if k not in NOT_RESULT_SETTINGS}
-        inputs[f"scene [{section}]"] = _digest(table)
+        inputs[f"scene [{section}]"] = json_digest(table)
     inputs["forcecal"] = forcecal.__version__
     inputs["code"] = code_fingerprint()
     return inputs

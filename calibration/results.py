@@ -16,10 +16,10 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/local/z_static``, ``/local/z_relaxation`` | (Pc, 3), (Pc, 4) | 1 | ring offsets (see :mod:`calibration.parametrisation`) |
 | ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` (those fitted) |
 | ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples |
-| ``/history/global_<stage>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); stages ``static``, ``relaxation`` |
-| ``/history/local_<stage>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
-| ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per stage |
-| ``/stage_times`` attrs | | s | wall time this run spent on each stage (a stage loaded from a checkpoint: the time to load it, about 0; a stage resumed part-way: the rest of its work) |
+| ``/history/global_<phase>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); phases ``static``, ``relaxation`` |
+| ``/history/local_<phase>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
+| ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per phase |
+| ``/stage_times`` attrs | | s | wall time this run spent on each phase (a phase loaded from a checkpoint: the time to load it, about 0; a phase resumed part-way: the rest of its work) |
 | ``/warnings`` | (n,) | | every warning of the run (strings) |
 """
 
@@ -44,7 +44,7 @@ PARAMS_KIND = "forcecal.params"
 PARAMS_SCHEMA = 1
 VARIANTS = ("baseline", "global", "calibrated")
 EXPERIMENTS = ("indentation", "relaxation")
-STAGES = ("static", "relaxation")
+PHASES = ("static", "relaxation")
 PARAM_UNITS = {"K0": "N/m", "a": "N/m", "b": "N/m", "k1": "N/m", "b1": "N s/m", "k2": "N/m",
                "b2": "N s/m"}
 GLOBAL_UNITS = {"K0": "N/m", "alpha": "1", "beta": "1", "k1": "N/m", "tau1": "s", "k2": "N/m",
@@ -76,13 +76,13 @@ class CalibrationResult:
         z_static: (Pc, 3) static ring offsets; z_relaxation: (Pc, 4) relaxation ring offsets.
         strain: strain range on which K(eps) > 0 was required.
         fe_slope: (Pc,) FE initial static slopes [N/m]; unit_slope: (P,) unit-network slopes [N/m].
-        global_fits: stage -> Nelder-Mead result of the global stage.
-        local_sweeps: stage -> Jacobi sweeps (empty when local tuning is off).
+        global_fits: phase -> Nelder-Mead result of the global phase.
+        local_sweeps: phase -> Jacobi sweeps (empty when local tuning is off).
         settings: section -> table of the scene sections the fit read.
         reference_fingerprint: SHA-256 of the reference file fitted to.
         reference_path: its path.
         evaluations: evaluation counts (see :func:`write_params`).
-        stage_times: stage -> wall time this run spent on it [s] (about 0 for a stage loaded
+        stage_times: phase -> wall time this run spent on it [s] (about 0 for a phase loaded
             from a checkpoint, the remaining work for one resumed part-way).
         wall_time: wall-clock time of the calibration [s].
         warnings: every warning of the run.
@@ -269,14 +269,14 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
             for e in result.experiments:
                 put(fh, f"errors/{variant}/{e}", vc.errors[e], "1", "relative RMS error (P,)")
                 put(fh, f"curves/{variant}/{e}", vc.curves[e], "N", "normal-force curves (P, S)")
-        for stage, fit in result.global_fits.items():
-            _put_history(fh.create_group(f"history/global_{stage}"), fit)
-        for stage, sweeps in result.local_sweeps.items():
-            g = fh.create_group(f"history/local_{stage}")
+        for phase, fit in result.global_fits.items():
+            _put_history(fh.create_group(f"history/global_{phase}"), fit)
+        for phase, sweeps in result.local_sweeps.items():
+            g = fh.create_group(f"history/local_{phase}")
             for k, sweep in enumerate(sweeps):
                 _put_sweep(g.create_group(f"sweep_{k:02d}"), sweep)
         for name in ("evaluations", "stage_times"):
-            g = fh.create_group(name, track_order=True)  # attributes read back in stage order
+            g = fh.create_group(name, track_order=True)  # attributes read back in phase order
             for k, v in getattr(result, name).items():
                 g.attrs[k] = v
         fh.create_dataset("warnings", data=np.array(result.warnings, dtype=object),
@@ -305,10 +305,10 @@ def read_params(path: str | Path) -> CalibrationResult:
             errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in fitted})
             for v in VARIANTS}
         local_sweeps = {}
-        for stage in STAGES:
-            group = f"history/local_{stage}"
+        for phase in PHASES:
+            group = f"history/local_{phase}"
             names = sorted(fh[group]) if group in fh else []
-            local_sweeps[stage] = [_get_sweep(fh, f"{group}/{s}") for s in names]
+            local_sweeps[phase] = [_get_sweep(fh, f"{group}/{s}") for s in names]
         a = fh.attrs
         return CalibrationResult(
             problem=problem, initial=_get_global(fh, "initial_guess"),
@@ -319,7 +319,7 @@ def read_params(path: str | Path) -> CalibrationResult:
                                float(fh["strain_range"].attrs["high"])),
             fe_slope=get(fh, "initial_guess/fe_slope", (n_c,), dtype="float"),
             unit_slope=get(fh, "initial_guess/unit_slope", (n_p,), dtype="float"),
-            global_fits={s: _get_fit(fh, f"history/global_{s}") for s in STAGES
+            global_fits={s: _get_fit(fh, f"history/global_{s}") for s in PHASES
                          if f"history/global_{s}" in fh},
             local_sweeps=local_sweeps, settings=json.loads(a["settings"]),
             reference_fingerprint=str(a["reference_fingerprint"]),

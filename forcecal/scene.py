@@ -13,7 +13,6 @@ All values are SI (m, s, kg, Pa, N).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import re
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
 from forcecal.errors import SceneError
+from forcecal.provenance import section_fingerprint
 
 
 def key(default: Any, doc: str, unit: str = "", *, minimum: float | None = None,
@@ -230,16 +230,16 @@ class CalibrationSection:
     relaxation_max_evaluations: int = key(300, "Nelder-Mead budget of the global relaxation fit "
                                           "(cost evaluations)", minimum=1)
     local_max_evaluations: int = key(300, "Nelder-Mead budget of one point's local fit, per "
-                                     "stage and sweep (cost evaluations; the default liver's "
+                                     "phase and sweep (cost evaluations; the default liver's "
                                      "fits meet xatol within 275)", minimum=1)
-    local_max_sweeps: int = key(3, "maximum Jacobi sweeps of each local stage (static, "
+    local_max_sweeps: int = key(3, "maximum Jacobi sweeps of each local phase (static, "
                                 "relaxation)", minimum=1)
-    local_sweep_tolerance: float = key(1e-3, "a local stage stops sweeping once a sweep gains, "
+    local_sweep_tolerance: float = key(1e-3, "a local phase stops sweeping once a sweep gains, "
                                        "or there is left to gain, less than this fraction of "
                                        "its starting cost", minimum=0.0)
     xatol: float = key(1e-3, "Nelder-Mead simplex-size tolerance in the transformed parameters "
                        "(logs and strain-scaled coefficients)", exclusive_minimum=0.0)
-    fatol: float = key(1e-6, "Nelder-Mead cost-spread tolerance, relative to the stage's initial "
+    fatol: float = key(1e-6, "Nelder-Mead cost-spread tolerance, relative to the phase's initial "
                        "cost", exclusive_minimum=0.0)
     strain_margin: float = key(1.5, "the spring K(eps) must stay > 0 on the experiments' "
                                "linear-network strain range widened by this factor", minimum=1.0)
@@ -343,9 +343,7 @@ class Scene:
 
     def fingerprint(self, *sections: str) -> str:
         """SHA-256 of the named sections (all if none): the cache key of a stage."""
-        names = sections or tuple(SECTIONS)
-        blob = json.dumps({s: self.section_dict(s) for s in names}, sort_keys=True, default=list)
-        return hashlib.sha256(blob.encode()).hexdigest()
+        return section_fingerprint(self, *(sections or tuple(SECTIONS)))
 
     def mesh_source_path(self) -> Path | None:
         """Absolute path of the mesh file, or None for the generated liver."""

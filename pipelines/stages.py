@@ -1,7 +1,8 @@
 """The pipeline: reference -> calibrate -> gravity -> report, each stage cached by content.
 
 A :class:`Stage` declares what it reads (scene sections, the mesh, upstream
-files of the output folder, the code of the packages it runs) and how it runs;
+files of the output folder, the code of its runner) and how it runs (its
+runner, one module per stage in :mod:`pipelines.runners`);
 :func:`run_pipeline` brings the requested stage and every stage before it up to
 date, skipping those whose :class:`~pipelines.cache.StageInputs` and outputs
 match their cache record (``<out>/cache/<stage>.json``), and says why each one
@@ -18,8 +19,8 @@ sections they need and the part of ``reference.h5`` that holds them
 experiment reruns only the stages that use it (the FE stage computes only its
 work items), and a stage with none of its experiments in the list does not
 run. A ``reference.h5`` holding more experiments than the scene asks for is
-kept as it is (:func:`adopt_reference`): removing an experiment recomputes
-nothing upstream.
+kept as it is (:func:`pipelines.runners.reference.adopt_reference`): removing
+an experiment recomputes nothing upstream.
 
 MPI: run as ``mpirun -n K python -m pipelines ...``, rank 0 decides what to run
 and broadcasts it; the FE reference spreads its work items over every rank,
@@ -31,76 +32,38 @@ in-process.
 
 from __future__ import annotations
 
-import datetime
+import dataclasses
 import hashlib
 import json
 import logging
 import os
-import re
-import shutil
-import signal
-import subprocess
-import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
-import h5py
-
-from forcecal.errors import DataFileError, ForcecalError, SceneError
 from forcecal.cost import check_cost
-from forcecal.failures import INTERRUPTED, collective, die_with_parent, note_stage
+from forcecal.errors import DataFileError, SceneError
+from forcecal.failures import collective, note_stage
 from forcecal.h5io import reference_digest
 from forcecal.problem import load_mesh
+from forcecal.provenance import code_digests, file_digest
 from forcecal.scene import EXPERIMENTS, Scene
-from forcecal.provenance import file_digest
-from pipelines.cache import Cache, StageInputs, code_digests, import_closure, source_digest
+from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
+from pipelines.cache import Cache, StageInputs
+from pipelines.runners.calibrate import run_calibrate
+from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, REPORT, Context
+from pipelines.runners.gravity import run_gravity_stage
+from pipelines.runners.reference import (StageFailed, adopt_reference, mpirun_environment,
+                                         run_mpirun, run_reference)
+from pipelines.runners.report import run_report
 
 log = logging.getLogger(__name__)
 
-REFERENCE = "reference.h5"
-PARAMS = "params.h5"
-GRAVITY = "gravity.h5"
-REPORT = "report.json"
-# the scene sections reference_fe.run.REFERENCE_SECTIONS declares (a test keeps them equal;
-# importing reference_fe.run here would import dolfinx and initialise MPI in this process)
-REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                      "gravity", "fe")
-
-
-class StageFailed(ForcecalError):
-    """A stage run in a child process (``mpirun ... reference_fe``) failed."""
-
-
-@dataclass(frozen=True)
-class Context:
-    """What every stage's run function gets.
-
-    Attributes:
-        scene: the validated scene (loaded from ``scene.path``).
-        out: output folder.
-        progress: show progress bars (on a terminal).
-        ranks: MPI ranks for a spawned FE reference (1 = in-process).
-        comm: the MPI world communicator under ``mpirun`` with > 1 rank, else None.
-        verbose: log every Nelder-Mead iteration of the calibration (no effect on results,
-            so not part of any cache key).
-    """
-    scene: Scene
-    out: Path
-    progress: bool
-    ranks: int
-    comm: Any = None
-    verbose: bool = False
-
-    @property
-    def rank(self) -> int:
-        return 0 if self.comm is None else self.comm.Get_rank()
-
-    @property
-    def under_mpi(self) -> bool:
-        return self.comm is not None
+#: what other modules (the benchmarks, the command line) take from here
+__all__ = ["GRAVITY", "PARAMS", "REFERENCE", "REFERENCE_SECTIONS", "REPORT", "ORDER", "STAGES",
+           "Context", "Outcome", "Stage", "StageFailed", "adopt_reference",
+           "mpirun_environment", "run_mpirun", "run_pipeline"]
 
 
 @dataclass(frozen=True)
@@ -110,8 +73,9 @@ class Stage:
     Attributes:
         name: CLI name.
         sections: scene sections it reads ("name": the scene's name).
-        code: entry modules it runs; every project module they import is part of its
-            cache key (:func:`pipelines.cache.code_digests`), and so is this module.
+        code: its runner module (and any module it starts as a child process); every
+            project module they import is part of its cache key
+            (:func:`forcecal.provenance.code_digests`), nothing else: not this module.
         upstream: files of the output folder it reads.
         run: ``run(ctx) -> output file names`` (relative to ``ctx.out``); called on every
             rank under MPI, returns the outputs on rank 0.
@@ -151,9 +115,7 @@ class Stage:
                      else ctx.scene.fingerprint(s)) for s in self.sections
                  if not skipped.get(s, False)}
         scene["experiments"] = hashlib.sha256(json.dumps(used).encode()).hexdigest()
-        # this module holds every stage's runner, so it is part of every stage's code (its
-        # lazy imports are not followed: each stage names the modules it runs in `code`)
-        code = {**code_digests(self.code), "pipelines/stages.py": source_digest(Path(__file__))}
+        code = code_digests(self.code)
         mesh = None
         if self.reads_mesh:  # the first stage: absurd work is refused before any is done
             mesh = load_mesh(ctx.scene)
@@ -167,268 +129,17 @@ class Stage:
                            code=code)
 
 
-# ---------------------------------------------------------------------------- reference
-
-def run_reference(ctx: Context) -> list[str]:
-    """FE reference: in-process under MPI or with one rank, else spawned with mpirun."""
-    path = ctx.out / REFERENCE
-    mpirun = shutil.which("mpirun")
-    if ctx.under_mpi or ctx.ranks <= 1 or mpirun is None:
-        if ctx.ranks > 1 and mpirun is None and not ctx.under_mpi:
-            log.warning("mpirun not found: computing the FE reference on one process")
-        from reference_fe.run import compute_reference
-        compute_reference(ctx.scene, out_path=path, progress=ctx.progress)
-        return [REFERENCE]
-    cmd = [mpirun, "-n", str(ctx.ranks), sys.executable, "-m", "reference_fe",
-           "--scene", str(ctx.scene.path), "--out", str(path)]
-    if not ctx.progress:
-        cmd.append("--no-progress")
-    log.info("running %s", " ".join(cmd))
-    rc, error = run_mpirun(cmd)
-    if rc != 0:
-        kept = f"finished work items are kept in {path}.parts/ and reused by a rerun"
-        if error is not None:  # the ranks' own refusal, printed once by the pipeline
-            raise StageFailed(f"{error} ({kept})")
-        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}; --verbose shows "
-                          f"mpirun's own text); {kept}")
-    return [REFERENCE]
-
-
-#: a line of mpirun's (OpenMPI's) own text: its boxed help messages are delimited by dashes
-_MPIRUN_RULE = re.compile(r"^-{20,}$")
-_RANK_ERROR = re.compile(r"^(\[rank \d+\] )?error: ")
-_MPIRUN_LINE = re.compile(r"^(\[[^\]\s]+:\d+\]|mpirun|Primary job|prterun)")
-
-
-def run_mpirun(cmd: list[str]) -> tuple[int, str | None]:
-    """Run a spawned ``mpirun`` and return (exit code, the ranks' ``error:`` message or None).
-
-    The ranks' stderr is read line by line: their ``error: ...`` line is returned
-    (the pipeline prints it once, as its own), mpirun's boilerplate goes to the log
-    at DEBUG (``--verbose``), everything else (the ranks' log lines) passes through.
-    mpirun runs in its own process group, is asked to die with this process
-    (PR_SET_PDEATHSIG on Linux, so even a SIGKILLed pipeline ends its ranks) and is
-    terminated (then killed) when this process is interrupted or fails.
-    """
-    error: list[str] = []
-    proc = subprocess.Popen(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, start_new_session=True,
-                            preexec_fn=die_with_parent)
-
-    def forward() -> None:
-        boxed = False
-        for raw in proc.stderr:
-            line = raw.decode(errors="replace").rstrip("\n")
-            if _MPIRUN_RULE.match(line.strip()):
-                boxed = not boxed
-                log.debug("mpirun: %s", line)
-            elif _RANK_ERROR.match(line):
-                error.append(_RANK_ERROR.sub("", line))
-            elif (boxed or _MPIRUN_LINE.match(line) or not line.strip()
-                  or line.endswith(INTERRUPTED)):  # the pipeline says it once
-                log.debug("mpirun: %s", line)
-            else:
-                print(line, file=sys.stderr, flush=True)
-
-    reader = threading.Thread(target=forward, name="mpirun-stderr", daemon=True)
-    reader.start()
-    try:
-        rc = proc.wait()
-    except BaseException:  # Ctrl-C, SIGTERM, a failure here: end the ranks with us
-        _end_process_group(proc)
-        raise
-    finally:
-        reader.join(timeout=5)
-    return rc, (error[0] if error else None)
-
-
-def _end_process_group(proc: subprocess.Popen, grace: float = 10.0) -> None:
-    """SIGTERM the child's process group (mpirun and its ranks), SIGKILL after ``grace`` s."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        try:
-            os.killpg(proc.pid, sig)
-        except (ProcessLookupError, PermissionError):
-            return
-        try:
-            proc.wait(timeout=grace)
-            return
-        except subprocess.TimeoutExpired:
-            continue
-
-
-#: variables an initialised OpenMPI job (or singleton) sets; a spawned mpirun must not see them
-_INHERITED_MPI_JOB = ("PMIX_", "ORTE_", "OMPI_MCA_orte_", "OMPI_MCA_ess", "OMPI_MCA_pmix",
-                      "OMPI_APP_CTX_", "OMPI_COMM_WORLD_", "OMPI_UNIVERSE_SIZE", "OMPI_FILE_LOCATION")
-
-
-def mpirun_environment() -> dict[str, str]:
-    """Environment of a spawned ``mpirun``: this process's, with OpenMPI allowed to run as
-    root and to oversubscribe the cores (unless the caller set those variables)."""
-    # an explicit copy of os.environ also leaves out what MPI, if this process initialised it
-    # (e.g. dolfinx imported in-process), set in the C environment: mpirun fails with those;
-    # the same variables inherited from a parent that initialised MPI (a test runner, a
-    # notebook) are dropped too (mpirun is spawned only outside an MPI job)
-    env = {k: v for k, v in os.environ.items() if not k.startswith(_INHERITED_MPI_JOB)}
-    for k in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
-              "OMPI_MCA_rmaps_base_oversubscribe"):
-        env.setdefault(k, "1")
-    return env
-
-
-def adopt_reference(ctx: Context, stage: Stage, inputs: StageInputs) -> bool:
-    """Accept a ``reference.h5`` computed outside the pipeline (``python -m reference_fe``)
-    or for another experiments list.
-
-    It is adopted when it holds every experiment the scene asks for with the
-    current key (:func:`reference_fe.keys.experiment_keys`: scene sections, mesh
-    and FE code), whatever else it holds: a superset is kept as it is, so
-    removing an experiment from the list recomputes nothing. A file without
-    keys is adopted when its stored scene and mesh fingerprints equal the current
-    ones and every source file the FE stage runs is older than the start of
-    that computation (``created`` minus the total time it reports): such a file
-    does not record the code version, so newer code means it may be stale.
-    """
-    from reference_fe.keys import experiment_keys
-    path = ctx.out / REFERENCE
-    try:
-        with h5py.File(path, "r") as fh:
-            a = dict(fh.attrs)
-        started = (datetime.datetime.fromisoformat(a["created"]).timestamp()
-                   - float(json.loads(a["timings_s"])["total"]))
-        stored = json.loads(a.get("experiment_keys", "{}"))
-    except (OSError, KeyError, ValueError, TypeError):  # absent, foreign or damaged: recompute
-        return False
-    if stored:
-        keys = experiment_keys(ctx.scene, inputs.mesh)
-        if any(stored.get(e) != keys[e] for e in ctx.scene.experiments):
-            return False
-        extra = sorted(set(stored) - set(ctx.scene.experiments))
-        log.info("reference: %s already holds %s with the current keys%s: not recomputed",
-                 path, ", ".join(ctx.scene.experiments),
-                 f" (and {', '.join(extra)}, which the scene does not ask for)" if extra else "")
-        return True
-    newest_source = max(f.stat().st_mtime for f in import_closure(stage.code).values())
-    if (a.get("scene_fingerprint") != ctx.scene.fingerprint(*REFERENCE_SECTIONS)
-            or a.get("mesh_fingerprint") != inputs.mesh or newest_source > started):
-        return False
-    from forcecal.h5io import read_reference
-    try:  # the content too: a NaN-filled or damaged file would fail every later stage
-        read_reference(path, expect_mesh=inputs.mesh)
-    except DataFileError as exc:
-        raise DataFileError(f"{path} matches this scene but cannot be adopted: {exc}; delete "
-                            "it or recompute it with `reference --force`") from None
-    log.info("reference: adopting the existing %s (its scene and mesh fingerprints match, the "
-             "FE code is older than it and its content is valid)", path)
-    return True
-
-
-# ---------------------------------------------------------------------------- calibration
-
-def run_calibrate(ctx: Context) -> list[str]:
-    """Calibration; under MPI rank 0 fits and ranks 1..K-1 evaluate test points."""
-    if ctx.under_mpi and ctx.rank != 0:
-        from calibration.pool import serve_mpi
-        serve_mpi(ctx.comm)
-        return []
-    from calibration import calibrate
-    calibrate(ctx.scene, ctx.out / REFERENCE, ctx.out / PARAMS, progress=ctx.progress,
-              verbose=ctx.verbose)
-    return [PARAMS]
-
-
-# ---------------------------------------------------------------------------- gravity
-
-def run_gravity_stage(ctx: Context) -> list[str]:
-    """Particle gravity runs of the calibrated and baseline models -> ``gravity.h5``."""
-    from calibration import read_params
-    from forcecal.h5io import check_reference_settings, read_reference
-    from pipelines.gravity import run_gravity, write_gravity
-    reference = read_reference(ctx.out / REFERENCE)
-    # the particle runs use the scene's gravity and compare with the reference's FE runs
-    check_reference_settings(reference, ctx.scene, ctx.out / REFERENCE)
-    params = read_params(ctx.out / PARAMS)
-    check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS, params.experiments)
-    used = STAGES["gravity"].used(ctx.scene)
-    runs = run_gravity(ctx.scene, reference, params.connectors, params.strain.bounds,
-                       reference_fingerprint=reference_digest(ctx.out / REFERENCE, used),
-                       params_fingerprint=file_digest(ctx.out / PARAMS))
-    write_gravity(ctx.out / GRAVITY, runs)
-    return [GRAVITY]
-
-
-def check_fitted_to(reference_fingerprint: str, out: Path, what: str,
-                    experiments: tuple[str, ...]) -> None:
-    """Refuse a file derived from another ``reference.h5`` than the one in ``out`` (compared
-    on the ``experiments`` it read: :func:`forcecal.h5io.reference_digest`)."""
-    if reference_fingerprint != reference_digest(out / REFERENCE, experiments):
-        raise DataFileError(f"{out / what} was computed from a different {REFERENCE} than the "
-                            f"one in {out}; rerun the pipeline (or --force)")
-
-
-# ---------------------------------------------------------------------------- report
-
-def run_report(ctx: Context) -> list[str]:
-    """``report.json``, figures and XDMF fields from the three upstream files."""
-    from calibration import read_params
-    from forcecal.h5io import read_reference
-    from pipelines.fields import write_time_series
-    from pipelines.figures import write_figures
-    from pipelines.gravity import read_gravity
-    from pipelines.report import build_report, write_report
-    reference = read_reference(ctx.out / REFERENCE)
-    params = read_params(ctx.out / PARAMS)
-    check_fitted_to(params.reference_fingerprint, ctx.out, PARAMS, params.experiments)
-    gravity = None
-    if GRAVITY in STAGES["report"].upstream_files(ctx.scene):
-        gravity = read_gravity(ctx.out / GRAVITY)
-        check_fitted_to(gravity.reference_fingerprint, ctx.out, GRAVITY, gravity.experiments)
-        if gravity.params_fingerprint != file_digest(ctx.out / PARAMS):
-            raise DataFileError(f"{ctx.out / GRAVITY} was computed from another {PARAMS}; "
-                                "rerun the gravity stage")
-    outputs = [REPORT]
-    write_report(ctx.out / REPORT, build_report(ctx.scene.name, reference, params, gravity,
-                                                ctx.scene.experiments))
-    if ctx.scene.outputs.figures:
-        written = write_figures(ctx.out / "figures", reference, params, gravity)
-        outputs += [str(p.relative_to(ctx.out)) for p in written]
-    if ctx.scene.outputs.fields and gravity is not None and gravity.time is None:
-        log.info("report: no ParaView fields (they show the dynamic release, which the "
-                 "scene's experiments do not include)")
-    elif ctx.scene.outputs.fields and gravity is not None:
-        mesh = reference.problem.mesh
-        fe = reference.gravity
-        particle = gravity.models["calibrated"]
-        for name, times, u, static in (
-                ("gravity_fe.xdmf", fe.time, fe.displacement, fe.static_displacement),
-                ("gravity_particle.xdmf", gravity.time, particle.displacement,
-                 particle.static_displacement)):
-            written = write_time_series(ctx.out / name, mesh, times, u, static)
-            outputs += [str(p.relative_to(ctx.out)) for p in written]
-    for name in REPORT_FILES:  # left by a run with other experiments: not this scene's
-        if name not in outputs:
-            (ctx.out / name).unlink(missing_ok=True)
-    return outputs
-
-
-#: every file the report stage may write (one it did not write this time is removed)
-REPORT_FILES = tuple(f"figures/{n}.png" for n in ("calibration", "held_out", "gravity_static",
-                                                   "gravity_dynamic", "errors")) + tuple(
-    f"gravity_{m}.{x}" for m in ("fe", "particle") for x in ("xdmf", "h5"))
-
-
 STAGES: dict[str, Stage] = {s.name: s for s in (
-    Stage("reference", REFERENCE_SECTIONS, ("reference_fe.__main__", "reference_fe.run"), (),
-          run_reference, reads_mesh=True),
-    Stage("calibrate", ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                        "calibration", "particle"),  # particle.volume: the model fitted
-          ("calibration.core", "calibration.worker"), (REFERENCE,), run_calibrate,
+    Stage("reference", REFERENCE_SECTIONS,
+          ("pipelines.runners.reference", "reference_fe.__main__"), (), run_reference,
+          reads_mesh=True),
+    Stage("calibrate", FIT_SECTIONS + ("particle",),  # particle.volume: the model fitted
+          ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
           experiments=("indentation", "relaxation")),
-    Stage("gravity", ("material", "gravity", "particle"),
-          ("pipelines.gravity", "calibration.results"),
+    Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
           (REFERENCE, PARAMS), run_gravity_stage,
           experiments=("gravity_static", "gravity_dynamic")),
-    Stage("report", ("name", "outputs"),
-          ("pipelines.report", "pipelines.figures", "pipelines.fields"),
+    Stage("report", ("name", "outputs"), ("pipelines.runners.report",),
           (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)
@@ -543,7 +254,7 @@ def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Ou
             inputs = stage.inputs(ctx)
             reasons = ["--force"] if force else cache.check(stage.name, inputs)
             if (reasons and not force and stage.name == "reference"
-                    and adopt_reference(ctx, stage, inputs)):
+                    and adopt_reference(ctx, inputs.mesh)):
                 cache.store(stage.name, inputs, [REFERENCE], 0.0, note="adopted")
                 reasons = []
         except Exception as exc:  # noqa: BLE001 - raised on every rank below
@@ -558,7 +269,8 @@ def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Ou
         return Outcome(stage.name, False, (), 0.0)
     log.info("%-9s running: %s", stage.name, "; ".join(reasons))
     t0 = time.perf_counter()
-    outputs = stage.run(ctx)
+    outputs = stage.run(dataclasses.replace(ctx, experiments=stage.used(ctx.scene),
+                                            upstream=stage.upstream_files(ctx.scene)))
     seconds = time.perf_counter() - t0
     if ctx.rank == 0:
         cache.store(stage.name, inputs, outputs, seconds)

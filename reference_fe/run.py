@@ -54,6 +54,7 @@ from forcecal.indenter import indenter_footprints, punch_footprint
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
+from forcecal.sections import REFERENCE_SECTIONS
 from reference_fe import experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
@@ -61,9 +62,6 @@ from reference_fe.refine import FEProblem, check_memory, fe_problem, patch_on_fe
 
 log = logging.getLogger(__name__)
 
-# the scene sections a reference depends on (its cache key)
-REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                      "gravity", "fe")
 KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
 T = TypeVar("T")
 
@@ -188,7 +186,11 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
 
 
 class _Parts:
-    """The checkpoint folder ``<out>.parts/``: finished items, claims and a failure note."""
+    """The checkpoint folder ``<out>.parts/``: finished items, claims and a failure note.
+
+    One ``.npz`` per work item, each holding its experiment's key, because the ranks
+    write them concurrently (why the calibration's single-writer JSON checkpoint is
+    another mechanism: :mod:`calibration.checkpoint`)."""
 
     def __init__(self, out_path: Path, key: str | dict[str, str]):
         self.folder = out_path.with_name(out_path.name + ".parts")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from calibration.core import calibrate, checkpoint_path, strain_range
-from calibration.local import STAGE_KIND, LocalModel, run_local_stage
+from calibration.local import PHASE_KIND, LocalParametrisation, run_local_phase
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings
 from calibration.metrics import relative_rms_error
 from calibration.network import linear_indentation
@@ -57,7 +57,7 @@ def box_problem(box):
 
 @pytest.fixture(scope="module")
 def nonuniform(box, box_problem):
-    """Reference from per-connector random factors (a form neither tuning stage can represent),
+    """Reference from per-connector random factors (a form neither tuning phase can represent),
     and the uninterrupted calibration fitted to it."""
     true = noisy_params(TRUE_GLOBAL, len(box_problem.mesh.edges), sigma=NOISE)
     d = box.path.parent / "nonuniform"
@@ -147,8 +147,8 @@ def test_calibration_recovers_nonuniform_parameters(nonuniform, oracle_errors):
     # (b) measured: K0 +6.5 %, the arms and times within 5.4 %
     for k in ("K0", "k1", "tau1", "k2", "tau2"):
         assert g[k] == pytest.approx(t[k], rel=0.1), k
-    for stage in ("static", "relaxation"):
-        sweeps = result.local_sweeps[stage]
+    for phase in ("static", "relaxation"):
+        sweeps = result.local_sweeps[phase]
         assert sweeps and sweeps[0].accepted and sweeps[0].end_cost < sweeps[0].start_cost
 
 
@@ -157,14 +157,14 @@ def test_local_tuning_recovers_ring_parameters_given_the_global_part(box, box_pr
     alpha/beta shifted too) and local tuning started from its global part: the ring offsets
     are then identified, connector by connector.
 
-    Started from global tuning instead, the global stage absorbs the calibration points' ring
+    Started from global tuning instead, the global phase absorbs the calibration points' ring
     factors into its one set (alpha 15.6 and beta 157 for 1 and 10, K0 +26 %: the weak
     direction of the docstring above), and the rings then compensate for that: the curves
     match to 0.4 % but ring springs differ by up to 18 % and held-out curves by up to 7 %.
     Hence the end-to-end case above uses a truth whose global part global tuning recovers.
     """
     true, _, _ = ring_perturbed_params(box_problem, TRUE_GLOBAL, STRAIN)
-    got, _, errors = _local_stages(box_problem, box, true, 1, ("static", "relaxation"))
+    got, _, errors = _local_phases(box_problem, box, true, 1, ("static", "relaxation"))
     reached = _reached(box_problem, 0.002)
     # measured: K(eps) <= 1.1 % over the strains reached, K0 <= 0.15 %, k_i and tau_i <= 1.1 %,
     # every test point's curves (held-out included) <= 0.02 %
@@ -188,11 +188,11 @@ def test_params_file_round_trip(nonuniform):
             np.testing.assert_array_equal(back.variants[variant].errors[experiment],
                                           result.variants[variant].errors[experiment])
     assert back.global_params == result.global_params and back.initial == result.initial
-    for stage in ("static", "relaxation"):
-        a, b = back.global_fits[stage], result.global_fits[stage]
+    for phase in ("static", "relaxation"):
+        a, b = back.global_fits[phase], result.global_fits[phase]
         np.testing.assert_array_equal(a.history.evaluation_cost, b.history.evaluation_cost)
         np.testing.assert_array_equal(a.history.iteration_cost, b.history.iteration_cost)
-        for sa, sb in zip(back.local_sweeps[stage], result.local_sweeps[stage], strict=True):
+        for sa, sb in zip(back.local_sweeps[phase], result.local_sweeps[phase], strict=True):
             assert (sa.start_cost, sa.end_cost, sa.halvings) == (sb.start_cost, sb.end_cost,
                                                                  sb.halvings)
             for fa, fb in zip(sa.fits, sb.fits, strict=True):
@@ -225,7 +225,7 @@ class Interrupted(Exception):
 
 class InterruptingBackend:
     """The particle backend, but the n-th static evaluation after the global relaxation
-    stage began raises (i.e. inside the local static sweep)."""
+    phase began raises (i.e. inside the local static sweep)."""
 
     def __init__(self, n: int):
         self.n, self.count, self.relaxation_started = n, 0, False
@@ -265,7 +265,7 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     result = calibrate(box, d / "reference.h5", out, progress=False)
     _assert_same_fit(result, reference_run)
     assert result.global_params == reference_run.global_params
-    # the global stages and point 0's local fit were loaded, not recomputed; an infeasible
+    # the global phases and point 0's local fit were loaded, not recomputed; an infeasible
     # point (cost +inf) is refused before any curve is computed
     n_cal = len(result.problem.calibration)
 
@@ -278,31 +278,31 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     assert not checkpoint_path(out).exists()
 
 
-def _local_stages(problem: Problem, scene, reference_params, workers: int,
-                  stages: tuple[str, ...]):
-    """The local ``stages`` of ``problem`` fitted in turn to ``reference_params``' curves,
+def _local_phases(problem: Problem, scene, reference_params, workers: int,
+                  phases: tuple[str, ...]):
+    """The local ``phases`` of ``problem`` fitted in turn to ``reference_params``' curves,
     starting from the true global parameters with zero ring offsets.
 
-    Returns the fitted parameters, the last stage's sweeps and the relative errors of the
+    Returns the fitted parameters, the last phase's sweeps and the relative errors of the
     fitted curves at every test point."""
     from forcecal.schedules import indentation_depths, relaxation_schedule
     times, depths = relaxation_schedule(scene.relaxation)
     exp = Experiments(problem, scene.material.density, indentation_depths(scene.indentation),
                       times, depths, STRAIN.bounds)
     n_cal = len(problem.calibration)
-    model = LocalModel(TRUE_GLOBAL, build_rings(problem.mesh, problem.calibration), STRAIN,
-                       scene.calibration.stiffness_floor * TRUE_GLOBAL.K0,
-                       np.zeros((n_cal, 3)), np.zeros((n_cal, 4)))
+    local = LocalParametrisation(TRUE_GLOBAL, build_rings(problem.mesh, problem.calibration),
+                                 STRAIN, scene.calibration.stiffness_floor * TRUE_GLOBAL.K0,
+                                 np.zeros((n_cal, 3)), np.zeros((n_cal, 4)))
     everything = np.arange(len(problem.test_points))
     with Pool(exp, reference_params, workers=workers) as pool:
-        for stage in stages:
-            reference = pool.curves(STAGE_KIND[stage], reference_params, np.arange(n_cal))
-            model, sweeps = run_local_stage(pool, model, stage, reference, scene.calibration,
+        for phase in phases:
+            reference = pool.curves(PHASE_KIND[phase], reference_params, np.arange(n_cal))
+            local, sweeps = run_local_phase(pool, local, phase, reference, scene.calibration,
                                             None, lambda record: None, progress=False)
-        errors = {e: relative_rms_error(pool.curves(e, model.params(), everything),
+        errors = {e: relative_rms_error(pool.curves(e, local.params(), everything),
                                         pool.curves(e, reference_params, everything))
                   for e in EXPERIMENTS}
-    return model.params(), sweeps, errors
+    return local.params(), sweeps, errors
 
 
 def _cli(scene_path, reference, out, *extra) -> list[str]:
@@ -316,7 +316,7 @@ def _cost_evaluations(result) -> dict[str, int]:
 
 def test_killed_command_line_run_resumes_to_the_same_result(box, nonuniform, tmp_path):
     """SIGKILL the whole process group (master + 2 worker processes) once the local relaxation
-    stage has checkpointed its first point fit, rerun the same command, compare."""
+    phase has checkpointed its first point fit, rerun the same command, compare."""
     d, _, reference_run = nonuniform
     out = tmp_path / "params.h5"
     cmd = _cli(box.path, d / "reference.h5", out, "--workers", "2")
@@ -324,12 +324,12 @@ def test_killed_command_line_run_resumes_to_the_same_result(box, nonuniform, tmp
     with open(tmp_path / "killed.log", "w") as log:
         run = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=log, start_new_session=True)
         try:
-            stages, reached = {}, False
+            phases, reached = {}, False
             deadline = time.monotonic() + 300  # a hang guard, not a timing assert
             while not reached and run.poll() is None and time.monotonic() < deadline:
                 if saved.exists():  # written atomically: never half a file
-                    stages = json.loads(saved.read_text())["stages"]
-                    sweeps = stages.get("local_relaxation", {}).get("sweeps", [])
+                    phases = json.loads(saved.read_text())["stages"]
+                    sweeps = phases.get("local_relaxation", {}).get("sweeps", [])
                     reached = bool(sweeps and sweeps[0]["fits"])
                 time.sleep(0.02)
             reached = reached and run.poll() is None
@@ -338,7 +338,7 @@ def test_killed_command_line_run_resumes_to_the_same_result(box, nonuniform, tmp
             run.wait()
     assert reached, (tmp_path / "killed.log").read_text()[-3000:]
     assert run.returncode == -signal.SIGKILL and not out.exists()
-    assert {"global_static", "global_relaxation", "local_static"} <= set(stages)
+    assert {"global_static", "global_relaxation", "local_static"} <= set(phases)
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "resuming from checkpoint" in done.stderr
@@ -351,20 +351,20 @@ def test_killed_command_line_run_resumes_to_the_same_result(box, nonuniform, tmp
     assert not saved.exists()
 
 
-@pytest.mark.parametrize("stage", ["static", "relaxation"])
+@pytest.mark.parametrize("phase", ["static", "relaxation"])
 def test_local_tuning_is_independent_of_point_order_and_workers(box, box_problem, nonuniform,
-                                                                stage):
+                                                                phase):
     _, true, _ = nonuniform
     p = box_problem
     # tolerance 0: both sweeps run, so the second sweep's per-point starts (simplex sizes
     # from the first sweep's corrections, fatol scales) are exercised in every order too
     scene = replace(box, calibration={"local_max_sweeps": 2, "local_max_evaluations": 25,
                                       "local_sweep_tolerance": 0.0})
-    sorted_run, sweeps, _ = _local_stages(p, scene, true, 1, (stage,))
+    sorted_run, sweeps, _ = _local_phases(p, scene, true, 1, (phase,))
     order = np.array([2, 0, 3, 1])
     permuted = Problem(p.mesh, p.fixed, p.calibration[order], p.held_out, p.tracked_node)
-    permuted_run, _, _ = _local_stages(permuted, scene, true, 1, (stage,))
-    parallel_run, _, _ = _local_stages(p, scene, true, 2, (stage,))
+    permuted_run, _, _ = _local_phases(permuted, scene, true, 1, (phase,))
+    parallel_run, _, _ = _local_phases(p, scene, true, 2, (phase,))
     assert len(sweeps) == 2 and all(s.accepted and s.end_cost < s.start_cost for s in sweeps)
     # the Jacobi update sees the same per-point problems in any order, on any worker; only the
     # summation order of the total cost differs (round-off)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from calibration.core import calibrate
-from calibration.gradient import (Coordinates, Linearisation, Regulariser, Validity,
-                                  cross_validate, folds_of, neighbour_laplacian)
+from calibration.gradient import Coordinates, Validity, neighbour_laplacian
+from calibration.gradient_solver import Linearisation, Regulariser, cross_validate, folds_of
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
 from calibration.synthetic import box_scene, noisy_params, synthetic_reference

@@ -127,13 +127,13 @@ def test_an_optimiser_that_cannot_reduce_the_cost_is_reported(case, tmp_path):
                        backend=constant_backend)
     expected = ["global static fit: Nelder-Mead did not reduce the cost",
                 "global relaxation fit: Nelder-Mead did not reduce the cost",
-                "local static stage: fits that did not reduce their cost: sweep 1 4/4",
+                "local static phase: fits that did not reduce their cost: sweep 1 4/4",
                 "local static sweep 1: no damped Jacobi update lowered the total cost",
-                "local relaxation stage: fits that did not reduce their cost: sweep 1 4/4",
+                "local relaxation phase: fits that did not reduce their cost: sweep 1 4/4",
                 "local relaxation sweep 1: no damped Jacobi update lowered the total cost"]
     for start in expected:
         assert any(w.startswith(start) for w in result.warnings), start
-    # a rejected first sweep ends the stage
+    # a rejected first sweep ends the phase
     assert [len(result.local_sweeps[s]) for s in ("static", "relaxation")] == [1, 1]
     assert read_params(tmp_path / "params.h5").warnings == result.warnings
 
@@ -143,7 +143,7 @@ class Interrupted(Exception):
 
 
 def interrupted_at_third_relaxation(experiments, points, params):
-    """The particle backend, raising at its third relaxation evaluation (global stage 2)."""
+    """The particle backend, raising at its third relaxation evaluation (global phase 2)."""
     evaluators = particle_backend(experiments, points, params)
     calls = []
 

@@ -44,13 +44,16 @@ def test_fit_inputs_cover_what_the_fit_reads(scene, reference):
     assert _changed(base, fit_inputs(scene, reference)) == ["reference"]
 
 
-def test_code_fingerprint_follows_every_source_byte(tmp_path, monkeypatch):
+def test_code_fingerprint_follows_the_code_not_its_comments(tmp_path, monkeypatch):
     package = tmp_path / "fakepkg"
     (package / "sub").mkdir(parents=True)
     (package / "__init__.py").write_text("")
     (package / "sub" / "mod.py").write_text("X = 1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     before = code_fingerprint(("fakepkg",))
+    assert code_fingerprint(("fakepkg",)) == before
+    # a comment edit keeps a checkpoint, as it keeps a stage cache record
+    (package / "sub" / "mod.py").write_text('"""A module."""\n# why X is 1\nX = (1)\n')
     assert code_fingerprint(("fakepkg",)) == before
     (package / "sub" / "mod.py").write_text("X = 2\n")
     assert code_fingerprint(("fakepkg",)) != before

@@ -535,22 +535,34 @@ def test_nan_filled_reference_is_not_adopted(tmp_path, monkeypatch):
     from pipelines.cache import Cache
     scene = load_scene(SCENES / "tiny.toml")
     ctx = stages.Context(scene, tmp_path, False, 1)
-    stage = stages.STAGES["reference"]
     reference = _fake_reference(scene)
     write_reference(tmp_path / "reference.h5", reference)
     with h5py.File(tmp_path / "reference.h5", "r+") as fh:
         fh["indentation/force"][0, 0, 0] = np.nan
-    old_source = tmp_path / "old.py"  # the FE code predates the file
-    old_source.write_text("")
-    os.utime(old_source, (0, 0))
-    monkeypatch.setattr(stages, "import_closure", lambda code: {"reference_fe.run": old_source})
     inputs = stages.StageInputs(scene={}, mesh=reference.problem.mesh.fingerprint(), upstream={},
                                 code={})
     CASES["fault"] += 1
     with pytest.raises(DataFileError, match=r"cannot be adopted: .*(NaN|non-finite).*"
                        r"reference --force"):
-        stages.adopt_reference(ctx, stage, inputs)
+        stages.adopt_reference(ctx, inputs.mesh)
     assert Cache(tmp_path).check("reference", inputs)  # not recorded as done
+
+
+def test_reference_without_keys_or_with_other_keys_is_not_adopted(tmp_path):
+    """Adoption decides from the experiment keys (scene sections, mesh, FE code fingerprints):
+    a file that records none, or other ones, is recomputed, whatever its age."""
+    from forcecal.h5io import write_reference
+    scene = load_scene(SCENES / "tiny.toml")
+    ctx = stages.Context(scene, tmp_path, False, 1)
+    reference = _fake_reference(scene)
+    mesh = reference.problem.mesh.fingerprint()
+    write_reference(tmp_path / "reference.h5", reference)
+    assert stages.adopt_reference(ctx, mesh)  # the keys match and the content is valid
+    keys = json.loads(reference.meta["experiment_keys"])
+    for stored in ({}, {**keys, "relaxation": "computed by other FE code"}):
+        meta = {**reference.meta, "experiment_keys": json.dumps(stored)}
+        write_reference(tmp_path / "reference.h5", dataclasses.replace(reference, meta=meta))
+        assert not stages.adopt_reference(ctx, mesh)
 
 
 def _fake_reference(scene):
@@ -558,7 +570,8 @@ def _fake_reference(scene):
     from forcecal.h5io import GravityResult, IndentationCurves, Reference, RelaxationCurves
     from forcecal.problem import build_problem
     from forcecal.schedules import indentation_depths, record_times, relaxation_schedule
-    from reference_fe.run import REFERENCE_SECTIONS
+    from forcecal.sections import REFERENCE_SECTIONS
+    from reference_fe.keys import experiment_keys
     problem = build_problem(scene)
     n, p = problem.mesh.n_vertices, len(problem.test_points)
     depths = indentation_depths(scene.indentation)
@@ -570,7 +583,8 @@ def _fake_reference(scene):
     meta = {"dolfinx_version": "0.5.2",
             "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
             "mesh_fingerprint": problem.mesh.fingerprint(),
-            "timings_s": json.dumps({"total": 1.0}), "n_ranks": 1}
+            "timings_s": json.dumps({"total": 1.0}), "n_ranks": 1,
+            "experiment_keys": json.dumps(experiment_keys(scene, problem.mesh.fingerprint()))}
     return Reference(
         problem=problem, material=scene.material,
         indentation=IndentationCurves(depths, f_ind, depths * 100.0 * np.ones((p, 1))),
@@ -669,7 +683,7 @@ def test_mpirun_boilerplate_is_kept_for_the_log(text, error, shown, tmp_path, ca
     script = tmp_path / "fake_mpirun.py"
     script.write_text(f"import sys\nsys.stderr.write({text!r})\nsys.exit(2)\n")
     CASES["fault"] += 1
-    with caplog.at_level("DEBUG", logger="pipelines.stages"):
+    with caplog.at_level("DEBUG", logger="pipelines.runners.reference"):
         rc, message = stages.run_mpirun([sys.executable, str(script)])
     err = capfd.readouterr().err
     assert rc == 2 and message == error

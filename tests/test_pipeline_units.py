@@ -2,6 +2,7 @@
 import os
 import subprocess
 import sys
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -11,13 +12,13 @@ from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
 from forcecal.scene import scene_from_dict
 from particle.model import ConnectorParams, build_model
-from forcecal.provenance import file_digest
-from pipelines.cache import Cache, StageInputs, code_digest, code_digests, import_closure
+from forcecal.provenance import code_digest, code_digests, file_digest, import_closure
+from pipelines.cache import Cache, StageInputs
 from pipelines.gravity import (GravityRuns, ParticleGravity, connector_strains, read_gravity,
                                run_model, write_gravity)
 from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
                               gravity_static_error)
-from pipelines.stages import REFERENCE_SECTIONS, STAGES
+from pipelines.stages import STAGES
 from tests.conftest import ROOT
 
 
@@ -97,12 +98,18 @@ def test_code_digests_follow_the_import_closure_only(tmp_path, monkeypatch):
 
 
 def test_fe_stage_code_is_the_fe_and_shared_packages():
+    from reference_fe.keys import FE_ENTRIES
     closure = import_closure(STAGES["reference"].code)
     assert {"reference_fe.run", "reference_fe.model", "forcecal.h5io"} <= set(closure)
-    assert not any(n.split(".")[0] in ("particle", "calibration", "pipelines") for n in closure)
+    assert not any(n.split(".")[0] in ("particle", "calibration") for n in closure)
+    assert {n for n in closure if n.startswith("pipelines")} == {
+        "pipelines", "pipelines.runners", "pipelines.runners.common", "pipelines.runners.reference"}
+    # the FE experiments' keys: the same FE code, without the pipeline's runner
+    assert set(import_closure(FE_ENTRIES)) == {n for n in closure
+                                               if not n.startswith("pipelines")}
 
 
-def test_every_stage_key_holds_the_runners_module_and_the_report_holds_the_scene_name(
+def test_each_stage_key_holds_its_own_runner_only_and_the_report_the_scene_name(
         tmp_path, monkeypatch):
     from pipelines.stages import Context
     scene = scene_from_dict({"name": "keyed"})
@@ -113,16 +120,80 @@ def test_every_stage_key_holds_the_runners_module_and_the_report_holds_the_scene
     # the stand-in is no HDF5 file: its experiments' content digest is stood in for too
     monkeypatch.setattr("pipelines.stages.reference_digest", lambda path, experiments: "ref")
     keys = {name: stage.inputs(ctx) for name, stage in STAGES.items()}
-    assert all("pipelines/stages.py" in k.code for k in keys.values())
+    for name, key in keys.items():
+        runners = {f for f in key.code if f.startswith("pipelines/runners/")}
+        assert runners == {"pipelines/runners/__init__.py", "pipelines/runners/common.py",
+                           f"pipelines/runners/{name}.py"}
+        assert "pipelines/stages.py" not in key.code
     renamed = STAGES["report"].inputs(Context(scene_from_dict({"name": "other"}), tmp_path,
                                               progress=False, ranks=1))
     assert renamed.changes_from({"scene": keys["report"].scene, "upstream": renamed.upstream,
                                  "code": renamed.code}) == ["scene [name] changed"]
 
 
+@pytest.fixture
+def project_copy(tmp_path, monkeypatch):
+    """A copy of the project's packages in ``tmp_path``, which the code fingerprints read."""
+    import shutil
+
+    from forcecal import PROJECT_PACKAGES
+    for package in PROJECT_PACKAGES:
+        shutil.copytree(ROOT / package, tmp_path / package,
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr("forcecal.provenance.package_root", lambda package: tmp_path)
+    return tmp_path
+
+
+def _stages_whose_code_changes(root, edits: dict[str, Callable[[str], str]]) -> list[str]:
+    """The stages whose code fingerprint changes when the project copy in ``root`` is edited
+    (``edits``: {file: function from its old to its new text})."""
+    before = {name: code_digests(stage.code) for name, stage in STAGES.items()}
+    for path, edit in edits.items():
+        old = (root / path).read_text()
+        (root / path).write_text(edit(old))
+        assert (root / path).read_text() != old
+    return [name for name, stage in STAGES.items()
+            if StageInputs(code=code_digests(stage.code)).changes_from({"code": before[name]})]
+
+
+def _comments_docstrings_layout(text: str) -> str:
+    """``text`` with another module docstring, more comments and another layout."""
+    first = text.index('"""') + 3
+    text = text[:first] + "Reworded. " + text[first:]
+    text = text.replace("from __future__ import annotations",
+                        "# why: postponed annotations\nfrom __future__ import (\n    annotations)")
+    return "# a comment first\n" + text + "\n\n# a comment last\n"
+
+
+def _code_edit(text: str) -> str:
+    return text + "\nEDITED = 1\n"
+
+
+def test_a_comment_docstring_or_layout_edit_reruns_no_stage(project_copy):
+    edited = [f"pipelines/runners/{m}.py" for m in ("common", "reference", "calibrate",
+                                                     "gravity", "report")]
+    edited += ["pipelines/gravity.py", "calibration/core.py", "reference_fe/model.py",
+               "forcecal/scene.py", "particle/model.py"]
+    assert _stages_whose_code_changes(
+        project_copy, {path: _comments_docstrings_layout for path in edited}) == []
+
+
+def test_editing_a_runner_reruns_its_stage_only(project_copy):
+    for runner in ("reference", "calibrate", "gravity", "report"):
+        assert _stages_whose_code_changes(
+            project_copy, {f"pipelines/runners/{runner}.py": _code_edit}) == [runner]
+    # what every runner imports changes every stage; the FE code the reference's only
+    assert _stages_whose_code_changes(
+        project_copy, {"pipelines/runners/common.py": _code_edit}) == list(STAGES)
+    assert _stages_whose_code_changes(
+        project_copy, {"reference_fe/model.py": _code_edit}) == ["reference"]
+    assert _stages_whose_code_changes(
+        project_copy, {"pipelines/report.py": _code_edit}) == ["report"]
+
+
 def test_verbose_reaches_the_calibration(tmp_path, monkeypatch):
     import calibration
-    from pipelines.stages import Context, run_calibrate
+    from pipelines.runners.calibrate import Context, run_calibrate
     seen = {}
     monkeypatch.setattr(calibration, "calibrate", lambda *a, **kw: seen.update(kw))
     run_calibrate(Context(scene_from_dict({}), tmp_path, progress=False, ranks=1, verbose=True))
@@ -132,14 +203,6 @@ def test_verbose_reaches_the_calibration(tmp_path, monkeypatch):
 def test_file_digest_of_missing_file_is_a_data_file_error(tmp_path):
     with pytest.raises(DataFileError, match="cannot read"):
         file_digest(tmp_path / "nope.h5")
-
-
-def test_reference_sections_match_the_fe_package():
-    # in a child process: importing reference_fe.run imports dolfinx and initialises MPI
-    code = "from reference_fe.run import REFERENCE_SECTIONS as s; print(','.join(s))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, cwd=ROOT).stdout.strip()
-    assert tuple(out.split(",")) == REFERENCE_SECTIONS
 
 
 # ------------------------------------------------------------------------------- gravity

@@ -1,0 +1,316 @@
+"""The solver of the gradient fit (:mod:`calibration.gradient`): a regularised
+Levenberg-Marquardt iteration on compressed Gauss-Newton rows, with the smoothness weight
+chosen by k-fold cross-validation.
+
+Separate from the fit's model side (coordinates, residuals, validity) because it
+only needs residuals and Jacobians: :class:`Regulariser` (the smoothness metric),
+:class:`Linearisation` (the Woodbury step and its prediction), :func:`compress`,
+:func:`cross_validate`, :func:`levenberg_marquardt` and its checkpointed
+:class:`LMState`. The maths is in :mod:`calibration.gradient`'s docstring.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse.linalg import splu
+
+from calibration.optimize import INFEASIBLE
+
+log = logging.getLogger(__name__)
+
+#: coordinates per connector (:class:`calibration.gradient.Coordinates`)
+N_COORDS = 7
+#: prior weight relative to the smoothness weight (a mild pull towards the global fit that
+#: fixes the level of each smooth field where the data say nothing)
+PRIOR_RATIO = 1e-3
+#: smoothness weights lambda tried by cross-validation (data cost = sum of squared relative
+#: RMS errors; lambda multiplies the mean squared neighbour difference per connector)
+WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))
+
+
+class LeastSquares(Protocol):
+    """What the solver asks of the fit (:class:`calibration.gradient.Evaluator`)."""
+    data: Any  # .rows(points): residual rows of ``points``
+    coords: Any  # .params(theta): the connector parameters, for :class:`Bounds`
+
+    def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray: ...
+
+    def linearise(self, theta: np.ndarray, points: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class Bounds(Protocol):
+    """Where the parameters are valid (:class:`calibration.gradient.Validity`)."""
+
+    def check(self, params: Any) -> None: ...
+
+    def hinge(self, theta: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]: ...
+
+
+#: rows kept per calibration point in the Gauss-Newton model (:func:`compress`; its curves
+#: have 50 samples on the default liver)
+ROWS_KEPT = 12
+
+
+@dataclass(frozen=True, eq=False)
+class Regulariser:
+    """``lambda (theta - theta0)^T A1 (theta - theta0)`` with the block-diagonal metric
+    ``A1 = I_7 (x) (L + rho I)/E  (+)  (L_tets + rho I)/T`` (module docstring).
+
+    Attributes:
+        laplacian: (E, E) connectors sharing a particle (:func:`neighbour_laplacian`).
+        theta0: (size,) the start (the global fit), also the prior's centre.
+        tet_laplacian: (T, T) tets sharing a face, or None without the volume term.
+    """
+    laplacian: sp.csc_matrix
+    theta0: np.ndarray
+    tet_laplacian: sp.csc_matrix | None = None
+
+    @functools.cached_property
+    def metric(self) -> sp.csc_matrix:
+        """(size, size) the penalty's metric A1 (also the LM damping metric)."""
+        def block(lap):
+            n = lap.shape[0]
+            return (lap + PRIOR_RATIO * sp.identity(n)) / n
+
+        blocks = [sp.kron(sp.identity(N_COORDS), block(self.laplacian))]
+        if self.tet_laplacian is not None:
+            blocks.append(block(self.tet_laplacian))
+        return sp.block_diag(blocks, format="csc")
+
+    @functools.cached_property
+    def lu(self):
+        return splu(self.metric)
+
+    def value(self, theta: np.ndarray, weight: float) -> float:
+        d = (theta - self.theta0).ravel()
+        return float(weight * d @ (self.metric @ d))
+
+
+@dataclass(frozen=True, eq=False)
+class Linearisation:
+    """Residuals and Jacobian at theta, with the products the steps need.
+
+    Attributes:
+        theta: (size,) coordinates.
+        r: (m,) residuals (data rows, then the active hinge rows).
+        J: (m, size) their Jacobian.
+        P: (size, m) ``A1^-1 J^T``.
+        C: (m, m) ``J A1^-1 J^T``.
+        offset: squared norm of the residual left out of the rows [1] (:func:`compress`):
+            ``|r_full + J_full d|^2 ~ |r + J d|^2 + offset``.
+    """
+    theta: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    P: np.ndarray
+    C: np.ndarray
+    offset: float = 0.0
+
+    @classmethod
+    def of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
+           offset: float = 0.0) -> "Linearisation":
+        P = reg.lu.solve(np.ascontiguousarray(J.T)) if len(J) else np.zeros((J.shape[1], 0))
+        return cls(theta, r, J, P, J @ P, offset)
+
+    def rows(self, keep: np.ndarray) -> "Linearisation":
+        return Linearisation(self.theta, self.r[keep], self.J[keep], self.P[:, keep],
+                             self.C[np.ix_(keep, keep)])
+
+    def step(self, reg: Regulariser, weight: float, damping: float) -> np.ndarray:
+        """(size,) minimiser of ``|r + J d|^2 + weight reg(theta + d) + damping d^T A1 d``.
+
+        ``(J^T J + alpha A1) d = -(J^T r + weight A1 d0)``, alpha = weight + damping, by
+        Woodbury: ``d = -(1/alpha) [P r + w d0 - P (alpha I + C)^-1 (C r + w J d0)]``.
+        """
+        alpha = weight + damping
+        d0 = (self.theta - reg.theta0).ravel()
+        if len(self.r):
+            inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
+                              self.C @ self.r + weight * (self.J @ d0))
+            d = self.P @ (self.r - inner) + weight * d0
+        else:
+            d = weight * d0
+        return (-d / alpha).reshape(self.theta.shape)
+
+    def predict(self, d: np.ndarray) -> np.ndarray:
+        return self.r + self.J @ d.ravel()
+
+
+def compress(r: np.ndarray, J: np.ndarray, rows_per_point: int, keep: int
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each point's rows projected on the ``keep`` leading left singular vectors of its block.
+
+    A point's samples move together (a curve has few independent shapes), so its
+    Jacobian block (S, size) is numerically of low rank; projecting the rows on the
+    leading singular directions ``U_k`` keeps the Gauss-Newton model
+    ``|U_k^T (r + J d)|^2`` (exact for ``J d`` in their span) at a fraction of the
+    dense algebra (which grows with the square of the rows). The accept/reject
+    test of every step uses the exact objective. Returns the rows (P k,), (P k, size)
+    and the squared norm of the residual left out.
+    """
+    if keep >= rows_per_point:
+        return r, J, 0.0
+    n_points = len(r) // rows_per_point
+    r_out = np.empty(n_points * keep)
+    J_out = np.empty((n_points * keep, J.shape[1]))
+    for p in range(n_points):
+        block = slice(p * rows_per_point, (p + 1) * rows_per_point)
+        values, vectors = np.linalg.eigh(J[block] @ J[block].T)  # ascending
+        U = vectors[:, ::-1][:, :keep]
+        r_out[p * keep:(p + 1) * keep] = U.T @ r[block]
+        J_out[p * keep:(p + 1) * keep] = U.T @ J[block]
+    return r_out, J_out, float(r @ r - r_out @ r_out)
+
+
+def folds_of(n_points: int, k: int) -> list[np.ndarray]:
+    """k folds of point indices 0..n-1 (a fixed shuffle, so folds mix regions of the mesh)."""
+    order = np.random.default_rng(0).permutation(n_points)
+    return [np.sort(order[f::k]) for f in range(min(k, n_points))]
+
+
+def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
+                   folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID
+                   ) -> tuple[float, np.ndarray]:
+    """Smoothness weight by k-fold CV on the linearisation ``lin`` at the start.
+
+    ``lin`` holds the data rows of every calibration point (point-major,
+    ``rows_per_point`` each). For each weight and fold, the Gauss-Newton step
+    fitted to the other folds' rows predicts the fold's residuals ``r_f + J_f
+    delta``; returns the weight with the smallest total predicted squared fold
+    residual and the (len(grid),) CV costs.
+    """
+    point_of_row = np.repeat(np.arange(len(lin.r) // rows_per_point), rows_per_point)
+    d0 = lin.theta - reg.theta0
+    Jd0 = lin.J @ d0
+    costs = np.zeros(len(grid))
+    for fold in folds:
+        test = np.isin(point_of_row, fold)
+        train = ~test
+        # everything in the rows' space: with C_TT = U diag(e) U^T, (alpha I + C_TT)^-1 costs
+        # nothing per weight, and the fold's prediction r_F + J_F d needs only C_FT
+        e, U = np.linalg.eigh(lin.C[np.ix_(train, train)])
+        C_FT = lin.C[np.ix_(test, train)]
+        r_T, r_F = lin.r[train], lin.r[test]
+        for g, weight in enumerate(grid):
+            alpha = weight  # no damping
+            rhs = lin.C[np.ix_(train, train)] @ r_T + weight * Jd0[train]
+            X = U @ ((U.T @ rhs) / (alpha + e))
+            Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
+            costs[g] += float(np.sum((r_F + Jd) ** 2))
+    best = int(np.argmin(costs))
+    if best in (0, len(grid) - 1):
+        log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
+                    "[%g, %g]", grid[best], grid[0], grid[-1])
+    return float(grid[best]), costs
+
+
+@dataclass
+class LMState:
+    """Where the Levenberg-Marquardt iteration stands (what the checkpoint stores)."""
+    theta: np.ndarray
+    damping: float
+    cost: float
+    history: list[float]
+    iteration: int = 0
+    done: bool = False
+
+    def as_dict(self) -> dict:
+        return {"theta": self.theta.tolist(), "damping": self.damping, "cost": self.cost,
+                "history": list(self.history), "iteration": self.iteration, "done": self.done}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LMState":
+        return cls(np.asarray(d["theta"], dtype=float), float(d["damping"]), float(d["cost"]),
+                   [float(c) for c in d["history"]], int(d["iteration"]), bool(d["done"]))
+
+
+def linearise(ev: LeastSquares, theta: np.ndarray, points: np.ndarray, reg: Regulariser,
+              validity: Bounds, data_rows: tuple[np.ndarray, np.ndarray] | None = None
+              ) -> Linearisation:
+    """Data rows (computed, or ``data_rows``) plus the active hinge rows at ``theta``."""
+    r, J = ev.linearise(theta, points) if data_rows is None else data_rows
+    r, J, offset = compress(r, J, ev.data.rows(points[:1]), ROWS_KEPT)
+    h, Jh = validity.hinge(theta)
+    active = np.nonzero(h)[0]
+    if len(active):
+        r = np.concatenate([r, h[active]])
+        J = np.vstack([J, Jh[active].toarray()])
+    return Linearisation.of(theta, r, J, reg, offset)
+
+
+def levenberg_marquardt(ev: LeastSquares, points: np.ndarray, reg: Regulariser, weight: float,
+                        validity: Bounds, state: LMState | None, *,
+                        theta_start: np.ndarray | None = None, max_iterations: int,
+                        tolerance: float = 1e-3,
+                        save: Callable[[LMState], None] = lambda s: None,
+                        start: Linearisation | None = None) -> LMState:
+    """Regularised LM from ``state`` (or ``theta_start``, default ``reg.theta0``); ``save``
+    after every iteration.
+
+    The damping is ``damping x A1`` (the regulariser's metric), adapted by the
+    gain ratio. Stops when an accepted step lowers the objective by less than
+    ``tolerance`` of it, after ``max_iterations`` iterations, or when no damping
+    makes a step acceptable. ``start`` is the linearisation at ``reg.theta0`` if
+    already computed (at ``theta_start``).
+    """
+    def objective(theta: np.ndarray, r: np.ndarray) -> float:
+        h, _ = validity.hinge(theta)
+        return float(r @ r + reg.value(theta, weight) + h @ h)
+
+    if state is None:
+        theta = reg.theta0 if theta_start is None else theta_start
+        lin = start if start is not None else linearise(ev, theta, points, reg, validity)
+        n_data = ROWS_KEPT * len(points) if ROWS_KEPT < ev.data.rows(points[:1]) else \
+            ev.data.rows(points)
+        data = lin.r[:n_data]
+        cost = objective(theta, data) + lin.offset
+        state = LMState(theta.copy(), weight, cost, [cost])
+    elif not state.done:
+        lin = linearise(ev, state.theta, points, reg, validity)
+    while not state.done and state.iteration < max_iterations:
+        accepted = False
+        for _ in range(12):
+            d = lin.step(reg, weight, state.damping)
+            trial = state.theta + d
+            try:
+                validity.check(ev.coords.params(trial))
+                r_new = ev.residuals(trial, points)
+            except INFEASIBLE as exc:
+                log.info("gradient fit: step rejected (%s); more damping", exc)
+                state.damping *= 4.0
+                continue
+            new = objective(trial, r_new)
+            lin_new = lin.predict(d)
+            predicted = state.cost - float(lin_new @ lin_new + lin.offset
+                                           + reg.value(trial, weight))
+            gain = (state.cost - new) / predicted if predicted > 0 else -1.0
+            if new < state.cost:
+                accepted = True
+                state.damping *= 1.0 / 3.0 if gain > 0.75 else (2.0 if gain < 0.25 else 1.0)
+                break
+            state.damping *= 4.0
+        state.iteration += 1
+        if not accepted:
+            log.info("gradient fit: no damped step lowers the objective; stopping")
+            state.done = True
+            save(state)
+            break
+        gained = state.cost - new
+        state.theta, state.cost = trial, new
+        state.history.append(new)
+        log.info("gradient fit iteration %d: objective %.6g (damping %.3g)", state.iteration,
+                 new, state.damping)
+        if gained < tolerance * new:
+            state.done = True
+        save(state)
+        if not state.done and state.iteration < max_iterations:
+            lin = linearise(ev, state.theta, points, reg, validity)
+    return state

@@ -1,0 +1,23 @@
+"""Which scene sections each computation reads: the section part of its fingerprint.
+
+One definition, imported by the pipeline (stage cache keys), the FE reference
+(per-experiment keys, ``reference.h5``'s ``scene_fingerprint``) and the
+calibration (checkpoint key, ``params.h5`` settings). Free of dolfinx, so the
+pipeline can use it without initialising MPI.
+"""
+from __future__ import annotations
+
+#: sections every FE experiment reads (geometry, material, discretisation)
+COMMON_SECTIONS = ("mesh", "material", "fixed", "test_points", "fe")
+#: the sections each FE experiment reads besides :data:`COMMON_SECTIONS`
+EXPERIMENT_SECTIONS = {"indentation": ("indentation",),
+                       "relaxation": ("indentation", "relaxation"),  # the indenter
+                       "gravity_static": ("gravity",),
+                       "gravity_dynamic": ("gravity",)}
+#: sections the whole FE reference reads (every experiment's)
+REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
+                      "gravity", "fe")
+#: sections a calibration reads (of ``[particle]`` only ``volume``, the model it fits, which
+#: the calibration records separately)
+FIT_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
+                "calibration")

@@ -1,0 +1,174 @@
+"""Runner of the ``reference`` stage: the FE reference (``reference.h5``), in-process or
+spawned as ``mpirun -n <ranks> python -m reference_fe``, and the adoption of a
+``reference.h5`` that already holds what the scene asks for."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+
+import h5py
+
+from forcecal.errors import DataFileError, ForcecalError
+from forcecal.failures import INTERRUPTED, die_with_parent
+from pipelines.runners.common import REFERENCE, Context
+
+log = logging.getLogger(__name__)
+
+
+class StageFailed(ForcecalError):
+    """A stage run in a child process (``mpirun ... reference_fe``) failed."""
+
+
+def run_reference(ctx: Context) -> list[str]:
+    """FE reference: in-process under MPI or with one rank, else spawned with mpirun."""
+    path = ctx.out / REFERENCE
+    mpirun = shutil.which("mpirun")
+    if ctx.under_mpi or ctx.ranks <= 1 or mpirun is None:
+        if ctx.ranks > 1 and mpirun is None and not ctx.under_mpi:
+            log.warning("mpirun not found: computing the FE reference on one process")
+        from reference_fe.run import compute_reference
+        compute_reference(ctx.scene, out_path=path, progress=ctx.progress)
+        return [REFERENCE]
+    cmd = [mpirun, "-n", str(ctx.ranks), sys.executable, "-m", "reference_fe",
+           "--scene", str(ctx.scene.path), "--out", str(path)]
+    if not ctx.progress:
+        cmd.append("--no-progress")
+    log.info("running %s", " ".join(cmd))
+    rc, error = run_mpirun(cmd)
+    if rc != 0:
+        kept = f"finished work items are kept in {path}.parts/ and reused by a rerun"
+        if error is not None:  # the ranks' own refusal, printed once by the pipeline
+            raise StageFailed(f"{error} ({kept})")
+        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}; --verbose shows "
+                          f"mpirun's own text); {kept}")
+    return [REFERENCE]
+
+
+#: a line of mpirun's (OpenMPI's) own text: its boxed help messages are delimited by dashes
+_MPIRUN_RULE = re.compile(r"^-{20,}$")
+_RANK_ERROR = re.compile(r"^(\[rank \d+\] )?error: ")
+_MPIRUN_LINE = re.compile(r"^(\[[^\]\s]+:\d+\]|mpirun|Primary job|prterun)")
+
+
+def run_mpirun(cmd: list[str]) -> tuple[int, str | None]:
+    """Run a spawned ``mpirun`` and return (exit code, the ranks' ``error:`` message or None).
+
+    The ranks' stderr is read line by line: their ``error: ...`` line is returned
+    (the pipeline prints it once, as its own), mpirun's boilerplate goes to the log
+    at DEBUG (``--verbose``), everything else (the ranks' log lines) passes through.
+    mpirun runs in its own process group, is asked to die with this process
+    (PR_SET_PDEATHSIG on Linux, so even a SIGKILLed pipeline ends its ranks) and is
+    terminated (then killed) when this process is interrupted or fails.
+    """
+    error: list[str] = []
+    proc = subprocess.Popen(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, start_new_session=True,
+                            preexec_fn=die_with_parent)
+
+    def forward() -> None:
+        boxed = False
+        for raw in proc.stderr:
+            line = raw.decode(errors="replace").rstrip("\n")
+            if _MPIRUN_RULE.match(line.strip()):
+                boxed = not boxed
+                log.debug("mpirun: %s", line)
+            elif _RANK_ERROR.match(line):
+                error.append(_RANK_ERROR.sub("", line))
+            elif (boxed or _MPIRUN_LINE.match(line) or not line.strip()
+                  or line.endswith(INTERRUPTED)):  # the pipeline says it once
+                log.debug("mpirun: %s", line)
+            else:
+                print(line, file=sys.stderr, flush=True)
+
+    reader = threading.Thread(target=forward, name="mpirun-stderr", daemon=True)
+    reader.start()
+    try:
+        rc = proc.wait()
+    except BaseException:  # Ctrl-C, SIGTERM, a failure here: end the ranks with us
+        _end_process_group(proc)
+        raise
+    finally:
+        reader.join(timeout=5)
+    return rc, (error[0] if error else None)
+
+
+def _end_process_group(proc: subprocess.Popen, grace: float = 10.0) -> None:
+    """SIGTERM the child's process group (mpirun and its ranks), SIGKILL after ``grace`` s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            return
+        try:
+            proc.wait(timeout=grace)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+#: variables an initialised OpenMPI job (or singleton) sets; a spawned mpirun must not see them
+_INHERITED_MPI_JOB = ("PMIX_", "ORTE_", "OMPI_MCA_orte_", "OMPI_MCA_ess", "OMPI_MCA_pmix",
+                      "OMPI_APP_CTX_", "OMPI_COMM_WORLD_", "OMPI_UNIVERSE_SIZE", "OMPI_FILE_LOCATION")
+
+
+def mpirun_environment() -> dict[str, str]:
+    """Environment of a spawned ``mpirun``: this process's, with OpenMPI allowed to run as
+    root and to oversubscribe the cores (unless the caller set those variables)."""
+    # an explicit copy of os.environ also leaves out what MPI, if this process initialised it
+    # (e.g. dolfinx imported in-process), set in the C environment: mpirun fails with those;
+    # the same variables inherited from a parent that initialised MPI (a test runner, a
+    # notebook) are dropped too (mpirun is spawned only outside an MPI job)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(_INHERITED_MPI_JOB)}
+    for k in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM",
+              "OMPI_MCA_rmaps_base_oversubscribe"):
+        env.setdefault(k, "1")
+    return env
+
+
+def adopt_reference(ctx: Context, mesh_fingerprint: str) -> bool:
+    """Accept a ``reference.h5`` computed outside the pipeline (``python -m reference_fe``)
+    or for another experiments list, deciding from fingerprints and content only.
+
+    It is adopted when it holds every experiment the scene asks for with the
+    current key (:func:`reference_fe.keys.experiment_keys`: scene sections, mesh
+    and FE code fingerprints) and its content reads back valid, whatever else
+    it holds: a superset is kept as it is, so removing an experiment from the
+    list recomputes nothing. A file without keys does not record the FE code
+    that computed it, so it is never adopted (it is recomputed).
+
+    Raises:
+        DataFileError: the keys match but the content is not valid (NaN, damaged).
+    """
+    from forcecal.h5io import read_reference
+    from reference_fe.keys import experiment_keys
+    path = ctx.out / REFERENCE
+    try:
+        with h5py.File(path, "r") as fh:
+            stored = json.loads(fh.attrs.get("experiment_keys", "{}"))
+    except (OSError, ValueError, TypeError):  # absent, foreign or damaged: recompute
+        return False
+    if not stored:
+        log.info("reference: %s records no experiment keys (the FE code that computed it is "
+                 "unknown): recomputed", path)
+        return False
+    keys = experiment_keys(ctx.scene, mesh_fingerprint)
+    if any(stored.get(e) != keys[e] for e in ctx.scene.experiments):
+        return False
+    try:  # the content too: a NaN-filled or damaged file would fail every later stage
+        read_reference(path, expect_mesh=mesh_fingerprint)
+    except DataFileError as exc:
+        raise DataFileError(f"{path} matches this scene but cannot be adopted: {exc}; delete "
+                            "it or recompute it with `reference --force`") from None
+    extra = sorted(set(stored) - set(ctx.scene.experiments))
+    log.info("reference: %s already holds %s with the current keys%s: not recomputed",
+             path, ", ".join(ctx.scene.experiments),
+             f" (and {', '.join(extra)}, which the scene does not ask for)" if extra else "")
+    return True
