@@ -14,7 +14,6 @@ builder, mutable State, integrators and solvers apart):
 - :mod:`particle.haptics`: :class:`HapticSession`.
 - :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``):
   forces, tangent, energy, its part of the stability bound.
-- :mod:`particle.bench`: benchmark functions returning dicts.
 """
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic

@@ -8,7 +8,7 @@ statics are unchanged, the dynamics are slowed where mass was added. It is what
 explicit crash and forming codes do for their smallest elements; here it lets a
 haptic session take one step per 1 ms device period on meshes whose limit is
 below 1 ms. Its cost is an error in the transient response, measured by the
-``haptic scale`` benchmark (``pipelines/bench_haptic.py``) against the unscaled
+``haptic scale`` benchmark (``pipelines/bench/haptic.py``) against the unscaled
 float64 run.
 
 Which particles get mass: particle n's weight is the diagonal of the

@@ -15,7 +15,7 @@ from particle.integrator import (DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN, VerletInt
 from particle.model import ConnectorParams, Model, ModelBuilder
 from particle.statics import gravity_static
 from particle.testing import box_model, two_particle_model, viscoelastic_params
-from pipelines.bench_stability import blows_up
+from pipelines.bench.stability import blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # Maxwell arms of negligible stiffness: a purely elastic model

@@ -17,7 +17,7 @@ from particle.testing import box_model, spring_energy, top_centre, viscoelastic_
 from particle.volume import (add_volume_forces, network_bulk_modulus, signed_volumes,
                              volume_energy, volume_forces_numpy, volume_hessian_numpy,
                              volume_kv_sensitivity_numpy)
-from pipelines.bench_stability import blows_up, bisect
+from pipelines.bench.stability import blows_up, bisect
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # arms of negligible stiffness: a purely elastic model

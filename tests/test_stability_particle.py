@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ConvergenceError, StabilityError
-from pipelines.bench_stability import (PARAMETER_SETS, PRESTRAINS, bisect, blows_up,
+from pipelines.bench.stability import (PARAMETER_SETS, PRESTRAINS, bisect, blows_up,
                                        case_model, clamped_cube, empirical_critical_step,
                                        sliver_mesh, stability_meshes)
 from particle import kernels

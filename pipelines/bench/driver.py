@@ -10,7 +10,7 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
 1. ``default``: the default scene through the cached pipeline in
    ``DIR/cache/runs/default/`` (seeded from ``runs/<scene name>/`` when that
    folder holds a finished run, so ``make demo``'s work is reused);
-2. ``pareto``: every configuration of :mod:`pipelines.bench_configs` (cached
+2. ``pareto``: every configuration of :mod:`pipelines.bench.configs` (cached
    pipelines), the particle time-step sweep and the FE discretisation study;
 3. ``reference``: wall time of the full default reference with 1 and 2 MPI
    ranks: the default run's own (its ``reference.h5`` records wall time and rank
@@ -18,12 +18,12 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
    ``DIR/cache/reference_timing.json`` for the same code and scene
    fingerprints (a cold first run of ``make bench`` therefore computes a full
    reference once more, ~10-25 min);
-4. particle engine (:mod:`particle.bench`): ``kernel`` throughput (compiled vs
+4. particle engine (:mod:`pipelines.bench.particle_engine`): ``kernel`` throughput (compiled vs
    numpy step, default liver and a >= 10k-connector liver), ``gravity_dynamic``
    (3 s of the calibrated model, against the FE's time and error),
    ``skip`` (the same runs with and without the terms they do not need),
    haptic latency, evaluator times;
-5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench_stability`);
+5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench.stability`);
 6. every study of :data:`STUDIES` (one module each).
 
 ``--only ITEM[,ITEM]`` runs only those items and keeps the other keys of the
@@ -62,7 +62,7 @@ from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.problem import build_problem, load_mesh
 from forcecal.provenance import git_commit
 from forcecal.scene import Scene, load_scene
-from pipelines import bench_configs as bc
+from pipelines.bench import configs as bc
 from pipelines.cache import code_digest
 from pipelines.report import gravity_dynamic_error, read_report
 from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS, mpirun_environment
@@ -81,12 +81,12 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 # study(scene, cache folder, quick) -> the bench.json keys it owns. Each lives in a module of
 # its own (imported only when it runs), so adding a study adds one line here.
 STUDIES: dict[str, str] = {
-    "experiments": "pipelines.bench_experiments:study",
-    "haptic scale": "pipelines.bench_haptic:study",
-    "fe_convergence": "pipelines.fe_convergence:study",
-    "scale": "pipelines.bench_scale:study",
-    "calibration methods": "pipelines.bench_calibration_methods:study",
-    "volume term": "pipelines.bench_volume:study",
+    "experiments": "pipelines.bench.experiments:study",
+    "haptic scale": "pipelines.bench.haptic:study",
+    "fe_convergence": "pipelines.bench.fe_convergence:study",
+    "scale": "pipelines.bench.scale:study",
+    "calibration methods": "pipelines.bench.calibration_methods:study",
+    "volume term": "pipelines.bench.volume:study",
 }
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
@@ -386,7 +386,7 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
     import numba
 
     from forcecal.mesh import generate_liver
-    from particle import bench as pb
+    from pipelines.bench import particle_engine as pb
 
     numba.set_num_threads(1)
     reference = read_reference(folder / REFERENCE)
@@ -473,8 +473,8 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     already in ``out``, the rest are kept as they are; the default pipeline run is
     brought up to date first when an item needs it).
     """
-    from pipelines.bench_report import write_markdown, write_pareto_plot
-    from pipelines.bench_stability import stability_table
+    from pipelines.bench.report import write_markdown, write_pareto_plot
+    from pipelines.bench.stability import stability_table
 
     scene = load_scene(scene_path or ROOT / "scenes" / ("tiny.toml" if quick else "liver.toml"))
     cache = out / "cache"

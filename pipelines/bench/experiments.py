@@ -24,7 +24,7 @@ from typing import Any
 
 from forcecal.h5io import read_reference
 from forcecal.scene import EXPERIMENTS, Scene, load_scene
-from pipelines.bench_configs import scene_toml
+from pipelines.bench.configs import scene_toml
 from pipelines.cache import Cache
 from pipelines.stages import REFERENCE, run_pipeline
 

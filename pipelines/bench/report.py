@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.h5io import atomic_path
-from pipelines import bench_haptic
+from pipelines.bench import haptic as bench_haptic
 
 log = logging.getLogger(__name__)
 
@@ -402,7 +402,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
                     [[s["case"], s["connectors"], s["estimate_s"], s["empirical_s"], s["ratio"]]
                      for s in b["stability"]])
     if "scale" in b:  # the scale study (issue 16)
-        from pipelines.bench_scale import scale_section
+        from pipelines.bench.scale import scale_section
         lines += scale_section(b)
     lines += ["", "## Reproduce", "", "```bash", f"{cmd}   # -> {path.parent}/", "```", ""]
     with atomic_path(path) as tmp:
