@@ -28,8 +28,8 @@ import math
 import numpy as np
 
 from forcecal.errors import ParameterError
-from particle.integrator import (DEFAULT_STRAIN_RANGE, EIGENVALUE_MARGIN, check_time_step,
-                                 connector_stiffness_bound, critical_time_step, inertial_model)
+from particle.stability import (DEFAULT_STRAIN_RANGE, EIGENVALUE_MARGIN, check_time_step,
+                                connector_stiffness_bound, critical_time_step, inertial_model)
 from particle.model import Model, StrainBounds, connector_strain_bounds
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,8 @@ from forcecal.errors import MeshError, ParameterError, StabilityError
 from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.haptics import HapticSession
-from particle.integrator import Prescribed, VerletIntegrator, critical_time_step
+from particle.integrator import Prescribed, VerletIntegrator
+from particle.stability import critical_time_step
 from particle.model import ModelBuilder
 from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static
@@ -17,7 +18,7 @@ from particle.testing import box_model, spring_energy, top_centre, viscoelastic_
 from particle.volume import (add_volume_forces, network_bulk_modulus, signed_volumes,
                              volume_energy, volume_forces_numpy, volume_hessian_numpy,
                              volume_kv_sensitivity_numpy)
-from pipelines.bench.stability import blows_up, bisect
+from particle.stability import bisect, blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # arms of negligible stiffness: a purely elastic model

@@ -177,14 +177,14 @@ def default_run(scene: Scene, root: Path, *, ranks: int, progress: bool
 def calibrated_release(scene: Scene, folder: Path, reference: Reference):
     """(calibrated Model, per-connector strain range of its release) as the gravity stage has them.
 
-    The range is :func:`~pipelines.gravity.release_strain_range` of the stage's own
+    The range is :func:`~particle.stability.release_strain_range` of the stage's own
     static sag (``gravity.h5``), so steps chosen for it are the ones ``make demo`` uses;
     without that file (the gravity stage failed) the default range +-0.5, with a warning.
     """
     from calibration import read_params
-    from particle.integrator import DEFAULT_STRAIN_RANGE
     from particle.model import build_model
-    from pipelines.gravity import read_gravity, release_strain_range
+    from particle.stability import DEFAULT_STRAIN_RANGE, release_strain_range
+    from pipelines.gravity import read_gravity
 
     model = build_model(reference.problem, scene.material.density,
                         read_params(folder / PARAMS).connectors["calibrated"])
@@ -206,7 +206,7 @@ def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[d
     time-discretisation error the step controls) against the smallest step's run.
     """
     from particle.experiments import gravity_dynamic
-    from particle.integrator import critical_time_step
+    from particle.stability import critical_time_step
 
     reference = read_reference(folder / REFERENCE)
     model, release = calibrated_release(scene, folder, reference)

@@ -71,7 +71,7 @@ def _mesh_model(scene: Scene, length: float | None):
 def mesh_rows(name: str, model, tool: int, tracked: int, gravity: np.ndarray) -> list[dict]:
     """Every variant's row on one model (see the module docstring)."""
     from pipelines.bench import particle_engine as pb
-    from particle.integrator import DEFAULT_STRAIN_RANGE, critical_time_step
+    from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
     from particle.mass_scaling import added_mass_fraction, scaled_inertia
     from particle.model import spatial_order
 

@@ -2,9 +2,10 @@
 
 ``study(scene, cache_folder, quick)`` returns the bench.json key ``volume_haptic``:
 for the scene's liver (its mesh and fixed base) and the large liver of the
-particle-engine item (``pipelines.bench.particle_engine.LARGE_MESH_LENGTH``, ~12k connectors), the
-latency of :meth:`particle.haptics.HapticSession.step` (1 ms per call, median and
-p99 over the calls, :func:`pipelines.bench.particle_engine.haptic_latency`; and the CPU time per call,
+particle-engine item (``pipelines.bench.particle_engine.LARGE_MESH_LENGTH``, ~12k
+connectors), the latency of :meth:`particle.haptics.HapticSession.step` (1 ms per
+call, median and p99 over the calls,
+:func:`pipelines.bench.particle_engine.haptic_latency`; and the CPU time per call,
 :func:`cpu_per_call`, which a busy machine disturbs less) with the uniform
 benchmark springs alone and with the volume term added at ``kv`` = the spring
 network's bulk modulus (:func:`particle.volume.network_bulk_modulus`, the paper
@@ -45,7 +46,7 @@ def cpu_per_call(model, node: int, normal: np.ndarray, calls: int) -> dict[str, 
 
     from pipelines.bench import particle_engine as pb
     from particle.haptics import HapticSession
-    from particle.integrator import critical_time_step
+    from particle.stability import critical_time_step
 
     session = HapticSession(model, pb.DT_SAFETY * critical_time_step(model))
     start = model.rest_positions[node]
