@@ -158,3 +158,22 @@ def test_haptic_scale_rows_state_each_variants_substeps_and_error():
         assert rows[f"mass-scaled {k}, renumbered"]["error_drag"] == pytest.approx(
             row["error_drag"], rel=1e-6)
     assert rows["mass-scaled 1"]["added_mass"] > rows["mass-scaled 2"]["added_mass"]
+
+
+def test_cold_times_keep_the_earlier_cold_time_of_an_item_that_reused_work():
+    import logging
+
+    from pipelines.bench.driver import ReuseCounter, cold_times
+
+    counter = ReuseCounter()
+    logger = logging.getLogger("pipelines.stages")
+    logger.addHandler(counter)
+    try:
+        logger.warning("reference up to date, skipped (inputs and outputs match x)")
+        logger.warning("reference running: no cache record")
+    finally:
+        logger.removeHandler(counter)
+    assert counter.hits == 1
+    previous = {"item_s_cold": {"a": 100.0}}
+    assert cold_times({"a": 2.0, "b": 30.0}, {"a"}, previous) == {"a": 100.0, "b": 30.0}
+    assert cold_times({"a": 2.0}, {"a"}, {}) == {"a": None}  # reused, cold time never measured

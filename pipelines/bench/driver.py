@@ -29,6 +29,12 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
 ``--only ITEM[,ITEM]`` runs only those items and keeps the other keys of the
 ``bench.json`` already in the folder (each item records its own time in ``item_s``).
 
+Cold times: an item that reused nothing computed earlier (no cached pipeline stage,
+FE study or reference timing, see :data:`REUSE_MESSAGES`) records its time in
+``item_s_cold`` too; one that reused something keeps the cold time of the run that
+computed what it reused (the earlier ``bench.json``'s, None if unknown). ``wall_s_cold``
+is their sum: what ``make bench`` takes with nothing cached, the issue's measure.
+
 Fixed keys of ``bench.json``: ``kernel {connectors, updates_per_s, numpy_ratio}``,
 ``gravity_dynamic {particle_s, fe_s, speedup, error}``, ``calibration {wall_s,
 evaluations}``, ``reference {wall_s_1rank, wall_s_2ranks}``, ``pareto [{config,
@@ -48,6 +54,7 @@ import json
 import logging
 import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -88,6 +95,10 @@ STUDIES: dict[str, str] = {
     "calibration methods": "pipelines.bench.calibration_methods:study",
     "volume term": "pipelines.bench.volume:study",
 }
+# log messages (regular expressions) by which a cache hit announces itself: an item that logs
+# one reused earlier work, so its time is not a cold time
+REUSE_MESSAGES = re.compile(r"bench: reusing |up to date, skipped|already holds .* not "
+                            r"recomputed|adopting the existing|resuming from checkpoint")
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
 
@@ -356,6 +367,7 @@ def reference_timings(scene: Scene, default_folder: Path, cache: Path,
         old = json.loads(path.read_text())
         if old.get("key") == key:
             record = old
+            log.info("bench: reusing %s (same code and scene)", path)
     # the default run's reference is up to date with this code (its pipeline just checked):
     # its own timing replaces an older one with the same rank count
     default_reference = read_reference(default_folder / REFERENCE)
@@ -463,6 +475,27 @@ def machine() -> dict[str, Any]:
             "git_commit": git_commit(ROOT)}
 
 
+class ReuseCounter(logging.Handler):
+    """Counts the log records of the project that announce a cache hit (:data:`REUSE_MESSAGES`)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.hits = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if REUSE_MESSAGES.search(record.getMessage()):
+            self.hits += 1
+
+
+def cold_times(item_s: dict[str, float], reused: set[str], previous: dict[str, Any]
+               ) -> dict[str, float | None]:
+    """Each item's cold time [s]: its own ``item_s`` when it reused nothing, else the earlier
+    run's ``item_s_cold`` (``previous``, a bench.json or {}), None if that run had none."""
+    earlier = previous.get("item_s_cold", {})
+    return {name: (earlier.get(name) if name in reused else seconds)
+            for name, seconds in item_s.items()}
+
+
 def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
               ranks: int = 2, progress: bool = True, only: tuple[str, ...] = ()
               ) -> dict[str, Any]:
@@ -481,6 +514,8 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     runs = cache / "runs"
     bench: dict[str, Any] = {"machine": machine(), "scene": scene.name, "quick": quick}
     state: dict[str, Any] = {}
+    previous = json.loads((out / "bench.json").read_text()) if (
+        out / "bench.json").is_file() else {}
 
     def default_item():
         state["default"], state["row"] = default_run(scene, runs, ranks=ranks,
@@ -529,21 +564,34 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
             raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
                                 f"{[name for name, _ in items]}")
         # the other keys come from the last full run in out/ (each item records its own time)
-        previous = json.loads((out / "bench.json").read_text()) if (
-            out / "bench.json").is_file() else {}
         bench = {**previous, "machine": bench["machine"], "scene": scene.name, "quick": quick}
         keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
         items = [(name, fn) for name, fn in items if name in set(only) | keep]
     bench["item_s"] = dict(bench.get("item_s", {}))
+    reused: set[str] = set()
     start = time.perf_counter()
     for k, (name, fn) in enumerate(items, 1):
         log.info("bench [%d/%d] %s ...", k, len(items), name)
+        counter = ReuseCounter()
+        logging.getLogger().addHandler(counter)
         t0 = time.perf_counter()
-        fn()
+        try:
+            fn()
+        finally:
+            logging.getLogger().removeHandler(counter)
         bench["item_s"][name] = time.perf_counter() - t0
-        log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, bench["item_s"][name])
+        if counter.hits:
+            reused.add(name)
+        log.info("bench [%d/%d] %s done in %.1f s%s", k, len(items), name,
+                 bench["item_s"][name], " (reused earlier work)" if counter.hits else "")
     if not only:  # a partial run keeps the full run's wall time
         bench["wall_s"] = time.perf_counter() - start
+    bench["item_s_cold"] = {**previous.get("item_s_cold", {}),
+                            **cold_times({n: bench["item_s"][n] for n, _ in items}, reused,
+                                         previous)}
+    cold = list(bench["item_s_cold"].values())
+    bench["wall_s_cold"] = (None if None in cold or set(bench["item_s_cold"]) != set(
+        bench["item_s"]) else float(sum(cold)))
     bench["machine"]["load_average_end"] = list(os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
     check_bench(bench)

@@ -214,7 +214,11 @@ def _duration(b: dict) -> str:
     if "wall_s" not in b:
         return ""
     items = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in b["item_s"].items())
-    return f"This run took {b['wall_s'] / 60:.1f} min ({items} min)."
+    text = f"This run took {b['wall_s'] / 60:.1f} min ({items} min)."
+    if b.get("wall_s_cold") is not None:  # runs written before it was recorded have none
+        text += (f" With nothing cached (each item's time when it last reused nothing) it "
+                 f"takes {b['wall_s_cold'] / 60:.1f} min.")
+    return text
 
 
 def goals_markdown(b: dict[str, Any]) -> str:
