@@ -1,12 +1,33 @@
-"""Explicit time integration: position Verlet and its divergence guard.
+"""Explicit time integration: position Verlet with the paper's Maxwell-arm recursion.
 
 :class:`VerletIntegrator` advances a :class:`~particle.model.State` in place
 with the compiled loop :func:`particle.kernels.run_verlet`. Which force terms
 the loop contains is decided once per run (:class:`Terms`): gravity, Maxwell
 arms, nonlinear springs and damping are compiled out when a run does not need
 them; ``skip=False`` keeps every term (with zero values) so benchmarks and tests
-can run the same experiment both ways. The stable step and the strain ranges it
-holds on are :mod:`particle.stability`'s.
+can run the same experiment both ways.
+
+Each step evaluates, in this order: connector elongations, the arm recursion
+``F^t = r F^{t-1} + c (dx^t - dx^{t-1})`` with the paper's coefficients
+(:meth:`ConnectorParams.arm_recursion`), spring + arm tension, gravity ``m g``,
+and optional mass-proportional damping ``-gamma m v`` with the backward-difference
+velocity. What stops a run is :mod:`particle.guard`'s; the stable step and the
+strain ranges it holds on are :mod:`particle.stability`'s.
+
+Threads: a :class:`Run` with ``threads`` = T > 1 (opt-in, for large models on a
+dedicated core set) splits each step's connector pass into T contiguous connector
+blocks, each accumulating into its own force buffer (T, N, 3), preallocated by
+:func:`thread_blocks`, and the reduction of the buffers with the position update
+into T blocks of nodes (:func:`particle.kernels.parallel_forces`,
+:func:`~particle.kernels.parallel_advance`): two numba parallel regions per step,
+with numba's thread count set to T for the call and restored after. The same
+physics and checks as the serial loop (T = 1, the default and the reference); the
+forces differ from it by the summation order only (round-off). What the threads
+exchange every step (positions, force buffer rows) grows with the particles that
+two connector blocks share: few when particle ids follow space
+(:meth:`Model.renumbered` with :func:`~particle.model.spatial_order`), most of them
+in a mesh generator's order (the 12k-connector liver: 116 vs 634 of 2033 particles
+for T = 2; measured figures in :mod:`particle.kernels`).
 """
 
 from __future__ import annotations
@@ -19,21 +40,16 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from forcecal.errors import ParameterError, StabilityError
+from forcecal.errors import ParameterError
 from particle import kernels
 from particle.model import ConnectorParams, Model, State, StrainBounds, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.stability import strain_range_for_release  # noqa: F401  (calibration/ imports it here)
-from particle.statics import check_stiffness, check_volumes
-from particle.volume import (node_volume_stiffness, signed_volumes, tet_name, volume_energy,
-                             volume_ratio_range)
+from particle.guard import check_state, energy_bound, exit_error
+from particle.volume import volume_ratio_range
 
 log = logging.getLogger(__name__)
-
-# the kinetic energy may exceed the work the loads can do by this factor before a run is
-# declared divergent: a real run stays far below, an unstable one grows exponentially
-ENERGY_MARGIN = 100.0
 
 
 def check_threads(threads: int) -> int:
@@ -65,6 +81,20 @@ def thread_blocks(model: Model, active: np.ndarray, threads: int) -> tuple:
 
     return (np.zeros((threads, model.n_particles, 3)), starts(model.n_connectors),
             starts(len(active)), np.empty(threads, np.int64), np.empty(threads))
+
+
+def recording(model: Model, nodes: np.ndarray | None, steps: np.ndarray | None,
+              n_steps: int) -> tuple:
+    """(nodes (R,), steps (S,), buffer (S, R, 3) [m]) of a run that records the positions of
+    particles ``nodes`` after each of ``steps`` (increasing, in 0..``n_steps``); three Nones
+    without ``nodes``."""
+    if nodes is None:
+        return None, None, None
+    nodes = model.check_nodes(nodes, "record_nodes", movable=False)
+    steps = np.asarray(steps, dtype=np.int64)
+    if np.any(steps < 0) or np.any(steps > n_steps) or np.any(np.diff(steps) < 0):
+        raise ParameterError(f"record_steps must be increasing within 0..{n_steps}")
+    return nodes, steps, np.empty((len(steps), len(nodes), 3))
 
 
 @dataclass(frozen=True)
@@ -115,75 +145,20 @@ class Prescribed:
         return cls(nodes, [0.0], np.asarray(positions, dtype=np.float64)[None])
 
 
-def energy_bound(model: Model, state: State, dt: float, n_steps: int,
-                 gravity: np.ndarray | None, prescribed: Prescribed | None) -> float:
-    """Kinetic energy [J] above which a run is declared divergent.
-
-    ``ENERGY_MARGIN`` x (present kinetic + elastic energy + the work gravity can
-    do in the run (falling the model's size, or freely for the run's duration)
-    + the work prescribed motion can do (moving each prescribed node its
-    largest keyframe distance against its connectors, plus dragging the whole
-    mass at the keyframes' fastest speed)), plus a floor for runs at rest. The
-    elastic energy is ``K(eps) dx^2/2`` at the state's strains; a state where
-    a spring's K(eps) <= 0 raises :class:`ParameterError`.
-    """
-    m = model.masses
-    p = model.params
-    size = float(np.linalg.norm(np.ptp(model.rest_positions, axis=0)))
-    total_mass = float(m.sum())
-    duration = n_steps * dt
-    v_prev = (state.x - state.x_prev) / (state.dt or dt)
-    energy = 0.5 * float(np.sum(m[:, None] * v_prev ** 2))
-    lengths = np.linalg.norm(state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]], axis=1)
-    dx = lengths - model.rest_lengths
-    strain = np.clip(dx / model.rest_lengths, -0.99, None)
-    # prepare() refused springs that go soft in the run's strain range; a state outside it
-    # (an unmonitored run) where one does is refused too, not bounded with |K|
-    check_stiffness(model, strain, f"explicit run from t = {state.t:.6g} s")
-    energy += float(np.sum(0.5 * p.stiffness(strain) * dx ** 2))
-    if p.kv is not None:
-        check_volumes(model, state.x, f"explicit run from t = {state.t:.6g} s")
-        energy += volume_energy(state.x, model.tets, model.rest_volumes, p.kv)
-    energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
-    if gravity is not None:
-        g = float(np.linalg.norm(gravity))
-        energy += total_mass * g * (size + 0.5 * g * duration ** 2)
-    if prescribed is not None:
-        stiff = np.bincount(model.edges.ravel(), np.repeat(p.K0 + p.k1 + p.k2, 2),
-                            model.n_particles)
-        if p.kv is not None:
-            stiff = stiff + node_volume_stiffness(model)
-        stiff = stiff[prescribed.nodes]
-        reach = np.linalg.norm(prescribed.positions - state.x[prescribed.nodes][None], axis=2)
-        energy += float(np.sum(stiff * (reach.max(axis=0) + size) ** 2))
-        if len(prescribed.times) > 1:
-            speed = (np.linalg.norm(np.diff(prescribed.positions, axis=0), axis=2)
-                     / np.diff(prescribed.times)[:, None]).max()
-            energy += total_mass * float(speed) ** 2
-    floor = 0.5 * total_mass * (1e-6 * size / dt) ** 2
-    return ENERGY_MARGIN * energy + floor
-
-
 class VerletIntegrator:
-    """Position (Stoermer) Verlet with the paper's Maxwell-arm recursion.
+    """Position (Stoermer) Verlet: ``x^{t+dt} = 2 x^t - x^{t-dt} + dt^2 f(x^t)/m``.
 
-    ``x^{t+dt} = 2 x^t - x^{t-dt} + dt^2 f(x^t)/m`` on free, non-prescribed
-    particles, second order. Start-up from rest: a State that has never been
+    On free, non-prescribed particles, second order. Start-up from rest: a State that has never been
     stepped (``state.dt is None``, ``x_prev = x``, v = 0) takes
     ``x^{dt} = x^0 + dt^2/2 a^0`` (the Taylor step) instead of the plain
     formula's ``x^0 + dt^2 a^0``. If the step changes between runs, ``x_prev``
     is rescaled to keep the velocity ``(x - x_prev)/dt``.
 
-    Each step evaluates, in this order: connector elongations, the arm
-    recursion ``F^t = r F^{t-1} + c (dx^t - dx^{t-1})`` with the paper's
-    coefficients (:meth:`ConnectorParams.arm_recursion`), spring + arm tension,
-    gravity ``m g``, and optional mass-proportional damping ``-gamma m v`` with
-    the backward-difference velocity.
-
-    A step is accepted only below :func:`critical_time_step` for ``strain_range``,
-    and that bound holds only while the strains stay in the range: every run
-    with a checked step verifies it, at each divergence check, and stops with
-    :class:`StabilityError` naming the first connector outside it.
+    Each step's terms: module docstring. A step is accepted only below
+    :func:`critical_time_step` for ``strain_range``, and that bound holds only
+    while the strains stay in the range: every run with a checked step verifies
+    it, at each divergence check, and stops with :class:`StabilityError` naming
+    the first connector outside it.
 
     Args:
         damping: gamma [1/s], global mass-proportional viscous damping (0 = off).
@@ -283,19 +258,12 @@ class VerletIntegrator:
         run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, threads=threads,
                            inertia=inertia, _check_dt=_check_dt,
                            prescribed_nodes=None if prescribed is None else prescribed.nodes)
-        record = None
-        if record_nodes is not None:
-            record_nodes = model.check_nodes(record_nodes, "record_nodes", movable=False)
-            record_steps = np.asarray(record_steps, dtype=np.int64)
-            if np.any(record_steps < 0) or np.any(record_steps > n_steps) or np.any(
-                    np.diff(record_steps) < 0):
-                raise ParameterError(f"record_steps must be increasing within 0..{n_steps}")
-            record = np.empty((len(record_steps), len(record_nodes), 3))
+        record = recording(model, record_nodes, record_steps, n_steps)
         keyframes = None if prescribed is None else (prescribed.times, prescribed.positions)
-        run.check_state(state)
+        check_state(model, state)
         bound = energy_bound(model, state, run.dt, n_steps, run.gravity, prescribed)
-        run(state, n_steps, keyframes, bound, (record_nodes, record_steps, record))
-        return record
+        run(state, n_steps, keyframes, bound, record)
+        return record[2]
 
 
 class Run:
@@ -306,20 +274,7 @@ class Run:
     kernel dispatch (the haptic loop relies on this). ``monitored`` (lo (E,),
     hi (E,)) is the strain range the step was verified for (None: not checked).
 
-    ``threads`` = T > 1 (opt-in, for large models on a dedicated core set):
-    each step's connector pass is split into T contiguous connector blocks,
-    each accumulating into its own force buffer (T, N, 3), preallocated here,
-    and the reduction of the buffers with the position update is split into T
-    blocks of nodes (:func:`particle.kernels.parallel_forces`,
-    :func:`~particle.kernels.parallel_advance`): two numba parallel regions per
-    step, with numba's thread count set to T for the call and restored after.
-    The same physics and checks as the serial loop (T = 1, the default and the
-    reference); the forces differ from it by the summation order only (round-off).
-    What the threads exchange every step (positions, force buffer rows) grows
-    with the particles that two connector blocks share: few when particle ids
-    follow space (:meth:`Model.renumbered` with :func:`~particle.model.spatial_order`),
-    most of them in a mesh generator's order (the 12k-connector liver: 116 vs 634
-    of 2033 particles for T = 2; measured figures in :mod:`particle.kernels`).
+    ``threads`` = T > 1 splits each step over T threads (module docstring).
     """
 
     def __init__(self, integrator: VerletIntegrator, model: Model, dt: float,
@@ -358,14 +313,8 @@ class Run:
                                    tuple(b * model.rest_lengths for b in monitored))
         self._edges = kernels.index_view(model.edges)
         self._volume = None
-        if p.kv is not None:  # volumes outside (v_lo, v_hi] stop the run (v_lo >= 0: inverted)
-            if monitored is None:
-                ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-            else:
-                ratio = volume_ratio_range(model, *monitored)
-            self.volume_ratio_range = ratio
-            self._volume = (kernels.index_view(model.tets), model.rest_volumes, p.kv,
-                            ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes)
+        if p.kv is not None:
+            self.volume_ratio_range, self._volume = volume_limits(model, monitored)
         self._active = kernels.index_view(self.active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
@@ -373,9 +322,6 @@ class Run:
         self._blocks = None if self.threads == 1 else thread_blocks(model, self.active,
                                                                      self.threads)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._state_shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
-                              ("arm_force", (model.n_connectors, 2)),
-                              ("dx_prev", (model.n_connectors,)))
 
     def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
                  record: tuple = (None, None, None), probe: int | None = None
@@ -388,20 +334,7 @@ class Run:
         leaves the monitored strain range (the state is then invalid).
         """
         model, dt = self.model, self.dt
-        if n_steps < 0:
-            raise ParameterError(f"n_steps = {n_steps} must be >= 0")
-        self.check_state(state)
-        if keyframes is None:
-            keyframes = self._no_keyframes
-        if keyframes[1].shape[1:] != (len(self.prescribed), 3):
-            raise ParameterError(f"keyframe positions of shape {keyframes[1].shape} do not match "
-                                 f"the {len(self.prescribed)} prescribed particles")
-        if state.dt is not None and state.dt != dt:
-            state.x_prev[:] = state.x - (state.x - state.x_prev) * (dt / state.dt)
-            if self.arms and n_steps:
-                self._close_arm_step(state)
-        if not self.arms:
-            state.arm_force[:] = 0.0
+        keyframes = start_call(self, state, n_steps, keyframes)
         out = node_edges = node_tets = None
         if probe is not None:
             (node_edges, node_tets), out = self._incident(probe), np.empty(3)
@@ -420,104 +353,18 @@ class Run:
             if pool is not None:
                 numba.set_num_threads(pool)
         code, step, node = status.tolist()
-        if code == kernels.VOLUME:
-            self._raise_volume_exit(state, node, step)
-        if code == kernels.STRAIN:
-            self._raise_strain_exit(state, node, state.t + (step - 1) * dt)
         if code != kernels.OK:
-            what = ("has a non-finite position" if code == kernels.NONFINITE else
-                    f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
-            raise StabilityError(
-                f"explicit run diverged at step {step} (t = {state.t + step * dt:.6g} s): "
-                f"particle {node} {what}; dt = {dt:.4g} s, stability limit "
-                f"{self.integrator.critical_time_step(self.stability_model):.4g} s")
+            raise exit_error(self, state, code, step, node, energy_bound)
         state.t += n_steps * dt
         if n_steps:
             state.dt = dt
         return out
 
-    def _raise_volume_exit(self, state: State, t: int, step: int) -> None:
-        """StabilityError for tet ``t`` found outside its volume range at step ``step`` (the
-        kernel stopped right after advancing the free particles: their positions then are
-        the state's ``x_prev``, the prescribed ones' still ``x``)."""
-        model, dt = self.model, self.dt
-        x = state.x_prev.copy()
-        x[self.prescribed] = state.x[self.prescribed]
-        ratio = float(signed_volumes(x, model.tets[t:t + 1])[0] / model.rest_volumes[t])
-        where = (f"at step {step} (t = {state.t + step * dt:.6g} s) of the explicit run; dt = "
-                 f"{dt:.4g} s, stability limit {self.integrator.critical_time_step(model):.4g} s")
-        if not ratio > 0.0:
-            raise StabilityError(f"{tet_name(t, model.tets)} inverted (volume ratio V/V0 = "
-                                 f"{ratio:.3g} <= 0) {where}; the run stopped (the volume term "
-                                 "is not meant for inverted tets)")
-        lo, hi = self.volume_ratio_range
-        raise StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
-                             f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
-                             "was verified stable for; the run stopped rather than continue with "
-                             "an unverified step (widen the strain range: it sets this one)")
-
-    def _raise_strain_exit(self, state: State, e: int, t: float) -> None:
-        """StabilityError for connector ``e`` found outside its monitored range at time ``t``."""
-        lo, hi = self.monitored
-        i, j = self.model.edges[e]
-        strain = state.dx_prev[e] / self.model.rest_lengths[e]
-        raise StabilityError(
-            f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
-            f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {self.dt:.4g} s was "
-            f"verified stable for (limit "
-            f"{self.integrator.critical_time_step(self.stability_model):.4g} "
-            "s); the run stopped rather than continue with an unverified step. Widen the "
-            "range (in a scene: a larger particle.strain_margin) or use a smaller explicit "
-            "step verified for a wider range (particle.dt)")
-
-    def _close_arm_step(self, state: State) -> None:
-        """Let this run's first arm update close the previous run's last step exactly.
-
-        The loop updates the arms at the start of each step for the step before
-        it, which had the state's old length ``state.dt``: that update is done
-        here with ``state.dt``'s coefficients, and stored so that the loop's
-        first update (with this run's r, c) reproduces it: ``dx_prev = dx``,
-        ``arm_force = F / r``.
-        """
-        model = self.model
-        r_old, c_old = model.params.arm_recursion(state.dt)
-        d = state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]]
-        dx = np.sqrt(np.einsum("ij,ij->i", d, d)) - model.rest_lengths
-        force = r_old * state.arm_force + c_old * (dx - state.dx_prev)[:, None]
-        state.dx_prev[:] = dx
-        state.arm_force[:] = force / self.arm_r
-
-    def check_state(self, state: State) -> None:
-        """Raise :class:`ParameterError` unless ``state`` fits this run's model and kernels.
-
-        Its arrays must have the model's shapes and be C-contiguous, writeable
-        float64 (another dtype would be truncated to it or compile another kernel
-        specialisation), and its time finite.
-        """
-        for name, shape in self._state_shapes:
-            arr = getattr(state, name)
-            if not (isinstance(arr, np.ndarray) and arr.shape == shape
-                    and arr.dtype == np.float64 and arr.flags.carray):
-                what = (f"{arr.dtype} array of shape {arr.shape}" if isinstance(arr, np.ndarray)
-                        else type(arr).__name__)
-                raise ParameterError(
-                    f"the state's {name} ({what}) does not belong to this model of "
-                    f"{self.model.n_particles} particles and {self.model.n_connectors} connectors:"
-                    f" expected a writeable, C-contiguous float64 array of shape {shape}")
-        if not math.isfinite(state.t):
-            raise ParameterError(f"the state's time t = {state.t} s is not finite")
-
     def _incident(self, node: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """The connectors and tets (None without the volume term) touching particle ``node``
-        (index views for the kernels; cached)."""
+        """:func:`incident` of ``node`` (cached)."""
         found = self._node_edges.get(node)
         if found is None:
-            node = int(self.model.check_nodes([node], "force_on", movable=False)[0])
-            ptr = self.model.incidence_ptr
-            edges = kernels.index_view(self.model.incidence_edge[ptr[node]:ptr[node + 1]])
-            tets = (None if self._volume is None else kernels.index_view(
-                np.nonzero(np.any(self.model.tets == node, axis=1))[0]))
-            found = self._node_edges[node] = (edges, tets)
+            found = self._node_edges[node] = incident(self.model, node, self._volume is not None)
         return found
 
     def force_on(self, state: State, node: int) -> np.ndarray:
@@ -534,3 +381,67 @@ class Run:
         if self._volume is not None:
             kernels.node_volume_force(state.x, node, tets, *self._volume, out)
         return out
+
+
+def close_arm_step(model: Model, state: State, arm_r: np.ndarray) -> None:
+    """Let this run's first arm update close the previous run's last step exactly.
+
+    The loop updates the arms at the start of each step for the step before
+    it, which had the state's old length ``state.dt``: that update is done
+    here with ``state.dt``'s coefficients, and stored so that the loop's
+    first update (with this run's r, c) reproduces it: ``dx_prev = dx``,
+    ``arm_force = F / r``.
+    """
+    r_old, c_old = model.params.arm_recursion(state.dt)
+    d = state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]]
+    dx = np.sqrt(np.einsum("ij,ij->i", d, d)) - model.rest_lengths
+    force = r_old * state.arm_force + c_old * (dx - state.dx_prev)[:, None]
+    state.dx_prev[:] = dx
+    state.arm_force[:] = force / arm_r
+
+
+def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
+                  ) -> tuple[tuple[np.ndarray, np.ndarray], tuple]:
+    """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments) of a run:
+    volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is the one of
+    the ``monitored`` strain range (without one: any positive volume)."""
+    if monitored is None:
+        ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
+    else:
+        ratio = volume_ratio_range(model, *monitored)
+    return ratio, (kernels.index_view(model.tets), model.rest_volumes, model.params.kv,
+                   ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes)
+
+
+def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) -> tuple:
+    """Check a call of ``run`` and bring ``state`` to its step; the keyframes to pass on.
+
+    A state last advanced with another step keeps its velocity (``x_prev`` rescaled)
+    and its arms' last update (:func:`close_arm_step`); a run without arms holds
+    their forces at zero.
+    """
+    if n_steps < 0:
+        raise ParameterError(f"n_steps = {n_steps} must be >= 0")
+    check_state(run.model, state)
+    if keyframes is None:
+        keyframes = run._no_keyframes
+    if keyframes[1].shape[1:] != (len(run.prescribed), 3):
+        raise ParameterError(f"keyframe positions of shape {keyframes[1].shape} do not match "
+                             f"the {len(run.prescribed)} prescribed particles")
+    if state.dt is not None and state.dt != run.dt:
+        state.x_prev[:] = state.x - (state.x - state.x_prev) * (run.dt / state.dt)
+        if run.arms and n_steps:
+            close_arm_step(run.model, state, run.arm_r)
+    if not run.arms:
+        state.arm_force[:] = 0.0
+    return keyframes
+
+
+def incident(model: Model, node: int, tets: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The connectors and (with ``tets``, else None) tets touching particle ``node``, as
+    index views for the kernels."""
+    node = int(model.check_nodes([node], "force_on", movable=False)[0])
+    ptr = model.incidence_ptr
+    edges = kernels.index_view(model.incidence_edge[ptr[node]:ptr[node + 1]])
+    return edges, (kernels.index_view(np.nonzero(np.any(model.tets == node, axis=1))[0])
+                   if tets else None)

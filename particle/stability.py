@@ -295,7 +295,7 @@ def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- empirical limit
 # A run of ``steps`` steps from a slightly perturbed state is *blown up* when the
 # integrator's divergence guard fires (a non-finite position, or kinetic energy beyond
-# :func:`particle.integrator.energy_bound`, 100 x the energy the start state and the loads
+# :func:`particle.guard.energy_bound`, 100 x the energy the start state and the loads
 # hold). Just above the true limit the unstable mode grows by ``1 + sqrt(8 delta)`` per step
 # (central difference with ``omega dt = 2 (1 + delta)``), so 3000 steps amplify the energy
 # 100 x as soon as ``delta`` exceeds ~1e-7: the bisection's tolerance, not the run length,
