@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from forcecal.mesh import TetMesh, box_mesh, fixed_nodes, generate_liver
-from particle.model import Model, build_model, viscoelastic_params
+from particle.model import Model, build_model
+from particle.params import viscoelastic_params
 
 K0 = 50.0  # N/m, the particle tests' connector stiffness
 DENSITY = 1060.0  # kg/m^3

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from forcecal.mesh import box_mesh
-from particle.model import (ConnectorParams, Model, ModelBuilder, State, build_model,
-                            viscoelastic_params)
+from particle.model import Model, ModelBuilder, State, build_model
+from particle.params import ConnectorParams, viscoelastic_params
 
 
 def two_particle_model(rest_length: float = 0.02, mass: float = 0.01,
