@@ -87,7 +87,7 @@ class _PointEvaluator:
         self.footprints = checked_footprints(model, self.nodes, footprints)
         self.normals, self.depths = checked_normals_and_depths(self.nodes, normals, depths)
         if strain_range is None:
-            reach = float(depths.max() / model.incident_min_length(self.nodes).min())
+            reach = float(self.depths.max() / model.incident_min_length(self.nodes).min())
             strain_range = (-min(reach, 0.9), reach)
         self.strain_range = strain_range
         self.rtol = rtol
