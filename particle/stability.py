@@ -139,9 +139,9 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     ``lambda_max(A + B) <= lambda_max(A) + lambda_max(B)``: Irons' element bound
     of the volume term (:func:`particle.volume.volume_frequency_bound`, valid
     while the tets' volume ratios stay in :func:`particle.volume.volume_ratio_range`,
-    which the runs verify) is added to omega_max^2. (A first version put each
-    tet's bound on its six edges of the Laplacian: 2x more pessimistic in
-    omega^2 on a Kuhn box.)
+    which the runs verify) is added to omega_max^2 (putting each tet's bound on its
+    six edges of the Laplacian instead is 2x more pessimistic in omega^2 on a Kuhn
+    box).
 
     Raises:
         ParameterError: the parameters are non-physical on ``strain_range``

@@ -33,7 +33,7 @@ Cold times: an item that reused nothing computed earlier (no cached pipeline sta
 FE study or reference timing, see :data:`REUSE_MESSAGES`) records its time in
 ``item_s_cold`` too; one that reused something keeps the cold time of the run that
 computed what it reused (the earlier ``bench.json``'s, None if unknown). ``wall_s_cold``
-is their sum: what ``make bench`` takes with nothing cached, the issue's measure.
+is their sum: what ``make bench`` takes with nothing cached.
 
 Fixed keys of ``bench.json``: ``kernel {connectors, updates_per_s, numpy_ratio}``,
 ``gravity_dynamic {particle_s, fe_s, speedup, error}``, ``calibration {wall_s,
@@ -103,7 +103,7 @@ REUSE_MESSAGES = re.compile(r"bench: reusing |up to date, skipped|already holds 
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
 
 
-# the fixed keys of bench.json (issue: benchmarks), checked before it is written
+# the fixed keys of bench.json, checked before it is written
 BENCH_KEYS = {"kernel": ("connectors", "updates_per_s", "numpy_ratio"),
               "gravity_dynamic": ("particle_s", "fe_s", "speedup", "error"),
               "calibration": ("wall_s", "evaluations"),

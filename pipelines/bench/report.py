@@ -405,7 +405,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
     lines += _table(["case", "connectors", "estimate [s]", "empirical [s]", "ratio"],
                     [[s["case"], s["connectors"], s["estimate_s"], s["empirical_s"], s["ratio"]]
                      for s in b["stability"]])
-    if "scale" in b:  # the scale study (issue 16)
+    if "scale" in b:  # the scale study
         from pipelines.bench.scale import scale_section
         lines += scale_section(b)
     lines += ["", "## Reproduce", "", "```bash", f"{cmd}   # -> {path.parent}/", "```", ""]

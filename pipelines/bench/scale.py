@@ -1,4 +1,4 @@
-"""Scale study of ``make bench`` (issue 16): what each stage costs as the organ mesh grows.
+"""Scale study of ``make bench``: what each stage costs as the organ mesh grows.
 
 The generated liver at several characteristic lengths (about 300, 1k, 3k and
 10k vertices; ``--quick``: smaller), each size measured in a child process of
