@@ -76,7 +76,7 @@ from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS, mpi
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SEED_FILES = (REFERENCE, PARAMS, "gravity.h5", "report.json")
 DT_FRACTIONS = {False: (0.1, 0.25, 0.5, 0.75, 1.0), True: (0.25, 0.5, 1.0)}
 GOALS = {"numpy_ratio": 20.0, "gravity_3s_s": 0.05, "haptic_us": 100.0, "calibration_s": 300.0,

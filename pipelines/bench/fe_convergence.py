@@ -34,7 +34,7 @@ from forcecal.schedules import indentation_depths
 
 log = logging.getLogger("pipelines.bench.fe_convergence")  # also when run as __main__
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
 LEVELS = (0, 1, 2)  # the default liver's TH: 5k, 36k, 261k dofs
 

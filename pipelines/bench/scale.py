@@ -273,7 +273,7 @@ def _child(args: list[str], cwd: Path, mpi_ranks: int = 0) -> dict[str, Any]:
 
 def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     """The ``scale`` key of bench.json: one row per size, growth exponents, 1 vs 2 ranks."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     scene_path = str(scene.path)
     rows, failed, ranks = [], [], []
     load = [list(os.getloadavg())]
