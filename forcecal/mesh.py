@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import scipy.sparse as sp
@@ -262,6 +264,27 @@ def read_mesh(path: str | Path, scale: float = 1.0) -> TetMesh:
         raise MeshError(f"{path}: {exc}") from None
 
 
+@contextmanager
+def gmsh_session(name: str) -> Iterator:
+    """The ``gmsh`` module, initialised with a model ``name``, for one meshing job; finalised
+    on exit.
+
+    One thread and a fixed random seed, terminal output off: the same geometry and
+    sizes give the same mesh, bit for bit (the generated meshes are content-hashed).
+    """
+    import gmsh
+
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", 1)
+        gmsh.model.add(name)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
 def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
     """Deterministic liver-like solid: two fused ellipsoidal lobes, flat bottom at z = -0.025 m.
 
@@ -271,16 +294,9 @@ def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
     0.065 m, about 0.55 L. gmsh runs single-threaded with a fixed seed, so the
     same length gives the same arrays, bit for bit.
     """
-    import gmsh
-
     if characteristic_length <= 0:
         raise MeshError(f"characteristic_length must be > 0, got {characteristic_length}")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        gmsh.model.add("forcecal_liver")
+    with gmsh_session("forcecal_liver") as gmsh:
         occ = gmsh.model.occ
         right = occ.addSphere(0.03, 0.0, 0.0, 1.0)
         occ.dilate([(3, right)], 0.03, 0.0, 0.0, 0.075, 0.06, 0.04)
@@ -301,8 +317,6 @@ def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
         node_tags, coords, _ = gmsh.model.mesh.getNodes()
         _, _, elem_nodes = gmsh.model.mesh.getElements(3)
         gmsh.model.remove()
-    finally:
-        gmsh.finalize()
     node_tags = np.asarray(node_tags, dtype=np.int64)
     coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
     tet_tags = np.concatenate([np.asarray(e, dtype=np.int64) for e in elem_nodes]).reshape(-1, 4)

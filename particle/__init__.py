@@ -14,13 +14,12 @@ builder, mutable State, integrators and solvers apart):
 - :mod:`particle.haptics`: :class:`HapticSession`.
 - :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``):
   forces, tangent, energy, its part of the stability bound.
-- :mod:`particle.bench`: benchmark functions returning dicts.
 """
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.haptics import HapticSession
-from particle.integrator import (Prescribed, VerletIntegrator, critical_time_step,
-                                 resolve_time_step, strain_range_for_release)
+from particle.integrator import Prescribed, VerletIntegrator
+from particle.stability import critical_time_step, resolve_time_step, strain_range_for_release
 from particle.model import ConnectorParams, Model, ModelBuilder, State, build_model
 from particle.statics import gravity_static
 

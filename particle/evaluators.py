@@ -32,6 +32,50 @@ from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPa
 log = logging.getLogger(__name__)
 
 
+def checked_footprints(model: Model, nodes: np.ndarray,
+                       footprints: Sequence[np.ndarray] | None) -> tuple[np.ndarray, ...]:
+    """Held particles of each test point ``nodes`` (k,) (default: the point alone, the paper's
+    indenter), checked: each footprint holds its point."""
+    if footprints is None:
+        return tuple(nodes[k:k + 1] for k in range(len(nodes)))
+    if len(footprints) != len(nodes):
+        raise ParameterError(f"{len(nodes)} test points but {len(footprints)} footprints")
+    out = []
+    for node, held in zip(nodes, footprints):
+        held = model.check_nodes(held, f"footprint of test point {node}")
+        if node not in held:
+            raise ParameterError(f"the footprint of test point {node} does not hold it")
+        out.append(held)
+    return tuple(out)
+
+
+def checked_normals_and_depths(nodes: np.ndarray, normals: np.ndarray, depths: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (k, 3), depths (D,) [m]) as float64, checked: one unit normal per test point,
+    depths finite and >= 0."""
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if len(normals) != len(nodes):
+        raise ParameterError(f"{len(nodes)} test points but {len(normals)} normals")
+    lengths = np.linalg.norm(normals, axis=1)
+    bad = np.nonzero(~(np.abs(lengths - 1.0) < 1e-6))[0]
+    if len(bad):
+        raise ParameterError(f"normal of test point {nodes[bad[0]]} has length "
+                             f"{lengths[bad[0]]}; unit vectors are expected")
+    depths = np.asarray(depths, dtype=np.float64).reshape(-1)
+    if len(depths) == 0 or not np.all(np.isfinite(depths)) or np.any(depths < 0):
+        raise ParameterError(f"depths must be finite and >= 0, got {depths}")
+    return normals, depths
+
+
+def warm_guess(warm: np.ndarray, solutions: np.ndarray, s: int) -> np.ndarray:
+    """Previous call's equilibrium at sample ``s``, shifted by this call's change at ``s - 1``.
+
+    The change a parameter update causes varies smoothly along the curve,
+    so the shift removes most of the warm start's error.
+    """
+    return warm[s] if s == 0 else warm[s] + (solutions[s - 1] - warm[s - 1])
+
+
 class _PointEvaluator:
     """Test points, their caches, parameter checks; subclasses define one point's curve."""
 
@@ -40,22 +84,10 @@ class _PointEvaluator:
                  footprints: Sequence[np.ndarray] | None = None):
         self.model = model
         self.nodes = model.check_nodes(nodes, "test points")
-        self.footprints = self._check_footprints(footprints)
-        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        if len(normals) != len(self.nodes):
-            raise ParameterError(f"{len(self.nodes)} test points but {len(normals)} normals")
-        lengths = np.linalg.norm(normals, axis=1)
-        bad = np.nonzero(~(np.abs(lengths - 1.0) < 1e-6))[0]
-        if len(bad):
-            raise ParameterError(f"normal of test point {self.nodes[bad[0]]} has length "
-                                 f"{lengths[bad[0]]}; unit vectors are expected")
-        self.normals = normals
-        depths = np.asarray(depths, dtype=np.float64).reshape(-1)
-        if len(depths) == 0 or not np.all(np.isfinite(depths)) or np.any(depths < 0):
-            raise ParameterError(f"depths must be finite and >= 0, got {depths}")
-        self.depths = depths
+        self.footprints = checked_footprints(model, self.nodes, footprints)
+        self.normals, self.depths = checked_normals_and_depths(self.nodes, normals, depths)
         if strain_range is None:
-            reach = float(depths.max() / model.incident_min_length(self.nodes).min())
+            reach = float(self.depths.max() / model.incident_min_length(self.nodes).min())
             strain_range = (-min(reach, 0.9), reach)
         self.strain_range = strain_range
         self.rtol = rtol
@@ -74,21 +106,6 @@ class _PointEvaluator:
         self._solvers.clear()
         self._warm.clear()
         self._factors.clear()
-
-    def _check_footprints(self, footprints: Sequence[np.ndarray] | None) -> tuple[np.ndarray, ...]:
-        """Held particles of each test point (default: the point alone, the paper's indenter)."""
-        if footprints is None:
-            return tuple(self.nodes[k:k + 1] for k in range(len(self.nodes)))
-        if len(footprints) != len(self.nodes):
-            raise ParameterError(f"{len(self.nodes)} test points but {len(footprints)} "
-                                 "footprints")
-        out = []
-        for node, held in zip(self.nodes, footprints):
-            held = self.model.check_nodes(held, f"footprint of test point {node}")
-            if node not in held:
-                raise ParameterError(f"the footprint of test point {node} does not hold it")
-            out.append(held)
-        return tuple(out)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -170,15 +187,6 @@ class _PointEvaluator:
             used.append(solver.factorization)
         self._factors[k] = used
 
-    @staticmethod
-    def _warm_guess(warm: np.ndarray, solutions: np.ndarray, s: int) -> np.ndarray:
-        """Previous call's equilibrium at sample ``s``, shifted by this call's change at ``s - 1``.
-
-        The change a parameter update causes varies smoothly along the curve,
-        so the shift removes most of the warm start's error.
-        """
-        return warm[s] if s == 0 else warm[s] + (solutions[s - 1] - warm[s - 1])
-
     def _target(self, k: int, depth: float) -> np.ndarray:
         """(K, 3) positions of point ``k``'s held particles at ``depth`` [m]."""
         return self.model.rest_positions[self.footprints[k]] + depth * self.normals[k]
@@ -233,7 +241,7 @@ class IndentationEvaluator(_PointEvaluator):
             warm_eq = None
             if warm is not None:
                 try:
-                    warm_eq = solve_at(self._warm_guess(warm, solutions, s), depth)
+                    warm_eq = solve_at(warm_guess(warm, solutions, s), depth)
                 except ConvergenceError:
                     log.debug("point %d depth %g: warm start failed, continuing cold", node, depth)
             eq = warm_eq or continuation(step, eq, reached, depth,
@@ -305,7 +313,7 @@ class RelaxationEvaluator(_PointEvaluator):
 
             def step(eq: Equilibrium, t0: float, t1: float, sample=sample, whole=whole):
                 full = (t0, t1) == whole
-                guess = (self._warm_guess(warm, solutions, sample) if full and warm is not None
+                guess = (warm_guess(warm, solutions, sample) if full and warm is not None
                          else eq.x).copy()
                 guess[held] = self._target(k, np.interp(t1, times, depths))
                 coeffs = prepared[sample] if full else params.arm_recursion(t1 - t0, exact=True)

@@ -17,8 +17,8 @@ import numpy as np
 from tqdm import tqdm
 
 from forcecal.errors import ParameterError
-from particle.integrator import (DEFAULT_STRAIN_RANGE, Prescribed, VerletIntegrator,
-                                 check_time_step, energy_bound)
+from particle.integrator import Prescribed, VerletIntegrator, energy_bound
+from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
 from particle.model import Model, StrainBounds
 
 log = logging.getLogger(__name__)

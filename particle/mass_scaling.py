@@ -8,7 +8,7 @@ statics are unchanged, the dynamics are slowed where mass was added. It is what
 explicit crash and forming codes do for their smallest elements; here it lets a
 haptic session take one step per 1 ms device period on meshes whose limit is
 below 1 ms. Its cost is an error in the transient response, measured by the
-``haptic scale`` benchmark (``pipelines/bench_haptic.py``) against the unscaled
+``haptic scale`` benchmark (``pipelines/bench/haptic.py``) against the unscaled
 float64 run.
 
 Which particles get mass: particle n's weight is the diagonal of the
@@ -28,8 +28,8 @@ import math
 import numpy as np
 
 from forcecal.errors import ParameterError
-from particle.integrator import (DEFAULT_STRAIN_RANGE, EIGENVALUE_MARGIN, check_time_step,
-                                 connector_stiffness_bound, critical_time_step, inertial_model)
+from particle.stability import (DEFAULT_STRAIN_RANGE, EIGENVALUE_MARGIN, check_time_step,
+                                connector_stiffness_bound, critical_time_step, inertial_model)
 from particle.model import Model, StrainBounds, connector_strain_bounds
 
 log = logging.getLogger(__name__)

@@ -30,259 +30,13 @@ import numpy as np
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import TetMesh
 from forcecal.problem import Problem
-from particle.volume import check_kv, signed_volumes, tet_edge_connectors, tet_name
+# the parameters' names are also imported from here, where the model that carries them is
+from particle.params import (N_ARMS, PARAM_NAMES, ConnectorParams, StrainBounds,  # noqa: F401
+                             connector_name, connector_strain_bounds, frozen_copy,
+                             viscoelastic_params)
+from particle.volume import signed_volumes, tet_edge_connectors, tet_name
 
 log = logging.getLogger(__name__)
-
-PARAM_NAMES = ("K0", "a", "b", "k1", "b1", "k2", "b2")
-N_ARMS = 2
-# a strain range: one (lo, hi) pair [1] for every connector, or per-connector (lo (E,), hi (E,))
-StrainBounds = tuple[float | np.ndarray, float | np.ndarray]
-
-
-def _frozen(arr: np.ndarray, dtype) -> np.ndarray:
-    out = np.array(arr, dtype=dtype, order="C")  # own copy, so freezing cannot surprise a caller
-    out.setflags(write=False)
-    return out
-
-
-def _quadratic_extremes(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, lo, hi
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """(E,) min and max of ``c0 + c1 eps + c2 eps^2`` over ``[lo, hi]`` (floats or (E,) arrays).
-
-    The extremes lie at the ends or at the vertex ``-c1/(2 c2)``. The vertex is
-    inside exactly when the slope ``c1 + 2 c2 eps`` changes sign between the
-    ends, which is decided without dividing, so a tiny ``c2`` cannot overflow;
-    the division is done only where the vertex is inside (``|vertex| <
-    max(|lo|, |hi|)`` there).
-    """
-    lo, hi = np.broadcast_arrays(np.asarray(lo, dtype=np.float64), np.asarray(hi, np.float64))
-
-    def value(eps):
-        return c0 + (c1 + c2 * eps) * eps
-
-    at_lo, at_hi = value(lo), value(hi)
-    inside = np.sign(c1 + 2.0 * c2 * lo) * np.sign(c1 + 2.0 * c2 * hi) < 0.0
-    vertex = np.divide(-c1, 2.0 * c2, out=np.zeros_like(at_lo), where=inside)
-    at_vertex = np.where(inside, value(vertex), at_lo)
-    return (np.minimum(np.minimum(at_lo, at_hi), at_vertex),
-            np.maximum(np.maximum(at_lo, at_hi), at_vertex))
-
-
-def connector_name(e: int, edges: np.ndarray | None = None) -> str:
-    """``connector e``, with its two particles when ``edges`` (E, 2) is given (for messages)."""
-    if edges is None:
-        return f"connector {int(e)}"
-    return f"connector {int(e)} (particles {int(edges[e, 0])}-{int(edges[e, 1])})"
-
-
-def connector_strain_bounds(strain_range: StrainBounds, n_connectors: int,
-                            edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(lo (E,), hi (E,)) strains [1] of ``strain_range``: a (lo, hi) pair or per-connector arrays.
-
-    The one check of a strain range, for parameter validation and the
-    stability limit alike: every range must be finite, ordered (lo <= hi; a
-    connector held at one strain has lo = hi) and above -1 (zero length),
-    else :class:`ParameterError` names the first bad connector (with its
-    particles if ``edges`` (E, 2) is given).
-    """
-    if len(strain_range) != 2:
-        raise ParameterError(f"a strain range is a (lo, hi) pair, got {strain_range!r}")
-    lo, hi = (np.asarray(b, dtype=np.float64) for b in strain_range)
-    for bound in (lo, hi):
-        if bound.shape not in ((), (n_connectors,)):
-            raise ParameterError(f"strain range bounds of shape {bound.shape}: expected one "
-                                 f"number or one per connector ({n_connectors},)")
-    if lo.shape == hi.shape == () and not (np.isfinite(lo) and np.isfinite(hi) and lo > -1.0
-                                           and lo <= hi):
-        raise ParameterError(f"strain range [{lo:g}, {hi:g}] must be finite, ordered and above "
-                             "-1 (a connector cannot shrink to zero length)")
-    lo, hi = np.broadcast_to(lo, (n_connectors,)), np.broadcast_to(hi, (n_connectors,))
-    bad = np.nonzero(~(np.isfinite(lo) & np.isfinite(hi) & (lo > -1.0) & (lo <= hi)))[0]
-    if len(bad):
-        e = int(bad[0])
-        raise ParameterError(f"{connector_name(e, edges)}: strain range [{lo[e]:g}, {hi[e]:g}] "
-                             "must be finite, ordered and above -1 (a connector cannot shrink to "
-                             "zero length)")
-    return lo, hi
-
-
-@dataclass(frozen=True, eq=False)
-class ConnectorParams:
-    """Per-connector Maxwell-Solid parameters; seven (E,) float64 arrays.
-
-    Attributes:
-        K0: (E,) float64, small-strain stiffness of the elastic spring [N/m].
-        a: (E,) float64, linear strain coefficient of the spring stiffness [N/m].
-        b: (E,) float64, quadratic strain coefficient of the spring stiffness [N/m].
-        k1, k2: (E,) float64, spring stiffness of Maxwell arm 1 and 2 [N/m].
-        b1, b2: (E,) float64, dashpot coefficient of Maxwell arm 1 and 2 [N s/m].
-        kv: (T,) float64, volume stiffness of each tetrahedron [Pa = N/m^2] (the
-            elastic volume term of :mod:`particle.volume`, energy ``kv/2 V0 (V/V0 -
-            1)^2``), or None: the volume term is off (the paper's springs-only
-            model). It does not relax (the arms act on the connectors only). A
-            (1,) array is one value for every tet (a global fit's): a Model stores
-            it broadcast to (T,).
-
-    Instances are immutable; calibration builds new ones with
-    ``dataclasses.replace(params, K0=...)`` (``kv=...`` likewise).
-    """
-    K0: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    k1: np.ndarray
-    b1: np.ndarray
-    k2: np.ndarray
-    b2: np.ndarray
-    kv: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        arrays = [np.atleast_1d(np.asarray(getattr(self, n), dtype=np.float64))
-                  for n in PARAM_NAMES]
-        shapes = {a.shape for a in arrays}
-        if len(shapes) != 1 or arrays[0].ndim != 1:
-            raise ParameterError("connector parameters must be seven 1-D arrays of one length, got "
-                                 + ", ".join(f"{n} {a.shape}" for n, a in zip(PARAM_NAMES, arrays)))
-        for name, arr in zip(PARAM_NAMES, arrays):
-            object.__setattr__(self, name, _frozen(arr, np.float64))
-        if self.kv is not None:
-            kv = np.atleast_1d(np.asarray(self.kv, dtype=np.float64))
-            if kv.ndim != 1:
-                raise ParameterError(f"kv must be a 1-D array (one value per tet), got {kv.shape}")
-            object.__setattr__(self, "kv", _frozen(kv, np.float64))
-
-    @classmethod
-    def uniform(cls, n_connectors: int, *, K0: float, a: float = 0.0, b: float = 0.0,
-                k1: float, b1: float, k2: float, b2: float) -> "ConnectorParams":
-        """The same values for every one of ``n_connectors`` connectors."""
-        values = dict(K0=K0, a=a, b=b, k1=k1, b1=b1, k2=k2, b2=b2)
-        return cls(**{n: np.full(n_connectors, float(v)) for n, v in values.items()})
-
-    @property
-    def n_connectors(self) -> int:
-        return self.K0.shape[0]
-
-    @property
-    def has_volume(self) -> bool:
-        """True when the volume term is on (``kv`` given)."""
-        return self.kv is not None
-
-    def connectors(self, index: np.ndarray) -> "ConnectorParams":
-        """The parameters of connectors ``index`` (reordered/selected); ``kv`` kept as is."""
-        return ConnectorParams(**{name: getattr(self, name)[index] for name in PARAM_NAMES},
-                               kv=self.kv)
-
-    @property
-    def tau1(self) -> np.ndarray:
-        """(E,) float64, relaxation time of arm 1, b1/k1 [s]."""
-        return self.b1 / self.k1
-
-    @property
-    def tau2(self) -> np.ndarray:
-        """(E,) float64, relaxation time of arm 2, b2/k2 [s]."""
-        return self.b2 / self.k2
-
-    @property
-    def arm_stiffness(self) -> np.ndarray:
-        """(E, 2) float64, arm spring stiffnesses (k1, k2) [N/m]."""
-        return np.column_stack([self.k1, self.k2])
-
-    @property
-    def arm_tau(self) -> np.ndarray:
-        """(E, 2) float64, arm relaxation times (tau1, tau2) [s]."""
-        return np.column_stack([self.tau1, self.tau2])
-
-    @property
-    def is_linear(self) -> bool:
-        """True when a = b = 0 everywhere: K(eps) = K0 and the linear kernels apply."""
-        return not (np.any(self.a) or np.any(self.b))
-
-    def stiffness(self, strain: np.ndarray) -> np.ndarray:
-        """(E,) secant stiffness K(eps) = K0 + a eps + b eps^2 [N/m] at per-connector strains."""
-        return self.K0 + self.a * strain + self.b * strain * strain
-
-    def tangent_stiffness(self, strain: np.ndarray) -> np.ndarray:
-        """(E,) tangent d(K dx)/d(dx) = K0 + 2 a eps + 3 b eps^2 [N/m]."""
-        return self.K0 + 2.0 * self.a * strain + 3.0 * self.b * strain * strain
-
-    def extreme_stiffness(self, strain_range: StrainBounds) -> tuple[np.ndarray, np.ndarray]:
-        """(E,) min and max of the secant K0 + a eps + b eps^2 over ``strain_range`` [N/m].
-
-        ``strain_range`` is one (lo, hi) pair or per-connector (lo (E,), hi (E,)) arrays.
-        """
-        return _quadratic_extremes(self.K0, self.a, self.b, *strain_range)
-
-    def extreme_tangent_stiffness(self, strain_range: StrainBounds
-                                  ) -> tuple[np.ndarray, np.ndarray]:
-        """(E,) min and max of the tangent K0 + 2 a eps + 3 b eps^2 over ``strain_range`` [N/m]."""
-        return _quadratic_extremes(self.K0, 2.0 * self.a, 3.0 * self.b, *strain_range)
-
-    def validate(self, strain_range: StrainBounds = (-0.5, 0.5),
-                 edges: np.ndarray | None = None, tets: np.ndarray | None = None
-                 ) -> "ConnectorParams":
-        """Raise :class:`ParameterError` naming the first non-physical connector or tet; return self.
-
-        Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, kv <= 0 (naming
-        the tet, with its particles if ``tets`` (T, 4) is given), and a secant
-        stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
-        the quadratic's ends and vertex). ``strain_range`` is one (lo, hi) pair
-        or per-connector (lo (E,), hi (E,)) arrays [1], checked by
-        :func:`connector_strain_bounds`. ``edges`` (E, 2), if given, lets the
-        message name the connector's two particles.
-        """
-        lo, hi = connector_strain_bounds(strain_range, self.n_connectors, edges)
-
-        def where(e: int) -> str:
-            return connector_name(e, edges)
-
-        for name in PARAM_NAMES:
-            bad = np.nonzero(~np.isfinite(getattr(self, name)))[0]
-            if len(bad):
-                raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]} "
-                                     "is not finite")
-        for name in ("K0", "k1", "b1", "k2", "b2"):
-            bad = np.nonzero(getattr(self, name) <= 0.0)[0]
-            if len(bad):
-                raise ParameterError(f"{where(bad[0])}: {name} = {getattr(self, name)[bad[0]]:g} "
-                                     "must be > 0")
-        if self.kv is not None:
-            check_kv(self.kv, tets)
-        kmin, _ = self.extreme_stiffness((lo, hi))
-        bad = np.nonzero(kmin <= 0.0)[0]
-        if len(bad):
-            e = bad[0]
-            raise ParameterError(f"{where(e)}: spring stiffness K(eps) = K0 + a eps + b eps^2 "
-                                 f"(K0={self.K0[e]:g}, a={self.a[e]:g}, b={self.b[e]:g}) reaches "
-                                 f"{kmin[e]:g} N/m <= 0 in the strain range [{lo[e]:g}, "
-                                 f"{hi[e]:g}]")
-        return self
-
-    def arm_recursion(self, dt: float, *, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Coefficients (r, c), each (E, 2), of ``F_arm^t = r F_arm^{t-1} + c (dx^t - dx^{t-1})``.
-
-        ``exact=False`` is the paper's recursion, backward Euler of the Maxwell
-        arm: ``F^t = k b/(k dt + b) ((dx^t - dx^{t-1}) + F^{t-1}/k)``, i.e.
-        ``r = b/(b + k dt)``, ``c = k r``; used by the explicit runs, where
-        ``dt/tau`` is tiny.
-
-        ``exact=True`` integrates ``dF/dt = k d(dx)/dt - F/tau`` exactly for an
-        elongation that is linear within the step: ``r = exp(-dt/tau)``, ``c =
-        k tau (1 - r)/dt``. Both agree to first order in dt/tau; the exact form
-        stays right for the coarse steps (dt up to ~tau) of the quasi-static
-        relaxation path, where backward Euler would be badly off.
-        """
-        if not dt > 0.0:
-            raise ParameterError(f"arm recursion: time step {dt} s must be > 0")
-        k = self.arm_stiffness
-        tau = self.arm_tau
-        if exact:
-            r = np.exp(-dt / tau)
-            c = k * tau * (-np.expm1(-dt / tau)) / dt  # 1 - r without cancellation for dt << tau
-        else:
-            r = tau / (tau + dt)
-            c = k * r
-        return r, c
-
 
 @dataclass(frozen=True, eq=False)
 class Model:
@@ -321,33 +75,17 @@ class Model:
         for name, dtype in (("rest_positions", np.float64), ("edges", np.int64),
                             ("rest_lengths", np.float64), ("masses", np.float64),
                             ("fixed", bool)):
-            object.__setattr__(self, name, _frozen(getattr(self, name), dtype))
-        tets = np.zeros((0, 4), np.int64) if self.tets is None else np.asarray(self.tets)
-        tets = _frozen(tets.reshape(-1, 4), np.int64)
-        bad = np.nonzero(np.any((tets < 0) | (tets >= self.n_particles), axis=1))[0]
-        if len(bad):
-            raise MeshError(f"{tet_name(bad[0], tets)} refers to unknown particles; particles are "
-                            f"0..{self.n_particles - 1}")
-        volumes = (signed_volumes(self.rest_positions, tets) if self.rest_volumes is None
-                   else np.asarray(self.rest_volumes, dtype=np.float64).reshape(-1))
-        if volumes.shape != (len(tets),):
-            raise MeshError(f"{len(volumes)} rest volumes for {len(tets)} tets")
-        bad = np.nonzero(~(volumes > 0.0) | ~np.isfinite(volumes))[0]
-        if len(bad):
-            raise MeshError(f"{tet_name(bad[0], tets)}: rest volume {volumes[bad[0]]:.3g} m^3 "
-                            "must be > 0 (inverted or degenerate tet)")
+            object.__setattr__(self, name, frozen_copy(getattr(self, name), dtype))
+        tets, volumes = checked_tets(self.rest_positions, self.tets, self.rest_volumes)
         object.__setattr__(self, "tets", tets)
-        object.__setattr__(self, "rest_volumes", _frozen(volumes, np.float64))
-        object.__setattr__(self, "tet_connectors", _frozen(
+        object.__setattr__(self, "rest_volumes", frozen_copy(volumes, np.float64))
+        object.__setattr__(self, "tet_connectors", frozen_copy(
             tet_edge_connectors(tets, self.edges) if len(tets) else np.zeros((0, 6)), np.int64))
         object.__setattr__(self, "params", self._check_params(self.params))
-        ends = self.edges.ravel()
-        order = np.argsort(ends, kind="stable")
-        ptr = np.zeros(self.n_particles + 1, dtype=np.int64)
-        ptr[1:] = np.cumsum(np.bincount(ends, minlength=self.n_particles))
-        object.__setattr__(self, "free_nodes", _frozen(np.nonzero(~self.fixed)[0], np.int64))
-        object.__setattr__(self, "incidence_ptr", _frozen(ptr, np.int64))
-        object.__setattr__(self, "incidence_edge", _frozen(order // 2, np.int64))
+        ptr, edge = incidence(self.edges, self.n_particles)
+        object.__setattr__(self, "free_nodes", frozen_copy(np.nonzero(~self.fixed)[0], np.int64))
+        object.__setattr__(self, "incidence_ptr", frozen_copy(ptr, np.int64))
+        object.__setattr__(self, "incidence_edge", frozen_copy(edge, np.int64))
 
     @property
     def n_particles(self) -> int:
@@ -368,17 +106,7 @@ class Model:
 
     def _check_params(self, params: ConnectorParams) -> ConnectorParams:
         """``params`` checked against this model, a (1,) kv broadcast to one per tet."""
-        if params.n_connectors != self.n_connectors:
-            raise ParameterError(f"parameters have {params.n_connectors} entries but the model "
-                                 f"has {self.n_connectors} connectors")
-        n_tets = len(self.tets)
-        if params.kv is not None and params.kv.shape != (n_tets,):
-            if params.kv.shape != (1,) or n_tets == 0:
-                raise ParameterError(f"kv has {params.kv.shape[0]} entries but the model has "
-                                     f"{n_tets} tets (the volume term needs one kv per tet, or "
-                                     "one for all)")
-            params = dataclasses.replace(params, kv=np.full(n_tets, params.kv[0]))
-        return params
+        return params_for(params, self.n_connectors, len(self.tets))
 
     def with_params(self, params: ConnectorParams) -> "Model":
         """A new Model with other connector parameters (and kv), sharing every topology array."""
@@ -392,23 +120,14 @@ class Model:
     def renumbered(self, order: np.ndarray) -> tuple["Model", np.ndarray]:
         """The same model with particle ``order[k]`` as particle k; returns (model, connectors).
 
-        The connectors are re-sorted by their new ends (i < j, lexicographic, as
-        a mesh's edges), with their rest lengths and parameters; ``connectors``
-        (E,) int64 is the old id of each new connector (for a state's
-        ``arm_force``/``dx_prev``). Physics unchanged: only the summation order of
-        the particles' forces differs. ``order`` must be a permutation of 0..N-1
-        (e.g. :func:`spatial_order`).
+        Connectors as :func:`renumbering` sorts them, with their rest lengths and
+        parameters; ``connectors`` (E,) int64 is the old id of each new one (for a
+        state's ``arm_force``/``dx_prev``). Physics unchanged: only the summation
+        order of the forces differs. ``order``: e.g. :func:`spatial_order`.
         """
-        n = self.n_particles
         order = np.asarray(order)
-        if (order.shape != (n,) or not np.issubdtype(order.dtype, np.integer)
-                or not np.array_equal(np.sort(order), np.arange(n))):
-            raise ParameterError(f"a particle order must be a permutation of 0..{n - 1}")
-        new_id = np.empty(n, dtype=np.int64)
-        new_id[order] = np.arange(n)
-        ends = np.sort(new_id[self.edges], axis=1)
-        connectors = np.lexsort((ends[:, 1], ends[:, 0]))
-        return Model(rest_positions=self.rest_positions[order], edges=ends[connectors],
+        new_id, edges, connectors = renumbering(self.edges, order, self.n_particles)
+        return Model(rest_positions=self.rest_positions[order], edges=edges,
                      rest_lengths=self.rest_lengths[connectors], masses=self.masses[order],
                      fixed=self.fixed[order], params=self.params.connectors(connectors),
                      tets=new_id[self.tets], rest_volumes=self.rest_volumes), connectors
@@ -440,6 +159,69 @@ class Model:
         return np.array([self.rest_lengths[self.incidence_edge[self.incidence_ptr[n]:
                                                                self.incidence_ptr[n + 1]]].min()
                          for n in nodes])
+
+
+def checked_tets(rest_positions: np.ndarray, tets: np.ndarray | None,
+                 rest_volumes: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(tets (T, 4) int64, rest volumes (T,) [m^3]) of a model, read-only; the volumes
+    computed from ``rest_positions`` when not given. :class:`MeshError` names the first tet
+    with an unknown particle or a volume that is not > 0."""
+    n = len(rest_positions)
+    tets = np.zeros((0, 4), np.int64) if tets is None else np.asarray(tets)
+    tets = frozen_copy(tets.reshape(-1, 4), np.int64)
+    bad = np.nonzero(np.any((tets < 0) | (tets >= n), axis=1))[0]
+    if len(bad):
+        raise MeshError(f"{tet_name(bad[0], tets)} refers to unknown particles; particles are "
+                        f"0..{n - 1}")
+    volumes = (signed_volumes(rest_positions, tets) if rest_volumes is None
+               else np.asarray(rest_volumes, dtype=np.float64).reshape(-1))
+    if volumes.shape != (len(tets),):
+        raise MeshError(f"{len(volumes)} rest volumes for {len(tets)} tets")
+    bad = np.nonzero(~(volumes > 0.0) | ~np.isfinite(volumes))[0]
+    if len(bad):
+        raise MeshError(f"{tet_name(bad[0], tets)}: rest volume {volumes[bad[0]]:.3g} m^3 "
+                        "must be > 0 (inverted or degenerate tet)")
+    return tets, frozen_copy(volumes, np.float64)
+
+
+def incidence(edges: np.ndarray, n_particles: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ptr (N + 1,), connector ids (2E,)): the particle -> connector incidence in CSR form."""
+    ends = edges.ravel()
+    order = np.argsort(ends, kind="stable")
+    ptr = np.zeros(n_particles + 1, dtype=np.int64)
+    ptr[1:] = np.cumsum(np.bincount(ends, minlength=n_particles))
+    return ptr, order // 2
+
+
+def params_for(params: ConnectorParams, n_connectors: int, n_tets: int) -> ConnectorParams:
+    """``params`` checked against a model's connector and tet counts, a (1,) kv broadcast to
+    one per tet; :class:`ParameterError` when they do not fit."""
+    if params.n_connectors != n_connectors:
+        raise ParameterError(f"parameters have {params.n_connectors} entries but the model "
+                             f"has {n_connectors} connectors")
+    if params.kv is not None and params.kv.shape != (n_tets,):
+        if params.kv.shape != (1,) or n_tets == 0:
+            raise ParameterError(f"kv has {params.kv.shape[0]} entries but the model has "
+                                 f"{n_tets} tets (the volume term needs one kv per tet, or "
+                                 "one for all)")
+        params = dataclasses.replace(params, kv=np.full(n_tets, params.kv[0]))
+    return params
+
+
+def renumbering(edges: np.ndarray, order: np.ndarray, n: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(new id of each particle (N,), new edges (E, 2), old id of each new connector (E,)) when
+    particle ``order[k]`` becomes particle k; the connectors sorted by their new ends (i < j,
+    lexicographic, as a mesh's edges). :class:`ParameterError` unless ``order`` is a
+    permutation of 0..``n``-1."""
+    if (order.shape != (n,) or not np.issubdtype(order.dtype, np.integer)
+            or not np.array_equal(np.sort(order), np.arange(n))):
+        raise ParameterError(f"a particle order must be a permutation of 0..{n - 1}")
+    new_id = np.empty(n, dtype=np.int64)
+    new_id[order] = np.arange(n)
+    ends = np.sort(new_id[edges], axis=1)
+    connectors = np.lexsort((ends[:, 1], ends[:, 0]))
+    return new_id, ends[connectors], connectors
 
 
 def spatial_order(model: Model) -> np.ndarray:

@@ -49,11 +49,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
-from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import PARAM_NAMES, ConnectorParams, Model
-from particle.statics import ArmStep, Equilibrium, EquilibriumSolver
-from particle.volume import add_volume_tangent, signed_volumes, volume_gradients_numpy
+from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, sparse_lu, tangent_data
+from particle.volume import signed_volumes, volume_gradients_numpy
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +91,17 @@ class _RecordingSolver(EquilibriumSolver):
         eq = super().solve(x, params, arms=arms, gravity=gravity)
         self.path.append((arms, eq))
         return eq
+
+
+def volume_partials(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
+    """(S, T): ``omega . df/dkv_t`` with ``df/dkv_t = -(V/V0 - 1) dV/dx`` at fixed x
+    (``omega`` (n_dofs, S) adjoints in the tangent pattern ``pat``'s dofs)."""
+    strain = signed_volumes(x, model.tets) / model.rest_volumes - 1.0
+    grad = volume_gradients_numpy(x, model.tets)  # (T, 4, 3)
+    virtual = np.zeros((model.n_particles, 3, omega.shape[1]))
+    moving = pat.node_dof >= 0
+    virtual[moving] = omega[pat.node_dof[moving][:, None] + np.arange(3)]
+    return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
 
 
 class _Adjoint:
@@ -151,13 +161,7 @@ class _Adjoint:
                 continue
             geo = _Geometry(model, eq.x)
             it = solver._evaluate(eq.x, model.params, not model.params.is_linear, arms, None)
-            data = np.empty(len(pat.indices))
-            kernels.assemble_tangent(eq.x, model.edges, model.rest_lengths, model.params.K0,
-                                     model.params.a, model.params.b,
-                                     None if arms is None else arms.stiffness, it.tension,
-                                     pat.slots, data)
-            if kv is not None:
-                add_volume_tangent(eq.x, model.tets, model.rest_volumes, kv, pat.tet_slots, data)
+            data = tangent_data(model, pat, eq.x, it.tension, model.params, True, arms)
             full = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
             push = np.zeros(pat.n_dofs)
             push[pdofs] = np.tile(normal, len(prescribed))
@@ -169,27 +173,17 @@ class _Adjoint:
             rhs[pdofs] = 0.0
             data[solver._zero_slots] = 0.0
             data[solver._diag_slots] = 1.0
-            lam = solver._lu_of(data).solve(rhs)
+            lam = sparse_lu(pat, data).solve(rhs)
             lam[pdofs] = -push[pdofs, None] * w[None, :]
             tau = G.T @ lam  # (E, S) adjoint of each connector's tension
             jac += self._partials(model, geo, arms, tau, abar)
             if kv is not None:
-                jac_kv += self._volume_partials(model, eq.x, pat, lam)
+                jac_kv += volume_partials(model, eq.x, pat, lam)
             if arms is not None:
                 mu = abar + tau[:, None, :]
                 abar = arms.r[:, :, None] * mu
                 dbar = -np.einsum("ei,eis->es", arms.c, mu)
         return jac, jac_kv
-
-    @staticmethod
-    def _volume_partials(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
-        """(S, T): ``omega . df/dkv_t`` with ``df/dkv_t = -(V/V0 - 1) dV/dx`` at fixed x."""
-        strain = signed_volumes(x, model.tets) / model.rest_volumes - 1.0
-        grad = volume_gradients_numpy(x, model.tets)  # (T, 4, 3)
-        virtual = np.zeros((model.n_particles, 3, omega.shape[1]))
-        moving = pat.node_dof >= 0
-        virtual[moving] = omega[pat.node_dof[moving][:, None] + np.arange(3)]
-        return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
 
     @staticmethod
     def pattern_for(solver: EquilibriumSolver):

@@ -7,9 +7,10 @@ step, the arm coefficients ``sum_i c_i``; geometric term F/l). The matrix is
 assembled by a compiled kernel straight into CSC storage through a
 precomputed index map (:class:`TangentPattern`, no Python loop over
 connectors); with the volume term (``params.kv``) each tet adds its 12x12
-block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2`` (:func:`particle.volume.add_volume_tangent`)
-through the same map (a tet's vertex pairs are connectors); prescribed particles keep their rows and columns with an identity
-block, so one pattern serves every test point. ``scipy.sparse.linalg.splu``
+block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2``
+(:func:`particle.volume.add_volume_tangent`) through the same map (a tet's vertex
+pairs are connectors); prescribed particles keep their rows and columns with an
+identity block, so one pattern serves every test point. ``scipy.sparse.linalg.splu``
 factorises it.
 
 Factorisations are expensive next to a solve, so :class:`EquilibriumSolver`
@@ -207,63 +208,17 @@ class EquilibriumSolver:
 
     def _evaluate(self, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                   arms: ArmStep | None, gravity: np.ndarray | None) -> _Iterate:
-        n, e = self.model.n_particles, self.model.n_connectors
-        forces, tension, arm_out, dx = (np.empty((n, 3)), np.empty(e), np.zeros((e, 2)),
-                                        np.empty(e))
-        kernels.internal_forces(
-            x, self.model.edges, self.model.rest_lengths, p.K0, p.a if nonlinear else None,
-            p.b if nonlinear else None, None if arms is None else arms.r,
-            None if arms is None else arms.c, None if arms is None else arms.force_prev,
-            None if arms is None else arms.dx_prev, forces, tension, arm_out, dx)
-        if p.kv is not None:
-            m = self.model
-            bad, _ = add_volume_forces(x, m.tets, m.rest_volumes, p.kv, self._no_volume_limit[0],
-                                       self._no_volume_limit[1], forces)
-            if bad >= 0:
-                # an inverted tet is no admissible iterate: an infinite residual makes the
-                # line search shorten the step (and a converged state is never inverted)
-                forces[:] = np.inf
-        if gravity is not None:
-            forces += self.model.masses[:, None] * gravity
+        forces, tension, arm_out, dx = net_forces(self.model, x, p, nonlinear, arms, gravity,
+                                                  self._no_volume_limit)
         return _Iterate(x, forces, tension, arm_out, dx, forces.ravel()[self._flat])
 
     def _factorize(self, it: _Iterate, p: ConnectorParams, nonlinear: bool,
                    arms: ArmStep | None) -> None:
-        pat = self.pattern
-        data = np.empty(len(pat.indices))
-        kernels.assemble_tangent(it.x, self.model.edges, self.model.rest_lengths, p.K0,
-                                 p.a if nonlinear else None, p.b if nonlinear else None,
-                                 None if arms is None else arms.stiffness, it.tension, pat.slots,
-                                 data)
-        if p.kv is not None:
-            m = self.model
-            add_volume_tangent(it.x, m.tets, m.rest_volumes, p.kv, pat.tet_slots, data)
+        data = tangent_data(self.model, self.pattern, it.x, it.tension, p, nonlinear, arms)
         data[self._zero_slots] = 0.0
         data[self._diag_slots] = 1.0
-        try:
-            lu = self._lu_of(data)
-        except RuntimeError:
-            # exactly singular, e.g. a hanging string at rest has no transverse stiffness yet:
-            # a tiny diagonal shift only changes the iteration matrix, not the equilibrium
-            shift = 1e-6 * np.abs(data[pat.diagonal]).max()
-            log.debug("prescribed particles %s: tangent stiffness exactly singular; factorising "
-                      "it with its diagonal shifted by %.3g N/m (changes the Newton iteration, "
-                      "not the equilibrium it converges to)", self.prescribed.tolist(), shift)
-            data[pat.diagonal] += shift
-            try:
-                lu = self._lu_of(data)
-            except RuntimeError as exc:
-                raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model "
-                                       "held by fixed or prescribed particles?") from exc
-        self.factorization = lu
+        self.factorization = factorize(self.pattern, data, self.prescribed)
         self.factorizations += 1
-
-    def _lu_of(self, data: np.ndarray):
-        pat = self.pattern
-        matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
-        # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
-        return splu(matrix, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
-                    diag_pivot_thresh=0.0)
 
     def _newton_step(self, res: np.ndarray) -> np.ndarray:
         rhs = np.zeros(self.pattern.n_dofs)
@@ -319,6 +274,74 @@ class EquilibriumSolver:
         raise ConvergenceError(f"Newton did not converge for prescribed particles "
                                f"{self.prescribed.tolist()}: residual {cur.norm:.3g} N after {it} "
                                f"iterations (tolerance {self.rtol:g} x force scale)")
+
+
+def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
+               arms: ArmStep | None, gravity: np.ndarray | None,
+               volume_limits: tuple[np.ndarray, np.ndarray]) -> tuple:
+    """(forces (N, 3) [N], tension (E,) [N], arm forces (E, 2) [N], elongations (E,) [m]) at
+    positions ``x``: connectors (an arm step if ``arms``), the volume term with ``p.kv``
+    (no volume outside ``volume_limits`` (lo (T,), hi (T,)) [m^3]) and gravity ``m g``."""
+    n, e = model.n_particles, model.n_connectors
+    forces, tension, arm_out, dx = (np.empty((n, 3)), np.empty(e), np.zeros((e, 2)),
+                                    np.empty(e))
+    kernels.internal_forces(
+        x, model.edges, model.rest_lengths, p.K0, p.a if nonlinear else None,
+        p.b if nonlinear else None, None if arms is None else arms.r,
+        None if arms is None else arms.c, None if arms is None else arms.force_prev,
+        None if arms is None else arms.dx_prev, forces, tension, arm_out, dx)
+    if p.kv is not None:
+        bad, _ = add_volume_forces(x, model.tets, model.rest_volumes, p.kv, volume_limits[0],
+                                   volume_limits[1], forces)
+        if bad >= 0:
+            # an inverted tet is no admissible iterate: an infinite residual makes the
+            # line search shorten the step (and a converged state is never inverted)
+            forces[:] = np.inf
+    if gravity is not None:
+        forces += model.masses[:, None] * gravity
+    return forces, tension, arm_out, dx
+
+
+def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.ndarray,
+                 p: ConnectorParams, nonlinear: bool, arms: ArmStep | None) -> np.ndarray:
+    """CSC data (nnz,) of the tangent stiffness [N/m] at ``x`` in ``pat``'s storage
+    (constraint rows and columns not yet applied)."""
+    data = np.empty(len(pat.indices))
+    kernels.assemble_tangent(x, model.edges, model.rest_lengths, p.K0,
+                             p.a if nonlinear else None, p.b if nonlinear else None,
+                             None if arms is None else arms.stiffness, tension, pat.slots,
+                             data)
+    if p.kv is not None:
+        add_volume_tangent(x, model.tets, model.rest_volumes, p.kv, pat.tet_slots, data)
+    return data
+
+
+def factorize(pat: TangentPattern, data: np.ndarray, prescribed: np.ndarray):
+    """SuperLU factorisation of the tangent ``data`` in ``pat``'s storage (modified in place
+    if it has to be shifted); :class:`ConvergenceError` if it is singular."""
+    try:
+        return sparse_lu(pat, data)
+    except RuntimeError:
+        # exactly singular, e.g. a hanging string at rest has no transverse stiffness yet:
+        # a tiny diagonal shift only changes the iteration matrix, not the equilibrium
+        shift = 1e-6 * np.abs(data[pat.diagonal]).max()
+        log.debug("prescribed particles %s: tangent stiffness exactly singular; factorising "
+                  "it with its diagonal shifted by %.3g N/m (changes the Newton iteration, "
+                  "not the equilibrium it converges to)", prescribed.tolist(), shift)
+        data[pat.diagonal] += shift
+        try:
+            return sparse_lu(pat, data)
+        except RuntimeError as exc:
+            raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model "
+                                   "held by fixed or prescribed particles?") from exc
+
+
+def sparse_lu(pat: TangentPattern, data: np.ndarray):
+    """SuperLU factorisation of the symmetric matrix ``data`` in ``pat``'s CSC storage."""
+    matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
+    # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
+    return splu(matrix, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
+                diag_pivot_thresh=0.0)
 
 
 class _Iterate:

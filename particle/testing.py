@@ -1,26 +1,12 @@
-"""Small models with closed-form answers and their energies, shared by the particle tests and
-benchmarks."""
+"""Small models with closed-form answers and their energies, for the particle tests."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from forcecal.mesh import box_mesh
-from particle.model import ConnectorParams, Model, ModelBuilder, State, build_model
-
-
-def viscoelastic_params(n_connectors: int, K0: float = 50.0, *, a: float = 0.0, b: float = 0.0,
-                        g: tuple[float, float] = (0.35, 0.25),
-                        tau: tuple[float, float] = (0.05, 0.5)) -> ConnectorParams:
-    """Uniform parameters whose arms hold the fractions ``g`` of the instantaneous stiffness.
-
-    ``k_i = g_i/(1 - g_1 - g_2) K0`` (the Prony split of the FE material),
-    ``b_i = tau_i k_i``.
-    """
-    g_inf = 1.0 - sum(g)
-    k1, k2 = (gi / g_inf * K0 for gi in g)
-    return ConnectorParams.uniform(n_connectors, K0=K0, a=a, b=b, k1=k1, b1=tau[0] * k1,
-                                   k2=k2, b2=tau[1] * k2)
+from particle.model import Model, ModelBuilder, State, build_model
+from particle.params import ConnectorParams, viscoelastic_params
 
 
 def two_particle_model(rest_length: float = 0.02, mass: float = 0.01,

@@ -44,7 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("report", help="report.json")
     p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
     p.add_argument("bench", help="bench.json")
-    from pipelines.bench import add_arguments as bench_arguments
+    from pipelines.bench.driver import add_arguments as bench_arguments
     bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
     helps = {"reference": "FE reference (reference.h5)",
              "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
@@ -83,12 +83,12 @@ def _run(args: argparse.Namespace) -> int:
         print(results_markdown(read_report(args.report)))
         return 0
     if args.stage == "bench-table":
-        from pipelines.bench import read_bench
-        from pipelines.bench_report import goals_markdown
+        from pipelines.bench.driver import read_bench
+        from pipelines.bench.report import goals_markdown
         print(goals_markdown(read_bench(args.bench)))
         return 0
     if args.stage == "bench":
-        from pipelines.bench import main as bench_main
+        from pipelines.bench.driver import main as bench_main
         configure_logging(logging.INFO)
         return bench_main(args)
     from calibration.pool import mpi_world

@@ -40,8 +40,9 @@ from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem,
 from forcecal.problem import Problem
 from forcecal.scene import Scene
 from particle.experiments import gravity_dynamic
-from particle.integrator import critical_time_step, resolve_time_step, strain_range_for_release
-from particle.model import ConnectorParams, Model, build_model
+from particle.model import ConnectorParams, build_model
+from particle.stability import (connector_strains, critical_time_step, release_strain_range,
+                                resolve_time_step)
 from particle.statics import check_stiffness, gravity_static
 
 log = logging.getLogger(__name__)
@@ -97,63 +98,6 @@ class GravityRuns:
     reference_fingerprint: str = ""
     params_fingerprint: str = ""
     experiments: tuple[str, ...] = GRAVITY_EXPERIMENTS
-
-
-#: a release range ends this fraction of the way to the strain where a spring's K(eps) is 0
-SOFT_SPRING_CLEARANCE = 0.95
-
-
-def positive_spring_range(params: ConnectorParams) -> tuple[np.ndarray, np.ndarray]:
-    """(lo (E,), hi (E,)): the strain interval around 0 in which each connector's spring
-    ``K(eps) = K0 + a eps + b eps^2`` stays > 0 [1] (the roots of K nearest to 0 on either
-    side; -inf / +inf on a side where K never reaches 0)."""
-    K0, a, b = params.K0, params.a, params.b
-    lo = np.full(params.n_connectors, -np.inf)
-    hi = np.full(params.n_connectors, np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        linear = b == 0.0
-        root = -K0 / a
-        lo = np.where(linear & (a > 0.0), root, lo)
-        hi = np.where(linear & (a < 0.0), root, hi)
-        disc = a * a - 4.0 * b * K0
-        real = ~linear & (disc >= 0.0)
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        r1, r2 = (-a - sq) / (2.0 * b), (-a + sq) / (2.0 * b)
-        rmin, rmax = np.minimum(r1, r2), np.maximum(r1, r2)
-        below = np.where(rmax < 0.0, rmax, np.where(rmin < 0.0, rmin, -np.inf))
-        above = np.where(rmin > 0.0, rmin, np.where(rmax > 0.0, rmax, np.inf))
-    return np.where(real, below, lo), np.where(real, above, hi)
-
-
-def release_strain_range(model: Model, static: np.ndarray, margin: float
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-connector strain range of the gravity release: :func:`strain_range_for_release`
-    (twice the static sag's strain, widened by ``margin``), cut to
-    :data:`SOFT_SPRING_CLEARANCE` of the way to the strain where the connector's spring
-    would lose its stiffness (a calibrated spring is positive on the calibrated range,
-    not necessarily beyond it). The step is chosen for this range and the run verifies
-    it, so a connector that would reach a soft spring stops the run with a clear error
-    instead of the release being refused before it starts. ``static`` (N, 3) [m] must
-    have positive springs (:func:`particle.statics.check_stiffness`).
-    """
-    lo, hi = strain_range_for_release(model, static, margin)
-    soft_lo, soft_hi = positive_spring_range(model.params)
-    eps = connector_strains(model, static)
-    cut_lo = np.maximum(lo, np.minimum(SOFT_SPRING_CLEARANCE * soft_lo, np.minimum(eps, 0.0)))
-    cut_hi = np.minimum(hi, np.maximum(SOFT_SPRING_CLEARANCE * soft_hi, np.maximum(eps, 0.0)))
-    cut = int(np.count_nonzero((cut_lo > lo) | (cut_hi < hi)))
-    if cut:
-        log.info("gravity release: %d connector(s) verified on a narrower strain range than "
-                 "twice their static strain +- %g: their springs would lose stiffness there",
-                 cut, margin)
-    return cut_lo, cut_hi
-
-
-def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:
-    """(..., E) connector strains [1] of displacements (..., N, 3) [m]."""
-    x = model.rest_positions + displacement
-    d = x[..., model.edges[:, 1], :] - x[..., model.edges[:, 0], :]
-    return np.linalg.norm(d, axis=-1) / model.rest_lengths - 1.0
 
 
 def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: np.ndarray,

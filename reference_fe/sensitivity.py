@@ -11,8 +11,13 @@ coplanar ones) and the clamped base is the same surface (fixed vertices and
 the midpoints of the edges between them). Meant for ``make bench``: at the
 default liver size the refined P2 model has ~40 000 dofs and takes minutes.
 
-``python -m reference_fe.sensitivity --scene FILE [--points ID ...]`` prints the
-study as JSON.
+Under MPI (``mpirun -n K``) the variants are shared out over the ranks, each
+computed by one process as in a serial run (the refined one, which takes longest,
+on rank 0, the others on the other ranks), and gathered on every rank: the study
+then takes about as long as its refined variant.
+
+``python -m reference_fe.sensitivity --scene FILE [--points ID ...] [--out FILE]``
+prints the study as JSON (or writes it to ``FILE``; under MPI rank 0 does).
 """
 
 from __future__ import annotations
@@ -26,8 +31,10 @@ import time
 from typing import Sequence
 
 import numpy as np
+from mpi4py import MPI
 
 from forcecal.errors import ForcecalError
+from forcecal.h5io import atomic_path
 from forcecal.logs import configure_logging
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
@@ -91,15 +98,28 @@ def discretisation_study(scene: Scene, points: Sequence[int] | None = None, *,
     variants.update({f"P1 q={q}": ("coarse", {"element": "P1"}),
                      f"TH q={q}": ("coarse", {"element": "TH"}),
                      f"P2 q={q} refined": ("refined", {"element": "P2"})})
-    refined, vertex_map = refine_problem(problem, points)
-    refined_points = vertex_map[points]
-    results = {}
-    for label, (which, changes) in variants.items():
-        log.info("discretisation study: %s", label)
-        if which == "refined":
-            results[label] = _measure(scene, refined, refined_points, normals, changes)
-        else:
-            results[label] = _measure(scene, problem, points, normals, changes)
+    comm = MPI.COMM_WORLD
+    mine, error = {}, None
+    try:
+        for label, (which, changes) in variants.items():
+            if variant_rank(which, list(variants).index(label), comm.size) != comm.rank:
+                continue
+            log.info("discretisation study: %s", label)
+            if which == "refined":
+                refined, vertex_map = refine_problem(problem, points)
+                mine[label] = _measure(scene, refined, vertex_map[points], normals, changes)
+            else:
+                mine[label] = _measure(scene, problem, points, normals, changes)
+    except ForcecalError as exc:
+        if comm.size == 1:
+            raise
+        error = f"rank {comm.rank}: {type(exc).__name__}: {exc}"  # the others must not wait
+    parts = comm.allgather((mine, error))
+    errors = [e for _, e in parts if e is not None]
+    if errors:
+        raise ForcecalError(f"discretisation study failed: {errors[0]}")
+    gathered = {k: v for part, _ in parts for k, v in part.items()}
+    results = {label: gathered[label] for label in variants}  # the serial order
     base = results[f"{scene.fe.element} q={q}"]
     out = {"points": points.tolist(), "depth_m": scene.indentation.depth,
            "refinement": "dolfinx.mesh.refine, uniform (each tet into 8), points mapped by "
@@ -117,20 +137,36 @@ def discretisation_study(scene: Scene, points: Sequence[int] | None = None, *,
     return out
 
 
+def variant_rank(which: str, index: int, size: int) -> int:
+    """The rank (of ``size``) that computes variant number ``index`` (``which``: "coarse" or
+    "refined"): the refined one on rank 0, the coarse ones round-robin over the others."""
+    if size == 1:
+        return 0
+    return 0 if which == "refined" else 1 + index % (size - 1)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m reference_fe.sensitivity",
                                      description="FE discretisation study of a scene (JSON)")
     parser.add_argument("--scene", required=True, help="scene TOML file")
     parser.add_argument("--points", type=int, nargs="*", help="test vertex ids (default: 3 "
                         "calibration points)")
+    parser.add_argument("--out", default=None, help="write the JSON here instead of printing it")
     args = parser.parse_args(argv)
-    configure_logging(loggers=(__name__,))
+    rank = MPI.COMM_WORLD.rank
+    configure_logging(loggers=(__name__,), prefix=f"[rank {rank}] " if MPI.COMM_WORLD.size > 1
+                      else "")
     try:
         study = discretisation_study(load_scene(args.scene), args.points or None)
     except ForcecalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(study, indent=1))
+    if rank == 0:
+        if args.out:
+            with atomic_path(args.out) as tmp:
+                tmp.write_text(json.dumps(study, indent=1))
+        else:
+            print(json.dumps(study, indent=1))
     return 0
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from forcecal.scene import load_scene
-from pipelines.bench import _complete_run_seconds
-from pipelines.bench_configs import (Config, derived_scene, pareto_front, scene_toml,
+from pipelines.bench.driver import _complete_run_seconds
+from pipelines.bench.configs import (Config, derived_scene, pareto_front, scene_toml,
                                      sliced_reference)
 from tests.conftest import SCENES
 from tests.test_h5io import _fake_reference
@@ -74,7 +74,7 @@ def _row(axis, label, wall, error, default=False):
 
 
 def test_the_default_row_is_on_the_front_only_if_it_is_on_every_axis_front():
-    from pipelines.bench_configs import mark_fronts
+    from pipelines.bench.configs import mark_fronts
     rows = [_row("default", "liver", 10.0, 0.2, True),
             _row("budget", "x1", 10.0, 0.2, True), _row("budget", "x0.5", 5.0, 0.3),
             _row("local", "on", 10.0, 0.2, True), _row("local", "off", 5.0, 0.3)]
@@ -109,7 +109,7 @@ def _bench():
 ])
 def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message):
     from forcecal.errors import DataFileError
-    from pipelines.bench import check_bench
+    from pipelines.bench.driver import check_bench
     bench = _bench()
     check_bench(bench)
     damage(bench)
@@ -118,8 +118,8 @@ def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message
 
 
 def test_the_committed_bench_has_every_fixed_key_and_the_readme_shows_its_goals():
-    from pipelines.bench import read_bench
-    from pipelines.bench_report import goals_markdown
+    from pipelines.bench.driver import read_bench
+    from pipelines.bench.report import goals_markdown
     from tests.conftest import ROOT
     bench = read_bench(ROOT / "runs" / "bench" / "bench.json")
     assert goals_markdown(bench) in (ROOT / "README.md").read_text()
@@ -127,7 +127,7 @@ def test_the_committed_bench_has_every_fixed_key_and_the_readme_shows_its_goals(
 
 def test_read_bench_refuses_a_damaged_file(tmp_path):
     from forcecal.errors import DataFileError
-    from pipelines.bench import read_bench
+    from pipelines.bench.driver import read_bench
     (tmp_path / "bench.json").write_text('{"kernel": ')
     with pytest.raises(DataFileError, match="cannot read"):
         read_bench(tmp_path / "bench.json")
@@ -140,7 +140,7 @@ def test_haptic_scale_rows_state_each_variants_substeps_and_error():
     """The haptic variants benchmark on a small box whose limit needs 3 substeps per ms: the
     renumbered variant differs by round-off only, the mass-scaled ones take fewer substeps
     with their added mass and error stated."""
-    from pipelines.bench_haptic import mesh_rows
+    from pipelines.bench.haptic import mesh_rows
     from particle.testing import box_model, top_centre
 
     model = box_model((3, 3, 2), K0=200.0)
@@ -158,3 +158,22 @@ def test_haptic_scale_rows_state_each_variants_substeps_and_error():
         assert rows[f"mass-scaled {k}, renumbered"]["error_drag"] == pytest.approx(
             row["error_drag"], rel=1e-6)
     assert rows["mass-scaled 1"]["added_mass"] > rows["mass-scaled 2"]["added_mass"]
+
+
+def test_cold_times_keep_the_earlier_cold_time_of_an_item_that_reused_work():
+    import logging
+
+    from pipelines.bench.driver import ReuseCounter, cold_times
+
+    counter = ReuseCounter()
+    logger = logging.getLogger("pipelines.stages")
+    logger.addHandler(counter)
+    try:
+        logger.warning("reference up to date, skipped (inputs and outputs match x)")
+        logger.warning("reference running: no cache record")
+    finally:
+        logger.removeHandler(counter)
+    assert counter.hits == 1
+    previous = {"item_s_cold": {"a": 100.0}}
+    assert cold_times({"a": 2.0, "b": 30.0}, {"a"}, previous) == {"a": 100.0, "b": 30.0}
+    assert cold_times({"a": 2.0}, {"a"}, {}) == {"a": None}  # reused, cold time never measured

@@ -1,7 +1,7 @@
 """Scale study: growth exponents recover power laws exactly; the table shows every size."""
 import pytest
 
-from pipelines.bench_scale import growth_exponent, scale_table
+from pipelines.bench.scale import growth_exponent, scale_table
 
 
 def test_growth_exponent_of_a_power_law_is_its_power():

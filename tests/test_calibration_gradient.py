@@ -260,7 +260,7 @@ def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
     from types import SimpleNamespace
 
     from calibration.core import gradient_validity
-    from particle.integrator import strain_range_for_release
+    from particle.stability import strain_range_for_release
     from particle.statics import gravity_static
 
     problem = build_problem(box)

@@ -6,7 +6,7 @@ import pytest
 pytest.importorskip("dolfinx")
 
 from forcecal.errors import SceneError  # noqa: E402
-from forcecal.mesh import TetMesh, box_mesh, check_mesh  # noqa: E402
+from forcecal.mesh import TetMesh, box_mesh, check_mesh, gmsh_session  # noqa: E402
 from forcecal.problem import Problem  # noqa: E402
 from forcecal.scene import FESection, MaterialSection  # noqa: E402
 from reference_fe import experiments as ex  # noqa: E402
@@ -64,14 +64,7 @@ def _quarter_halfspace(radius: float, h_rim: float, growth: float = 0.3) -> TetM
     """A quarter of a half-ball (x, y >= 0, z <= 0) of ``radius`` with the quarter disc of the
     punch (radius A) on its top face meshed along its rim (element size ``h_rim`` there, growing
     by ``growth`` per unit distance). gmsh, one thread, fixed seed: deterministic."""
-    import gmsh
-
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        gmsh.model.add("quarter_halfspace")
+    with gmsh_session("quarter_halfspace") as gmsh:
         occ = gmsh.model.occ
         body, _ = occ.intersect([(3, occ.addSphere(0, 0, 0, radius))],
                                 [(3, occ.addBox(0, 0, -radius, radius, radius, radius))])
@@ -96,8 +89,6 @@ def _quarter_halfspace(radius: float, h_rim: float, growth: float = 0.3) -> TetM
         gmsh.model.mesh.generate(3)
         tags, coords, _ = gmsh.model.mesh.getNodes()
         _, _, elements = gmsh.model.mesh.getElements(3)
-    finally:
-        gmsh.finalize()
     tags, coords = np.asarray(tags, np.int64), np.asarray(coords).reshape(-1, 3)
     tets = np.concatenate([np.asarray(e, np.int64) for e in elements]).reshape(-1, 4)
     used = np.unique(tets)

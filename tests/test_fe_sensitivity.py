@@ -41,3 +41,12 @@ def test_discretisation_study_orders_the_elements_as_theory_says():
     assert abs(study["relative_to_scene_fe"]["P2 q=2"]["force"][0]) < 0.05
     assert study["relative_to_scene_fe"]["P2 q=4"]["force"] == [0.0]
     assert all(v["max_sag_m"] > 0 for v in study["variants"].values())
+
+
+def test_the_variants_are_shared_out_over_the_ranks_with_the_refined_one_alone_on_rank_0():
+    from reference_fe.sensitivity import variant_rank
+
+    kinds = ["coarse"] * 5 + ["refined"]
+    assert [variant_rank(w, i, 1) for i, w in enumerate(kinds)] == [0] * 6
+    assert [variant_rank(w, i, 2) for i, w in enumerate(kinds)] == [1] * 5 + [0]
+    assert [variant_rank(w, i, 3) for i, w in enumerate(kinds)] == [1, 2, 1, 2, 1, 0]

@@ -9,8 +9,8 @@ from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle import kernels
 from particle.haptics import HapticSession
-from particle.integrator import (Prescribed, VerletIntegrator, critical_time_step,
-                                 resolve_time_step)
+from particle.integrator import Prescribed, VerletIntegrator
+from particle.stability import critical_time_step, resolve_time_step
 from particle.model import Model, State
 from particle.reference_numpy import step_numpy
 from particle.testing import box_model, mechanical_energy, top_centre

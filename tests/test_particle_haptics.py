@@ -6,7 +6,7 @@ from forcecal.errors import MeshError, ParameterError, StabilityError
 from particle import haptics
 from particle.evaluators import IndentationEvaluator
 from particle.haptics import HapticSession
-from particle.integrator import critical_time_step
+from particle.stability import critical_time_step
 from particle.testing import box_model, top_centre
 
 DOWN = np.array([0.0, 0.0, -1.0])  # inward normal of the top face

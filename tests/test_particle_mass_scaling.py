@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ParameterError, StabilityError
-from pipelines.bench_stability import empirical_critical_step
+from particle.stability import empirical_critical_step
 from particle.evaluators import IndentationEvaluator
 from particle.haptics import HapticSession
-from particle.integrator import (Prescribed, VerletIntegrator, critical_time_step,
-                                 inertial_model)
+from particle.integrator import Prescribed, VerletIntegrator
+from particle.stability import critical_time_step, inertial_model
 from particle.mass_scaling import (ALPHA_TOLERANCE, added_mass_fraction, scaled_inertia,
                                    stiffness_weights)
 from particle.reference_numpy import step_numpy

@@ -7,7 +7,8 @@ import pytest
 
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import box_mesh
-from particle.integrator import VerletIntegrator, critical_time_step
+from particle.integrator import VerletIntegrator
+from particle.stability import critical_time_step
 from particle.model import ConnectorParams, ModelBuilder, build_model, spatial_order
 from particle.testing import box_model, viscoelastic_params
 

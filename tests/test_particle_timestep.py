@@ -10,12 +10,13 @@ import pytest
 
 from forcecal.errors import ParameterError, StabilityError
 from particle.experiments import gravity_dynamic
-from particle.integrator import (DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN, VerletIntegrator,
-                                 critical_time_step, strain_range_for_release)
+from particle.integrator import VerletIntegrator
+from particle.stability import (DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN, critical_time_step,
+                                strain_range_for_release)
 from particle.model import ConnectorParams, Model, ModelBuilder
 from particle.statics import gravity_static
 from particle.testing import box_model, two_particle_model, viscoelastic_params
-from pipelines.bench_stability import blows_up
+from particle.stability import blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # Maxwell arms of negligible stiffness: a purely elastic model

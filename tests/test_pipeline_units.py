@@ -284,7 +284,7 @@ def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
     (100.0, 50.0, 5.0, -5.0 + 5.0 ** 0.5, np.inf),   # both roots in compression
 ])
 def test_positive_spring_range_is_the_interval_between_the_nearest_roots(K0, a, b, lo, hi):
-    from pipelines.gravity import positive_spring_range
+    from particle.stability import positive_spring_range
     params = ConnectorParams(K0=np.array([K0]), a=np.array([a]), b=np.array([b]),
                              k1=np.ones(1), b1=np.ones(1), k2=np.ones(1), b2=np.ones(1))
     got_lo, got_hi = positive_spring_range(params)

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from particle import kernels
 from particle.evaluators import RelaxationEvaluator
 from particle.experiments import relaxation_dynamic
-from particle.integrator import critical_time_step
+from particle.stability import critical_time_step
 from particle.model import ConnectorParams
 from particle.testing import two_particle_model
 

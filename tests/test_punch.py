@@ -182,7 +182,7 @@ def test_particle_punch_slope_is_the_linear_network_punch():
 
 
 def test_convergence_changes_are_against_the_finest_level():
-    from pipelines.fe_convergence import summarise
+    from pipelines.bench.fe_convergence import summarise
 
     rows = [{"level": 0, "punch_force": [1.10, 2.0], "max_sag": 0.030},
             {"level": 1, "punch_force": [1.02, 2.02], "max_sag": 0.0345},

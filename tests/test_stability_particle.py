@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ConvergenceError, StabilityError
-from pipelines.bench_stability import (PARAMETER_SETS, PRESTRAINS, bisect, blows_up,
-                                       case_model, clamped_cube, empirical_critical_step,
-                                       sliver_mesh, stability_meshes)
+from particle.stability import bisect, blows_up, empirical_critical_step
+from particle.stability_cases import (PARAMETER_SETS, PRESTRAINS, case_model, clamped_cube,
+                                      sliver_mesh, stability_meshes)
 from particle import kernels
 from particle.evaluators import IndentationEvaluator
-from particle.integrator import (DEFAULT_STRAIN_RANGE, VerletIntegrator, connector_stiffness_bound,
-                                 connector_strain_bounds, critical_time_step,
-                                 mass_scaled_laplacian, strain_range_for_release)
+from particle.integrator import VerletIntegrator, connector_strain_bounds
+from particle.stability import (DEFAULT_STRAIN_RANGE, connector_stiffness_bound,
+                                critical_time_step, mass_scaled_laplacian,
+                                strain_range_for_release)
 from particle.model import Model
 from particle.statics import EquilibriumSolver, TangentPattern, continuation, gravity_static
 from particle.testing import box_model, mechanical_energy, spring_energy, top_centre

@@ -16,9 +16,10 @@ the same file (bit for bit with the same gmsh version)::
 
 from pathlib import Path
 
-import gmsh
 import meshio
 import numpy as np
+
+from forcecal.mesh import gmsh_session
 
 OUT = Path(__file__).with_name("user_organ.vtu")
 MESH_SIZE_MM = 13.0  # gives ~520 vertices, mean edge ~ 15 mm (the indentation depth is 5 mm)
@@ -26,12 +27,7 @@ MESH_SIZE_MM = 13.0  # gives ~520 vertices, mean edge ~ 15 mm (the indentation d
 
 def make(mesh_size_mm: float = MESH_SIZE_MM) -> meshio.Mesh:
     """The organ meshed with gmsh at target edge length ``mesh_size_mm`` [mm] (coordinates in mm)."""
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        gmsh.model.add("user_organ")
+    with gmsh_session("user_organ") as gmsh:
         occ = gmsh.model.occ
         # body: ellipsoid 170 x 110 x 80 mm (x along the long axis, y up)
         body = occ.addSphere(0.0, 0.0, 0.0, 1.0)
@@ -52,8 +48,6 @@ def make(mesh_size_mm: float = MESH_SIZE_MM) -> meshio.Mesh:
         gmsh.model.mesh.optimize("")
         tags, coords, _ = gmsh.model.mesh.getNodes()
         _, _, elem_nodes = gmsh.model.mesh.getElements(3)
-    finally:
-        gmsh.finalize()
     tags = np.asarray(tags, dtype=np.int64)
     coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
     tets = np.concatenate([np.asarray(e, dtype=np.int64) for e in elem_nodes]).reshape(-1, 4)

@@ -31,7 +31,8 @@ from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic
 from particle.haptics import HapticSession
-from particle.integrator import DEFAULT_STRAIN_RANGE, VerletIntegrator, critical_time_step
+from particle.integrator import VerletIntegrator
+from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
 from particle.model import ConnectorParams, Model, StrainBounds, build_model, spatial_order
 from particle.reference_numpy import step_numpy
 from particle.testing import viscoelastic_params

@@ -1,4 +1,4 @@
-"""Scale study of ``make bench`` (issue 16): what each stage costs as the organ mesh grows.
+"""Scale study of ``make bench``: what each stage costs as the organ mesh grows.
 
 The generated liver at five characteristic lengths (282, 491, 866, 1,691 and
 2,936 vertices; ``--quick``: smaller), each size measured in a child process of
@@ -6,7 +6,7 @@ its own so its peak memory is its own:
 
 * ``points_s``: mesh + fixed nodes + ``"auto"`` test points (31 + 8) and their coverage;
 * ``step_us``: one explicit particle step (compiled loop, gravity + arms, one
-  thread, uniform parameters; :func:`particle.bench.step_throughput`);
+  thread, uniform parameters; :func:`pipelines.bench.particle_engine.step_throughput`);
 * ``calibration_s`` / ``evaluations``: a *short* calibration (2 calibration + 8
   held-out points, global fits of 5 + 6 cost evaluations, no local tuning,
   one worker) against a synthetic reference the particle model made with the
@@ -51,7 +51,7 @@ import numpy as np
 from forcecal.errors import DataFileError
 from forcecal.scene import Scene, replace
 
-log = logging.getLogger("pipelines.bench_scale")  # also when run as __main__ (a child)
+log = logging.getLogger("pipelines.bench.scale")  # also when run as __main__ (a child)
 
 LENGTHS = {False: (0.0182, 0.0142, 0.011, 0.0083, 0.0068), True: (0.04, 0.025, 0.0182, 0.011)}
 DEPTH_PER_EDGE = 0.25  # indentation depth / mean edge length (the default liver: 5 / 20.5 mm)
@@ -83,7 +83,7 @@ def measure_size(scene: Scene, length: float, quick: bool, folder: Path) -> dict
     from calibration.synthetic import synthetic_reference
     from forcecal.mesh import generate_liver
     from forcecal.problem import build_problem
-    from particle import bench as pb
+    from pipelines.bench import particle_engine as pb
 
     numba.set_num_threads(1)
     t0 = time.perf_counter()
@@ -250,7 +250,7 @@ def _child(args: list[str], cwd: Path, mpi_ranks: int = 0) -> dict[str, Any]:
 
     from pipelines.stages import mpirun_environment
 
-    cmd = [sys.executable, "-m", "pipelines.bench_scale", *args]
+    cmd = [sys.executable, "-m", "pipelines.bench.scale", *args]
     env = os.environ.copy()
     if mpi_ranks:
         cmd = [shutil.which("mpirun") or "mpirun", "-n", str(mpi_ranks), *cmd]
@@ -273,7 +273,7 @@ def _child(args: list[str], cwd: Path, mpi_ranks: int = 0) -> dict[str, Any]:
 
 def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     """The ``scale`` key of bench.json: one row per size, growth exponents, 1 vs 2 ranks."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     scene_path = str(scene.path)
     rows, failed, ranks = [], [], []
     load = [list(os.getloadavg())]

@@ -2,14 +2,15 @@
 
 ``study(scene, cache_folder, quick)`` returns the bench.json key ``volume_haptic``:
 for the scene's liver (its mesh and fixed base) and the large liver of the
-particle-engine item (``particle.bench.LARGE_MESH_LENGTH``, ~12k connectors), the
-latency of :meth:`particle.haptics.HapticSession.step` (1 ms per call, median and
-p99 over the calls, :func:`particle.bench.haptic_latency`; and the CPU time per call,
+particle-engine item (``pipelines.bench.particle_engine.LARGE_MESH_LENGTH``, ~12k
+connectors), the latency of :meth:`particle.haptics.HapticSession.step` (1 ms per
+call, median and p99 over the calls,
+:func:`pipelines.bench.particle_engine.haptic_latency`; and the CPU time per call,
 :func:`cpu_per_call`, which a busy machine disturbs less) with the uniform
 benchmark springs alone and with the volume term added at ``kv`` = the spring
 network's bulk modulus (:func:`particle.volume.network_bulk_modulus`, the paper
 fit's starting value; ``kv_ratio`` says how many times that). Each session takes
-its own largest stable step (``particle.bench.DT_SAFETY`` x the stability limit
+its own largest stable step (``pipelines.bench.particle_engine.DT_SAFETY`` x the stability limit
 over the default strain range +-0.5), so the ratio includes both the extra work
 per substep and the extra substeps the volume term's stiffness needs. Goal: <= 1.5.
 """
@@ -40,12 +41,12 @@ def with_volume(model, kv_ratio: float = KV_RATIO):
 def cpu_per_call(model, node: int, normal: np.ndarray, calls: int) -> dict[str, Any]:
     """CPU time [us] per :meth:`HapticSession.step` over ``calls`` calls (process time: on a
     shared machine it counts this process's work only, not the time it waited for a core),
-    the step and substeps as :func:`particle.bench.haptic_latency` takes them."""
+    the step and substeps as :func:`pipelines.bench.particle_engine.haptic_latency` takes them."""
     import time
 
-    from particle import bench as pb
+    from pipelines.bench import particle_engine as pb
     from particle.haptics import HapticSession
-    from particle.integrator import critical_time_step
+    from particle.stability import critical_time_step
 
     session = HapticSession(model, pb.DT_SAFETY * critical_time_step(model))
     start = model.rest_positions[node]
@@ -62,7 +63,7 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
 
     from forcecal.mesh import generate_liver
     from forcecal.problem import build_problem
-    from particle import bench as pb
+    from pipelines.bench import particle_engine as pb
 
     numba.set_num_threads(1)
     problem = build_problem(scene)

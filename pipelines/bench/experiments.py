@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from forcecal.h5io import read_reference
-from forcecal.scene import EXPERIMENTS, Scene, load_scene
-from pipelines.bench_configs import scene_toml
+from forcecal.scene import EXPERIMENTS, Scene
+from pipelines.bench.configs import derived_scene
 from pipelines.cache import Cache
 from pipelines.stages import REFERENCE, run_pipeline
 
@@ -36,18 +36,8 @@ REDUCED = (("indentation", "relaxation"), ("indentation",))
 
 def list_scene(base: Scene, experiments: tuple[str, ...], folder: Path) -> Scene:
     """``base`` with ``experiments``, no figures or fields, written to ``folder/scene.toml``."""
-    data = json.loads(json.dumps(base.to_dict(), default=list))
-    data["name"] = f"{base.name}-{'-'.join(experiments)}"
-    data["experiments"] = list(experiments)
-    if base.mesh_source_path() is not None:
-        data["mesh"]["source"] = str(base.mesh_source_path())
-    data["outputs"] = {"figures": False, "fields": False}
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "scene.toml"
-    text = scene_toml(data)
-    if not path.is_file() or path.read_text() != text:
-        path.write_text(text)
-    return load_scene(path)
+    return derived_scene(base, f"{base.name}-{'-'.join(experiments)}", {}, folder,
+                         experiments=experiments)
 
 
 def run_list(base: Scene, experiments: tuple[str, ...], folder: Path, ranks: int = 2

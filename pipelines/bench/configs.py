@@ -92,13 +92,16 @@ def scene_toml(data: dict[str, Any]) -> str:
 
 
 def derived_scene(base: Scene, name: str, changes: dict[str, dict[str, Any]],
-                  folder: Path) -> Scene:
-    """``base`` with ``changes``, no figures or fields, written to ``folder/scene.toml`` and loaded.
+                  folder: Path, *, experiments: tuple[str, ...] | None = None) -> Scene:
+    """``base`` with ``changes`` (and ``experiments`` if given), no figures or fields, written
+    to ``folder/scene.toml`` and loaded.
 
     A mesh file is referred to by its absolute path, so the copy finds it.
     """
     data = json.loads(json.dumps(base.to_dict(), default=list))
     data["name"] = name
+    if experiments is not None:
+        data["experiments"] = list(experiments)
     if base.mesh_source_path() is not None:
         data["mesh"]["source"] = str(base.mesh_source_path())
     data["outputs"] = {"figures": False, "fields": False}

@@ -29,7 +29,7 @@ largest displacement, each variant with the step and inertia of its session
 Timings: wall time per call (median, p99, max, and the minimum, the least
 disturbed by other processes) and the process CPU time per call over the drag;
 the load average before and after is recorded. Parameters are
-:func:`particle.bench.scene_model`'s uniform ones.
+:func:`pipelines.bench.particle_engine.scene_model`'s uniform ones.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ ERROR_GOAL = 1e-3  # relative error against float64 a variant may cost (issue 14
 
 
 def _mesh_model(scene: Scene, length: float | None):
-    from particle import bench as pb
+    from pipelines.bench import particle_engine as pb
     # the mesh only: the scene's test points (a covering problem) are not needed here
     mesh = load_mesh(scene) if length is None else generate_liver(length)
     fixed = fixed_nodes(mesh, scene.fixed.axis, scene.fixed.side, scene.fixed.tolerance)
@@ -70,8 +70,8 @@ def _mesh_model(scene: Scene, length: float | None):
 
 def mesh_rows(name: str, model, tool: int, tracked: int, gravity: np.ndarray) -> list[dict]:
     """Every variant's row on one model (see the module docstring)."""
-    from particle import bench as pb
-    from particle.integrator import DEFAULT_STRAIN_RANGE, critical_time_step
+    from pipelines.bench import particle_engine as pb
+    from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
     from particle.mass_scaling import added_mass_fraction, scaled_inertia
     from particle.model import spatial_order
 
@@ -163,14 +163,14 @@ def goal_rows(b: dict[str, Any]) -> list[list[str]]:
 
 def markdown(b: dict[str, Any]) -> list[str]:
     """The "Haptic variants" section of BENCH.md (empty without a ``haptic_scale`` key)."""
-    from pipelines.bench_report import _table
+    from pipelines.bench.report import _table
 
     h = b.get("haptic_scale")
     if not h:
         return []
     lines = ["", "## Haptic variants", "",
              "`HapticSession.step` (1 ms simulated per call, one thread) per mesh and variant "
-             "(`pipelines/bench_haptic.py`, `python -m pipelines bench --only \"haptic scale\"`): "
+             "(`pipelines/bench/haptic.py`, `python -m pipelines bench --only \"haptic scale\"`): "
              f"a {h['calls']}-call drag of the top vertex 5 mm down, then held. Errors against "
              "the float64 default of the same mesh: `drag`, the tool force over the drag; "
              "`release`, the tracked vertex over 3 s of gravity release (relative RMS). "

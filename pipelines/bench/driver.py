@@ -10,7 +10,7 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
 1. ``default``: the default scene through the cached pipeline in
    ``DIR/cache/runs/default/`` (seeded from ``runs/<scene name>/`` when that
    folder holds a finished run, so ``make demo``'s work is reused);
-2. ``pareto``: every configuration of :mod:`pipelines.bench_configs` (cached
+2. ``pareto``: every configuration of :mod:`pipelines.bench.configs` (cached
    pipelines), the particle time-step sweep and the FE discretisation study;
 3. ``reference``: wall time of the full default reference with 1 and 2 MPI
    ranks: the default run's own (its ``reference.h5`` records wall time and rank
@@ -18,16 +18,22 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
    ``DIR/cache/reference_timing.json`` for the same code and scene
    fingerprints (a cold first run of ``make bench`` therefore computes a full
    reference once more, ~10-25 min);
-4. particle engine (:mod:`particle.bench`): ``kernel`` throughput (compiled vs
+4. particle engine (:mod:`pipelines.bench.particle_engine`): ``kernel`` throughput (compiled vs
    numpy step, default liver and a >= 10k-connector liver), ``gravity_dynamic``
    (3 s of the calibrated model, against the FE's time and error),
    ``skip`` (the same runs with and without the terms they do not need),
    haptic latency, evaluator times;
-5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench_stability`);
+5. ``stability``: estimated vs empirical stability limits (:mod:`pipelines.bench.stability`);
 6. every study of :data:`STUDIES` (one module each).
 
 ``--only ITEM[,ITEM]`` runs only those items and keeps the other keys of the
 ``bench.json`` already in the folder (each item records its own time in ``item_s``).
+
+Cold times: an item that reused nothing computed earlier (no cached pipeline stage,
+FE study or reference timing, see :data:`REUSE_MESSAGES`) records its time in
+``item_s_cold`` too; one that reused something keeps the cold time of the run that
+computed what it reused (the earlier ``bench.json``'s, None if unknown). ``wall_s_cold``
+is their sum: what ``make bench`` takes with nothing cached.
 
 Fixed keys of ``bench.json``: ``kernel {connectors, updates_per_s, numpy_ratio}``,
 ``gravity_dynamic {particle_s, fe_s, speedup, error}``, ``calibration {wall_s,
@@ -48,6 +54,7 @@ import json
 import logging
 import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -62,14 +69,14 @@ from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.problem import build_problem, load_mesh
 from forcecal.provenance import git_commit
 from forcecal.scene import Scene, load_scene
-from pipelines import bench_configs as bc
+from pipelines.bench import configs as bc
 from pipelines.cache import code_digest
 from pipelines.report import gravity_dynamic_error, read_report
 from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS, mpirun_environment
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SEED_FILES = (REFERENCE, PARAMS, "gravity.h5", "report.json")
 DT_FRACTIONS = {False: (0.1, 0.25, 0.5, 0.75, 1.0), True: (0.25, 0.5, 1.0)}
 GOALS = {"numpy_ratio": 20.0, "gravity_3s_s": 0.05, "haptic_us": 100.0, "calibration_s": 300.0,
@@ -81,18 +88,22 @@ PAPER = {"calibration_s": 8 * 3600.0, "gravity_3s_s": 1.3}
 # study(scene, cache folder, quick) -> the bench.json keys it owns. Each lives in a module of
 # its own (imported only when it runs), so adding a study adds one line here.
 STUDIES: dict[str, str] = {
-    "experiments": "pipelines.bench_experiments:study",
-    "haptic scale": "pipelines.bench_haptic:study",
-    "fe_convergence": "pipelines.fe_convergence:study",
-    "scale": "pipelines.bench_scale:study",
-    "calibration methods": "pipelines.bench_calibration_methods:study",
-    "volume term": "pipelines.bench_volume:study",
+    "experiments": "pipelines.bench.experiments:study",
+    "haptic scale": "pipelines.bench.haptic:study",
+    "fe_convergence": "pipelines.bench.fe_convergence:study",
+    "scale": "pipelines.bench.scale:study",
+    "calibration methods": "pipelines.bench.calibration_methods:study",
+    "volume term": "pipelines.bench.volume:study",
 }
+# log messages (regular expressions) by which a cache hit announces itself: an item that logs
+# one reused earlier work, so its time is not a cold time
+REUSE_MESSAGES = re.compile(r"bench: reusing |up to date, skipped|already holds .* not "
+                            r"recomputed|adopting the existing|resuming from checkpoint")
 # items that need the default pipeline run (its folder is in ``state["default"]``)
 NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
 
 
-# the fixed keys of bench.json (issue: benchmarks), checked before it is written
+# the fixed keys of bench.json, checked before it is written
 BENCH_KEYS = {"kernel": ("connectors", "updates_per_s", "numpy_ratio"),
               "gravity_dynamic": ("particle_s", "fe_s", "speedup", "error"),
               "calibration": ("wall_s", "evaluations"),
@@ -177,14 +188,14 @@ def default_run(scene: Scene, root: Path, *, ranks: int, progress: bool
 def calibrated_release(scene: Scene, folder: Path, reference: Reference):
     """(calibrated Model, per-connector strain range of its release) as the gravity stage has them.
 
-    The range is :func:`~pipelines.gravity.release_strain_range` of the stage's own
+    The range is :func:`~particle.stability.release_strain_range` of the stage's own
     static sag (``gravity.h5``), so steps chosen for it are the ones ``make demo`` uses;
     without that file (the gravity stage failed) the default range +-0.5, with a warning.
     """
     from calibration import read_params
-    from particle.integrator import DEFAULT_STRAIN_RANGE
     from particle.model import build_model
-    from pipelines.gravity import read_gravity, release_strain_range
+    from particle.stability import DEFAULT_STRAIN_RANGE, release_strain_range
+    from pipelines.gravity import read_gravity
 
     model = build_model(reference.problem, scene.material.density,
                         read_params(folder / PARAMS).connectors["calibrated"])
@@ -206,7 +217,7 @@ def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[d
     time-discretisation error the step controls) against the smallest step's run.
     """
     from particle.experiments import gravity_dynamic
-    from particle.integrator import critical_time_step
+    from particle.stability import critical_time_step
 
     reference = read_reference(folder / REFERENCE)
     model, release = calibrated_release(scene, folder, reference)
@@ -263,14 +274,35 @@ def cached(path: Path, key: str, compute: Callable[[], Any]) -> Any:
     return value
 
 
-def fe_rows(scene: Scene, cache: Path) -> list[dict[str, Any]]:
+def discretisation_study_on(scene: Scene, ranks: int, folder: Path) -> dict[str, Any]:
+    """:func:`reference_fe.sensitivity.discretisation_study` of ``scene`` with its variants
+    shared out over ``ranks`` MPI processes (one process: in this one); raises
+    :class:`ForcecalError` if it fails."""
+    mpirun = shutil.which("mpirun")
+    if ranks == 1 or mpirun is None:
+        from reference_fe.sensitivity import discretisation_study
+        return discretisation_study(scene)
+    out = folder / "fe_study.partial.json"
+    cmd = [mpirun, "-n", str(ranks), sys.executable, "-m", "reference_fe.sensitivity",
+           "--scene", str(scene.path), "--out", str(out)]
+    log.info("bench: FE discretisation study on %d ranks: %s", ranks, " ".join(cmd))
+    if subprocess.run(cmd, env=mpirun_environment(), stdin=subprocess.DEVNULL).returncode != 0:
+        raise ForcecalError(f"the FE discretisation study on {ranks} ranks failed (message "
+                            "above)")
+    try:
+        return json.loads(out.read_text())
+    finally:
+        out.unlink(missing_ok=True)
+
+
+def fe_rows(scene: Scene, cache: Path, ranks: int = 1) -> list[dict[str, Any]]:
     """The FE discretisation study as rows: wall time of the variant's experiments, change of
     the max static sag (``overall``) and of the full-depth indentation forces against the
-    finest variant (P2 on the uniformly refined mesh)."""
+    finest variant (P2 on the uniformly refined mesh). The variants run on ``ranks``
+    processes at once (each variant's wall time is its own process's)."""
     def study() -> dict:
-        from reference_fe.sensitivity import discretisation_study
         try:
-            return discretisation_study(scene)
+            return discretisation_study_on(scene, ranks, cache)
         except ForcecalError as exc:  # kept too: retried only when the FE code changes
             return {"failed": f"{type(exc).__name__}: {exc}"}
 
@@ -356,6 +388,7 @@ def reference_timings(scene: Scene, default_folder: Path, cache: Path,
         old = json.loads(path.read_text())
         if old.get("key") == key:
             record = old
+            log.info("bench: reusing %s (same code and scene)", path)
     # the default run's reference is up to date with this code (its pipeline just checked):
     # its own timing replaces an older one with the same rank count
     default_reference = read_reference(default_folder / REFERENCE)
@@ -386,7 +419,7 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
     import numba
 
     from forcecal.mesh import generate_liver
-    from particle import bench as pb
+    from pipelines.bench import particle_engine as pb
 
     numba.set_num_threads(1)
     reference = read_reference(folder / REFERENCE)
@@ -463,6 +496,27 @@ def machine() -> dict[str, Any]:
             "git_commit": git_commit(ROOT)}
 
 
+class ReuseCounter(logging.Handler):
+    """Counts the log records of the project that announce a cache hit (:data:`REUSE_MESSAGES`)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.hits = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if REUSE_MESSAGES.search(record.getMessage()):
+            self.hits += 1
+
+
+def cold_times(item_s: dict[str, float], reused: set[str], previous: dict[str, Any]
+               ) -> dict[str, float | None]:
+    """Each item's cold time [s]: its own ``item_s`` when it reused nothing, else the earlier
+    run's ``item_s_cold`` (``previous``, a bench.json or {}), None if that run had none."""
+    earlier = previous.get("item_s_cold", {})
+    return {name: (earlier.get(name) if name in reused else seconds)
+            for name, seconds in item_s.items()}
+
+
 def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
               ranks: int = 2, progress: bool = True, only: tuple[str, ...] = ()
               ) -> dict[str, Any]:
@@ -473,14 +527,16 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     already in ``out``, the rest are kept as they are; the default pipeline run is
     brought up to date first when an item needs it).
     """
-    from pipelines.bench_report import write_markdown, write_pareto_plot
-    from pipelines.bench_stability import stability_table
+    from pipelines.bench.report import write_markdown, write_pareto_plot
+    from pipelines.bench.stability import stability_table
 
     scene = load_scene(scene_path or ROOT / "scenes" / ("tiny.toml" if quick else "liver.toml"))
     cache = out / "cache"
     runs = cache / "runs"
     bench: dict[str, Any] = {"machine": machine(), "scene": scene.name, "quick": quick}
     state: dict[str, Any] = {}
+    previous = json.loads((out / "bench.json").read_text()) if (
+        out / "bench.json").is_file() else {}
 
     def default_item():
         state["default"], state["row"] = default_run(scene, runs, ranks=ranks,
@@ -495,7 +551,7 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
             rows.append(bc.run_config(config, scene, state["default"], runs, ranks=ranks,
                                       progress=progress))
         rows += dt_sweep(scene, state["default"], DT_FRACTIONS[quick])
-        rows += fe_rows(scene, cache)
+        rows += fe_rows(scene, cache, ranks)
         bc.mark_fronts(rows)
         bench["pareto"] = rows
 
@@ -529,21 +585,34 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
             raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
                                 f"{[name for name, _ in items]}")
         # the other keys come from the last full run in out/ (each item records its own time)
-        previous = json.loads((out / "bench.json").read_text()) if (
-            out / "bench.json").is_file() else {}
         bench = {**previous, "machine": bench["machine"], "scene": scene.name, "quick": quick}
         keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
         items = [(name, fn) for name, fn in items if name in set(only) | keep]
     bench["item_s"] = dict(bench.get("item_s", {}))
+    reused: set[str] = set()
     start = time.perf_counter()
     for k, (name, fn) in enumerate(items, 1):
         log.info("bench [%d/%d] %s ...", k, len(items), name)
+        counter = ReuseCounter()
+        logging.getLogger().addHandler(counter)
         t0 = time.perf_counter()
-        fn()
+        try:
+            fn()
+        finally:
+            logging.getLogger().removeHandler(counter)
         bench["item_s"][name] = time.perf_counter() - t0
-        log.info("bench [%d/%d] %s done in %.1f s", k, len(items), name, bench["item_s"][name])
+        if counter.hits:
+            reused.add(name)
+        log.info("bench [%d/%d] %s done in %.1f s%s", k, len(items), name,
+                 bench["item_s"][name], " (reused earlier work)" if counter.hits else "")
     if not only:  # a partial run keeps the full run's wall time
         bench["wall_s"] = time.perf_counter() - start
+    bench["item_s_cold"] = {**previous.get("item_s_cold", {}),
+                            **cold_times({n: bench["item_s"][n] for n, _ in items}, reused,
+                                         previous)}
+    cold = list(bench["item_s_cold"].values())
+    bench["wall_s_cold"] = (None if None in cold or set(bench["item_s_cold"]) != set(
+        bench["item_s"]) else float(sum(cold)))
     bench["machine"]["load_average_end"] = list(os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
     check_bench(bench)

@@ -8,7 +8,7 @@ each level. ``punch_force_change`` and ``sag_change`` are the relative changes o
 scene's own level against the finest computed (largest over the points), and
 ``*_change_two_finest`` those between the two finest levels.
 
-``python -m pipelines.fe_convergence [--scene FILE] [--levels 0 1 2] [--element TH]
+``python -m pipelines.bench.fe_convergence [--scene FILE] [--levels 0 1 2] [--element TH]
 [--out FILE.json]`` runs it alone (each level is appended to ``--out`` as it finishes,
 so a long run can be followed and interrupted).
 """
@@ -32,9 +32,9 @@ from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene, replace
 from forcecal.schedules import indentation_depths
 
-log = logging.getLogger("pipelines.fe_convergence")  # also when run as __main__
+log = logging.getLogger("pipelines.bench.fe_convergence")  # also when run as __main__
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
 LEVELS = (0, 1, 2)  # the default liver's TH: 5k, 36k, 261k dofs
 
@@ -160,7 +160,7 @@ def _with_punch(scene: Scene) -> Scene:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipelines.fe_convergence",
+    parser = argparse.ArgumentParser(prog="python -m pipelines.bench.fe_convergence",
                                      description="FE convergence of the punch reference (JSON)")
     parser.add_argument("--scene", default=str(PUNCH_SCENE), help="a punch scene TOML file")
     parser.add_argument("--levels", type=int, nargs="+", default=list(LEVELS))

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.h5io import atomic_path
-from pipelines import bench_haptic
+from pipelines.bench import haptic as bench_haptic
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +214,11 @@ def _duration(b: dict) -> str:
     if "wall_s" not in b:
         return ""
     items = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in b["item_s"].items())
-    return f"This run took {b['wall_s'] / 60:.1f} min ({items} min)."
+    text = f"This run took {b['wall_s'] / 60:.1f} min ({items} min)."
+    if b.get("wall_s_cold") is not None:  # runs written before it was recorded have none
+        text += (f" With nothing cached (each item's time when it last reused nothing) it "
+                 f"takes {b['wall_s_cold'] / 60:.1f} min.")
+    return text
 
 
 def goals_markdown(b: dict[str, Any]) -> str:
@@ -401,8 +405,8 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
     lines += _table(["case", "connectors", "estimate [s]", "empirical [s]", "ratio"],
                     [[s["case"], s["connectors"], s["estimate_s"], s["empirical_s"], s["ratio"]]
                      for s in b["stability"]])
-    if "scale" in b:  # the scale study (issue 16)
-        from pipelines.bench_scale import scale_section
+    if "scale" in b:  # the scale study
+        from pipelines.bench.scale import scale_section
         lines += scale_section(b)
     lines += ["", "## Reproduce", "", "```bash", f"{cmd}   # -> {path.parent}/", "```", ""]
     with atomic_path(path) as tmp:

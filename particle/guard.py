@@ -1,0 +1,155 @@
+"""What stops an explicit run: the divergence bound, the state check and the errors.
+
+A :class:`~particle.integrator.Run` checks the state it is given
+(:func:`check_state`), then the compiled loop checks every ``check_every`` steps
+that no position is non-finite, that the kinetic energy stays below
+:func:`energy_bound` and that the connector strains (and with the volume term the
+tets' volumes) stay in the range the step was verified stable for
+(:mod:`particle.stability`); the first failure stops the loop with a code,
+which :func:`exit_error` turns into a :class:`StabilityError` naming the particle,
+connector or tet.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from forcecal.errors import ParameterError, StabilityError
+from particle import kernels
+from particle.model import Model, State
+from particle.statics import check_stiffness, check_volumes
+from particle.volume import node_volume_stiffness, signed_volumes, tet_name, volume_energy
+
+if TYPE_CHECKING:  # the integrator imports this module
+    from particle.integrator import Prescribed, Run
+
+# the kinetic energy may exceed the work the loads can do by this factor before a run is
+# declared divergent: a real run stays far below, an unstable one grows exponentially
+ENERGY_MARGIN = 100.0
+
+
+def energy_bound(model: Model, state: State, dt: float, n_steps: int,
+                 gravity: np.ndarray | None, prescribed: Prescribed | None) -> float:
+    """Kinetic energy [J] above which a run is declared divergent.
+
+    ``ENERGY_MARGIN`` x (present kinetic + elastic energy + the work gravity can
+    do in the run (falling the model's size, or freely for the run's duration)
+    + the work prescribed motion can do (moving each prescribed node its
+    largest keyframe distance against its connectors, plus dragging the whole
+    mass at the keyframes' fastest speed)), plus a floor for runs at rest. The
+    elastic energy is ``K(eps) dx^2/2`` at the state's strains; a state where
+    a spring's K(eps) <= 0 raises :class:`ParameterError`.
+    """
+    m = model.masses
+    p = model.params
+    size = float(np.linalg.norm(np.ptp(model.rest_positions, axis=0)))
+    total_mass = float(m.sum())
+    duration = n_steps * dt
+    v_prev = (state.x - state.x_prev) / (state.dt or dt)
+    energy = 0.5 * float(np.sum(m[:, None] * v_prev ** 2))
+    lengths = np.linalg.norm(state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]], axis=1)
+    dx = lengths - model.rest_lengths
+    strain = np.clip(dx / model.rest_lengths, -0.99, None)
+    # prepare() refused springs that go soft in the run's strain range; a state outside it
+    # (an unmonitored run) where one does is refused too, not bounded with |K|
+    check_stiffness(model, strain, f"explicit run from t = {state.t:.6g} s")
+    energy += float(np.sum(0.5 * p.stiffness(strain) * dx ** 2))
+    if p.kv is not None:
+        check_volumes(model, state.x, f"explicit run from t = {state.t:.6g} s")
+        energy += volume_energy(state.x, model.tets, model.rest_volumes, p.kv)
+    energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
+    if gravity is not None:
+        g = float(np.linalg.norm(gravity))
+        energy += total_mass * g * (size + 0.5 * g * duration ** 2)
+    if prescribed is not None:
+        stiff = np.bincount(model.edges.ravel(), np.repeat(p.K0 + p.k1 + p.k2, 2),
+                            model.n_particles)
+        if p.kv is not None:
+            stiff = stiff + node_volume_stiffness(model)
+        stiff = stiff[prescribed.nodes]
+        reach = np.linalg.norm(prescribed.positions - state.x[prescribed.nodes][None], axis=2)
+        energy += float(np.sum(stiff * (reach.max(axis=0) + size) ** 2))
+        if len(prescribed.times) > 1:
+            speed = (np.linalg.norm(np.diff(prescribed.positions, axis=0), axis=2)
+                     / np.diff(prescribed.times)[:, None]).max()
+            energy += total_mass * float(speed) ** 2
+    floor = 0.5 * total_mass * (1e-6 * size / dt) ** 2
+    return ENERGY_MARGIN * energy + floor
+
+
+def check_state(model: Model, state: State) -> None:
+    """Raise :class:`ParameterError` unless ``state`` fits ``model`` and the kernels.
+
+    Its arrays must have the model's shapes and be C-contiguous, writeable
+    float64 (another dtype would be truncated to it or compile another kernel
+    specialisation), and its time finite.
+    """
+    shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
+              ("arm_force", (model.n_connectors, 2)), ("dx_prev", (model.n_connectors,)))
+    for name, shape in shapes:
+        arr = getattr(state, name)
+        if not (isinstance(arr, np.ndarray) and arr.shape == shape
+                and arr.dtype == np.float64 and arr.flags.carray):
+            what = (f"{arr.dtype} array of shape {arr.shape}" if isinstance(arr, np.ndarray)
+                    else type(arr).__name__)
+            raise ParameterError(
+                f"the state's {name} ({what}) does not belong to this model of "
+                f"{model.n_particles} particles and {model.n_connectors} connectors:"
+                f" expected a writeable, C-contiguous float64 array of shape {shape}")
+    if not math.isfinite(state.t):
+        raise ParameterError(f"the state's time t = {state.t} s is not finite")
+
+
+def exit_error(run: Run, state: State, code: int, step: int, index: int,
+               energy_bound: float) -> StabilityError:
+    """The error for the kernel's exit ``code`` != OK at ``step`` (``index``: the tet,
+    connector or particle it names; ``energy_bound`` [J] the run's divergence bound)."""
+    if code == kernels.VOLUME:
+        return volume_exit(run, state, index, step)
+    if code == kernels.STRAIN:
+        return strain_exit(run, state, index, state.t + (step - 1) * run.dt)
+    what = ("has a non-finite position" if code == kernels.NONFINITE else
+            f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
+    return StabilityError(
+        f"explicit run diverged at step {step} (t = {state.t + step * run.dt:.6g} s): "
+        f"particle {index} {what}; dt = {run.dt:.4g} s, stability limit "
+        f"{run.integrator.critical_time_step(run.stability_model):.4g} s")
+
+
+def volume_exit(run: Run, state: State, t: int, step: int) -> StabilityError:
+    """The error for tet ``t`` found outside its volume range at step ``step`` (the
+    kernel stopped right after advancing the free particles: their positions then are
+    the state's ``x_prev``, the prescribed ones' still ``x``)."""
+    model, dt = run.model, run.dt
+    x = state.x_prev.copy()
+    x[run.prescribed] = state.x[run.prescribed]
+    ratio = float(signed_volumes(x, model.tets[t:t + 1])[0] / model.rest_volumes[t])
+    where = (f"at step {step} (t = {state.t + step * dt:.6g} s) of the explicit run; dt = "
+             f"{dt:.4g} s, stability limit {run.integrator.critical_time_step(model):.4g} s")
+    if not ratio > 0.0:
+        return StabilityError(f"{tet_name(t, model.tets)} inverted (volume ratio V/V0 = "
+                              f"{ratio:.3g} <= 0) {where}; the run stopped (the volume term "
+                              "is not meant for inverted tets)")
+    lo, hi = run.volume_ratio_range
+    return StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
+                          f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
+                          "was verified stable for; the run stopped rather than continue with "
+                          "an unverified step (widen the strain range: it sets this one)")
+
+
+def strain_exit(run: Run, state: State, e: int, t: float) -> StabilityError:
+    """The error for connector ``e`` found outside its monitored range at time ``t`` [s]."""
+    lo, hi = run.monitored
+    i, j = run.model.edges[e]
+    strain = state.dx_prev[e] / run.model.rest_lengths[e]
+    return StabilityError(
+        f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
+        f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {run.dt:.4g} s was "
+        f"verified stable for (limit "
+        f"{run.integrator.critical_time_step(run.stability_model):.4g} "
+        "s); the run stopped rather than continue with an unverified step. Widen the "
+        "range (in a scene: a larger particle.strain_margin) or use a smaller explicit "
+        "step verified for a wider range (particle.dt)")

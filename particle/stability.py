@@ -1,0 +1,372 @@
+"""Stability of the explicit particle step: the stable-step bound and the strain ranges it holds on.
+
+The step of :class:`~particle.integrator.VerletIntegrator` is stable below
+``2/omega_max``; :func:`critical_time_step` bounds ``omega_max`` rigorously for
+every state whose connector strains stay in a given range (the run verifies the
+range while stepping). The ranges come from here too: the default +-0.5, the
+range of a release from a static sag (:func:`strain_range_for_release`,
+:func:`release_strain_range` for the gravity stage), the interval where a
+nonlinear spring stays positive (:func:`positive_spring_range`). The empirical
+limit (:func:`empirical_critical_step`, a bisection over real runs) is what the
+bound is checked against by the tests and ``make bench``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import ArpackNoConvergence, eigsh
+
+from forcecal.errors import ParameterError, StabilityError
+from forcecal.scene import ParticleSection
+from particle.model import (ConnectorParams, Model, State, StrainBounds,
+                            connector_strain_bounds)
+from particle.volume import volume_frequency_bound
+
+log = logging.getLogger(__name__)
+
+#: connector strains [1] a run stays in unless told otherwise
+DEFAULT_STRAIN_RANGE = (-0.5, 0.5)
+# the computed lambda_max is multiplied by this: it covers the eigensolver's tolerance (1e-10
+# relative) and rounding with a wide margin, at a cost of 0.05 % of the step
+EIGENVALUE_MARGIN = 1.001
+# free particles up to which the dense eigensolver is used: Lanczos is faster beyond (measured
+# on Kuhn boxes: 294 free particles 6.6 ms dense, 1.2 ms Lanczos; 1089: 227 ms, 2.9 ms)
+DENSE_EIGEN_LIMIT = 100
+
+
+
+def connector_stiffness_bound(params: ConnectorParams, lo: np.ndarray, hi: np.ndarray
+                              ) -> np.ndarray:
+    """(E,) kappa_e >= the largest eigenvalue of connector e's 3x3 tangent block [N/m].
+
+    The block ``s e e^T + (F/l)(I - e e^T)`` has the eigenvalues ``s`` (axial)
+    and ``F/l`` (twice, transverse); kappa bounds both over strains in
+    ``[lo, hi]`` (any ordered range above -1):
+
+    * axial: the spring's tangent ``K0 + 2 a eps + 3 b eps^2`` (its maximum,
+      analytic) plus the arms' instantaneous stiffness ``k_i b_i/(k_i dt + b_i)
+      <= k_i``;
+    * transverse: ``F/l = K(eps) eps/(1 + eps) + F_arm/l``. The spring part is
+      positive only in tension with K > 0 (at most ``K_max hi/(1 + hi)``) or in
+      compression with K < 0 (at most ``-K_min |lo|/(1 + lo)``). An arm's force
+      is ``k_i`` times the elongation minus a weighted mean of its past values
+      (the Maxwell convolution), so ``|F_arm| <= k_i (hi - lo) L0``, and ``l >=
+      (1 + lo) L0``.
+
+    kappa is at least 0, so that ``kappa``-weighted graph Laplacians are positive
+    semidefinite.
+    """
+    _, tangent = params.extreme_tangent_stiffness((lo, hi))
+    kmin, kmax = params.extreme_stiffness((lo, hi))
+    arms = params.k1 + params.k2
+    spring = np.maximum(np.maximum(kmax, 0.0) * hi / (1.0 + hi),
+                        np.maximum(-kmin, 0.0) * -lo / (1.0 + lo))
+    transverse = spring + arms * (hi - lo) / (1.0 + lo)
+    return np.maximum(np.maximum(tangent + arms, transverse), 0.0)
+
+
+def mass_scaled_laplacian(model: Model, kappa: np.ndarray) -> sp.csr_matrix:
+    """(Nf, Nf) ``M^{-1/2} L_kappa M^{-1/2}`` on the free particles [1/s^2].
+
+    ``L_kappa`` is the graph Laplacian with connector weights ``kappa`` (E,)
+    [N/m]; a connector to a fixed particle keeps its diagonal term (the rows and
+    columns of fixed particles are dropped).
+    """
+    free = ~model.fixed
+    index = np.full(model.n_particles, -1, dtype=np.int64)
+    index[free] = np.arange(int(free.sum()))
+    i, j = model.edges[:, 0], model.edges[:, 1]
+    kappa = np.asarray(kappa, dtype=np.float64)
+    m = model.masses
+    both = free[i] & free[j]
+    rows = np.concatenate([index[i], index[j], index[i][both], index[j][both]])
+    cols = np.concatenate([index[i], index[j], index[j][both], index[i][both]])
+    coupling = -kappa[both] / np.sqrt(m[i][both] * m[j][both])
+    values = np.concatenate([kappa / m[i], kappa / m[j], coupling, coupling])
+    keep = rows >= 0  # drops the diagonal terms of the fixed ends
+    n = int(free.sum())
+    return sp.csr_matrix((values[keep], (rows[keep], cols[keep])), shape=(n, n))
+
+
+def largest_eigenvalue(matrix: sp.csr_matrix) -> float:
+    """Largest eigenvalue of a symmetric sparse matrix: dense below :data:`DENSE_EIGEN_LIMIT`
+    rows, else Lanczos (``eigsh``, relative tolerance 1e-10, fixed start vector)."""
+    n = matrix.shape[0]
+    if n <= DENSE_EIGEN_LIMIT:
+        return float(np.linalg.eigvalsh(matrix.toarray())[-1])
+    # a fixed random start vector: reproducible limits, and (almost surely) not orthogonal to
+    # the top mode
+    start = np.random.default_rng(0).uniform(0.5, 1.5, n)
+    try:
+        return float(eigsh(matrix, k=1, which="LA", tol=1e-10, v0=start,
+                           return_eigenvectors=False)[0])
+    except ArpackNoConvergence as exc:
+        raise StabilityError(f"the stability limit's eigenvalue solve (n = {n}) did not "
+                             f"converge: {exc}") from None
+
+
+def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
+                       strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+                       damping: float = 0.0) -> float:
+    """Stability limit [s] of the explicit step: ``2/omega_max`` (less with damping).
+
+    ``strain_range`` is where the connectors' strains stay during the run: one
+    (lo, hi) pair, or per-connector ``(lo (E,), hi (E,))`` arrays (e.g.
+    :func:`strain_range_for_release`); :class:`Run` verifies it while stepping.
+
+    The bound is rigorous for any state with strains in that range. Each
+    connector's 3x3 tangent block ``A_e`` satisfies ``A_e <= kappa_e I_3`` in the
+    Loewner order (:func:`connector_stiffness_bound`), so the tangent stiffness
+    ``K_t = sum_e B_e^T A_e B_e`` (``B_e x = x_j - x_i``) satisfies ``K_t <=
+    sum_e kappa_e B_e^T B_e = L_kappa (x) I_3``, restricted to the free
+    particles. Congruence with ``M^{-1/2}`` keeps the order, hence
+    ``omega_max^2 = lambda_max(M^{-1/2} K_t M^{-1/2}) <= lambda_max(M^{-1/2}
+    L_kappa M^{-1/2})``, the largest eigenvalue of a scalar Nf x Nf matrix
+    (:func:`mass_scaled_laplacian`; Kronecker with I_3 does not change
+    eigenvalues). It is computed (:func:`largest_eigenvalue`) and multiplied by
+    :data:`EIGENVALUE_MARGIN`. This is never above the block-Gershgorin bound
+    of the same matrix (the largest row sum), usually well below. With
+    mass-proportional damping gamma the central-difference limit becomes
+    ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
+
+    With the volume term (``params.kv`` given), ``K_t = K_springs + K_vol`` and
+    ``lambda_max(A + B) <= lambda_max(A) + lambda_max(B)``: Irons' element bound
+    of the volume term (:func:`particle.volume.volume_frequency_bound`, valid
+    while the tets' volume ratios stay in :func:`particle.volume.volume_ratio_range`,
+    which the runs verify) is added to omega_max^2 (putting each tet's bound on its
+    six edges of the Laplacian instead is 2x more pessimistic in omega^2 on a Kuhn
+    box).
+
+    Raises:
+        ParameterError: the parameters are non-physical on ``strain_range``
+            (:meth:`ConnectorParams.validate`, e.g. a negative K0), naming the connector.
+    """
+    p = model.params if params is None else params
+    # a non-physical model (K0 <= 0, ...) has no meaningful limit: refused, naming the connector
+    p.validate(strain_range, model.edges, model.tets)
+    if not (~model.fixed).any():
+        return math.inf  # nothing moves
+    lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
+    kappa = connector_stiffness_bound(p, lo, hi)
+    omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
+    if p.kv is not None:
+        omega2 += volume_frequency_bound(model.with_params(p), lo, hi)
+    if not omega2 > 0.0:
+        return math.inf  # no stiffness at all: nothing oscillates
+    omega = math.sqrt(omega2)
+    xi = damping / (2.0 * omega)
+    return 2.0 / omega * (math.sqrt(1.0 + xi * xi) - xi)
+
+
+def strain_range_for_release(model: Model, static_displacement: np.ndarray, margin: float
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-connector strain range (lo (E,), hi (E,)) of a release from rest under a static load.
+
+    Released from rest in the undeformed shape, a connector overshoots to about
+    twice its static strain ``eps_s`` (undamped, linear: exactly twice), so the
+    range is ``[min(0, 2 eps_s) - margin, max(0, 2 eps_s) + margin]``, except
+    that a compression is capped at half the static length, ``lo >= (eps_s -
+    1)/2`` (twice a static strain near -0.5 would reach zero length; the
+    viscoelastic arms keep strongly compressed connectors well short of twice
+    their static strain). The run verifies the range (:class:`Run`).
+    ``static_displacement`` (N, 3) [m] is the static solution (e.g.
+    :func:`particle.statics.gravity_static`).
+    """
+    if not (math.isfinite(margin) and margin >= 0.0):
+        raise ParameterError(f"strain margin = {margin} must be >= 0")
+    x = model.rest_positions + np.asarray(static_displacement, dtype=np.float64).reshape(-1, 3)
+    if x.shape != model.rest_positions.shape:
+        raise ParameterError(f"static displacement of shape {np.shape(static_displacement)} "
+                             f"does not fit the model's {model.n_particles} particles")
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    static = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
+    lo = np.maximum(np.minimum(2.0 * static, 0.0) - margin, 0.5 * (static - 1.0))
+    hi = np.maximum(2.0 * static, 0.0) + margin
+    return connector_strain_bounds((lo, hi), model.n_connectors, model.edges)
+
+
+def resolve_time_step(section: ParticleSection, critical: float) -> float:
+    """The scene's explicit step [s] for a model whose stability limit is ``critical`` [s]
+    (:func:`critical_time_step` with ``section.damping``): dt_safety x critical for 'auto',
+    else the checked number."""
+    if section.dt == "auto":
+        return section.dt_safety * critical
+    check_time_step(float(section.dt), critical)
+    return float(section.dt)
+
+
+def check_time_step(dt: float, critical: float) -> None:
+    """Raise :class:`StabilityError` if ``dt`` is not a positive step below ``critical``."""
+    if not (math.isfinite(dt) and dt > 0.0):
+        raise StabilityError(f"time step dt = {dt} s must be a finite number > 0")
+    if dt > critical:
+        raise StabilityError(f"time step dt = {dt:.4g} s is above the stability limit "
+                             f"{critical:.4g} s of this model (use particle.dt = 'auto' or a "
+                             "smaller step)")
+
+
+def inertial_model(model: Model, inertia: np.ndarray) -> Model:
+    """``model`` with the inertial masses ``inertia`` (N,) [kg] as its masses (mass scaling).
+
+    What the stability analysis of a mass-scaled run sees (:func:`critical_time_step`
+    of it is the limit of the run); the run itself keeps ``model`` for the loads
+    (gravity, damping act on the physical masses). ``inertia`` must be finite and at
+    least the physical mass of every particle (scaling only adds mass), else
+    :class:`ParameterError` naming the first particle that is not.
+    """
+    inertia = np.asarray(inertia, dtype=np.float64)
+    if inertia.shape != model.masses.shape:
+        raise ParameterError(f"inertia of shape {inertia.shape} does not fit the model's "
+                             f"{model.n_particles} particles")
+    bad = np.nonzero(~(np.isfinite(inertia) & (inertia >= model.masses)))[0]
+    if len(bad):
+        n = int(bad[0])
+        raise ParameterError(f"particle {n}: inertia {inertia[n]:.6g} kg must be finite and at "
+                             f"least its mass {model.masses[n]:.6g} kg (mass scaling only adds "
+                             "mass)")
+    return dataclasses.replace(model, masses=inertia)
+
+
+# ---------------------------------------------------------------------------- strain ranges
+
+#: a release range ends this fraction of the way to the strain where a spring's K(eps) is 0
+SOFT_SPRING_CLEARANCE = 0.95
+
+
+def positive_spring_range(params: ConnectorParams) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (E,), hi (E,)): the strain interval around 0 in which each connector's spring
+    ``K(eps) = K0 + a eps + b eps^2`` stays > 0 [1] (the roots of K nearest to 0 on either
+    side; -inf / +inf on a side where K never reaches 0)."""
+    K0, a, b = params.K0, params.a, params.b
+    lo = np.full(params.n_connectors, -np.inf)
+    hi = np.full(params.n_connectors, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        linear = b == 0.0
+        root = -K0 / a
+        lo = np.where(linear & (a > 0.0), root, lo)
+        hi = np.where(linear & (a < 0.0), root, hi)
+        disc = a * a - 4.0 * b * K0
+        real = ~linear & (disc >= 0.0)
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        r1, r2 = (-a - sq) / (2.0 * b), (-a + sq) / (2.0 * b)
+        rmin, rmax = np.minimum(r1, r2), np.maximum(r1, r2)
+        below = np.where(rmax < 0.0, rmax, np.where(rmin < 0.0, rmin, -np.inf))
+        above = np.where(rmin > 0.0, rmin, np.where(rmax > 0.0, rmax, np.inf))
+    return np.where(real, below, lo), np.where(real, above, hi)
+
+
+def release_strain_range(model: Model, static: np.ndarray, margin: float
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-connector strain range of the gravity release: :func:`strain_range_for_release`
+    (twice the static sag's strain, widened by ``margin``), cut to
+    :data:`SOFT_SPRING_CLEARANCE` of the way to the strain where the connector's spring
+    would lose its stiffness (a calibrated spring is positive on the calibrated range,
+    not necessarily beyond it). The step is chosen for this range and the run verifies
+    it, so a connector that would reach a soft spring stops the run with a clear error
+    instead of the release being refused before it starts. ``static`` (N, 3) [m] must
+    have positive springs (:func:`particle.statics.check_stiffness`).
+    """
+    lo, hi = strain_range_for_release(model, static, margin)
+    soft_lo, soft_hi = positive_spring_range(model.params)
+    eps = connector_strains(model, static)
+    cut_lo = np.maximum(lo, np.minimum(SOFT_SPRING_CLEARANCE * soft_lo, np.minimum(eps, 0.0)))
+    cut_hi = np.minimum(hi, np.maximum(SOFT_SPRING_CLEARANCE * soft_hi, np.maximum(eps, 0.0)))
+    cut = int(np.count_nonzero((cut_lo > lo) | (cut_hi < hi)))
+    if cut:
+        log.info("gravity release: %d connector(s) verified on a narrower strain range than "
+                 "twice their static strain +- %g: their springs would lose stiffness there",
+                 cut, margin)
+    return cut_lo, cut_hi
+
+
+def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:
+    """(..., E) connector strains [1] of displacements (..., N, 3) [m]."""
+    x = model.rest_positions + displacement
+    d = x[..., model.edges[:, 1], :] - x[..., model.edges[:, 0], :]
+    return np.linalg.norm(d, axis=-1) / model.rest_lengths - 1.0
+
+
+# ---------------------------------------------------------------------------- empirical limit
+# A run of ``steps`` steps from a slightly perturbed state is *blown up* when the
+# integrator's divergence guard fires (a non-finite position, or kinetic energy beyond
+# :func:`particle.guard.energy_bound`, 100 x the energy the start state and the loads
+# hold). Just above the true limit the unstable mode grows by ``1 + sqrt(8 delta)`` per step
+# (central difference with ``omega dt = 2 (1 + delta)``), so 3000 steps amplify the energy
+# 100 x as soon as ``delta`` exceeds ~1e-7: the bisection's tolerance, not the run length,
+# sets the resolution of :func:`empirical_critical_step`.
+
+def perturbed_state(model: Model, amplitude: float, seed: int = 0,
+                    prestrain: float = 0.0) -> State:
+    """A state at rest, dilated by ``1 + prestrain`` about the centroid, then perturbed.
+
+    Every particle (clamped ones too) is dilated, so every connector starts at
+    strain ``prestrain`` with unloaded arms; the free particles are then moved
+    randomly by ``amplitude`` x the model's size.
+    """
+    rng = np.random.default_rng(seed)
+    state = model.state()
+    centre = model.rest_positions.mean(axis=0)
+    state.x[:] = centre + (1.0 + prestrain) * (model.rest_positions - centre)
+    state.dx_prev[:] = prestrain * model.rest_lengths
+    size = float(np.ptp(model.rest_positions))
+    free = model.free_nodes
+    state.x[free] += amplitude * size * rng.standard_normal((len(free), 3))
+    state.x_prev[:] = state.x
+    return state
+
+
+def blows_up(model: Model, dt: float, *, steps: int = 3000, amplitude: float = 1e-6,
+             seed: int = 0, prestrain: float = 0.0, gravity: np.ndarray | None = None) -> bool:
+    """Whether ``steps`` explicit steps of ``dt`` [s] from a perturbed state diverge
+    (under ``gravity`` [m/s^2] if given)."""
+    from particle.integrator import VerletIntegrator  # the integrator imports this module
+
+    state = perturbed_state(model, amplitude, seed, prestrain)
+    try:
+        VerletIntegrator().simulate(model, state, dt, steps, gravity=gravity, _check_dt=False)
+    except StabilityError:
+        return True
+    return False
+
+
+def bisect(unstable: Callable[[float], bool], stable: float, *, rel_tol: float = 1e-3,
+           max_growth: int = 12) -> float:
+    """Boundary [s] between stable and unstable steps, starting from a ``stable`` step.
+
+    Doubles until a step is unstable (at most ``max_growth`` times: a model
+    that never blows up then reports that bound), then bisects to ``rel_tol``.
+    Every loop is bounded, so this cannot hang.
+    """
+    if unstable(stable):
+        raise StabilityError(f"the starting step {stable:.4g} s is already unstable")
+    lo, hi = stable, 2.0 * stable
+    for _ in range(max_growth):
+        if unstable(hi):
+            break
+        lo, hi = hi, 2.0 * hi
+    else:
+        return lo
+    while hi - lo > rel_tol * lo:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if unstable(mid) else (mid, hi)
+    return lo
+
+
+def empirical_critical_step(model: Model, *, steps: int = 3000, rel_tol: float = 1e-3,
+                            seed: int = 0, prestrain: float = 0.0) -> float:
+    """Largest stable explicit step [s] found by bisection (see the section comment above).
+
+    ``prestrain``: the run starts dilated (:func:`perturbed_state`); with every
+    surface particle clamped a uniform dilation of a Kuhn box is an equilibrium
+    (each interior particle's connectors come in opposite pairs), so the limit
+    found is the one of the tangent at that strain. Starts from the estimate
+    :func:`critical_time_step` x 0.5, which must be stable.
+    """
+    return bisect(lambda dt: blows_up(model, dt, steps=steps, seed=seed, prestrain=prestrain),
+                  0.5 * critical_time_step(model), rel_tol=rel_tol)

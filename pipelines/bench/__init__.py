@@ -1,0 +1,15 @@
+"""``make bench``: every benchmark of forcecal, one module per item or study.
+
+- :mod:`pipelines.bench.driver`: the ``bench`` command (its items, the studies of
+  :data:`~pipelines.bench.driver.STUDIES`, ``--only``, ``bench.json``);
+- :mod:`pipelines.bench.configs`: the run time vs error configurations (cached pipelines);
+- :mod:`pipelines.bench.particle_engine`: kernel throughput, real-time gravity, term skipping,
+  haptic latency, evaluator times;
+- :mod:`pipelines.bench.stability`: estimated vs empirical stability limits;
+- the studies: :mod:`~pipelines.bench.experiments`, :mod:`~pipelines.bench.haptic`,
+  :mod:`~pipelines.bench.fe_convergence`, :mod:`~pipelines.bench.scale`,
+  :mod:`~pipelines.bench.calibration_methods`, :mod:`~pipelines.bench.volume`;
+- :mod:`pipelines.bench.report`: ``BENCH.md`` and ``pareto.png`` from ``bench.json``.
+
+Importing this package imports none of them (each item loads its own module when it runs).
+"""
