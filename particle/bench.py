@@ -145,19 +145,20 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 
 
 def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls: int = 1000,
-                depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None
-                ) -> dict:
+                depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None,
+                strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> dict:
     """``calls`` periods (1 ms each) of :class:`HapticSession` dragging ``node`` ``depth`` [m]
     along ``normal`` (linearly over the first quarter, then held), timed call by call.
 
-    ``dt`` is the session's largest step [s], ``threads`` and ``inertia`` go to the
-    session. Returns the session's ``substeps`` and ``dt_s``, ``latencies_us`` (calls,)
+    ``dt`` is the session's largest step [s], ``threads``, ``inertia`` and
+    ``strain_range`` (verified by the session) go to the session. Returns the session's ``substeps`` and ``dt_s``, ``latencies_us`` (calls,)
     [us] of wall time per call, ``cpu_us`` [us] the process CPU time per call over the
     whole drag (less sensitive to a busy machine than wall time: time spent waiting
     for a core is not counted) and ``forces`` (calls, 3) [N], the force on the tool
     after each call. One call before the clock compiles the kernels.
     """
-    session = HapticSession(model, dt, threads=threads, inertia=inertia)
+    session = HapticSession(model, dt, threads=threads, inertia=inertia,
+                            strain_range=strain_range)
     start = model.rest_positions[node]
     session.step(node, start)  # compile outside the clock (the tissue stays at rest)
     latencies = np.empty(calls)
