@@ -1,7 +1,7 @@
 """Explicit time integration: position Verlet, stability limit, divergence guard.
 
 :class:`VerletIntegrator` advances a :class:`~particle.model.State` in place
-with the compiled loop :func:`particle.kernels.run_verlet`. Which force terms
+with the compiled loop :func:`particle.step_kernels.run_verlet`. Which force terms
 the loop contains is decided once per run (:class:`Terms`): gravity, Maxwell
 arms, nonlinear springs and damping are compiled out when a run does not need
 them; ``skip=False`` keeps every term (with zero values) so benchmarks and tests
@@ -23,11 +23,11 @@ from scipy.sparse.linalg import ArpackNoConvergence, eigsh
 
 from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
-from particle import kernels
+from particle import kernels, step_kernels
 from particle.model import (ConnectorParams, Model, State, StrainBounds,
                             connector_strain_bounds)
 from particle.statics import check_stiffness, check_volumes
-from particle.volume import (node_volume_stiffness, signed_volumes, tet_name,
+from particle.volume import (node_volume_force, node_volume_stiffness, signed_volumes, tet_name,
                              volume_energy, volume_frequency_bound, volume_ratio_range)
 
 log = logging.getLogger(__name__)
@@ -510,8 +510,8 @@ class Run:
     each step's connector pass is split into T contiguous connector blocks,
     each accumulating into its own force buffer (T, N, 3), preallocated here,
     and the reduction of the buffers with the position update is split into T
-    blocks of nodes (:func:`particle.kernels.parallel_forces`,
-    :func:`~particle.kernels.parallel_advance`): two numba parallel regions per
+    blocks of nodes (:func:`particle.step_kernels.parallel_forces`,
+    :func:`~particle.step_kernels.parallel_advance`): two numba parallel regions per
     step, with numba's thread count set to T for the call and restored after.
     The same physics and checks as the serial loop (T = 1, the default and the
     reference); the forces differ from it by the summation order only (round-off).
@@ -609,7 +609,7 @@ class Run:
         if pool is not None:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
         try:
-            status = kernels.run_verlet(
+            status = step_kernels.run_verlet(
                 state.x, state.x_prev, state.arm_force, state.dx_prev, self._edges,
                 model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
                 *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
@@ -620,12 +620,12 @@ class Run:
             if pool is not None:
                 numba.set_num_threads(pool)
         code, step, node = status.tolist()
-        if code == kernels.VOLUME:
+        if code == step_kernels.VOLUME:
             self._raise_volume_exit(state, node, step)
-        if code == kernels.STRAIN:
+        if code == step_kernels.STRAIN:
             self._raise_strain_exit(state, node, state.t + (step - 1) * dt)
-        if code != kernels.OK:
-            what = ("has a non-finite position" if code == kernels.NONFINITE else
+        if code != step_kernels.OK:
+            what = ("has a non-finite position" if code == step_kernels.NONFINITE else
                     f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
             raise StabilityError(
                 f"explicit run diverged at step {step} (t = {state.t + step * dt:.6g} s): "
@@ -732,5 +732,5 @@ class Run:
         kernels.node_force(state.x, node, edges, self._edges, self.model.rest_lengths,
                            *self._springs, state.arm_force, state.dx_prev, out)
         if self._volume is not None:
-            kernels.node_volume_force(state.x, node, tets, *self._volume, out)
+            node_volume_force(state.x, node, tets, *self._volume, out)
         return out
