@@ -154,9 +154,10 @@ def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls
     ``strain_range`` (verified by the session) go to the session. Returns the session's
     ``substeps`` and ``dt_s``, ``latencies_us`` (calls,) [us] of wall time per call,
     ``cpu_us`` [us] the process CPU time per call (less sensitive to a busy machine than
-    wall time: time spent waiting for a core is not counted), ``forces`` (calls, 3) [N], the force on the tool
-    after each call, and ``max_abs_strain`` [1], the largest connector |strain| at the
-    end of a call (outside the clock). One call before the clock compiles the kernels.
+    wall time: time spent waiting for a core is not counted), ``forces`` (calls, 3)
+    [N], the force on the tool after each call, and ``max_abs_strain`` [1], the largest
+    connector |strain| at the end of a call (outside the clock). One call before the
+    clock compiles the kernels.
     """
     session = HapticSession(model, dt, threads=threads, inertia=inertia,
                             strain_range=strain_range)

@@ -19,12 +19,13 @@ default run of the same mesh:
 
 Rows of ``terms`` "springs + arms + volume" (:func:`volume_rows`): the same mesh with
 the per-tet volume term (:mod:`particle.volume`) at :data:`VOLUME_KV`, the global kv
-calibrated on the FE liver; its variants are the float64 default (the reference of
-their errors), ``drag's strains`` (the session verified on the strain range the drag
-needs, +-:data:`ENVELOPE_MARGIN` x the largest |strain| of the float64 drag rounded up to
-0.05, instead of +-0.5: a larger stable step, as the volume term's bound grows with the
-faces' and volumes' possible growth; ``strain_range`` in the row) and ``mass-scaled 1``/``2``. ``volume_cost`` gives per mesh the time
-per call with the volume term over springs-only (issue 11 asks <= 1.5x).
+calibrated on the FE liver; its variants are the float64 default (the reference of their
+errors), ``drag's strains`` (the session verified on the strain range the drag needs,
++-:data:`ENVELOPE_MARGIN` x the largest |strain| of the float64 drag rounded up to 0.05,
+instead of +-0.5: a larger stable step, as the volume term's bound grows with the faces'
+and volumes' possible growth; ``strain_range`` in the row) and ``mass-scaled 1``/``2``.
+``volume_cost`` gives per mesh the time per call with the volume term over springs-only
+(issue 11 asks <= 1.5x).
 
 Errors (relative, README "Error definitions" style): ``error_drag``, the RMS over
 the 1000 calls of a 1 s drag (the tool particle, the top vertex, pushed 5 mm
