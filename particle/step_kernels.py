@@ -40,7 +40,10 @@ blocked pass with the sqrt and the division in separate vectorised loops
 (``vsqrtpd``/``vdivpd``, bitwise equal) 140 vs 142 us per force evaluation
 (the scalar sqrt/div overlap the loads and stores anyway); keeping the running
 sum of particle i in registers while consecutive connectors share it (bitwise
-equal, ~2.5 fewer stores per connector) 188 vs 186 us. None is kept. What halves
+equal, ~2.5 fewer stores per connector) 188 vs 186 us; float32 state (positions, and
+optionally the arm state, through the same loop, forces accumulated in float64), over the
+1 s haptic drag: minimum per call 310 (329 with float32 arms) vs 304 us, drag force within
+5.2e-5 of float64 (load 8-9). None is kept. What halves
 the cost of a device period is one substep instead of two: mass scaling
 (:mod:`particle.mass_scaling`, the inertia enters only through ``inv_masses``,
 so no kernel changes), measured with its error in ``runs/bench/BENCH.md``.
