@@ -235,9 +235,10 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
 
 
 def goal_rows(b: dict[str, Any]) -> list[list[str]]:
-    """Goals-table rows: per mesh above 10k connectors, the one-thread variant with the lowest
-    p99 among those within :data:`ERROR_GOAL` of float64 over the drag (the haptic output),
-    with both of its errors."""
+    """Goals-table rows: per mesh above 10k connectors and per terms (springs + arms, with the
+    volume term), the one-thread variant with the lowest p99 among those within
+    :data:`ERROR_GOAL` of its float64 over the drag (the haptic output), with both of its
+    errors; and the volume term's cost (:func:`volume_cost`) on those meshes."""
     h = b.get("haptic_scale")
     if not h:
         return []
@@ -248,14 +249,22 @@ def goal_rows(b: dict[str, Any]) -> list[list[str]]:
         if not rows or rows[0]["connectors"] < 10_000:
             continue
         best = min(rows, key=lambda r: r["p99_us"])
-        out.append([f"haptic step, {best['connectors']} connectors, {terms}, 1 thread, fastest "
-                    "variant "
+        with_volume = ", with the volume term" if terms == VOLUME else ""
+        out.append([f"haptic step, {best['connectors']} connectors{with_volume}, 1 thread, "
+                    "fastest variant "
                     f"within {ERROR_GOAL:g} of float64 (drag force), p99",
                     f"<= {GOAL_US:.0f} us",
                     f"{best['p99_us']:.0f} us (median {best['median_us']:.0f}; "
                     f"{best['variant']}, {best['substeps']} substep(s); error drag "
                     f"{best['error_drag']:.1e}, release {best['error_release']:.1e})",
                     "**met**" if best["p99_us"] <= GOAL_US else "**missed**"])
+    for c in h.get("volume_cost", []):
+        if c["connectors"] >= 10_000:
+            out.append([f"volume term's haptic cost, {c['connectors']} connectors: median time "
+                        "per call over springs-only (float64)", f"<= {VOLUME_COST_GOAL:g} x",
+                        f"{c['ratio_median']:.1f} x ({c['substeps'][1]} vs {c['substeps'][0]} "
+                        f"substeps; fastest variants {c['ratio_best_median']:.1f} x)",
+                        "**met**" if c["ratio_median"] <= VOLUME_COST_GOAL else "**missed**"])
     return out
 
 
