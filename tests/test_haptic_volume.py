@@ -12,8 +12,9 @@ from particle.integrator import critical_time_step
 from particle.mass_scaling import scaled_inertia, stiffness_weights
 from particle.model import ModelBuilder, connector_strain_bounds
 from particle.testing import box_model, top_centre, viscoelastic_params
-from particle.volume import (_irons_bound, _tet_bounds, node_volume_stiffness_bound,
-                             signed_volumes, volume_frequency_bound, volume_hessian_numpy)
+from particle.volume import signed_volumes, volume_hessian_numpy
+from particle.volume_bounds import (_irons_bound, _tet_bounds, node_volume_stiffness_bound,
+                                    volume_frequency_bound)
 
 PERIOD = 1e-3
 
