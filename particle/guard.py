@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from forcecal.errors import ParameterError, StabilityError
-from particle import kernels
+from particle import step_kernels
 from particle.model import Model, State
 from particle.statics import check_stiffness, check_volumes
 from particle.volume import node_volume_stiffness, signed_volumes, tet_name, volume_energy
@@ -107,11 +107,11 @@ def exit_error(run: Run, state: State, code: int, step: int, index: int,
                energy_bound: float) -> StabilityError:
     """The error for the kernel's exit ``code`` != OK at ``step`` (``index``: the tet,
     connector or particle it names; ``energy_bound`` [J] the run's divergence bound)."""
-    if code == kernels.VOLUME:
+    if code == step_kernels.VOLUME:
         return volume_exit(run, state, index, step)
-    if code == kernels.STRAIN:
+    if code == step_kernels.STRAIN:
         return strain_exit(run, state, index, state.t + (step - 1) * run.dt)
-    what = ("has a non-finite position" if code == kernels.NONFINITE else
+    what = ("has a non-finite position" if code == step_kernels.NONFINITE else
             f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
     return StabilityError(
         f"explicit run diverged at step {step} (t = {state.t + step * run.dt:.6g} s): "

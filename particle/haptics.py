@@ -20,9 +20,9 @@ from collections import OrderedDict
 import numpy as np
 
 from forcecal.errors import MeshError, ParameterError
-from particle.integrator import (Prescribed, Run, VerletIntegrator, check_threads,
-                                 check_time_step, energy_bound)
-from particle.model import Model
+from particle.integrator import (DEFAULT_STRAIN_RANGE, Prescribed, Run, VerletIntegrator,
+                                 check_threads, check_time_step, energy_bound)
+from particle.model import Model, StrainBounds
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,13 @@ class HapticSession:
             limit is below the period, at the cost of a slower transient
             (measured in ``runs/bench/BENCH.md``, "Haptic variants"); ``dt`` is
             checked against the limit with this inertia.
+        strain_range: the connector strains the session is verified for [1] (one
+            (lo, hi) pair or per-connector arrays, default +-0.5): ``dt`` is checked
+            against the stability limit over this range, and every call checks that
+            the strains stay in it (StabilityError naming the connector otherwise).
+            A narrower range is a tighter operating envelope and a larger stable
+            step: with the volume term, whose bound grows with the faces' and
+            volumes' possible growth ((1 + hi)^2, (1 + hi)^3), much larger.
 
     Attributes:
         state: the model's State (starts undeformed, at rest).
@@ -71,7 +78,8 @@ class HapticSession:
 
     def __init__(self, model: Model, dt: float, *, period: float = 1e-3,
                  gravity: np.ndarray | None = None, damping: float = 0.0,
-                 threads: int = 1, inertia: np.ndarray | None = None) -> None:
+                 threads: int = 1, inertia: np.ndarray | None = None,
+                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError(f"haptic period = {period} s must be > 0")
         check_time_step(dt, math.inf)  # a finite step > 0; the limit is checked below
@@ -81,7 +89,7 @@ class HapticSession:
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
         self.dt = self.period / self.substeps
         self.gravity = gravity
-        self.integrator = VerletIntegrator(damping)
+        self.integrator = VerletIntegrator(damping, strain_range=strain_range)
         self.inertia = None if inertia is None else np.asarray(inertia, dtype=np.float64)
         self.state = model.state()
         self._runs: OrderedDict[int, tuple[Run, float]] = OrderedDict()

@@ -1,7 +1,7 @@
 """Explicit time integration: position Verlet with the paper's Maxwell-arm recursion.
 
 :class:`VerletIntegrator` advances a :class:`~particle.model.State` in place
-with the compiled loop :func:`particle.kernels.run_verlet`. Which force terms
+with the compiled loop :func:`particle.step_kernels.run_verlet`. Which force terms
 the loop contains is decided once per run (:class:`Terms`): gravity, Maxwell
 arms, nonlinear springs and damping are compiled out when a run does not need
 them; ``skip=False`` keeps every term (with zero values) so benchmarks and tests
@@ -18,8 +18,8 @@ Threads: a :class:`Run` with ``threads`` = T > 1 (opt-in, for large models on a
 dedicated core set) splits each step's connector pass into T contiguous connector
 blocks, each accumulating into its own force buffer (T, N, 3), preallocated by
 :func:`thread_blocks`, and the reduction of the buffers with the position update
-into T blocks of nodes (:func:`particle.kernels.parallel_forces`,
-:func:`~particle.kernels.parallel_advance`): two numba parallel regions per step,
+into T blocks of nodes (:func:`particle.step_kernels.parallel_forces`,
+:func:`~particle.step_kernels.parallel_advance`): two numba parallel regions per step,
 with numba's thread count set to T for the call and restored after. The same
 physics and checks as the serial loop (T = 1, the default and the reference); the
 forces differ from it by the summation order only (round-off). What the threads
@@ -41,13 +41,13 @@ import numba
 import numpy as np
 
 from forcecal.errors import ParameterError
-from particle import kernels
+from particle import kernels, step_kernels
 from particle.model import ConnectorParams, Model, State, StrainBounds, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.stability import strain_range_for_release  # noqa: F401  (calibration/ imports it here)
 from particle.guard import check_state, energy_bound, exit_error
-from particle.volume import volume_ratio_range
+from particle.volume import node_volume_force, volume_ratio_range
 
 log = logging.getLogger(__name__)
 
@@ -342,7 +342,7 @@ class Run:
         if pool is not None:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
         try:
-            status = kernels.run_verlet(
+            status = step_kernels.run_verlet(
                 state.x, state.x_prev, state.arm_force, state.dx_prev, self._edges,
                 model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
                 *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
@@ -353,7 +353,7 @@ class Run:
             if pool is not None:
                 numba.set_num_threads(pool)
         code, step, node = status.tolist()
-        if code != kernels.OK:
+        if code != step_kernels.OK:
             raise exit_error(self, state, code, step, node, energy_bound)
         state.t += n_steps * dt
         if n_steps:
@@ -379,7 +379,7 @@ class Run:
         kernels.node_force(state.x, node, edges, self._edges, self.model.rest_lengths,
                            *self._springs, state.arm_force, state.dx_prev, out)
         if self._volume is not None:
-            kernels.node_volume_force(state.x, node, tets, *self._volume, out)
+            node_volume_force(state.x, node, tets, *self._volume, out)
         return out
 
 

@@ -1,7 +1,7 @@
 """Plain-numpy explicit step: the reference the compiled kernels are tested and benchmarked against.
 
 The same model, formulas and order of operations as
-:func:`particle.kernels.run_verlet` (see :class:`particle.integrator.VerletIntegrator`),
+:func:`particle.step_kernels.run_verlet` (see :class:`particle.integrator.VerletIntegrator`),
 written with whole-array numpy operations instead of loops.
 """
 

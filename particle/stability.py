@@ -136,8 +136,9 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
 
     With the volume term (``params.kv`` given), ``K_t = K_springs + K_vol`` and
-    ``lambda_max(A + B) <= lambda_max(A) + lambda_max(B)``: Irons' element bound
-    of the volume term (:func:`particle.volume.volume_frequency_bound`, valid
+    ``lambda_max(A + B) <= lambda_max(A) + lambda_max(B)``: the bound of the
+    volume term (:func:`particle.volume.volume_frequency_bound`, the smaller of
+    Irons' element bound and a per-particle one; valid
     while the tets' volume ratios stay in :func:`particle.volume.volume_ratio_range`,
     which the runs verify) is added to omega_max^2 (putting each tet's bound on its
     six edges of the Laplacian instead is 2x more pessimistic in omega^2 on a Kuhn

@@ -33,7 +33,10 @@ Functions:
 * :func:`volume_frequency_bound`: an upper bound of the term's largest mass-scaled
   eigenvalue over the states whose connector strains (and volume ratios,
   :func:`volume_ratio_range`) stay in a range, added to the springs' one by the
-  rigorous stable-step bound :func:`particle.integrator.critical_time_step`.
+  rigorous stable-step bound :func:`particle.integrator.critical_time_step`, and
+  :func:`node_volume_stiffness_bound`, its per-particle form: defined in
+  :mod:`particle.volume_bounds` (numpy only, used when a run is prepared) and
+  importable from here with the rest of the term.
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ import numpy as np
 from numba import njit
 
 from forcecal.errors import MeshError, ParameterError
+from particle.volume_bounds import (node_volume_stiffness_bound, volume_frequency_bound,
+                                    volume_ratio_range)
 
 JIT = dict(cache=True, error_model="numpy")
 
@@ -272,75 +277,6 @@ def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return order[pos]
 
 
-def volume_ratio_range(model, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T,) (J_lo, J_hi): the volume ratios V/V0 a run whose connector strains stay in
-    ``[lo, hi]`` (E,) is verified for: ``((1 + min lo)^3, (1 + max hi)^3)`` over each
-    tet's edges, the ratios of a uniform compression/dilation by those strains.
-
-    Edge lengths alone do not bound V/V0 usefully (a flat tet gains volume fast), so
-    the range is an assumption the explicit runs verify at every step, as they verify
-    the strains (:class:`particle.integrator.Run`).
-    """
-    conn = model.tet_connectors
-    return (1.0 + lo[conn].min(axis=1)) ** 3, (1.0 + hi[conn].max(axis=1)) ** 3
-
-
-def _max_triangle_area(a: tuple, b: tuple, c: tuple) -> np.ndarray:
-    """Upper bound [m^2] of a triangle's area whose side lengths lie in ``(lo, hi)`` pairs.
-
-    Heron: ``16 A^2 = (a + b + c)(-a + b + c)(a - b + c)(a + b - c)``; each factor is
-    bounded by its own maximum over the box (and the area by ``a b/2``).
-    """
-    (a0, a1), (b0, b1), (c0, c1) = a, b, c
-    heron = ((a1 + b1 + c1) * np.maximum(-a0 + b1 + c1, 0.0) * np.maximum(a1 - b0 + c1, 0.0)
-             * np.maximum(a1 + b1 - c0, 0.0))
-    return np.minimum(0.25 * np.sqrt(heron), 0.5 * np.minimum(np.minimum(a1 * b1, b1 * c1),
-                                                              a1 * c1))
-
-
-def volume_frequency_bound(model, lo: np.ndarray, hi: np.ndarray) -> float:
-    """omega^2 bound [1/s^2] of the volume term: >= lambda_max(M^{-1/2} K_vol M^{-1/2}).
-
-    Irons' element bound: with each particle's (lumped) mass shared among its
-    tets in proportion to their volumes, ``M = sum_t B_t^T M_t B_t``, and the tet
-    tangents ``H_t <= lambda_t M_t`` give ``K_vol <= max_t lambda_t M``. On the free
-    particles of tet t, ``H_t = kv/V0 g g^T + kv (J - 1) d^2V``:
-
-    * the rank-one part has ``lambda = kv/V0 sum_a |g_a|^2/m_a`` (free a), with
-      ``|g_a|`` = area of the face opposite a over 3, bounded from its side lengths
-      ``(1 + lo) L0 .. (1 + hi) L0`` by Heron's formula (:func:`_max_triangle_area`);
-    * ``d^2V`` in the edge coordinates ``e_k = p_k - p_0`` has the blocks
-      ``+-[e_m]_x/6``, spectral norm at most the largest row sum of the block norms,
-      ``max (l_i + l_j)/6``, and the map from vertex coordinates has ``|G|^2 = 4``:
-      ``lambda <= kv |J - 1|_max 4 max(l_i + l_j)/6 / min_a m_a``, ``|J - 1| <=
-      max(1 - J_lo, J_hi - 1)`` (:func:`volume_ratio_range`, verified by the runs).
-
-    Valid for every state whose connector strains lie in ``[lo, hi]`` (E,) and
-    whose volume ratios lie in :func:`volume_ratio_range`. 0 without free particles.
-    """
-    kv, tets, v0 = model.params.kv, model.tets, model.rest_volumes
-    conn = model.tet_connectors  # (T, 6) in TET_PAIRS order: 01 02 03 12 13 23
-    L0 = model.rest_lengths[conn]
-    lmin, lmax = (1.0 + lo[conn]) * L0, (1.0 + hi[conn]) * L0
-    side = [(lmin[:, k], lmax[:, k]) for k in range(6)]
-    # the face opposite vertex a: 0 -> (12, 13, 23), 1 -> (02, 03, 23), 2 -> (01, 03, 13),
-    # 3 -> (01, 02, 12)
-    faces = ((3, 4, 5), (1, 2, 5), (0, 2, 4), (0, 1, 3))
-    grad = np.column_stack([_max_triangle_area(*(side[k] for k in f)) / 3.0 for f in faces])
-    volume_sum = np.bincount(tets.ravel(), np.repeat(v0, 4), model.n_particles)
-    share = model.masses[tets] * v0[:, None] / volume_sum[tets]  # (T, 4) [kg]
-    free = ~model.fixed[tets]
-    if not free.any():
-        return 0.0
-    rank_one = kv / v0 * np.sum(np.where(free, grad ** 2 / share, 0.0), axis=1)
-    j_lo, j_hi = volume_ratio_range(model, lo, hi)
-    row = np.maximum(np.maximum(lmax[:, 1] + lmax[:, 2], lmax[:, 0] + lmax[:, 2]),
-                     lmax[:, 0] + lmax[:, 1]) / 6.0
-    lightest = np.min(np.where(free, share, np.inf), axis=1)
-    curvature = kv * np.maximum(1.0 - j_lo, j_hi - 1.0) * 4.0 * row / lightest
-    return float(np.max(np.where(free.any(axis=1), rank_one + curvature, 0.0)))
-
-
 def node_volume_stiffness(model) -> np.ndarray:
     """(N,) diagonal stiffness scale of the volume term at rest [N/m]: sum over a
     particle's tets of ``kv/V0 |dV/dp|^2`` (for the divergence bound's work estimate)."""
@@ -400,6 +336,8 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
 
 __all__ = ["add_volume_forces", "add_volume_tangent", "check_kv", "network_bulk_modulus",
            "node_volume_force", "signed_volumes", "tet_edge_connectors", "tet_name", "tet_slots",
-           "volume_frequency_bound", "volume_ratio_range", "node_volume_stiffness", "volume_energy", "volume_forces_numpy", "volume_hessian_numpy",
+           "volume_frequency_bound", "volume_ratio_range", "node_volume_stiffness",
+           "node_volume_stiffness_bound", "volume_energy", "volume_forces_numpy",
+           "volume_hessian_numpy",
            "volume_kv_sensitivity_numpy"]
 

@@ -30,8 +30,6 @@ from typing import Any
 
 from forcecal.h5io import atomic_path
 from forcecal.provenance import file_digest
-# pipelines.bench imports the code fingerprint from here: forcecal.provenance.code_digest
-from forcecal.provenance import code_digest  # noqa: F401
 
 log = logging.getLogger(__name__)
 

@@ -189,9 +189,10 @@ def test_threaded_step_with_the_volume_term_matches_the_serial_one():
 def test_an_elastic_tet_vibrates_with_constant_energy():
     """Springs + volume, arms negligible, one fixed face: kinetic + spring + volume energy is
     conserved by position Verlet up to its bounded O((omega dt)^2) error (below 1 % at
-    dt = 0.2 x the limit), over 20000 steps; and it oscillates (energy moves)."""
+    dt = 0.1 x the limit: 2.3 % at 0.2 x, the one free vertex's bound being nearly tight),
+    over 20000 steps; and it oscillates (energy moves)."""
     model = single_tet(kv=5000.0, K0=20.0, fixed=(True, True, True, False))
-    dt = 0.2 * critical_time_step(model)
+    dt = 0.1 * critical_time_step(model)
     state = model.state()
     state.x[3] += [1e-3, -5e-4, 8e-4]
     state.x_prev[:] = state.x

@@ -3,7 +3,7 @@
 For the bench scene, the whole pipeline (reference -> calibration -> gravity ->
 report) runs once per ``calibration.method`` (``paper``, ``gradient``) in its
 own folder under the bench cache; the FE reference is computed once (the first
-method's) and adopted by the others (:func:`pipelines.stages.adopt_reference`:
+method's) and adopted by the others (:func:`pipelines.runners.reference.adopt_reference`:
 same scene sections and mesh, the FE code older than it). Each row: the model
 (``springs``; ``springs + volume`` once the scene switches the volume term on),
 the method, the calibration wall time (``timings_s.calibration`` of

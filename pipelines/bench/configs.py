@@ -45,7 +45,8 @@ from forcecal.problem import load_mesh
 from forcecal.provenance import file_digest
 from forcecal.scene import Scene, load_scene, scene_from_dict
 from pipelines.report import fe_timings, read_report
-from pipelines.stages import PARAMS, REFERENCE, REFERENCE_SECTIONS, run_pipeline
+from forcecal.sections import REFERENCE_SECTIONS
+from pipelines.stages import PARAMS, REFERENCE, run_pipeline
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ def seed_reference(config: Config, scene: Scene, default_out: Path, folder: Path
             marker.read_text()).get("source") == digest:
         return
     if config.reference == "default":
-        shutil.copy2(source, folder / REFERENCE)  # keeps the mtime the pipeline's adoption checks
+        shutil.copy2(source, folder / REFERENCE)  # adopted by its experiment keys and content
     else:
         write_reference(folder / REFERENCE, sliced_reference(read_reference(source), scene))
     marker.write_text(json.dumps({"source": digest}))

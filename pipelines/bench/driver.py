@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import hashlib
 import importlib
 import json
 import logging
@@ -70,9 +69,11 @@ from forcecal.problem import build_problem, load_mesh
 from forcecal.provenance import git_commit
 from forcecal.scene import Scene, load_scene
 from pipelines.bench import configs as bc
-from pipelines.cache import code_digest
+from forcecal.provenance import code_digest, json_digest, section_fingerprint
+from forcecal.sections import REFERENCE_SECTIONS
 from pipelines.report import gravity_dynamic_error, read_report
-from pipelines.stages import GRAVITY, PARAMS, REFERENCE, REFERENCE_SECTIONS, mpirun_environment
+from pipelines.runners.reference import mpirun_environment
+from pipelines.stages import GRAVITY, PARAMS, REFERENCE
 
 log = logging.getLogger(__name__)
 
@@ -250,11 +251,13 @@ def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[d
 # ---------------------------------------------------------------------------- FE axis
 
 def fe_key(scene: Scene) -> str:
-    """Identity of an FE computation: FE code, the scene's reference sections, the mesh."""
-    blob = json.dumps({"code": code_digest("reference_fe"),
-                       "scene": scene.fingerprint(*REFERENCE_SECTIONS),
-                       "mesh": load_mesh(scene).fingerprint()})
-    return hashlib.sha256(blob.encode()).hexdigest()
+    """Identity of an FE computation: the code of the FE runs the bench starts (the reference
+    and the discretisation study, with everything they import), the scene's reference
+    sections, the mesh."""
+    return json_digest({"code": code_digest("reference_fe.__main__", "reference_fe.run",
+                                            "reference_fe.sensitivity"),
+                        "scene": section_fingerprint(scene, *REFERENCE_SECTIONS),
+                        "mesh": load_mesh(scene).fingerprint()})
 
 
 def cached(path: Path, key: str, compute: Callable[[], Any]) -> Any:

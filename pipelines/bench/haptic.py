@@ -17,6 +17,16 @@ default run of the same mesh:
   transient is slowed where mass was added (``added_mass``: fraction of the free
   mass). Also on the renumbered particles (``mass-scaled k, renumbered``).
 
+Rows of ``terms`` "springs + arms + volume" (:func:`volume_rows`): the same mesh with
+the per-tet volume term (:mod:`particle.volume`) at :data:`VOLUME_KV`, the global kv
+calibrated on the FE liver; its variants are the float64 default (the reference of their
+errors), ``drag's strains`` (the session verified on the strain range the drag needs,
++-:data:`ENVELOPE_MARGIN` x the largest |strain| of the float64 drag rounded up to 0.05,
+instead of +-0.5: a larger stable step, as the volume term's bound grows with the faces'
+and volumes' possible growth; ``strain_range`` in the row) and ``mass-scaled 1``/``2``.
+``volume_cost`` gives per mesh the time per call with the volume term over springs-only
+(issue 11 asks <= 1.5x).
+
 Errors (relative, README "Error definitions" style): ``error_drag``, the RMS over
 the 1000 calls of a 1 s drag (the tool particle, the top vertex, pushed 5 mm
 down over 0.25 s, then held) of ``|F - F_ref|`` over ``max |F_ref|``;
@@ -24,7 +34,7 @@ down over 0.25 s, then held) of ``|F - F_ref|`` over ``max |F_ref|``;
 displacement error after a release from rest under :data:`RELEASE_GRAVITY` x the
 scene's gravity (``gravity.tracked_node`` rule ``farthest_from_support``) over its
 largest displacement, each variant with the step and inertia of its session
-(strains verified in the default +-0.5, as in the haptic session).
+(strains verified in the range of the variant's session).
 
 Timings: wall time per call (median, p99, max, and the minimum, the least
 disturbed by other processes) and the process CPU time per call over the drag;
@@ -34,7 +44,9 @@ the load average before and after is recorded. Parameters are
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -58,6 +70,16 @@ GOAL_US = 100.0
 # (54k connectors: -0.55 at half the weight), and one range lets one inertia serve both runs
 RELEASE_GRAVITY = 0.25
 ERROR_GOAL = 1e-3  # relative error against float64 a variant may cost (issue 14)
+PERIOD = 1e-3  # s, the device period: one call
+# the "drag's strains" variant's verified range: this x the largest |strain| of the float64
+# drag (0.28 on the 12k-connector liver, 0.35 on the 54k one), rounded up to 0.05
+ENVELOPE_MARGIN = 1.2
+ENVELOPE = "drag's strains"
+SPRINGS, VOLUME = "springs + arms", "springs + arms + volume"
+# kv [Pa] of the volume rows: the global kv calibrated on the FE liver (runs/liver_volume,
+# report.json global_parameters.kv, with K0 = 27 N/m there against the benchmark's 30 N/m)
+VOLUME_KV = 8933.75
+VOLUME_COST_GOAL = 1.5  # the volume term's haptic cost over springs-only (issue 11)
 
 
 def _mesh_model(scene: Scene, length: float | None):
@@ -69,45 +91,94 @@ def _mesh_model(scene: Scene, length: float | None):
 
 
 def mesh_rows(name: str, model, tool: int, tracked: int, gravity: np.ndarray) -> list[dict]:
-    """Every variant's row on one model (see the module docstring)."""
-    from pipelines.bench import particle_engine as pb
-    from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
-    from particle.mass_scaling import added_mass_fraction, scaled_inertia
+    """Every springs + arms variant's row on one model (see the module docstring)."""
     from particle.model import spatial_order
 
-    safety = pb.DT_SAFETY
-    period = 1e-3
     order = spatial_order(model)
     renumbered, _ = model.renumbered(order)
     new_id = np.empty(model.n_particles, dtype=np.int64)
     new_id[order] = np.arange(model.n_particles)
+    default = _default_substeps(model)
+    variants = [Variant("float64"), Variant("renumbered", renumbered=True)]
+    for k in range(1, default):
+        variants += [Variant(f"mass-scaled {k}", substeps=k),
+                     Variant(f"mass-scaled {k}, renumbered", renumbered=True, substeps=k)]
+    return _rows(name, SPRINGS, model, (renumbered, new_id), tool, tracked, gravity, variants)
+
+
+def volume_rows(name: str, model, tool: int, tracked: int, gravity: np.ndarray,
+                kv: float = VOLUME_KV) -> list[dict]:
+    """The springs + arms + volume variants' rows on one model (``kv`` [Pa] on every tet): the
+    float64 default (their errors' reference), the session verified on the strain range the
+    drag needs (:data:`ENVELOPE_MARGIN`; a larger stable step), and mass scaling to 1 and 2
+    substeps."""
+    model = model.with_params(dataclasses.replace(model.params, kv=np.array([float(kv)])))
+    default = _default_substeps(model)
+    variants = [Variant("float64"), Variant(ENVELOPE, envelope=True)]
+    variants += [Variant(f"mass-scaled {k}", substeps=k) for k in (1, 2) if k < default]
+    return _rows(name, VOLUME, model, None, tool, tracked, gravity, variants)
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One haptic variant: its name, on the renumbered particles or not, ``substeps`` per
+    period by mass scaling (None: the model's own step), verified on the default strain range
+    (+-0.5) or, ``envelope``, on the range the reference's drag needs (:data:`ENVELOPE_MARGIN`)."""
+    name: str
+    renumbered: bool = False
+    substeps: int | None = None
+    envelope: bool = False
+
+
+def _default_substeps(model) -> int:
+    """Substeps per period of the float64 default session (the default strain range)."""
+    from pipelines.bench import particle_engine as pb
+    from particle.stability import critical_time_step
+
     limit = critical_time_step(model)
-    reference = pb.haptic_drag(model, tool, DOWN, safety * limit, calls=CALLS)
-    default_substeps = reference["substeps"]
-    variants = [("float64", False, None)] + [("renumbered", True, None)]
-    for k in range(1, default_substeps):
-        variants += [(f"mass-scaled {k}", False, k), (f"mass-scaled {k}, renumbered", True, k)]
-    ref_release = None
+    return max(1, math.ceil(PERIOD / (pb.DT_SAFETY * limit) * (1.0 - 1e-12)))
+
+
+def _rows(name: str, terms: str, model, renumbering, tool: int, tracked: int,
+          gravity: np.ndarray, variants: list[Variant]) -> list[dict]:
+    """The rows of ``variants`` on ``model``; the first variant is the errors' reference.
+    ``renumbering`` = (renumbered model, new particle ids) or None."""
+    from pipelines.bench import particle_engine as pb
+    from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
+    from particle.mass_scaling import added_mass_fraction, scaled_inertia
+
+    safety = pb.DT_SAFETY
+    reference = ref_release = None
     rows = []
-    for variant, renumber, substeps in variants:
-        m, node, tracked_node = ((renumbered, int(new_id[tool]), int(new_id[tracked]))
-                                 if renumber else (model, tool, tracked))
+    for v in variants:
+        strains = DEFAULT_STRAIN_RANGE
+        if v.envelope:
+            reach = math.ceil(20.0 * ENVELOPE_MARGIN * reference["max_abs_strain"]) / 20.0
+            strains = (-reach, reach)
+        m, node, tracked_node = ((renumbering[0], int(renumbering[1][tool]),
+                                  int(renumbering[1][tracked]))
+                                 if v.renumbered else (model, tool, tracked))
         # the session's largest step: the default's, or the period / k with the inertia
-        # that makes it stable; the release takes the same step and inertia
-        step, inertia = ((safety * limit, None) if substeps is None else
-                         (period / substeps, scaled_inertia(m, period / substeps / safety)))
-        log.info("haptic scale: %s, %s", name, variant)
-        drag = reference if variant == "float64" else pb.haptic_drag(
-            m, node, DOWN, step, calls=CALLS, inertia=inertia)
+        # that makes it stable; the release takes the same step, inertia and strain range
+        if v.substeps is None:
+            step, inertia = safety * critical_time_step(m, strain_range=strains), None
+        else:
+            step = PERIOD / v.substeps
+            inertia = scaled_inertia(m, step / safety, strain_range=strains)
+        log.info("haptic scale: %s, %s, %s", name, terms, v.name)
+        drag = pb.haptic_drag(m, node, DOWN, step, calls=CALLS, inertia=inertia,
+                              strain_range=strains)
         release = pb.release_history(m, RELEASE_GRAVITY * gravity, step, tracked_node,
-                                     inertia=inertia, strain_range=DEFAULT_STRAIN_RANGE)
-        if ref_release is None:
-            ref_release = release
+                                     inertia=inertia, strain_range=strains)
+        if reference is None:
+            reference, ref_release = drag, release
         us = drag["latencies_us"]
         median = float(np.median(us))
         rows.append({
-            "mesh": name, "variant": variant, "connectors": model.n_connectors,
-            "particles": model.n_particles, "substeps": drag["substeps"], "dt_s": drag["dt_s"],
+            "mesh": name, "terms": terms, "variant": v.name, "connectors": model.n_connectors,
+            "particles": model.n_particles, "tets": model.n_tets if terms == VOLUME else 0,
+            "strain_range": list(strains),
+            "substeps": drag["substeps"], "dt_s": drag["dt_s"],
             "added_mass": 0.0 if inertia is None else added_mass_fraction(m, inertia),
             "min_us": float(us.min()), "median_us": median,
             "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max()),
@@ -117,6 +188,29 @@ def mesh_rows(name: str, model, tool: int, tracked: int, gravity: np.ndarray) ->
             "error_release": pb.relative_history_error(release, ref_release),
             "release_dt_s": step, "load_average": os.getloadavg()[0], "goal_us": GOAL_US})
     return rows
+
+
+def volume_cost(rows: list[dict]) -> list[dict]:
+    """Per mesh: the volume term's haptic cost, median (and CPU) time per call of the
+    springs + arms + volume float64 default over the springs + arms one, and the same ratio
+    for the fastest variant of each within :data:`ERROR_GOAL` of its float64 (drag force)."""
+    out = []
+    for mesh in dict.fromkeys(r["mesh"] for r in rows):
+        default = {t: next((r for r in rows if r["mesh"] == mesh and r["terms"] == t
+                            and r["variant"] == "float64"), None) for t in (SPRINGS, VOLUME)}
+        if None in default.values():
+            continue
+        best = {t: min((r for r in rows if r["mesh"] == mesh and r["terms"] == t
+                        and r["error_drag"] <= ERROR_GOAL), key=lambda r: r["median_us"])
+                for t in (SPRINGS, VOLUME)}
+        out.append({"mesh": mesh, "connectors": default[SPRINGS]["connectors"],
+                    "ratio_median": default[VOLUME]["median_us"] / default[SPRINGS]["median_us"],
+                    "ratio_cpu": default[VOLUME]["cpu_us"] / default[SPRINGS]["cpu_us"],
+                    "substeps": [default[SPRINGS]["substeps"], default[VOLUME]["substeps"]],
+                    "ratio_best_median": best[VOLUME]["median_us"] / best[SPRINGS]["median_us"],
+                    "best_variants": [best[SPRINGS]["variant"], best[VOLUME]["variant"]],
+                    "goal_ratio": VOLUME_COST_GOAL})
+    return out
 
 
 def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
@@ -132,32 +226,45 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
         tool = int(np.argmax(np.where(model.fixed, -np.inf, model.rest_positions[:, 2])))
         tracked = tracked_node_by_rule(mesh, fixed, "farthest_from_support")
         rows += mesh_rows(name, model, tool, tracked, gravity)
+        rows += volume_rows(name, model, tool, tracked, gravity)
     return {"haptic_scale": {"rows": rows, "calls": CALLS, "depth_m": 0.005,
+                             "volume_kv_pa": VOLUME_KV, "volume_cost": volume_cost(rows),
                              "load_average_start": load_start,
                              "load_average_end": list(os.getloadavg()),
                              "goal_us": GOAL_US}}
 
 
 def goal_rows(b: dict[str, Any]) -> list[list[str]]:
-    """Goals-table rows: per mesh above 10k connectors, the one-thread variant with the lowest
-    p99 among those within :data:`ERROR_GOAL` of float64 over the drag (the haptic output),
-    with both of its errors."""
+    """Goals-table rows: per mesh above 10k connectors and per terms (springs + arms, with the
+    volume term), the one-thread variant with the lowest p99 among those within
+    :data:`ERROR_GOAL` of its float64 over the drag (the haptic output), with both of its
+    errors; and the volume term's cost (:func:`volume_cost`) on those meshes."""
     h = b.get("haptic_scale")
     if not h:
         return []
     out = []
-    for mesh in dict.fromkeys(r["mesh"] for r in h["rows"]):
-        rows = [r for r in h["rows"] if r["mesh"] == mesh and r["error_drag"] <= ERROR_GOAL]
+    for mesh, terms in dict.fromkeys((r["mesh"], r.get("terms", SPRINGS)) for r in h["rows"]):
+        rows = [r for r in h["rows"] if r["mesh"] == mesh and r.get("terms", SPRINGS) == terms
+                and r["error_drag"] <= ERROR_GOAL]
         if not rows or rows[0]["connectors"] < 10_000:
             continue
         best = min(rows, key=lambda r: r["p99_us"])
-        out.append([f"haptic step, {best['connectors']} connectors, 1 thread, fastest variant "
+        with_volume = ", with the volume term" if terms == VOLUME else ""
+        out.append([f"haptic step, {best['connectors']} connectors{with_volume}, 1 thread, "
+                    "fastest variant "
                     f"within {ERROR_GOAL:g} of float64 (drag force), p99",
                     f"<= {GOAL_US:.0f} us",
                     f"{best['p99_us']:.0f} us (median {best['median_us']:.0f}; "
                     f"{best['variant']}, {best['substeps']} substep(s); error drag "
                     f"{best['error_drag']:.1e}, release {best['error_release']:.1e})",
                     "**met**" if best["p99_us"] <= GOAL_US else "**missed**"])
+    for c in h.get("volume_cost", []):
+        if c["connectors"] >= 10_000:
+            out.append([f"volume term's haptic cost, {c['connectors']} connectors: median time "
+                        "per call over springs-only (float64)", f"<= {VOLUME_COST_GOAL:g} x",
+                        f"{c['ratio_median']:.1f} x ({c['substeps'][1]} vs {c['substeps'][0]} "
+                        f"substeps; fastest variants {c['ratio_best_median']:.1f} x)",
+                        "**met**" if c["ratio_median"] <= VOLUME_COST_GOAL else "**missed**"])
     return out
 
 
@@ -180,16 +287,34 @@ def markdown(b: dict[str, Any]) -> list[str]:
              f"added. The release is under {RELEASE_GRAVITY:g} x gravity (the uniform "
              "benchmark springs do not carry the finer livers' full weight within the +-0.5 "
              "strains the haptic step is verified for), with each variant's step and inertia."
+             f" `springs + arms + volume`: the volume term at kv = {h.get('volume_kv_pa', 0):g} "
+             "Pa (the global kv calibrated on the FE liver), its errors against its own "
+             "float64 row; `drag's strains`: the session verified on "
+             f"+-{ENVELOPE_MARGIN:g} x the largest strain of the float64 drag (rounded up to "
+             "0.05) instead of +-0.5. updates/s counts connectors only."
              " min and CPU time per call are the "
              "measures least affected by other processes. Load average "
              f"{h['load_average_start'][0]:.1f} at the start, {h['load_average_end'][0]:.1f} "
              "at the end.", ""]
-    lines += _table(["mesh", "connectors", "variant", "substeps", "added mass", "min [us]",
-                     "median [us]", "p99 [us]", "max [us]", "CPU [us/call]", "updates/s",
-                     "error drag", "error release"],
-                    [[r["mesh"], r["connectors"], r["variant"], r["substeps"],
+    lines += _table(["mesh", "connectors", "terms", "variant", "substeps", "added mass",
+                     "min [us]", "median [us]", "p99 [us]", "max [us]", "CPU [us/call]",
+                     "updates/s", "error drag", "error release"],
+                    [[r["mesh"], r["connectors"], r.get("terms", SPRINGS), r["variant"],
+                      r["substeps"],
                       f"{100 * r['added_mass']:.2g} %",
                       r["min_us"], r["median_us"], r["p99_us"], r["max_us"], r["cpu_us"],
                       r["updates_per_s"], r["error_drag"], r["error_release"]]
                      for r in h["rows"]])
+    if h.get("volume_cost"):
+        lines += ["", f"The volume term's haptic cost (kv = {h['volume_kv_pa']:g} Pa on every "
+                  "tet): time per call with it over springs-only, float64 defaults "
+                  "(median and CPU time) and the fastest variant of each within "
+                  f"{ERROR_GOAL:g} of its float64 (drag force); goal <= "
+                  f"{VOLUME_COST_GOAL:g}x (issue 11).", ""]
+        lines += _table(["mesh", "connectors", "substeps (springs, volume)", "ratio median",
+                         "ratio CPU", "ratio fastest", "fastest variants"],
+                        [[c["mesh"], c["connectors"], "{}, {}".format(*c["substeps"]),
+                          f"{c['ratio_median']:.2f}", f"{c['ratio_cpu']:.2f}",
+                          f"{c['ratio_best_median']:.2f}", "; ".join(c["best_variants"])]
+                         for c in h["volume_cost"]])
     return lines

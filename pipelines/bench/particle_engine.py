@@ -146,32 +146,37 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 
 
 def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls: int = 1000,
-                depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None
-                ) -> dict:
+                depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None,
+                strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> dict:
     """``calls`` periods (1 ms each) of :class:`HapticSession` dragging ``node`` ``depth`` [m]
     along ``normal`` (linearly over the first quarter, then held), timed call by call.
 
-    ``dt`` is the session's largest step [s], ``threads`` and ``inertia`` go to the
-    session. Returns the session's ``substeps`` and ``dt_s``, ``latencies_us`` (calls,)
-    [us] of wall time per call, ``cpu_us`` [us] the process CPU time per call over the
-    whole drag (less sensitive to a busy machine than wall time: time spent waiting
-    for a core is not counted) and ``forces`` (calls, 3) [N], the force on the tool
-    after each call. One call before the clock compiles the kernels.
+    ``dt`` is the session's largest step [s], ``threads``, ``inertia`` and
+    ``strain_range`` (verified by the session) go to the session. Returns the session's
+    ``substeps`` and ``dt_s``, ``latencies_us`` (calls,) [us] of wall time per call,
+    ``cpu_us`` [us] the process CPU time per call (less sensitive to a busy machine than
+    wall time: time spent waiting for a core is not counted), ``forces`` (calls, 3)
+    [N], the force on the tool after each call, and ``max_abs_strain`` [1], the largest
+    connector |strain| at the end of a call (outside the clock). One call before the
+    clock compiles the kernels.
     """
-    session = HapticSession(model, dt, threads=threads, inertia=inertia)
+    session = HapticSession(model, dt, threads=threads, inertia=inertia,
+                            strain_range=strain_range)
     start = model.rest_positions[node]
     session.step(node, start)  # compile outside the clock (the tissue stays at rest)
     latencies = np.empty(calls)
     forces = np.empty((calls, 3))
-    cpu = time.process_time()
+    strain = np.empty(calls)
+    cpu = 0.0
     for k in range(calls):
         target = start + depth * min(1.0, k / (calls / 4)) * normal
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         forces[k] = session.step(node, target)
         latencies[k] = time.perf_counter() - t0
-    cpu = time.process_time() - cpu
+        cpu += time.process_time() - c0
+        strain[k] = np.max(np.abs(session.state.dx_prev / model.rest_lengths))
     return {"substeps": session.substeps, "dt_s": session.dt, "latencies_us": 1e6 * latencies,
-            "cpu_us": 1e6 * cpu / calls, "forces": forces}
+            "cpu_us": 1e6 * cpu / calls, "forces": forces, "max_abs_strain": float(strain.max())}
 
 
 def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 2000,

@@ -248,7 +248,7 @@ def _child(args: list[str], cwd: Path, mpi_ranks: int = 0) -> dict[str, Any]:
     """Run this module in a child process (under mpirun with ``mpi_ranks``); its JSON row."""
     import signal
 
-    from pipelines.stages import mpirun_environment
+    from pipelines.runners.reference import mpirun_environment
 
     cmd = [sys.executable, "-m", "pipelines.bench.scale", *args]
     env = os.environ.copy()

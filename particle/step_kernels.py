@@ -1,0 +1,317 @@
+"""Compiled (numba) explicit step loop: the Verlet step, its checks, the multi-threaded step.
+
+:func:`run_verlet` advances a state by many steps in one call (the haptic loop's
+one kernel dispatch per device period); each step is :func:`explicit_step`:
+:func:`particle.kernels.net_forces` then :func:`advance_positions`, with the
+divergence, strain-range and volume-range checks riding on those passes.
+
+The step is serial by default (the reference); an
+opt-in multi-threaded step (``blocks``, :func:`explicit_step`) splits the connector
+pass into contiguous blocks, one per thread, each scattering into its own force
+buffer (no race, no node -> connector gather pass), then sums the buffers and
+advances the positions in blocks of nodes: two numba parallel regions per step.
+Measured on the 12k-connector liver (2 cores, numba's omp layer, other core idle):
+the connector pass over unchanged positions takes 58 us on one thread, 32 us on
+two, but a whole step 56-60 us serial, 56 us on two threads in gmsh's particle
+numbering and 43-45 us with the particles renumbered along the longest axis
+(:meth:`particle.model.Model.renumbered`): each step the threads exchange the
+positions and force-buffer rows of the particles both blocks touch (634 of 2033
+particles in gmsh's order, 116 renumbered), and those cache-line transfers, not
+the arithmetic, are the cost. A step's two regions cost 4.6 us together on a
+tiny model (an empty region 1.2 us with both threads ready, 0.4 us on one); with
+the other core busy, a region waits for it, up to a scheduler time slice
+(milliseconds). :meth:`particle.haptics.HapticSession.step` (2 substeps per ms),
+median (p99) over 5 x 1000 calls (liver 2000), load 0.36: 128-130 (182-250) us
+serial, 121-122 (155-178) us on two threads, 99 (135-143) us on two threads
+renumbered (125 us serial); on the 1400-connector liver 13.6 (17-19) us serial,
+20 (26-34) us on two threads, so the serial loop stays the choice there. An
+earlier two-pass version (a scatter-free gather over a node -> connector
+incidence) took 106 us per force evaluation on one thread against 74 us serial.
+
+Haptic rate at scale (issue 14). The connector pass is bound by issue slots, not
+memory: per connector 2 index + 6 position loads, 9 stores (6 force read-modify-
+writes, 2 arm forces, 1 elongation), one sqrt and one division. Measured with
+the machine shared (load 4-8, so indicative only; 12k-connector liver, one core,
+minimum over 300-1000 repetitions), each variant bitwise or round-off equal:
+connector data in float32 (parameters, rest lengths, arm state; the same kernels
+compiled for those dtypes, positions and forces float64) 350 vs 303 us per two
+steps (slower: conversions, no fewer instructions on the critical path); a
+blocked pass with the sqrt and the division in separate vectorised loops
+(``vsqrtpd``/``vdivpd``, bitwise equal) 140 vs 142 us per force evaluation
+(the scalar sqrt/div overlap the loads and stores anyway); keeping the running
+sum of particle i in registers while consecutive connectors share it (bitwise
+equal, ~2.5 fewer stores per connector) 188 vs 186 us; float32 state (positions, and
+optionally the arm state, through the same loop, forces accumulated in float64), over the
+1 s haptic drag: minimum per call 310 (329 with float32 arms) vs 304 us, drag force within
+5.2e-5 of float64 (load 8-9). None is kept. What halves
+the cost of a device period is one substep instead of two: mass scaling
+(:mod:`particle.mass_scaling`, the inertia enters only through ``inv_masses``,
+so no kernel changes), measured with its error in ``runs/bench/BENCH.md``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from particle.kernels import (JIT, add_connector_forces, add_damping, add_gravity, net_forces,
+                              node_force)
+from particle.volume import add_volume_forces, node_volume_force
+
+# status codes of run_verlet
+OK = 0
+NONFINITE = 1
+ENERGY = 2
+STRAIN = 3
+VOLUME = 4
+
+
+@njit(**JIT)
+def advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses):
+    """Position update ``x^{n+1} = 2 x^n - x^{n-1} + scale f^n/m`` of ``nodes``.
+
+    Returns ``sum m |x^{n+1} - x^n|^2`` [kg m^2] over ``nodes`` if ``check``
+    (0 otherwise): the kinetic energy times ``2 dt^2``, accumulated in the same
+    pass (the values are at hand) for the divergence check; a non-finite
+    position makes it non-finite.
+    """
+    energy = 0.0
+    for n in nodes:
+        v2 = 0.0
+        for c in range(3):
+            new = 2.0 * x[n, c] - x_prev[n, c] + scale * forces[n, c] * inv_masses[n]
+            if check:
+                dv = new - x[n, c]
+                v2 += dv * dv
+            x_prev[n, c] = x[n, c]
+            x[n, c] = new
+        if check:
+            energy += masses[n] * v2
+    return energy
+
+
+@njit(**JIT)
+def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                  masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
+                  check, dt, energy_bound, status, blocks, volume):
+    """One explicit step in place: :func:`net_forces` at ``x``, then :func:`advance_positions`.
+
+    If ``check``, the divergence check of the new positions: the kinetic
+    energy ``sum m |x^{n+1} - x^n|^2 / (2 dt^2)`` [J] must not exceed
+    ``energy_bound``, else ``status`` is set (:func:`divergent_node`, the only
+    part that looks at the nodes again). Returns (the first connector outside
+    ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None), the first tet whose volume
+    at ``x`` is outside its range (-1: none or no volume term)). ``blocks`` None runs the
+    serial passes, else the same passes split over threads
+    (:func:`parallel_forces`, :func:`parallel_advance`).
+    """
+    if blocks is None:
+        outside, bad = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0,
+                                       a, b, arm_r, arm_c, masses, active, gravity, damping_rate,
+                                       forces, dx_lo, dx_hi, volume)
+        energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
+    else:
+        outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
+                                  arm_c, dx_lo, dx_hi, blocks)
+        bad = -1
+        if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
+            bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
+                                       blocks[0][0])
+        energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity,
+                                  damping_rate, scale, check, blocks)
+    if check and not 0.5 * energy / (dt * dt) <= energy_bound:
+        divergent_node(x, x_prev, active, status)
+    return outside, bad
+
+
+@njit(parallel=True, **JIT)
+def parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c, dx_lo,
+                    dx_hi, blocks):
+    """The connector pass of :func:`net_forces` split over ``T`` threads (one parallel region).
+
+    ``blocks`` = (thread_forces (T, N, 3), edge_starts (T+1,), node_starts
+    (T+1,), outside (T,) int64, energy (T,)) (see
+    :meth:`particle.integrator.Run`): thread t adds connectors
+    ``edge_starts[t] .. edge_starts[t+1]-1`` into its own zeroed
+    ``thread_forces[t]`` (no two threads write the same memory; arm forces
+    and elongations are per connector). Returns the first connector outside
+    ``[dx_lo, dx_hi]`` in connector order, as the serial pass.
+    """
+    thread_forces, edge_starts, _, outside, _ = blocks
+    for t in prange(thread_forces.shape[0]):
+        own = thread_forces[t]
+        own[:] = 0.0
+        outside[t] = add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                                          arm_force, dx_prev, own, None, arm_force, dx_prev,
+                                          dx_lo, dx_hi, edge_starts[t], edge_starts[t + 1])
+    for t in range(outside.shape[0]):
+        if outside[t] >= 0:
+            return outside[t]
+    return -1
+
+
+@njit(**JIT)
+def sum_thread_forces(thread_forces, forces, nodes):
+    """forces[n] = sum over t of thread_forces[t, n] [N] for ``nodes``, in thread order.
+
+    ``thread_forces`` (T, N, 3), ``forces`` (N, 3).
+    """
+    for n in nodes:
+        f0 = thread_forces[0, n, 0]
+        f1 = thread_forces[0, n, 1]
+        f2 = thread_forces[0, n, 2]
+        for k in range(1, thread_forces.shape[0]):  # three scalars: 2x faster than a c loop
+            f0 += thread_forces[k, n, 0]
+            f1 += thread_forces[k, n, 1]
+            f2 += thread_forces[k, n, 2]
+        forces[n, 0] = f0
+        forces[n, 1] = f1
+        forces[n, 2] = f2
+
+
+@njit(parallel=True, **JIT)
+def parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity, damping_rate, scale,
+                     check, blocks):
+    """Reduction of the thread forces, the node loads and the position update, split over nodes.
+
+    Thread t takes the active nodes ``active[node_starts[t] .. node_starts[t+1]-1]``:
+    ``forces[n] = sum_t thread_forces[t, n]`` (in thread order, a fixed
+    summation order: the result does not depend on the scheduling), then
+    :func:`add_gravity`, :func:`add_damping` and :func:`advance_positions` of
+    those nodes. Returns the summed energy of :func:`advance_positions`.
+    """
+    thread_forces, _, node_starts, _, energy = blocks
+    for t in prange(thread_forces.shape[0]):
+        nodes = active[node_starts[t]:node_starts[t + 1]]
+        sum_thread_forces(thread_forces, forces, nodes)
+        if gravity is not None:
+            add_gravity(forces, masses, gravity, nodes)
+        if damping_rate is not None:
+            add_damping(forces, masses, x, x_prev, damping_rate, nodes)
+        energy[t] = advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses)
+    total = 0.0
+    for t in range(energy.shape[0]):
+        total += energy[t]
+    return total
+
+
+@njit(**JIT)
+def divergent_node(x, x_prev, active, status):
+    """status[0, 2] = (NONFINITE, the first node with a non-finite position), else (ENERGY,
+    the fastest node)."""
+    fastest = np.int64(-1)
+    fastest_v2 = -1.0
+    for n in active:
+        v2 = 0.0
+        for c in range(3):
+            if not math.isfinite(x[n, c]):
+                status[0] = NONFINITE
+                status[2] = n
+                return
+            dv = x[n, c] - x_prev[n, c]
+            v2 += dv * dv
+        if v2 > fastest_v2:
+            fastest_v2 = v2
+            fastest = np.int64(n)
+    status[0] = ENERGY
+    status[2] = fastest
+
+
+@njit(**JIT)
+def prescribe(x, x_prev, nodes, times, positions, t):
+    """Move prescribed nodes to their piecewise-linear keyframe position at time t."""
+    k = np.searchsorted(times, t)
+    for p in range(nodes.shape[0]):
+        n = nodes[p]
+        for c in range(3):
+            if k == 0:
+                target = positions[0, p, c]
+            elif k >= times.shape[0]:
+                target = positions[times.shape[0] - 1, p, c]
+            else:
+                w = (t - times[k - 1]) / (times[k] - times[k - 1])
+                target = (1.0 - w) * positions[k - 1, p, c] + w * positions[k, p, c]
+            x_prev[n, c] = x[n, c]
+            x[n, c] = target
+
+
+@njit(**JIT)
+def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+               masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
+               presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
+               check_every, energy_bound, dx_lo, dx_hi, forces, probe_node, probe_edges,
+               probe_out, blocks, volume, probe_tets):
+    """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
+
+    ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
+    and not prescribed); if ``startup``, the first step uses half the
+    acceleration term, i.e. the Taylor start ``x^1 = x^0 + dt^2/2 a^0`` of a
+    state at rest (``x_prev = x``). Prescribed nodes follow their keyframes.
+    Positions of ``rec_nodes`` are stored in ``rec_out[s]`` after step
+    ``rec_steps[s]`` (0 = the initial state). Every ``check_every`` steps and
+    after the last one the run stops with a non-zero code if positions are
+    non-finite or the kinetic energy exceeds ``energy_bound`` (id = the
+    particle), or, unless ``dx_lo`` is None, a connector's elongation at the
+    step before is outside ``[dx_lo, dx_hi]`` (E,) [m] (id = the connector).
+    Unless ``probe_out`` is None, a run that ends normally writes the
+    connector force on ``probe_node`` at the final state into it (see
+    :func:`node_force`; ``probe_edges`` are the node's connectors).
+    ``blocks`` None: every step is serial; else the work split and scratch of
+    a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
+    rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out); a
+    tet whose volume leaves ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an
+    inverted tet always does) stops the run at once with code VOLUME (step = the
+    step whose start positions it was found at, id = the tet); ``probe_tets``
+    are the probe node's tets.
+
+    The checks ride on the force and position passes of the checked steps
+    (no extra pass over the model), so a checked step costs about an unchecked one.
+    """
+    status = np.zeros(3, dtype=np.int64)
+    slot = 0
+    if rec_nodes is not None:
+        while slot < rec_steps.shape[0] and rec_steps[slot] == 0:
+            for r in range(rec_nodes.shape[0]):
+                rec_out[slot, r] = x[rec_nodes[r]]
+            slot += 1
+    h2 = dt * dt
+    for step in range(n_steps):
+        check = (step + 1) % check_every == 0 or step + 1 == n_steps
+        scale = 0.5 * h2 if (startup and step == 0) else h2
+        if check:
+            outside, inverted = explicit_step(
+                x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
+                True, dt, energy_bound, status, blocks, volume)
+        else:
+            outside, inverted = explicit_step(
+                x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                masses, inv_masses, active, gravity, damping_rate, forces, None, None, scale,
+                False, dt, energy_bound, status, blocks, volume)
+        if volume is not None and inverted >= 0:
+            status[0] = VOLUME
+            status[1] = step  # the tet was inverted at the positions the step started from
+            status[2] = inverted
+            return status
+        prescribe(x, x_prev, presc_nodes, presc_times, presc_pos, t0 + (step + 1) * dt)
+        if rec_nodes is not None:
+            while slot < rec_steps.shape[0] and rec_steps[slot] == step + 1:
+                for r in range(rec_nodes.shape[0]):
+                    rec_out[slot, r] = x[rec_nodes[r]]
+                slot += 1
+        if check:
+            if status[0] == OK and outside >= 0:
+                status[0] = STRAIN
+                status[2] = outside
+            if status[0] != OK:
+                status[1] = step + 1
+                return status
+    if probe_out is not None:
+        node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+                   arm_force, dx_prev, probe_out)
+        if volume is not None:
+            node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
+                              probe_out)
+    return status

@@ -1,0 +1,198 @@
+"""The haptic step with the volume term: its stability bound, verified strain range, mass
+scaling and the ``haptic scale`` benchmark's volume rows."""
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from forcecal.errors import StabilityError
+from particle.haptics import HapticSession
+from particle.integrator import critical_time_step
+from particle.mass_scaling import scaled_inertia, stiffness_weights
+from particle.model import ModelBuilder, connector_strain_bounds
+from particle.testing import box_model, top_centre, viscoelastic_params
+from particle.volume import signed_volumes, volume_hessian_numpy
+from particle.volume_bounds import (_irons_bound, _tet_bounds, node_volume_stiffness_bound,
+                                    volume_frequency_bound)
+
+PERIOD = 1e-3
+
+
+def with_kv(model, kv):
+    """The model with a volume stiffness kv [Pa] on every tet."""
+    return model.with_params(dataclasses.replace(model.params, kv=np.full(model.n_tets, kv)))
+
+
+def jittered_box(seed=0, jitter=0.25, kv=2e4):
+    """A (3, 3, 2) Kuhn box whose inner and top vertices are moved by up to ``jitter`` x the
+    cell size (an irregular mesh: tets of unequal size and shape), bottom fixed."""
+    box = box_model((3, 3, 2))
+    x = box.rest_positions.copy()
+    cell = 0.01
+    rng = np.random.default_rng(seed)
+    movable = ~box.fixed
+    x[movable] += jitter * cell * rng.uniform(-1.0, 1.0, (int(movable.sum()), 3))
+    builder = ModelBuilder()
+    builder.add_particles(x, box.masses, box.fixed)
+    builder.add_connectors(box.edges)
+    params = dataclasses.replace(viscoelastic_params(box.n_connectors),
+                                 kv=np.full(box.n_tets, kv))
+    model = builder.finalize(params, tets=box.tets)
+    assert np.all(signed_volumes(x, box.tets) > 0.0)
+    return model
+
+
+def volume_eigenvalue(model, x):
+    """lambda_max(M^{-1/2} K_vol M^{-1/2}) [1/s^2] on the free particles at positions ``x``,
+    the volume tangent assembled from the per-tet numpy Hessians."""
+    n = model.n_particles
+    rows, cols, vals = [], [], []
+    for t, tet in enumerate(model.tets):
+        h = volume_hessian_numpy(x, tet, model.rest_volumes[t], model.params.kv[t])
+        idx = (3 * tet[:, None] + np.arange(3)).ravel()
+        rows.append(np.repeat(idx, 12))
+        cols.append(np.tile(idx, 12))
+        vals.append(h.ravel())
+    k = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(3 * n, 3 * n)).toarray()
+    dof = np.repeat(~model.fixed, 3)
+    scale = 1.0 / np.sqrt(np.repeat(model.masses, 3)[dof])
+    return float(np.linalg.eigvalsh(scale[:, None] * k[np.ix_(dof, dof)] * scale)[-1])
+
+
+def strains_and_ratios(model, x):
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    return (np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0,
+            signed_volumes(x, model.tets) / model.rest_volumes)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_nodal_volume_bound_is_above_the_true_eigenvalue_on_deformed_irregular_meshes(seed):
+    """Rigour: at rest and at random states whose strains lie in the range (+-0.3), the largest
+    mass-scaled eigenvalue of the assembled volume tangent (exact numpy Hessians) is below
+    max_n D_n/m_n; the bound used by the stable step is the smaller of it and Irons' bound."""
+    model = jittered_box(seed)
+    lo, hi = connector_strain_bounds((-0.3, 0.3), model.n_connectors, model.edges)
+    free = ~model.fixed
+    nodal = float(np.max(node_volume_stiffness_bound(model, lo, hi)[free] / model.masses[free]))
+    irons = _irons_bound(model, *_tet_bounds(model, lo, hi))
+    assert volume_frequency_bound(model, lo, hi) == min(nodal, irons)
+    rng = np.random.default_rng(seed)
+    checked = 0
+    states = []
+    for amplitude in (0.0, 3e-4, 6e-4, 1e-3):
+        for _ in range(3):
+            x = model.rest_positions.copy()
+            x[free] += amplitude * rng.standard_normal((int(free.sum()), 3))
+            states.append(x)
+    for stretch in (0.75, 1.29):  # along z from the fixed bottom: |strain|, |V/V0 - 1| <= 0.29
+        x = model.rest_positions.copy()
+        x[:, 2] *= stretch
+        states.append(x)
+    for x in states:
+        strain, _ = strains_and_ratios(model, x)
+        if not np.all((strain >= -0.3) & (strain <= 0.3)):
+            continue
+        checked += 1
+        assert volume_eigenvalue(model, x) <= nodal
+    assert checked >= 10
+    # on this irregular mesh the nodal bound is the smaller one, and it is not vacuous:
+    # within 10x of the true eigenvalue at rest
+    assert nodal < irons
+    assert nodal < 10.0 * volume_eigenvalue(model, model.rest_positions)
+
+
+def test_the_nodal_bound_follows_the_closed_form_of_one_free_vertex():
+    """One free vertex (the others fixed): H = kv/V0 g g^T on it (d^2V/dp3^2 = 0), so at the
+    rest state with a zero-width strain range the bound is exactly kv/V0 |g_3|^2 / m_3."""
+    builder = ModelBuilder()
+    tet = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.003, 0.018, 0.0],
+                    [0.004, 0.006, 0.017]])
+    builder.add_particles(tet, np.full(4, 1e-3), np.array([True, True, True, False]))
+    builder.add_connectors([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    params = dataclasses.replace(viscoelastic_params(6), kv=np.array([3000.0]))
+    model = builder.finalize(params, tets=np.array([[0, 1, 2, 3]]))
+    zero = np.zeros(6)
+    g3 = np.cross(tet[1] - tet[0], tet[2] - tet[0]) / 6.0
+    expected = 3000.0 / model.rest_volumes[0] * float(g3 @ g3) / 1e-3
+    assert node_volume_stiffness_bound(model, zero, zero)[3] / 1e-3 == pytest.approx(
+        expected, rel=1e-12)
+    assert volume_eigenvalue(model, tet) == pytest.approx(expected, rel=1e-12)
+
+
+def test_a_session_on_a_narrower_strain_range_takes_a_larger_step_and_verifies_it():
+    """strain_range: the limit is the one of that range (larger with the volume term); a dt
+    above it is refused with the limit in the message; a drag that leaves the range stops
+    with a StabilityError naming the connector, the state never NaN."""
+    model = with_kv(box_model((3, 3, 2), K0=200.0), 2e4)
+    narrow = (-0.1, 0.1)
+    wide_limit = critical_time_step(model)
+    narrow_limit = critical_time_step(model, strain_range=narrow)
+    assert narrow_limit > 1.3 * wide_limit  # 1.47x here
+    HapticSession(model, narrow_limit, period=narrow_limit, strain_range=narrow)
+    with pytest.raises(StabilityError, match=rf"above the stability limit {narrow_limit:.4g} s"):
+        HapticSession(model, 1.01 * narrow_limit, period=1.01 * narrow_limit,
+                      strain_range=narrow)
+    with pytest.raises(StabilityError, match=rf"above the stability limit {wide_limit:.4g} s"):
+        HapticSession(model, narrow_limit, period=narrow_limit)  # default range +-0.5
+    session = HapticSession(model, 0.9 * narrow_limit, strain_range=narrow)
+    node = top_centre(model)
+    x0 = model.rest_positions[node]
+    session.step(node, x0 + [0.0, 0.0, -5e-4])  # 5 % of a 10 mm edge: inside the range
+    with pytest.raises(StabilityError, match=r"connector \d+ \(particles \d+-\d+\) reached "
+                                             r"strain .* outside \[-0.1, 0.1\]"):
+        for _ in range(20):
+            session.step(node, x0 + [0.0, 0.0, -3e-3])  # 30 %: beyond it
+    assert np.all(np.isfinite(session.state.x))
+
+
+def test_mass_scaling_with_the_volume_term_puts_mass_where_it_stiffens_and_is_verified():
+    """The weights include the volume term's per-particle bound; the scaled inertia makes
+    one substep per period stable (the session accepts it, a 1 % longer period is refused
+    with the limit)."""
+    model = with_kv(box_model((3, 3, 2), K0=200.0), 2e4)
+    springs = box_model((3, 3, 2), K0=200.0)
+    lo, hi = connector_strain_bounds((-0.5, 0.5), model.n_connectors, model.edges)
+    assert np.allclose(stiffness_weights(model) - stiffness_weights(springs),
+                       node_volume_stiffness_bound(model, lo, hi), rtol=1e-12)
+    dt = 0.9 * PERIOD
+    assert critical_time_step(model) < dt / 3  # needs mass scaling for one substep
+    inertia = scaled_inertia(model, PERIOD / 0.9)
+    session = HapticSession(model, PERIOD, inertia=inertia)
+    assert session.substeps == 1
+    node = top_centre(model)
+    force = session.step(node, model.rest_positions[node] + [0.0, 0.0, -5e-4])
+    assert np.all(np.isfinite(force)) and force[2] > 0.0  # the tissue pushes the tool back up
+    with pytest.raises(StabilityError, match=r"above the stability limit"):
+        HapticSession(model, 1.2 * PERIOD / 0.9, period=1.2 * PERIOD / 0.9, inertia=inertia)
+
+
+def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
+    """The benchmark's volume rows on a small box: float64 is the errors' reference (0), the
+    narrower strain range and mass scaling take fewer substeps with small or stated errors,
+    and volume_cost compares the volume term's time per call with springs-only."""
+    from pipelines.bench.haptic import ENVELOPE, mesh_rows, volume_cost, volume_rows
+
+    model = box_model((3, 3, 2), K0=200.0)
+    gravity = np.array([0.0, 0.0, -9.81])
+    node, tracked = top_centre(model), int(model.free_nodes[-1])
+    rows = volume_rows("box", model, node, tracked, gravity, kv=2e4)
+    by = {r["variant"]: r for r in rows}
+    narrow = ENVELOPE
+    assert set(by) == {"float64", narrow, "mass-scaled 1", "mass-scaled 2"}
+    assert all(r["terms"] == "springs + arms + volume" and r["tets"] == model.n_tets
+               for r in rows)
+    ref = by["float64"]
+    assert ref["error_drag"] == 0.0 and ref["error_release"] == 0.0 and ref["substeps"] > 2
+    assert by[narrow]["substeps"] < ref["substeps"]
+    reach = by[narrow]["strain_range"][1]  # 1.2 x the drag's largest |strain|, to 0.05
+    assert by[narrow]["strain_range"] == [-reach, reach] and 0.0 < reach < 0.5
+    assert 0.0 < by[narrow]["error_drag"] < 1e-2  # a smaller step of the same physics
+    for k in (1, 2):
+        assert by[f"mass-scaled {k}"]["substeps"] == k
+        assert by[f"mass-scaled {k}"]["added_mass"] > 0.0
+        assert 0.0 < by[f"mass-scaled {k}"]["error_drag"] < 1.0
+    cost = volume_cost(mesh_rows("box", model, node, tracked, gravity) + rows)
+    assert len(cost) == 1 and cost[0]["substeps"][1] == ref["substeps"]
+    assert cost[0]["ratio_median"] > 0.0
