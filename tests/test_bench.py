@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from forcecal.scene import load_scene
-from pipelines.bench.driver import _complete_run_seconds
+from pipelines.bench.items import _complete_run_seconds
 from pipelines.bench.configs import (Config, derived_scene, pareto_front, scene_toml,
                                      sliced_reference)
 from tests.conftest import SCENES

@@ -1,7 +1,9 @@
 """``make bench``: every benchmark of forcecal, one module per item or study.
 
-- :mod:`pipelines.bench.driver`: the ``bench`` command (its items, the studies of
-  :data:`~pipelines.bench.driver.STUDIES`, ``--only``, ``bench.json``);
+- :mod:`pipelines.bench.driver`: the ``bench`` command (the order of its items, the studies
+  of :data:`~pipelines.bench.driver.STUDIES`, ``--only``, ``bench.json``);
+- :mod:`pipelines.bench.items`: the items that measure the default scene (default run,
+  time-step sweep, FE discretisation study, reference timings, particle engine);
 - :mod:`pipelines.bench.configs`: the run time vs error configurations (cached pipelines);
 - :mod:`pipelines.bench.particle_engine`: kernel throughput, real-time gravity, term skipping,
   haptic latency, evaluator times;
