@@ -214,7 +214,9 @@ def _duration(b: dict) -> str:
     if "wall_s" not in b:
         return ""
     items = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in b["item_s"].items())
-    text = f"This run took {b['wall_s'] / 60:.1f} min ({items} min)."
+    # ``--only`` runs update their items' times but not ``wall_s`` (the last full run's)
+    text = (f"The last full run took {b['wall_s'] / 60:.1f} min; each item's time in the run "
+            f"that last ran it: {items} min.")
     if b.get("wall_s_cold") is not None:  # runs written before it was recorded have none
         text += (f" With nothing cached (each item's time when it last reused nothing) it "
                  f"takes {b['wall_s_cold'] / 60:.1f} min.")
