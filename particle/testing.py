@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from forcecal.mesh import box_mesh
+from particle.integrator import Prescribed
 from particle.model import Model, ModelBuilder, State, build_model
 from particle.params import ConnectorParams, viscoelastic_params
 
@@ -62,3 +63,18 @@ def mechanical_energy(model: Model, state: State, gravity: np.ndarray) -> tuple[
     mid = 0.5 * (state.x + state.x_prev) - model.rest_positions
     stored = kinetic + springs + arms
     return stored - float(np.sum(m[:, None] * mid * gravity)), stored
+
+
+def deformed_start_and_push(model: Model, dt: float, seed: int = 2
+                            ) -> tuple[State, Prescribed]:
+    """The start of the compiled-vs-numpy step comparisons: the model at rest but deformed (free
+    particles moved by 0.1 mm normal noise, ``x_prev = x``: exercises the start-up step) and the
+    top-centre particle pushed 1 mm down over 20 steps of ``dt`` [s], then held."""
+    state = model.state()
+    state.x[model.free_nodes] += 1e-4 * np.random.default_rng(seed).standard_normal(
+        (len(model.free_nodes), 3))
+    state.x_prev[:] = state.x
+    node = top_centre(model)
+    start = state.x[node]
+    motion = Prescribed([node], [0.0, 20 * dt], [[start], [start + [0.0, 0.0, -1e-3]]])
+    return state, motion

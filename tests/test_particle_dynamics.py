@@ -9,11 +9,11 @@ from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle import kernels
 from particle.haptics import HapticSession
-from particle.integrator import Prescribed, VerletIntegrator
+from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step, resolve_time_step
 from particle.model import Model, State
 from particle.reference_numpy import step_numpy
-from particle.testing import box_model, mechanical_energy, top_centre
+from particle.testing import box_model, deformed_start_and_push, mechanical_energy
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -106,16 +106,9 @@ def test_compiled_step_matches_the_numpy_step(terms):
     damping = 3.0 if terms["damping"] else 0.0
     gravity = GRAVITY if terms["gravity"] else None
     dt = 0.5 * critical_time_step(model, damping=3.0)
-    compiled = model.state()
-    compiled.x[model.free_nodes] += 1e-4 * np.random.default_rng(2).standard_normal(
-        (len(model.free_nodes), 3))
-    compiled.x_prev[:] = compiled.x  # at rest, deformed: exercises the start-up step
+    compiled, push = deformed_start_and_push(model, dt)
     reference = compiled.copy()
-    motion = None
-    if terms["prescribed"]:  # the top centre pushed in 1 mm over 20 steps, then held
-        node = top_centre(model)
-        start = compiled.x[node]
-        motion = Prescribed([node], [0.0, 20 * dt], [[start], [start + [0.0, 0.0, -1e-3]]])
+    motion = push if terms["prescribed"] else None
     VerletIntegrator(damping).simulate(model, compiled, dt, 50, gravity=gravity,
                                        arms=terms["arms"], prescribed=motion)
     for _ in range(50):

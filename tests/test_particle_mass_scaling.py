@@ -8,13 +8,13 @@ from forcecal.errors import ParameterError, StabilityError
 from particle.stability import empirical_critical_step
 from particle.evaluators import IndentationEvaluator
 from particle.haptics import HapticSession
-from particle.integrator import Prescribed, VerletIntegrator
+from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step, inertial_model
 from particle.mass_scaling import (ALPHA_TOLERANCE, added_mass_fraction, scaled_inertia,
                                    stiffness_weights)
 from particle.reference_numpy import step_numpy
 from particle.statics import gravity_static
-from particle.testing import box_model, top_centre
+from particle.testing import box_model, deformed_start_and_push, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -83,14 +83,8 @@ def test_compiled_mass_scaled_step_matches_the_numpy_step(model):
     nonlinear = model.with_params(box_model((5, 3, 2), a=-20.0, b=300.0).params)
     dt = 2.0 * critical_time_step(nonlinear, damping=3.0)
     inertia = scaled_inertia(nonlinear, dt, damping=3.0)
-    compiled = nonlinear.state()
-    compiled.x[nonlinear.free_nodes] += 1e-4 * np.random.default_rng(2).standard_normal(
-        (len(nonlinear.free_nodes), 3))
-    compiled.x_prev[:] = compiled.x
+    compiled, motion = deformed_start_and_push(nonlinear, dt)
     reference = compiled.copy()
-    node = top_centre(nonlinear)
-    start = compiled.x[node]
-    motion = Prescribed([node], [0.0, 20 * dt], [[start], [start + 1e-3 * DOWN]])
     VerletIntegrator(3.0).simulate(nonlinear, compiled, dt, 50, gravity=GRAVITY,
                                    prescribed=motion, inertia=inertia)
     for _ in range(50):
