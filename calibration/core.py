@@ -314,9 +314,9 @@ def gradient_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, f
                       gravity_margin: float) -> Validity:
     """Where the gradient fit keeps every spring stiff: the experiments' strain range united,
     per connector, with the gravity release range of the FE static sag
-    (:func:`particle.integrator.strain_range_for_release` with ``gravity_margin``; the
+    (:func:`particle.stability.strain_range_for_release` with ``gravity_margin``; the
     experiments' range alone if the reference has no gravity run)."""
-    from particle.integrator import strain_range_for_release
+    from particle.stability import strain_range_for_release
     from particle.model import build_model
 
     n = len(ref.problem.mesh.edges)

@@ -31,7 +31,7 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   + 3 b eps^2`` must stay >= ``calibration.stiffness_floor`` x the global K0 on
   its connector's strain range (:class:`Validity`): the experiments' range
   united with the range of the gravity release the FE static sag implies
-  (:func:`particle.integrator.strain_range_for_release` of the FE sag with
+  (:func:`particle.stability.strain_range_for_release` of the FE sag with
   ``particle.strain_margin``). A step that violates it is rejected like one that
   raises the cost; a hinge penalty keeps springs above twice the floor before
   they reach it.

@@ -49,7 +49,7 @@ def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: floa
     ``dt`` that divides the record spacing (see :func:`sample_steps`), so
     samples fall exactly on steps; ``dt`` above the stability limit for
     ``strain_range`` (a pair or per-connector arrays, e.g.
-    :func:`~particle.integrator.strain_range_for_release`), or a connector
+    :func:`~particle.stability.strain_range_for_release`), or a connector
     leaving that range during the run, raises :class:`~forcecal.errors.StabilityError`.
     """
     step, record_steps = sample_steps(record_times, dt)

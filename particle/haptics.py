@@ -20,8 +20,9 @@ from collections import OrderedDict
 import numpy as np
 
 from forcecal.errors import MeshError, ParameterError
-from particle.integrator import (DEFAULT_STRAIN_RANGE, Prescribed, Run, VerletIntegrator,
-                                 check_threads, check_time_step, energy_bound)
+from particle.guard import energy_bound
+from particle.integrator import Prescribed, Run, VerletIntegrator, check_threads
+from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
 from particle.model import Model, StrainBounds
 
 log = logging.getLogger(__name__)

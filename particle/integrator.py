@@ -45,7 +45,6 @@ from particle import kernels, step_kernels
 from particle.model import ConnectorParams, Model, State, StrainBounds, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
-from particle.stability import strain_range_for_release  # noqa: F401  (calibration/ imports it here)
 from particle.guard import check_state, energy_bound, exit_error
 from particle.volume import node_volume_force, volume_ratio_range
 

@@ -8,7 +8,7 @@ import scipy.sparse as sp
 
 from forcecal.errors import StabilityError
 from particle.haptics import HapticSession
-from particle.integrator import critical_time_step
+from particle.stability import critical_time_step
 from particle.mass_scaling import scaled_inertia, stiffness_weights
 from particle.model import ModelBuilder, connector_strain_bounds
 from particle.testing import box_model, top_centre, viscoelastic_params
