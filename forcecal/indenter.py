@@ -118,6 +118,33 @@ def footprint_edges(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:
     return edges[inside[edges].all(axis=1)]
 
 
+def patch_rim(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:
+    """(R, 2) int64 vertex pairs: the rim of a footprint's surface patch (the surface triangles
+    with three footprint vertices and the surface edges with two), i.e. the triangles' edges
+    used by one of them and the edges that belong to no triangle. A rigid punch's stress is
+    singular along it, which is where an FE mesh must be fine for its force to converge."""
+    inside = np.zeros(mesh.n_vertices, dtype=bool)
+    inside[np.asarray(nodes, dtype=np.int64)] = True
+    triangles = mesh.surface_faces[inside[mesh.surface_faces].all(axis=1)]
+    sides = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    sides, count = np.unique(sides, axis=0, return_counts=True)
+    segments = np.sort(footprint_edges(mesh, nodes), axis=1)
+    in_triangle = {tuple(e) for e in sides.tolist()}
+    lone = [e for e in segments.tolist() if tuple(e) not in in_triangle]
+    return np.concatenate([sides[count == 1], np.asarray(lone, dtype=np.int64).reshape(-1, 2)])
+
+
+def distance_to_segments(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(P,) distance [m] of each of ``points`` (P, 3) to the nearest of the segments
+    ``start``-``end`` (S, 3) each."""
+    distance = np.full(len(points), np.inf)
+    for p, q in zip(start, end):
+        d = q - p
+        s = np.clip((points - p) @ d / (d @ d), 0.0, 1.0)
+        distance = np.minimum(distance, np.linalg.norm(points - p - s[:, None] * d, axis=1))
+    return distance
+
+
 def indenter_footprints(mesh: TetMesh, fixed: np.ndarray, test_points: np.ndarray,
                           normals: np.ndarray, indenter: str,
                           radius: float) -> tuple[np.ndarray, ...]:

@@ -187,6 +187,10 @@ class FESection:
                       "(each splits every tet into 8, keeps the original vertices; results are "
                       "read back at them); the FE mesh is independent of the particle mesh",
                       minimum=0)
+    local_refine: int = key(0, "refinements of each punch's FE mesh near the rim of its "
+                            "footprint (indenter = 'punch'; one mesh per test point, each "
+                            "refinement halves the cells along the rim, where the punch's stress "
+                            "is singular: README, 'The punch')", minimum=0)
     newton_rtol: float = key(1e-8, "Newton relative tolerance", exclusive_minimum=0.0)
     newton_atol: float = key(1e-10, "Newton absolute tolerance", exclusive_minimum=0.0)
     newton_max_it: int = key(25, "Newton iteration limit before the step is cut", minimum=1)
@@ -483,6 +487,9 @@ def _cross_checks(scene: Scene, origin: str) -> None:
     if ind.indenter == "vertex" and ind.radius != 0:
         raise SceneError(f"{origin}: indentation.radius = {ind.radius} m is set but "
                          "indentation.indenter = 'vertex' has no radius (use 'punch')")
+    if ind.indenter != "punch" and scene.fe.local_refine:
+        raise SceneError(f"{origin}: fe.local_refine = {scene.fe.local_refine} refines the FE "
+                         "mesh near a punch's rim; it needs indentation.indenter = 'punch'")
     p = scene.particle
     if isinstance(p.dt, str) and p.dt != "auto":
         raise SceneError(f"{origin}: particle.dt must be 'auto' or a number of seconds, "

@@ -58,7 +58,8 @@ from forcecal.sections import REFERENCE_SECTIONS
 from reference_fe import experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
-from reference_fe.refine import FEProblem, check_memory, fe_problem, patch_on_fe_mesh
+from reference_fe.refine import (FEProblem, check_memory, fe_problem, patch_on_fe_mesh,
+                                 rim_refined_problem)
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +158,19 @@ def indenter_dofs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem,
     return model.surface_patch_dofs(*patch_on_fe_mesh(fe, problem.mesh, held))
 
 
+def punch_model(scene: Scene, problem: Problem, fe: FEProblem,
+                point: int) -> tuple[FEProblem, FEModel]:
+    """The FE problem and model of the punch at test point ``point`` (index into
+    ``problem.test_points``) on ``fe``'s mesh refined ``fe.local_refine`` times near the rim
+    of its footprint's patch (:func:`~reference_fe.refine.rim_refined_problem`)."""
+    held = punch_footprint(problem.mesh, int(problem.test_points[point]),
+                           problem.normals[point], scene.indentation.radius, fixed=problem.fixed)
+    local = rim_refined_problem(fe, problem.mesh, held, scene.fe.local_refine)
+    log.debug("punch at vertex %d: FE mesh %s", problem.test_points[point],
+              local.problem.mesh.summary())
+    return local, FEModel(local.problem.mesh, scene.material, scene.fe)
+
+
 def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
                  fe: FEProblem | None = None) -> dict:
     """Arrays of one work item (keys as stored in its checkpoint part), at the particle
@@ -172,6 +186,9 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
         times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
         return {"time": times, "displacement": disp[:, at_particles]}
+    if scene.indentation.indenter == "punch" and scene.fe.local_refine:
+        fe, model = punch_model(scene, problem, fe, item.point)
+        fixed = fe.problem.fixed
     dofs = indenter_dofs(model, scene, problem, fe, item.point)
     normal = problem.normals[item.point]  # refinement keeps it (coplanar sub-faces)
     what = f"{scene.indentation.indenter} {item.kind} at vertex {problem.test_points[item.point]}"

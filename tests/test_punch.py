@@ -190,6 +190,39 @@ def test_convergence_changes_are_against_the_finest_level():
     out = summarise(rows, default_level=1)
     assert out["finest_level"] == 2 and out["levels"] is rows
     assert out["punch_force_change"] == pytest.approx(0.02)  # the largest over the points
-    assert out["sag_change"] == pytest.approx(0.5 / 35)
+    assert out["sag_change"] == pytest.approx(5.0 / 35)  # the gravity runs' level 0
     assert out["punch_force_change_two_finest"] == out["punch_force_change"]
+    assert out["sag_change_two_finest"] == pytest.approx(0.5 / 35)
     assert summarise(rows, default_level=0)["punch_force_change"] == pytest.approx(0.10)
+    # each quantity against the finest level that has it: the sag stops at level 1 here
+    rows.append({"level": 3, "punch_force": [0.99, 1.98], "max_sag": None})
+    out = summarise(rows, default_level=2, default_sag_level=1)
+    assert out["finest_level"] == 3 and out["finest_sag_level"] == 2
+    assert out["punch_force_change"] == pytest.approx(1 / 99)
+    assert out["sag_change"] == pytest.approx(0.5 / 35)
+
+
+def test_indenter_radius_study_points_are_valid_at_every_radius():
+    """The contact-size study compares every radius on the same points: the scene's own where
+    their footprints are valid at 1, 1.5 and 2 edge lengths, topped up to 8 held-out points by
+    free surface vertices (never a calibration point)."""
+    from forcecal.mesh import free_surface_vertices
+    from forcecal.problem import build_problem
+    from forcecal.scene import MIN_HELD_OUT, load_scene
+    from pipelines.bench.indenter_radius import RADII_EDGES, common_points, mean_surface_edge
+
+    from tests.conftest import SCENES
+
+    problem = build_problem(load_scene(SCENES / "liver_punch.toml"))
+    h = mean_surface_edge(problem)
+    assert h == pytest.approx(0.0161, rel=0.01)  # the README's mean surface edge length
+    radii = [e * h for e in RADII_EDGES if e > 0]
+    calibration, held_out = common_points(problem, radii)
+    assert set(calibration) <= set(problem.calibration.tolist()) and len(calibration) >= 3
+    assert len(held_out) == MIN_HELD_OUT and not set(held_out) & set(calibration)
+    assert set(held_out) <= set(free_surface_vertices(problem.mesh, problem.fixed).tolist())
+    for vertex in calibration + held_out:
+        normal = problem.mesh.inward_normals(np.array([vertex]))[0]
+        for radius in radii:
+            assert len(punch_footprint(problem.mesh, vertex, normal, radius,
+                                       fixed=problem.fixed)) >= 3

@@ -79,6 +79,7 @@ STUDIES: dict[str, str] = {
     "experiments": "pipelines.bench.experiments:study",
     "haptic scale": "pipelines.bench.haptic:study",
     "fe_convergence": "pipelines.bench.fe_convergence:study",
+    "indenter radius": "pipelines.bench.indenter_radius:study",
     "scale": "pipelines.bench.scale:study",
     "calibration methods": "pipelines.bench.calibration_methods:study",
     "volume term": "pipelines.bench.volume:study",

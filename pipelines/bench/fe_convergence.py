@@ -1,16 +1,19 @@
 """FE convergence of the punch reference: ``fe_convergence`` in ``bench.json``.
 
 For three test points of the punch scene (``scenes/liver_punch.toml``; ``--quick``:
-the tiny liver with a punch), the full-depth punch force and the largest static
-gravity sag (read at the particle vertices) on several uniform refinements of the
-particle mesh (``fe.refine``, :mod:`reference_fe.refine`), with dofs and wall time of
-each level. ``punch_force_change`` and ``sag_change`` are the relative changes of the
-scene's own level against the finest computed (largest over the points), and
-``*_change_two_finest`` those between the two finest levels.
+the tiny liver with a punch), the full-depth punch force on its FE mesh refined 0, 1, ...
+times near the punch's rim (``fe.local_refine``, :func:`reference_fe.refine.rim_refined_problem`:
+where a rigid punch's stress is singular), and the largest static gravity sag (read at the
+particle vertices) on the mesh refined 0, 1, ... times near the clamp's rim (the gravity
+runs' singular line), with dofs and wall time of each level. ``punch_force_change`` is the
+relative change of the scene's ``fe.local_refine`` against the finest level computed
+(largest over the points), ``sag_change`` that of the gravity runs' mesh (no rim
+refinement: the scene's ``fe.refine``) against the finest sag level, and
+``*_change_two_finest`` those between the two finest levels of each quantity.
 
-``python -m pipelines.bench.fe_convergence [--scene FILE] [--levels 0 1 2] [--element TH]
-[--out FILE.json]`` runs it alone (each level is appended to ``--out`` as it finishes,
-so a long run can be followed and interrupted).
+``python -m pipelines.bench.fe_convergence [--scene FILE] [--levels 0 1 2 3 4]
+[--sag-levels 0 1 2] [--element TH] [--out FILE.json]`` runs it alone (each level is
+written to ``--out`` as it finishes, so a long run can be followed and interrupted).
 """
 
 from __future__ import annotations
@@ -36,7 +39,8 @@ log = logging.getLogger("pipelines.bench.fe_convergence")  # also when run as __
 
 ROOT = Path(__file__).resolve().parents[2]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
-LEVELS = (0, 1, 2)  # the default liver's TH: 5k, 36k, 261k dofs
+LEVELS = (0, 1, 2, 3, 4)  # punch rim refinements: TH 5k-6k, 8k, 13k, 24k, 46k dofs
+SAG_LEVELS = (0, 1, 2)  # clamp rim refinements: TH 5k, 15k, 38k dofs
 
 
 def study_points(problem: Problem, radius: float, n: int = 3) -> np.ndarray:
@@ -60,82 +64,95 @@ def study_points(problem: Problem, radius: float, n: int = 3) -> np.ndarray:
 
 def measure_level(scene: Scene, problem: Problem, points: np.ndarray, level: int, *,
                   sag: bool = True) -> dict:
-    """Full-depth punch force at ``points`` and (``sag``) the largest static sag on
-    ``fe.refine = level``."""
+    """Full-depth punch force at ``points`` on their meshes refined ``level`` times near the
+    punch's rim and (``sag``) the largest static sag on the mesh refined ``level`` times near
+    the clamp's rim (``points`` empty: the sag alone)."""
     from reference_fe import experiments
     from reference_fe.model import FEModel
-    from reference_fe.refine import check_memory, fe_problem
-    from reference_fe.run import indenter_dofs
+    from reference_fe.refine import check_memory, fe_problem, rim_refined_problem
+    from reference_fe.run import indenter_dofs, punch_model
 
-    fe_section = dataclasses.replace(scene.fe, refine=level)
+    fe_section = dataclasses.replace(scene.fe, local_refine=level)
+    scene = dataclasses.replace(scene, fe=fe_section)
     check_memory(problem.mesh, fe_section)
     t0 = time.perf_counter()
-    fe = fe_problem(problem, fe_section)
-    model = FEModel(fe.problem.mesh, scene.material, fe_section)
+    base = fe_problem(problem, fe_section)
     depths = indentation_depths(scene.indentation)
     index = {int(v): k for k, v in enumerate(problem.test_points)}
-    forces = []
+    forces, dofs = [], []
     for vertex in points:
         k = index[int(vertex)]
-        dofs = indenter_dofs(model, scene, problem, fe, k)
+        fe, model = punch_model(scene, problem, base, k)
         normal = problem.normals[k]
-        curve = experiments.held_indentation_curve(model, fe.problem.fixed, dofs, normal, depths,
-                                                   f"punch at vertex {vertex}")
+        curve = experiments.held_indentation_curve(model, fe.problem.fixed,
+                                                   indenter_dofs(model, scene, problem, fe, k),
+                                                   normal, depths, f"punch at vertex {vertex}")
         forces.append(float(curve[-1] @ normal))
-        log.info("fe_convergence: level %d, point %d: %.6g N", level, vertex, forces[-1])
+        dofs.append(model.n_dofs)
+        log.info("fe_convergence: rim level %d, point %d (%d dofs): %.6g N", level, vertex,
+                 model.n_dofs, forces[-1])
     t1 = time.perf_counter()
     g = scene.gravity
-    max_sag = None
+    max_sag = sag_dofs = None
     if sag:
+        fe = rim_refined_problem(base, problem.mesh, problem.fixed, level)
+        model = FEModel(fe.problem.mesh, scene.material, fe_section)
         u = experiments.gravity_static(model, fe.problem.fixed, g.acceleration,
                                        g.static_load_steps)[fe.vertex_map]
-        max_sag = float(np.linalg.norm(u, axis=1).max())
+        max_sag, sag_dofs = float(np.linalg.norm(u, axis=1).max()), model.n_dofs
+        log.info("fe_convergence: clamp rim level %d (%d dofs): max sag %.6g m", level,
+                 sag_dofs, max_sag)
     t2 = time.perf_counter()
-    return {"level": level, "element": fe_section.element, "dofs": model.n_dofs,
-            "fe_vertices": fe.problem.mesh.n_vertices, "wall_s": t2 - t0,
-            "wall_s_punch_per_point": (t1 - t0) / max(len(points), 1), "wall_s_sag": t2 - t1,
-            "punch_force": forces, "max_sag": max_sag}
+    return {"level": level, "element": fe_section.element, "dofs": dofs, "sag_dofs": sag_dofs,
+            "wall_s": t2 - t0,
+            "wall_s_punch_per_point": (t1 - t0) / len(points) if len(points) else None,
+            "wall_s_sag": t2 - t1 if sag else None,
+            "punch_force": forces or None, "max_sag": max_sag}
 
 
-def summarise(rows: list[dict], default_level: int) -> dict:
-    """The changes of the module docstring from the measured levels."""
-    by_level = {r["level"]: r for r in rows}
-    finest = by_level[max(by_level)]
+def summarise(rows: list[dict], default_level: int, default_sag_level: int = 0) -> dict:
+    """The changes of the module docstring from the measured levels (each quantity against
+    the finest level that has it)."""
+    out: dict = {"levels": rows, "default_level": default_level,
+                 "default_sag_level": default_sag_level}
+    for quantity, default, name in (("punch_force", default_level, "punch_force_change"),
+                                    ("max_sag", default_sag_level, "sag_change")):
+        have = {r["level"]: np.atleast_1d(np.asarray(r[quantity], dtype=float))
+                for r in rows if r.get(quantity) is not None}
+        if not have:
+            continue
+        finest = max(have)
+        out["finest_level" if quantity == "punch_force" else "finest_sag_level"] = finest
 
-    def change(a: dict, b: dict) -> tuple[float, float]:
-        f = np.asarray(a["punch_force"]) / np.asarray(b["punch_force"]) - 1.0
-        return float(np.max(np.abs(f))), float(abs(a["max_sag"] / b["max_sag"] - 1.0))
+        def change(level: int) -> float:
+            return float(np.max(np.abs(have[level] / have[finest] - 1.0)))
 
-    out = {"levels": rows, "default_level": default_level, "finest_level": finest["level"]}
-    if default_level in by_level:
-        out["punch_force_change"], out["sag_change"] = change(by_level[default_level], finest)
-    if len(rows) >= 2:
-        second = by_level[sorted(by_level)[-2]]
-        out["punch_force_change_two_finest"], out["sag_change_two_finest"] = change(second,
-                                                                                    finest)
+        if default in have:
+            out[name] = change(default)
+        if len(have) >= 2:
+            out[name + "_two_finest"] = change(sorted(have)[-2])
     return out
 
 
 def convergence(scene: Scene, levels: Sequence[int], *, out: Path | None = None,
-                points: Sequence[int] | None = None, sag: bool = True) -> dict:
-    """The study on ``scene`` (a punch scene), one level after the other, coarsest first.
-
-    ``points`` and ``sag=False`` restrict it (to split a level over several processes: the
-    changes are then left out, :func:`summarise` needs every quantity)."""
+                points: Sequence[int] | None = None,
+                sag_levels: Sequence[int] = SAG_LEVELS) -> dict:
+    """The study on ``scene`` (a punch scene), one level after the other, coarsest first:
+    the punch forces on ``levels``, the sag on ``sag_levels`` (empty: none)."""
     problem = build_problem(scene)
     points = (study_points(problem, scene.indentation.radius) if points is None
               else np.asarray(points, dtype=np.int64))
     rows: list[dict] = []
     result: dict = {}
-    for level in sorted(levels):
-        rows.append(measure_level(scene, problem, points, level, sag=sag))
+    for level in sorted(set(levels) | set(sag_levels)):
+        rows.append(measure_level(scene, problem, points if level in levels else points[:0],
+                                  level, sag=level in sag_levels))
         result = {"scene": scene.name, "points": points.tolist(),
                   "radius_m": scene.indentation.radius, "depth_m": scene.indentation.depth,
-                  **(summarise(rows, scene.fe.refine) if sag else {"levels": rows})}
+                  **summarise(rows, scene.fe.local_refine, scene.fe.refine)}
         if out is not None:
             out.write_text(json.dumps(result, indent=1))
-        log.info("fe_convergence: level %d done (%d dofs, %.0f s)", level, rows[-1]["dofs"],
-                 rows[-1]["wall_s"])
+        log.info("fe_convergence: level %d done (%.0f s)", level, rows[-1]["wall_s"])
     return result
 
 
@@ -143,7 +160,8 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict:
     """``make bench`` item: ``{"fe_convergence": ...}`` on the punch scene (the bench scene
     with ``--quick``, given a punch of 1.5 mean surface edge lengths if it has none)."""
     punch = load_scene(PUNCH_SCENE) if not quick else _with_punch(scene)
-    return {"fe_convergence": convergence(punch, LEVELS,
+    levels, sag_levels = (LEVELS, SAG_LEVELS) if not quick else ((0, 1, 2), (0, 1))
+    return {"fe_convergence": convergence(punch, levels, sag_levels=sag_levels,
                                           out=Path(cache_folder) / "fe_convergence.json")}
 
 
@@ -156,19 +174,21 @@ def _with_punch(scene: Scene) -> Scene:
     x = mesh.vertices[surface_edges(mesh)]
     h = float(np.linalg.norm(x[:, 1] - x[:, 0], axis=1).mean())
     return replace(scene, indentation={"indenter": "punch", "radius": 1.5 * h},
-                   fe={"element": "TH"})
+                   fe={"element": "TH", "local_refine": 1})
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipelines.bench.fe_convergence",
                                      description="FE convergence of the punch reference (JSON)")
     parser.add_argument("--scene", default=str(PUNCH_SCENE), help="a punch scene TOML file")
-    parser.add_argument("--levels", type=int, nargs="+", default=list(LEVELS))
+    parser.add_argument("--levels", type=int, nargs="+", default=list(LEVELS),
+                        help="punch rim refinements (fe.local_refine)")
+    parser.add_argument("--sag-levels", type=int, nargs="*", default=list(SAG_LEVELS),
+                        help="clamp rim refinements of the sag (none: no sag)")
     parser.add_argument("--element", help="override fe.element (P2, TH)")
     parser.add_argument("--out", help="JSON file, rewritten after every level")
     parser.add_argument("--points", type=int, nargs="*", help="test vertices (default: 3 "
-                        "spread through the scene's list); a partial run has no summary")
-    parser.add_argument("--no-sag", action="store_true", help="skip the static sag")
+                        "spread through the scene's list)")
     args = parser.parse_args(argv)
     configure_logging(loggers=(log.name,))
     try:
@@ -176,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.element:
             scene = replace(scene, fe={"element": args.element})
         result = convergence(scene, args.levels, out=Path(args.out) if args.out else None,
-                             points=args.points, sag=not args.no_sag)
+                             points=args.points, sag_levels=args.sag_levels)
     except ForcecalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
