@@ -760,9 +760,7 @@ def test_a_rank_refusal_shows_one_error_line_without_mpirun_text(tmp_path):
 def test_stopping_the_pipeline_ends_its_mpi_ranks(sig, code, tmp_path):
     """Ctrl-C (SIGINT to the pipeline) ends it with the resume line and exit 130; SIGKILL
     ends it at once; either way no spawned mpirun rank survives it."""
-    # a release 10x the tiny scene's: the run outlasts the wait for its ranks on a loaded
-    # machine (the signal must reach a run that is still computing)
-    scene = _tiny_scene(tmp_path, gravity={"duration": 30.0})
+    scene = _tiny_scene(tmp_path)
     out = tmp_path / "out"
     CASES["fault"] += 1
     run = subprocess.Popen([sys.executable, "-m", "pipelines", "reference", "--scene",
