@@ -760,7 +760,10 @@ def test_a_rank_refusal_shows_one_error_line_without_mpirun_text(tmp_path):
 def test_stopping_the_pipeline_ends_its_mpi_ranks(sig, code, tmp_path):
     """Ctrl-C (SIGINT to the pipeline) ends it with the resume line and exit 130; SIGKILL
     ends it at once; either way no spawned mpirun rank survives it."""
-    scene = _tiny_scene(tmp_path)
+    # relaxation items of ~300 steps: the run outlasts the wait for its ranks (in one full
+    # suite the 15 s tiny reference had finished before the signal), and each item stays
+    # short enough for an interrupt to end it within seconds
+    scene = _tiny_scene(tmp_path, relaxation={"hold_steps": 300, "hold_time": 500.0})
     out = tmp_path / "out"
     CASES["fault"] += 1
     run = subprocess.Popen([sys.executable, "-m", "pipelines", "reference", "--scene",
