@@ -118,6 +118,13 @@ def footprint_edges(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:
     return edges[inside[edges].all(axis=1)]
 
 
+def mean_surface_edge(mesh: TetMesh) -> float:
+    """Mean length of the surface edges of ``mesh`` [m]: the scale of punch radii and of the
+    FE mesh's rim refinement."""
+    x = mesh.vertices[surface_edges(mesh)]
+    return float(np.linalg.norm(x[:, 1] - x[:, 0], axis=1).mean())
+
+
 def patch_rim(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:
     """(R, 2) int64 vertex pairs: the rim of a footprint's surface patch (the surface triangles
     with three footprint vertices and the surface edges with two), i.e. the triangles' edges

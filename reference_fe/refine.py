@@ -209,13 +209,12 @@ def rim_refined_problem(fe: FEProblem, mesh: TetMesh, footprint: np.ndarray,
     ``h`` the mean surface edge length of ``fe``'s mesh: the cells touching the rim at
     every level, their size halved each time.
     """
-    from forcecal.indenter import distance_to_segments, patch_rim, surface_edges
+    from forcecal.indenter import distance_to_segments, mean_surface_edge, patch_rim
 
     if levels == 0:
         return fe
     rim = mesh.vertices[patch_rim(mesh, footprint)]
-    ends = fe.problem.mesh.vertices[surface_edges(fe.problem.mesh)]
-    band = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).mean())
+    band = mean_surface_edge(fe.problem.mesh)
     current, vertex_map = fe.problem, fe.vertex_map
     for k in range(levels):
         width = band / 2 ** k
@@ -235,7 +234,7 @@ def patch_on_fe_mesh(fe: FEProblem, mesh: TetMesh, footprint: np.ndarray) -> tup
     mid-edge nodes), are the FE nodes of the patch. The same polygon at every level: a punch
     the particle model can hold exactly, whose FE force converges with the level.
     """
-    from forcecal.indenter import footprint_edges, surface_edges
+    from forcecal.indenter import distance_to_segments, footprint_edges, surface_edges
 
     footprint = np.asarray(footprint, dtype=np.int64)
     fine = fe.problem.mesh
@@ -248,11 +247,8 @@ def patch_on_fe_mesh(fe: FEProblem, mesh: TetMesh, footprint: np.ndarray) -> tup
     candidates = fine.surface_vertices
     x = fine.vertices[candidates]
     tol = 1e-9 * float(np.ptp(mesh.vertices, axis=0).max())
-    on = np.zeros(len(candidates), dtype=bool)
-    for p, q in mesh.vertices[segments]:
-        d = q - p
-        s = np.clip((x - p) @ d / (d @ d), 0.0, 1.0)
-        on |= np.linalg.norm(x - p - s[:, None] * d, axis=1) <= tol
+    ends = mesh.vertices[segments]
+    on = distance_to_segments(x, ends[:, 0], ends[:, 1]) <= tol
     for a, b, c in mesh.vertices[triangles]:
         e1, e2 = b - a, c - a
         gram = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])

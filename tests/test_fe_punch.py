@@ -25,6 +25,17 @@ A = 0.01  # punch radius [m]
 DOWN = np.array([0.0, 0.0, -1.0])
 
 
+def _block_with_top_centre_point(cells: tuple[int, int, int], width: float) -> Problem:
+    """A ``width`` x ``width`` x 0.02 m block of ``cells``, its base clamped, its top-centre
+    vertex the one test point (and the tracked node)."""
+    mesh = box_mesh(cells, (width, width, 0.02))
+    fixed = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.0))[0]
+    top_centre = [width / 2, width / 2, 0.02]
+    centre = int(np.argmin(np.linalg.norm(mesh.vertices - top_centre, axis=1)))
+    return Problem(mesh=mesh, fixed=fixed, calibration=np.array([centre]),
+                   held_out=np.zeros(0, np.int64), tracked_node=centre)
+
+
 def _dof_coordinates(model: FEModel, dofs: np.ndarray) -> np.ndarray:
     space = model.space.sub(0).collapse()[0] if model.fe.element == "TH" else model.space
     x = space.tabulate_dof_coordinates()
@@ -202,11 +213,8 @@ def test_reference_items_on_a_refined_mesh_are_read_at_the_particle_vertices():
 
     from tests.conftest import SCENES
 
-    mesh = box_mesh((2, 2, 2), (0.04, 0.04, 0.02))
-    fixed = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.0))[0]
-    centre = int(np.argmin(np.linalg.norm(mesh.vertices - [0.02, 0.02, 0.02], axis=1)))
-    problem = Problem(mesh=mesh, fixed=fixed, calibration=np.array([centre]),
-                      held_out=np.zeros(0, np.int64), tracked_node=centre)
+    problem = _block_with_top_centre_point((2, 2, 2), 0.04)
+    mesh, fixed, centre = problem.mesh, problem.fixed, problem.tracked_node
     results = {}
     for level in (0, 1):
         scene = replace(load_scene(SCENES / "tiny.toml"),
@@ -241,11 +249,8 @@ def test_rim_refinement_splits_only_the_cells_along_the_punch_rim():
     from forcecal.indenter import distance_to_segments, patch_rim, punch_footprint
     from reference_fe.refine import patch_on_fe_mesh, rim_refined_problem
 
-    mesh = box_mesh((6, 6, 2), (0.06, 0.06, 0.02))
-    fixed = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.0))[0]
-    centre = int(np.argmin(np.linalg.norm(mesh.vertices - [0.03, 0.03, 0.02], axis=1)))
-    problem = Problem(mesh=mesh, fixed=fixed, calibration=np.array([centre]),
-                      held_out=np.zeros(0, np.int64), tracked_node=centre)
+    problem = _block_with_top_centre_point((6, 6, 2), 0.06)
+    mesh, fixed, centre = problem.mesh, problem.fixed, problem.tracked_node
     held = punch_footprint(mesh, centre, DOWN, 0.012, fixed=fixed)
     rim = mesh.vertices[patch_rim(mesh, held)]
     base = fe_problem(problem, FESection())
@@ -315,11 +320,7 @@ def test_reference_punch_items_run_on_their_rim_refined_mesh():
 
     from tests.conftest import SCENES
 
-    mesh = box_mesh((4, 4, 2), (0.04, 0.04, 0.02))
-    fixed = np.nonzero(np.isclose(mesh.vertices[:, 2], 0.0))[0]
-    centre = int(np.argmin(np.linalg.norm(mesh.vertices - [0.02, 0.02, 0.02], axis=1)))
-    problem = Problem(mesh=mesh, fixed=fixed, calibration=np.array([centre]),
-                      held_out=np.zeros(0, np.int64), tracked_node=centre)
+    problem = _block_with_top_centre_point((4, 4, 2), 0.04)
     force = {}
     for level in (0, 1):
         scene = replace(load_scene(SCENES / "tiny.toml"),

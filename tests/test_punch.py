@@ -209,12 +209,13 @@ def test_indenter_radius_study_points_are_valid_at_every_radius():
     from forcecal.mesh import free_surface_vertices
     from forcecal.problem import build_problem
     from forcecal.scene import MIN_HELD_OUT, load_scene
-    from pipelines.bench.indenter_radius import RADII_EDGES, common_points, mean_surface_edge
+    from forcecal.indenter import mean_surface_edge
+    from pipelines.bench.indenter_radius import RADII_EDGES, common_points
 
     from tests.conftest import SCENES
 
     problem = build_problem(load_scene(SCENES / "liver_punch.toml"))
-    h = mean_surface_edge(problem)
+    h = mean_surface_edge(problem.mesh)
     assert h == pytest.approx(0.0161, rel=0.01)  # the README's mean surface edge length
     radii = [e * h for e in RADII_EDGES if e > 0]
     calibration, held_out = common_points(problem, radii)

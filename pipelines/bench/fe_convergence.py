@@ -166,13 +166,11 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict:
 
 
 def _with_punch(scene: Scene) -> Scene:
-    from forcecal.indenter import surface_edges
+    from forcecal.indenter import mean_surface_edge
 
     if scene.indentation.indenter == "punch":
         return scene
-    mesh = build_problem(scene).mesh
-    x = mesh.vertices[surface_edges(mesh)]
-    h = float(np.linalg.norm(x[:, 1] - x[:, 0], axis=1).mean())
+    h = mean_surface_edge(build_problem(scene).mesh)
     return replace(scene, indentation={"indenter": "punch", "radius": 1.5 * h},
                    fe={"element": "TH", "local_refine": 1})
 

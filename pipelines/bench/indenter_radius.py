@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.errors import ForcecalError, SceneError
-from forcecal.indenter import punch_footprint, surface_edges
+from forcecal.indenter import mean_surface_edge, punch_footprint
 from forcecal.mesh import free_surface_vertices
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
@@ -37,12 +37,6 @@ log = logging.getLogger(__name__)
 
 #: contact sizes in mean surface edge lengths; 0 is the vertex indenter
 RADII_EDGES = (0.0, 1.0, 1.5, 2.0)
-
-
-def mean_surface_edge(problem: Problem) -> float:
-    """Mean length of the surface edges of the particle mesh [m]."""
-    x = problem.mesh.vertices[surface_edges(problem.mesh)]
-    return float(np.linalg.norm(x[:, 1] - x[:, 0], axis=1).mean())
 
 
 def common_points(problem: Problem, radii: list[float]) -> tuple[list[int], list[int]]:
@@ -123,7 +117,7 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
 
     base = _with_punch(scene) if quick else load_scene(PUNCH_SCENE)
     problem = build_problem(base)
-    h = mean_surface_edge(problem)
+    h = mean_surface_edge(problem.mesh)
     radii = [e * h for e in RADII_EDGES]
     points = common_points(problem, [r for r in radii if r > 0])
     log.info("indenter radius: h = %.4g m, %d calibration + %d held-out points", h,
@@ -148,27 +142,22 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     rows = []
     for f_edges, f_radius, _, _, params in fits:
         for e_edges, e_radius, e_scene, e_ref, _ in fits:
+            errors = calibration_error = None
             if params is None or e_ref is None:
-                rows.append({"radius_m": e_radius, "radius_edges": e_edges,
-                             "fitted_radius_m": f_radius, "fitted_radius_edges": f_edges,
-                             "held_out_error": None, "calibration_error": None})
-                continue
-            cal = params.is_calibration
-            if e_radius == f_radius:
+                pass  # that size's fit or FE reference failed (its detail says why)
+            elif e_radius == f_radius:
                 own = params.variants["calibrated"].curves["indentation"]
                 errors = relative_rms_error(own, e_ref.indentation.force_normal)
-                calibration_error = float(errors[cal].mean())
+                calibration_error = float(errors[params.is_calibration].mean())
             else:
                 try:
                     curves = cross_curves(params.connectors["calibrated"], e_scene, e_ref)
+                    errors = relative_rms_error(curves, e_ref.indentation.force_normal)
                 except ForcecalError as exc:  # e.g. K(eps) not positive at the larger strains
                     log.warning("indenter radius: fitted at %.4g m, evaluated at %.4g m: %s",
                                 f_radius, e_radius, exc)
-                    curves = None
-                errors = (None if curves is None
-                          else relative_rms_error(curves, e_ref.indentation.force_normal))
-                calibration_error = None
-            held_out_error = None if errors is None else float(errors[~cal].mean())
+            held_out_error = (None if errors is None
+                              else float(errors[~params.is_calibration].mean()))
             rows.append({"radius_m": e_radius, "radius_edges": e_edges,
                          "fitted_radius_m": f_radius, "fitted_radius_edges": f_edges,
                          "held_out_error": held_out_error,
