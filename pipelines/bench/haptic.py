@@ -56,6 +56,7 @@ import numpy as np
 from forcecal.mesh import fixed_nodes, generate_liver
 from forcecal.problem import load_mesh, tracked_node_by_rule
 from forcecal.scene import Scene
+from pipelines.bench.tables import table
 
 log = logging.getLogger(__name__)
 
@@ -270,8 +271,6 @@ def goal_rows(b: dict[str, Any]) -> list[list[str]]:
 
 def markdown(b: dict[str, Any]) -> list[str]:
     """The "Haptic variants" section of BENCH.md (empty without a ``haptic_scale`` key)."""
-    from pipelines.bench.report import _table
-
     h = b.get("haptic_scale")
     if not h:
         return []
@@ -296,25 +295,25 @@ def markdown(b: dict[str, Any]) -> list[str]:
              "measures least affected by other processes. Load average "
              f"{h['load_average_start'][0]:.1f} at the start, {h['load_average_end'][0]:.1f} "
              "at the end.", ""]
-    lines += _table(["mesh", "connectors", "terms", "variant", "substeps", "added mass",
-                     "min [us]", "median [us]", "p99 [us]", "max [us]", "CPU [us/call]",
-                     "updates/s", "error drag", "error release"],
-                    [[r["mesh"], r["connectors"], r.get("terms", SPRINGS), r["variant"],
-                      r["substeps"],
-                      f"{100 * r['added_mass']:.2g} %",
-                      r["min_us"], r["median_us"], r["p99_us"], r["max_us"], r["cpu_us"],
-                      r["updates_per_s"], r["error_drag"], r["error_release"]]
-                     for r in h["rows"]])
+    lines += table(["mesh", "connectors", "terms", "variant", "substeps", "added mass",
+                    "min [us]", "median [us]", "p99 [us]", "max [us]", "CPU [us/call]",
+                    "updates/s", "error drag", "error release"],
+                   [[r["mesh"], r["connectors"], r.get("terms", SPRINGS), r["variant"],
+                     r["substeps"],
+                     f"{100 * r['added_mass']:.2g} %",
+                     r["min_us"], r["median_us"], r["p99_us"], r["max_us"], r["cpu_us"],
+                     r["updates_per_s"], r["error_drag"], r["error_release"]]
+                    for r in h["rows"]])
     if h.get("volume_cost"):
         lines += ["", f"The volume term's haptic cost (kv = {h['volume_kv_pa']:g} Pa on every "
                   "tet): time per call with it over springs-only, float64 defaults "
                   "(median and CPU time) and the fastest variant of each within "
                   f"{ERROR_GOAL:g} of its float64 (drag force); goal <= "
                   f"{VOLUME_COST_GOAL:g}x (issue 11).", ""]
-        lines += _table(["mesh", "connectors", "substeps (springs, volume)", "ratio median",
-                         "ratio CPU", "ratio fastest", "fastest variants"],
-                        [[c["mesh"], c["connectors"], "{}, {}".format(*c["substeps"]),
-                          f"{c['ratio_median']:.2f}", f"{c['ratio_cpu']:.2f}",
-                          f"{c['ratio_best_median']:.2f}", "; ".join(c["best_variants"])]
-                         for c in h["volume_cost"]])
+        lines += table(["mesh", "connectors", "substeps (springs, volume)", "ratio median",
+                        "ratio CPU", "ratio fastest", "fastest variants"],
+                       [[c["mesh"], c["connectors"], "{}, {}".format(*c["substeps"]),
+                         f"{c['ratio_median']:.2f}", f"{c['ratio_cpu']:.2f}",
+                         f"{c['ratio_best_median']:.2f}", "; ".join(c["best_variants"])]
+                        for c in h["volume_cost"]])
     return lines

@@ -10,6 +10,7 @@ import numpy as np
 
 from forcecal.h5io import atomic_path
 from pipelines.bench import haptic as bench_haptic
+from pipelines.bench.tables import cell, table
 
 log = logging.getLogger(__name__)
 
@@ -50,18 +51,6 @@ WHY_DEFAULT = {
                          "to end, with its 15 % stiffness in sag stated; the refined mesh is "
                          "too slow for routine use",
 }
-
-
-def _fmt(v: Any, digits: int = 3) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, (int, np.integer)):
-        return str(v)
-    if isinstance(v, float):
-        return f"{v:.{digits}g}"
-    return str(v)
 
 
 def _rows(bench: dict, axis: str) -> list[dict]:
@@ -165,12 +154,6 @@ def write_pareto_plot(path: Path, bench: dict[str, Any]) -> None:
     plt.close(fig)
 
 
-def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(_fmt(c) for c in row) + " |" for row in rows]
-    return lines
-
-
 def _goal(measured: float | None, goal: float, below: bool = True) -> str:
     if measured is None:
         return "not measured"
@@ -206,7 +189,7 @@ def _goals_section(b: dict) -> list[str]:
         ["full FE reference, 2 ranks", "<= 15 min", f"{r['wall_s_2ranks'] / 60:.1f} min",
          _goal(r["wall_s_2ranks"], 900.0)],
     ]
-    return _table(["goal (issues)", "target", "measured", ""], rows)
+    return table(["goal (issues)", "target", "measured", ""], rows)
 
 
 def _duration(b: dict) -> str:
@@ -241,10 +224,10 @@ def _pareto_section(b: dict) -> list[str]:
         keys = [k for k in done[0]["errors"] if k != "overall"]
         lines += ["", f"### {axis}", "", f"Stage timed: {done[0]['stage']}. Pareto error: "
                   f"{ERROR_LABEL.get(axis, DEFAULT_ERROR_LABEL)}.", ""]
-        lines += _table(["setting", "wall [s]"] + keys + ["Pareto error", "front", "default"],
-                        [[r["label"], r["wall_s"]] + [r["errors"][k] for k in keys]
-                         + [r["errors"]["overall"], r["on_front"], r["default"]]
-                         for r in done])
+        lines += table(["setting", "wall [s]"] + keys + ["Pareto error", "front", "default"],
+                       [[r["label"], r["wall_s"]] + [r["errors"][k] for k in keys]
+                        + [r["errors"]["overall"], r["on_front"], r["default"]]
+                        for r in done])
         lines += [f"\nFailed: {r['label']}: `{r['failed']}`" for r in rows if "failed" in r]
         lines += [f"\nGravity stage failed for {r['label']}: `{r['gravity_failed']}`"
                   for r in done if "gravity_failed" in r]
@@ -305,7 +288,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         f"{g['duration_s']:g} s of gravity dynamics in {g['particle_s']:.3g} s "
         f"({1.3 * g['duration_s'] / 3 / g['particle_s']:.0f}x faster than the paper's rate; "
         f"{g['steps']} explicit steps of {g['dt_s'] * 1e6:.3g} us), with the error stated "
-        f"against the FE ({_fmt(g['error'])}, relative RMS at the tracked vertex).",
+        f"against the FE ({cell(g['error'])}, relative RMS at the tracked vertex).",
         "", "## Run time vs error", "",
         "![Pareto](pareto.png)", "",
         "Each panel varies one setting of the default scene and times the stage it affects; "
@@ -330,12 +313,12 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               "Connector updates per second (CPU time of this process, one core) of the "
               "compiled Verlet loop with gravity and Maxwell arms, against the plain-numpy "
               "step (`particle/reference_numpy.py`); uniform parameters.", ""]
-    lines += _table(["mesh", "connectors", "compiled [updates/s]", "numpy [updates/s]",
-                     "ratio"],
-                    [[name, row["connectors"], row["compiled_updates_per_s"],
-                      row["numpy_updates_per_s"], row["speedup"]]
-                     for name, row in (("default liver", k["liver"]),
-                                       ("fine liver", k["large"]))])
+    lines += table(["mesh", "connectors", "compiled [updates/s]", "numpy [updates/s]",
+                    "ratio"],
+                   [[name, row["connectors"], row["compiled_updates_per_s"],
+                     row["numpy_updates_per_s"], row["speedup"]]
+                    for name, row in (("default liver", k["liver"]),
+                                      ("fine liver", k["large"]))])
     lines += ["", f"## {g['duration_s']:g} s of gravity dynamics: particle vs FE", "",
               f"Calibrated particle model, explicit step {g['dt_s'] * 1e6:.3g} us "
               "(particle.dt_safety x the stability limit over the release's strain range), "
@@ -343,27 +326,27 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               f"{g['particle_s']:.3g} s wall ({g['particle_cpu_s']:.3g} s CPU). FE ("
               f"Newmark, dt 5 ms, one rank): {g['fe_s']:.1f} s (from `reference.h5`). Ratio "
               f"**{g['speedup']:.0f}x**. Error of the particle run against the FE: "
-              f"{_fmt(g['error'])} (calibrated), {_fmt(g['baseline_error'])} (closed-form "
+              f"{cell(g['error'])} (calibrated), {cell(g['baseline_error'])} (closed-form "
               "baseline); the FE's own discretisation error is the FE panel above.", "",
               "## Skipping what a scene does not need", "",
               "The same explicit run (default liver, linear springs, "
               f"{particle_skip[0]['steps']} steps) with the unneeded terms compiled out (skipped) "
               "and kept at zero (full); CPU seconds.", ""]
-    lines += _table(["run", "terms it needs", "full [s]", "skipped [s]", "saved"],
-                    [[s["scene"], {"viscoelastic": "gravity, arms", "elastic": "gravity",
-                                   "free": "none (no load)"}.get(s["scene"], ""),
-                      s["full_s"], s["skipped_s"],
-                      f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"] for s in particle_skip])
+    lines += table(["run", "terms it needs", "full [s]", "skipped [s]", "saved"],
+                   [[s["scene"], {"viscoelastic": "gravity, arms", "elastic": "gravity",
+                                  "free": "none (no load)"}.get(s["scene"], ""),
+                     s["full_s"], s["skipped_s"],
+                     f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"] for s in particle_skip])
     studied = [s for s in b["skip"] if "study" in s]
     if studied:
         lines += ["", "Whole stages: the scene's `experiments` list (study `experiments`: "
                   "the FE reference and the calibration with the full list against a reduced "
                   "one, each from scratch; wall seconds).", ""]
-        lines += _table(["stage, experiments kept", "left out", "full [s]", "reduced [s]",
-                         "saved"],
-                        [[s["scene"], s.get("skipped", ""), s["full_s"], s["skipped_s"],
-                          f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"]
-                         for s in studied])
+        lines += table(["stage, experiments kept", "left out", "full [s]", "reduced [s]",
+                        "saved"],
+                       [[s["scene"], s.get("skipped", ""), s["full_s"], s["skipped_s"],
+                         f"{100 * (1 - s['skipped_s'] / s['full_s']):.0f} %"]
+                        for s in studied])
     h = b["haptic"]
     lines += ["", "## Haptic latency", "",
               "`HapticSession.step`: 1 ms of simulated time per call (explicit substeps), the "
@@ -372,17 +355,17 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               "pair of cores: a busy core stalls it), on the particles renumbered along the "
               "organ's longest axis (`Model.renumbered(spatial_order(model))`) so that the two "
               "threads' connector blocks share few particles.", ""]
-    lines += _table(["mesh", "connectors", "substeps", "threads", "renumbered", "median [us]",
-                     "p99 [us]", "max [us]", "load (1 min)"],
-                    [[name, row["connectors"], row["substeps"], row.get("threads", 1),
-                      row.get("renumbered", False), row["median_us"], row["p99_us"],
-                      row["max_us"], row.get("load_average")] for name, row in h.items()])
+    lines += table(["mesh", "connectors", "substeps", "threads", "renumbered", "median [us]",
+                    "p99 [us]", "max [us]", "load (1 min)"],
+                   [[name, row["connectors"], row["substeps"], row.get("threads", 1),
+                     row.get("renumbered", False), row["median_us"], row["p99_us"],
+                     row["max_us"], row.get("load_average")] for name, row in h.items()])
     lines += bench_haptic.markdown(b)
     ev = b["evaluators"]
     lines += ["", "## Curve evaluators (calibration's inner loop)", ""]
-    lines += _table(["curve", "samples", "cold [ms/point]", "warm [ms/point]", "goal [ms]"],
-                    [[name, row["samples"], row["cold_ms_per_point"],
-                      row["warm_ms_per_point_cpu"], row["goal_ms"]] for name, row in ev.items()])
+    lines += table(["curve", "samples", "cold [ms/point]", "warm [ms/point]", "goal [ms]"],
+                   [[name, row["samples"], row["cold_ms_per_point"],
+                     row["warm_ms_per_point_cpu"], row["goal_ms"]] for name, row in ev.items()])
     lines += ["", "## Calibration", "",
               f"Default scene: {c['wall_s']:.0f} s wall, {c['evaluations']} point-curve "
               "evaluations (from `params.h5`); per stage [s]: "
@@ -404,9 +387,9 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               "steps from a perturbed state; blow-up = the integrator's divergence guard); "
               "tested in `tests/test_stability_particle.py`. A ratio <= 1 means the estimate "
               "is safe; its size says how conservative it is.", ""]
-    lines += _table(["case", "connectors", "estimate [s]", "empirical [s]", "ratio"],
-                    [[s["case"], s["connectors"], s["estimate_s"], s["empirical_s"], s["ratio"]]
-                     for s in b["stability"]])
+    lines += table(["case", "connectors", "estimate [s]", "empirical [s]", "ratio"],
+                   [[s["case"], s["connectors"], s["estimate_s"], s["empirical_s"], s["ratio"]]
+                    for s in b["stability"]])
     if "scale" in b:  # the scale study
         from pipelines.bench.scale import scale_section
         lines += scale_section(b)
