@@ -30,7 +30,7 @@ import numpy as np
 from forcecal.errors import ParameterError
 from forcecal.mesh import TetMesh
 from forcecal.scene import MaterialSection
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 
 def long_term_young_modulus(material: MaterialSection) -> float:

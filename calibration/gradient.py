@@ -61,7 +61,7 @@ from calibration.gradient_solver import (N_COORDS, ROWS_KEPT, WEIGHT_GRID, Linea
 from calibration.parametrisation import GlobalParams, StrainRange
 from calibration.pool import Experiments, Pool, PointWorker
 from forcecal.errors import ParameterError
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 

@@ -41,7 +41,7 @@ from calibration.parametrisation import (GlobalParams, Rings, StrainRange, check
 from calibration.pool import Pool, PointWorker, forget_warm_starts
 from calibration.progress import progress_bar
 from forcecal.scene import CalibrationSection
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 

@@ -52,7 +52,7 @@ import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
 from forcecal.mesh import TetMesh
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 STATIC_DIM = 3
 RELAXATION_DIM = 4

@@ -38,7 +38,7 @@ from calibration.metrics import point_costs
 from forcecal.failures import die_with_parent
 from forcecal.logs import configure_logging
 from forcecal.problem import Problem
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 

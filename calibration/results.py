@@ -38,7 +38,7 @@ from calibration.parametrisation import GlobalParams, StrainRange
 from forcecal.errors import DataFileError
 from forcecal.h5io import atomic_h5, get, open_h5, put, read_problem, write_problem
 from forcecal.problem import Problem
-from particle.model import PARAM_NAMES, ConnectorParams
+from particle.params import PARAM_NAMES, ConnectorParams
 
 PARAMS_KIND = "forcecal.params"
 PARAMS_SCHEMA = 1

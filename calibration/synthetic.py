@@ -28,7 +28,8 @@ from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
-from particle.model import ConnectorParams, build_model
+from particle.model import build_model
+from particle.params import ConnectorParams
 
 
 def box_scene(directory: str | Path, *, cells: tuple[int, int, int] = (3, 3, 2),

@@ -25,7 +25,8 @@ from typing import Sequence
 import numpy as np
 
 from forcecal.errors import ConvergenceError, ParameterError
-from particle.model import ConnectorParams, Model
+from particle.model import Model
+from particle.params import ConnectorParams
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
                               check_stiffness, continuation)
 

@@ -19,7 +19,8 @@ from tqdm import tqdm
 from forcecal.errors import ParameterError
 from particle.integrator import Prescribed, VerletIntegrator, energy_bound
 from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
-from particle.model import Model, StrainBounds
+from particle.model import Model
+from particle.params import StrainBounds
 
 log = logging.getLogger(__name__)
 

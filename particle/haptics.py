@@ -23,7 +23,8 @@ from forcecal.errors import MeshError, ParameterError
 from particle.guard import energy_bound
 from particle.integrator import Prescribed, Run, VerletIntegrator, check_threads
 from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
-from particle.model import Model, StrainBounds
+from particle.model import Model
+from particle.params import StrainBounds
 
 log = logging.getLogger(__name__)
 

@@ -42,7 +42,8 @@ import numpy as np
 
 from forcecal.errors import ParameterError
 from particle import kernels, step_kernels
-from particle.model import ConnectorParams, Model, State, StrainBounds, connector_strain_bounds
+from particle.model import Model, State
+from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.guard import check_state, energy_bound, exit_error

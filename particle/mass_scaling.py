@@ -30,7 +30,8 @@ import numpy as np
 from forcecal.errors import ParameterError
 from particle.stability import (DEFAULT_STRAIN_RANGE, EIGENVALUE_MARGIN, check_time_step,
                                 connector_stiffness_bound, critical_time_step, inertial_model)
-from particle.model import Model, StrainBounds, connector_strain_bounds
+from particle.model import Model
+from particle.params import StrainBounds, connector_strain_bounds
 from particle.volume_bounds import node_volume_stiffness_bound
 
 log = logging.getLogger(__name__)

@@ -30,10 +30,7 @@ import numpy as np
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import TetMesh
 from forcecal.problem import Problem
-# the parameters' names are also imported from here, where the model that carries them is
-from particle.params import (N_ARMS, PARAM_NAMES, ConnectorParams, StrainBounds,  # noqa: F401
-                             connector_name, connector_strain_bounds, frozen_copy,
-                             viscoelastic_params)
+from particle.params import N_ARMS, ConnectorParams, frozen_copy
 from particle.volume import signed_volumes, tet_edge_connectors, tet_name
 
 log = logging.getLogger(__name__)

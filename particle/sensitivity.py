@@ -4,7 +4,7 @@
 evaluators of :mod:`particle.evaluators` (same curves, same caches, same
 refusals) with one more method, :meth:`~_Adjoint.jacobian`: the curves of some
 test points together with their derivatives with respect to every connector's
-``K0, a, b, k1, b1, k2, b2`` (:data:`~particle.model.PARAM_NAMES`), through the
+``K0, a, b, k1, b1, k2, b2`` (:data:`~particle.params.PARAM_NAMES`), through the
 equilibria the curves are made of.
 
 Method (reverse mode through the quasi-static path; all equilibria are the
@@ -50,7 +50,8 @@ import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
-from particle.model import PARAM_NAMES, ConnectorParams, Model
+from particle.model import Model
+from particle.params import PARAM_NAMES, ConnectorParams
 from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, sparse_lu, tangent_data
 from particle.volume import signed_volumes, volume_gradients_numpy
 

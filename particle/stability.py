@@ -24,8 +24,8 @@ from scipy.sparse.linalg import ArpackNoConvergence, eigsh
 
 from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
-from particle.model import (ConnectorParams, Model, State, StrainBounds,
-                            connector_strain_bounds)
+from particle.model import Model, State
+from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
 from particle.volume import volume_frequency_bound
 
 log = logging.getLogger(__name__)

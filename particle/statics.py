@@ -33,7 +33,8 @@ from scipy.sparse.linalg import splu
 
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle import kernels
-from particle.model import ConnectorParams, Model, connector_name
+from particle.model import Model
+from particle.params import ConnectorParams, connector_name
 from particle.volume import add_volume_forces, add_volume_tangent, signed_volumes, tet_name
 from particle.volume import tet_slots as volume_tet_slots
 

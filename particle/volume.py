@@ -17,7 +17,7 @@ connectors, i.e. the deviatoric-like part of the response, and the volumetric
 response does not relax. This matches the FE material, whose Prony series acts
 on the deviatoric stress only (the bulk modulus is long-term).
 
-``kv`` lives in :class:`particle.model.ConnectorParams` (field ``kv``, (T,) or
+``kv`` lives in :class:`particle.params.ConnectorParams` (field ``kv``, (T,) or
 None = volume term off), so :meth:`Model.with_params` and ``dataclasses.replace``
 carry it with the other parameters; the tetrahedra (``Model.tets``) and rest
 volumes (``Model.rest_volumes``) live in the Model. When ``kv`` is None the

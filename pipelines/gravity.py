@@ -40,7 +40,8 @@ from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem,
 from forcecal.problem import Problem
 from forcecal.scene import Scene
 from particle.experiments import gravity_dynamic
-from particle.model import ConnectorParams, build_model
+from particle.model import build_model
+from particle.params import ConnectorParams
 from particle.stability import (connector_strains, critical_time_step, release_strain_range,
                                 resolve_time_step)
 from particle.statics import check_stiffness, gravity_static

@@ -25,7 +25,7 @@ from calibration.synthetic import (box_scene, noisy_params, ring_perturbed_param
 from forcecal.h5io import read_reference
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import replace
-from particle.model import PARAM_NAMES
+from particle.params import PARAM_NAMES
 from tests.conftest import ROOT
 
 # quick budgets: the box has 4 calibration + 8 held-out points and 197 connectors

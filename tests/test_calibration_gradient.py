@@ -16,7 +16,8 @@ from forcecal.errors import ParameterError
 from forcecal.problem import build_problem
 from forcecal.scene import replace
 from forcecal.schedules import indentation_depths, relaxation_schedule
-from particle.model import PARAM_NAMES, ConnectorParams, build_model
+from particle.model import build_model
+from particle.params import PARAM_NAMES, ConnectorParams
 from particle.sensitivity import IndentationSensitivity, RelaxationSensitivity
 
 GLOBAL = GlobalParams(K0=30.0, alpha=1.0, beta=10.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)

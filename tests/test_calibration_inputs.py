@@ -15,7 +15,7 @@ from forcecal.errors import DataFileError, MeshError
 from forcecal.h5io import read_reference, write_reference
 from forcecal.problem import build_problem
 from forcecal.scene import replace
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 TABLES = dict(test_points={"n_calibration": 4, "n_held_out": 8},
               indentation={"depth": 0.002}, relaxation={"depth": 0.002},

@@ -9,7 +9,7 @@ import numpy as np
 from calibration.pool import Experiments, MpiTransport, Pool, serve
 from calibration.synthetic import box_scene
 from forcecal.problem import Problem, build_problem
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 
 
 def test_an_idle_worker_is_released_by_its_first_message():

@@ -13,7 +13,8 @@ from calibration.parametrisation import (GlobalParams, StrainRange, build_rings,
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.mesh import TetMesh, box_mesh, check_mesh, fixed_nodes
 from forcecal.scene import MaterialSection
-from particle.model import ConnectorParams, build_model
+from particle.model import build_model
+from particle.params import ConnectorParams
 
 
 def test_metrics_closed_form():

@@ -10,7 +10,8 @@ from forcecal.errors import StabilityError
 from particle.haptics import HapticSession
 from particle.stability import critical_time_step
 from particle.mass_scaling import scaled_inertia, stiffness_weights
-from particle.model import ModelBuilder, connector_strain_bounds
+from particle.model import ModelBuilder
+from particle.params import connector_strain_bounds
 from particle.testing import box_model, top_centre, viscoelastic_params
 from particle.volume import signed_volumes, volume_hessian_numpy
 from particle.volume_bounds import (_irons_bound, _tet_bounds, node_volume_stiffness_bound,

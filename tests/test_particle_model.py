@@ -9,7 +9,8 @@ from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import box_mesh
 from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
-from particle.model import ConnectorParams, ModelBuilder, build_model, spatial_order
+from particle.model import ModelBuilder, build_model, spatial_order
+from particle.params import ConnectorParams
 from particle.testing import box_model, viscoelastic_params
 
 

@@ -13,7 +13,8 @@ from particle.experiments import gravity_dynamic
 from particle.integrator import VerletIntegrator
 from particle.stability import (DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN, critical_time_step,
                                 strain_range_for_release)
-from particle.model import ConnectorParams, Model, ModelBuilder
+from particle.model import Model, ModelBuilder
+from particle.params import ConnectorParams
 from particle.statics import gravity_static
 from particle.testing import box_model, two_particle_model, viscoelastic_params
 from particle.stability import blows_up

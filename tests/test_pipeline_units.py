@@ -11,7 +11,8 @@ from forcecal.errors import DataFileError, ParameterError
 from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
 from forcecal.scene import scene_from_dict
-from particle.model import ConnectorParams, build_model
+from particle.model import build_model
+from particle.params import ConnectorParams
 from forcecal.provenance import code_digest, code_digests, file_digest, import_closure
 from pipelines.cache import Cache, StageInputs
 from pipelines.gravity import (GravityRuns, ParticleGravity, connector_strains, read_gravity,

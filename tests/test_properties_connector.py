@@ -15,7 +15,7 @@ from particle import kernels
 from particle.evaluators import RelaxationEvaluator
 from particle.experiments import relaxation_dynamic
 from particle.stability import critical_time_step
-from particle.model import ConnectorParams
+from particle.params import ConnectorParams
 from particle.testing import two_particle_model
 
 L0 = 0.02  # m

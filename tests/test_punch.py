@@ -8,7 +8,8 @@ from forcecal.indenter import footprint_edges, indenter_footprints, punch_footpr
 from forcecal.mesh import TetMesh, box_mesh, check_mesh
 from forcecal.scene import load_scene, replace
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
-from particle.model import ConnectorParams, build_model
+from particle.model import build_model
+from particle.params import ConnectorParams
 
 UP = np.array([0.0, 0.0, 1.0])
 DOWN = -UP

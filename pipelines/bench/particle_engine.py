@@ -33,7 +33,8 @@ from particle.experiments import gravity_dynamic
 from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
-from particle.model import ConnectorParams, Model, StrainBounds, build_model, spatial_order
+from particle.model import Model, build_model, spatial_order
+from particle.params import ConnectorParams, StrainBounds
 from particle.reference_numpy import step_numpy
 from particle.testing import viscoelastic_params
 
