@@ -52,18 +52,12 @@ from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
 from pipelines.cache import Cache, StageInputs
 from pipelines.runners.calibrate import run_calibrate
-from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, REPORT, Context
+from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, Context
 from pipelines.runners.gravity import run_gravity_stage
-from pipelines.runners.reference import (StageFailed, adopt_reference, mpirun_environment,
-                                         run_mpirun, run_reference)
+from pipelines.runners.reference import adopt_reference, run_reference
 from pipelines.runners.report import run_report
 
 log = logging.getLogger(__name__)
-
-#: what other modules (the benchmarks, the command line) take from here
-__all__ = ["GRAVITY", "PARAMS", "REFERENCE", "REFERENCE_SECTIONS", "REPORT", "ORDER", "STAGES",
-           "Context", "Outcome", "Stage", "StageFailed", "adopt_reference",
-           "mpirun_environment", "run_mpirun", "run_pipeline"]
 
 
 @dataclass(frozen=True)

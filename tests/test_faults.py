@@ -55,6 +55,9 @@ from forcecal.failures import INTERRUPTED, Interrupted, run_command
 from forcecal.mesh import box_mesh
 from forcecal.scene import SECTIONS, load_scene
 from pipelines import stages
+from pipelines.cache import StageInputs
+from pipelines.runners.common import Context
+from pipelines.runners.reference import adopt_reference, run_mpirun
 from pipelines.cli import main as pipelines_main
 from tests.conftest import SCENES
 
@@ -534,17 +537,17 @@ def test_nan_filled_reference_is_not_adopted(tmp_path, monkeypatch):
     from forcecal.h5io import write_reference
     from pipelines.cache import Cache
     scene = load_scene(SCENES / "tiny.toml")
-    ctx = stages.Context(scene, tmp_path, False, 1)
+    ctx = Context(scene, tmp_path, False, 1)
     reference = _fake_reference(scene)
     write_reference(tmp_path / "reference.h5", reference)
     with h5py.File(tmp_path / "reference.h5", "r+") as fh:
         fh["indentation/force"][0, 0, 0] = np.nan
-    inputs = stages.StageInputs(scene={}, mesh=reference.problem.mesh.fingerprint(), upstream={},
+    inputs = StageInputs(scene={}, mesh=reference.problem.mesh.fingerprint(), upstream={},
                                 code={})
     CASES["fault"] += 1
     with pytest.raises(DataFileError, match=r"cannot be adopted: .*(NaN|non-finite).*"
                        r"reference --force"):
-        stages.adopt_reference(ctx, inputs.mesh)
+        adopt_reference(ctx, inputs.mesh)
     assert Cache(tmp_path).check("reference", inputs)  # not recorded as done
 
 
@@ -553,16 +556,16 @@ def test_reference_without_keys_or_with_other_keys_is_not_adopted(tmp_path):
     a file that records none, or other ones, is recomputed, whatever its age."""
     from forcecal.h5io import write_reference
     scene = load_scene(SCENES / "tiny.toml")
-    ctx = stages.Context(scene, tmp_path, False, 1)
+    ctx = Context(scene, tmp_path, False, 1)
     reference = _fake_reference(scene)
     mesh = reference.problem.mesh.fingerprint()
     write_reference(tmp_path / "reference.h5", reference)
-    assert stages.adopt_reference(ctx, mesh)  # the keys match and the content is valid
+    assert adopt_reference(ctx, mesh)  # the keys match and the content is valid
     keys = json.loads(reference.meta["experiment_keys"])
     for stored in ({}, {**keys, "relaxation": "computed by other FE code"}):
         meta = {**reference.meta, "experiment_keys": json.dumps(stored)}
         write_reference(tmp_path / "reference.h5", dataclasses.replace(reference, meta=meta))
-        assert not stages.adopt_reference(ctx, mesh)
+        assert not adopt_reference(ctx, mesh)
 
 
 def _fake_reference(scene):
@@ -684,7 +687,7 @@ def test_mpirun_boilerplate_is_kept_for_the_log(text, error, shown, tmp_path, ca
     script.write_text(f"import sys\nsys.stderr.write({text!r})\nsys.exit(2)\n")
     CASES["fault"] += 1
     with caplog.at_level("DEBUG", logger="pipelines.runners.reference"):
-        rc, message = stages.run_mpirun([sys.executable, str(script)])
+        rc, message = run_mpirun([sys.executable, str(script)])
     err = capfd.readouterr().err
     assert rc == 2 and message == error
     assert shown in err

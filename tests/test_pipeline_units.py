@@ -112,7 +112,7 @@ def test_fe_stage_code_is_the_fe_and_shared_packages():
 
 def test_each_stage_key_holds_its_own_runner_only_and_the_report_the_scene_name(
         tmp_path, monkeypatch):
-    from pipelines.stages import Context
+    from pipelines.runners.common import Context
     scene = scene_from_dict({"name": "keyed"})
     ctx = Context(scene, tmp_path, progress=False, ranks=1)
     for name in ("reference.h5", "params.h5", "gravity.h5"):

@@ -34,7 +34,8 @@ ERROR_KEYS = ("indentation_calibrated", "relaxation_calibrated", "indentation_he
 
 def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]:
     """Run the pipeline once per method (module docstring); returns ``calibration_methods``."""
-    from pipelines.stages import REFERENCE, run_pipeline
+    from pipelines.runners.common import REFERENCE
+    from pipelines.stages import run_pipeline
 
     base = Path(cache_folder) / "calibration_methods"
     model = "springs + volume" if getattr(scene.particle, "volume", False) else "springs"

@@ -46,7 +46,8 @@ from forcecal.provenance import file_digest
 from forcecal.scene import Scene, load_scene, scene_from_dict
 from pipelines.report import fe_timings, read_report
 from forcecal.sections import REFERENCE_SECTIONS
-from pipelines.stages import PARAMS, REFERENCE, run_pipeline
+from pipelines.runners.common import PARAMS, REFERENCE
+from pipelines.stages import run_pipeline
 
 log = logging.getLogger(__name__)
 

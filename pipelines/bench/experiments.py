@@ -26,7 +26,8 @@ from forcecal.h5io import read_reference
 from forcecal.scene import EXPERIMENTS, Scene
 from pipelines.bench.configs import derived_scene
 from pipelines.cache import Cache
-from pipelines.stages import REFERENCE, run_pipeline
+from pipelines.runners.common import REFERENCE
+from pipelines.stages import run_pipeline
 
 log = logging.getLogger(__name__)
 

@@ -119,7 +119,8 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     from forcecal.h5io import read_reference
     from pipelines.bench.fe_convergence import PUNCH_SCENE, _with_punch
     from pipelines.cache import Cache
-    from pipelines.stages import PARAMS, REFERENCE, run_pipeline
+    from pipelines.runners.common import PARAMS, REFERENCE
+    from pipelines.stages import run_pipeline
 
     base = _with_punch(scene) if quick else load_scene(PUNCH_SCENE)
     problem = build_problem(base)

@@ -27,7 +27,7 @@ from forcecal.sections import REFERENCE_SECTIONS
 from pipelines.bench import configs as bc
 from pipelines.report import gravity_dynamic_error, read_report
 from pipelines.runners.reference import mpirun_environment
-from pipelines.stages import GRAVITY, PARAMS, REFERENCE
+from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE
 
 log = logging.getLogger(__name__)
 
