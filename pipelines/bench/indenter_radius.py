@@ -175,3 +175,41 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
             "indenter_radius_study": {"scene": base.name, "mean_surface_edge_m": h,
                                       "calibration_points": points[0],
                                       "held_out_points": points[1], "fits": details}}
+
+
+def markdown(b: dict[str, Any]) -> list[str]:
+    """The "Error against the contact size" section of BENCH.md (empty without rows): the
+    held-out error of each fitted size (rows) used at each size (columns); on the diagonal,
+    held-out / calibration error."""
+    from pipelines.bench.tables import table
+
+    rows = b.get("indenter_radius")
+    if not rows:
+        return []
+    sizes = sorted({r["radius_edges"] for r in rows})
+
+    def label(edges: float) -> str:
+        return "vertex" if edges == 0 else f"{edges:g} h"
+
+    def entry(fitted: float, used: float) -> str:
+        row = next((r for r in rows if r["fitted_radius_edges"] == fitted
+                    and r["radius_edges"] == used), None)
+        if row is None or row["held_out_error"] is None:
+            return "failed"
+        text = f"{100 * row['held_out_error']:.1f} %"
+        if row["calibration_error"] is not None:
+            text = f"**{text}** / {100 * row['calibration_error']:.1f} %"
+        return text
+
+    study = b.get("indenter_radius_study", {})
+    h = study.get("mean_surface_edge_m")
+    return ["", "## Error against the contact size", "",
+            "Held-out indentation error (mean relative RMS of the normal-force curves) of the "
+            "model calibrated at one contact size (rows) used at another (columns); diagonal: "
+            "held-out / calibration error. Vertex indenter and flat punches of 1, 1.5, 2 mean "
+            "surface edge lengths h" + (f" = {1e3 * h:.1f} mm" if h else "") + ", indentation "
+            f"only, {len(study.get('calibration_points', []))} calibration + "
+            f"{len(study.get('held_out_points', []))} held-out points common to every size "
+            "(`pipelines/bench/indenter_radius.py`).", ""] + table(
+        ["fitted at \\ used at"] + [label(e) for e in sizes],
+        [[label(f)] + [entry(f, e) for e in sizes] for f in sizes])
