@@ -202,7 +202,8 @@ class _ResidualProblem(NonlinearProblem):
             self.after_chord = True
             return
         super().J(x, A)
-        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)  # the LDL^T factorisation reads half
+        # the LDL^T factorisation reads half of it
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         self.assemblies += 1
         # the previous GMRES solve (if any) says whether the kept factorisation still
         # preconditions well; a chord step that fell too slowly says it is too old for chords
