@@ -163,8 +163,8 @@ class _ResidualProblem(NonlinearProblem):
     step assembles the tangent and factorises it afresh (the next chord steps then use it);
     Newton iterations otherwise keep the factorisation while GMRES converges fast. Measured
     on the liver punch (24k dofs, 40-step ramp-and-hold): 231 iterations instead of 81, 9
-    tangents instead of 81, 7 factorisations instead of 2, 31 s instead of 64 s. The converged state is the
-    same to the Newton tolerance: only the path to it changes. ``refactor`` (set by
+    tangents instead of 81, 7 factorisations instead of 2, 31 s instead of 64 s. The
+    converged state is the same to the Newton tolerance: only the path to it changes. ``refactor`` (set by
     :func:`solve_step` when the Dirichlet dofs or the material's constants change, and after
     a failed solve) forces a fresh tangent and factorisation.
     """
@@ -202,8 +202,7 @@ class _ResidualProblem(NonlinearProblem):
             self.after_chord = True
             return
         super().J(x, A)
-        # the LDL^T factorisation reads half of it
-        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)  # LDL^T reads half of it
         self.assemblies += 1
         # the previous GMRES solve (if any) says whether the kept factorisation still
         # preconditions well; a chord step that fell too slowly says it is too old for chords
