@@ -164,9 +164,9 @@ class _ResidualProblem(NonlinearProblem):
     Newton iterations otherwise keep the factorisation while GMRES converges fast. Measured
     on the liver punch (24k dofs, 40-step ramp-and-hold): 231 iterations instead of 81, 9
     tangents instead of 81, 7 factorisations instead of 2, 31 s instead of 64 s. The
-    converged state is the same to the Newton tolerance: only the path to it changes. ``refactor`` (set by
-    :func:`solve_step` when the Dirichlet dofs or the material's constants change, and after
-    a failed solve) forces a fresh tangent and factorisation.
+    converged state is the same to the Newton tolerance: only the path to it changes.
+    ``refactor`` (set by :func:`solve_step` when the Dirichlet dofs or the material's
+    constants change, and after a failed solve) forces a fresh tangent and factorisation.
     """
 
     def __init__(self, residual: ufl.Form, w: fem.Function, jacobian: ufl.Form):
