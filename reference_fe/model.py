@@ -219,14 +219,18 @@ class _ResidualProblem(NonlinearProblem):
             raise StepFailed("non-finite Newton iterate")
 
     def F(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
-        # x holds the Dirichlet values (solve_step puts them into the first iterate and
-        # Newton's updates are zero on those rows), so dolfinx's lifting b -= A (g - x), a
-        # tangent of every constrained cell and most of a residual's cost, adds nothing
-        with b.localForm() as loc:
-            loc.set(0.0)
-        assemble_vector(b, self.L)
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        set_bc(b, self.bcs, x, -1.0)  # the rows' constraint equations, x - g
+        if not self.residual_norms:
+            # the first iterate (the step's guess) may miss the Dirichlet values: dolfinx's
+            # lifting b -= A (g - x) makes the first Newton update bring them smoothly
+            super().F(x, b)
+        else:
+            # from the first update on x holds them, so the lifting, a tangent of every
+            # constrained cell and most of a residual's cost, adds nothing
+            with b.localForm() as loc:
+                loc.set(0.0)
+            assemble_vector(b, self.L)
+            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            set_bc(b, self.bcs, x, -1.0)  # the rows' constraint equations, x - g
         if self.offset is not None:
             b.axpy(1.0, self.offset)
         norm = b.norm()
@@ -475,7 +479,6 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
         problem.refactor, problem.tangent_key = True, key
     problem.residual_norms, problem.after_chord = [], False
     model.w.x.array[:] = state.u if guess is None else guess
-    set_bc(model.w.vector, problem.bcs)  # the first iterate meets the constraints (see F)
     # The relative test of dolfinx 0.5's NewtonSolver divides by the first increment's
     # norm (metres), so it is switched off; the force scale enters through atol instead.
     force_scale = 0.0 if state.force is None else float(np.linalg.norm(state.force))
