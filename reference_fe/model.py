@@ -207,7 +207,7 @@ class _ResidualProblem(NonlinearProblem):
         # the previous GMRES solve (if any) says whether the kept factorisation still
         # preconditions well; a chord step that fell too slowly says it is too old for chords
         slow = ksp.getIterationNumber() > KRYLOV_REFRESH_IT or ksp.getConvergedReason() < 0
-        refresh = self.refactor or slow or (self.after_chord and len(self.residual_norms) >= 2)
+        refresh = self.refactor or slow or self.after_chord
         ksp.getPC().setReusePreconditioner(not refresh)
         self.factorisations += refresh
         self.refactor = self.after_chord = False
