@@ -227,10 +227,7 @@ class _ResidualProblem(NonlinearProblem):
         else:
             # from the first update on x holds them, so the lifting, a tangent of every
             # constrained cell and most of a residual's cost, adds nothing
-            with b.localForm() as loc:
-                loc.set(0.0)
-            assemble_vector(b, self.L)
-            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            assemble_unconstrained(b, self.L)
             set_bc(b, self.bcs, x, -1.0)  # the rows' constraint equations, x - g
         if self.offset is not None:
             b.axpy(1.0, self.offset)
@@ -425,14 +422,18 @@ def _set_material(model: FEModel, state: FEState, dt: float | None) -> tuple[np.
     return decay, gain
 
 
-def _assemble_residual(model: FEModel) -> np.ndarray:
-    """R(w) without Dirichlet rows, for the current coefficients [N]."""
-    b = model._residual_vec
+def assemble_unconstrained(b: PETSc.Vec, form: fem.FormMetaClass) -> None:
+    """Assemble the linear ``form`` into ``b`` (zeroed first), no Dirichlet conditions."""
     with b.localForm() as loc:
         loc.set(0.0)
-    assemble_vector(b, model._problem.L)
+    assemble_vector(b, form)
     b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-    return b.array_r.copy()
+
+
+def _assemble_residual(model: FEModel) -> np.ndarray:
+    """R(w) without Dirichlet rows, for the current coefficients [N]."""
+    assemble_unconstrained(model._residual_vec, model._problem.L)
+    return model._residual_vec.array_r.copy()
 
 
 def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
