@@ -83,7 +83,8 @@ def gradient_backend(experiments: Experiments, points: np.ndarray, params: Conne
     model = build_model(p, experiments.density, params)
     return sensitivity_evaluators(model, p.test_points[points], p.normals[points],
                                   experiments.depths, experiments.times,
-                                  experiments.relaxation_depths, experiments.strain_range)
+                                  experiments.relaxation_depths, experiments.strain_range,
+                                  footprints=experiments.held(points))
 
 
 def point_jacobian(worker: PointWorker, kind: str, params: ConnectorParams,

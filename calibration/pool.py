@@ -67,6 +67,11 @@ class Experiments:
     strain_range: tuple[float, float]
     footprints: tuple[np.ndarray, ...] | None = None
 
+    def held(self, points: np.ndarray) -> list[np.ndarray] | None:
+        """The footprints of ``points`` (indices into the test points), None for the vertex
+        indenter: what every backend hands its evaluators, so all indent alike."""
+        return None if self.footprints is None else [self.footprints[int(k)] for k in points]
+
 
 class PointEvaluator(Protocol):
     def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None
@@ -86,8 +91,7 @@ def particle_backend(experiments: Experiments, points: np.ndarray,
     model = build_model(p, experiments.density, params)
     nodes, normals = p.test_points[points], p.normals[points]
     strain = experiments.strain_range
-    held = (None if experiments.footprints is None
-            else [experiments.footprints[int(k)] for k in points])
+    held = experiments.held(points)
     return {"indentation": IndentationEvaluator(model, nodes, normals, experiments.depths,
                                                 strain_range=strain, footprints=held),
             "relaxation": RelaxationEvaluator(model, nodes, normals, experiments.times,

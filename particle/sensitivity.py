@@ -14,13 +14,14 @@ ones the evaluator just solved, nothing is re-solved):
   active particles, with connector tensions ``T^s = K(eps) dx + sum_i A_i^s``
   and the arm forces ``A_i^s = r_i A_i^(s-1) + c_i (dx^s - dx^(s-1))``
   (:meth:`ConnectorParams.arm_recursion`, exact form); the output of a sample is
-  ``F = -n . f_node`` (the normal indenter force);
+  ``F = -n . sum_h f_h`` over the particles the indenter holds (the normal indenter
+  force: the test particle alone, or a flat punch's footprint);
 * one adjoint solve per step with the exact tangent ``K = -df/dx`` at the
   equilibrium (refactorised there; one right-hand side per output sample):
   ``K_aa lam = w K_aP n - sum_e beta_e g_e`` with ``g_e`` the force pattern of a
   unit tension of connector e (``+u_e`` on i, ``-u_e`` on j) and ``beta_e`` the
   adjoint of its elongation carried back from later steps; the virtual field
-  ``omega`` (``lam`` on the active dofs, ``-w n`` on the indented particle)
+  ``omega`` (``lam`` on the active dofs, ``-w n`` on each held particle)
   gives the adjoint of each tension ``tau_e = omega . g_e``;
 * then ``dF/dp_e += tau_e dT_e/dp_e`` for the spring (``dx, eps dx, eps^2 dx``),
   ``mu_i = abar_i + tau_e`` times ``dA_i/dk_i, dA_i/db_i`` for the arms, and the
@@ -110,7 +111,7 @@ class _Adjoint:
 
     def _solver(self, k: int) -> EquilibriumSolver:
         if k not in self._solvers:
-            self._solvers[k] = _RecordingSolver(self.model, self.nodes[k:k + 1], self._pattern,
+            self._solvers[k] = _RecordingSolver(self.model, self.footprints[k], self._pattern,
                                                 rtol=self.rtol)
         return self._solvers[k]
 
@@ -266,10 +267,12 @@ class RelaxationSensitivity(_Adjoint, RelaxationEvaluator):
 
 def sensitivity_evaluators(model: Model, nodes: np.ndarray, normals: np.ndarray,
                            depths: np.ndarray, times: np.ndarray, relaxation_depths: np.ndarray,
-                           strain_range: tuple[float, float] | None = None
+                           strain_range: tuple[float, float] | None = None, *,
+                           footprints: Sequence[np.ndarray] | None = None
                            ) -> dict[str, _Adjoint]:
-    """Both experiments' evaluators with :meth:`~_Adjoint.jacobian`, keyed like the pool's."""
-    return {"indentation": IndentationSensitivity(model, nodes, normals, depths,
-                                                  strain_range=strain_range),
+    """Both experiments' evaluators with :meth:`~_Adjoint.jacobian`, keyed like the pool's
+    (``footprints``: the particles each indenter holds, as in :mod:`particle.evaluators`)."""
+    kw = dict(strain_range=strain_range, footprints=footprints)
+    return {"indentation": IndentationSensitivity(model, nodes, normals, depths, **kw),
             "relaxation": RelaxationSensitivity(model, nodes, normals, times, relaxation_depths,
-                                                strain_range=strain_range)}
+                                                **kw)}

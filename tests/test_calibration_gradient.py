@@ -13,6 +13,7 @@ from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
 from calibration.synthetic import box_scene, noisy_params, synthetic_reference
 from forcecal.errors import ParameterError
+from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
 from forcecal.scene import replace
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -21,6 +22,9 @@ from particle.params import PARAM_NAMES, ConnectorParams
 from particle.sensitivity import IndentationSensitivity, RelaxationSensitivity
 
 GLOBAL = GlobalParams(K0=30.0, alpha=1.0, beta=10.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)
+# two top-face points of the box and a punch radius that holds 7 particles around each and
+# stays off the clamped base (the box's edges are 10-21 mm)
+PUNCH_POINTS, PUNCH_RADIUS = [0, 8], 0.021
 SETTINGS = {"static_max_evaluations": 80, "relaxation_max_evaluations": 160, "workers": 1,
             "method": "gradient"}
 
@@ -51,11 +55,14 @@ def box(tmp_path_factory):
     return _box(tmp_path_factory.mktemp("gradient_box"))
 
 
-@pytest.mark.parametrize("volume", [False, True], ids=["springs", "springs+kv"])
-def test_sensitivities_match_finite_differences(box, volume):
+@pytest.mark.parametrize("volume, punch", [(False, False), (True, False), (True, True)],
+                         ids=["springs", "springs+kv", "springs+kv, punch"])
+def test_sensitivities_match_finite_differences(box, volume, punch):
     """Directional derivatives J v along a random direction of every parameter of every
     connector (and every tet's kv), against 4th-order central differences of the curves.
-    Newton is converged to 1e-11 of the force scale so the differences resolve 1e-8."""
+    Newton is converged to 1e-11 of the force scale so the differences resolve 1e-8.
+    ``punch``: two top-face points held by a flat punch of 7 particles each (the output is
+    the sum of the held particles' reactions)."""
     problem = build_problem(box)
     n = len(problem.mesh.edges)
     params = noisy_params(GLOBAL, n, sigma=0.1)
@@ -65,8 +72,13 @@ def test_sensitivities_match_finite_differences(box, volume):
             np.random.default_rng(5).normal(0.0, 0.2, n_tets)))
     model = build_model(problem, box.material.density, params)
     times, relax_depths = relaxation_schedule(box.relaxation)
-    kw = dict(strain_range=(-0.3, 0.3), rtol=1e-11)
-    nodes, normals = problem.test_points[:2], problem.normals[:2]
+    pick = PUNCH_POINTS if punch else [0, 1]
+    nodes, normals = problem.test_points[pick], problem.normals[pick]
+    held = (indenter_footprints(problem.mesh, problem.fixed, nodes, normals, "punch",
+                                PUNCH_RADIUS) if punch else None)
+    if punch:
+        assert min(len(h) for h in held) >= 5
+    kw = dict(strain_range=(-0.3, 0.3), rtol=1e-11, footprints=held)
     evaluators = {"indentation": IndentationSensitivity(model, nodes, normals,
                                                         indentation_depths(box.indentation), **kw),
                   "relaxation": RelaxationSensitivity(model, nodes, normals, times, relax_depths,
@@ -281,3 +293,40 @@ def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
     without = gradient_validity(SimpleNamespace(problem=problem, material=box.material,
                                                 gravity=None), glob, strain, 0.1, 0.2)
     assert np.all(without.low == strain.low) and np.all(without.high == strain.high)
+
+
+@pytest.mark.parametrize("indenter", ["vertex", "punch"])
+def test_every_backend_indents_alike(box, indenter):
+    """The gradient fit's evaluators (with adjoints) and the particle engine's return the same
+    curves for the same experiments: with a punch both hold its whole footprint. (They once
+    did not: the gradient backend indented the test vertex alone, and a punch scene was fitted
+    to vertex curves.)"""
+    from calibration.gradient import gradient_backend
+    from calibration.pool import Experiments, particle_backend
+
+    problem = build_problem(box)
+    params = noisy_params(GLOBAL, len(problem.mesh.edges), sigma=0.1)
+    points = np.array(PUNCH_POINTS)
+    nodes = problem.test_points
+    held = None
+    if indenter == "punch":  # the punch at the two top-face points, the vertex elsewhere
+        punches = indenter_footprints(problem.mesh, problem.fixed, nodes[points],
+                                      problem.normals[points], "punch", PUNCH_RADIUS)
+        held = [nodes[k:k + 1] for k in range(len(nodes))]
+        for k, footprint in zip(points, punches):
+            held[k] = footprint
+        held = tuple(held)
+    times, relax_depths = relaxation_schedule(box.relaxation)
+    experiments = Experiments(problem, box.material.density, indentation_depths(box.indentation),
+                              times, relax_depths, (-0.3, 0.3), held)
+    curves = {name: {kind: ev(params) for kind, ev in backend(experiments, points, params).items()}
+              for name, backend in (("particle", particle_backend),
+                                    ("gradient", gradient_backend))}
+    for kind in ("indentation", "relaxation"):
+        a, b = curves["particle"][kind], curves["gradient"][kind]
+        # both solve the same equilibria to the Newton tolerance (1e-8 of the force)
+        np.testing.assert_allclose(b, a, rtol=1e-7, atol=1e-7 * np.abs(a).max())
+    if held is not None:  # a punch of 7 particles pushes back harder than its centre alone
+        vertex = particle_backend(dataclasses.replace(experiments, footprints=None), points,
+                                  params)["indentation"](params)
+        assert np.all(curves["gradient"]["indentation"][:, -1] > 2 * vertex[:, -1])
