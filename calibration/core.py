@@ -8,7 +8,7 @@ resumes where it stopped and ends with the same result:
 4. local static sweeps, 5. local relaxation sweeps (:mod:`calibration.local`),
    unless ``calibration.local = false``;
 6. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
-   global-only and the calibrated (global + local) models are evaluated at every
+   global-only and the calibrated (global + local, or gradient) models are evaluated at every
    test point; held-out points, never used by any fit, give the honest accuracy.
 
 Only the experiments of the scene's ``experiments`` list are fitted and

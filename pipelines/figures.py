@@ -1,8 +1,8 @@
 """PNG figures of a run (matplotlib, Agg backend): the paper's Fig. 2 and Fig. 3 and error charts.
 
 * ``calibration.png`` (Fig. 2): (a) force-displacement and (b) relaxation of one
-  calibration point - FE, global, calibrated (global + local), baseline; (c, d)
-  cost per iteration of the global static and relaxation fits; (e) K0 and (f)
+  calibration point - FE, global, calibrated (global + local, or the gradient fit),
+  baseline; (c, d) cost per iteration of the global static and relaxation fits; (e) K0 and (f)
   tau1 = b1/k1 per connector.
 * ``held_out.png``: the same curves at one held-out point (never fitted).
 * ``gravity_static.png`` (Fig. 3): 3-D views of the FE and particle static sag,
@@ -42,7 +42,7 @@ FIGURES = ("calibration.png", "held_out.png", "gravity_static.png", "gravity_dyn
 # one style per model, everywhere
 STYLE = {"fe": dict(color="black", lw=2.2, label="FE reference"),
          "global": dict(color="tab:orange", lw=1.5, label="particle, global"),
-         "calibrated": dict(color="tab:blue", lw=1.5, label="particle, calibrated (global+local)"),
+         "calibrated": dict(color="tab:blue", lw=1.5, label="particle, calibrated"),
          "baseline": dict(color="tab:gray", lw=1.3, ls="--",
                           label="particle, baseline (Van Gelder)")}
 MM = 1e3

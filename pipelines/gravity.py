@@ -19,7 +19,8 @@ exactly the FE's record times, so the comparison needs no interpolation.
 | ``/<model>/displacement`` | (S, N, 3) | m | dynamic vertex displacements |
 | ``/<model>`` attrs | | | ``dt`` [s] explicit step used, ``critical_dt`` [s] its stability limit, ``static_time``, ``dynamic_time`` [s] wall times, ``strain_min``, ``strain_max`` [1] connector strain extremes over both runs |
 
-``<model>`` is ``calibrated`` (global + local tuning) and ``baseline`` (Van Gelder).
+``<model>`` is ``calibrated`` (global + local tuning, or the gradient fit) and ``baseline``
+(Van Gelder).
 The static sag is always computed (the release's time step is chosen from its
 strains); the dynamic release only when the scene's experiments include
 ``gravity_dynamic`` (otherwise ``dynamic_time`` is 0).

@@ -95,9 +95,16 @@ def size_scene(base: Scene, radius: float, points: tuple[list[int], list[int]],
                          folder, experiments=("indentation",))
 
 
-def cross_curves(fitted: Any, scene: Scene, reference: Any) -> np.ndarray:
+def cross_curves(fitted: Any, scene: Scene, reference: Any,
+                 strain_range: tuple[float, float]) -> np.ndarray:
     """(P, S) normal-force curves of the connectors ``fitted`` at every test point of
-    ``scene`` with its indenter, at the depths of its ``reference``."""
+    ``scene`` with its indenter, at the depths of its ``reference``.
+
+    ``strain_range`` is where the fit kept every spring's K(eps) positive (its
+    ``params.h5``): the parameters are checked there, and the strains another contact size
+    actually reaches are checked at every equilibrium (a K(eps) <= 0 there is refused and
+    the cross term reported as failed), rather than refusing the model a priori over the
+    evaluator's default +-(depth / shortest connector), strains no indentation reaches."""
     from forcecal.indenter import indenter_footprints
     from particle.evaluators import IndentationEvaluator
     from particle.model import build_model
@@ -108,7 +115,8 @@ def cross_curves(fitted: Any, scene: Scene, reference: Any) -> np.ndarray:
                                problem.normals, ind.indenter, ind.radius)
     model = build_model(problem, scene.material.density, fitted)
     evaluator = IndentationEvaluator(model, problem.test_points, problem.normals,
-                                     reference.indentation.displacement, footprints=held)
+                                     reference.indentation.displacement, footprints=held,
+                                     strain_range=strain_range)
     return np.asarray(evaluator(fitted, list(range(len(problem.test_points)))))
 
 
@@ -158,7 +166,8 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
                 calibration_error = float(errors[params.is_calibration].mean())
             else:
                 try:
-                    curves = cross_curves(params.connectors["calibrated"], e_scene, e_ref)
+                    curves = cross_curves(params.connectors["calibrated"], e_scene, e_ref,
+                                          params.strain.bounds)
                     errors = relative_rms_error(curves, e_ref.indentation.force_normal)
                 except ForcecalError as exc:  # e.g. K(eps) not positive at the larger strains
                     log.warning("indenter radius: fitted at %.4g m, evaluated at %.4g m: %s",
