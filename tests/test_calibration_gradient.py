@@ -330,3 +330,28 @@ def test_every_backend_indents_alike(box, indenter):
         vertex = particle_backend(dataclasses.replace(experiments, footprints=None), points,
                                   params)["indentation"](params)
         assert np.all(curves["gradient"]["indentation"][:, -1] > 2 * vertex[:, -1])
+
+
+def test_hinge_rows_products_equal_the_dense_ones(box):
+    """Linearisation.of with the hinge rows kept sparse (``n_dense``) gives the products and
+    the damped step of the all-dense computation, to round-off."""
+    problem = build_problem(box)
+    n = len(problem.mesh.edges)
+    rng = np.random.default_rng(3)
+    reg = Regulariser(neighbour_laplacian(problem.mesh.edges, problem.mesh.n_vertices),
+                      np.zeros(7 * n))
+    theta = 0.1 * rng.normal(size=7 * n)
+    data = rng.normal(size=(24, 7 * n))
+    hinge = np.zeros((30, 7 * n))
+    for row, e in enumerate(rng.choice(n, 30)):  # a hinge row: one connector's K0, alpha, beta
+        hinge[row, [e, n + e, 2 * n + e]] = rng.normal(size=3)
+    J, r = np.vstack([data, hinge]), rng.normal(size=54)
+    dense, split = Linearisation.of(theta, r, J, reg), Linearisation.of(theta, r, J, reg,
+                                                                      n_dense=24)
+    scale = np.abs(dense.C).max()
+    np.testing.assert_allclose(split.C, dense.C, rtol=0, atol=1e-12 * scale)
+    # the step solves with (alpha I + C), whose condition number (4e5 here) amplifies C's
+    # round-off: 1e-8 of the step's size
+    step = dense.step(reg, 0.3, 1.0)
+    np.testing.assert_allclose(split.step(reg, 0.3, 1.0), step, rtol=0,
+                               atol=1e-8 * np.abs(step).max())
