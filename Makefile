@@ -8,9 +8,15 @@ OUT ?=
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.forcecal-setup
+# libopenblas0-pthread: Debian's default libblas.so.3 / liblapack.so.3 (used by numpy, scipy,
+# PETSc and MUMPS) is the unoptimised reference BLAS; installing OpenBLAS switches the
+# alternative. Measured: a 1000^3 matmul 0.44 -> 0.045 s on one thread, the liver punch's FE
+# indentation + relaxation at vertices 138 and 3 81.8 -> 54.1 s (same forces to 1e-15).
+# OMP_NUM_THREADS=1 below keeps it to one thread per process (MPI ranks, calibration workers).
 APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-h5py python3-scipy \
 	python3-numba python3-pytest python3-matplotlib python3-hypothesis python3-tqdm \
-	python3-venv python3-pip-whl python3-setuptools-whl python3-wheel openmpi-bin
+	python3-venv python3-pip-whl python3-setuptools-whl python3-wheel openmpi-bin \
+	libopenblas0-pthread
 
 # OpenMPI refuses to run as root without these; FFCx/numba caches go to a writable place.
 export OMPI_ALLOW_RUN_AS_ROOT := 1
