@@ -177,3 +177,23 @@ def test_cold_times_keep_the_earlier_cold_time_of_an_item_that_reused_work():
     previous = {"item_s_cold": {"a": 100.0}}
     assert cold_times({"a": 2.0, "b": 30.0}, {"a"}, previous) == {"a": 100.0, "b": 30.0}
     assert cold_times({"a": 2.0}, {"a"}, {}) == {"a": None}  # reused, cold time never measured
+
+
+def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
+    from pipelines.bench.calibration_methods import held_out_error, mark_front
+
+    def row(scene, held, static, cal, p99):
+        return {"scene": scene, "calibration_s": cal, "haptic": {"p99_us": p99},
+                "errors": {"indentation_held_out": held, "relaxation_held_out": held,
+                           "gravity_static": static}}
+
+    rows = [row("a", 0.10, 0.05, 100.0, 20.0),   # dominated by the next one
+            row("a", 0.08, 0.05, 100.0, 20.0),
+            row("a", 0.12, 0.02, 300.0, 50.0),   # worse held-out, better sag: kept
+            row("b", 0.20, 0.10, 500.0, 90.0),   # alone in its scene: kept
+            {"scene": "a", "model": "springs", "method": "paper", "failed": "diverged"}]
+    mark_front(rows)
+    assert [r["front"] for r in rows] == [False, True, True, True, False]
+    assert held_out_error({"indentation_held_out": 0.04, "relaxation_held_out": 0.06}) == \
+        pytest.approx(0.05)
+    assert held_out_error({"indentation_held_out": 0.04}) is None

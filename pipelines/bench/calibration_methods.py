@@ -1,18 +1,28 @@
-"""Bench study "calibration methods": model x calibration method -> errors and calibration time.
+"""Bench study "calibration methods": scene x model x calibration method -> errors and costs.
 
-For the bench scene, the whole pipeline (reference -> calibration -> gravity ->
-report) runs once per ``calibration.method`` (``paper``, ``gradient``) in its
-own folder under the bench cache; the FE reference is computed once (the first
-method's) and adopted by the others (:func:`pipelines.runners.reference.adopt_reference`:
-same scene sections and mesh, the FE code older than it). Each row: the model
-(``springs``; ``springs + volume`` once the scene switches the volume term on),
-the method, the calibration wall time (``timings_s.calibration`` of
-``report.json``) and the errors the report quotes (calibration and held-out
-indentation/relaxation, gravity static/dynamic). Held-out points are never
-used by either fit.
+For two scenes, the bench scene (vertex indentation, ``scenes/liver.toml``) and the punch
+scene (``scenes/liver_punch.toml``; ``--quick``: the bench scene only), the whole pipeline
+(reference -> calibration -> gravity -> report, no figures or fields) runs once per model
+(``springs``: ``particle.volume = false``; ``springs + volume``: true) and
+``calibration.method`` (``paper``: global Nelder-Mead + local tuning; ``gradient``: every
+connector by regularised least squares), each in a folder of its own under the bench
+cache. A scene's FE reference does not depend on the model or the method: it is computed
+once per scene (or adopted from the scene's ``runs/<name>/`` when that one is current,
+:func:`pipelines.runners.reference.adopt_reference` decides from fingerprints) and copied
+to the other folders, where it is adopted the same way.
 
-Key of ``bench.json``: ``calibration_methods [{model, method, calibration_s,
-errors {...}}]``.
+Each row: ``scene``, ``model``, ``method``, ``calibration_s`` (``timings_s.calibration``
+of the run's ``report.json``), ``errors`` (the report's calibration and held-out
+indentation/relaxation, gravity static/dynamic), ``haptic`` (latency of one 1 ms
+:meth:`particle.haptics.HapticSession.step` of the calibrated model at the scene's first
+calibration point, one thread: median and p99 [us], substeps), and ``front``: True if no
+other row of the same scene is at least as good on all of held-out error (mean of the
+held-out indentation and relaxation errors), static gravity error, calibration time and
+haptic p99 and better on one. A run that fails is a row with ``failed`` (the message)
+and no numbers. Held-out points are never used by either fit.
+
+Key of ``bench.json``: ``calibration_methods [{scene, model, method, calibration_s,
+errors {...}, haptic {...}, front}]``.
 """
 
 from __future__ import annotations
@@ -23,34 +33,159 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from forcecal.scene import Scene, replace
+import numpy as np
+
+from forcecal.errors import ForcecalError
+from forcecal.scene import Scene, load_scene
 
 log = logging.getLogger(__name__)
 
+ROOT = Path(__file__).resolve().parents[2]
+PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
+MODELS = (("springs", False), ("springs + volume", True))
 METHODS = ("paper", "gradient")
 ERROR_KEYS = ("indentation_calibrated", "relaxation_calibrated", "indentation_held_out",
               "relaxation_held_out", "gravity_static", "gravity_dynamic")
+HAPTIC_CALLS = 2000
+# the objectives of the front: (name, where in a row); all are smaller-is-better
+OBJECTIVES = ("held_out_error", "gravity_static", "calibration_s", "haptic_p99_us")
 
 
-def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]:
-    """Run the pipeline once per method (module docstring); returns ``calibration_methods``."""
+def held_out_error(errors: dict[str, float | None]) -> float | None:
+    """Mean of the held-out indentation and relaxation errors (None if either is missing)."""
+    values = [errors.get("indentation_held_out"), errors.get("relaxation_held_out")]
+    return None if None in values else float(np.mean(values))
+
+
+def objectives(row: dict[str, Any]) -> np.ndarray | None:
+    """The row's objectives (:data:`OBJECTIVES`), None for a failed or incomplete row."""
+    if "failed" in row:
+        return None
+    values = [held_out_error(row["errors"]), row["errors"].get("gravity_static"),
+              row["calibration_s"], row["haptic"]["p99_us"]]
+    return None if None in values else np.asarray(values, dtype=float)
+
+
+def mark_front(rows: list[dict[str, Any]]) -> None:
+    """Set ``front`` on every row: non-dominated among the rows of its scene."""
+    for row in rows:
+        mine = objectives(row)
+        row["front"] = mine is not None
+        if mine is None:
+            continue
+        for other in rows:
+            theirs = objectives(other)
+            if other is row or other["scene"] != row["scene"] or theirs is None:
+                continue
+            if np.all(theirs <= mine) and np.any(theirs < mine):
+                row["front"] = False
+                break
+
+
+def haptic_row(folder: Path, scene: Scene) -> dict[str, Any]:
+    """Haptic latency of the calibrated model of the run in ``folder``."""
+    from calibration import read_params
+    from forcecal.h5io import read_reference
+    from particle.model import build_model
+    from pipelines.bench.particle_engine import haptic_latency
+    from pipelines.runners.common import PARAMS, REFERENCE
+
+    problem = read_reference(folder / REFERENCE).problem
+    model = build_model(problem, scene.material.density,
+                        read_params(folder / PARAMS).connectors["calibrated"])
+    k = 0  # the first calibration point (test_points lists them first)
+    latency = haptic_latency(model, int(problem.test_points[k]), problem.normals[k],
+                             calls=HAPTIC_CALLS)
+    return {k: latency[k] for k in ("median_us", "p99_us", "substeps", "dt_s", "connectors")}
+
+
+def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
+            reference_from: Path | None) -> dict[str, Any]:
+    """The pipeline of ``scene`` with ``model`` and ``method`` in ``folder``; its row."""
+    from pipelines.bench.configs import derived_scene
     from pipelines.runners.common import REFERENCE
     from pipelines.stages import run_pipeline
 
-    base = Path(cache_folder) / "calibration_methods"
-    model = "springs + volume" if getattr(scene.particle, "volume", False) else "springs"
-    rows, first = [], None
-    for method in METHODS:
-        out = base / method
-        out.mkdir(parents=True, exist_ok=True)
-        if first is not None and not (out / REFERENCE).is_file():
-            shutil.copy2(first / REFERENCE, out / REFERENCE)  # adopted, not recomputed
-        run_pipeline(replace(scene, calibration={"method": method}), out, progress=False)
-        report = json.loads((out / "report.json").read_text())
-        errors = {k: report["errors"].get(k) for k in ERROR_KEYS}
-        rows.append({"model": model, "method": method,
-                     "calibration_s": report["timings_s"]["calibration"], "errors": errors})
-        log.info("calibration methods: %s / %s: %s, calibration %.1f s", model, method, errors,
-                 report["timings_s"]["calibration"])
-        first = first or out
+    row: dict[str, Any] = {"scene": scene.name, "model": model, "method": method}
+    variant = derived_scene(scene, f"{scene.name}-{method}-{'volume' if volume else 'springs'}",
+                            {"particle": {"volume": volume}, "calibration": {"method": method}},
+                            folder)
+    if reference_from is not None and (reference_from / REFERENCE).is_file() and not (
+            folder / REFERENCE).is_file():
+        shutil.copy2(reference_from / REFERENCE, folder / REFERENCE)  # adopted if current
+    try:
+        run_pipeline(variant, folder, progress=False)
+        report = json.loads((folder / "report.json").read_text())
+        row["calibration_s"] = report["timings_s"]["calibration"]
+        row["errors"] = {k: report["errors"].get(k) for k in ERROR_KEYS}
+        row["haptic"] = haptic_row(folder, variant)
+    except ForcecalError as exc:
+        log.warning("calibration methods: %s / %s / %s failed: %s", scene.name, model,
+                    method, exc)
+        row = {**row, "failed": str(exc)}
+        return row
+    log.info("calibration methods: %s / %s / %s: held-out %.4f / %.4f, gravity %.4f / %.4f, "
+             "calibration %.1f s, haptic p99 %.0f us", scene.name, model, method,
+             row["errors"]["indentation_held_out"], row["errors"]["relaxation_held_out"],
+             row["errors"]["gravity_static"], row["errors"]["gravity_dynamic"] or np.nan,
+             row["calibration_s"], row["haptic"]["p99_us"])
+    return row
+
+
+def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]:
+    """Every scene x model x method (module docstring); returns ``calibration_methods``."""
+    scenes = [scene] if quick else [scene, load_scene(PUNCH_SCENE)]
+    rows = []
+    for sc in scenes:
+        base = Path(cache_folder) / "calibration_methods" / sc.name
+        reference_from = ROOT / "runs" / sc.name
+        for model, volume in MODELS:
+            for method in METHODS:
+                folder = base / f"{'volume' if volume else 'springs'}-{method}"
+                rows.append(run_row(sc, model, volume, method, folder, reference_from))
+                if "failed" not in rows[-1]:
+                    reference_from = folder  # this scene's reference, current by now
+    mark_front(rows)
     return {"calibration_methods": rows}
+
+
+def markdown(b: dict[str, Any]) -> list[str]:
+    """The "Model and calibration method" section of BENCH.md (empty without rows)."""
+    from pipelines.bench.tables import table
+
+    rows = b.get("calibration_methods")
+    if not rows:
+        return []
+
+    def percent(value: float | None) -> str:
+        return "-" if value is None else f"{100 * value:.2f}"
+
+    body = []
+    for r in rows:
+        if "failed" in r:
+            body.append([r["scene"], r["model"], r["method"], f"failed: {r['failed']}", "", "",
+                         "", "", "", "no"])
+            continue
+        e = r["errors"]
+        body.append([r["scene"], r["model"], r["method"],
+                     f"{percent(e['indentation_calibrated'])} / "
+                     f"{percent(e['indentation_held_out'])}",
+                     f"{percent(e['relaxation_calibrated'])} / "
+                     f"{percent(e['relaxation_held_out'])}",
+                     percent(e["gravity_static"]), percent(e["gravity_dynamic"]),
+                     f"{r['calibration_s']:.0f}",
+                     f"{r['haptic']['p99_us']:.0f} ({r['haptic']['substeps']})",
+                     "**yes**" if r["front"] else "no"])
+    return ["", "## Model and calibration method", "",
+            "Each scene with each particle model and calibration method, the whole pipeline "
+            "per row on the scene's one FE reference (`calibration methods`, "
+            "`pipelines/bench/calibration_methods.py`). Errors in % (relative RMS, README "
+            "'Error definitions'): calibration / held-out curves, gravity sag and release, "
+            "none of which the held-out points or the gravity test were fitted to. Haptic: "
+            "p99 latency of one 1 ms haptic step of the calibrated model, one thread "
+            "(substeps in brackets). Front: no other row of the scene is at least as good on "
+            "held-out error (mean of indentation and relaxation), static sag error, "
+            "calibration time and haptic p99 and better on one.", ""] + table(
+        ["scene", "model", "method", "indentation cal. / held-out", "relaxation cal. / "
+         "held-out", "static sag", "release", "calibration [s]", "haptic p99 [us]", "front"],
+        body)

@@ -10,7 +10,7 @@ import numpy as np
 
 from forcecal.h5io import atomic_path
 from pipelines.bench import haptic as bench_haptic
-from pipelines.bench import indenter_radius
+from pipelines.bench import calibration_methods, indenter_radius
 from pipelines.bench.tables import cell, table
 
 log = logging.getLogger(__name__)
@@ -395,6 +395,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         from pipelines.bench.scale import scale_section
         lines += scale_section(b)
     lines += indenter_radius.markdown(b)
+    lines += calibration_methods.markdown(b)
     lines += ["", "## Reproduce", "", "```bash", f"{cmd}   # -> {path.parent}/", "```", ""]
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines))
