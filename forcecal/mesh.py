@@ -185,8 +185,14 @@ def check_mesh(mesh: TetMesh) -> TetMesh:
     rep = np.nonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))[0]
     if len(rep):
         raise MeshError(f"bad mesh: tets {rep[:10].tolist()} repeat a vertex")
-    vol = mesh.signed_volumes
-    scale = np.ptp(v, axis=0).max()
+    with np.errstate(over="ignore", invalid="ignore"):
+        vol = mesh.signed_volumes
+        scale = np.ptp(v, axis=0).max()
+    if not (np.all(np.isfinite(vol)) and np.isfinite(scale)):
+        bad = np.nonzero(~np.isfinite(vol))[0]
+        raise MeshError(f"bad mesh: coordinates so large (up to {np.abs(v).max():.3g}) that "
+                        f"tet volumes overflow, e.g. tets {bad[:10].tolist()}; check the mesh's "
+                        "units (mesh.scale)")
     # a tet whose volume is below 1e-9 of a cube of the mesh's mean edge is degenerate
     mean_edge = float(np.mean(mesh.edge_lengths))
     tiny = 1e-9 * mean_edge ** 3
@@ -221,7 +227,8 @@ def check_mesh(mesh: TetMesh) -> TetMesh:
 def _orient(vertices: np.ndarray, tets: np.ndarray, origin: str) -> np.ndarray:
     """Return tets positively oriented when a file uses the opposite convention throughout."""
     m = TetMesh(vertices, tets)
-    vol = m.signed_volumes
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite: check_mesh refuses it
+        vol = m.signed_volumes
     if len(vol) and np.all(vol < 0):
         log.info("%s: every tet is negatively oriented; swapping two vertices of each", origin)
         return tets[:, [0, 2, 1, 3]]

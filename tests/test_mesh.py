@@ -201,6 +201,15 @@ def test_non_finite_coordinates():
         check_mesh(TetMesh(v, t))
 
 
+def test_coordinates_whose_tet_volumes_overflow():
+    """Finite coordinates of 1e110 m: the volume (1e330) overflows to inf/NaN, which neither
+    the zero-volume nor the inverted-tet comparison catches (found by the fuzz test)."""
+    v, t = _one_tet()
+    with np.errstate(all="raise"):  # the check itself computes without a floating-point warning
+        with pytest.raises(MeshError, match=r"tet volumes overflow, e.g. tets \[0\].*mesh.scale"):
+            check_mesh(TetMesh(1e110 * v, t))
+
+
 def test_vertex_ids_out_of_range():
     v, _ = _one_tet()
     with pytest.raises(MeshError, match=r"tet vertex ids must lie in \[0, 3\], got range "
