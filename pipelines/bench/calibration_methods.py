@@ -47,8 +47,6 @@ METHODS = ("paper", "gradient")
 ERROR_KEYS = ("indentation_calibrated", "relaxation_calibrated", "indentation_held_out",
               "relaxation_held_out", "gravity_static", "gravity_dynamic")
 HAPTIC_CALLS = 2000
-# the objectives of the front: (name, where in a row); all are smaller-is-better
-OBJECTIVES = ("held_out_error", "gravity_static", "calibration_s", "haptic_p99_us")
 
 
 def held_out_error(errors: dict[str, float | None]) -> float | None:
@@ -57,29 +55,28 @@ def held_out_error(errors: dict[str, float | None]) -> float | None:
     return None if None in values else float(np.mean(values))
 
 
-def objectives(row: dict[str, Any]) -> np.ndarray | None:
-    """The row's objectives (:data:`OBJECTIVES`), None for a failed or incomplete row."""
+def objectives(row: dict[str, Any]) -> tuple[float, ...] | None:
+    """The row's objectives of the front, all smaller-is-better: held-out error, static
+    gravity error, calibration time [s], haptic p99 [us]; None for a failed or incomplete
+    row."""
     if "failed" in row:
         return None
-    values = [held_out_error(row["errors"]), row["errors"].get("gravity_static"),
-              row["calibration_s"], row["haptic"]["p99_us"]]
-    return None if None in values else np.asarray(values, dtype=float)
+    values = (held_out_error(row["errors"]), row["errors"].get("gravity_static"),
+              row["calibration_s"], row["haptic"]["p99_us"])
+    return None if None in values else tuple(float(v) for v in values)
 
 
 def mark_front(rows: list[dict[str, Any]]) -> None:
-    """Set ``front`` on every row: non-dominated among the rows of its scene."""
+    """Set ``front`` on every row: non-dominated among the complete rows of its scene."""
+    from pipelines.bench.configs import non_dominated
+
     for row in rows:
-        mine = objectives(row)
-        row["front"] = mine is not None
-        if mine is None:
-            continue
-        for other in rows:
-            theirs = objectives(other)
-            if other is row or other["scene"] != row["scene"] or theirs is None:
-                continue
-            if np.all(theirs <= mine) and np.any(theirs < mine):
-                row["front"] = False
-                break
+        row["front"] = False
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        members = [(r, objectives(r)) for r in rows if r["scene"] == scene]
+        members = [(r, o) for r, o in members if o is not None]
+        for (row, _), on in zip(members, non_dominated([o for _, o in members])):
+            row["front"] = on
 
 
 def haptic_row(folder: Path, scene: Scene) -> dict[str, Any]:
@@ -93,10 +90,11 @@ def haptic_row(folder: Path, scene: Scene) -> dict[str, Any]:
     problem = read_reference(folder / REFERENCE).problem
     model = build_model(problem, scene.material.density,
                         read_params(folder / PARAMS).connectors["calibrated"])
-    k = 0  # the first calibration point (test_points lists them first)
-    latency = haptic_latency(model, int(problem.test_points[k]), problem.normals[k],
+    # at the first calibration point (test_points lists them first)
+    latency = haptic_latency(model, int(problem.test_points[0]), problem.normals[0],
                              calls=HAPTIC_CALLS)
-    return {k: latency[k] for k in ("median_us", "p99_us", "substeps", "dt_s", "connectors")}
+    return {key: latency[key] for key in ("median_us", "p99_us", "substeps", "dt_s",
+                                          "connectors")}
 
 
 def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
@@ -122,8 +120,7 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
     except ForcecalError as exc:
         log.warning("calibration methods: %s / %s / %s failed: %s", scene.name, model,
                     method, exc)
-        row = {**row, "failed": str(exc)}
-        return row
+        return {**row, "failed": str(exc)}
     log.info("calibration methods: %s / %s / %s: held-out %.4f / %.4f, gravity %.4f / %.4f, "
              "calibration %.1f s, haptic p99 %.0f us", scene.name, model, method,
              row["errors"]["indentation_held_out"], row["errors"]["relaxation_held_out"],

@@ -283,12 +283,17 @@ def axis_defaults(scene: Scene, default: dict[str, Any]) -> list[dict[str, Any]]
             for axis, v in values.items()]
 
 
+def non_dominated(points: list[tuple[float, ...]]) -> list[bool]:
+    """Whether each point is Pareto-optimal, smaller being better in every coordinate: no
+    other point is at least as good in all of them and strictly better in one."""
+    return [not any(q != p and all(b <= a for a, b in zip(p, q)) for q in points)
+            for p in points]
+
+
 def pareto_front(rows: list[dict[str, Any]], error: str = "overall") -> list[bool]:
     """Whether each row is Pareto-optimal in (wall_s, errors[error]): nothing is as fast
     and as accurate with one of the two strictly better."""
-    points = [(r["wall_s"], r["errors"][error]) for r in rows]
-    return [not any(t2 <= t and e2 <= e and (t2, e2) != (t, e) for t2, e2 in points)
-            for t, e in points]
+    return non_dominated([(r["wall_s"], r["errors"][error]) for r in rows])
 
 
 def mark_fronts(rows: list[dict[str, Any]]) -> None:
