@@ -178,7 +178,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     checkpoint = Checkpoint(checkpoint_path(out_path), inputs)
     evaluations: dict[str, int] = {}
     stage_times: dict[str, float] = {}
-    rings = build_rings(mesh, problem.calibration)
+    rings = build_rings(mesh, problem.calibration,
+                        None if footprints is None else footprints[:n_cal])
     with Pool(experiments, initial.connector_params(n_conn), backend=backend,
               workers=settings.workers if workers is None else workers) as pool:
         glob = initial

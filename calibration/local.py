@@ -2,8 +2,11 @@
 
 Method:
 
-* each calibration point j owns offsets ``z_j`` for the connectors of its first
-  ring (the connectors incident to j), in the coordinates of
+* each calibration point j owns offsets ``z_j`` for the connectors of its ring
+  (those the indenter loads directly: incident to j for the vertex indenter,
+  leaving the footprint for a punch; :func:`calibration.parametrisation.build_rings`),
+  within a factor :data:`~calibration.parametrisation.MAX_LOCAL_FACTOR` of the
+  global values, in the coordinates of
   :mod:`calibration.parametrisation`: static ``(log s_K0, s dalpha, s^2 dbeta)``
   fitted on j's static curve, then relaxation ``(log s_k1, log s_tau1, log s_k2,
   log s_tau2)`` fitted on j's relaxation curve with the static offsets fixed; a
@@ -37,7 +40,7 @@ import numpy as np
 
 from calibration.optimize import INFEASIBLE, Fit, nelder_mead
 from calibration.parametrisation import (GlobalParams, Rings, StrainRange, check_feasible,
-                                         local_params)
+                                         check_offsets, local_params)
 from calibration.pool import Pool, PointWorker, forget_warm_starts
 from calibration.progress import progress_bar
 from forcecal.scene import CalibrationSection
@@ -119,6 +122,7 @@ def fit_point(worker: PointWorker, local: LocalParametrisation, phase: str, poin
     forget_warm_starts(worker)
 
     def cost(zj: np.ndarray) -> float:
+        check_offsets(phase, zj)
         trial = z.copy()
         trial[point] = zj
         params = local.with_offsets(phase, trial).params()

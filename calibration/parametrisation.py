@@ -26,6 +26,11 @@ static ``z_j = (log s_K0, s dalpha, s^2 dbeta)``, relaxation
 ``z_j = (log s_k1, log s_tau1, log s_k2, log s_tau2)``. A connector in several
 rings gets the mean of their offsets, i.e. the geometric mean of the
 multiplicative factors (arithmetic mean of the additive alpha/beta offsets).
+The factors are searched within ``[1/MAX_LOCAL_FACTOR, MAX_LOCAL_FACTOR]``
+(:func:`check_offsets`): a local correction compensates the discretisation
+around one point, and a direction the point's curve barely constrains must not
+carry a connector off to 1e-40 or 1e8 times the global value, which no other
+experiment then survives.
 
 A parameter set is *infeasible* (cost = +inf, reason logged) if some spring's
 tangent stiffness ``d(K dx)/d(dx) = K0 + 2 a eps + 3 b eps^2`` falls below the
@@ -46,6 +51,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -56,6 +62,11 @@ from particle.params import ConnectorParams
 
 STATIC_DIM = 3
 RELAXATION_DIM = 4
+#: largest local factor on K0, k_i and tau_i (either way) of one point's ring offsets
+MAX_LOCAL_FACTOR = 100.0
+#: which offset coordinates are log factors, per local phase
+LOG_OFFSETS = {"static": np.array([True, False, False]),
+               "relaxation": np.array([True, True, True, True])}
 
 
 @dataclass(frozen=True)
@@ -137,7 +148,7 @@ class Rings:
     """First rings of the calibration points and how their offsets reach the connectors.
 
     Attributes:
-        members: tuple of Pc (R_j,) int64 arrays, the connectors incident to each point.
+        members: tuple of Pc (R_j,) int64 arrays, each point's ring (:func:`build_rings`).
         weights: (E, Pc) CSR float64, ``1/n_c`` where connector c is in ring j and
             belongs to ``n_c`` rings (rows of connectors in no ring are empty).
     """
@@ -153,10 +164,22 @@ class Rings:
         return np.asarray(self.weights @ z)
 
 
-def build_rings(mesh: TetMesh, points: np.ndarray) -> Rings:
-    """Rings of ``points`` (vertex ids) in ``mesh``: connectors having the point as an end."""
+def build_rings(mesh: TetMesh, points: np.ndarray,
+                footprints: Sequence[np.ndarray] | None = None) -> Rings:
+    """Rings of ``points`` (vertex ids) in ``mesh``: the connectors the indenter of each point
+    loads directly, i.e. those with exactly one end among the particles it holds.
+
+    ``footprints`` (one array of held particles per point, a flat punch) or None (each
+    point holds itself: its ring is the connectors incident to it, the paper's first
+    ring). A connector with both ends in a footprint moves rigidly with the punch and
+    carries no force in that point's experiment: in the first ring of a punch's centre
+    (6-8 of its 6-12 connectors on the punch scene) its offsets would have no data to fit.
+    """
     e = mesh.edges
-    members = tuple(np.nonzero((e[:, 0] == p) | (e[:, 1] == p))[0] for p in points)
+    held = [np.atleast_1d(p) for p in points] if footprints is None else list(footprints)
+    if len(held) != len(points):
+        raise ValueError(f"{len(held)} footprints for {len(points)} points")
+    members = tuple(np.nonzero(np.isin(e[:, 0], h) != np.isin(e[:, 1], h))[0] for h in held)
     rows = np.concatenate(members)
     cols = np.repeat(np.arange(len(points)), [len(m) for m in members])
     count = np.bincount(rows, minlength=len(e)).astype(float)
@@ -182,6 +205,17 @@ def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
     k2, tau2 = glob.k2 * np.exp(r[:, 2]), glob.tau2 * np.exp(r[:, 3])
     return ConnectorParams(K0=K0, a=alpha * K0, b=beta * K0, k1=k1, b1=tau1 * k1,
                            k2=k2, b2=tau2 * k2, kv=glob.kv_array)
+
+
+def check_offsets(phase: str, z: np.ndarray) -> None:
+    """Raise :class:`ParameterError` if a log-factor offset of one point (``phase`` "static" or
+    "relaxation", ``z`` its offsets) leaves ``[1/MAX_LOCAL_FACTOR, MAX_LOCAL_FACTOR]``."""
+    z = np.asarray(z, dtype=float)
+    out = np.nonzero(LOG_OFFSETS[phase] & ~(np.abs(z) <= np.log(MAX_LOCAL_FACTOR)))[0]
+    if len(out):
+        i = int(out[0])
+        raise ParameterError(f"local {phase} offset {i} is a factor {np.exp(z[i]):.3g}, outside "
+                             f"[1/{MAX_LOCAL_FACTOR:g}, {MAX_LOCAL_FACTOR:g}] of the global value")
 
 
 def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -> None:

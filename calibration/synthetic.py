@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import meshio
 import numpy as np
@@ -86,12 +86,15 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path)
 
 
 def ring_perturbed_params(problem: Problem, glob: GlobalParams, strain: StrainRange, *,
-                          amplitude: float = 0.3, seed: int = 1
+                          amplitude: float = 0.3, seed: int = 1,
+                          footprints: Sequence[np.ndarray] | None = None
                           ) -> tuple[ConnectorParams, np.ndarray, np.ndarray]:
     """Global parameters with random ring offsets of the calibration points.
 
     Offsets are uniform in ``[-amplitude, amplitude]`` (factors exp(+-0.3) = x0.74..x1.35
-    on K0, k_i and tau_i by default), alpha/beta offsets 0.3 times that.
+    on K0, k_i and tau_i by default), alpha/beta offsets 0.3 times that. ``footprints``:
+    the calibration points' punch footprints (their rings, :func:`build_rings`), None for
+    the vertex indenter.
 
     Returns:
         params: the per-connector parameters;
@@ -101,7 +104,7 @@ def ring_perturbed_params(problem: Problem, glob: GlobalParams, strain: StrainRa
     n = len(problem.calibration)
     z_static = rng.uniform(-amplitude, amplitude, (n, 3)) * np.array([1.0, 0.3, 0.3])
     z_relaxation = rng.uniform(-amplitude, amplitude, (n, 4))
-    rings = build_rings(problem.mesh, problem.calibration)
+    rings = build_rings(problem.mesh, problem.calibration, footprints)
     return local_params(glob, rings, strain, z_static, z_relaxation), z_static, z_relaxation
 
 

@@ -8,7 +8,8 @@ from calibration.global_fit import fe_initial_slopes, initial_guess
 from calibration.metrics import point_costs, relative_rms_error
 from calibration.network import linear_indentation
 from calibration.optimize import nelder_mead
-from calibration.parametrisation import (GlobalParams, StrainRange, build_rings, check_feasible,
+from calibration.parametrisation import (MAX_LOCAL_FACTOR, GlobalParams, StrainRange,
+                                         build_rings, check_feasible, check_offsets,
                                          local_params)
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.mesh import TetMesh, box_mesh, check_mesh, fixed_nodes
@@ -120,6 +121,38 @@ def test_rings_blend_factors_geometrically():
     np.testing.assert_allclose(p.K0[only_first], 20.0)
     np.testing.assert_allclose(p.K0[~in_rings], 10.0)
     np.testing.assert_allclose(p.b2 / p.k2, 10.0)
+
+
+def test_a_punch_ring_is_the_connectors_leaving_its_footprint():
+    """A punch moves its footprint rigidly: connectors with both ends in it carry no force in
+    that point's experiment and are not in its ring; the connectors with one end in it are.
+    The vertex indenter's footprint is the point itself: its ring is the first ring."""
+    mesh = box_mesh((3, 3, 2), (0.03, 0.03, 0.02))
+    e = mesh.edges
+    centre = 22
+    first_ring = np.nonzero((e == centre).any(axis=1))[0]
+    footprint = np.unique(e[first_ring])  # the centre and its neighbours
+    rings = build_rings(mesh, np.array([centre]), [footprint])
+    inside = np.isin(e, footprint)
+    np.testing.assert_array_equal(rings.members[0], np.nonzero(inside.sum(axis=1) == 1)[0])
+    # none of the centre's own connectors is loaded by the punch (all end in the footprint)
+    assert not np.isin(first_ring, rings.members[0]).any()
+    vertex = build_rings(mesh, np.array([centre]), [np.array([centre])])
+    np.testing.assert_array_equal(vertex.members[0], first_ring)
+    with pytest.raises(ValueError, match="1 footprints for 2 points"):
+        build_rings(mesh, np.array([centre, 4]), [footprint])
+
+
+def test_local_offsets_stay_within_a_bounded_factor_of_the_global_values():
+    bound = np.log(MAX_LOCAL_FACTOR)
+    check_offsets("static", [0.99 * bound, 50.0, -50.0])  # alpha/beta offsets are additive
+    check_offsets("relaxation", [-0.99 * bound, 0.0, 0.99 * bound, 0.0])
+    with pytest.raises(ParameterError, match=r"local static offset 0 is a factor 1e\+04, outside \[1/100, 100\]"):
+        check_offsets("static", [2 * bound, 0.0, 0.0])
+    with pytest.raises(ParameterError, match=r"relaxation offset 2 is a factor 1e-40"):
+        check_offsets("relaxation", [0.0, 0.0, np.log(1e-40), 0.0])
+    with pytest.raises(ParameterError, match="offset 1"):
+        check_offsets("relaxation", [0.0, np.nan, 0.0, 0.0])
 
 
 def test_feasibility_refuses_soft_springs_and_swapped_arms():
