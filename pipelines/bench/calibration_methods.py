@@ -27,6 +27,7 @@ errors {...}, haptic {...}, front}]``.
 
 from __future__ import annotations
 
+import filecmp
 import json
 import logging
 import shutil
@@ -108,9 +109,14 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
     variant = derived_scene(scene, f"{scene.name}-{method}-{'volume' if volume else 'springs'}",
                             {"particle": {"volume": volume}, "calibration": {"method": method}},
                             folder)
-    if reference_from is not None and (reference_from / REFERENCE).is_file() and not (
-            folder / REFERENCE).is_file():
-        shutil.copy2(reference_from / REFERENCE, folder / REFERENCE)  # adopted if current
+    source = None if reference_from is None else reference_from / REFERENCE
+    # the reference of an earlier row of this run is current: it replaces the row's own
+    # (stale after a code change, it would be recomputed); the scene's run only fills a gap
+    if source is not None and source.is_file() and (
+            not (folder / REFERENCE).is_file()
+            or reference_from.parent == folder.parent and not filecmp.cmp(
+                source, folder / REFERENCE, shallow=False)):
+        shutil.copy2(source, folder / REFERENCE)  # adopted by the stage if current
     try:
         run_pipeline(variant, folder, progress=False)
         report = json.loads((folder / "report.json").read_text())
