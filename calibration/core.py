@@ -51,6 +51,7 @@ from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
+from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 
@@ -171,10 +172,10 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
     inputs = {**fit_inputs(scene, reference_path), "experiments": ",".join(fitted)}
     gradient = settings.method == "gradient"
-    if gradient:  # the gradient fit's validity range also reads the gravity release margin
-        inputs["particle.strain_margin"] = repr(scene.particle.strain_margin)
-        if backend is particle_backend:
-            backend = gradient_backend
+    # both methods keep springs stiff on the gravity release range: it reads the margin
+    inputs["particle.strain_margin"] = repr(scene.particle.strain_margin)
+    if gradient and backend is particle_backend:
+        backend = gradient_backend
     checkpoint = Checkpoint(checkpoint_path(out_path), inputs)
     evaluations: dict[str, int] = {}
     stage_times: dict[str, float] = {}
@@ -207,15 +208,16 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
+        validity = gradient_validity(ref, glob, strain, settings.stiffness_floor,
+                                     scene.particle.strain_margin)
         local = LocalParametrisation(glob, rings, strain, settings.stiffness_floor * glob.K0,
                                      np.zeros((n_cal, STATIC_DIM)),
-                                     np.zeros((n_cal, RELAXATION_DIM)))
+                                     np.zeros((n_cal, RELAXATION_DIM)),
+                                     local_validity(validity, glob.connector_params(n_conn)))
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         gradient_summary: dict = {}
         if gradient:
             t = time.perf_counter()
-            validity = gradient_validity(ref, glob, strain, settings.stiffness_floor,
-                                         scene.particle.strain_margin)
             gfit = fit_gradient(pool, glob, strain, {e: ref_curves[e][:n_cal] for e in fitted},
                                validity, mesh.edges, mesh.n_vertices, folds=settings.cv_folds,
                                # per-tet kv too when the global fit carries the volume term
@@ -309,6 +311,15 @@ def _count(points: list[int], n: int) -> str:
     """``"3/31 (points [0, 4, 7])"``; the points are named only when few."""
     named = f" (points {points})" if len(points) <= 8 and len(points) < n else ""
     return f"{len(points)}/{n}{named}"
+
+
+def local_validity(validity: Validity, glob: ConnectorParams
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What local tuning keeps on the gravity release range: every spring's tangent above the
+    floor, or above the global spring's own minimum there where that one is lower (local
+    tuning starts from the global fit and cannot make it valid; it must not make it worse)."""
+    global_min, _ = glob.extreme_tangent_stiffness((validity.low, validity.high))
+    return validity.low, validity.high, np.minimum(validity.floor, global_min)
 
 
 def gradient_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,

@@ -43,6 +43,7 @@ from calibration.parametrisation import (GlobalParams, Rings, StrainRange, check
                                          check_offsets, local_params)
 from calibration.pool import Pool, PointWorker, forget_warm_starts
 from calibration.progress import progress_bar
+from forcecal.errors import ParameterError
 from forcecal.scene import CalibrationSection
 from particle.params import ConnectorParams
 
@@ -67,6 +68,9 @@ class LocalParametrisation:
             (``calibration.stiffness_floor`` x the global K0).
         z_static: (Pc, 3) static offsets.
         z_relaxation: (Pc, 4) relaxation offsets.
+        validity: None, or per connector (low (E,), high (E,), floor (E,)): a strain range
+            beyond the experiments' (the gravity release range of the FE sag) on which every
+            spring's tangent must stay >= its floor [N/m] (:func:`calibration.core`).
     """
     glob: GlobalParams
     rings: Rings
@@ -74,6 +78,21 @@ class LocalParametrisation:
     floor: float
     z_static: np.ndarray
     z_relaxation: np.ndarray
+    validity: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def check(self, params: ConnectorParams) -> None:
+        """Raise :class:`ParameterError` if ``params`` leave the searched region."""
+        check_feasible(params, self.strain, self.floor)
+        if self.validity is not None:
+            low, high, floor = self.validity
+            tangent, _ = params.extreme_tangent_stiffness((low, high))
+            soft = np.nonzero(~(tangent >= floor))[0]
+            if len(soft):
+                e = int(soft[0])
+                raise ParameterError(
+                    f"connector {e}: spring tangent stiffness reaches {tangent[e]:g} N/m < "
+                    f"{floor[e]:g} N/m on its gravity release range [{low[e]:.3g}, "
+                    f"{high[e]:.3g}] ({len(soft)} connectors)")
 
     def offsets(self, phase: str) -> np.ndarray:
         return self.z_static if phase == "static" else self.z_relaxation
@@ -126,7 +145,7 @@ def fit_point(worker: PointWorker, local: LocalParametrisation, phase: str, poin
         trial = z.copy()
         trial[point] = zj
         params = local.with_offsets(phase, trial).params()
-        check_feasible(params, local.strain, local.floor)
+        local.check(params)
         sim = worker.curves(kind, params, [point])[0]
         return float(np.sum((reference - sim) ** 2))
 
@@ -237,7 +256,7 @@ def _damped_update(pool: Pool, start: LocalParametrisation, phase: str, referenc
         z = z0 + step / 2 ** halvings
         params = start.with_offsets(phase, z).params()
         try:
-            check_feasible(params, start.strain, start.floor)
+            start.check(params)
             cost = pool.total_cost(kind, params, points, reference)
         except INFEASIBLE as exc:  # e.g. a blend of feasible rings that is not: damp further
             log.info("local %s update x 1/%d is infeasible: %s", phase, 2 ** halvings, exc)

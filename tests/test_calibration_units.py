@@ -210,6 +210,39 @@ def test_a_local_update_softening_a_ring_below_the_floor_is_infeasible():
                        strain, floor)
 
 
+def test_local_tuning_keeps_springs_stiff_on_the_gravity_range():
+    """Beyond the experiments' strains, local tuning keeps each spring's tangent on its gravity
+    release range above the floor, or above the global spring's own minimum there where that
+    is lower: K(eps)/K0 = 1 - eps^2 has the tangent 1 - 3 eps^2, 0.88 K0 at eps = 0.2 but
+    0.25 K0 at eps = -0.5 (a connector whose release range reaches -0.5)."""
+    from calibration.core import local_validity
+    from calibration.gradient import Validity
+    from calibration.local import LocalParametrisation
+    mesh = box_mesh((2, 2, 2), (0.02, 0.02, 0.02))
+    rings = build_rings(mesh, np.array([13, 4]))
+    glob = GlobalParams(K0=10.0, alpha=0.0, beta=-1.0, k1=5.0, tau1=0.5, k2=3.0, tau2=10.0)
+    strain = StrainRange(-0.2, 0.2)
+    n = len(mesh.edges)
+    low, high = np.full(n, -0.2), np.full(n, 0.2)
+    deep = rings.members[0][:2]  # two connectors of point 0's ring reach -0.5 under gravity
+    low[deep] = -0.5
+    validity = local_validity(Validity(low, high, 5.0, glob.K0, strain.scale),
+                              glob.connector_params(n))
+    np.testing.assert_allclose(validity[2][deep], 2.5)  # the global spring's 0.25 K0 < floor
+    np.testing.assert_allclose(np.delete(validity[2], deep), 5.0)
+    local = LocalParametrisation(glob, rings, strain, 1.0, np.zeros((2, 3)), np.zeros((2, 4)),
+                                 validity)
+    local.check(local.params())  # the start is feasible by construction
+    stiffer = local.with_offsets("static", [[np.log(1.5), 0.0, 0.0], [0.0, 0.0, 0.0]])
+    stiffer.check(stiffer.params())
+    # K0 x 0.9 on point 0's ring: the deep connectors' tangent 2.25 N/m < 2.5 N/m
+    softer = local.with_offsets("static", [[np.log(0.9), 0.0, 0.0], [0.0, 0.0, 0.0]])
+    check_feasible(softer.params(), strain, 1.0)  # fine on the experiments' strains
+    with pytest.raises(ParameterError, match=rf"connector {deep[0]}: spring tangent stiffness "
+                       r"reaches 2\.25 N/m < 2\.5 N/m on its gravity release range \[-0\.5, 0\.2\]"):
+        softer.check(softer.params())
+
+
 def test_nelder_mead_records_history_and_converges():
     target = np.array([1.0, -2.0])
     fit = nelder_mead(lambda x: float(np.sum((x - target) ** 2) + 0.5), np.zeros(2),
