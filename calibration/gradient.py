@@ -58,7 +58,7 @@ import scipy.sparse as sp
 from calibration.gradient_solver import (N_COORDS, ROWS_KEPT, WEIGHT_GRID, Linearisation,
                                          LMState, Regulariser, compress, cross_validate,
                                          folds_of, levenberg_marquardt, linearise)
-from calibration.parametrisation import GlobalParams, StrainRange
+from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
 from calibration.pool import Experiments, Pool, PointWorker
 from forcecal.errors import ParameterError
 from particle.params import ConnectorParams
@@ -199,14 +199,8 @@ class Validity:
     def check(self, params: ConnectorParams, edges: np.ndarray | None = None) -> None:
         """Raise :class:`ParameterError` naming the first spring below the floor, or arms
         out of order."""
-        tangent, _ = params.extreme_tangent_stiffness((self.low, self.high))
-        soft = np.nonzero(~(tangent >= self.floor))[0]
-        if len(soft):
-            e = int(soft[0])
-            raise ParameterError(
-                f"connector {e}: spring tangent stiffness reaches {tangent[e]:g} N/m < the floor "
-                f"{self.floor:g} N/m on its strain range [{self.low[e]:.3g}, {self.high[e]:.3g}] "
-                f"(experiments and gravity; {len(soft)} connectors)")
+        check_spring_range(params, self.low, self.high, self.floor,
+                           "strain range (experiments and gravity)")
         order = np.nonzero(~(params.tau1 < params.tau2))[0]
         if len(order):
             raise ParameterError(f"connector {int(order[0])}: tau1 >= tau2 ({len(order)} "

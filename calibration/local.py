@@ -40,10 +40,9 @@ import numpy as np
 
 from calibration.optimize import INFEASIBLE, Fit, nelder_mead
 from calibration.parametrisation import (GlobalParams, Rings, StrainRange, check_feasible,
-                                         check_offsets, local_params)
+                                         check_offsets, check_spring_range, local_params)
 from calibration.pool import Pool, PointWorker, forget_warm_starts
 from calibration.progress import progress_bar
-from forcecal.errors import ParameterError
 from forcecal.scene import CalibrationSection
 from particle.params import ConnectorParams
 
@@ -84,15 +83,7 @@ class LocalParametrisation:
         """Raise :class:`ParameterError` if ``params`` leave the searched region."""
         check_feasible(params, self.strain, self.floor)
         if self.validity is not None:
-            low, high, floor = self.validity
-            tangent, _ = params.extreme_tangent_stiffness((low, high))
-            soft = np.nonzero(~(tangent >= floor))[0]
-            if len(soft):
-                e = int(soft[0])
-                raise ParameterError(
-                    f"connector {e}: spring tangent stiffness reaches {tangent[e]:g} N/m < "
-                    f"{floor[e]:g} N/m on its gravity release range [{low[e]:.3g}, "
-                    f"{high[e]:.3g}] ({len(soft)} connectors)")
+            check_spring_range(params, *self.validity, "gravity release range")
 
     def offsets(self, phase: str) -> np.ndarray:
         return self.z_static if phase == "static" else self.z_relaxation

@@ -218,6 +218,21 @@ def check_offsets(phase: str, z: np.ndarray) -> None:
                              f"[1/{MAX_LOCAL_FACTOR:g}, {MAX_LOCAL_FACTOR:g}] of the global value")
 
 
+def check_spring_range(params: ConnectorParams, low: np.ndarray, high: np.ndarray,
+                       floor: float | np.ndarray, where: str) -> None:
+    """Raise :class:`ParameterError` naming the first spring whose tangent stiffness
+    ``K0 + 2 a eps + 3 b eps^2`` falls below ``floor`` [N/m] (scalar or (E,)) somewhere on its
+    strain range ``[low, high]`` ((E,) each); ``where`` names the range in the message."""
+    tangent, _ = params.extreme_tangent_stiffness((low, high))
+    floor = np.broadcast_to(np.asarray(floor, dtype=float), tangent.shape)
+    soft = np.nonzero(~(tangent >= floor))[0]
+    if len(soft):
+        e = int(soft[0])
+        raise ParameterError(f"connector {e}: spring tangent stiffness reaches {tangent[e]:g} N/m "
+                             f"< the floor {floor[e]:g} N/m on its {where} [{low[e]:.3g}, "
+                             f"{high[e]:.3g}] ({len(soft)} connectors)")
+
+
 def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -> None:
     """Raise :class:`ParameterError` if ``params`` is outside the searched region.
 

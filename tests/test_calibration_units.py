@@ -147,7 +147,8 @@ def test_local_offsets_stay_within_a_bounded_factor_of_the_global_values():
     bound = np.log(MAX_LOCAL_FACTOR)
     check_offsets("static", [0.99 * bound, 50.0, -50.0])  # alpha/beta offsets are additive
     check_offsets("relaxation", [-0.99 * bound, 0.0, 0.99 * bound, 0.0])
-    with pytest.raises(ParameterError, match=r"local static offset 0 is a factor 1e\+04, outside \[1/100, 100\]"):
+    with pytest.raises(ParameterError,
+                       match=r"local static offset 0 is a factor 1e\+04, outside \[1/100, 100\]"):
         check_offsets("static", [2 * bound, 0.0, 0.0])
     with pytest.raises(ParameterError, match=r"relaxation offset 2 is a factor 1e-40"):
         check_offsets("relaxation", [0.0, 0.0, np.log(1e-40), 0.0])
@@ -239,7 +240,8 @@ def test_local_tuning_keeps_springs_stiff_on_the_gravity_range():
     softer = local.with_offsets("static", [[np.log(0.9), 0.0, 0.0], [0.0, 0.0, 0.0]])
     check_feasible(softer.params(), strain, 1.0)  # fine on the experiments' strains
     with pytest.raises(ParameterError, match=rf"connector {deep[0]}: spring tangent stiffness "
-                       r"reaches 2\.25 N/m < 2\.5 N/m on its gravity release range \[-0\.5, 0\.2\]"):
+                       r"reaches 2\.25 N/m < the floor 2\.5 N/m on its gravity release "
+                       r"range \[-0\.5, 0\.2\]"):
         softer.check(softer.params())
 
 
