@@ -208,7 +208,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
-        validity = gradient_validity(ref, glob, strain, settings.stiffness_floor,
+        validity = spring_validity(ref, glob, strain, settings.stiffness_floor,
                                      scene.particle.strain_margin)
         local = LocalParametrisation(glob, rings, strain, settings.stiffness_floor * glob.K0,
                                      np.zeros((n_cal, STATIC_DIM)),
@@ -322,9 +322,10 @@ def local_validity(validity: Validity, glob: ConnectorParams
     return validity.low, validity.high, np.minimum(validity.floor, global_min)
 
 
-def gradient_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
+def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
                       gravity_margin: float) -> Validity:
-    """Where the gradient fit keeps every spring stiff: the experiments' strain range united,
+    """Where a calibration keeps every spring stiff (the gradient fit on all of it, local
+    tuning as :func:`local_validity` says): the experiments' strain range united,
     per connector, with the gravity release range of the FE static sag
     (:func:`particle.stability.strain_range_for_release` with ``gravity_margin``; the
     experiments' range alone if the reference has no gravity run)."""
@@ -337,6 +338,6 @@ def gradient_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, f
         model = build_model(ref.problem, ref.material.density, glob.connector_params(n))
         lo, hi = strain_range_for_release(model, ref.gravity.static_displacement, gravity_margin)
         low, high = np.minimum(low, lo), np.maximum(high, hi)
-        log.info("gradient fit: springs kept stiff on the experiments' strains and the gravity "
+        log.info("springs kept stiff on the experiments' strains and the gravity "
                  "release range of the FE sag, [%.3g, %.3g] overall", low.min(), high.max())
     return Validity(low, high, floor * glob.K0, glob.K0, strain.scale)

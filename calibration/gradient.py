@@ -200,7 +200,7 @@ class Validity:
         """Raise :class:`ParameterError` naming the first spring below the floor, or arms
         out of order."""
         check_spring_range(params, self.low, self.high, self.floor,
-                           "strain range (experiments and gravity)")
+                           "on its strain range (experiments and gravity)")
         order = np.nonzero(~(params.tau1 < params.tau2))[0]
         if len(order):
             raise ParameterError(f"connector {int(order[0])}: tau1 >= tau2 ({len(order)} "

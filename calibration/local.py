@@ -83,7 +83,7 @@ class LocalParametrisation:
         """Raise :class:`ParameterError` if ``params`` leave the searched region."""
         check_feasible(params, self.strain, self.floor)
         if self.validity is not None:
-            check_spring_range(params, *self.validity, "gravity release range")
+            check_spring_range(params, *self.validity, "on its gravity release range")
 
     def offsets(self, phase: str) -> np.ndarray:
         return self.z_static if phase == "static" else self.z_relaxation

@@ -218,19 +218,20 @@ def check_offsets(phase: str, z: np.ndarray) -> None:
                              f"[1/{MAX_LOCAL_FACTOR:g}, {MAX_LOCAL_FACTOR:g}] of the global value")
 
 
-def check_spring_range(params: ConnectorParams, low: np.ndarray, high: np.ndarray,
-                       floor: float | np.ndarray, where: str) -> None:
+def check_spring_range(params: ConnectorParams, low: float | np.ndarray,
+                       high: float | np.ndarray, floor: float | np.ndarray, where: str) -> None:
     """Raise :class:`ParameterError` naming the first spring whose tangent stiffness
-    ``K0 + 2 a eps + 3 b eps^2`` falls below ``floor`` [N/m] (scalar or (E,)) somewhere on its
-    strain range ``[low, high]`` ((E,) each); ``where`` names the range in the message."""
+    ``K0 + 2 a eps + 3 b eps^2`` falls below ``floor`` [N/m] somewhere on its strain range
+    ``[low, high]`` (each a scalar or (E,)); ``where`` names the range in the message."""
     tangent, _ = params.extreme_tangent_stiffness((low, high))
-    floor = np.broadcast_to(np.asarray(floor, dtype=float), tangent.shape)
+    low, high, floor = (np.broadcast_to(np.asarray(v, dtype=float), tangent.shape)
+                        for v in (low, high, floor))
     soft = np.nonzero(~(tangent >= floor))[0]
     if len(soft):
         e = int(soft[0])
-        raise ParameterError(f"connector {e}: spring tangent stiffness reaches {tangent[e]:g} N/m "
-                             f"< the floor {floor[e]:g} N/m on its {where} [{low[e]:.3g}, "
-                             f"{high[e]:.3g}] ({len(soft)} connectors)")
+        raise ParameterError(f"connector {e}: spring tangent stiffness K0 + 2 a eps + 3 b eps^2 "
+                             f"reaches {tangent[e]:g} N/m < the floor {floor[e]:g} N/m {where} "
+                             f"[{low[e]:.3g}, {high[e]:.3g}] ({len(soft)} connectors)")
 
 
 def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -> None:
@@ -239,13 +240,7 @@ def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -
     ``floor`` [N/m]: the smallest spring tangent stiffness allowed in the strain range.
     """
     params.validate(strain.bounds)
-    tangent, _ = params.extreme_tangent_stiffness(strain.bounds)
-    soft = np.nonzero(tangent < floor)[0]
-    if len(soft):
-        e = int(soft[0])
-        raise ParameterError(f"connector {e}: spring tangent stiffness K0 + 2 a eps + 3 b eps^2 "
-                             f"reaches {tangent[e]:g} N/m < the floor {floor:g} N/m in the strain "
-                             f"range [{strain.low:g}, {strain.high:g}] ({len(soft)} connectors)")
+    check_spring_range(params, strain.low, strain.high, floor, "in the strain range")
     order = np.nonzero(params.b1 / params.k1 >= params.b2 / params.k2)[0]
     if len(order):
         raise ParameterError(f"connector {int(order[0])}: tau1 >= tau2 "

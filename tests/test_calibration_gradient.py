@@ -272,7 +272,7 @@ def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
     static sag widened by the margin (what the gravity release verifies)."""
     from types import SimpleNamespace
 
-    from calibration.core import gradient_validity
+    from calibration.core import spring_validity
     from particle.stability import strain_range_for_release
     from particle.statics import gravity_static
 
@@ -284,13 +284,13 @@ def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
     ref = SimpleNamespace(problem=problem, material=box.material,
                           gravity=SimpleNamespace(static_displacement=sag))
     strain = StrainRange(-0.05, 0.02)
-    validity = gradient_validity(ref, glob, strain, 0.1, 0.2)
+    validity = spring_validity(ref, glob, strain, 0.1, 0.2)
     lo, hi = strain_range_for_release(model, sag, 0.2)
     np.testing.assert_array_equal(validity.low, np.minimum(lo, strain.low))
     np.testing.assert_array_equal(validity.high, np.maximum(hi, strain.high))
     assert validity.low.min() < strain.low and validity.high.max() > strain.high
     assert validity.floor == pytest.approx(0.1 * glob.K0)
-    without = gradient_validity(SimpleNamespace(problem=problem, material=box.material,
+    without = spring_validity(SimpleNamespace(problem=problem, material=box.material,
                                                 gravity=None), glob, strain, 0.1, 0.2)
     assert np.all(without.low == strain.low) and np.all(without.high == strain.high)
 

@@ -240,7 +240,7 @@ def test_local_tuning_keeps_springs_stiff_on_the_gravity_range():
     softer = local.with_offsets("static", [[np.log(0.9), 0.0, 0.0], [0.0, 0.0, 0.0]])
     check_feasible(softer.params(), strain, 1.0)  # fine on the experiments' strains
     with pytest.raises(ParameterError, match=rf"connector {deep[0]}: spring tangent stiffness "
-                       r"reaches 2\.25 N/m < the floor 2\.5 N/m on its gravity release "
+                       r"K0 \+ 2 a eps \+ 3 b eps\^2 reaches 2\.25 N/m < the floor 2\.5 N/m on its gravity release "
                        r"range \[-0\.5, 0\.2\]"):
         softer.check(softer.params())
 

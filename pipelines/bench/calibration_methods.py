@@ -99,8 +99,13 @@ def haptic_row(folder: Path, scene: Scene) -> dict[str, Any]:
 
 
 def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
-            reference_from: Path | None) -> dict[str, Any]:
-    """The pipeline of ``scene`` with ``model`` and ``method`` in ``folder``; its row."""
+            reference_from: Path | None, reference_is_current: bool) -> dict[str, Any]:
+    """The pipeline of ``scene`` with ``model`` and ``method`` in ``folder``; its row.
+
+    ``reference_from``: a folder whose ``reference.h5`` this row adopts;
+    ``reference_is_current``: it was computed by this run (an earlier row), so it replaces
+    the row's own (stale after a code change, that one would be recomputed); otherwise (the
+    scene's ``runs/<name>/``) it only fills a gap."""
     from pipelines.bench.configs import derived_scene
     from pipelines.runners.common import REFERENCE
     from pipelines.stages import run_pipeline
@@ -110,12 +115,10 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
                             {"particle": {"volume": volume}, "calibration": {"method": method}},
                             folder)
     source = None if reference_from is None else reference_from / REFERENCE
-    # the reference of an earlier row of this run is current: it replaces the row's own
-    # (stale after a code change, it would be recomputed); the scene's run only fills a gap
     if source is not None and source.is_file() and (
             not (folder / REFERENCE).is_file()
-            or reference_from.parent == folder.parent and not filecmp.cmp(
-                source, folder / REFERENCE, shallow=False)):
+            or reference_is_current and not filecmp.cmp(source, folder / REFERENCE,
+                                                        shallow=False)):
         shutil.copy2(source, folder / REFERENCE)  # adopted by the stage if current
     try:
         run_pipeline(variant, folder, progress=False)
@@ -141,13 +144,14 @@ def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]
     rows = []
     for sc in scenes:
         base = Path(cache_folder) / "calibration_methods" / sc.name
-        reference_from = ROOT / "runs" / sc.name
+        reference_from, reference_is_current = ROOT / "runs" / sc.name, False
         for model, volume in MODELS:
             for method in METHODS:
                 folder = base / f"{'volume' if volume else 'springs'}-{method}"
-                rows.append(run_row(sc, model, volume, method, folder, reference_from))
+                rows.append(run_row(sc, model, volume, method, folder, reference_from,
+                                    reference_is_current))
                 if "failed" not in rows[-1]:
-                    reference_from = folder  # this scene's reference, current by now
+                    reference_from, reference_is_current = folder, True
     mark_front(rows)
     return {"calibration_methods": rows}
 
