@@ -179,6 +179,36 @@ def test_cold_times_keep_the_earlier_cold_time_of_an_item_that_reused_work():
     assert cold_times({"a": 2.0}, {"a"}, {}) == {"a": None}  # reused, cold time never measured
 
 
+def test_a_cold_bench_needs_an_empty_cache_and_adopts_nothing_from_runs(tmp_path):
+    from forcecal.errors import ForcecalError
+    from pipelines.bench.driver import run_bench
+    from pipelines.bench.items import ROOT, runs_source, seed_default
+
+    out = tmp_path / "bench"
+    (out / "cache" / "runs").mkdir(parents=True)
+    (out / "cache" / "runs" / "old.json").write_text("{}")
+    with pytest.raises(ForcecalError, match="holds earlier work"):
+        run_bench(out, quick=True, cold=True)
+    with pytest.raises(ForcecalError, match="--only"):
+        run_bench(out, quick=True, cold=True, only=("stability limits",))
+    cache = tmp_path / "cold" / "cache"
+    assert runs_source(cache, "liver") == ROOT / "runs" / "liver"
+    cache.mkdir(parents=True)
+    (cache / "COLD").write_text("")
+    assert runs_source(cache, "liver") is None
+    # a cold cache's default run is not seeded from runs/<scene>/ even when that one finished
+    seed_default(load_scene(SCENES / "tiny.toml"), cache / "runs" / "default")
+    assert not (cache / "runs" / "default").exists()
+
+
+def test_the_experiments_study_needs_the_default_run_for_its_full_list(tmp_path):
+    from forcecal.errors import ForcecalError
+    from pipelines.bench.experiments import full_list
+
+    with pytest.raises(ForcecalError, match="no finished default run"):
+        full_list(load_scene(SCENES / "tiny.toml"), tmp_path / "runs" / "default")
+
+
 def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
     from pipelines.bench.calibration_methods import held_out_error, mark_front
 

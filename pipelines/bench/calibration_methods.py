@@ -7,9 +7,12 @@ scene (``scenes/liver_punch.toml``; ``--quick``: the bench scene only), the whol
 ``calibration.method`` (``paper``: global Nelder-Mead + local tuning; ``gradient``: every
 connector by regularised least squares), each in a folder of its own under the bench
 cache. A scene's FE reference does not depend on the model or the method: it is computed
-once per scene (or adopted from the scene's ``runs/<name>/`` when that one is current,
-:func:`pipelines.runners.reference.adopt_reference` decides from fingerprints) and copied
-to the other folders, where it is adopted the same way.
+once per scene and copied to the other folders, where
+:func:`pipelines.runners.reference.adopt_reference` adopts it when its fingerprints are
+current: the bench scene's is the bench's default pipeline run's (``cache/runs/default``,
+brought up to date by the driver before this study), the punch scene's is adopted from
+``runs/liver_punch/`` (``make demo``) when that one is current, else computed by the
+first row (:func:`pipelines.bench.items.runs_source`: never in a ``--cold`` bench).
 
 Each row: ``scene``, ``model``, ``method``, ``calibration_s`` (``timings_s.calibration``
 of the run's ``report.json``), ``errors`` (the report's calibration and held-out
@@ -140,11 +143,17 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
 
 def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]:
     """Every scene x model x method (module docstring); returns ``calibration_methods``."""
+    from pipelines.bench.items import runs_source
+
+    cache_folder = Path(cache_folder)
     scenes = [scene] if quick else [scene, load_scene(PUNCH_SCENE)]
     rows = []
     for sc in scenes:
-        base = Path(cache_folder) / "calibration_methods" / sc.name
-        reference_from, reference_is_current = ROOT / "runs" / sc.name, False
+        base = cache_folder / "calibration_methods" / sc.name
+        if sc is scene:  # the default pipeline run's reference, current
+            reference_from, reference_is_current = cache_folder / "runs" / "default", True
+        else:
+            reference_from, reference_is_current = runs_source(cache_folder, sc.name), False
         for model, volume in MODELS:
             for method in METHODS:
                 folder = base / f"{'volume' if volume else 'springs'}-{method}"

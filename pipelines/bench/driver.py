@@ -1,6 +1,7 @@
 """``make bench``: run time vs error, kernel throughput, term skipping, reference timings.
 
-``python -m pipelines bench [--quick] [--out DIR] [--scene FILE] [--ranks K] [--no-progress] [--only ITEMS]``
+``python -m pipelines bench [--quick] [--out DIR] [--scene FILE] [--ranks K] [--no-progress]
+[--only ITEMS | --cold]``
 writes ``DIR/bench.json`` (keys below), ``DIR/pareto.png`` and ``DIR/BENCH.md``.
 ``--quick`` benchmarks ``scenes/tiny.toml`` with small sizes (development, a few
 minutes); the default is the default liver.
@@ -33,7 +34,13 @@ Cold times: an item that reused nothing computed earlier (no cached pipeline sta
 FE study or reference timing, see :data:`REUSE_MESSAGES`) records its time in
 ``item_s_cold`` too; one that reused something keeps the cold time of the run that
 computed what it reused (the earlier ``bench.json``'s, None if unknown). ``wall_s_cold``
-is their sum: what ``make bench`` takes with nothing cached.
+is their sum: what ``make bench`` takes with nothing cached. ``--cold`` measures it
+directly: it needs an empty ``DIR/cache`` (refused otherwise), marks it cold
+(:func:`pipelines.bench.items.runs_source`: nothing is adopted from ``runs/``), runs
+every item, and records every item's time as its cold time and ``wall_s_cold`` =
+``wall_s``. Work one item reuses from an earlier item of the same run (the default
+pipeline run's reference in the experiments and calibration-methods studies) is
+counted once, in the item that computed it.
 
 Fixed keys of ``bench.json``: ``kernel {connectors, updates_per_s, numpy_ratio}``,
 ``gravity_dynamic {particle_s, fe_s, speedup, error}``, ``calibration {wall_s,
@@ -64,8 +71,9 @@ from forcecal.h5io import atomic_path
 from forcecal.provenance import git_commit
 from forcecal.scene import load_scene
 from pipelines.bench import configs as bc
-from pipelines.bench.items import (GOALS, PAPER, ROOT, calibration_item, default_run, dt_sweep,
-                                   fe_rows, now_utc, particle_items, reference_timings)
+from pipelines.bench.items import (COLD_MARKER, GOALS, PAPER, ROOT, calibration_item,
+                                   default_run, dt_sweep, fe_rows, now_utc, particle_items,
+                                   reference_timings)
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +97,8 @@ STUDIES: dict[str, str] = {
 REUSE_MESSAGES = re.compile(r"bench: reusing |up to date, skipped|already holds .* not "
                             r"recomputed|adopting the existing|resuming from checkpoint")
 # items that need the default pipeline run (its folder is in ``state["default"]``)
-NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine"}
+NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine", "experiments",
+                 "calibration methods"}
 
 
 # the fixed keys of bench.json, checked before it is written
@@ -176,14 +185,15 @@ def cold_times(item_s: dict[str, float], reused: set[str], previous: dict[str, A
 
 
 def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
-              ranks: int = 2, progress: bool = True, only: tuple[str, ...] = ()
-              ) -> dict[str, Any]:
+              ranks: int = 2, progress: bool = True, only: tuple[str, ...] = (),
+              cold: bool = False) -> dict[str, Any]:
     """Every item of the module docstring, then every study of :data:`STUDIES`; writes
     bench.json, pareto.png, BENCH.md in ``out``.
 
     ``only`` names the items to run (their keys replace those of the ``bench.json``
     already in ``out``, the rest are kept as they are; the default pipeline run is
-    brought up to date first when an item needs it).
+    brought up to date first when an item needs it). ``cold``: measure the cold wall time
+    (module docstring); needs an empty ``out/cache`` and no ``only``.
     """
     from pipelines.bench.report import write_markdown, write_pareto_plot
     from pipelines.bench.stability import stability_table
@@ -191,6 +201,16 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     scene = load_scene(scene_path or ROOT / "scenes" / ("tiny.toml" if quick else "liver.toml"))
     cache = out / "cache"
     runs = cache / "runs"
+    if cold:
+        if only:
+            raise ForcecalError("bench: --cold runs every item; it cannot be combined with --only")
+        if cache.is_dir() and any(cache.iterdir()):
+            raise ForcecalError(f"bench --cold: {cache} holds earlier work; remove it (or pass "
+                                f"another --out) to time a cold run")
+        cache.mkdir(parents=True, exist_ok=True)
+        (cache / COLD_MARKER).write_text("started cold: adopts nothing from runs/\n")
+    elif (cache / COLD_MARKER).is_file():  # a warm run may seed from runs/ again
+        (cache / COLD_MARKER).unlink()
     bench: dict[str, Any] = {"machine": machine(), "scene": scene.name, "quick": quick}
     state: dict[str, Any] = {}
     previous = json.loads((out / "bench.json").read_text()) if (
@@ -265,9 +285,12 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
                  bench["item_s"][name], " (reused earlier work)" if counter.hits else "")
     if not only:  # a partial run keeps the full run's wall time
         bench["wall_s"] = time.perf_counter() - start
-    bench["item_s_cold"] = {**previous.get("item_s_cold", {}),
-                            **cold_times({n: bench["item_s"][n] for n, _ in items}, reused,
-                                         previous)}
+    if cold:  # everything was computed in this run (reuse between its items included)
+        bench["item_s_cold"] = dict(bench["item_s"])
+    else:
+        bench["item_s_cold"] = {**previous.get("item_s_cold", {}),
+                                **cold_times({n: bench["item_s"][n] for n, _ in items},
+                                             reused, previous)}
     cold = list(bench["item_s_cold"].values())
     bench["wall_s_cold"] = (None if None in cold or set(bench["item_s_cold"]) != set(
         bench["item_s"]) else float(sum(cold)))
@@ -294,6 +317,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", default="",
                         help="comma-separated items to run (e.g. 'stability limits'); the other "
                              "keys of DIR/bench.json are kept")
+    parser.add_argument("--cold", action="store_true",
+                        help="time a cold run: needs an empty DIR/cache, adopts nothing from "
+                             "runs/, records wall_s_cold")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -301,6 +327,7 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out or ("runs/bench-quick" if args.quick else "runs/bench"))
     run_bench(out, quick=args.quick, scene_path=Path(args.scene) if args.scene else None,
               ranks=args.ranks, progress=not args.no_progress,
-              only=tuple(name.strip() for name in args.only.split(",") if name.strip()))
+              only=tuple(name.strip() for name in args.only.split(",") if name.strip()),
+              cold=args.cold)
     print(f"bench: outputs in {out}/ (bench.json, pareto.png, BENCH.md)")
     return 0

@@ -43,11 +43,25 @@ def now_utc() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
+#: marker file of a bench cache started with ``--cold`` (:func:`runs_source`)
+COLD_MARKER = "COLD"
+
+
+def runs_source(cache: Path, name: str) -> Path | None:
+    """The scene's ``runs/<name>/`` folder (``make demo``'s), whose current work the bench may
+    adopt; None in a cache started cold (``cache/COLD``): a cold bench computes everything
+    itself, so every item's time is a cold time."""
+    return None if (cache / COLD_MARKER).is_file() else ROOT / "runs" / name
+
+
 def seed_default(scene: Scene, folder: Path) -> None:
     """Copy a finished run of the scene (``runs/<name>/``, e.g. from ``make demo``) into
-    ``folder`` when that run finished later than the folder's own (or the folder has none);
-    the pipeline's cache then decides what is still valid."""
-    source = ROOT / "runs" / scene.name
+    ``folder`` (``cache/runs/default``) when that run finished later than the folder's own
+    (or the folder has none; never in a cold bench, :func:`runs_source`); the pipeline's
+    cache then decides what is still valid."""
+    source = runs_source(folder.parents[1], scene.name)
+    if source is None:
+        return
     finished = source / "cache" / "report.json"
     own = folder / "cache" / "report.json"
     if not finished.is_file() or (own.is_file()
