@@ -182,7 +182,7 @@ def test_cold_times_keep_the_earlier_cold_time_of_an_item_that_reused_work():
 def test_a_cold_bench_needs_an_empty_cache_and_adopts_nothing_from_runs(tmp_path):
     from forcecal.errors import ForcecalError
     from pipelines.bench.driver import run_bench
-    from pipelines.bench.items import ROOT, runs_source, seed_default
+    from pipelines.bench.items import ROOT, default_folder, runs_source, seed_default
 
     out = tmp_path / "bench"
     (out / "cache" / "runs").mkdir(parents=True)
@@ -197,8 +197,8 @@ def test_a_cold_bench_needs_an_empty_cache_and_adopts_nothing_from_runs(tmp_path
     (cache / "COLD").write_text("")
     assert runs_source(cache, "liver") is None
     # a cold cache's default run is not seeded from runs/<scene>/ even when that one finished
-    seed_default(load_scene(SCENES / "tiny.toml"), cache / "runs" / "default")
-    assert not (cache / "runs" / "default").exists()
+    seed_default(load_scene(SCENES / "tiny.toml"), cache)
+    assert not default_folder(cache).exists()
 
 
 def test_the_experiments_study_needs_the_default_run_for_its_full_list(tmp_path):

@@ -143,7 +143,7 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
 
 def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]:
     """Every scene x model x method (module docstring); returns ``calibration_methods``."""
-    from pipelines.bench.items import runs_source
+    from pipelines.bench.items import default_folder, runs_source
 
     cache_folder = Path(cache_folder)
     scenes = [scene] if quick else [scene, load_scene(PUNCH_SCENE)]
@@ -151,7 +151,7 @@ def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]
     for sc in scenes:
         base = cache_folder / "calibration_methods" / sc.name
         if sc is scene:  # the default pipeline run's reference, current
-            reference_from, reference_is_current = cache_folder / "runs" / "default", True
+            reference_from, reference_is_current = default_folder(cache_folder), True
         else:
             reference_from, reference_is_current = runs_source(cache_folder, sc.name), False
         for model, volume in MODELS:

@@ -217,7 +217,7 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         out / "bench.json").is_file() else {}
 
     def default_item():
-        state["default"], state["row"] = default_run(scene, runs, ranks=ranks,
+        state["default"], state["row"] = default_run(scene, cache, ranks=ranks,
                                                      progress=progress)
         bench["calibration"] = calibration_item(state["default"])
 

@@ -28,6 +28,7 @@ from forcecal.errors import ForcecalError
 from forcecal.h5io import read_reference
 from forcecal.scene import EXPERIMENTS, Scene
 from pipelines.bench.configs import derived_scene
+from pipelines.bench.items import default_folder
 from pipelines.cache import Cache
 from pipelines.runners.common import REFERENCE
 from pipelines.stages import run_pipeline
@@ -73,7 +74,7 @@ def full_list(scene: Scene, folder: Path) -> dict[str, Any]:
 def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     """The ``skip`` rows and the ``experiments`` details (module docstring)."""
     root = cache / "experiments"
-    runs = {EXPERIMENTS: full_list(scene, cache / "runs" / "default")}
+    runs = {EXPERIMENTS: full_list(scene, default_folder(cache))}
     runs.update({experiments: run_list(scene, experiments, root / "-".join(experiments))
                  for experiments in REDUCED})
     full = runs[EXPERIMENTS]

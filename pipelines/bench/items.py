@@ -54,14 +54,21 @@ def runs_source(cache: Path, name: str) -> Path | None:
     return None if (cache / COLD_MARKER).is_file() else ROOT / "runs" / name
 
 
-def seed_default(scene: Scene, folder: Path) -> None:
-    """Copy a finished run of the scene (``runs/<name>/``, e.g. from ``make demo``) into
-    ``folder`` (``cache/runs/default``) when that run finished later than the folder's own
-    (or the folder has none; never in a cold bench, :func:`runs_source`); the pipeline's
-    cache then decides what is still valid."""
-    source = runs_source(folder.parents[1], scene.name)
+def default_folder(cache: Path) -> Path:
+    """Where the bench's default pipeline run lives in the bench cache ``cache`` (the studies
+    that reuse its work read it there)."""
+    return cache / "runs" / "default"
+
+
+def seed_default(scene: Scene, cache: Path) -> None:
+    """Copy a finished run of the scene (``runs/<name>/``, e.g. from ``make demo``) into the
+    default run's folder (:func:`default_folder`) when that run finished later than the
+    folder's own (or the folder has none; never in a cold bench, :func:`runs_source`); the
+    pipeline's cache then decides what is still valid."""
+    source = runs_source(cache, scene.name)
     if source is None:
         return
+    folder = default_folder(cache)
     finished = source / "cache" / "report.json"
     own = folder / "cache" / "report.json"
     if not finished.is_file() or (own.is_file()
@@ -76,11 +83,11 @@ def seed_default(scene: Scene, folder: Path) -> None:
     log.info("bench: seeded %s from %s", folder, source)
 
 
-def default_run(scene: Scene, root: Path, *, ranks: int, progress: bool
+def default_run(scene: Scene, cache: Path, *, ranks: int, progress: bool
                 ) -> tuple[Path, dict[str, Any]]:
-    """The default scene's full pipeline, up to date, in ``root/default``; its row."""
-    folder = root / "default"
-    seed_default(scene, folder)
+    """The default scene's full pipeline, up to date, in :func:`default_folder`; its row."""
+    folder = default_folder(cache)
+    seed_default(scene, cache)
     return folder, bc.pipeline_row(scene, folder, ranks=ranks, progress=progress)
 
 
