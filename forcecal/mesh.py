@@ -104,12 +104,7 @@ class TetMesh:
     @cached_property
     def surface_faces(self) -> np.ndarray:
         """(S, 3) int64, boundary triangles, ordered so their normals point outwards."""
-        faces = self.tets[:, TET_FACES].reshape(-1, 3)
-        key_ = np.sort(faces, axis=1)
-        _, inv, counts = np.unique(key_, axis=0, return_inverse=True, return_counts=True)
-        out = faces[counts[inv.ravel()] == 1]
-        out.setflags(write=False)
-        return out
+        return boundary_faces(self.tets)
 
     @cached_property
     def surface_vertices(self) -> np.ndarray:
@@ -119,15 +114,7 @@ class TetMesh:
     @cached_property
     def vertex_normals(self) -> np.ndarray:
         """(N, 3) float64, area-weighted *outward* unit normals (zero for interior vertices)."""
-        x = self.vertices[self.surface_faces]
-        fn = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])  # length = 2 x area
-        n = np.zeros_like(self.vertices)
-        for k in range(3):
-            np.add.at(n, self.surface_faces[:, k], fn)
-        norm = np.linalg.norm(n, axis=1)
-        nz = norm > 0
-        n[nz] /= norm[nz, None]
-        return n
+        return area_weighted_normals(self.vertices, self.surface_faces)
 
     def inward_normals(self, nodes: np.ndarray) -> np.ndarray:
         """(P, 3) float64, inward unit normals of surface vertices ``nodes``."""
@@ -147,7 +134,8 @@ class TetMesh:
         return (a + a.T).tocsr()
 
     def lumped_masses(self, density: float) -> np.ndarray:
-        """(N,) float64, lumped vertex masses [kg]: each tet's mass split equally to its 4 vertices."""
+        """(N,) float64, lumped vertex masses [kg]: each tet's mass split equally to its 4
+        vertices."""
         return np.bincount(self.tets.ravel(), weights=np.repeat(np.abs(self.signed_volumes)
                                                                 * density / 4.0, 4),
                            minlength=self.n_vertices)
@@ -161,6 +149,31 @@ class TetMesh:
 
     def summary(self) -> str:
         return f"{self.n_vertices} vertices, {self.n_tets} tets, {len(self.edges)} edges"
+
+
+def boundary_faces(tets: np.ndarray) -> np.ndarray:
+    """(S, 3) int64, read-only: the faces of the positively oriented ``tets`` (T, 4) that belong
+    to one tet only (the boundary), in the tet's own vertex order, so their normals point out."""
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    _, inv, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True,
+                               return_counts=True)
+    out = faces[counts[inv.ravel()] == 1]
+    out.setflags(write=False)
+    return out
+
+
+def area_weighted_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 unit normals at the ``vertices`` (N, 3) [m]: the area-weighted mean of the
+    normals of the triangles ``faces`` (S, 3) that touch each one (zero where none does)."""
+    x = vertices[faces]
+    fn = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])  # length = 2 x area
+    n = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    norm = np.linalg.norm(n, axis=1)
+    nz = norm > 0
+    n[nz] /= norm[nz, None]
+    return n
 
 
 def check_mesh(mesh: TetMesh) -> TetMesh:
@@ -339,7 +352,8 @@ def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
 
 def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
                 tolerance: float = 0.001) -> np.ndarray:
-    """(F,) int64 ids of the vertices within ``tolerance`` of the min/max coordinate along ``axis``."""
+    """(F,) int64 ids of the vertices within ``tolerance`` of the min/max coordinate along
+    ``axis``."""
     k = "xyz".index(axis)
     c = mesh.vertices[:, k]
     ref = c.min() if side == "min" else c.max()

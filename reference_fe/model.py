@@ -274,10 +274,7 @@ class FEModel:
         self._vertex_entity = _vertex_entities(self.domain)
         q = fe.quadrature_degree
         tet = self.domain.ufl_cell()
-        p2 = ufl.VectorElement("Lagrange", tet, 2)
-        element = {"P1": ufl.VectorElement("Lagrange", tet, 1), "P2": p2,
-                   "TH": ufl.MixedElement([p2, ufl.FiniteElement("Lagrange", tet, 1)])}
-        self.space = fem.FunctionSpace(self.domain, element[fe.element])
+        self.space = fem.FunctionSpace(self.domain, _element(fe.element, tet))
         self._is_mixed = fe.element == "TH"
         self._disp = self.space.sub(0) if self._is_mixed else self.space
         self.vertex_dofs = self._component_dofs(0, self._vertex_entity)
@@ -295,26 +292,8 @@ class FEModel:
         c = lambda v: fem.Constant(self.domain, PETSc.ScalarType(v))
         self._C10, self._C01, self._gamma, self._c_m = c(0.0), c(0.0), c(1.0), c(0.0)
         self._gravity = fem.Constant(self.domain, np.zeros(3, dtype=PETSc.ScalarType))
-        rho, kappa = c(material.density), c(material.kappa)
-
-        if self._is_mixed:
-            u, p = ufl.split(self.w)
-            v, p_test = ufl.TestFunctions(self.space)
-            u_pred = ufl.split(self._u_pred)[0]
-        else:
-            u, v, u_pred = self.w, ufl.TestFunction(self.space), self._u_pred
-        F = ufl.Identity(3) + ufl.grad(u)
-        C = F.T * F
-        J = ufl.det(F)
-        s_iso = isochoric_stress(C, self._C10, self._C01)
-        s_vol = pressure_stress(C, p if self._is_mixed else kappa * (J - 1.0))
-        S = s_vol + self._gamma * s_iso + self._hist
-        dx = ufl.dx(domain=self.domain,
-                    metadata={"quadrature_degree": q, "quadrature_scheme": "default"})
-        residual = (ufl.inner(F * S, ufl.grad(v)) - rho * ufl.dot(self._gravity, v)
-                    + rho * self._c_m * ufl.dot(u - u_pred, v)) * dx
-        if self._is_mixed:
-            residual += (J - 1.0 - p / kappa) * p_test * dx
+        residual, s_iso = balance_of_momentum(self, rho=c(material.density),
+                                              kappa=c(material.kappa))
         jacobian = ufl.derivative(residual, self.w, ufl.TrialFunction(self.space))
         self._s_iso_expr = fem.Expression(s_iso, points)
         self._cells = np.arange(self.n_cells, dtype=np.int32)
@@ -322,13 +301,7 @@ class FEModel:
         self._problem = _ResidualProblem(residual, self.w, jacobian)
         self._residual_vec = fem.petsc.create_vector(self._problem.L)
         self._offset = fem.petsc.create_vector(self._problem.L)
-        self._solver = NewtonSolver(MPI.COMM_SELF, self._problem)
-        configure_linear_solver(self._solver.krylov_solver)
-        self._problem.krylov = self._solver.krylov_solver
-        self._solver.convergence_criterion = "residual"
-        self._solver.rtol = 0.0  # see solve_step
-        self._solver.max_it = fe.newton_max_it
-        self._solver.error_on_nonconvergence = False
+        self._solver = _newton_solver(self._problem, fe.newton_max_it)
         self.newton_iterations = 0  # total over the model's life (performance reports)
         self.n_prony = len(material.prony_g)
         log.debug("FE model: %s, %d dofs, %d cells x %d quadrature points",
@@ -355,16 +328,10 @@ class FEModel:
         """(K, 3) int32 dofs held by clamping ``vertices``: their own and, for P2/TH, the
         midpoint dofs of every edge whose two ends are both clamped (a clamped face)."""
         vertices = np.asarray(vertices, dtype=np.int64)
-        dofs = self.vertex_dofs[vertices]
-        if self.fe.element == "P1":
-            return dofs
         clamped = np.zeros(self.mesh.n_vertices, dtype=bool)
         clamped[vertices] = True
-        edges = self.mesh.edges[clamped[self.mesh.edges].all(axis=1)]
-        if len(edges) == 0:
-            return dofs
-        edge_ids = _edge_entities(self.domain, self._vertex_entity[edges])
-        return np.concatenate([dofs, self._component_dofs(1, edge_ids)])
+        return self.surface_patch_dofs(vertices,
+                                       self.mesh.edges[clamped[self.mesh.edges].all(axis=1)])
 
     def surface_patch_dofs(self, vertices: np.ndarray, edges: np.ndarray) -> np.ndarray:
         """(K, 3) int32 dofs of a patch of nodes: the vertices' own and, for P2/TH, the
@@ -387,6 +354,59 @@ class FEModel:
     def vertex_values(self, u: np.ndarray) -> np.ndarray:
         """(N, 3) float64: the displacement of every mesh vertex [m] from a solution vector."""
         return u[self.vertex_dofs]
+
+
+def _element(name: str, tet: ufl.Cell) -> ufl.FiniteElementBase:
+    """The UFL element of ``fe.element``: vector P1 or P2, or Taylor-Hood (P2 displacement,
+    P1 pressure)."""
+    p2 = ufl.VectorElement("Lagrange", tet, 2)
+    return {"P1": ufl.VectorElement("Lagrange", tet, 1), "P2": p2,
+            "TH": ufl.MixedElement([p2, ufl.FiniteElement("Lagrange", tet, 1)])}[name]
+
+
+def balance_of_momentum(model: FEModel, *, rho: fem.Constant, kappa: fem.Constant
+                        ) -> tuple[ufl.Form, ufl.core.expr.Expr]:
+    """The residual form R(w; v) of the module docstring on ``model``'s space, constants and
+    coefficients, and the instantaneous isochoric stress S_iso0 it uses (evaluated after each
+    step for the Prony history).
+
+    Args:
+        rho: density [kg/m^3].
+        kappa: bulk modulus [Pa] (penalty for P1/P2, the pressure's compliance for TH).
+    """
+    if model._is_mixed:
+        u, p = ufl.split(model.w)
+        v, p_test = ufl.TestFunctions(model.space)
+        u_pred = ufl.split(model._u_pred)[0]
+    else:
+        u, v, u_pred = model.w, ufl.TestFunction(model.space), model._u_pred
+    F = ufl.Identity(3) + ufl.grad(u)
+    C = F.T * F
+    J = ufl.det(F)
+    s_iso = isochoric_stress(C, model._C10, model._C01)
+    s_vol = pressure_stress(C, p if model._is_mixed else kappa * (J - 1.0))
+    S = s_vol + model._gamma * s_iso + model._hist
+    dx = ufl.dx(domain=model.domain, metadata={"quadrature_degree": model.fe.quadrature_degree,
+                                               "quadrature_scheme": "default"})
+    residual = (ufl.inner(F * S, ufl.grad(v)) - rho * ufl.dot(model._gravity, v)
+                + rho * model._c_m * ufl.dot(u - u_pred, v)) * dx
+    if model._is_mixed:
+        residual += (J - 1.0 - p / kappa) * p_test * dx
+    return residual, s_iso
+
+
+def _newton_solver(problem: _ResidualProblem, max_it: int) -> NewtonSolver:
+    """dolfinx's Newton solver on ``problem``: the residual norm decides convergence (its
+    tolerance is set per step by :func:`solve_step`), a failure is returned, not raised (the
+    step is then cut), linear solves as :func:`configure_linear_solver`."""
+    solver = NewtonSolver(MPI.COMM_SELF, problem)
+    configure_linear_solver(solver.krylov_solver)
+    problem.krylov = solver.krylov_solver
+    solver.convergence_criterion = "residual"
+    solver.rtol = 0.0  # see solve_step
+    solver.max_it = max_it
+    solver.error_on_nonconvergence = False
+    return solver
 
 
 def clamp(dofs: np.ndarray) -> tuple[Constraint, ...]:
