@@ -16,7 +16,8 @@ Errors (all dimensionless):
 
 ``gravity.dynamic_metrics`` separates the tracked vertex's dynamic error into
 period, first-peak displacement and decay rate errors (:mod:`pipelines.dynamics`),
-for the calibrated and the baseline model, next to the RMS error.
+for the calibrated and the baseline model, next to the RMS error, and identifies the
+modes that carry the release (``modes``, ``mode_frequency_errors``).
 
 ``baseline_errors`` repeats every key with the closed-form (Van Gelder) model,
 which is the same model on every point set ("global", "calibrated" and
@@ -45,7 +46,7 @@ from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS
-from pipelines.dynamics import dynamic_metrics
+from pipelines.dynamics import dynamic_metrics, release_modes
 from pipelines.gravity import GravityRuns, ParticleGravity
 
 log = logging.getLogger(__name__)
@@ -204,7 +205,10 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
             reference.gravity.static_displacement[node],
             {m: (r.displacement[:, node], r.static_displacement[node])
              for m, r in gravity.models.items()},
-            {"calibrated": calibrated["gravity_dynamic"], "baseline": baseline["gravity_dynamic"]})
+            {"calibrated": calibrated["gravity_dynamic"], "baseline": baseline["gravity_dynamic"]},
+            {"fe": release_modes(gravity.time, reference.gravity.displacement, node),
+             **{m: release_modes(gravity.time, r.displacement, node)
+                for m, r in gravity.models.items()}})
         if {"gravity_dynamic", "gravity_static"} <= set(ran) else None}
     return {
         "scene": scene_name,
