@@ -17,7 +17,9 @@ ones the evaluator just solved, nothing is re-solved):
   ``F = -n . sum_h f_h`` over the particles the indenter holds (the normal indenter
   force: the test particle alone, or a flat punch's footprint);
 * one adjoint solve per step with the exact tangent ``K = -df/dx`` at the
-  equilibrium (refactorised there; one right-hand side per output sample):
+  equilibrium (refactorised there; one right-hand side per output sample that
+  depends on the step: the one ending there and, through the arms' history,
+  those ending later; the others' adjoints are zero):
   ``K_aa lam = w K_aP n - sum_e beta_e g_e`` with ``g_e`` the force pattern of a
   unit tension of connector e (``+u_e`` on i, ``-u_e`` on j) and ``beta_e`` the
   adjoint of its elongation carried back from later steps; the virtual field
@@ -37,7 +39,13 @@ The volume term's ``kv`` (:mod:`particle.volume`) enters the same way: its
 tangent is in ``K``, and ``dF/dkv_t = omega . df/dkv_t`` with ``df/dkv_t =
 -(V/V0 - 1) dV/dx`` at fixed positions (it does not relax, so it carries no
 history). Another term plugs in likewise: its tangent in the assembly, its
-force derivative contracted with ``omega``.
+force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
+
+The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`
+(``G beta`` and ``G^T omega`` straight from the connectors' unit vectors and end
+dofs, the partials and the history update in one sweep); its plain numpy/scipy
+twin (:meth:`_Adjoint._point_jacobian_numpy`, every sample at every step, ``G`` a
+scipy matrix) is the reference the tests compare it with (round-off).
 """
 
 from __future__ import annotations
@@ -50,6 +58,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
+from particle import sensitivity_kernels as kern
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams
@@ -95,9 +104,10 @@ class _RecordingSolver(EquilibriumSolver):
         return eq
 
 
-def volume_partials(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
+def volume_partials_numpy(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
     """(S, T): ``omega . df/dkv_t`` with ``df/dkv_t = -(V/V0 - 1) dV/dx`` at fixed x
-    (``omega`` (n_dofs, S) adjoints in the tangent pattern ``pat``'s dofs)."""
+    (``omega`` (n_dofs, S) adjoints in the tangent pattern ``pat``'s dofs); the numpy twin
+    of :func:`particle.sensitivity_kernels.add_volume_partials`."""
     strain = signed_volumes(x, model.tets) / model.rest_volumes - 1.0
     grad = volume_gradients_numpy(x, model.tets)  # (T, 4, 3)
     virtual = np.zeros((model.n_particles, 3, omega.shape[1]))
@@ -107,7 +117,15 @@ def volume_partials(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.n
 
 
 class _Adjoint:
-    """Mixin: the adjoint pass shared by the two evaluators (module docstring)."""
+    """Mixin: the adjoint pass shared by the two evaluators (module docstring).
+
+    :meth:`_point_jacobian` runs it with the compiled kernels of
+    :mod:`particle.sensitivity_kernels`; :meth:`_point_jacobian_numpy` is the plain
+    numpy/scipy twin it is tested against (``numpy_twin = True`` makes :meth:`jacobian`
+    use it).
+    """
+
+    numpy_twin = False
 
     def _solver(self, k: int) -> EquilibriumSolver:
         if k not in self._solvers:
@@ -131,7 +149,8 @@ class _Adjoint:
         idx = self._indices(points)
         forces = self(params, idx)
         model = self.model.with_params(params)
-        parts = [self._point_jacobian(model, int(k)) for k in idx]
+        point = self._point_jacobian_numpy if self.numpy_twin else self._point_jacobian
+        parts = [point(model, int(k)) for k in idx]
         return Sensitivities(forces, np.stack([c for c, _ in parts]),
                              None if params.kv is None else np.stack([v for _, v in parts]))
 
@@ -139,15 +158,101 @@ class _Adjoint:
         """The (sub)steps whose equilibria make point k's curve, and the step of each sample."""
         raise NotImplementedError
 
+    def _push(self, k: int, pat) -> tuple[np.ndarray, np.ndarray]:
+        """(n_dofs,) the indenter's normal on the dofs of the particles it holds (0 elsewhere)
+        and (3h,) those dofs."""
+        prescribed = self._solvers[k].prescribed
+        pdofs = pat.dofs(prescribed)
+        push = np.zeros(pat.n_dofs)
+        push[pdofs] = np.tile(self.normals[k], len(prescribed))
+        return push, pdofs
+
+    @staticmethod
+    def _tangent(solver: EquilibriumSolver, model: Model, pat, eq: Equilibrium,
+                 arms: ArmStep | None) -> np.ndarray:
+        """CSC data (nnz,) of the exact tangent ``K`` at the equilibrium (no constraints yet)."""
+        it = solver._evaluate(eq.x, model.params, not model.params.is_linear, arms, None)
+        return tangent_data(model, pat, eq.x, it.tension, model.params, True, arms)
+
+    @staticmethod
+    def _constrained_lu(solver: EquilibriumSolver, pat, data: np.ndarray):
+        """LU of ``K_aa`` (identity on the prescribed dofs); overwrites ``data``."""
+        data[solver._zero_slots] = 0.0
+        data[solver._diag_slots] = 1.0
+        return sparse_lu(pat, data)
+
     def _point_jacobian(self, model: Model, k: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """(S, 7, E) connector derivatives and (S, T) kv derivatives (None without kv)."""
+        """(S, 7, E) connector derivatives and (S, T) kv derivatives (None without kv).
+
+        The adjoints are kept sample-major (:mod:`particle.sensitivity_kernels`), and a
+        step solves only for the samples it carries: those that end there, and those
+        ending later when the arms carry their history back (the others' adjoints are 0).
+        """
         solver = self._solvers[k]
         steps, ends = self._steps(k)
         n_out, e = len(self.depths), model.n_connectors
         pat = self.pattern_for(solver)
-        normal = self.normals[k]
-        prescribed = solver.prescribed
-        pdofs = pat.dofs(prescribed)
+        push, pdofs = self._push(k, pat)
+        push_cols = np.unique(pdofs)
+        push_vals = push[push_cols]
+        p = model.params
+        end_dofs = pat.node_dof[model.edges]  # (E, 2) first dof of each end, -1 fixed
+        tet_dofs = None if p.kv is None else pat.node_dof[model.tets]
+        arm_k, arm_b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
+        jac = np.zeros((n_out, N_PARAMS, e))
+        jac_kv = None if p.kv is None else np.zeros((n_out, model.n_tets))
+        abar = np.zeros((n_out, 2, e))  # adjoint of the arm forces passed to the next step
+        dbar = np.zeros((n_out, e))  # adjoint of the elongation passed to the next step
+        carried = np.zeros(n_out, dtype=bool)  # samples whose abar, dbar may be nonzero
+        unit, dx = np.empty((e, 3)), np.empty(e)
+        dA_dk, dA_db = np.empty((e, 2)), np.empty((e, 2))
+        k_push = np.empty(pat.n_dofs)
+        end_of = {s: j for j, s in enumerate(ends)}
+        for s in range(len(steps) - 1, -1, -1):
+            arms, eq = steps[s]
+            live = carried.copy()
+            if s in end_of:
+                live[end_of[s]] = True
+            cols = np.flatnonzero(live)
+            if not len(cols):
+                continue
+            w = (cols == end_of.get(s, -1)).astype(np.float64)  # (S',) output weights
+            data = self._tangent(solver, model, pat, eq, arms)
+            kern.csc_columns_product(pat.indptr, pat.indices, data, push_cols, push_vals, k_push)
+            kern.connector_geometry(eq.x, model.edges, model.rest_lengths, unit, dx)
+            c = None if arms is None else arms.c
+            beta = np.empty((len(cols), e))
+            kern.elongation_adjoint(cols, dbar, abar, c, beta)
+            rhs = np.empty((len(cols), pat.n_dofs))
+            kern.pattern_product(end_dofs, unit, beta, rhs)
+            rhs = k_push * w[:, None] - rhs
+            rhs[:, pdofs] = 0.0
+            lam = self._constrained_lu(solver, pat, data).solve(rhs.T).T  # (S', n) C-order
+            lam[:, pdofs] = -push[pdofs] * w[:, None]
+            tau = np.empty((len(cols), e))  # adjoint of each connector's tension
+            kern.pattern_transpose_product(end_dofs, unit, lam, tau)
+            if arms is not None:
+                kern.arm_derivatives(arms.r, arms.c, arm_k, arm_b, arms.force_prev, dx,
+                                     arms.dx_prev, dA_dk, dA_db)
+                kern.add_partials(cols, tau, dx, model.rest_lengths, jac, arms.r, arms.c,
+                                  dA_dk, dA_db, abar, dbar)
+                carried = live
+            else:
+                kern.add_partials(cols, tau, dx, model.rest_lengths, jac, None, None, None,
+                                  None, None, None)
+            if jac_kv is not None:
+                kern.add_volume_partials(eq.x, model.tets, tet_dofs, model.rest_volumes, cols,
+                                         lam, jac_kv)
+        return jac, jac_kv
+
+    def _point_jacobian_numpy(self, model: Model, k: int
+                              ) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`_point_jacobian` in plain numpy/scipy (every sample at every step): the twin."""
+        solver = self._solvers[k]
+        steps, ends = self._steps(k)
+        n_out, e = len(self.depths), model.n_connectors
+        pat = self.pattern_for(solver)
+        push, pdofs = self._push(k, pat)
         jac = np.zeros((n_out, N_PARAMS, e))
         kv = model.params.kv
         jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
@@ -162,25 +267,20 @@ class _Adjoint:
             if not w.any() and not abar.any() and not dbar.any():
                 continue
             geo = _Geometry(model, eq.x)
-            it = solver._evaluate(eq.x, model.params, not model.params.is_linear, arms, None)
-            data = tangent_data(model, pat, eq.x, it.tension, model.params, True, arms)
+            data = self._tangent(solver, model, pat, eq, arms)
             full = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
-            push = np.zeros(pat.n_dofs)
-            push[pdofs] = np.tile(normal, len(prescribed))
             G = geo.pattern_matrix(pat)  # (n_dofs, E): force of a unit tension
             beta = dbar.copy()
             if arms is not None:
                 beta += np.einsum("ei,eis->es", arms.c, abar)
             rhs = (full @ push)[:, None] * w[None, :] - G @ beta
             rhs[pdofs] = 0.0
-            data[solver._zero_slots] = 0.0
-            data[solver._diag_slots] = 1.0
-            lam = sparse_lu(pat, data).solve(rhs)
+            lam = self._constrained_lu(solver, pat, data).solve(rhs)
             lam[pdofs] = -push[pdofs, None] * w[None, :]
             tau = G.T @ lam  # (E, S) adjoint of each connector's tension
-            jac += self._partials(model, geo, arms, tau, abar)
+            jac += self._partials_numpy(model, geo, arms, tau, abar)
             if kv is not None:
-                jac_kv += volume_partials(model, eq.x, pat, lam)
+                jac_kv += volume_partials_numpy(model, eq.x, pat, lam)
             if arms is not None:
                 mu = abar + tau[:, None, :]
                 abar = arms.r[:, :, None] * mu
@@ -192,9 +292,10 @@ class _Adjoint:
         return solver.pattern
 
     @staticmethod
-    def _partials(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np.ndarray,
-                  abar: np.ndarray) -> np.ndarray:
-        """(S, 7, E): this step's explicit parameter derivatives contracted with the adjoints.
+    def _partials_numpy(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np.ndarray,
+                        abar: np.ndarray) -> np.ndarray:
+        """(S, 7, E): this step's explicit parameter derivatives contracted with the adjoints
+        (the twin of :func:`particle.sensitivity_kernels.add_partials`).
 
         ``tau`` (E, S) adjoint of the tensions, ``abar`` (E, 2, S) of the new arm forces
         (from later steps).

@@ -5,9 +5,10 @@ import dataclasses
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from calibration.core import calibrate
-from calibration.gradient import Coordinates, Validity, neighbour_laplacian
+from calibration.gradient import Coordinates, Validity, neighbour_laplacian, shared_laplacian
 from calibration.gradient_solver import Linearisation, Regulariser, cross_validate, folds_of
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
@@ -55,14 +56,10 @@ def box(tmp_path_factory):
     return _box(tmp_path_factory.mktemp("gradient_box"))
 
 
-@pytest.mark.parametrize("volume, punch", [(False, False), (True, False), (True, True)],
-                         ids=["springs", "springs+kv", "springs+kv, punch"])
-def test_sensitivities_match_finite_differences(box, volume, punch):
-    """Directional derivatives J v along a random direction of every parameter of every
-    connector (and every tet's kv), against 4th-order central differences of the curves.
-    Newton is converged to 1e-11 of the force scale so the differences resolve 1e-8.
-    ``punch``: two top-face points held by a flat punch of 7 particles each (the output is
-    the sum of the held particles' reactions)."""
+def _sensitivity_evaluators(box, volume, punch):
+    """Parameters and both sensitivity evaluators on the box: noisy GLOBAL connectors (and a
+    non-uniform kv if ``volume``), two top-face points (each held by a flat punch of 7
+    particles if ``punch``), Newton converged to 1e-11 of the force scale."""
     problem = build_problem(box)
     n = len(problem.mesh.edges)
     params = noisy_params(GLOBAL, n, sigma=0.1)
@@ -83,6 +80,21 @@ def test_sensitivities_match_finite_differences(box, volume, punch):
                                                         indentation_depths(box.indentation), **kw),
                   "relaxation": RelaxationSensitivity(model, nodes, normals, times, relax_depths,
                                                       **kw)}
+    return params, evaluators
+
+
+VARIANTS = pytest.mark.parametrize("volume, punch", [(False, False), (True, False), (True, True)],
+                                   ids=["springs", "springs+kv", "springs+kv, punch"])
+
+
+@VARIANTS
+def test_sensitivities_match_finite_differences(box, volume, punch):
+    """Directional derivatives J v along a random direction of every parameter of every
+    connector (and every tet's kv), against 4th-order central differences of the curves.
+    Newton is converged to 1e-11 of the force scale so the differences resolve 1e-8.
+    ``punch``: two top-face points held by a flat punch of 7 particles each (the output is
+    the sum of the held particles' reactions)."""
+    params, evaluators = _sensitivity_evaluators(box, volume, punch)
     rng = np.random.default_rng(0)
     for kind, ev in evaluators.items():
         sens = ev.jacobian(params)
@@ -105,6 +117,68 @@ def test_sensitivities_match_finite_differences(box, volume, punch):
                 continue
             assert np.abs(exact).max() > 0, (kind, name)
             assert np.abs(fd - exact).max() <= 1e-6 * np.abs(exact).max(), (kind, name)
+
+
+@VARIANTS
+def test_compiled_adjoint_pass_matches_its_numpy_twin(box, volume, punch):
+    """The adjoint pass with the kernels of particle.sensitivity_kernels (sample-major
+    adjoints, live samples only) equals the plain numpy/scipy one to round-off."""
+    params, evaluators = _sensitivity_evaluators(box, volume, punch)
+    for kind, ev in evaluators.items():
+        sens = ev.jacobian(params)
+        ev.numpy_twin = True
+        twin = ev.jacobian(params)
+        np.testing.assert_array_equal(sens.forces, twin.forces)
+        pairs = [(sens.connectors[:, :, q], twin.connectors[:, :, q], name)
+                 for q, name in enumerate(PARAM_NAMES)]
+        if volume:
+            pairs.append((sens.kv, twin.kv, "kv"))
+        for got, want, name in pairs:
+            if kind == "indentation" and name not in ("K0", "a", "b", "kv"):
+                assert not got.any() and not want.any()
+                continue
+            assert np.abs(want).max() > 0, (kind, name)
+            assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max(), (kind, name)
+
+
+def test_pattern_kernels_match_the_sparse_pattern_matrix(box):
+    """G beta, G^T lam and the kv partials of the kernels against the scipy pattern matrix
+    and the numpy twin, at a randomly deformed state of the box (clamped base: connectors
+    with a fixed end)."""
+    from particle import sensitivity_kernels as kern
+    from particle.sensitivity import _Geometry, volume_partials_numpy
+    from particle.statics import TangentPattern
+    problem = build_problem(box)
+    params = dataclasses.replace(GLOBAL.connector_params(len(problem.mesh.edges)),
+                                 kv=np.full(len(problem.mesh.tets), 800.0))
+    model = build_model(problem, box.material.density, params)
+    rng = np.random.default_rng(3)
+    x = model.rest_positions + rng.normal(0.0, 3e-4, model.rest_positions.shape)
+    pat = TangentPattern.of(model)
+    assert (pat.node_dof < 0).any()
+    geo = _Geometry(model, x)
+    unit, dx = np.empty((model.n_connectors, 3)), np.empty(model.n_connectors)
+    kern.connector_geometry(x, model.edges, model.rest_lengths, unit, dx)
+    np.testing.assert_allclose(unit, geo.unit, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(dx, geo.dx, rtol=0, atol=1e-15 * np.abs(geo.dx).max())
+    G = geo.pattern_matrix(pat)
+    end_dofs = pat.node_dof[model.edges]
+    beta = rng.normal(size=(3, model.n_connectors))
+    lam = rng.normal(size=(3, pat.n_dofs))
+    got = np.empty((3, pat.n_dofs))
+    kern.pattern_product(end_dofs, geo.unit, beta, got)
+    np.testing.assert_array_equal(got, (G @ beta.T).T)
+    tau = np.empty((3, model.n_connectors))
+    kern.pattern_transpose_product(end_dofs, geo.unit, lam, tau)
+    np.testing.assert_array_equal(tau, (G.T @ lam.T).T)
+    cols = np.array([0, 2])
+    jac_kv = np.zeros((3, model.n_tets))
+    kern.add_volume_partials(x, model.tets, pat.node_dof[model.tets], model.rest_volumes, cols,
+                             lam[cols], jac_kv)
+    want = volume_partials_numpy(model, x, pat, lam.T)
+    assert not jac_kv[1].any()
+    np.testing.assert_allclose(jac_kv[cols], want[cols], rtol=0,
+                               atol=1e-12 * np.abs(want).max())
 
 
 @pytest.mark.parametrize("n_tets", [0, 4])
@@ -211,6 +285,29 @@ def test_cross_validation_picks_a_finite_weight(box):
     assert 0 < best < len(costs) - 1
     # measured: the ends of the grid predict the folds 3.8x and 6.0x worse than weight 1
     assert costs[0] > 2.0 * costs[best] and costs[-1] > 2.0 * costs[best]
+
+
+def test_regulariser_solve_is_the_metric_inverse_on_both_paths(box, monkeypatch):
+    # the block solve (seven connector coordinates sharing one block, then the tets) against
+    # a sparse LU of the whole metric, for dense and sparse right-hand sides, with the blocks
+    # inverted densely (the default at this size) and by their own sparse LU
+    from scipy.sparse.linalg import splu
+    import calibration.gradient_solver as solver
+
+    mesh = build_problem(box).mesh
+    size = 7 * len(mesh.edges) + len(mesh.tets)
+    rng = np.random.default_rng(5)
+    dense = rng.normal(size=(size, 9))
+    sparse = sp.random(size, 6, density=0.01, random_state=6, format="csc")
+    for limit in (solver.DENSE_INVERSE_LIMIT, 0):
+        monkeypatch.setattr(solver, "DENSE_INVERSE_LIMIT", limit)
+        reg = Regulariser(neighbour_laplacian(mesh.edges, mesh.n_vertices), np.zeros(size),
+                          shared_laplacian(mesh.tets, mesh.n_vertices, 3))
+        lu = splu(reg.metric)
+        for rhs in (dense, sparse):
+            want = lu.solve(rhs.toarray() if sp.issparse(rhs) else rhs)
+            got = reg.solve(rhs)
+            assert np.max(np.abs(got - want)) <= 1e-10 * np.max(np.abs(want))
 
 
 def test_validity_refuses_soft_springs():

@@ -1,0 +1,207 @@
+"""Compiled (numba) pieces of the adjoint pass of :mod:`particle.sensitivity`.
+
+One adjoint step (the module docstring there) needs, besides the tangent's LU:
+
+* the force pattern ``G`` (n_dofs, E) of unit connector tensions (``+u_e`` on the
+  dofs of end i, ``-u_e`` on those of end j, nothing on a fixed particle) applied
+  both ways, ``G beta`` (:func:`pattern_product`) and ``G^T lam``
+  (:func:`pattern_transpose_product`), straight from the unit vectors and the dofs
+  of the connector ends (no sparse matrix); ``beta = dbar + sum_i c_i abar_i``
+  (:func:`elongation_adjoint`);
+* ``K_aP n`` (:func:`csc_columns_product`);
+* the explicit parameter derivatives contracted with the adjoints, and the
+  history adjoints stepped back (:func:`arm_derivatives`, :func:`add_partials`),
+  and the volume term's (:func:`add_volume_partials`).
+
+The adjoints are stored sample-major: a row per output sample (``lam`` (S', n),
+``tau`` (S', E), ``abar`` (S, 2, E), ``dbar`` (S, E)), so that the kernels run along
+contiguous memory and SuperLU's (n, S') Fortran-ordered solution is ``lam.T``
+without a copy. ``cols`` (S',) lists the samples a step carries (the live
+columns), in ascending order; row k of ``lam``/``tau``/``beta`` is sample
+``cols[k]``, and ``abar``/``dbar``/``jac`` are indexed by the sample itself.
+
+Sums run in the order of the scipy products they replace (edges ascending per
+dof, dofs ascending per connector: ``G beta`` and ``G^T lam`` are bitwise scipy's),
+so the pass matches its plain numpy/scipy twin
+(:meth:`particle.sensitivity._Adjoint._point_jacobian_numpy`) to round-off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from particle.kernels import JIT, connector_vector
+from particle.volume import _tet_gradient
+
+
+@njit(**JIT)
+def connector_geometry(x, edges, rest_lengths, unit, dx):
+    """Writes unit vectors ``unit`` (E, 3) [-] (i to j) and elongations ``dx`` (E,) [m] at
+    positions ``x`` (N, 3) [m]."""
+    for e in range(edges.shape[0]):
+        i, j, d0, d1, d2, length = connector_vector(x, edges, e)
+        unit[e, 0] = d0 / length
+        unit[e, 1] = d1 / length
+        unit[e, 2] = d2 / length
+        dx[e] = length - rest_lengths[e]
+
+
+@njit(**JIT)
+def csc_columns_product(indptr, indices, data, cols, values, out):
+    """``out`` (n,) = ``A[:, cols] @ values`` of the CSC matrix (indptr, indices, data);
+    ``cols`` ascending (the order of scipy's ``A @ v`` when v is zero elsewhere)."""
+    out[:] = 0.0
+    for k in range(cols.shape[0]):
+        c = cols[k]
+        v = values[k]
+        for idx in range(indptr[c], indptr[c + 1]):
+            out[indices[idx]] += data[idx] * v
+
+
+@njit(**JIT)
+def elongation_adjoint(cols, dbar, abar, arm_c, beta):
+    """``beta`` (S', E) = ``dbar + sum_i c_i abar_i`` [1/m] of the samples ``cols``: the
+    adjoint of each connector's elongation; ``arm_c`` (E, 2) [N/m], None for an elastic
+    step (then ``abar`` is not read)."""
+    for k in range(cols.shape[0]):
+        s = cols[k]
+        for e in range(beta.shape[1]):
+            if arm_c is None:
+                beta[k, e] = dbar[s, e]
+            else:
+                beta[k, e] = dbar[s, e] + (arm_c[e, 0] * abar[s, 0, e]
+                                           + arm_c[e, 1] * abar[s, 1, e])
+
+
+@njit(**JIT)
+def pattern_product(end_dofs, unit, beta, out):
+    """``out`` (S', n) = ``(G beta^T)^T``: the forces on the matrix dofs of connector tensions
+    ``beta`` (S', E), ``G`` putting ``+u_e`` on end i and ``-u_e`` on end j (``end_dofs``
+    (E, 2) first dof of each end, -1 for a fixed particle)."""
+    out[:] = 0.0
+    for k in range(beta.shape[0]):
+        row = out[k]
+        for e in range(end_dofs.shape[0]):
+            b = beta[k, e]
+            f0, f1, f2 = unit[e, 0] * b, unit[e, 1] * b, unit[e, 2] * b
+            di = end_dofs[e, 0]
+            if di >= 0:
+                row[di] += f0
+                row[di + 1] += f1
+                row[di + 2] += f2
+            dj = end_dofs[e, 1]
+            if dj >= 0:
+                row[dj] -= f0
+                row[dj + 1] -= f1
+                row[dj + 2] -= f2
+
+
+@njit(**JIT)
+def pattern_transpose_product(end_dofs, unit, lam, tau):
+    """``tau`` (S', E) = ``(G^T lam^T)^T``: each connector's ``u_e . (lam_i - lam_j)`` for
+    the dof vectors ``lam`` (S', n) (a fixed end contributes nothing)."""
+    for k in range(lam.shape[0]):
+        row = lam[k]
+        for e in range(end_dofs.shape[0]):
+            first, second = end_dofs[e, 0], end_dofs[e, 1]
+            u0, u1, u2 = unit[e, 0], unit[e, 1], unit[e, 2]
+            if second >= 0 and (first < 0 or second < first):  # lower dof first, as scipy
+                first, second = second, first
+                u0, u1, u2 = -u0, -u1, -u2
+            t = 0.0
+            if first >= 0:
+                t += u0 * row[first]
+                t += u1 * row[first + 1]
+                t += u2 * row[first + 2]
+            if second >= 0:
+                t -= u0 * row[second]
+                t -= u1 * row[second + 1]
+                t -= u2 * row[second + 2]
+            tau[k, e] = t
+
+
+@njit(**JIT)
+def arm_derivatives(r, c, k, b, force_prev, dx, dx_prev, dA_dk, dA_db):
+    """Writes ``dA_i/dk_i`` [m] and ``dA_i/db_i`` [m/s] (E, 2) of the arm forces
+    ``A_i = r_i A_i^prev + c_i (dx - dx_prev)`` of one exact step: ``r`` [-], ``c`` [N/m],
+    ``k`` [N/m], ``b`` [N s/m], ``force_prev`` [N] (E, 2); ``dx``, ``dx_prev`` (E,) [m]."""
+    for e in range(r.shape[0]):
+        step = dx[e] - dx_prev[e]
+        for i in range(2):
+            log_r = math.log(r[e, i])
+            dA_dk[e, i] = (log_r * r[e, i] / k[e, i]) * force_prev[e, i] + r[e, i] * step
+            dA_db[e, i] = ((-log_r * r[e, i] / b[e, i]) * force_prev[e, i]
+                           + ((c[e, i] - r[e, i] * k[e, i]) / b[e, i]) * step)
+
+
+@njit(**JIT)
+def add_partials(cols, tau, dx, rest_lengths, jac, arm_r, arm_c, dA_dk, dA_db, abar, dbar):
+    """``jac`` (S, 7, E) += this step's explicit parameter derivatives contracted with the
+    adjoints of the samples ``cols``, and the history adjoints stepped back in place.
+
+    ``tau`` (S', E) tension adjoints; springs: ``dT/d(K0, a, b) = dx, eps dx, eps^2 dx``
+    (``dx`` (E,) [m], ``eps = dx / rest_lengths``). With arms (``arm_r`` (E, 2) not None):
+    ``mu_i = abar_i + tau`` times ``dA_dk``, ``dA_db`` (:func:`arm_derivatives`), then
+    ``abar_i <- r_i mu_i``, ``dbar <- -sum_i c_i mu_i`` (``abar`` (S, 2, E), ``dbar`` (S, E)).
+    """
+    for k in range(cols.shape[0]):
+        s = cols[k]
+        out = jac[s]
+        t_row = tau[k]
+        if arm_r is not None:
+            a_row = abar[s]
+            d_row = dbar[s]
+        for e in range(t_row.shape[0]):
+            t = t_row[e]
+            d = dx[e]
+            eps = d / rest_lengths[e]
+            out[0, e] += t * d
+            out[1, e] += t * (eps * d)
+            out[2, e] += t * (eps * eps * d)
+            if arm_r is not None:
+                mu1 = a_row[0, e] + t
+                mu2 = a_row[1, e] + t
+                out[3, e] += mu1 * dA_dk[e, 0]
+                out[4, e] += mu1 * dA_db[e, 0]
+                out[5, e] += mu2 * dA_dk[e, 1]
+                out[6, e] += mu2 * dA_db[e, 1]
+                a_row[0, e] = arm_r[e, 0] * mu1
+                a_row[1, e] = arm_r[e, 1] * mu2
+                d_row[e] = -(arm_c[e, 0] * mu1 + arm_c[e, 1] * mu2)
+
+
+@njit(**JIT)
+def add_volume_partials(x, tets, tet_dofs, rest_volumes, cols, lam, jac_kv):
+    """``jac_kv`` (S, T) += ``omega . df/dkv_t`` of the samples ``cols``, with ``df/dkv_t =
+    -(V/V0 - 1) dV/dx`` at positions ``x`` (N, 3) [m] and ``omega`` the dof vectors ``lam``
+    (S', n) (``tet_dofs`` (T, 4) first dof of each vertex, -1 fixed: omega = 0 there);
+    [N/Pa per unit adjoint]."""
+    n_tets = tets.shape[0]
+    grad = np.empty((n_tets, 4, 3))
+    strain = np.empty(n_tets)
+    for t in range(n_tets):
+        _tet_gradient(x, tets, t, grad[t])
+        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+        b0, b1, b2 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
+        c0, c1, c2 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
+        # V as signed_volumes computes it: V/V0 - 1 cancels, so keep its round-off
+        volume = (a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2)
+                  + a2 * (b0 * c1 - b1 * c0)) / 6.0
+        strain[t] = volume / rest_volumes[t] - 1.0
+    for k in range(cols.shape[0]):
+        row = lam[k]
+        out = jac_kv[cols[k]]
+        for t in range(n_tets):
+            g = grad[t]
+            acc = 0.0
+            for a in range(4):
+                d = tet_dofs[t, a]
+                if d >= 0:
+                    acc += g[a, 0] * row[d]
+                    acc += g[a, 1] * row[d + 1]
+                    acc += g[a, 2] * row[d + 2]
+            out[t] -= strain[t] * acc
