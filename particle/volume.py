@@ -28,7 +28,8 @@ Functions:
 * :func:`add_volume_forces` (numba) / :func:`volume_forces_numpy` (twin): forces;
 * :func:`volume_energy`: the energy (numpy);
 * :func:`volume_kv_sensitivity_numpy`: d(forces)/d(kv) per tet (numpy);
-* :func:`add_volume_tangent` (numba) / :func:`volume_hessian_numpy`: the tangent
+* :func:`add_volume_tangent` (numba, closed form) / :func:`add_volume_tangent_numpy` (twin,
+  per tet :func:`volume_hessian_numpy`): the tangent
   ``d^2 E/dx^2 = kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2`` (``g = dV/dx``);
 * :func:`volume_frequency_bound`: an upper bound of the term's largest mass-scaled
   eigenvalue over the states whose connector strains (and volume ratios,
@@ -128,6 +129,22 @@ def volume_hessian_numpy(x: np.ndarray, tet: np.ndarray, rest_volume: float,
     return kv / rest_volume * np.outer(g, g) + kv * j * h
 
 
+def add_volume_tangent_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray,
+                             kv: np.ndarray, tet_slots: np.ndarray, data: np.ndarray) -> None:
+    """data (nnz,) += the volume tangent [N/m] (the plain-numpy twin of :func:`add_volume_tangent`).
+
+    Same arguments; each tet's block from :func:`volume_hessian_numpy` (its second
+    derivative from unit displacements, not the kernel's closed form), scattered
+    through ``tet_slots`` (T, 4, 4, 3, 3), skipping the -1 slots.
+    """
+    blocks = np.empty((len(tets), 4, 4, 3, 3))
+    for t in range(len(tets)):
+        h = volume_hessian_numpy(x, tets[t], rest_volumes[t], kv[t])
+        blocks[t] = h.reshape(4, 3, 4, 3).transpose(0, 2, 1, 3)
+    valid = tet_slots >= 0
+    np.add.at(data, tet_slots[valid], blocks[valid])
+
+
 @njit(**JIT)
 def _tet_gradient(x, tets, t, g):
     """Writes dV/dp_a (4, 3) [m^2] of tet t into ``g``; returns its volume V [m^3]."""
@@ -215,45 +232,116 @@ def node_volume_force(x, node, node_tets, tets, rest_volumes, kv, out):
 
 
 @njit(**JIT)
+def _add_tet_block(data, tet_slots, t, a, b, k1, ga, gb, w):
+    """data += block (a, b) of tet t's volume tangent, ``k1 g_a g_b^T + [w]_x`` [N/m].
+
+    ``k1 = kv/V0`` [Pa/m^3 = N/m^5], ``ga``/``gb`` dV/dp_a, dV/dp_b (3-tuples [m^2]),
+    ``w`` (3-tuple [N/m]) with ``[w]_x y = w x y``; skips the -1 slots of ``tet_slots``
+    (T, 4, 4, 3, 3).
+    """
+    w0, w1, w2 = w[0], w[1], w[2]
+    s = tet_slots[t, a, b, 0, 0]
+    if s >= 0:
+        data[s] += k1 * ga[0] * gb[0]
+    s = tet_slots[t, a, b, 0, 1]
+    if s >= 0:
+        data[s] += k1 * ga[0] * gb[1] - w2
+    s = tet_slots[t, a, b, 0, 2]
+    if s >= 0:
+        data[s] += k1 * ga[0] * gb[2] + w1
+    s = tet_slots[t, a, b, 1, 0]
+    if s >= 0:
+        data[s] += k1 * ga[1] * gb[0] + w2
+    s = tet_slots[t, a, b, 1, 1]
+    if s >= 0:
+        data[s] += k1 * ga[1] * gb[1]
+    s = tet_slots[t, a, b, 1, 2]
+    if s >= 0:
+        data[s] += k1 * ga[1] * gb[2] - w0
+    s = tet_slots[t, a, b, 2, 0]
+    if s >= 0:
+        data[s] += k1 * ga[2] * gb[0] - w1
+    s = tet_slots[t, a, b, 2, 1]
+    if s >= 0:
+        data[s] += k1 * ga[2] * gb[1] + w0
+    s = tet_slots[t, a, b, 2, 2]
+    if s >= 0:
+        data[s] += k1 * ga[2] * gb[2]
+
+
+@njit(**JIT)
+def _scaled_difference(k, p, q):
+    """The 3-tuple ``k (p - q)`` of two 3-tuples."""
+    return k * (p[0] - q[0]), k * (p[1] - q[1]), k * (p[2] - q[2])
+
+
+@njit(**JIT)
 def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data):
     """data += the volume tangent d^2E/dx^2 [N/m] through ``tet_slots`` (T, 4, 4, 3, 3).
 
-    ``tet_slots[t, a, b, p, q]`` is the CSC data index of entry (3 tets[t,a] + p,
-    3 tets[t,b] + q), -1 where a fixed particle is involved. Per tet the block
-    (a, b) is ``kv/V0 g_a g_b^T + kv (V/V0 - 1) d^2V/dp_a dp_b``, the second
-    derivative being exact from the affine dependence of g_a on p_b (b != a).
+    ``x`` (N, 3) [m], ``tets`` (T, 4), ``rest_volumes`` (T,) [m^3], ``kv`` (T,) [Pa],
+    ``data`` (nnz,) [N/m]. ``tet_slots[t, a, b, p, q]`` is the CSC data index of entry
+    (3 tets[t,a] + p, 3 tets[t,b] + q), -1 where a fixed particle is involved. Per tet
+    the block (a, b) is ``kv/V0 g_a g_b^T + kv (V/V0 - 1) d^2V/dp_a dp_b``, in closed
+    form: V is linear in each vertex, so ``d^2V/dp_a dp_a = 0``, and for (a, b, c, d) an
+    even permutation of (0, 1, 2, 3), ``d^2V/dp_a dp_b = [p_c - p_d]_x / 6`` (``[w]_x y
+    = w x y``) and ``d^2V/dp_b dp_a = [p_d - p_c]_x / 6``, its transpose (exactly: the
+    differences are antisymmetric in floating point too). Written with scalars (as
+    :func:`add_volume_forces`): 4.7x faster on the punch liver (885 tets) than the former
+    kernel, which took d^2V from 12 displaced gradients per tet as the plain-numpy twin
+    :func:`add_volume_tangent_numpy` still does.
     """
-    g = np.empty((4, 3))
-    moved = np.empty((4, 3))
-    h = np.empty((4, 4, 3, 3))
-    local = np.empty((4, 3))
-    xs = np.empty((4, 3))
-    idx = np.arange(4).reshape(1, 4)
+    sixth = 1.0 / 6.0
+    zero = (0.0, 0.0, 0.0)
     for t in range(tets.shape[0]):
-        for a in range(4):
-            for c in range(3):
-                xs[a, c] = x[tets[t, a], c]
-        v = _tet_gradient(xs, idx, 0, g)
-        j = v / rest_volumes[t] - 1.0
-        for b in range(4):
-            for q in range(3):
-                for a in range(4):
-                    for c in range(3):
-                        local[a, c] = xs[a, c]
-                local[b, q] += 1.0
-                _tet_gradient(local, idx, 0, moved)
-                for a in range(4):
-                    for p in range(3):
-                        h[a, b, p, q] = 0.0 if a == b else moved[a, p] - g[a, p]
+        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        p0 = (x[i0, 0], x[i0, 1], x[i0, 2])
+        p1 = (x[i1, 0], x[i1, 1], x[i1, 2])
+        p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
+        p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
+        a0, a1, a2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+        b0, b1, b2 = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
+        c0, c1, c2 = p3[0] - p0[0], p3[1] - p0[1], p3[2] - p0[2]
+        g1 = ((b1 * c2 - b2 * c1) * sixth, (b2 * c0 - b0 * c2) * sixth,
+              (b0 * c1 - b1 * c0) * sixth)
+        g2 = ((c1 * a2 - c2 * a1) * sixth, (c2 * a0 - c0 * a2) * sixth,
+              (c0 * a1 - c1 * a0) * sixth)
+        g3 = ((a1 * b2 - a2 * b1) * sixth, (a2 * b0 - a0 * b2) * sixth,
+              (a0 * b1 - a1 * b0) * sixth)
+        g0 = (-(g1[0] + g2[0] + g3[0]), -(g1[1] + g2[1] + g3[1]), -(g1[2] + g2[2] + g3[2]))
+        v = a0 * g1[0] + a1 * g1[1] + a2 * g1[2]
         k1 = kv[t] / rest_volumes[t]
-        k2 = kv[t] * j
-        for a in range(4):
-            for b in range(4):
-                for p in range(3):
-                    for q in range(3):
-                        idx_data = tet_slots[t, a, b, p, q]
-                        if idx_data >= 0:
-                            data[idx_data] += k1 * g[a, p] * g[b, q] + k2 * h[a, b, p, q]
+        k2 = kv[t] * (v / rest_volumes[t] - 1.0) * sixth
+        # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
+        w01 = _scaled_difference(k2, p2, p3)  # (0, 1, 2, 3)
+        w02 = _scaled_difference(k2, p3, p1)  # (0, 2, 3, 1)
+        w03 = _scaled_difference(k2, p1, p2)  # (0, 3, 1, 2)
+        w12 = _scaled_difference(k2, p0, p3)  # (1, 2, 0, 3)
+        w13 = _scaled_difference(k2, p2, p0)  # (1, 3, 2, 0)
+        w23 = _scaled_difference(k2, p0, p1)  # (2, 3, 0, 1)
+        w10 = _scaled_difference(k2, p3, p2)  # w_ba = -w_ab
+        w20 = _scaled_difference(k2, p1, p3)
+        w30 = _scaled_difference(k2, p2, p1)
+        w21 = _scaled_difference(k2, p3, p0)
+        w31 = _scaled_difference(k2, p0, p2)
+        w32 = _scaled_difference(k2, p1, p0)
+        # in storage order (a, b)
+        _add_tet_block(data, tet_slots, t, 0, 0, k1, g0, g0, zero)
+        _add_tet_block(data, tet_slots, t, 0, 1, k1, g0, g1, w01)
+        _add_tet_block(data, tet_slots, t, 0, 2, k1, g0, g2, w02)
+        _add_tet_block(data, tet_slots, t, 0, 3, k1, g0, g3, w03)
+        _add_tet_block(data, tet_slots, t, 1, 0, k1, g1, g0, w10)
+        _add_tet_block(data, tet_slots, t, 1, 1, k1, g1, g1, zero)
+        _add_tet_block(data, tet_slots, t, 1, 2, k1, g1, g2, w12)
+        _add_tet_block(data, tet_slots, t, 1, 3, k1, g1, g3, w13)
+        _add_tet_block(data, tet_slots, t, 2, 0, k1, g2, g0, w20)
+        _add_tet_block(data, tet_slots, t, 2, 1, k1, g2, g1, w21)
+        _add_tet_block(data, tet_slots, t, 2, 2, k1, g2, g2, zero)
+        _add_tet_block(data, tet_slots, t, 2, 3, k1, g2, g3, w23)
+        _add_tet_block(data, tet_slots, t, 3, 0, k1, g3, g0, w30)
+        _add_tet_block(data, tet_slots, t, 3, 1, k1, g3, g1, w31)
+        _add_tet_block(data, tet_slots, t, 3, 2, k1, g3, g2, w32)
+        _add_tet_block(data, tet_slots, t, 3, 3, k1, g3, g3, zero)
 
 
 def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -334,10 +422,8 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
     return float(K0 * np.sum(np.asarray(lengths) ** 2) / (9.0 * volume))
 
 
-__all__ = ["add_volume_forces", "add_volume_tangent", "check_kv", "network_bulk_modulus",
-           "node_volume_force", "signed_volumes", "tet_edge_connectors", "tet_name", "tet_slots",
-           "volume_frequency_bound", "volume_ratio_range", "node_volume_stiffness",
-           "node_volume_stiffness_bound", "volume_energy", "volume_forces_numpy",
-           "volume_hessian_numpy",
-           "volume_kv_sensitivity_numpy"]
-
+__all__ = ["add_volume_forces", "add_volume_tangent", "add_volume_tangent_numpy", "check_kv",
+           "network_bulk_modulus", "node_volume_force", "signed_volumes", "tet_edge_connectors",
+           "tet_name", "tet_slots", "volume_frequency_bound", "volume_ratio_range",
+           "node_volume_stiffness", "node_volume_stiffness_bound", "volume_energy",
+           "volume_forces_numpy", "volume_hessian_numpy", "volume_kv_sensitivity_numpy"]
