@@ -4,7 +4,8 @@ Phases, each checkpointed (:mod:`calibration.checkpoint`) so an interrupted run
 resumes where it stopped and ends with the same result:
 
 1. closed-form initial guess (:func:`calibration.global_fit.initial_guess`);
-2. global static fit, 3. global relaxation fit (:mod:`calibration.global_fit`);
+2. global static fit, 3. global relaxation fit (:mod:`calibration.global_fit`; Nelder-Mead
+   as the paper, the gradient method's relaxation fit by Gauss-Newton);
 4. local static sweeps, 5. local relaxation sweeps (:mod:`calibration.local`),
    unless ``calibration.local = false``;
 6. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
@@ -35,7 +36,8 @@ import numpy as np
 from calibration.baseline import van_gelder_params
 from calibration.checkpoint import Checkpoint
 from calibration.gradient import Validity, fit_gradient, gradient_backend
-from calibration.global_fit import fe_initial_slopes, fit_relaxation, fit_static, initial_guess
+from calibration.global_fit import (GAUSS_NEWTON, NELDER_MEAD, fe_initial_slopes, fit_relaxation,
+                                   fit_static, initial_guess)
 from calibration.local import LocalParametrisation, Sweep, run_local_phase
 from calibration.metrics import relative_rms_error
 from calibration.network import linear_indentation
@@ -196,6 +198,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             if saved is None:
                 pool.forget_warm_starts()  # as a resumed run starts (identical resumes)
                 glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
+                                   optimizer=GAUSS_NEWTON if gradient and phase == "relaxation"
+                                   else NELDER_MEAD,
                                    progress=progress, verbose=verbose)
                 checkpoint.put(f"global_{phase}", {"params": glob.as_dict(),
                                                    "fit": fit.as_dict()})
