@@ -231,8 +231,9 @@ class CalibrationSection:
     local: bool = key(True, "run local tuning after global tuning")
     static_max_evaluations: int = key(200, "Nelder-Mead budget of the global static fit "
                                       "(cost evaluations)", minimum=1)
-    relaxation_max_evaluations: int = key(300, "Nelder-Mead budget of the global relaxation fit "
-                                          "(cost evaluations)", minimum=1)
+    relaxation_max_evaluations: int = key(300, "budget of the global relaxation fit (cost "
+                                          "evaluations; Nelder-Mead, Gauss-Newton for the "
+                                          "gradient method)", minimum=1)
     local_max_evaluations: int = key(300, "Nelder-Mead budget of one point's local fit, per "
                                      "phase and sweep (cost evaluations; the default liver's "
                                      "fits meet xatol within 275)", minimum=1)
@@ -242,9 +243,11 @@ class CalibrationSection:
                                        "or there is left to gain, less than this fraction of "
                                        "its starting cost", minimum=0.0)
     xatol: float = key(1e-3, "Nelder-Mead simplex-size tolerance in the transformed parameters "
-                       "(logs and strain-scaled coefficients)", exclusive_minimum=0.0)
+                       "(logs and strain-scaled coefficients); Gauss-Newton: largest step "
+                       "coordinate at which it stops", exclusive_minimum=0.0)
     fatol: float = key(1e-6, "Nelder-Mead cost-spread tolerance, relative to the phase's initial "
-                       "cost", exclusive_minimum=0.0)
+                       "cost; Gauss-Newton: smallest cost decrease per step, likewise relative",
+                       exclusive_minimum=0.0)
     strain_margin: float = key(1.5, "the spring K(eps) must stay > 0 on the experiments' "
                                "linear-network strain range widened by this factor", minimum=1.0)
     stiffness_floor: float = key(0.1, "feasible springs keep their tangent stiffness K0 + 2 a "
