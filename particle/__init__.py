@@ -7,7 +7,8 @@ builder, mutable State, integrators and solvers apart):
   :class:`ModelBuilder`, :func:`build_model`, :class:`State`.
 - :mod:`particle.integrator`: :class:`VerletIntegrator`, :func:`critical_time_step`,
   :func:`strain_range_for_release`, :func:`resolve_time_step`, :class:`Prescribed`.
-- :mod:`particle.statics`: Newton equilibrium, :func:`gravity_static`.
+- :mod:`particle.statics`: Newton equilibrium, :func:`gravity_static` (the tangent
+  factorised by :mod:`particle.sparse_ldl`).
 - :mod:`particle.evaluators`: :class:`IndentationEvaluator`,
   :class:`RelaxationEvaluator` (batch force curves for calibration).
 - :mod:`particle.experiments`: :func:`gravity_dynamic`, :func:`relaxation_dynamic`.

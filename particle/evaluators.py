@@ -110,7 +110,7 @@ class _PointEvaluator:
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
-        state["_factors"] = {}  # LU factorisations do not pickle; rebuilt on demand
+        state["_factors"] = {}  # factorisations are not shipped; rebuilt on demand
         return state
 
     def _indices(self, points: Sequence[int] | None) -> np.ndarray:

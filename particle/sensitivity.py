@@ -176,7 +176,7 @@ class _Adjoint:
 
     @staticmethod
     def _constrained_lu(solver: EquilibriumSolver, pat, data: np.ndarray):
-        """LU of ``K_aa`` (identity on the prescribed dofs); overwrites ``data``."""
+        """Factorisation of ``K_aa`` (identity on the prescribed dofs); overwrites ``data``."""
         data[solver._zero_slots] = 0.0
         data[solver._diag_slots] = 1.0
         return sparse_lu(pat, data)

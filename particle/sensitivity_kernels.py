@@ -15,10 +15,11 @@ One adjoint step (the module docstring there) needs, besides the tangent's LU:
 
 The adjoints are stored sample-major: a row per output sample (``lam`` (S', n),
 ``tau`` (S', E), ``abar`` (S, 2, E), ``dbar`` (S, E)), so that the kernels run along
-contiguous memory and SuperLU's (n, S') Fortran-ordered solution is ``lam.T``
-without a copy. ``cols`` (S',) lists the samples a step carries (the live
-columns), in ascending order; row k of ``lam``/``tau``/``beta`` is sample
-``cols[k]``, and ``abar``/``dbar``/``jac`` are indexed by the sample itself.
+contiguous memory and the factorisation's (n, S') Fortran-ordered solution
+(:meth:`particle.sparse_ldl.Factor.solve`, like SuperLU's) is ``lam.T`` without a
+copy. ``cols`` (S',) lists the samples a step carries (the live columns), in
+ascending order; row k of ``lam``/``tau``/``beta`` is sample ``cols[k]``, and
+``abar``/``dbar``/``jac`` are indexed by the sample itself.
 
 Sums run in the order of the scipy products they replace (edges ascending per
 dof, dofs ascending per connector: ``G beta`` and ``G^T lam`` are bitwise scipy's),

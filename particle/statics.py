@@ -10,8 +10,10 @@ connectors); with the volume term (``params.kv``) each tet adds its 12x12
 block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2``
 (:func:`particle.volume.add_volume_tangent`) through the same map (a tet's vertex
 pairs are connectors); prescribed particles keep their rows and columns with an
-identity block, so one pattern serves every test point. ``scipy.sparse.linalg.splu``
-factorises it.
+identity block, so one pattern serves every test point. :mod:`particle.sparse_ldl`
+factorises it (``L D L^T`` without pivoting, its ordering and symbolic analysis
+done once per pattern: :attr:`TangentPattern.ldl`); :func:`superlu` is the
+reference it replaced.
 
 Factorisations are expensive next to a solve, so :class:`EquilibriumSolver`
 runs a *modified* Newton iteration: it keeps its LU between iterations, load
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Callable, TypeVar
 
 import numpy as np
@@ -32,7 +35,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
-from particle import kernels
+from particle import kernels, sparse_ldl
 from particle.model import Model
 from particle.params import ConnectorParams, connector_name
 from particle.volume import add_volume_forces, add_volume_tangent, signed_volumes, tet_name
@@ -87,6 +90,12 @@ class TangentPattern:
     @property
     def n_dofs(self) -> int:
         return len(self.indptr) - 1
+
+    @cached_property
+    def ldl(self) -> sparse_ldl.Symbolic:
+        """Ordering and symbolic ``L D L^T`` analysis of the pattern (computed on first use,
+        then kept: the pattern never changes, a tangent's values do at every call)."""
+        return sparse_ldl.analyse(self.indptr, self.indices)
 
     def dofs(self, nodes: np.ndarray) -> np.ndarray:
         """(3k,) matrix dofs of non-fixed particles ``nodes``."""
@@ -190,12 +199,13 @@ class EquilibriumSolver:
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
-        state["_lu"], state["_stale"] = None, True  # SuperLU objects do not pickle
+        state["_lu"], state["_stale"] = None, True  # factorisations are not shipped
         return state
 
     @property
     def factorization(self):
-        """The LU factorisation the next step will use (a SuperLU object, or None).
+        """The factorisation the next step will use (a :class:`particle.sparse_ldl.Factor`,
+        or None).
 
         Callers that solve a sequence of similar problems can hand back the one
         that served a similar problem before (see the evaluators).
@@ -318,8 +328,8 @@ def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.n
 
 
 def factorize(pat: TangentPattern, data: np.ndarray, prescribed: np.ndarray):
-    """SuperLU factorisation of the tangent ``data`` in ``pat``'s storage (modified in place
-    if it has to be shifted); :class:`ConvergenceError` if it is singular."""
+    """Factorisation (:func:`sparse_lu`) of the tangent ``data`` in ``pat``'s storage (modified
+    in place if it has to be shifted); :class:`ConvergenceError` if it is singular."""
     try:
         return sparse_lu(pat, data)
     except RuntimeError:
@@ -337,8 +347,20 @@ def factorize(pat: TangentPattern, data: np.ndarray, prescribed: np.ndarray):
                                    "held by fixed or prescribed particles?") from exc
 
 
-def sparse_lu(pat: TangentPattern, data: np.ndarray):
-    """SuperLU factorisation of the symmetric matrix ``data`` in ``pat``'s CSC storage."""
+def sparse_lu(pat: TangentPattern, data: np.ndarray) -> sparse_ldl.Factor:
+    """``L D L^T`` factorisation of the symmetric matrix ``data`` in ``pat``'s CSC storage.
+
+    The same algorithm as :func:`superlu` (symmetric minimum-degree ordering, no
+    pivoting), with the ordering and the symbolic analysis done once per
+    pattern; ``.solve`` takes (n,) or (n, r) right-hand sides like SuperLU's.
+    :class:`RuntimeError` on a zero pivot (an exactly singular matrix).
+    """
+    return sparse_ldl.factorize(pat.ldl, data)
+
+
+def superlu(pat: TangentPattern, data: np.ndarray):
+    """SuperLU factorisation of the symmetric matrix ``data`` in ``pat``'s CSC storage (the
+    reference for :func:`sparse_lu`; orders and analyses the pattern at every call)."""
     matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
     # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
     return splu(matrix, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
