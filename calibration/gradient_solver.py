@@ -61,6 +61,12 @@ DENSE_INVERSE_LIMIT = 5000
 ROWS_KEPT = 12
 
 
+def _metric_block(lap: sp.spmatrix) -> sp.spmatrix:
+    """One diagonal block of the metric A1: ``(L + rho I) / n`` of an (n, n) Laplacian."""
+    n = lap.shape[0]
+    return (lap + PRIOR_RATIO * sp.identity(n)) / n
+
+
 @dataclass(frozen=True, eq=False)
 class Regulariser:
     """``lambda (theta - theta0)^T A1 (theta - theta0)`` with the block-diagonal metric
@@ -78,13 +84,9 @@ class Regulariser:
     @functools.cached_property
     def metric(self) -> sp.csc_matrix:
         """(size, size) the penalty's metric A1 (also the LM damping metric)."""
-        def block(lap):
-            n = lap.shape[0]
-            return (lap + PRIOR_RATIO * sp.identity(n)) / n
-
-        blocks = [sp.kron(sp.identity(N_COORDS), block(self.laplacian))]
+        blocks = [sp.kron(sp.identity(N_COORDS), _metric_block(self.laplacian))]
         if self.tet_laplacian is not None:
-            blocks.append(block(self.tet_laplacian))
+            blocks.append(_metric_block(self.tet_laplacian))
         return sp.block_diag(blocks, format="csc")
 
     @functools.cached_property
@@ -97,7 +99,7 @@ class Regulariser:
         SuperLU's triangular solves), else the sparse LU."""
         def inverse(lap: sp.csc_matrix) -> Callable:
             n = lap.shape[0]
-            block = ((lap + PRIOR_RATIO * sp.identity(n)) / n).tocsc()
+            block = _metric_block(lap).tocsc()
             if n <= DENSE_INVERSE_LIMIT:
                 dense = np.linalg.inv(block.toarray())
                 return lambda y: np.asarray(dense @ y)
@@ -114,10 +116,10 @@ class Regulariser:
     def solve(self, rhs: np.ndarray | sp.spmatrix) -> np.ndarray:
         """(size, m) ``A1^-1 rhs`` for a dense or sparse (size, m) ``rhs``."""
         out = np.empty(rhs.shape)
+        rows = rhs.tocsr() if sp.issparse(rhs) else None  # sliced by rows below
         for start, copies, n, solve in self._blocks:
             stop = start + copies * n
-            if sp.issparse(rhs):
-                rows = rhs.tocsr()
+            if rows is not None:
                 for c in range(copies):
                     out[start + c * n:start + (c + 1) * n] = solve(
                         rows[start + c * n:start + (c + 1) * n])
@@ -174,10 +176,11 @@ class Linearisation:
         P[:, :n] = reg.solve(J[:n].T)
         if n == len(J):
             return cls(theta, r, J, P, J @ P, offset)
-        P[:, n:] = reg.solve(sp.csr_matrix(J[n:]).T)
+        hinge = sp.csr_matrix(J[n:])
+        P[:, n:] = reg.solve(hinge.T)
         C = np.empty((len(J), len(J)))
         C[:n, :n] = J[:n] @ P[:, :n]
-        C[n:] = sp.csr_matrix(J[n:]) @ P
+        C[n:] = hinge @ P
         C[:n, n:] = C[n:, :n].T
         return cls(theta, r, J, P, C, offset)
 
