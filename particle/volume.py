@@ -146,31 +146,27 @@ def add_volume_tangent_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.n
 
 
 @njit(**JIT)
+def _tet_gradient_tuples(x, i0, i1, i2, i3):
+    """``(g0, g1, g2, g3, V)``: dV/dp_a (3-tuples [m^2]) and the volume V [m^3] of the tet
+    with particles i0..i3 of ``x`` (N, 3) [m]."""
+    a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+    b0, b1, b2 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
+    c0, c1, c2 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
+    s = 1.0 / 6.0
+    g1 = ((b1 * c2 - b2 * c1) * s, (b2 * c0 - b0 * c2) * s, (b0 * c1 - b1 * c0) * s)
+    g2 = ((c1 * a2 - c2 * a1) * s, (c2 * a0 - c0 * a2) * s, (c0 * a1 - c1 * a0) * s)
+    g3 = ((a1 * b2 - a2 * b1) * s, (a2 * b0 - a0 * b2) * s, (a0 * b1 - a1 * b0) * s)
+    g0 = (-(g1[0] + g2[0] + g3[0]), -(g1[1] + g2[1] + g3[1]), -(g1[2] + g2[2] + g3[2]))
+    return g0, g1, g2, g3, a0 * g1[0] + a1 * g1[1] + a2 * g1[2]
+
+
+@njit(**JIT)
 def _tet_gradient(x, tets, t, g):
     """Writes dV/dp_a (4, 3) [m^2] of tet t into ``g``; returns its volume V [m^3]."""
-    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-    a0 = x[i1, 0] - x[i0, 0]
-    a1 = x[i1, 1] - x[i0, 1]
-    a2 = x[i1, 2] - x[i0, 2]
-    b0 = x[i2, 0] - x[i0, 0]
-    b1 = x[i2, 1] - x[i0, 1]
-    b2 = x[i2, 2] - x[i0, 2]
-    c0 = x[i3, 0] - x[i0, 0]
-    c1 = x[i3, 1] - x[i0, 1]
-    c2 = x[i3, 2] - x[i0, 2]
-    s = 1.0 / 6.0
-    g[1, 0] = (b1 * c2 - b2 * c1) * s
-    g[1, 1] = (b2 * c0 - b0 * c2) * s
-    g[1, 2] = (b0 * c1 - b1 * c0) * s
-    g[2, 0] = (c1 * a2 - c2 * a1) * s
-    g[2, 1] = (c2 * a0 - c0 * a2) * s
-    g[2, 2] = (c0 * a1 - c1 * a0) * s
-    g[3, 0] = (a1 * b2 - a2 * b1) * s
-    g[3, 1] = (a2 * b0 - a0 * b2) * s
-    g[3, 2] = (a0 * b1 - a1 * b0) * s
+    g0, g1, g2, g3, v = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3])
     for c in range(3):
-        g[0, c] = -(g[1, c] + g[2, c] + g[3, c])
-    return a0 * g[1, 0] + a1 * g[1, 1] + a2 * g[1, 2]
+        g[0, c], g[1, c], g[2, c], g[3, c] = g0[c], g1[c], g2[c], g3[c]
+    return v
 
 
 @njit(**JIT)
@@ -300,17 +296,7 @@ def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data):
         p1 = (x[i1, 0], x[i1, 1], x[i1, 2])
         p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
         p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
-        a0, a1, a2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
-        b0, b1, b2 = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
-        c0, c1, c2 = p3[0] - p0[0], p3[1] - p0[1], p3[2] - p0[2]
-        g1 = ((b1 * c2 - b2 * c1) * sixth, (b2 * c0 - b0 * c2) * sixth,
-              (b0 * c1 - b1 * c0) * sixth)
-        g2 = ((c1 * a2 - c2 * a1) * sixth, (c2 * a0 - c0 * a2) * sixth,
-              (c0 * a1 - c1 * a0) * sixth)
-        g3 = ((a1 * b2 - a2 * b1) * sixth, (a2 * b0 - a0 * b2) * sixth,
-              (a0 * b1 - a1 * b0) * sixth)
-        g0 = (-(g1[0] + g2[0] + g3[0]), -(g1[1] + g2[1] + g3[1]), -(g1[2] + g2[2] + g3[2]))
-        v = a0 * g1[0] + a1 * g1[1] + a2 * g1[2]
+        g0, g1, g2, g3, v = _tet_gradient_tuples(x, i0, i1, i2, i3)
         k1 = kv[t] / rest_volumes[t]
         k2 = kv[t] * (v / rest_volumes[t] - 1.0) * sixth
         # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
