@@ -62,7 +62,7 @@ from particle import sensitivity_kernels as kern
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams
-from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, sparse_lu, tangent_data
+from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, ldl_factor, tangent_data
 from particle.volume import signed_volumes, volume_gradients_numpy
 
 log = logging.getLogger(__name__)
@@ -175,11 +175,11 @@ class _Adjoint:
         return tangent_data(model, pat, eq.x, it.tension, model.params, True, arms)
 
     @staticmethod
-    def _constrained_lu(solver: EquilibriumSolver, pat, data: np.ndarray):
+    def _constrained_factor(solver: EquilibriumSolver, pat, data: np.ndarray):
         """Factorisation of ``K_aa`` (identity on the prescribed dofs); overwrites ``data``."""
         data[solver._zero_slots] = 0.0
         data[solver._diag_slots] = 1.0
-        return sparse_lu(pat, data)
+        return ldl_factor(pat, data)
 
     def _point_jacobian(self, model: Model, k: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(S, 7, E) connector derivatives and (S, T) kv derivatives (None without kv).
@@ -227,7 +227,7 @@ class _Adjoint:
             kern.pattern_product(end_dofs, unit, beta, rhs)
             rhs = k_push * w[:, None] - rhs
             rhs[:, pdofs] = 0.0
-            lam = self._constrained_lu(solver, pat, data).solve(rhs.T).T  # (S', n) C-order
+            lam = self._constrained_factor(solver, pat, data).solve(rhs.T).T  # (S', n) C-order
             lam[:, pdofs] = -push[pdofs] * w[:, None]
             tau = np.empty((len(cols), e))  # adjoint of each connector's tension
             kern.pattern_transpose_product(end_dofs, unit, lam, tau)
@@ -275,7 +275,7 @@ class _Adjoint:
                 beta += np.einsum("ei,eis->es", arms.c, abar)
             rhs = (full @ push)[:, None] * w[None, :] - G @ beta
             rhs[pdofs] = 0.0
-            lam = self._constrained_lu(solver, pat, data).solve(rhs)
+            lam = self._constrained_factor(solver, pat, data).solve(rhs)
             lam[pdofs] = -push[pdofs, None] * w[None, :]
             tau = G.T @ lam  # (E, S) adjoint of each connector's tension
             jac += self._partials_numpy(model, geo, arms, tau, abar)

@@ -116,10 +116,19 @@ def minimum_degree_order(indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
     n = len(indptr) - 1
     cols = np.repeat(np.arange(n), np.diff(indptr))
     data = np.where(indices == cols, float(np.diff(indptr).max() + 1), -1.0)
-    dummy = sp.csc_matrix((data, indices, indptr), shape=(n, n))
-    lu = splu(dummy, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
-              diag_pivot_thresh=0.0)
+    lu = superlu(indptr, indices, data)
     return np.argsort(lu.perm_c).astype(np.int64)  # perm_c is old -> new
+
+
+def superlu(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray):
+    """SuperLU's factorisation of the symmetric CSC matrix (``indptr``, ``indices``, ``data``):
+    ``MMD_AT_PLUS_A`` ordering, no row pivoting (fill ~25 % below COLAMD's). The source
+    of :func:`minimum_degree_order` and the reference this module is tested against (it
+    orders and analyses the pattern at every call)."""
+    n = len(indptr) - 1
+    matrix = sp.csc_matrix((data, indices, indptr), shape=(n, n))
+    return splu(matrix, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
+                diag_pivot_thresh=0.0)
 
 
 def analyse(indptr: np.ndarray, indices: np.ndarray,

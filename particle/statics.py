@@ -31,8 +31,6 @@ from functools import cached_property
 from typing import Callable, TypeVar
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle import kernels, sparse_ldl
@@ -328,10 +326,10 @@ def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.n
 
 
 def factorize(pat: TangentPattern, data: np.ndarray, prescribed: np.ndarray):
-    """Factorisation (:func:`sparse_lu`) of the tangent ``data`` in ``pat``'s storage (modified
+    """Factorisation (:func:`ldl_factor`) of the tangent ``data`` in ``pat``'s storage (modified
     in place if it has to be shifted); :class:`ConvergenceError` if it is singular."""
     try:
-        return sparse_lu(pat, data)
+        return ldl_factor(pat, data)
     except RuntimeError:
         # exactly singular, e.g. a hanging string at rest has no transverse stiffness yet:
         # a tiny diagonal shift only changes the iteration matrix, not the equilibrium
@@ -341,13 +339,13 @@ def factorize(pat: TangentPattern, data: np.ndarray, prescribed: np.ndarray):
                   "not the equilibrium it converges to)", prescribed.tolist(), shift)
         data[pat.diagonal] += shift
         try:
-            return sparse_lu(pat, data)
+            return ldl_factor(pat, data)
         except RuntimeError as exc:
             raise ConvergenceError(f"tangent stiffness is singular ({exc}); is the model "
                                    "held by fixed or prescribed particles?") from exc
 
 
-def sparse_lu(pat: TangentPattern, data: np.ndarray) -> sparse_ldl.Factor:
+def ldl_factor(pat: TangentPattern, data: np.ndarray) -> sparse_ldl.Factor:
     """``L D L^T`` factorisation of the symmetric matrix ``data`` in ``pat``'s CSC storage.
 
     The same algorithm as :func:`superlu` (symmetric minimum-degree ordering, no
@@ -360,11 +358,8 @@ def sparse_lu(pat: TangentPattern, data: np.ndarray) -> sparse_ldl.Factor:
 
 def superlu(pat: TangentPattern, data: np.ndarray):
     """SuperLU factorisation of the symmetric matrix ``data`` in ``pat``'s CSC storage (the
-    reference for :func:`sparse_lu`; orders and analyses the pattern at every call)."""
-    matrix = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
-    # symmetric matrix: symmetric ordering, no row pivoting (fill ~25 % below COLAMD's)
-    return splu(matrix, permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True),
-                diag_pivot_thresh=0.0)
+    reference for :func:`ldl_factor`, :func:`particle.sparse_ldl.superlu`)."""
+    return sparse_ldl.superlu(pat.indptr, pat.indices, data)
 
 
 class _Iterate:

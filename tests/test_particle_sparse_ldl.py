@@ -9,7 +9,7 @@ import scipy.sparse as sp
 
 from forcecal.errors import ConvergenceError
 from particle import sparse_ldl
-from particle.statics import (EquilibriumSolver, TangentPattern, factorize, sparse_lu, superlu,
+from particle.statics import (EquilibriumSolver, TangentPattern, factorize, ldl_factor, superlu,
                               tangent_data)
 from particle.testing import box_model, top_centre
 
@@ -56,7 +56,7 @@ def rhs_layouts(n: int, rng):
 def test_solves_equal_superlu_on_real_tangents(kv):
     pat, data = real_tangent(kv)
     rng = np.random.default_rng(0)
-    lu, ref = sparse_lu(pat, data), superlu(pat, data)
+    lu, ref = ldl_factor(pat, data), superlu(pat, data)
     assert isinstance(lu, sparse_ldl.Factor)
     assert (lu.d > 0).all()  # the tangent of a stable equilibrium
     for b in rhs_layouts(pat.n_dofs, rng):
@@ -85,7 +85,7 @@ def factor_dense(lu: sparse_ldl.Factor) -> tuple[np.ndarray, np.ndarray]:
 
 def test_factors_reproduce_the_matrix_with_superlus_fill():
     pat, data = real_tangent(3000.0)
-    lu = sparse_lu(pat, data)
+    lu = ldl_factor(pat, data)
     L, d = factor_dense(lu)
     np.testing.assert_array_equal(np.diag(L), 1.0)
     A = dense(pat, data)
@@ -107,7 +107,7 @@ def test_indefinite_matrices_solve_without_pivoting():
     k = len(lam) // 3
     shifted = data.copy()
     shifted[pat.diagonal] -= 0.5 * (lam[k] + lam[k + 1])  # mid-gap: well away from singular
-    lu = sparse_lu(pat, shifted)
+    lu = ldl_factor(pat, shifted)
     assert (lu.d < 0).sum() > 0
     rng = np.random.default_rng(1)
     b = rng.standard_normal((pat.n_dofs, 4))
@@ -147,13 +147,13 @@ def test_zero_pivot_raises_and_the_solver_shifts_the_diagonal(caplog):
     cols = np.repeat(np.arange(pat.n_dofs), np.diff(pat.indptr))
     singular = np.where((pat.indices == dof) | (cols == dof), 0.0, data)
     with pytest.raises(RuntimeError, match="exactly singular"):
-        sparse_lu(pat, singular)
+        ldl_factor(pat, singular)
     with pytest.raises(RuntimeError, match="exactly singular"):
         superlu(pat, singular)  # the reference agrees
     nan = data.copy()
     nan[0] = np.nan
     with pytest.raises(RuntimeError, match="non-finite"):
-        sparse_lu(pat, nan)
+        ldl_factor(pat, nan)
     caplog.set_level(logging.DEBUG, logger="particle.statics")
     lu = factorize(pat, singular, np.zeros(0, np.int64))  # shifted: now regular
     assert "exactly singular; factorising it with its diagonal shifted" in caplog.text
@@ -167,6 +167,6 @@ def test_analysis_is_cached_on_the_pattern_and_pickles():
     assert pat.ldl is pat.ldl
     b = np.arange(pat.n_dofs, dtype=np.float64)
     again = pickle.loads(pickle.dumps(pat))
-    np.testing.assert_array_equal(sparse_lu(again, data).solve(b), sparse_lu(pat, data).solve(b))
+    np.testing.assert_array_equal(ldl_factor(again, data).solve(b), ldl_factor(pat, data).solve(b))
     with pytest.raises(ValueError, match="right-hand side"):
-        sparse_lu(pat, data).solve(np.ones(pat.n_dofs + 1))
+        ldl_factor(pat, data).solve(np.ones(pat.n_dofs + 1))
