@@ -148,6 +148,15 @@ class ConnectorParams:
     def n_connectors(self) -> int:
         return self.K0.shape[0]
 
+    def equals(self, other: "ConnectorParams") -> bool:
+        """True if every array (and kv, or its absence) is equal element by element."""
+        if self is other:
+            return True
+        if (self.kv is None) != (other.kv is None):
+            return False
+        names = PARAM_NAMES + (() if self.kv is None else ("kv",))
+        return all(np.array_equal(getattr(self, n), getattr(other, n)) for n in names)
+
     @property
     def has_volume(self) -> bool:
         """True when the volume term is on (``kv`` given)."""

@@ -143,11 +143,45 @@ class _Adjoint:
         self._ends = getattr(self, "_ends", {})
         self._ends[k] = ends
 
+    def force_vectors(self, params: ConnectorParams, points: Sequence[int] | None = None
+                      ) -> np.ndarray:
+        self._forward = getattr(self, "_forward", {})
+        for k in self._indices(points):  # their paths are about to be overwritten
+            self._forward.pop(int(k), None)
+        return super().force_vectors(params, points)
+
+    def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None
+                 ) -> np.ndarray:
+        forces = super().__call__(params, points)
+        # each point's path now belongs to these parameters: a Jacobian at equal
+        # parameters (the fit's linearisation after an accepted trial) starts from it
+        for k, row in zip(self._indices(points), forces):
+            self._forward[int(k)] = (params, row)
+        return forces
+
+    def forget(self) -> None:
+        super().forget()
+        self._forward = {}
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state["_forward"] = {}
+        return state
+
     def jacobian(self, params: ConnectorParams, points: Sequence[int] | None = None
                  ) -> Sensitivities:
-        """Curves and their derivatives at the selected points (all if None)."""
+        """Curves and their derivatives at the selected points (all if None).
+
+        A point whose last curve was computed at equal parameters is not solved again:
+        its recorded path and curve are used (what :meth:`__call__` returned then).
+        """
         idx = self._indices(points)
-        forces = self(params, idx)
+        forward = getattr(self, "_forward", {})
+        stale = [int(k) for k in idx
+                 if int(k) not in forward or not forward[int(k)][0].equals(params)]
+        if stale:
+            self(params, stale)
+        forces = np.stack([self._forward[int(k)][1] for k in idx])
         model = self.model.with_params(params)
         point = self._point_jacobian_numpy if self.numpy_twin else self._point_jacobian
         parts = [point(model, int(k)) for k in idx]

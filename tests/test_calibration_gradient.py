@@ -141,6 +141,33 @@ def test_compiled_adjoint_pass_matches_its_numpy_twin(box, volume, punch):
             assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max(), (kind, name)
 
 
+def test_jacobian_reuses_the_forward_pass_of_equal_parameters(box):
+    """A Jacobian at the parameters of the last curves starts from their recorded path
+    (no forward solve: the fit's linearisation after an accepted trial); at other
+    parameters, or after ``forget``, it solves again. Either way the derivatives are
+    those of a fresh evaluator to round-off."""
+    params, evaluators = _sensitivity_evaluators(box, True, True)
+    other = dataclasses.replace(params, K0=params.K0 * 1.1)
+    for kind, ev in evaluators.items():
+        fresh = ev.jacobian(params)
+        solves = []
+        ev.force_vectors = lambda p, pts=None, ev=ev: solves.append(1) or type(ev).force_vectors(
+            ev, p, pts)
+        curves = ev(params)
+        sens = ev.jacobian(dataclasses.replace(params))  # equal values, another object
+        assert len(solves) == 1, kind  # the __call__ only
+        np.testing.assert_array_equal(sens.forces, curves)
+        ev(other)
+        again = ev.jacobian(params)
+        ev.forget()
+        cold = ev.jacobian(params)
+        assert len(solves) == 4, kind  # other, then params after other, then after forget
+        for got in (sens, again, cold):
+            scale = np.abs(fresh.connectors).max()
+            assert np.abs(got.connectors - fresh.connectors).max() <= 1e-9 * scale, kind
+            assert np.abs(got.kv - fresh.kv).max() <= 1e-9 * np.abs(fresh.kv).max(), kind
+
+
 def test_pattern_kernels_match_the_sparse_pattern_matrix(box):
     """G beta, G^T lam and the kv partials of the kernels against the scipy pattern matrix
     and the numpy twin, at a randomly deformed state of the box (clamped base: connectors
