@@ -362,31 +362,63 @@ def _update(sup_ptr, row_ptr, rows, x_ptr, src, q1, q2, f, nr, xs, relpos, x, d,
             x[col + relpos[rows[rd0 + q + t]]] -= work[t]
 
 
-@njit(**JIT)
+@njit(fastmath={"reassoc", "contract"}, **JIT)
 def _solve_one(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, b, out):
     """``out`` (n,) = ``A^{-1} b`` for ``b`` (n,): forward, diagonal and backward sweeps on the
-    permuted vector, supernode by supernode."""
+    permuted vector, supernode by supernode.
+
+    Each supernode's rows below its own columns are gathered once into ``below``:
+    the forward sweep accumulates their updates there (one contiguous axpy per
+    column) and scatters them once; the backward sweep takes each column's
+    contribution as one contiguous dot product (reassociated: ``fastmath`` lets
+    it vectorise).
+    """
     n = len(d)
     w = np.empty(n)
     for k in range(n):
         w[k] = b[perm[k]]
+    widest = 0
+    for s in range(len(sup_ptr) - 1):
+        widest = max(widest, row_ptr[s + 1] - row_ptr[s])
+    buffer = np.empty(widest)
     for s in range(len(sup_ptr) - 1):  # L w' = w
         f, nc = sup_ptr[s], sup_ptr[s + 1] - sup_ptr[s]
         r0, nr, xs = row_ptr[s], row_ptr[s + 1] - row_ptr[s], x_ptr[s]
-        for c in range(nc):
-            wc, col = w[f + c], xs + c * nr
-            for t in range(c + 1, nr):
-                w[rows[r0 + t]] -= x[col + t] * wc
+        m = nr - nc
+        own = w[f:f + nc]
+        for c in range(nc):  # the block's own (dense, unit lower) triangle
+            wc, col = own[c], x[xs + c * nr:xs + c * nr + nc]
+            for t in range(c + 1, nc):
+                own[t] -= col[t] * wc
+        if m > 0:
+            below = buffer[:m]
+            below[:] = 0.0
+            for c in range(nc):
+                wc, col = own[c], x[xs + c * nr + nc:xs + (c + 1) * nr]
+                for t in range(m):
+                    below[t] += col[t] * wc
+            targets = rows[r0 + nc:r0 + nr]
+            for t in range(m):
+                w[targets[t]] -= below[t]
     for k in range(n):  # D w'' = w'
         w[k] /= d[k]
     for s in range(len(sup_ptr) - 2, -1, -1):  # L^T w''' = w''
         f, nc = sup_ptr[s], sup_ptr[s + 1] - sup_ptr[s]
         r0, nr, xs = row_ptr[s], row_ptr[s + 1] - row_ptr[s], x_ptr[s]
+        m = nr - nc
+        own = w[f:f + nc]
+        below = buffer[:m]
+        sources = rows[r0 + nc:r0 + nr]
+        for t in range(m):
+            below[t] = w[sources[t]]
         for c in range(nc - 1, -1, -1):
-            acc, col = w[f + c], xs + c * nr
-            for t in range(c + 1, nr):
-                acc -= x[col + t] * w[rows[r0 + t]]
-            w[f + c] = acc
+            col = x[xs + c * nr:xs + (c + 1) * nr]
+            acc = 0.0
+            for t in range(m):
+                acc += col[nc + t] * below[t]
+            for t in range(c + 1, nc):
+                acc += col[t] * own[t]
+            own[c] -= acc
     for k in range(n):
         out[perm[k]] = w[k]
 
