@@ -26,7 +26,8 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   lambda with the smallest predicted fold error wins (the linear model is exact
   for small changes and costs one Jacobian; the fit itself is nonlinear). A
   second round repeats the cross-validation on the linearisation at the first
-  round's fit (:data:`CV_ROUNDS`) and refits from there if it picks another lambda.
+  round's fit (:data:`CV_ROUNDS`) and refits from there if it picks another lambda
+  (or the same one while the last fit stopped at its iteration budget).
 * **Valid where it is used**: every spring's tangent stiffness ``K0 + 2 a eps
   + 3 b eps^2`` must stay >= ``calibration.stiffness_floor`` x the global K0 on
   its connector's strain range (:class:`Validity`): the experiments' range
@@ -87,13 +88,26 @@ def gradient_backend(experiments: Experiments, points: np.ndarray, params: Conne
                                   footprints=experiments.held(points))
 
 
-def point_jacobian(worker: PointWorker, kind: str, params: ConnectorParams,
-                   points: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Call run on a worker: curves (P', S) and Jacobians (P', S, 7, E) of owned points."""
+def point_rows(worker: PointWorker, params: ConnectorParams, points: Sequence[int],
+               coords: "Coordinates", data: "Data", keep: int
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Call run on a worker: the compressed Gauss-Newton rows of owned ``points`` (global
+    indices), every experiment of ``data``: residuals (P' k,), their coordinate Jacobian
+    (P' k, size) and the squared residual the compression leaves out (:func:`compress`).
+
+    Done where the curves are: a point's rows are compressed on their own, so the
+    workers ship k rows per point instead of every sample, and the chain rule and
+    the compression run in parallel.
+    """
     local = [worker._local[int(p)] for p in points]
-    worker.evaluations += len(local)
-    sens = worker.evaluators[kind].jacobian(params, local)
-    return sens.forces, sens.connectors, sens.kv
+    worker.evaluations += len(local) * len(data.kinds)
+    curves, jacs = {}, {}
+    for kind in data.kinds:
+        sens = worker.evaluators[kind].jacobian(params, local)
+        curves[kind], jacs[kind] = sens.forces, coords.chain(sens.connectors, sens.kv, params)
+    points = np.asarray(points)
+    return compress(data.residuals(curves, points), data.jacobian(jacs, points),
+                    data.rows(points[:1]), keep)
 
 
 @dataclass(frozen=True)
@@ -279,26 +293,27 @@ class Evaluator:
         curves = {k: self.pool.curves(k, params, points) for k in self.data.kinds}
         return self.data.residuals(curves, points)
 
-    def linearise(self, theta: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (rows,) and Jacobian (rows, size) at ``theta``."""
+    def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+        """Compressed rows at ``theta`` (:func:`point_rows` on each worker): residuals
+        (P k,), Jacobian (P k, size), point-major in the order of ``points``, and the
+        squared residual left out [1]."""
         params = self.coords.params(theta)
-        curves, jacs = {}, {}
-        for kind in self.data.kinds:
-            groups = [points[self.pool.owner[points] == w] for w in range(self.pool.n_workers)]
-            groups = [g for g in groups if len(g)]
-            out = [None] * len(groups)
-            for i, value in self.pool.map(point_jacobian,
-                                          [(int(g[0]), (kind, params, g)) for g in groups]):
-                out[i] = value
-            order = np.concatenate(groups)
-            where = np.argsort(order)
-            pos = np.searchsorted(order[where], points)
-            sel = where[pos]
-            curves[kind] = np.concatenate([o[0] for o in out])[sel]
-            kv = None if params.kv is None else np.concatenate([o[2] for o in out])[sel]
-            jacs[kind] = self.coords.chain(np.concatenate([o[1] for o in out])[sel], kv, params)
+        groups = [points[self.pool.owner[points] == w] for w in range(self.pool.n_workers)]
+        groups = [g for g in groups if len(g)]
+        out = [None] * len(groups)
+        for i, value in self.pool.map(point_rows, [(int(g[0]), (params, g, self.coords,
+                                                                self.data, keep))
+                                                   for g in groups]):
+            out[i] = value
+        order = np.concatenate(groups)
+        kept = min(keep, self.data.rows(points[:1]))
+        rows = np.concatenate([o[0] for o in out]).reshape(len(points), kept)
+        jac = np.concatenate([o[1] for o in out]).reshape(len(points), kept, -1)
+        at = np.argsort(order)[np.searchsorted(np.sort(order), points)]
         self.jacobians += 1
-        return self.data.residuals(curves, points), self.data.jacobian(jacs, points)
+        return (rows[at].ravel(), jac[at].reshape(len(points) * kept, -1),
+                float(sum(o[2] for o in out)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -363,11 +378,9 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
         start = None
         if saved_cv is None:
             t = time.perf_counter()
-            rows = ev.linearise(theta, points)
-            per_point = data.rows(points[:1])
-            r_c, J_c, offset = compress(*rows, per_point, ROWS_KEPT)
-            lin = Linearisation.of(theta, r_c, J_c, reg, offset)
-            weight, costs = cross_validate(lin, min(ROWS_KEPT, per_point), reg,
+            rows = ev.linearise(theta, points, ROWS_KEPT)
+            lin = Linearisation.of(theta, rows[0], rows[1], reg, rows[2])
+            weight, costs = cross_validate(lin, min(ROWS_KEPT, data.rows(points[:1])), reg,
                                            folds_of(len(points), folds), grid)
             checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
             log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
@@ -378,13 +391,15 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
             weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)
         weights.append(weight)
         cv_costs.append(costs)
+        if k > 0 and weight == weights[-2] and state.done:
+            break  # the same weight again, and the last round's fit had converged for it
         state = levenberg_marquardt(
             ev, points, reg, weight, validity,
             None if saved is None else LMState.from_dict(saved), theta_start=theta,
             max_iterations=max_iterations, start=start,
             save=lambda s, k=k: checkpoint_put(f"gradient_fit_{k}", s.as_dict()))
         if k > 0 and weight == weights[-2]:
-            break  # the same weight again: the round's fit continued the last one's
+            break  # the same weight again: this round continued the last one's fit
         theta = state.theta
     return GradientResult(coords.params(state.theta), weights[-1], tuple(grid),
                           np.array(cv_costs), state, ev.jacobians, tuple(weights))

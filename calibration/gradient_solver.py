@@ -22,6 +22,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.linalg import splu
 
 from calibration.optimize import INFEASIBLE
+from forcecal.blas import available_cores, blas_threads
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +43,8 @@ class LeastSquares(Protocol):
 
     def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray: ...
 
-    def linearise(self, theta: np.ndarray, points: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]: ...
+    def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
+                  ) -> tuple[np.ndarray, np.ndarray, float]: ...
 
 
 class Bounds(Protocol):
@@ -165,12 +166,18 @@ class Linearisation:
         (every spring below twice the floor somewhere on its strain range adds rows: 2,722
         at the liver punch's global fit, against 372 data rows), and ``C = J P`` as one
         dense product then costs (rows^2 x size): on average 19.7 s of a linearisation's
-        32 s there (10,685 coordinates, Debian's reference BLAS). ``C`` is symmetric, so
+        32 s there (10,685 coordinates, the reference BLAS). ``C`` is symmetric, so
         its hinge rows come from sparse products and its data-hinge block from their
         transpose.
         """
         if not len(J):
             return cls(theta, r, J, np.zeros((J.shape[1], 0)), np.zeros((0, 0)), offset)
+        with blas_threads(available_cores()):  # the workers wait meanwhile
+            return cls._of(theta, r, J, reg, offset, n_dense)
+
+    @classmethod
+    def _of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
+            offset: float, n_dense: int | None) -> "Linearisation":
         n = len(J) if n_dense is None else n_dense
         P = np.empty((J.shape[1], len(J)))
         P[:, :n] = reg.solve(J[:n].T)
@@ -197,11 +204,15 @@ class Linearisation:
         alpha = weight + damping
         d0 = (self.theta - reg.theta0).ravel()
         if len(self.r):
-            inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
-                              self.C @ self.r + weight * (self.J @ d0))
-            d = self.P @ (self.r - inner) + weight * d0
-        else:
-            d = weight * d0
+            with blas_threads(available_cores()):
+                return self._woodbury(reg, weight, alpha, d0)
+        return (-weight * d0 / alpha).reshape(self.theta.shape)
+
+    def _woodbury(self, reg: Regulariser, weight: float, alpha: float, d0: np.ndarray
+                  ) -> np.ndarray:
+        inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
+                          self.C @ self.r + weight * (self.J @ d0))
+        d = self.P @ (self.r - inner) + weight * d0
         return (-d / alpha).reshape(self.theta.shape)
 
     def predict(self, d: np.ndarray) -> np.ndarray:
@@ -251,6 +262,18 @@ def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
     delta``; returns the weight with the smallest total predicted squared fold
     residual and the (len(grid),) CV costs.
     """
+    with blas_threads(available_cores()):  # the workers wait meanwhile
+        costs = _fold_costs(lin, rows_per_point, reg, folds, grid)
+    best = int(np.argmin(costs))
+    if best in (0, len(grid) - 1):
+        log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
+                    "[%g, %g]", grid[best], grid[0], grid[-1])
+    return float(grid[best]), costs
+
+
+def _fold_costs(lin: Linearisation, rows_per_point: int, reg: Regulariser,
+                folds: list[np.ndarray], grid: Sequence[float]) -> np.ndarray:
+    """(len(grid),) predicted squared fold residuals, summed over the folds."""
     point_of_row = np.repeat(np.arange(len(lin.r) // rows_per_point), rows_per_point)
     d0 = lin.theta - reg.theta0
     Jd0 = lin.J @ d0
@@ -269,11 +292,7 @@ def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
             X = U @ ((U.T @ rhs) / (alpha + e))
             Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
             costs[g] += float(np.sum((r_F + Jd) ** 2))
-    best = int(np.argmin(costs))
-    if best in (0, len(grid) - 1):
-        log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
-                    "[%g, %g]", grid[best], grid[0], grid[-1])
-    return float(grid[best]), costs
+    return costs
 
 
 @dataclass
@@ -297,11 +316,11 @@ class LMState:
 
 
 def linearise(ev: LeastSquares, theta: np.ndarray, points: np.ndarray, reg: Regulariser,
-              validity: Bounds, data_rows: tuple[np.ndarray, np.ndarray] | None = None
+              validity: Bounds, data_rows: tuple[np.ndarray, np.ndarray, float] | None = None
               ) -> Linearisation:
-    """Data rows (computed, or ``data_rows``) plus the active hinge rows at ``theta``."""
-    r, J = ev.linearise(theta, points) if data_rows is None else data_rows
-    r, J, offset = compress(r, J, ev.data.rows(points[:1]), ROWS_KEPT)
+    """Compressed data rows (computed, or ``data_rows`` as ``ev.linearise`` returns them)
+    plus the active hinge rows at ``theta``."""
+    r, J, offset = ev.linearise(theta, points, ROWS_KEPT) if data_rows is None else data_rows
     n_data = len(r)
     h, Jh = validity.hinge(theta)
     active = np.nonzero(h)[0]

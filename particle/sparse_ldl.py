@@ -31,7 +31,7 @@ numeric part (:func:`factorize` -> :class:`Factor`):
 
 On the liver punch's tangent (687 dofs, 21,357 entries, 31,485 in ``L``): 0.54 ms
 per factorisation against SuperLU's 2.2 ms, 0.54 ms against 1.27 ms per solve
-with 31 right-hand sides, 0.10 ms against 0.09 ms with one; the analysis takes
+with 31 right-hand sides, 0.08 ms against 0.09 ms with one; the analysis takes
 8 ms once.
 
 **No pivoting** is done, as with SuperLU's ``diag_pivot_thresh=0`` before: the
