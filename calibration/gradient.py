@@ -88,6 +88,14 @@ def gradient_backend(experiments: Experiments, points: np.ndarray, params: Conne
                                   footprints=experiments.held(points))
 
 
+def point_residuals(worker: PointWorker, params: ConnectorParams, points: Sequence[int],
+                    data: "Data") -> np.ndarray:
+    """Call run on a worker: residuals (P' R,) of owned ``points`` (global indices), every
+    experiment of ``data`` in one call."""
+    curves = {kind: worker.curves(kind, params, points) for kind in data.kinds}
+    return data.residuals(curves, np.asarray(points))
+
+
 def point_rows(worker: PointWorker, params: ConnectorParams, points: Sequence[int],
                coords: "Coordinates", data: "Data", keep: int
                ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -289,31 +297,39 @@ class Evaluator:
         self.jacobians = 0
 
     def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray:
-        params = self.coords.params(theta)
-        curves = {k: self.pool.curves(k, params, points) for k in self.data.kinds}
-        return self.data.residuals(curves, points)
+        """(rows,) residuals at ``theta`` (:func:`point_residuals` on each worker)."""
+        out, at = self._on_workers(point_residuals, (self.coords.params(theta), self.data),
+                                   points)
+        per_point = self.data.rows(points[:1])
+        return np.concatenate(out).reshape(len(points), per_point)[at].ravel()
 
     def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
                   ) -> tuple[np.ndarray, np.ndarray, float]:
         """Compressed rows at ``theta`` (:func:`point_rows` on each worker): residuals
         (P k,), Jacobian (P k, size), point-major in the order of ``points``, and the
         squared residual left out [1]."""
-        params = self.coords.params(theta)
-        groups = [points[self.pool.owner[points] == w] for w in range(self.pool.n_workers)]
-        groups = [g for g in groups if len(g)]
-        out = [None] * len(groups)
-        for i, value in self.pool.map(point_rows, [(int(g[0]), (params, g, self.coords,
-                                                                self.data, keep))
-                                                   for g in groups]):
-            out[i] = value
-        order = np.concatenate(groups)
+        out, at = self._on_workers(point_rows, (self.coords.params(theta), self.coords,
+                                                self.data, keep), points)
         kept = min(keep, self.data.rows(points[:1]))
         rows = np.concatenate([o[0] for o in out]).reshape(len(points), kept)
         jac = np.concatenate([o[1] for o in out]).reshape(len(points), kept, -1)
-        at = np.argsort(order)[np.searchsorted(np.sort(order), points)]
         self.jacobians += 1
         return (rows[at].ravel(), jac[at].reshape(len(points) * kept, -1),
                 float(sum(o[2] for o in out)))
+
+    def _on_workers(self, fn: Callable, args: tuple, points: np.ndarray
+                    ) -> tuple[list, np.ndarray]:
+        """``fn(worker, args[0], owned points, *args[1:])`` on every worker owning some of
+        ``points``: the results in worker order, and where each of ``points`` is in their
+        concatenation."""
+        groups = [points[self.pool.owner[points] == w] for w in range(self.pool.n_workers)]
+        groups = [g for g in groups if len(g)]
+        out = [None] * len(groups)
+        for i, value in self.pool.map(fn, [(int(g[0]), (args[0], g) + args[1:])
+                                           for g in groups]):
+            out[i] = value
+        order = np.concatenate(groups)
+        return out, np.argsort(order)[np.searchsorted(np.sort(order), points)]
 
 
 @dataclass(frozen=True, eq=False)
