@@ -13,13 +13,10 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
-import logging
 import os
 from typing import Callable, Iterator
 
 import numpy as np  # noqa: F401  (loads the BLAS this module looks for)
-
-log = logging.getLogger(__name__)
 
 
 @functools.lru_cache(maxsize=1)

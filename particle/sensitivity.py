@@ -127,6 +127,10 @@ class _Adjoint:
 
     numpy_twin = False
 
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._forward: dict[int, tuple[ConnectorParams, np.ndarray]] = {}  # point -> last curve
+
     def _solver(self, k: int) -> EquilibriumSolver:
         if k not in self._solvers:
             self._solvers[k] = _RecordingSolver(self.model, self.footprints[k], self._pattern,
@@ -145,7 +149,6 @@ class _Adjoint:
 
     def force_vectors(self, params: ConnectorParams, points: Sequence[int] | None = None
                       ) -> np.ndarray:
-        self._forward = getattr(self, "_forward", {})
         for k in self._indices(points):  # their paths are about to be overwritten
             self._forward.pop(int(k), None)
         return super().force_vectors(params, points)
@@ -176,9 +179,8 @@ class _Adjoint:
         its recorded path and curve are used (what :meth:`__call__` returned then).
         """
         idx = self._indices(points)
-        forward = getattr(self, "_forward", {})
-        stale = [int(k) for k in idx
-                 if int(k) not in forward or not forward[int(k)][0].equals(params)]
+        stale = [int(k) for k in idx if int(k) not in self._forward
+                 or not self._forward[int(k)][0].equals(params)]
         if stale:
             self(params, stale)
         forces = np.stack([self._forward[int(k)][1] for k in idx])
