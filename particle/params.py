@@ -148,15 +148,6 @@ class ConnectorParams:
     def n_connectors(self) -> int:
         return self.K0.shape[0]
 
-    def equals(self, other: "ConnectorParams") -> bool:
-        """True if every array (and kv, or its absence) is equal element by element."""
-        if self is other:
-            return True
-        if (self.kv is None) != (other.kv is None):
-            return False
-        names = PARAM_NAMES + (() if self.kv is None else ("kv",))
-        return all(np.array_equal(getattr(self, n), getattr(other, n)) for n in names)
-
     @property
     def has_volume(self) -> bool:
         """True when the volume term is on (``kv`` given)."""
@@ -221,6 +212,17 @@ class ConnectorParams:
     def arm_recursion(self, dt: float, *, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """:func:`arm_recursion` of these parameters."""
         return arm_recursion(self, dt, exact=exact)
+
+
+def same_values(p: ConnectorParams, q: ConnectorParams) -> bool:
+    """True if every array of ``p`` and ``q`` (and kv, or its absence) is equal element by
+    element."""
+    if p is q:
+        return True
+    if (p.kv is None) != (q.kv is None):
+        return False
+    names = PARAM_NAMES + (() if p.kv is None else ("kv",))
+    return all(np.array_equal(getattr(p, n), getattr(q, n)) for n in names)
 
 
 def viscoelastic_params(n_connectors: int, K0: float = 50.0, *, a: float = 0.0, b: float = 0.0,

@@ -44,7 +44,7 @@ force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
 The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`
 (``G beta`` and ``G^T omega`` straight from the connectors' unit vectors and end
 dofs, the partials and the history update in one sweep); its plain numpy/scipy
-twin (:meth:`_Adjoint._point_jacobian_numpy`, every sample at every step, ``G`` a
+twin (:func:`point_jacobian_numpy`, every sample at every step, ``G`` a
 scipy matrix) is the reference the tests compare it with (round-off).
 """
 
@@ -61,7 +61,7 @@ from forcecal.errors import ParameterError
 from particle import sensitivity_kernels as kern
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import Model
-from particle.params import PARAM_NAMES, ConnectorParams
+from particle.params import PARAM_NAMES, ConnectorParams, same_values
 from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, ldl_factor, tangent_data
 from particle.volume import signed_volumes, volume_gradients_numpy
 
@@ -116,20 +116,18 @@ def volume_partials_numpy(model: Model, x: np.ndarray, pat, omega: np.ndarray) -
     return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
 
 
-class _Adjoint:
-    """Mixin: the adjoint pass shared by the two evaluators (module docstring).
+class _Recorded:
+    """Mixin: an evaluator that records its forward pass, what the adjoint pass walks back.
 
-    :meth:`_point_jacobian` runs it with the compiled kernels of
-    :mod:`particle.sensitivity_kernels`; :meth:`_point_jacobian_numpy` is the plain
-    numpy/scipy twin it is tested against (``numpy_twin = True`` makes :meth:`jacobian`
-    use it).
+    Each point's path (every (sub)step solved, :class:`_RecordingSolver`), where each
+    sample ends in it, and its last curve with the parameters it was computed at
+    (:meth:`forward`: a Jacobian at equal parameters starts from it).
     """
-
-    numpy_twin = False
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._forward: dict[int, tuple[ConnectorParams, np.ndarray]] = {}  # point -> last curve
+        self._ends: dict[int, list[int]] = {}  # point -> the path step where each sample ends
 
     def _solver(self, k: int) -> EquilibriumSolver:
         if k not in self._solvers:
@@ -144,7 +142,6 @@ class _Adjoint:
         for s in super()._samples(k, solver, n):
             yield s
             ends.append(len(solver.path) - 1)
-        self._ends = getattr(self, "_ends", {})
         self._ends[k] = ends
 
     def force_vectors(self, params: ConnectorParams, points: Sequence[int] | None = None
@@ -171,6 +168,27 @@ class _Adjoint:
         state["_forward"] = {}
         return state
 
+    def forward(self, params: ConnectorParams, idx: np.ndarray) -> np.ndarray:
+        """(P', S) curves of points ``idx`` at ``params``, their paths recorded: solved
+        only for points whose last curve was computed at other parameters."""
+        stale = [int(k) for k in idx if int(k) not in self._forward
+                 or not same_values(self._forward[int(k)][0], params)]
+        if stale:
+            self(params, stale)
+        return np.stack([self._forward[int(k)][1] for k in idx])
+
+
+class _Adjoint(_Recorded):
+    """Mixin: the adjoint pass shared by the two evaluators (module docstring).
+
+    :meth:`_point_jacobian` runs it with the compiled kernels of
+    :mod:`particle.sensitivity_kernels`; :func:`point_jacobian_numpy` is the plain
+    numpy/scipy twin it is tested against (``numpy_twin = True`` makes :meth:`jacobian`
+    use it).
+    """
+
+    numpy_twin = False
+
     def jacobian(self, params: ConnectorParams, points: Sequence[int] | None = None
                  ) -> Sensitivities:
         """Curves and their derivatives at the selected points (all if None).
@@ -179,14 +197,10 @@ class _Adjoint:
         its recorded path and curve are used (what :meth:`__call__` returned then).
         """
         idx = self._indices(points)
-        stale = [int(k) for k in idx if int(k) not in self._forward
-                 or not self._forward[int(k)][0].equals(params)]
-        if stale:
-            self(params, stale)
-        forces = np.stack([self._forward[int(k)][1] for k in idx])
+        forces = self.forward(params, idx)
         model = self.model.with_params(params)
-        point = self._point_jacobian_numpy if self.numpy_twin else self._point_jacobian
-        parts = [point(model, int(k)) for k in idx]
+        parts = [point_jacobian_numpy(self, model, int(k)) if self.numpy_twin
+                 else self._point_jacobian(model, int(k)) for k in idx]
         return Sensitivities(forces, np.stack([c for c, _ in parts]),
                              None if params.kv is None else np.stack([v for _, v in parts]))
 
@@ -281,79 +295,80 @@ class _Adjoint:
                                          lam, jac_kv)
         return jac, jac_kv
 
-    def _point_jacobian_numpy(self, model: Model, k: int
-                              ) -> tuple[np.ndarray, np.ndarray | None]:
-        """:meth:`_point_jacobian` in plain numpy/scipy (every sample at every step): the twin."""
-        solver = self._solvers[k]
-        steps, ends = self._steps(k)
-        n_out, e = len(self.depths), model.n_connectors
-        pat = self.pattern_for(solver)
-        push, pdofs = self._push(k, pat)
-        jac = np.zeros((n_out, N_PARAMS, e))
-        kv = model.params.kv
-        jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
-        abar = np.zeros((e, 2, n_out))  # adjoint of the arm forces passed to the next step
-        dbar = np.zeros((e, n_out))  # adjoint of the elongation passed to the next step
-        end_of = {s: j for j, s in enumerate(ends)}
-        for s in range(len(steps) - 1, -1, -1):
-            arms, eq = steps[s]
-            w = np.zeros(n_out)
-            if s in end_of:
-                w[end_of[s]] = 1.0
-            if not w.any() and not abar.any() and not dbar.any():
-                continue
-            geo = _Geometry(model, eq.x)
-            data = self._tangent(solver, model, pat, eq, arms)
-            full = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
-            G = geo.pattern_matrix(pat)  # (n_dofs, E): force of a unit tension
-            beta = dbar.copy()
-            if arms is not None:
-                beta += np.einsum("ei,eis->es", arms.c, abar)
-            rhs = (full @ push)[:, None] * w[None, :] - G @ beta
-            rhs[pdofs] = 0.0
-            lam = self._constrained_factor(solver, pat, data).solve(rhs)
-            lam[pdofs] = -push[pdofs, None] * w[None, :]
-            tau = G.T @ lam  # (E, S) adjoint of each connector's tension
-            jac += self._partials_numpy(model, geo, arms, tau, abar)
-            if kv is not None:
-                jac_kv += volume_partials_numpy(model, eq.x, pat, lam)
-            if arms is not None:
-                mu = abar + tau[:, None, :]
-                abar = arms.r[:, :, None] * mu
-                dbar = -np.einsum("ei,eis->es", arms.c, mu)
-        return jac, jac_kv
-
     @staticmethod
     def pattern_for(solver: EquilibriumSolver):
         return solver.pattern
 
-    @staticmethod
-    def _partials_numpy(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np.ndarray,
-                        abar: np.ndarray) -> np.ndarray:
-        """(S, 7, E): this step's explicit parameter derivatives contracted with the adjoints
-        (the twin of :func:`particle.sensitivity_kernels.add_partials`).
-
-        ``tau`` (E, S) adjoint of the tensions, ``abar`` (E, 2, S) of the new arm forces
-        (from later steps).
-        """
-        p = model.params
-        out = np.zeros((tau.shape[1], N_PARAMS, model.n_connectors))
-        dx, eps = geo.dx, geo.dx / model.rest_lengths
-        out[:, 0] = (tau * dx[:, None]).T
-        out[:, 1] = (tau * (eps * dx)[:, None]).T
-        out[:, 2] = (tau * (eps * eps * dx)[:, None]).T
+def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int
+                         ) -> tuple[np.ndarray, np.ndarray | None]:
+    """:meth:`_Adjoint._point_jacobian` of evaluator ``ev`` in plain numpy/scipy (every sample
+    at every step): its twin."""
+    solver = ev._solvers[k]
+    steps, ends = ev._steps(k)
+    n_out, e = len(ev.depths), model.n_connectors
+    pat = ev.pattern_for(solver)
+    push, pdofs = ev._push(k, pat)
+    jac = np.zeros((n_out, N_PARAMS, e))
+    kv = model.params.kv
+    jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
+    abar = np.zeros((e, 2, n_out))  # adjoint of the arm forces passed to the next step
+    dbar = np.zeros((e, n_out))  # adjoint of the elongation passed to the next step
+    end_of = {s: j for j, s in enumerate(ends)}
+    for s in range(len(steps) - 1, -1, -1):
+        arms, eq = steps[s]
+        w = np.zeros(n_out)
+        if s in end_of:
+            w[end_of[s]] = 1.0
+        if not w.any() and not abar.any() and not dbar.any():
+            continue
+        geo = _Geometry(model, eq.x)
+        data = ev._tangent(solver, model, pat, eq, arms)
+        full = sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
+        G = geo.pattern_matrix(pat)  # (n_dofs, E): force of a unit tension
+        beta = dbar.copy()
         if arms is not None:
-            mu = abar + tau[:, None, :]  # (E, 2, S)
-            k, b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
-            r, c = arms.r, arms.c
-            log_r = np.log(r)
-            step = geo.dx[:, None] - arms.dx_prev[:, None]
-            dA_dk = (log_r * r / k) * arms.force_prev + r * step
-            dA_db = (-log_r * r / b) * arms.force_prev + ((c - r * k) / b) * step
-            for i, (ki, bi) in enumerate(((3, 4), (5, 6))):
-                out[:, ki] = (mu[:, i, :] * dA_dk[:, i, None]).T
-                out[:, bi] = (mu[:, i, :] * dA_db[:, i, None]).T
-        return out
+            beta += np.einsum("ei,eis->es", arms.c, abar)
+        rhs = (full @ push)[:, None] * w[None, :] - G @ beta
+        rhs[pdofs] = 0.0
+        lam = ev._constrained_factor(solver, pat, data).solve(rhs)
+        lam[pdofs] = -push[pdofs, None] * w[None, :]
+        tau = G.T @ lam  # (E, S) adjoint of each connector's tension
+        jac += partials_numpy(model, geo, arms, tau, abar)
+        if kv is not None:
+            jac_kv += volume_partials_numpy(model, eq.x, pat, lam)
+        if arms is not None:
+            mu = abar + tau[:, None, :]
+            abar = arms.r[:, :, None] * mu
+            dbar = -np.einsum("ei,eis->es", arms.c, mu)
+    return jac, jac_kv
+
+
+def partials_numpy(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np.ndarray,
+                   abar: np.ndarray) -> np.ndarray:
+    """(S, 7, E): this step's explicit parameter derivatives contracted with the adjoints
+    (the twin of :func:`particle.sensitivity_kernels.add_partials`).
+
+    ``tau`` (E, S) adjoint of the tensions, ``abar`` (E, 2, S) of the new arm forces
+    (from later steps).
+    """
+    p = model.params
+    out = np.zeros((tau.shape[1], N_PARAMS, model.n_connectors))
+    dx, eps = geo.dx, geo.dx / model.rest_lengths
+    out[:, 0] = (tau * dx[:, None]).T
+    out[:, 1] = (tau * (eps * dx)[:, None]).T
+    out[:, 2] = (tau * (eps * eps * dx)[:, None]).T
+    if arms is not None:
+        mu = abar + tau[:, None, :]  # (E, 2, S)
+        k, b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
+        r, c = arms.r, arms.c
+        log_r = np.log(r)
+        step = geo.dx[:, None] - arms.dx_prev[:, None]
+        dA_dk = (log_r * r / k) * arms.force_prev + r * step
+        dA_db = (-log_r * r / b) * arms.force_prev + ((c - r * k) / b) * step
+        for i, (ki, bi) in enumerate(((3, 4), (5, 6))):
+            out[:, ki] = (mu[:, i, :] * dA_dk[:, i, None]).T
+            out[:, bi] = (mu[:, i, :] * dA_db[:, i, None]).T
+    return out
 
 
 class _Geometry:

@@ -24,7 +24,7 @@ ascending order; row k of ``lam``/``tau``/``beta`` is sample ``cols[k]``, and
 Sums run in the order of the scipy products they replace (edges ascending per
 dof, dofs ascending per connector: ``G beta`` and ``G^T lam`` are bitwise scipy's),
 so the pass matches its plain numpy/scipy twin
-(:meth:`particle.sensitivity._Adjoint._point_jacobian_numpy`) to round-off.
+(:func:`particle.sensitivity.point_jacobian_numpy`) to round-off.
 """
 
 from __future__ import annotations
