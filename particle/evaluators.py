@@ -26,7 +26,7 @@ import numpy as np
 
 from forcecal.errors import ConvergenceError, ParameterError
 from particle.model import Model
-from particle.params import ConnectorParams
+from particle.params import ConnectorParams, arm_recursions
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
                               check_stiffness, continuation)
 
@@ -296,8 +296,8 @@ class RelaxationEvaluator(_PointEvaluator):
         self.times = times
 
     def _prepare(self, params: ConnectorParams) -> list[tuple[np.ndarray, np.ndarray]]:
-        steps = np.diff(np.r_[0.0, self.times])
-        return [params.arm_recursion(dt, exact=True) for dt in steps]
+        r, c = arm_recursions(params, np.diff(np.r_[0.0, self.times]), exact=True)
+        return list(zip(r, c))
 
     def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
         solver = self._solver(k)

@@ -298,8 +298,25 @@ def arm_recursion(params: ConnectorParams, dt: float, *, exact: bool = False
     """
     if not dt > 0.0:
         raise ParameterError(f"arm recursion: time step {dt} s must be > 0")
+    r, c = arm_recursions(params, np.array([dt], dtype=np.float64), exact=exact)
+    return r[0], c[0]
+
+
+def arm_recursions(params: ConnectorParams, dts: np.ndarray, *, exact: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`arm_recursion` for S time steps ``dts`` (S,) [s] at once: (r, c), each (S, E, 2).
+
+    One array expression instead of S calls (a relaxation curve's 50 sample steps
+    cost 0.08 ms each as separate calls on 1,400 connectors); element by element
+    the same operations, so the same numbers bit for bit.
+    """
+    dts = np.asarray(dts, dtype=np.float64).reshape(-1)
+    if not np.all(dts > 0.0):
+        raise ParameterError(f"arm recursion: time steps {dts[~(dts > 0.0)].tolist()} s must "
+                             "be > 0")
     k = params.arm_stiffness
     tau = params.arm_tau
+    dt = dts[:, None, None]
     if exact:
         r = np.exp(-dt / tau)
         c = k * tau * (-np.expm1(-dt / tau)) / dt  # 1 - r without cancellation for dt << tau

@@ -191,6 +191,8 @@ class EquilibriumSolver:
         self._mat = pattern.dofs(active)
         self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
         self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
+        self._mean_length = np.mean(model.rest_lengths)
+        self._floor_of: tuple[ConnectorParams | None, float] = (None, 0.0)  # force scale floor
         self._lu = None
         self._stale = True  # refactorise before the next step
         self.factorizations = 0
@@ -198,6 +200,7 @@ class EquilibriumSolver:
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_lu"], state["_stale"] = None, True  # factorisations are not shipped
+        state["_floor_of"] = (None, 0.0)
         return state
 
     @property
@@ -250,7 +253,9 @@ class EquilibriumSolver:
         brought below the tolerance in ``max_iter`` iterations.
         """
         args = (params, not params.is_linear, arms, gravity)
-        floor = 1e-3 * float(np.mean(params.K0) * np.mean(self.model.rest_lengths))
+        if self._floor_of[0] is not params:  # the same parameters for a whole curve
+            self._floor_of = (params, 1e-3 * float(np.mean(params.K0) * self._mean_length))
+        floor = self._floor_of[1]
         if gravity is not None:
             floor = max(floor, float(np.linalg.norm(gravity) * self.model.masses.sum()))
         cur = self._evaluate(np.array(x, dtype=np.float64), *args)
