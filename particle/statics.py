@@ -184,9 +184,7 @@ class EquilibriumSolver:
         self.model = model
         self.prescribed = model.check_nodes(prescribed, "prescribed particles")
         self.pattern = pattern
-        self.rtol = rtol
-        self.max_iter = max_iter
-        self.refactor_ratio = refactor_ratio
+        self.rtol, self.max_iter, self.refactor_ratio = rtol, max_iter, refactor_ratio
         active = np.setdiff1d(model.free_nodes, self.prescribed)
         self._flat = (3 * active[:, None] + np.arange(3)).ravel()
         self._mat = pattern.dofs(active)
@@ -206,12 +204,9 @@ class EquilibriumSolver:
 
     @property
     def factorization(self):
-        """The factorisation the next step will use (a :class:`particle.sparse_ldl.Factor`,
-        or None).
-
-        Callers that solve a sequence of similar problems can hand back the one
-        that served a similar problem before (see the evaluators).
-        """
+        """The factorisation the next step will use (a :class:`particle.sparse_ldl.Factor`, or
+        None); callers solving a sequence of similar problems hand back the one that
+        served a similar problem before (see the evaluators)."""
         return self._lu
 
     @factorization.setter
@@ -256,9 +251,8 @@ class EquilibriumSolver:
         args = (params, not params.is_linear, arms, gravity)
         if self._floor_of[0] is not params:  # the same parameters for a whole curve
             self._floor_of = (params, 1e-3 * float(np.mean(params.K0) * self._mean_length))
-        floor = self._floor_of[1]
-        if gravity is not None:
-            floor = max(floor, float(np.linalg.norm(gravity) * self.model.masses.sum()))
+        floor = self._floor_of[1] if gravity is None else max(
+            self._floor_of[1], float(np.linalg.norm(gravity) * self.model.masses.sum()))
         cur = self._evaluate(np.array(x, dtype=np.float64), *args)
         fresh = False
         for it in range(self.max_iter + 1):
