@@ -88,16 +88,16 @@ def gradient_backend(experiments: Experiments, points: np.ndarray, params: Conne
                                   footprints=experiments.held(points))
 
 
-def point_residuals(worker: PointWorker, params: ConnectorParams, points: Sequence[int],
-                    data: "Data") -> np.ndarray:
+def point_residuals(worker: PointWorker, params: ConnectorParams, data: "Data",
+                    points: Sequence[int]) -> np.ndarray:
     """Call run on a worker: residuals (P' R,) of owned ``points`` (global indices), every
     experiment of ``data`` in one call."""
     curves = {kind: worker.curves(kind, params, points) for kind in data.kinds}
     return data.residuals(curves, np.asarray(points))
 
 
-def point_rows(worker: PointWorker, params: ConnectorParams, points: Sequence[int],
-               coords: "Coordinates", data: "Data", keep: int
+def point_rows(worker: PointWorker, params: ConnectorParams, coords: "Coordinates",
+               data: "Data", keep: int, points: Sequence[int]
                ) -> tuple[np.ndarray, np.ndarray, float]:
     """Call run on a worker: the compressed Gauss-Newton rows of owned ``points`` (global
     indices), every experiment of ``data``: residuals (P' k,), their coordinate Jacobian
@@ -298,38 +298,26 @@ class Evaluator:
 
     def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(rows,) residuals at ``theta`` (:func:`point_residuals` on each worker)."""
-        out, at = self._on_workers(point_residuals, (self.coords.params(theta), self.data),
-                                   points)
-        per_point = self.data.rows(points[:1])
-        return np.concatenate(out).reshape(len(points), per_point)[at].ravel()
+        out, positions = self.pool.by_owner(point_residuals, points, self.coords.params(theta),
+                                            self.data)
+        rows = np.empty((len(points), self.data.rows(points[:1])))
+        rows[positions] = np.concatenate(out).reshape(rows.shape)
+        return rows.ravel()
 
     def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
                   ) -> tuple[np.ndarray, np.ndarray, float]:
         """Compressed rows at ``theta`` (:func:`point_rows` on each worker): residuals
         (P k,), Jacobian (P k, size), point-major in the order of ``points``, and the
         squared residual left out [1]."""
-        out, at = self._on_workers(point_rows, (self.coords.params(theta), self.coords,
-                                                self.data, keep), points)
+        out, positions = self.pool.by_owner(point_rows, points, self.coords.params(theta),
+                                            self.coords, self.data, keep)
         kept = min(keep, self.data.rows(points[:1]))
-        rows = np.concatenate([o[0] for o in out]).reshape(len(points), kept)
-        jac = np.concatenate([o[1] for o in out]).reshape(len(points), kept, -1)
+        rows = np.empty((len(points), kept))
+        rows[positions] = np.concatenate([o[0] for o in out]).reshape(rows.shape)
+        jac = np.empty((len(points), kept, self.coords.size))
+        jac[positions] = np.concatenate([o[1] for o in out]).reshape(jac.shape)
         self.jacobians += 1
-        return (rows[at].ravel(), jac[at].reshape(len(points) * kept, -1),
-                float(sum(o[2] for o in out)))
-
-    def _on_workers(self, fn: Callable, args: tuple, points: np.ndarray
-                    ) -> tuple[list, np.ndarray]:
-        """``fn(worker, args[0], owned points, *args[1:])`` on every worker owning some of
-        ``points``: the results in worker order, and where each of ``points`` is in their
-        concatenation."""
-        groups = [points[self.pool.owner[points] == w] for w in range(self.pool.n_workers)]
-        groups = [g for g in groups if len(g)]
-        out = [None] * len(groups)
-        for i, value in self.pool.map(fn, [(int(g[0]), (args[0], g) + args[1:])
-                                           for g in groups]):
-            out[i] = value
-        order = np.concatenate(groups)
-        return out, np.argsort(order)[np.searchsorted(np.sort(order), points)]
+        return rows.ravel(), jac.reshape(len(points) * kept, -1), float(sum(o[2] for o in out))
 
 
 @dataclass(frozen=True, eq=False)

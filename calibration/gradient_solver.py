@@ -22,7 +22,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse.linalg import splu
 
 from calibration.optimize import INFEASIBLE
-from forcecal.blas import available_cores, blas_threads
+from forcecal.blas import blas_threads
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +157,7 @@ class Linearisation:
     offset: float = 0.0
 
     @classmethod
+    @blas_threads()  # the parent's dense algebra on every core: the workers wait meanwhile
     def of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
            offset: float = 0.0, n_dense: int | None = None) -> "Linearisation":
         """The products for rows ``r``, ``J``; the rows after the first ``n_dense`` (None: all
@@ -172,12 +173,6 @@ class Linearisation:
         """
         if not len(J):
             return cls(theta, r, J, np.zeros((J.shape[1], 0)), np.zeros((0, 0)), offset)
-        with blas_threads(available_cores()):  # the workers wait meanwhile
-            return cls._of(theta, r, J, reg, offset, n_dense)
-
-    @classmethod
-    def _of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
-            offset: float, n_dense: int | None) -> "Linearisation":
         n = len(J) if n_dense is None else n_dense
         P = np.empty((J.shape[1], len(J)))
         P[:, :n] = reg.solve(J[:n].T)
@@ -195,6 +190,7 @@ class Linearisation:
         return Linearisation(self.theta, self.r[keep], self.J[keep], self.P[:, keep],
                              self.C[np.ix_(keep, keep)])
 
+    @blas_threads()
     def step(self, reg: Regulariser, weight: float, damping: float) -> np.ndarray:
         """(size,) minimiser of ``|r + J d|^2 + weight reg(theta + d) + damping d^T A1 d``.
 
@@ -204,15 +200,11 @@ class Linearisation:
         alpha = weight + damping
         d0 = (self.theta - reg.theta0).ravel()
         if len(self.r):
-            with blas_threads(available_cores()):
-                return self._woodbury(reg, weight, alpha, d0)
-        return (-weight * d0 / alpha).reshape(self.theta.shape)
-
-    def _woodbury(self, reg: Regulariser, weight: float, alpha: float, d0: np.ndarray
-                  ) -> np.ndarray:
-        inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
-                          self.C @ self.r + weight * (self.J @ d0))
-        d = self.P @ (self.r - inner) + weight * d0
+            inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
+                              self.C @ self.r + weight * (self.J @ d0))
+            d = self.P @ (self.r - inner) + weight * d0
+        else:
+            d = weight * d0
         return (-d / alpha).reshape(self.theta.shape)
 
     def predict(self, d: np.ndarray) -> np.ndarray:
@@ -251,6 +243,7 @@ def folds_of(n_points: int, k: int) -> list[np.ndarray]:
     return [np.sort(order[f::k]) for f in range(min(k, n_points))]
 
 
+@blas_threads()
 def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
                    folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID
                    ) -> tuple[float, np.ndarray]:
@@ -262,18 +255,6 @@ def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
     delta``; returns the weight with the smallest total predicted squared fold
     residual and the (len(grid),) CV costs.
     """
-    with blas_threads(available_cores()):  # the workers wait meanwhile
-        costs = _fold_costs(lin, rows_per_point, reg, folds, grid)
-    best = int(np.argmin(costs))
-    if best in (0, len(grid) - 1):
-        log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
-                    "[%g, %g]", grid[best], grid[0], grid[-1])
-    return float(grid[best]), costs
-
-
-def _fold_costs(lin: Linearisation, rows_per_point: int, reg: Regulariser,
-                folds: list[np.ndarray], grid: Sequence[float]) -> np.ndarray:
-    """(len(grid),) predicted squared fold residuals, summed over the folds."""
     point_of_row = np.repeat(np.arange(len(lin.r) // rows_per_point), rows_per_point)
     d0 = lin.theta - reg.theta0
     Jd0 = lin.J @ d0
@@ -292,7 +273,11 @@ def _fold_costs(lin: Linearisation, rows_per_point: int, reg: Regulariser,
             X = U @ ((U.T @ rhs) / (alpha + e))
             Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
             costs[g] += float(np.sum((r_F + Jd) ** 2))
-    return costs
+    best = int(np.argmin(costs))
+    if best in (0, len(grid) - 1):
+        log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
+                    "[%g, %g]", grid[best], grid[0], grid[-1])
+    return float(grid[best]), costs
 
 
 @dataclass

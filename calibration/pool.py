@@ -396,18 +396,24 @@ class Pool:
         if error is not None:
             raise error
 
+    def by_owner(self, fn: Callable, points: Sequence[int], *args) -> tuple[list, np.ndarray]:
+        """``fn(worker, *args, owned)`` on every worker owning some of ``points``, ``owned``
+        its share of them (in their order). Returns the results, one per such worker, and
+        where each entry of their concatenated shares sits in ``points``."""
+        points = np.asarray(points, dtype=np.int64)
+        groups = [g for g in (points[self.owner[points] == w] for w in range(self.n_workers))
+                  if len(g)]
+        out: list[Any] = [None] * len(groups)
+        for i, value in self.map(fn, [(int(g[0]), args + (g,)) for g in groups]):
+            out[i] = value
+        return out, _positions(np.concatenate(groups), points)
+
     def curves(self, kind: str, params: ConnectorParams, points: Sequence[int]) -> np.ndarray:
         """(len(points), S) normal-force curves [N] of test points ``points`` (indices)."""
-        points = np.asarray(points, dtype=np.int64)
-        groups = [points[self.owner[points] == w] for w in range(self.n_workers)]
-        calls = [(int(g[0]), (kind, params, g)) for g in groups if len(g)]
-        out: list[np.ndarray | None] = [None] * len(calls)
-        for i, value in self.map(point_curves, calls):
-            out[i] = value
+        out, positions = self.by_owner(point_curves, points, kind, params)
         curves = np.concatenate(out)
-        order = np.concatenate([g for g in groups if len(g)])
         result = np.empty_like(curves)
-        result[_positions(order, points)] = curves
+        result[positions] = curves
         return result
 
     def total_cost(self, kind: str, params: ConnectorParams, points: Sequence[int],

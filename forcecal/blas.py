@@ -4,8 +4,9 @@ Processes run with ``OMP_NUM_THREADS=1`` (Makefile): the calibration workers and
 MPI ranks own one core each. A phase where the workers wait for the parent's
 dense algebra (the gradient fit's Woodbury products between two Jacobians)
 leaves those cores idle; :func:`blas_threads` lends them to the parent's BLAS for
-that phase. It acts on OpenBLAS (Debian's ``libblas.so.3`` alternative); with
-another BLAS, or where the loaded libraries cannot be listed, it does nothing.
+that phase (a ``with`` block, or a decorator of the function that does it). It
+acts on OpenBLAS (Debian's ``libblas.so.3`` alternative); with another BLAS, or
+where the loaded libraries cannot be listed, it does nothing.
 """
 
 from __future__ import annotations
@@ -48,15 +49,16 @@ def available_cores() -> int:
 
 
 @contextlib.contextmanager
-def blas_threads(n: int) -> Iterator[None]:
-    """Run the block with ``n`` BLAS threads (at most the available cores), then restore."""
+def blas_threads(n: int | None = None) -> Iterator[None]:
+    """Run the block with ``n`` BLAS threads (at most, and by default, the available cores),
+    then restore."""
     calls = _openblas()
     if calls is None:
         yield
         return
     get, put = calls
     before = get()
-    put(max(1, min(n, available_cores())))
+    put(max(1, available_cores() if n is None else min(n, available_cores())))
     try:
         yield
     finally:

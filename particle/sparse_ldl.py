@@ -380,10 +380,7 @@ def _solve_one(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, b, out):
     w = np.empty(n)
     for k in range(n):
         w[k] = b[perm[k]]
-    widest = 0
-    for s in range(len(sup_ptr) - 1):
-        widest = max(widest, row_ptr[s + 1] - row_ptr[s])
-    buffer = np.empty(widest)
+    buffer = np.empty(n)  # a supernode's rows below its columns (fewer than n)
     for s in range(len(sup_ptr) - 1):  # L w' = w
         f, nc = sup_ptr[s], sup_ptr[s + 1] - sup_ptr[s]
         r0, nr, xs = row_ptr[s], row_ptr[s + 1] - row_ptr[s], x_ptr[s]

@@ -16,6 +16,12 @@ def test_blas_threads_are_lent_for_the_block_and_restored():
         assert get() == min(64, available_cores())
         inside = a @ a
     assert get() == before
+
+    @blas_threads()  # as a decorator: every available core during each call
+    def threads_inside() -> int:
+        return get()
+    assert threads_inside() == available_cores() and threads_inside() == available_cores()
+    assert get() == before
     with pytest.raises(ZeroDivisionError):
         with blas_threads(2):
             1 / 0
