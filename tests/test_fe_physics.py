@@ -467,3 +467,40 @@ def test_a_kept_factorisation_and_chord_steps_change_nothing_but_the_cost(monkey
     # both converge to the same Newton tolerance (1e-8 of the force scale); GMRES solves to
     # 1e-8 of each residual, so the curves agree far below that
     np.testing.assert_allclose(kept, fresh, rtol=0, atol=1e-9 * np.abs(fresh).max())
+
+
+def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypatch):
+    """solve_step's first residual applies dolfinx's lifting only when the guess misses a
+    prescribed value: on a punch-like ramp-and-hold the first step from rest (its guess is
+    the rest state), not the extrapolated ramp steps or the hold. Forcing the lifting on
+    every step (SNAP_DISTANCE < 0) gives the same curve to round-off."""
+    import reference_fe.model as fe_model
+    from dolfinx.fem.petsc import NonlinearProblem
+
+    mesh = mirrored_block(L, L)
+    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
+    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
+    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
+    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    lifted = []
+    lifting_residual = NonlinearProblem.F
+
+    def counted(self, x, b):
+        lifted.append(1)
+        lifting_residual(self, x, b)
+
+    monkeypatch.setattr(NonlinearProblem, "F", counted)
+
+    def run() -> tuple[np.ndarray, int]:
+        lifted.clear()
+        model = FEModel(mesh, MATERIAL, FESection(element="P2"))
+        curve = ex.relaxation_curve(model, fixed, top, normal, times, depths)
+        return curve, len(lifted)
+
+    snapped, n_snapped = run()
+    monkeypatch.setattr(fe_model, "SNAP_DISTANCE", -1.0)
+    lifting, n_lifting = run()
+    assert n_snapped == 1 and n_lifting >= len(times)
+    # the two paths differ in the first residual's round-off only (the lifting term is
+    # A (g - x) = 0 there); the Newton tolerance is 1e-8 of the force scale
+    np.testing.assert_allclose(snapped, lifting, rtol=0, atol=1e-10 * np.abs(lifting).max())
