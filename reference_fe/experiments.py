@@ -86,18 +86,31 @@ def march(state: FEState, targets: np.ndarray, step: Step, *, max_cuts: int, wha
         yield state
 
 
+#: fraction of the linear extrapolation in time that guesses a held step (the creep of a
+#: relaxation hold, :func:`extrapolate`): the Prony terms decay, so the creep slows and the
+#: full linear extrapolation overshoots. Measured on three liver punch points (24k TH dofs):
+#: Newton iterations of a relaxation curve 291 / 283 / 282 with the last state as the guess,
+#: 251 / 237 / 239 with 0.8 (0.5: 271 / 263 / 264; 1.0 at the first point: 266)
+HELD_EXTRAPOLATION = 0.8
+
+
 def extrapolate(state: FEState, previous: FEState | None, drive: Callable[[float], float],
-                target: float) -> np.ndarray:
+                target: float, *, held: float = 0.0) -> np.ndarray:
     """Newton guess: the solution extrapolated linearly in the driving load ``drive(progress)``.
 
     Exact for the prescribed dofs; a much better start than the last solution
-    for the rest. Falls back to the last solution when the drive does not change.
+    for the rest. When the drive does not change (a hold), the last step's change
+    extrapolated linearly in the progress (time) and scaled by ``held``
+    (0: the last solution; the prescribed dofs do not move either way).
     """
     if previous is None:
         return state.u
     span = drive(state.progress) - drive(previous.progress)
     if span == 0.0:
-        return state.u
+        if not held:
+            return state.u
+        ratio = (target - state.progress) / (state.progress - previous.progress)
+        return state.u + held * ratio * (state.u - previous.u)
     ratio = (drive(target) - drive(state.progress)) / span
     return state.u + ratio * (state.u - previous.u)
 
@@ -154,7 +167,7 @@ def held_relaxation_curve(model: FEModel, fixed: np.ndarray, dofs: np.ndarray,
         return float(np.interp(t, t_knots, d_knots))
 
     def step(state: FEState, previous: FEState | None, t: float) -> FEState:
-        guess = extrapolate(state, previous, depth_at, t)
+        guess = extrapolate(state, previous, depth_at, t, held=HELD_EXTRAPOLATION)
         return solve_step(model, state, _indent(model, fixed, dofs, normal, depth_at(t)), t,
                           dt=t - state.progress, guess=guess)
 

@@ -18,7 +18,7 @@ from forcecal.mesh import TetMesh, box_mesh, check_mesh  # noqa: E402
 from forcecal.scene import FESection, MaterialSection  # noqa: E402
 from reference_fe import experiments as ex  # noqa: E402
 from reference_fe.material import long_term  # noqa: E402
-from reference_fe.model import (Constraint, FEModel, Load, StepFailed,  # noqa: E402
+from reference_fe.model import (Constraint, FEModel, FEState, Load, StepFailed,  # noqa: E402
                                 clamp, initial_state, solve_step)
 
 pytestmark = pytest.mark.fe
@@ -504,3 +504,40 @@ def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypat
     # the two paths differ in the first residual's round-off only (the lifting term is
     # A (g - x) = 0 there); the Newton tolerance is 1e-8 of the force scale
     np.testing.assert_allclose(snapped, lifting, rtol=0, atol=1e-10 * np.abs(lifting).max())
+
+
+def test_a_held_step_is_guessed_from_the_creep_of_the_step_before(monkeypatch):
+    """extrapolate: linear in the drive while it changes; in a hold, the last change
+    extrapolated in time and scaled by ``held``, the held dofs unmoved. A relaxation curve
+    guessed that way (HELD_EXTRAPOLATION) is the one guessed from the last state, to the
+    Newton tolerance."""
+    import reference_fe.experiments as experiments
+
+    def state(progress: float, u) -> FEState:
+        u = np.asarray(u, dtype=float)
+        return FEState(u=u, velocity=0 * u, history=np.zeros(0), s_iso=np.zeros(0),
+                       force=None, progress=progress)
+
+    depth = lambda t: min(t, 1.0)  # noqa: E731  (ramp to 1 at t = 1, then held)
+    ramp = ex.extrapolate(state(0.5, [0.5, 2.0]), state(0.25, [0.25, 1.0]), depth, 0.75)
+    np.testing.assert_allclose(ramp, [0.75, 3.0])
+    previous, last = state(2.0, [1.0, 1.0]), state(3.0, [1.0, 1.5])
+    np.testing.assert_allclose(ex.extrapolate(last, previous, depth, 5.0), [1.0, 1.5])
+    np.testing.assert_allclose(ex.extrapolate(last, previous, depth, 5.0, held=0.8),
+                               [1.0, 1.5 + 0.8 * 2.0 * 0.5])
+
+    mesh = mirrored_block(L, L)
+    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
+    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
+    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.1 * np.cumsum(1.3 ** np.arange(10))]
+    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+
+    def curve() -> np.ndarray:
+        model = FEModel(mesh, MATERIAL, FESection(element="P2"))
+        return ex.relaxation_curve(model, fixed, top, normal, times, depths)
+
+    guessed = curve()
+    monkeypatch.setattr(experiments, "HELD_EXTRAPOLATION", 0.0)
+    last_state = curve()
+    np.testing.assert_allclose(guessed, last_state, rtol=0,
+                               atol=1e-8 * np.abs(last_state).max())
