@@ -60,7 +60,7 @@ from calibration.gradient_solver import (N_COORDS, ROWS_KEPT, WEIGHT_GRID, Linea
                                          LMState, Regulariser, compress, cross_validate,
                                          folds_of, levenberg_marquardt, linearise)
 from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
-from calibration.pool import Experiments, Pool, PointWorker
+from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
 from particle.params import ConnectorParams
 
@@ -300,9 +300,7 @@ class Evaluator:
         """(rows,) residuals at ``theta`` (:func:`point_residuals` on each worker)."""
         out, positions = self.pool.by_owner(point_residuals, points, self.coords.params(theta),
                                             self.data)
-        rows = np.empty((len(points), self.data.rows(points[:1])))
-        rows[positions] = np.concatenate(out).reshape(rows.shape)
-        return rows.ravel()
+        return in_point_order(out, positions, (self.data.rows(points[:1]),)).ravel()
 
     def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
                   ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -312,10 +310,8 @@ class Evaluator:
         out, positions = self.pool.by_owner(point_rows, points, self.coords.params(theta),
                                             self.coords, self.data, keep)
         kept = min(keep, self.data.rows(points[:1]))
-        rows = np.empty((len(points), kept))
-        rows[positions] = np.concatenate([o[0] for o in out]).reshape(rows.shape)
-        jac = np.empty((len(points), kept, self.coords.size))
-        jac[positions] = np.concatenate([o[1] for o in out]).reshape(jac.shape)
+        rows = in_point_order([o[0] for o in out], positions, (kept,))
+        jac = in_point_order([o[1] for o in out], positions, (kept, self.coords.size))
         self.jacobians += 1
         return rows.ravel(), jac.reshape(len(points) * kept, -1), float(sum(o[2] for o in out))
 

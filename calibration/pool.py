@@ -411,10 +411,7 @@ class Pool:
     def curves(self, kind: str, params: ConnectorParams, points: Sequence[int]) -> np.ndarray:
         """(len(points), S) normal-force curves [N] of test points ``points`` (indices)."""
         out, positions = self.by_owner(point_curves, points, kind, params)
-        curves = np.concatenate(out)
-        result = np.empty_like(curves)
-        result[positions] = curves
-        return result
+        return in_point_order(out, positions)
 
     def total_cost(self, kind: str, params: ConnectorParams, points: Sequence[int],
                    reference: np.ndarray) -> float:
@@ -437,6 +434,18 @@ class Pool:
         """Point-curves computed by all workers so far."""
         calls = [(int(np.nonzero(self.owner == w)[0][0]), ()) for w in range(self.n_workers)]
         return sum(v for _, v in self.map(evaluation_count, calls))
+
+
+def in_point_order(parts: Sequence[np.ndarray], positions: np.ndarray,
+                   per_point: tuple[int, ...] | None = None) -> np.ndarray:
+    """The workers' point-major results of :meth:`Pool.by_owner` concatenated and put in the
+    order of the points asked for: (P, *per_point) (default per point: the parts' rows)."""
+    rows = np.concatenate(parts)
+    if per_point is not None:
+        rows = rows.reshape((len(positions),) + tuple(per_point))
+    out = np.empty_like(rows)
+    out[positions] = rows
+    return out
 
 
 def _positions(order: np.ndarray, points: np.ndarray) -> np.ndarray:
