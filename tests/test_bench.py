@@ -56,6 +56,29 @@ def test_sliced_reference_keeps_the_curves_of_its_points(tmp_path, liver_scene, 
     assert sliced.meta["scene_fingerprint"] != reference.meta["scene_fingerprint"]
 
 
+def test_a_sliced_reference_is_adopted_instead_of_recomputed(tmp_path, liver_scene,
+                                                            liver_problem):
+    """The slice records the experiment keys a run of its own scene would record (its FE
+    curves equal such a run's, each work item depending on its own point only), so the
+    pipeline adopts it; the unsliced file holds another list of points and is not."""
+    from forcecal.h5io import write_reference
+    from pipelines.runners.common import REFERENCE, Context
+    from pipelines.runners.reference import adopt_reference
+    from reference_fe.keys import experiment_keys
+
+    mesh = liver_problem.mesh.fingerprint()
+    reference = _fake_reference(liver_problem, liver_scene.material)
+    reference.meta["experiment_keys"] = json.dumps(experiment_keys(liver_scene, mesh))
+    picked = [int(p) for p in liver_problem.calibration[[0, 5, 9]]]
+    scene = derived_scene(liver_scene, "bench-slice", {"test_points": {
+        "calibration": picked, "held_out": [int(p) for p in liver_problem.held_out]}}, tmp_path)
+    context = Context(scene=scene, out=tmp_path, progress=False, ranks=1)
+    write_reference(tmp_path / REFERENCE, reference)
+    assert not adopt_reference(context, mesh)
+    write_reference(tmp_path / REFERENCE, sliced_reference(reference, scene))
+    assert adopt_reference(context, mesh)
+
+
 @pytest.mark.parametrize("total, complete", [(100.0, True), (40.0, False)])
 def test_a_resumed_reference_run_is_not_taken_as_a_wall_time(liver_scene, liver_problem, total,
                                                              complete):

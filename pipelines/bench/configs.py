@@ -121,6 +121,7 @@ def derived_scene(base: Scene, name: str, changes: dict[str, dict[str, Any]],
 def sliced_reference(reference: Reference, scene: Scene) -> Reference:
     """The default reference restricted to ``scene``'s test points (a subset of its own)."""
     from forcecal.problem import build_problem
+    from reference_fe.keys import experiment_keys
 
     problem = build_problem(scene, reference.problem.mesh)
     index = {int(p): k for k, p in enumerate(reference.problem.test_points)}
@@ -130,7 +131,12 @@ def sliced_reference(reference: Reference, scene: Scene) -> Reference:
         return dataclasses.replace(curves, force=curves.force[rows],
                                    force_normal=curves.force_normal[rows])
 
-    meta = {**reference.meta, "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS)}
+    # the keys a run of this scene would record, so the pipeline adopts the slice: every FE
+    # work item depends on its own point only (equal to a computed one bit for bit)
+    keys = experiment_keys(scene, problem.mesh.fingerprint())
+    held = json.loads(reference.meta.get("experiment_keys", "{}"))
+    meta = {**reference.meta, "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
+            "experiment_keys": json.dumps({e: keys[e] for e in held})}
     return dataclasses.replace(reference, problem=problem, indentation=take(reference.indentation),
                                relaxation=take(reference.relaxation), meta=meta)
 
