@@ -12,7 +12,10 @@ once per scene and copied to the other folders, where
 current: the bench scene's is the bench's default pipeline run's (``cache/runs/default``,
 brought up to date by the driver before this study), the punch scene's is adopted from
 ``runs/liver_punch/`` (``make demo``) when that one is current, else computed by the
-first row (:func:`pipelines.bench.items.runs_source`: never in a ``--cold`` bench).
+first row (:func:`pipelines.bench.items.runs_source`: never in a ``--cold`` bench). The
+bench scene's row with its own model and method is the default pipeline run itself: its
+folder is seeded from that run (:func:`pipelines.bench.items.seed_folder`), so only the
+report (another scene name) is redone, and the row reports that run's calibration.
 
 Each row: ``scene``, ``model``, ``method``, ``calibration_s`` (``timings_s.calibration``
 of the run's ``report.json``), ``errors`` (the report's calibration and held-out
@@ -143,7 +146,7 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
 
 def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]:
     """Every scene x model x method (module docstring); returns ``calibration_methods``."""
-    from pipelines.bench.items import default_folder, runs_source
+    from pipelines.bench.items import default_folder, runs_source, seed_folder
 
     cache_folder = Path(cache_folder)
     scenes = [scene] if quick else [scene, load_scene(PUNCH_SCENE)]
@@ -157,6 +160,9 @@ def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]
         for model, volume in MODELS:
             for method in METHODS:
                 folder = base / f"{'volume' if volume else 'springs'}-{method}"
+                if sc is scene and (volume, method) == (scene.particle.volume,
+                                                        scene.calibration.method):
+                    seed_folder(default_folder(cache_folder), folder)  # the same run
                 rows.append(run_row(sc, model, volume, method, folder, reference_from,
                                     reference_is_current))
                 if "failed" not in rows[-1]:

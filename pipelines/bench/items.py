@@ -60,20 +60,15 @@ def default_folder(cache: Path) -> Path:
     return cache / "runs" / "default"
 
 
-def seed_default(scene: Scene, cache: Path) -> None:
-    """Copy a finished run of the scene (``runs/<name>/``, e.g. from ``make demo``) into the
-    default run's folder (:func:`default_folder`) when that run finished later than the
-    folder's own (or the folder has none; never in a cold bench, :func:`runs_source`); the
-    pipeline's cache then decides what is still valid."""
-    source = runs_source(cache, scene.name)
-    if source is None:
-        return
-    folder = default_folder(cache)
+def seed_folder(source: Path, folder: Path) -> bool:
+    """Copy a finished pipeline run (:data:`SEED_FILES` and its stage cache records) from
+    ``source`` into ``folder`` when it finished later than the folder's own (or the folder
+    has none); the pipeline's cache then decides what is still valid. True if copied."""
     finished = source / "cache" / "report.json"
     own = folder / "cache" / "report.json"
     if not finished.is_file() or (own.is_file()
                                   and own.stat().st_mtime >= finished.stat().st_mtime):
-        return
+        return False
     (folder / "cache").mkdir(parents=True, exist_ok=True)
     for name in SEED_FILES:
         if (source / name).is_file():
@@ -81,6 +76,16 @@ def seed_default(scene: Scene, cache: Path) -> None:
     for record in (source / "cache").glob("*.json"):
         shutil.copy2(record, folder / "cache" / record.name)
     log.info("bench: seeded %s from %s", folder, source)
+    return True
+
+
+def seed_default(scene: Scene, cache: Path) -> None:
+    """Seed the default run's folder (:func:`default_folder`) from a finished run of the
+    scene in ``runs/<name>/`` (e.g. from ``make demo``; never in a cold bench,
+    :func:`runs_source`), see :func:`seed_folder`."""
+    source = runs_source(cache, scene.name)
+    if source is not None:
+        seed_folder(source, default_folder(cache))
 
 
 def default_run(scene: Scene, cache: Path, *, ranks: int, progress: bool
