@@ -203,6 +203,33 @@ def test_convergence_changes_are_against_the_finest_level():
     assert out["sag_change"] == pytest.approx(0.5 / 35)
 
 
+def test_convergence_levels_are_assembled_from_items_finished_in_any_order():
+    """The study's forces and sags are independent items (run side by side by the bench): a
+    level's row holds its points' forces in the order of the points, whatever order they
+    finished in, and appears only once all its items have."""
+    from pipelines.bench.fe_convergence import Item, level_rows
+
+    points = np.array([7, 3])
+    results = {Item(1, 3): {"force": 0.13, "dofs": 130, "wall_s": 2.0},
+               Item(0): {"max_sag": 0.030, "dofs": 50, "wall_s": 4.0},
+               Item(1): {"max_sag": 0.034, "dofs": 150, "wall_s": 8.0},
+               Item(0, 3): {"force": 0.03, "dofs": 30, "wall_s": 1.0},
+               Item(0, 7): {"force": 0.07, "dofs": 70, "wall_s": 3.0}}
+    rows = level_rows(results, points, levels=(0, 1), sag_levels=(0, 1), element="TH")
+    assert [r["level"] for r in rows] == [0]  # level 1 still waits for point 7
+    assert rows[0]["punch_force"] == [0.07, 0.03] and rows[0]["dofs"] == [70, 30]
+    assert rows[0]["max_sag"] == 0.030 and rows[0]["sag_dofs"] == 50
+    assert rows[0]["wall_s"] == 8.0 and rows[0]["wall_s_punch_per_point"] == 2.0
+    results[Item(1, 7)] = {"force": 0.17, "dofs": 170, "wall_s": 6.0}
+    rows = level_rows(results, points, levels=(0, 1), sag_levels=(0, 1), element="TH")
+    assert rows[1]["punch_force"] == [0.17, 0.13] and rows[1]["wall_s_sag"] == 8.0
+    # a sag-only level has no forces; longest items are scheduled first
+    assert level_rows(results, points, levels=(0,), sag_levels=(1,), element="TH")[1][
+        "punch_force"] is None
+    items = sorted([Item(0, 3), Item(2), Item(4, 3), Item(3, 3)], key=lambda i: -i.cost())
+    assert items == [Item(4, 3), Item(2), Item(3, 3), Item(0, 3)]
+
+
 def test_indenter_radius_study_points_are_valid_at_every_radius():
     """The contact-size study compares every radius on the same points: the scene's own where
     their footprints are valid at 1, 1.5 and 2 edge lengths, topped up to 8 held-out points by

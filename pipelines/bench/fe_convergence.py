@@ -12,8 +12,10 @@ refinement: the scene's ``fe.refine``) against the finest sag level, and
 ``*_change_two_finest`` those between the two finest levels of each quantity.
 
 ``python -m pipelines.bench.fe_convergence [--scene FILE] [--levels 0 1 2 3 4]
-[--sag-levels 0 1 2] [--element TH] [--out FILE.json]`` runs it alone (each level is
-written to ``--out`` as it finishes, so a long run can be followed and interrupted).
+[--sag-levels 0 1 2] [--element TH] [--workers N] [--out FILE.json]`` runs it alone (the
+levels found so far are written to ``--out`` as each force or sag finishes, so a long run can
+be followed and interrupted). Every punch force and sag is computed on its own, so the bench
+runs them on both cores (:data:`WORKERS`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import json
 import logging
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Sequence
 
@@ -41,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
 LEVELS = (0, 1, 2, 3, 4)  # punch rim refinements: TH 5k-6k, 8k, 13k, 24k, 46k dofs
 SAG_LEVELS = (0, 1, 2)  # clamp rim refinements: TH 5k, 15k, 38k dofs
+WORKERS = 2  # processes of the bench's study: the machine's two cores
 
 
 def study_points(problem: Problem, radius: float, n: int = 3) -> np.ndarray:
@@ -62,52 +67,99 @@ def study_points(problem: Problem, radius: float, n: int = 3) -> np.ndarray:
     return np.asarray(valid)[np.linspace(0, len(valid) - 1, n).round().astype(int)]
 
 
-def measure_level(scene: Scene, problem: Problem, points: np.ndarray, level: int, *,
-                  sag: bool = True) -> dict:
-    """Full-depth punch force at ``points`` on their meshes refined ``level`` times near the
-    punch's rim and (``sag``) the largest static sag on the mesh refined ``level`` times near
-    the clamp's rim (``points`` empty: the sag alone)."""
+def _level_scene(scene: Scene, level: int) -> Scene:
+    """``scene`` with ``fe.local_refine = level``."""
+    return dataclasses.replace(scene, fe=dataclasses.replace(scene.fe, local_refine=level))
+
+
+def punch_force(scene: Scene, problem: Problem, level: int, vertex: int) -> dict:
+    """Full-depth punch force [N] along the normal at test point ``vertex``, on its FE mesh
+    refined ``level`` times near the punch's rim: ``{force, dofs, wall_s}``."""
     from reference_fe import experiments
-    from reference_fe.model import FEModel
-    from reference_fe.refine import check_memory, fe_problem, rim_refined_problem
+    from reference_fe.refine import fe_problem
     from reference_fe.run import indenter_dofs, punch_model
 
-    fe_section = dataclasses.replace(scene.fe, local_refine=level)
-    scene = dataclasses.replace(scene, fe=fe_section)
-    check_memory(problem.mesh, fe_section)
     t0 = time.perf_counter()
-    base = fe_problem(problem, fe_section)
-    depths = indentation_depths(scene.indentation)
-    index = {int(v): k for k, v in enumerate(problem.test_points)}
-    forces, dofs = [], []
-    for vertex in points:
-        k = index[int(vertex)]
-        fe, model = punch_model(scene, problem, base, k)
-        normal = problem.normals[k]
-        curve = experiments.held_indentation_curve(model, fe.problem.fixed,
-                                                   indenter_dofs(model, scene, problem, fe, k),
-                                                   normal, depths, f"punch at vertex {vertex}")
-        forces.append(float(curve[-1] @ normal))
-        dofs.append(model.n_dofs)
-        log.info("fe_convergence: rim level %d, point %d (%d dofs): %.6g N", level, vertex,
-                 model.n_dofs, forces[-1])
-    t1 = time.perf_counter()
+    scene = _level_scene(scene, level)
+    k = {int(v): k for k, v in enumerate(problem.test_points)}[int(vertex)]
+    fe, model = punch_model(scene, problem, fe_problem(problem, scene.fe), k)
+    normal = problem.normals[k]
+    curve = experiments.held_indentation_curve(model, fe.problem.fixed,
+                                               indenter_dofs(model, scene, problem, fe, k),
+                                               normal, indentation_depths(scene.indentation),
+                                               f"punch at vertex {vertex}")
+    return {"force": float(curve[-1] @ normal), "dofs": model.n_dofs,
+            "wall_s": time.perf_counter() - t0}
+
+
+def max_sag(scene: Scene, problem: Problem, level: int) -> dict:
+    """Largest static gravity sag [m] (read at the particle vertices) on the mesh refined
+    ``level`` times near the clamp's rim: ``{max_sag, dofs, wall_s}``."""
+    from reference_fe import experiments
+    from reference_fe.model import FEModel
+    from reference_fe.refine import fe_problem, rim_refined_problem
+
+    t0 = time.perf_counter()
+    scene = _level_scene(scene, level)
+    fe = rim_refined_problem(fe_problem(problem, scene.fe), problem.mesh, problem.fixed, level)
+    model = FEModel(fe.problem.mesh, scene.material, scene.fe)
     g = scene.gravity
-    max_sag = sag_dofs = None
-    if sag:
-        fe = rim_refined_problem(base, problem.mesh, problem.fixed, level)
-        model = FEModel(fe.problem.mesh, scene.material, fe_section)
-        u = experiments.gravity_static(model, fe.problem.fixed, g.acceleration,
-                                       g.static_load_steps)[fe.vertex_map]
-        max_sag, sag_dofs = float(np.linalg.norm(u, axis=1).max()), model.n_dofs
-        log.info("fe_convergence: clamp rim level %d (%d dofs): max sag %.6g m", level,
-                 sag_dofs, max_sag)
-    t2 = time.perf_counter()
-    return {"level": level, "element": fe_section.element, "dofs": dofs, "sag_dofs": sag_dofs,
-            "wall_s": t2 - t0,
-            "wall_s_punch_per_point": (t1 - t0) / len(points) if len(points) else None,
-            "wall_s_sag": t2 - t1 if sag else None,
-            "punch_force": forces or None, "max_sag": max_sag}
+    u = experiments.gravity_static(model, fe.problem.fixed, g.acceleration,
+                                   g.static_load_steps)[fe.vertex_map]
+    return {"max_sag": float(np.linalg.norm(u, axis=1).max()), "dofs": model.n_dofs,
+            "wall_s": time.perf_counter() - t0}
+
+
+@dataclasses.dataclass(frozen=True)
+class Item:
+    """One independent computation of the study: a punch force (``vertex`` given) or a sag."""
+
+    level: int
+    vertex: int | None = None
+
+    def cost(self) -> float:
+        """Relative size, for longest-first scheduling: a rim refinement multiplies a punch
+        mesh's dofs by ~1.8 and a clamp-rim refinement the sag mesh's by ~2.8 (the default
+        liver's TH levels: punch 5.5k -> 46k dofs over 4 levels, sag 5k -> 38k over 2)."""
+        return 1.8 ** self.level if self.vertex is not None else 2.8 ** self.level
+
+    def run(self, scene: Scene, problem: Problem) -> dict:
+        if self.vertex is None:
+            return max_sag(scene, problem, self.level)
+        return punch_force(scene, problem, self.level, self.vertex)
+
+    def describe(self) -> str:
+        return (f"clamp rim level {self.level}" if self.vertex is None
+                else f"rim level {self.level}, point {self.vertex}")
+
+
+def _run_item(item: Item, scene: Scene, problem: Problem) -> dict:
+    """Worker entry point (module level: the spawned workers import it)."""
+    return item.run(scene, problem)
+
+
+def level_rows(results: dict[Item, dict], points: np.ndarray, levels: Sequence[int],
+               sag_levels: Sequence[int], element: str) -> list[dict]:
+    """One row per level from the finished items (a level with an unfinished item is left
+    out): punch forces in the order of ``points``, each level's compute seconds."""
+    rows = []
+    for level in sorted(set(levels) | set(sag_levels)):
+        punches = [Item(level, int(v)) for v in points] if level in levels else []
+        sag = [Item(level)] if level in sag_levels else []
+        if not all(i in results for i in punches + sag):
+            continue
+        punch = [results[i] for i in punches]
+        sagged = results[sag[0]] if sag else None
+        rows.append({
+            "level": level, "element": element, "dofs": [r["dofs"] for r in punch],
+            "sag_dofs": None if sagged is None else sagged["dofs"],
+            "wall_s": sum(r["wall_s"] for r in punch) + (sagged["wall_s"] if sagged else 0.0),
+            "wall_s_punch_per_point": (float(np.mean([r["wall_s"] for r in punch]))
+                                       if punch else None),
+            "wall_s_sag": None if sagged is None else sagged["wall_s"],
+            "punch_force": [r["force"] for r in punch] or None,
+            "max_sag": None if sagged is None else sagged["max_sag"]})
+    return rows
 
 
 def summarise(rows: list[dict], default_level: int, default_sag_level: int = 0) -> dict:
@@ -136,23 +188,54 @@ def summarise(rows: list[dict], default_level: int, default_sag_level: int = 0) 
 
 def convergence(scene: Scene, levels: Sequence[int], *, out: Path | None = None,
                 points: Sequence[int] | None = None,
-                sag_levels: Sequence[int] = SAG_LEVELS) -> dict:
-    """The study on ``scene`` (a punch scene), one level after the other, coarsest first:
-    the punch forces on ``levels``, the sag on ``sag_levels`` (empty: none)."""
+                sag_levels: Sequence[int] = SAG_LEVELS, workers: int = 1) -> dict:
+    """The study on ``scene`` (a punch scene): the punch forces on ``levels``, the sag on
+    ``sag_levels`` (empty: none).
+
+    Every punch force and sag is an independent item; ``workers`` > 1 runs them in that many
+    spawned processes (each one FE model at a time; memory is checked for all of them),
+    largest first so the last ones to finish are short. A level's ``wall_s`` is the compute
+    time of its items (with ``workers`` > 1 they ran side by side with others); ``wall_s``
+    of the result is the study's own.
+    """
+    from reference_fe.refine import check_memory
+
+    t0 = time.perf_counter()
     problem = build_problem(scene)
     points = (study_points(problem, scene.indentation.radius) if points is None
               else np.asarray(points, dtype=np.int64))
-    rows: list[dict] = []
+    finest = max(set(levels) | set(sag_levels))
+    check_memory(problem.mesh, _level_scene(scene, finest).fe, ranks=max(1, workers))
+    items = [Item(level, int(v)) for level in levels for v in points]
+    items += [Item(level) for level in sag_levels]
+    items.sort(key=lambda i: -i.cost())
+    results: dict[Item, dict] = {}
     result: dict = {}
-    for level in sorted(set(levels) | set(sag_levels)):
-        rows.append(measure_level(scene, problem, points if level in levels else points[:0],
-                                  level, sag=level in sag_levels))
+
+    def finished(item: Item, value: dict) -> None:
+        nonlocal result
+        results[item] = value
+        what = ("%.6g N" % value["force"] if item.vertex is not None
+                else "max sag %.6g m" % value["max_sag"])
+        log.info("fe_convergence: %s (%d dofs): %s (%.0f s; %d of %d items)", item.describe(),
+                 value["dofs"], what, value["wall_s"], len(results), len(items))
+        rows = level_rows(results, points, levels, sag_levels, scene.fe.element)
         result = {"scene": scene.name, "points": points.tolist(),
                   "radius_m": scene.indentation.radius, "depth_m": scene.indentation.depth,
-                  **summarise(rows, scene.fe.local_refine, scene.fe.refine)}
+                  "workers": workers, **summarise(rows, scene.fe.local_refine, scene.fe.refine),
+                  "wall_s": time.perf_counter() - t0}
         if out is not None:
             out.write_text(json.dumps(result, indent=1))
-        log.info("fe_convergence: level %d done (%.0f s)", level, rows[-1]["wall_s"])
+
+    if workers <= 1:
+        for item in items:
+            finished(item, item.run(scene, problem))
+        return result
+    # spawned, not forked: the parent may already hold MPI (dolfinx) state
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+        futures = {pool.submit(_run_item, item, scene, problem): item for item in items}
+        for future in as_completed(futures):
+            finished(futures[future], future.result())
     return result
 
 
@@ -162,7 +245,8 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict:
     punch = load_scene(PUNCH_SCENE) if not quick else _with_punch(scene)
     levels, sag_levels = (LEVELS, SAG_LEVELS) if not quick else ((0, 1, 2), (0, 1))
     return {"fe_convergence": convergence(punch, levels, sag_levels=sag_levels,
-                                          out=Path(cache_folder) / "fe_convergence.json")}
+                                          out=Path(cache_folder) / "fe_convergence.json",
+                                          workers=WORKERS)}
 
 
 def _with_punch(scene: Scene) -> Scene:
@@ -187,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="JSON file, rewritten after every level")
     parser.add_argument("--points", type=int, nargs="*", help="test vertices (default: 3 "
                         "spread through the scene's list)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="processes running the levels' items side by side")
     args = parser.parse_args(argv)
     configure_logging(loggers=(log.name,))
     try:
@@ -194,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.element:
             scene = replace(scene, fe={"element": args.element})
         result = convergence(scene, args.levels, out=Path(args.out) if args.out else None,
-                             points=args.points, sag_levels=args.sag_levels)
+                             points=args.points, sag_levels=args.sag_levels,
+                             workers=args.workers)
     except ForcecalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
