@@ -156,11 +156,27 @@ def read_bench(path: str | Path) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- driver
 
+def cpu() -> dict[str, Any]:
+    """The CPU's model name and widest SIMD extension (Linux ``/proc/cpuinfo``; None
+    elsewhere). Two-core machines differ: the unchanged particle kernels measured 2-3x
+    slower on the AMD EPYC (AVX2) of the 2026-12-03 cold run than in the 2026-12-02 run,
+    whose CPU was not recorded."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return {"cpu_model": None, "simd": None}
+    model = re.search(r"^model name\s*:\s*(.+)$", text, re.M)
+    listed = re.search(r"^flags\s*:\s*(.+)$", text, re.M)
+    flags = set(listed.group(1).split()) if listed else set()
+    simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), None)
+    return {"cpu_model": model.group(1).strip() if model else None, "simd": simd}
+
+
 def machine() -> dict[str, Any]:
-    """Where and when: CPU count, load, platform, commit (benchmarks need an idle machine)."""
-    return {"date": now_utc(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version(), "load_average_start": list(os.getloadavg()),
-            "git_commit": git_commit(ROOT)}
+    """Where and when: CPU, count, load, platform, commit (benchmarks need an idle machine)."""
+    return {"date": now_utc(), **cpu(), "cpu_count": os.cpu_count(),
+            "platform": platform.platform(), "python": platform.python_version(),
+            "load_average_start": list(os.getloadavg()), "git_commit": git_commit(ROOT)}
 
 
 class ReuseCounter(logging.Handler):
