@@ -224,6 +224,30 @@ def test_a_cold_bench_needs_an_empty_cache_and_adopts_nothing_from_runs(tmp_path
     assert not default_folder(cache).exists()
 
 
+def test_a_finished_run_seeds_a_folder_once(tmp_path):
+    """Seeding copies a finished run's files and stage records (the pipeline's cache then
+    decides what is current) unless the folder's own run finished later."""
+    import os
+
+    from pipelines.bench.items import SEED_FILES, seed_folder
+
+    source, folder = tmp_path / "default", tmp_path / "row"
+    assert not seed_folder(source, folder)  # nothing finished there
+    (source / "cache").mkdir(parents=True)
+    for name in SEED_FILES:
+        (source / name).write_text(name)
+    for record in ("calibrate.json", "report.json"):
+        (source / "cache" / record).write_text(record)
+    assert seed_folder(source, folder)
+    assert all((folder / name).read_text() == name for name in SEED_FILES)
+    assert (folder / "cache" / "calibrate.json").read_text() == "calibrate.json"
+    (folder / "cache" / "report.json").write_text("the row's own report")
+    later = (source / "cache" / "report.json").stat().st_mtime + 10
+    os.utime(folder / "cache" / "report.json", (later, later))
+    assert not seed_folder(source, folder)  # the row's own run is newer: kept
+    assert (folder / "cache" / "report.json").read_text() == "the row's own report"
+
+
 def test_the_experiments_study_needs_the_default_run_for_its_full_list(tmp_path):
     from forcecal.errors import ForcecalError
     from pipelines.bench.experiments import full_list
