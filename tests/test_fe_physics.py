@@ -511,8 +511,6 @@ def test_a_held_step_is_guessed_from_the_creep_of_the_step_before(monkeypatch):
     extrapolated in time and scaled by ``held``, the held dofs unmoved. A relaxation curve
     guessed that way (HELD_EXTRAPOLATION) is the one guessed from the last state, to the
     Newton tolerance."""
-    import reference_fe.experiments as experiments
-
     def state(progress: float, u) -> FEState:
         u = np.asarray(u, dtype=float)
         return FEState(u=u, velocity=0 * u, history=np.zeros(0), s_iso=np.zeros(0),
@@ -537,7 +535,7 @@ def test_a_held_step_is_guessed_from_the_creep_of_the_step_before(monkeypatch):
         return ex.relaxation_curve(model, fixed, top, normal, times, depths)
 
     guessed = curve()
-    monkeypatch.setattr(experiments, "HELD_EXTRAPOLATION", 0.0)
+    monkeypatch.setattr(ex, "HELD_EXTRAPOLATION", 0.0)
     last_state = curve()
     np.testing.assert_allclose(guessed, last_state, rtol=0,
                                atol=1e-8 * np.abs(last_state).max())

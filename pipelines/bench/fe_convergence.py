@@ -194,10 +194,9 @@ def convergence(scene: Scene, levels: Sequence[int], *, out: Path | None = None,
     ``sag_levels`` (empty: none).
 
     Every punch force and sag is an independent item; ``workers`` > 1 runs them in that many
-    spawned processes (each one FE model at a time; memory is checked for all of them).
-    A level's ``wall_s`` is the compute
-    time of its items (with ``workers`` > 1 they ran side by side with others); ``wall_s``
-    of the result is the study's own.
+    spawned processes (each one FE model at a time; memory is checked for all of them). A
+    level's ``wall_s`` is the compute time of its items (with ``workers`` > 1 they ran side
+    by side with others); ``wall_s`` of the result is the study's own.
     """
     from reference_fe.refine import check_memory
 
