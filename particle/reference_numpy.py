@@ -2,7 +2,8 @@
 
 The same model, formulas and order of operations as
 :func:`particle.step_kernels.run_verlet` (see :class:`particle.integrator.VerletIntegrator`),
-written with whole-array numpy operations instead of loops.
+written with whole-array numpy operations instead of loops: :func:`step_numpy` is
+:func:`forces_numpy` (every force term at the present state) followed by the update.
 """
 
 from __future__ import annotations
@@ -27,6 +28,39 @@ def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | N
     """
     if state.dt is not None and state.dt != dt:
         raise ValueError("step_numpy does not change the step size of a running state")
+    forces = forces_numpy(model, state, dt, gravity=gravity, damping=damping, arms=arms)
+    x, x_prev = state.x, state.x_prev
+    m = model.masses[:, None]
+    scale = 0.5 if state.dt is None else 1.0
+    free = model.free_nodes if prescribed is None else np.setdiff1d(model.free_nodes,
+                                                                     prescribed.nodes)
+    inertial = m if inertia is None else np.asarray(inertia)[:, None]
+    new = 2.0 * x[free] - x_prev[free] + scale * dt * dt * forces[free] / inertial[free]
+    x_prev[free] = x[free]
+    x[free] = new
+    if prescribed is not None:
+        nodes, times, keys = prescribed.nodes, prescribed.times, prescribed.positions
+        t = state.t + dt
+        k = int(np.searchsorted(times, t))
+        if k == 0 or k >= len(times):
+            target = keys[min(k, len(times) - 1)]
+        else:
+            w = (t - times[k - 1]) / (times[k] - times[k - 1])
+            target = (1.0 - w) * keys[k - 1] + w * keys[k]
+        x_prev[nodes] = x[nodes]
+        x[nodes] = target
+    state.t += dt
+    state.dt = dt
+
+
+def forces_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
+                 damping: float = 0.0, arms: bool = True) -> np.ndarray:
+    """(N, 3) net force [N] on every particle at ``state``, for a step of ``dt`` [s].
+
+    Connectors (with the arms advanced by the paper's recursion for ``dt``: this updates
+    ``state.arm_force`` and ``state.dx_prev``), the volume term, gravity ``m g`` and the
+    mass-proportional damping ``-m damping/dt (x - x_prev)``.
+    """
     p = model.params
     x, x_prev = state.x, state.x_prev
     i, j = model.edges[:, 0], model.edges[:, 1]
@@ -50,23 +84,4 @@ def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | N
         forces += m * np.asarray(gravity)
     if damping:
         forces -= m * (damping / dt) * (x - x_prev)
-    scale = 0.5 if state.dt is None else 1.0
-    free = model.free_nodes if prescribed is None else np.setdiff1d(model.free_nodes,
-                                                                     prescribed.nodes)
-    inertial = m if inertia is None else np.asarray(inertia)[:, None]
-    new = 2.0 * x[free] - x_prev[free] + scale * dt * dt * forces[free] / inertial[free]
-    x_prev[free] = x[free]
-    x[free] = new
-    if prescribed is not None:
-        nodes, times, keys = prescribed.nodes, prescribed.times, prescribed.positions
-        t = state.t + dt
-        k = int(np.searchsorted(times, t))
-        if k == 0 or k >= len(times):
-            target = keys[min(k, len(times) - 1)]
-        else:
-            w = (t - times[k - 1]) / (times[k] - times[k - 1])
-            target = (1.0 - w) * keys[k - 1] + w * keys[k]
-        x_prev[nodes] = x[nodes]
-        x[nodes] = target
-    state.t += dt
-    state.dt = dt
+    return forces

@@ -11,7 +11,9 @@
 - the studies: :mod:`~pipelines.bench.experiments`, :mod:`~pipelines.bench.haptic`,
   :mod:`~pipelines.bench.fe_convergence`, :mod:`~pipelines.bench.scale`,
   :mod:`~pipelines.bench.calibration_methods`, :mod:`~pipelines.bench.volume`;
-- :mod:`pipelines.bench.report`: ``BENCH.md`` and ``pareto.png`` from ``bench.json``.
+- :mod:`pipelines.bench.report`: ``BENCH.md`` and ``pareto.png`` from ``bench.json``;
+- :mod:`pipelines.bench.release_levers`: not an item (run on its own, on a finished run):
+  what a consistent mass and a relaxing volume term would do to the gravity release.
 
 Importing this package imports none of them (each item loads its own module when it runs).
 """
