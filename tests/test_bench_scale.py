@@ -28,3 +28,21 @@ def test_scale_table_has_a_row_per_size_and_the_exponents():
     assert table[2].startswith("| 282 | 885 | 1400 | 0.05 (87 %) | 20.0 | 30 (150) | 4.0 / 12.0 /")
     assert "99.0* /" in table[3]  # estimated items are starred
     assert table[4].startswith("| growth exponent | | | 1.10 | 1.00 | 1.20 | 1.40")
+
+
+def test_a_child_reports_its_own_peak_memory_not_its_parents():
+    """The parent holds ~400 MB when it starts the child; the child's peak stays far below
+    (``ru_maxrss`` would report at least the parent's 400 MB there)."""
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from pipelines.bench.scale import peak_rss_mb
+
+    held = np.ones(50_000_000)  # 400 MB, every page touched
+    assert peak_rss_mb() >= held.nbytes / 2**20
+    out = subprocess.run([sys.executable, "-c", "from pipelines.bench.scale import peak_rss_mb; "
+                          "print(peak_rss_mb())"], capture_output=True, text=True, check=True)
+    child = float(out.stdout)
+    assert 1.0 < child < 0.5 * held.nbytes / 2**20
