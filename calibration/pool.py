@@ -18,6 +18,9 @@ One code path, three transports:
 
 A worker error travels back to the master, which lets every other call in
 flight finish and then raises it (ForcecalError subclasses keep their type).
+
+(At the project's 450-line guideline: the three transports are one protocol with one
+error path, kept in one module so that a change of the protocol is one change.)
 """
 
 from __future__ import annotations

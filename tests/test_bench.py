@@ -274,3 +274,22 @@ def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
     assert held_out_error({"indentation_held_out": 0.04, "relaxation_held_out": 0.06}) == \
         pytest.approx(0.05)
     assert held_out_error({"indentation_held_out": 0.04}) is None
+
+
+def test_a_partial_run_keeps_the_full_runs_machine_and_records_its_own():
+    """``--only`` keeps every key of the full run, its machine (date, commit) included, and
+    records its own machine with the items it ran; an item rerun again moves to the new entry."""
+    from pipelines.bench.driver import partial_bench
+
+    full = {"machine": {"date": "d0", "git_commit": "c0"}, "scale": [1], "item_s": {"a": 1.0}}
+    first = partial_bench(full, {"date": "d1", "git_commit": "c1"}, ("scale", "haptic"),
+                          "liver", False)
+    assert first["machine"] == full["machine"] and first["scale"] == [1]
+    assert first["reruns"] == [{"items": ["scale", "haptic"], "date": "d1", "git_commit": "c1"}]
+    second = partial_bench(first, {"date": "d2", "git_commit": "c2"}, ("scale",), "liver", False)
+    assert second["machine"] == full["machine"]
+    assert second["reruns"] == [{"items": ["haptic"], "date": "d1", "git_commit": "c1"},
+                                {"items": ["scale"], "date": "d2", "git_commit": "c2"}]
+    assert partial_bench(second, {"date": "d3", "git_commit": "c3"}, ("haptic", "scale"),
+                         "liver", False)["reruns"] == [
+        {"items": ["haptic", "scale"], "date": "d3", "git_commit": "c3"}]

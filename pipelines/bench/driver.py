@@ -28,7 +28,10 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
 6. every study of :data:`STUDIES` (one module each).
 
 ``--only ITEM[,ITEM]`` runs only those items and keeps the other keys of the
-``bench.json`` already in the folder (each item records its own time in ``item_s``).
+``bench.json`` already in the folder (each item records its own time in ``item_s``),
+``machine`` included: that stays the last full run's, and the partial run's machine,
+date and commit are appended to ``reruns`` with the items it ran (an item rerun again
+leaves the earlier entry).
 
 Cold times: an item that reused nothing computed earlier (no cached pipeline stage,
 FE study or reference timing, see :data:`REUSE_MESSAGES`) records its time in
@@ -200,6 +203,18 @@ def cold_times(item_s: dict[str, float], reused: set[str], previous: dict[str, A
             for name, seconds in item_s.items()}
 
 
+def partial_bench(previous: dict[str, Any], this_machine: dict[str, Any],
+                  only: tuple[str, ...], scene: str, quick: bool) -> dict[str, Any]:
+    """The start of an ``--only`` run's bench.json: every key of the last run in the folder
+    (``previous``), its ``machine`` included, and this run's machine, date and commit
+    appended to ``reruns`` with the items it runs (module docstring)."""
+    earlier = [{**r, "items": [i for i in r["items"] if i not in only]}
+               for r in previous.get("reruns", []) if set(r["items"]) - set(only)]
+    return {**previous, "scene": scene, "quick": quick,
+            "machine": previous.get("machine", this_machine),
+            "reruns": earlier + [{"items": list(only), **this_machine}]}
+
+
 def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
               ranks: int = 2, progress: bool = True, only: tuple[str, ...] = (),
               cold: bool = False) -> dict[str, Any]:
@@ -278,8 +293,7 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         if unknown:
             raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
                                 f"{[name for name, _ in items]}")
-        # the other keys come from the last full run in out/ (each item records its own time)
-        bench = {**previous, "machine": bench["machine"], "scene": scene.name, "quick": quick}
+        bench = partial_bench(previous, bench["machine"], only, scene.name, quick)
         keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
         items = [(name, fn) for name, fn in items if name in set(only) | keep]
     bench["item_s"] = dict(bench.get("item_s", {}))
@@ -310,7 +324,8 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
     cold = list(bench["item_s_cold"].values())
     bench["wall_s_cold"] = (None if None in cold or set(bench["item_s_cold"]) != set(
         bench["item_s"]) else float(sum(cold)))
-    bench["machine"]["load_average_end"] = list(os.getloadavg())
+    (bench["reruns"][-1] if only else bench["machine"])["load_average_end"] = list(
+        os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
     check_bench(bench)
     with atomic_path(out / "bench.json") as tmp:

@@ -204,6 +204,9 @@ def _duration(b: dict) -> str:
     if b.get("wall_s_cold") is not None:  # runs written before it was recorded have none
         text += (f" With nothing cached (each item's time when it last reused nothing) it "
                  f"takes {b['wall_s_cold'] / 60:.1f} min.")
+    for r in b.get("reruns", []):  # ``--only`` runs since: their items' numbers are theirs
+        text += (f" Rerun alone since ({', '.join(r['items'])}): on {r['date']}, commit "
+                 f"`{r['git_commit']}`, load average at start {r['load_average_start'][0]:.2f}.")
     return text
 
 
