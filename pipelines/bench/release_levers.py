@@ -26,8 +26,10 @@ for the committed model with each lever and both, **nothing refitted**:
 
 Not a bench item (4 min on a finished run folder of the punch scene): ``python -m
 pipelines.bench.release_levers --scene scenes/liver_punch.toml [--run DIR]
-[--out levers.json]``. The first row (lumped, elastic) repeats the gravity
-stage's own release (checked against ``gravity.h5`` to 1e-9 of its sag).
+[--out levers.json] [--figure levers.png]`` (the committed ones:
+``runs/bench/release_levers.json``, ``runs/bench/release_levers.png``). The first row
+(lumped, elastic) repeats the gravity stage's own release (checked against ``gravity.h5``
+to 1e-9 of its largest displacement).
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ from pipelines.report import gravity_dynamic_error
 log = logging.getLogger(__name__)
 
 CONSISTENT_STEP_FRACTION = 1.0 / 3.0  # of the lumped step: below its 1/sqrt(5) bound
+LEVER_COLORS = ("tab:red", "tab:green", "tab:orange", "tab:purple")  # the model is blue
 
 
 @dataclass(frozen=True)
@@ -170,6 +173,8 @@ def study(scene_path: str | Path, run: str | Path | None = None) -> dict:
     model = build_model(ref.problem, scene.material.density, params.connectors["calibrated"])
     node = ref.problem.tracked_node
     times, fe = ref.gravity.time, ref.gravity.displacement
+    sag = ref.gravity.static_displacement[node]
+    direction = sag / np.linalg.norm(sag)  # the histories are plotted along the FE's sag
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
     fe_ratio = 1.0 / (1.0 - sum(scene.material.prony_g)) - 1.0
     levers = default_levers(fe_ratio, (g.k1 + g.k2) / g.K0)
@@ -187,12 +192,43 @@ def study(scene_path: str | Path, run: str | Path | None = None) -> dict:
         modes = release_modes(times, u, node)
         rows.append({"lever": dataclasses.asdict(lever),
                      "rms_error": gravity_dynamic_error(fe[:, node], u[:, node]),
+                     "history_m": (u[:, node] @ direction).tolist(),
                      "modes": modes,
                      "mode_frequency_errors": [a["frequency_hz"] / b["frequency_hz"] - 1.0
                                                for a, b in zip(modes, fe_modes)]})
         log.info("%s: RMS %.4f, modes %s Hz", lever.label, rows[-1]["rms_error"],
                  [round(m["frequency_hz"], 3) for m in modes])
-    return {"scene": scene.name, "tracked_node": int(node), "fe_modes": fe_modes, "rows": rows}
+    return {"scene": scene.name, "tracked_node": int(node), "direction": direction.tolist(),
+            "time_s": times.tolist(), "fe_history_m": (fe[:, node] @ direction).tolist(),
+            "fe_modes": fe_modes, "rows": rows}
+
+
+def levers_figure(path: str | Path, result: dict) -> Path:
+    """PNG: the tracked vertex's release along the FE's sag direction, FE against the model
+    and each lever (left: the mass, right: the relaxing volume term)."""
+    from pipelines.figures import MM, STYLE, _save, plt
+
+    t = np.asarray(result["time_s"])
+    rows = {r["lever"]["label"]: r for r in result["rows"]}
+    labels = list(rows)
+    panels = ([labels[0], labels[1]], [labels[0]] + labels[2:])
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.6), sharey=True)
+    for ax, panel in zip(axes, panels):
+        ax.plot(t, MM * np.asarray(result["fe_history_m"]), **STYLE["fe"])
+        for k, label in enumerate(panel):
+            row = rows[label]
+            style = (dict(STYLE["calibrated"]) if k == 0 else
+                     dict(lw=1.2, color=LEVER_COLORS[(k - 1) % len(LEVER_COLORS)]))
+            style["label"] = f"{label}: RMS {100 * row['rms_error']:.1f} %"
+            ax.plot(t, MM * np.asarray(row["history_m"]), **style)
+        ax.set(xlabel="time [s]", ylabel="displacement along the FE sag [mm]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0].set_title("mass: lumped (the model's) or P1 consistent")
+    axes[1].set_title("volume term: elastic (the model's) or relaxing like the springs")
+    fig.suptitle(f"{result['scene']}: release of vertex {result['tracked_node']} from rest, "
+                 "committed calibrated model, nothing refitted")
+    return _save(fig, Path(path))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -201,6 +237,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
     parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
     parser.add_argument("--out", help="write the rows to this JSON file")
+    parser.add_argument("--figure", help="draw the releases into this PNG")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     result = study(args.scene, args.run)
@@ -211,7 +248,9 @@ def main(argv: list[str] | None = None) -> None:
     for row in result["rows"]:
         print(f"{row['lever']['label']:52s} {100 * row['rms_error']:6.2f}  {modes(row['modes'])}")
     if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1))
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    if args.figure:
+        levers_figure(args.figure, result)
 
 
 if __name__ == "__main__":
