@@ -286,6 +286,30 @@ class EquilibriumSolver:
                                f"iterations (tolerance {self.rtol:g} x force scale)")
 
 
+def kernel_terms(p: ConnectorParams, nonlinear: bool, arms: ArmStep | None
+                 ) -> tuple[np.ndarray, ...]:
+    """``(a, b, arm_r, arm_c, arm_prev, dx_prev)`` for the force and tangent kernels, every
+    one an array: zeros for linear springs (``nonlinear`` False) and without an arm step.
+
+    Why arrays where the explicit loop passes None: numba compiles one specialisation
+    per None/array combination, and the Newton path meets four (linear or not, arms or
+    not), each compiled in every fresh process of a calibration (1.9 s of compilation
+    in each worker); a zero term adds exactly 0.0 to a tension or tangent, and its few
+    flops per connector are lost next to the sparse factorisation.
+    """
+    e = len(p.K0)
+    if nonlinear:
+        a, b = p.a, p.b
+    else:
+        a = np.zeros(e)
+        a.flags.writeable = False  # typed as the parameters' read-only arrays are
+        b = a
+    if arms is None:
+        zero = np.zeros((e, 2))
+        return a, b, zero, zero, zero, np.zeros(e)
+    return a, b, arms.r, arms.c, arms.force_prev, arms.dx_prev
+
+
 def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                arms: ArmStep | None, gravity: np.ndarray | None,
                volume_limits: tuple[np.ndarray, np.ndarray]) -> tuple:
@@ -295,11 +319,8 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
     n, e = model.n_particles, model.n_connectors
     forces, tension, arm_out, dx = (np.empty((n, 3)), np.empty(e), np.zeros((e, 2)),
                                     np.empty(e))
-    kernels.internal_forces(
-        x, model.edges, model.rest_lengths, p.K0, p.a if nonlinear else None,
-        p.b if nonlinear else None, None if arms is None else arms.r,
-        None if arms is None else arms.c, None if arms is None else arms.force_prev,
-        None if arms is None else arms.dx_prev, forces, tension, arm_out, dx)
+    kernels.internal_forces(x, model.edges, model.rest_lengths, p.K0,
+                            *kernel_terms(p, nonlinear, arms), forces, tension, arm_out, dx)
     if p.kv is not None:
         bad, _ = add_volume_forces(x, model.tets, model.rest_volumes, p.kv, volume_limits[0],
                                    volume_limits[1], forces)
@@ -317,10 +338,9 @@ def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.n
     """CSC data (nnz,) of the tangent stiffness [N/m] at ``x`` in ``pat``'s storage
     (constraint rows and columns not yet applied)."""
     data = np.empty(len(pat.indices))
-    kernels.assemble_tangent(x, model.edges, model.rest_lengths, p.K0,
-                             p.a if nonlinear else None, p.b if nonlinear else None,
-                             None if arms is None else arms.stiffness, tension, pat.slots,
-                             data)
+    a, b, _, arm_c, _, _ = kernel_terms(p, nonlinear, arms)
+    kernels.assemble_tangent(x, model.edges, model.rest_lengths, p.K0, a, b,
+                             arm_c.sum(axis=1), tension, pat.slots, data)
     if p.kv is not None:
         add_volume_tangent(x, model.tets, model.rest_volumes, p.kv, pat.tet_slots, data)
     return data

@@ -257,3 +257,21 @@ def test_liver_curves(liver_problem, liver_scene):
     assert np.all(relax[:, ramp - 1] > static[:, -1])
     assert np.all(relax[:, ramp - 1] < static[:, -1] / g_inf)
 
+
+
+def test_newton_kernels_get_one_type_signature_for_every_term_combination():
+    """The Newton path hands the kernels arrays for every optional term (zeros where a term is
+    off), so linear or nonlinear springs, with or without an arm step, compile one
+    specialisation of each kernel instead of four (a fresh process compiles each)."""
+    import numba
+
+    from particle.statics import ArmStep, kernel_terms
+    model = box_model()
+    p = model.params
+    e = model.n_connectors
+    arms = ArmStep(np.zeros((e, 2)), np.ones((e, 2)), np.zeros((e, 2)), np.zeros(e))
+    types = {tuple(numba.typeof(t) for t in kernel_terms(p, nonlinear, step))
+             for nonlinear in (False, True) for step in (None, arms)}
+    assert len(types) == 1
+    a, b, r, c, prev, dx_prev = kernel_terms(p, False, None)
+    assert not (a.any() or b.any() or r.any() or c.any() or prev.any() or dx_prev.any())
