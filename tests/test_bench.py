@@ -293,3 +293,15 @@ def test_a_partial_run_keeps_the_full_runs_machine_and_records_its_own():
     assert partial_bench(second, {"date": "d3", "git_commit": "c3"}, ("haptic", "scale"),
                          "liver", False)["reruns"] == [
         {"items": ["haptic", "scale"], "date": "d3", "git_commit": "c3"}]
+
+
+def test_a_partial_run_records_the_default_run_it_brings_up_to_date():
+    """``--only "calibration methods"`` also reruns the default pipeline run (its calibration
+    block and goals are rewritten), so both are listed as this run's items, in the bench's
+    order; an item that needs no default run is listed alone."""
+    from pipelines.bench.driver import selected_items
+
+    names = ["default pipeline run", "scale", "calibration methods", "volume term"]
+    assert selected_items(names, ("calibration methods",)) == ("default pipeline run",
+                                                               "calibration methods")
+    assert selected_items(names, ("scale",)) == ("scale",)

@@ -203,6 +203,15 @@ def cold_times(item_s: dict[str, float], reused: set[str], previous: dict[str, A
             for name, seconds in item_s.items()}
 
 
+def selected_items(names: list[str], only: tuple[str, ...]) -> tuple[str, ...]:
+    """The items an ``--only`` run runs, in the bench's order: ``only`` and the default
+    pipeline run when one of them needs it (:data:`NEEDS_DEFAULT`). All of them are
+    recorded in ``reruns``: the default run rewrites its keys (the calibration block,
+    goals) too."""
+    keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
+    return tuple(name for name in names if name in set(only) | keep)
+
+
 def partial_bench(previous: dict[str, Any], this_machine: dict[str, Any],
                   only: tuple[str, ...], scene: str, quick: bool) -> dict[str, Any]:
     """The start of an ``--only`` run's bench.json: every key of the last run in the folder
@@ -293,9 +302,9 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         if unknown:
             raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
                                 f"{[name for name, _ in items]}")
-        bench = partial_bench(previous, bench["machine"], only, scene.name, quick)
-        keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
-        items = [(name, fn) for name, fn in items if name in set(only) | keep]
+        run = selected_items([name for name, _ in items], only)
+        items = [(name, fn) for name, fn in items if name in run]
+        bench = partial_bench(previous, bench["machine"], run, scene.name, quick)
     bench["item_s"] = dict(bench.get("item_s", {}))
     reused: set[str] = set()
     start = time.perf_counter()
