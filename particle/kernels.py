@@ -7,8 +7,9 @@ linear springs (a = b = 0) or no recording executes a loop without those
 terms at all; the choice is made once per run by :class:`particle.integrator.Terms`,
 never inside the inner loop. The static Newton path passes zero arrays instead
 (:func:`particle.statics.kernel_terms`): there a specialisation per combination costs
-more compilation in every fresh calibration worker than the skipped terms save. The explicit step loop that calls these kernels
-(serial and multi-threaded) is :mod:`particle.step_kernels`.
+more compilation in every fresh calibration worker than the skipped terms save. The
+explicit step loop that calls these kernels (serial and multi-threaded) is
+:mod:`particle.step_kernels`.
 
 Index arrays (connector ends, node lists) may be passed as unsigned views
 (:func:`index_view`): numba then drops the wrap-around handling of negative

@@ -48,7 +48,8 @@ STYLE = {"fe": dict(color="black", lw=2.2, label="FE reference"),
 MM = 1e3
 
 
-def _save(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
+def save_figure(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
+    """Writes ``fig`` to the PNG ``path`` atomically and closes it; returns ``path``."""
     if tight:  # not for 3-D axes, which place themselves
         fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -147,7 +148,7 @@ def calibration_figure(path: Path, reference: Reference, cal: CalibrationResult)
                    "(f) relaxation time tau1 per connector" + (
                        "" if "relaxation" in cal.experiments else " (not calibrated)"))
     fig.suptitle("Calibration against the FE reference")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def held_out_figure(path: Path, reference: Reference, cal: CalibrationResult) -> Path | None:
@@ -162,7 +163,7 @@ def held_out_figure(path: Path, reference: Reference, cal: CalibrationResult) ->
     axes[0].set_title(f"static indentation, held-out node {node}")
     axes[1].set_title(f"relaxation, held-out node {node}")
     fig.suptitle("Validation at a held-out point (not used by any fit)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _surface(ax, vertices: np.ndarray, faces: np.ndarray, u: np.ndarray, norm, scale: float,
@@ -203,7 +204,7 @@ def gravity_static_figure(path: Path, reference: Reference, gravity: GravityRuns
                        cax=fig.add_axes([0.92, 0.2, 0.015, 0.55]))
     bar.set_label("|u| [mm]")
     fig.suptitle(f"Static sag under gravity, base fixed (displacements drawn x{scale:g})")
-    return _save(fig, path, tight=False)
+    return save_figure(fig, path, tight=False)
 
 
 def gravity_dynamic_figure(path: Path, reference: Reference, gravity: GravityRuns) -> Path:
@@ -222,7 +223,7 @@ def gravity_dynamic_figure(path: Path, reference: Reference, gravity: GravityRun
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(f"Release under gravity from rest, tracked node {node} (gravity.tracked_node)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> Path:
@@ -253,7 +254,7 @@ def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> P
         ax.legend(fontsize=7, ncol=4)
     axes[-1].set_xticks(x, [str(n) for n in nodes], rotation=90, fontsize=7)
     axes[-1].set_xlabel("test point (vertex id); held-out points right of the line, hatched")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def write_figures(folder: str | Path, reference: Reference, cal: CalibrationResult,

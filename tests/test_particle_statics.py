@@ -258,7 +258,6 @@ def test_liver_curves(liver_problem, liver_scene):
     assert np.all(relax[:, ramp - 1] < static[:, -1] / g_inf)
 
 
-
 def test_newton_kernels_get_one_type_signature_for_every_term_combination():
     """The Newton path hands the kernels arrays for every optional term (zeros where a term is
     off), so linear or nonlinear springs, with or without an arm step, compile one

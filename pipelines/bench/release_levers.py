@@ -206,7 +206,7 @@ def study(scene_path: str | Path, run: str | Path | None = None) -> dict:
 def levers_figure(path: str | Path, result: dict) -> Path:
     """PNG: the tracked vertex's release along the FE's sag direction, FE against the model
     and each lever (left: the mass, right: the relaxing volume term)."""
-    from pipelines.figures import MM, STYLE, _save, plt
+    from pipelines.figures import MM, STYLE, plt, save_figure
 
     t = np.asarray(result["time_s"])
     rows = {r["lever"]["label"]: r for r in result["rows"]}
@@ -228,7 +228,7 @@ def levers_figure(path: str | Path, result: dict) -> Path:
     axes[1].set_title("volume term: elastic (the model's) or relaxing like the springs")
     fig.suptitle(f"{result['scene']}: release of vertex {result['tracked_node']} from rest, "
                  "committed calibrated model, nothing refitted")
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def main(argv: list[str] | None = None) -> None:
