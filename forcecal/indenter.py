@@ -152,6 +152,40 @@ def distance_to_segments(points: np.ndarray, start: np.ndarray, end: np.ndarray)
     return distance
 
 
+def punch_candidates(mesh: TetMesh, fixed: np.ndarray, radius: float) -> np.ndarray:
+    """(C,) int64 sorted free surface vertices a flat punch of ``radius`` can indent: its
+    footprint (:func:`punch_footprint`, along the vertex's inward normal) holds at least
+    :data:`MIN_FOOTPRINT` particles and no clamped vertex. The ``"auto"`` test point rules
+    choose among these on a punch scene (a point near the clamp would be refused).
+
+    Raises:
+        SceneError: ``radius <= 0``, or no free surface vertex qualifies (the message gives
+            the largest radius that stays off the clamp at some vertex, if one reached it).
+    """
+    if not radius > 0:
+        raise SceneError(f"indentation.radius = {radius} m: a punch radius must be > 0")
+    fixed = np.asarray(fixed, dtype=np.int64)
+    free = np.setdiff1d(mesh.surface_vertices, fixed)
+    clamped = np.zeros(mesh.n_vertices, dtype=bool)
+    clamped[fixed] = True
+    edges = surface_edges(mesh)
+    ok, room = [], 0.0
+    for vertex, normal in zip(free, mesh.inward_normals(free)):
+        distance = _tangential_distance(mesh, int(vertex), normal)
+        nodes = _footprint(mesh, edges, int(vertex), distance, radius)
+        touched = nodes[clamped[nodes]]
+        if len(nodes) >= MIN_FOOTPRINT and not len(touched):
+            ok.append(int(vertex))
+        elif len(touched):
+            room = max(room, float(distance[touched].min()))
+    if not ok:
+        raise SceneError(f"indentation.radius = {radius:.4g} m: no free surface vertex has a "
+                         f"punch footprint of at least {MIN_FOOTPRINT} particles that stays off "
+                         "the clamp" + (f" (radii below {room:.4g} m stay off it somewhere)"
+                                        if room > 0 else ""))
+    return np.asarray(ok, dtype=np.int64)
+
+
 def indenter_footprints(mesh: TetMesh, fixed: np.ndarray, test_points: np.ndarray,
                           normals: np.ndarray, indenter: str,
                           radius: float) -> tuple[np.ndarray, ...]:

@@ -513,7 +513,8 @@ CALIBRATION_RULES = ("auto", "cover")
 
 
 def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
-                              rule: str = "auto") -> np.ndarray:
+                              rule: str = "auto", candidates: np.ndarray | None = None
+                              ) -> np.ndarray:
     """Choose ``n`` calibration points (sorted vertex ids) spread over the free surface.
 
     A cover (dominating set) of the free surface graph is a set of points such
@@ -530,11 +531,20 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
       ``n`` points by farthest-point sampling along the surface, starting from
       the fixed nodes, which leaves part of the surface uncovered (see
       :func:`coverage`; it is logged).
+
+    ``candidates`` (rule ``"auto"`` only): the free surface vertices the points may be and
+    the cover covers (default: all of them); a punch scene passes those its punch can
+    indent (:func:`forcecal.indenter.punch_candidates`).
     """
     if rule not in CALIBRATION_RULES:
         raise MeshError(f"unknown calibration point rule {rule!r}; expected one of "
                         f"{list(CALIBRATION_RULES)}")
     free_surface = free_surface_vertices(mesh, fixed)
+    if candidates is not None:
+        if rule != "auto":
+            raise MeshError(f"calibration point rule {rule!r} takes no candidate set; "
+                            "only 'auto' does")
+        free_surface = np.intersect1d(free_surface, candidates)
     what = "calibration points (test_points.n_calibration)"
     if rule == "cover":
         cover = _minimum_dominating_set(mesh.adjacency, free_surface, n)
@@ -560,10 +570,13 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
 
 
 def select_held_out_points(mesh: TetMesh, fixed: np.ndarray, calibration: np.ndarray,
-                           n: int = 8) -> np.ndarray:
+                           n: int = 8, candidates: np.ndarray | None = None) -> np.ndarray:
     """``n`` free surface vertices farthest (straight line) from the calibration points and
-    from each other: fast on any mesh (n passes over the free surface)."""
+    from each other: fast on any mesh (n passes over the free surface). ``candidates``: as
+    :func:`select_calibration_points`."""
     rest = np.setdiff1d(free_surface_vertices(mesh, fixed), calibration)
+    if candidates is not None:
+        rest = np.intersect1d(rest, candidates)
     held = _farthest_points(_euclidean(mesh, rest), rest, n, np.asarray(calibration),
                             "held-out points (test_points.n_held_out)")
     return np.sort(np.asarray(held, dtype=np.int64))

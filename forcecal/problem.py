@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from forcecal.errors import MeshError, SceneError
+from forcecal.indenter import punch_candidates
 from forcecal.mesh import (TetMesh, coverage, fixed_nodes, generate_liver, read_mesh,
                            select_calibration_points, select_held_out_points, validate_test_points)
 from forcecal.scene import MIN_HELD_OUT, Scene
@@ -158,12 +159,18 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     f = scene.fixed
     fixed = fixed_nodes(mesh, f.axis, f.side, f.tolerance)
     tp = scene.test_points
+    # a punch near the clamp would hold clamped vertices: the "auto" rules pick among the
+    # vertices a punch of the scene's radius can indent ("cover", the paper's, stays as it is)
+    candidates = (punch_candidates(mesh, fixed, scene.indentation.radius)
+                  if scene.indentation.indenter == "punch" else None)
     if isinstance(tp.calibration, str):
-        calibration = select_calibration_points(mesh, fixed, tp.n_calibration, tp.calibration)
+        calibration = select_calibration_points(
+            mesh, fixed, tp.n_calibration, tp.calibration,
+            candidates if tp.calibration == "auto" else None)
     else:
         calibration = validate_test_points(mesh, fixed, np.array(tp.calibration), "calibration")
     if isinstance(tp.held_out, str):
-        held_out = select_held_out_points(mesh, fixed, calibration, tp.n_held_out)
+        held_out = select_held_out_points(mesh, fixed, calibration, tp.n_held_out, candidates)
     else:
         held_out = validate_test_points(mesh, fixed, np.array(tp.held_out), "held_out")
         if len(held_out) < MIN_HELD_OUT:

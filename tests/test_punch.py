@@ -4,8 +4,10 @@ import pytest
 
 from calibration.network import linear_indentation
 from forcecal.errors import SceneError
-from forcecal.indenter import footprint_edges, indenter_footprints, punch_footprint
+from forcecal.indenter import (footprint_edges, indenter_footprints, punch_candidates,
+                               punch_footprint)
 from forcecal.mesh import TetMesh, box_mesh, check_mesh
+from forcecal.problem import build_problem
 from forcecal.scene import load_scene, replace
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.model import build_model
@@ -255,3 +257,40 @@ def test_indenter_radius_study_points_are_valid_at_every_radius():
         for radius in radii:
             assert len(punch_footprint(problem.mesh, vertex, normal, radius,
                                        fixed=problem.fixed)) >= 3
+
+
+def test_punch_candidates_keep_the_footprint_off_the_clamp():
+    # the 4 x 4 x 4 block of the refusal test: spacing 0.25, base clamped
+    tall = box_mesh((4, 4, 4), (1.0, 1.0, 1.0))
+    fixed = np.nonzero(np.isclose(tall.vertices[:, 2], 0.0))[0]
+    got = punch_candidates(tall, fixed, 0.3)
+    low_side = _vertex_at(tall, (0.0, 0.5, 0.25))  # one cell above the clamp: its disc reaches it
+    assert _vertex_at(tall, (0.5, 0.5, 1.0)) in got and low_side not in got
+    inward = -tall.vertex_normals[got]
+    for vertex, normal in zip(got, inward):  # every candidate is accepted ...
+        punch_footprint(tall, vertex, normal, 0.3, fixed=fixed)
+    for vertex in np.setdiff1d(np.setdiff1d(tall.surface_vertices, fixed), got):
+        with pytest.raises(SceneError):  # ... and every other free surface vertex refused
+            punch_footprint(tall, vertex, -tall.vertex_normals[vertex], 0.3, fixed=fixed)
+    with pytest.raises(SceneError, match=r"indentation\.radius = 0\.1 m: no free surface vertex "
+                                         r"has a punch footprint of at least 3 particles"):
+        punch_candidates(tall, fixed, 0.1)  # narrower than the spacing: one particle each
+
+
+def test_auto_test_points_of_a_punch_scene_can_all_be_indented():
+    """With a punch, the "auto" rules pick among the vertices it can indent: on the coarse
+    liver a 45 mm punch reaches the clamped base from some of the vertex rules' points."""
+    scene = replace(load_scene("scenes/tiny.toml"), test_points={"calibration": "auto"})
+    punch = replace(scene, indentation={"indenter": "punch", "radius": 0.045})
+    vertex_points = build_problem(scene).test_points
+    problem = build_problem(punch)
+    held = indenter_footprints(problem.mesh, problem.fixed, problem.test_points,
+                               problem.normals, "punch", 0.045)  # raises if one reaches
+    assert len(held) == len(vertex_points) == 17 and min(len(h) for h in held) >= 3
+    refused = 0
+    for vertex, normal in zip(vertex_points, problem.mesh.inward_normals(vertex_points)):
+        try:
+            punch_footprint(problem.mesh, vertex, normal, 0.045, fixed=problem.fixed)
+        except SceneError:
+            refused += 1
+    assert refused > 0  # without the candidates the punch scene would be refused
