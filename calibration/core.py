@@ -183,6 +183,11 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     stage_times: dict[str, float] = {}
     rings = build_rings(mesh, problem.calibration,
                         None if footprints is None else footprints[:n_cal])
+    # where every spring must stay stiff, known before any fit (the FE sag's release range
+    # is geometric); the global springs are uniform, so they must hold on all of it
+    validity = spring_validity(ref, initial, strain, settings.stiffness_floor,
+                               scene.particle.strain_margin)
+    feasible = StrainRange(float(validity.low.min()), float(validity.high.max()))
     with Pool(experiments, initial.connector_params(n_conn), backend=backend,
               workers=settings.workers if workers is None else workers) as pool:
         glob = initial
@@ -199,7 +204,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                 pool.forget_warm_starts()  # as a resumed run starts (identical resumes)
                 glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
                                    optimizer=GAUSS_NEWTON if gradient and phase == "relaxation"
-                                   else NELDER_MEAD,
+                                   else NELDER_MEAD, feasible=feasible,
                                    progress=progress, verbose=verbose)
                 checkpoint.put(f"global_{phase}", {"params": glob.as_dict(),
                                                    "fit": fit.as_dict()})
@@ -212,8 +217,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
-        validity = spring_validity(ref, glob, strain, settings.stiffness_floor,
-                                     scene.particle.strain_margin)
+        validity = dataclasses.replace(validity, floor=settings.stiffness_floor * glob.K0,
+                                       K0_global=glob.K0)
         local = LocalParametrisation(glob, rings, strain, settings.stiffness_floor * glob.K0,
                                      np.zeros((n_cal, STATIC_DIM)),
                                      np.zeros((n_cal, RELAXATION_DIM)),
@@ -328,11 +333,12 @@ def local_validity(validity: Validity, glob: ConnectorParams
 
 def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
                       gravity_margin: float) -> Validity:
-    """Where a calibration keeps every spring stiff (the gradient fit on all of it, local
-    tuning as :func:`local_validity` says): the experiments' strain range united,
-    per connector, with the gravity release range of the FE static sag
-    (:func:`particle.stability.strain_range_for_release` with ``gravity_margin``; the
-    experiments' range alone if the reference has no gravity run)."""
+    """Where a calibration keeps every spring stiff (the global fits on the overall range,
+    the gradient fit per connector, local tuning as :func:`local_validity` says): the
+    experiments' strain range united, per connector, with the gravity release range of the
+    FE static sag (:func:`particle.stability.strain_range_for_release` with
+    ``gravity_margin``; the experiments' range alone if the reference has no gravity run).
+    The range depends on the geometry only; the floor is ``floor`` x ``glob.K0``."""
     from particle.stability import strain_range_for_release
     from particle.model import build_model
 

@@ -84,16 +84,20 @@ def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
 
 def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
                n_connectors: int, settings: CalibrationSection, *, optimizer: str = NELDER_MEAD,
-               progress: bool = True, verbose: bool = False) -> tuple[GlobalParams, Fit]:
+               feasible: StrainRange | None = None, progress: bool = True,
+               verbose: bool = False) -> tuple[GlobalParams, Fit]:
     """Step 1: spring ``K0, a, b`` (and ``kv`` if the volume term is on) on the static curves
-    ``reference`` (Pc, S) [N], by ``optimizer`` (:data:`OPTIMIZERS`)."""
+    ``reference`` (Pc, S) [N], by ``optimizer`` (:data:`OPTIMIZERS`). The spring's tangent
+    stays above the floor on ``feasible`` (default ``strain``, the experiments' range; the
+    calibration passes that united with the gravity release range of the FE sag)."""
     points = np.arange(len(reference))
     K0_of: dict[bytes, float] = {}
     floor = settings.stiffness_floor * start.K0  # K(eps)/K0 does not depend on the K0 solved for
+    feasible = strain if feasible is None else feasible
 
     def residuals(x: np.ndarray) -> np.ndarray:
         params = start.with_static_coordinates(x, start.K0, strain).connector_params(n_connectors)
-        check_feasible(params, strain, floor)
+        check_feasible(params, feasible, floor)
         sim = pool.curves("indentation", params, points)
         scale = float(np.sum(reference * sim) / np.sum(sim * sim))
         if not scale > 0:
@@ -111,15 +115,16 @@ def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: 
 
 def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
                    n_connectors: int, settings: CalibrationSection, *,
-                   optimizer: str = NELDER_MEAD, progress: bool = True,
-                   verbose: bool = False) -> tuple[GlobalParams, Fit]:
+                   optimizer: str = NELDER_MEAD, feasible: StrainRange | None = None,
+                   progress: bool = True, verbose: bool = False) -> tuple[GlobalParams, Fit]:
     """Step 2: arms ``k1, tau1, k2, tau2`` on the relaxation curves (Pc, S) [N], spring fixed,
-    by ``optimizer`` (:data:`OPTIMIZERS`)."""
+    by ``optimizer`` (:data:`OPTIMIZERS`); ``feasible`` as :func:`fit_static`."""
     points = np.arange(len(reference))
+    feasible = strain if feasible is None else feasible
 
     def residuals(y: np.ndarray) -> np.ndarray:
         params = start.with_relaxation_coordinates(y).connector_params(n_connectors)
-        check_feasible(params, strain, settings.stiffness_floor * start.K0)
+        check_feasible(params, feasible, settings.stiffness_floor * start.K0)
         return (reference - pool.curves("relaxation", params, points)).ravel()
 
     fit = _minimise(residuals, start.relaxation_coordinates(), np.full(4, RELAXATION_STEP),
