@@ -237,6 +237,28 @@ def test_coordinates_chain_rule(n_tets):
         np.testing.assert_allclose(got[:, i], fd, rtol=1e-6, atol=1e-9)
 
 
+def _recovery(problem, truth: ConnectorParams, result):
+    """What the recovery tests check, per experiment (indentation, relaxation): the calibrated
+    curves' largest error at the calibration points, and at the held-out points as a fraction
+    of the global fit's; per connector the largest relative error of K(eps) over the strains
+    the experiments reach (linear network at full depth); the arms' median relative errors."""
+    got = result.connectors["calibrated"]
+    n_cal = len(problem.calibration)
+    errors = {v: result.variants[v].errors for v in ("global", "calibrated")}
+    experiments = ("indentation", "relaxation")
+    calibrated = [errors["calibrated"][e][:n_cal].max() for e in experiments]
+    held_out_ratio = [errors["calibrated"][e][n_cal:].max() / errors["global"][e][n_cal:].max()
+                      for e in experiments]
+    reach = np.abs(linear_indentation(problem.mesh, problem.fixed, problem.test_points,
+                                      problem.normals).strain[:n_cal]).max(axis=0)
+    eps = np.linspace(-1.0, 1.0, 21)[None, :] * (0.002 * reach)[:, None]
+    K = lambda p: p.K0[:, None] + p.a[:, None] * eps + p.b[:, None] * eps ** 2  # noqa: E731
+    spring = np.abs(K(got) / K(truth) - 1.0).max(axis=1)
+    arms = {name: float(np.median(np.abs(getattr(got, name) / getattr(truth, name) - 1.0)))
+            for name in ("k1", "tau1", "k2", "tau2")}
+    return calibrated, held_out_ratio, spring, arms
+
+
 @pytest.fixture(scope="module")
 def recovered(tmp_path_factory):
     """Smooth non-uniform truth on the box, 20 calibration points (every free surface vertex
@@ -261,20 +283,10 @@ def test_gradient_recovers_smooth_truth(recovered):
     parameters; the smoothness prior fills in what they leave open (asserted with ~1.5x margins)."""
     scene, problem, truth, result = recovered
     got = result.connectors["calibrated"]
-    n_cal = len(problem.calibration)
-    errors = {v: result.variants[v].errors for v in ("global", "calibrated")}
-    for experiment in ("indentation", "relaxation"):
-        assert errors["calibrated"][experiment][:n_cal].max() < 0.002
-        assert (errors["calibrated"][experiment][n_cal:].max()
-                < 0.5 * errors["global"][experiment][n_cal:].max())
-    reach = np.abs(linear_indentation(problem.mesh, problem.fixed, problem.test_points,
-                                      problem.normals).strain[:n_cal]).max(axis=0)
-    eps = np.linspace(-1.0, 1.0, 21)[None, :] * (0.002 * reach)[:, None]
-    K = lambda p: p.K0[:, None] + p.a[:, None] * eps + p.b[:, None] * eps ** 2  # noqa: E731
-    error = np.abs(K(got) / K(truth) - 1.0).max(axis=1)
-    assert np.median(error) < 0.07 and error.max() < 0.2
-    for name in ("k1", "tau1", "k2", "tau2"):
-        assert np.median(np.abs(getattr(got, name) / getattr(truth, name) - 1.0)) < 0.05, name
+    calibrated, held_out_ratio, spring, arms = _recovery(problem, truth, result)
+    assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.5
+    assert np.median(spring) < 0.07 and spring.max() < 0.2
+    assert max(arms.values()) < 0.05, arms
     assert 0 < result.gradient["weight"] < max(result.gradient["grid"])
     # every spring stays above the stiffness floor on the calibrated strain range (no gravity
     # run in a synthetic reference, so that is the range the fit kept)
@@ -312,23 +324,12 @@ def test_gradient_recovers_smooth_truth_with_the_volume_term(recovered_volume):
     either (springs alone: 4.6 % / 12 %, the test above). The issue's 2 % on K(eps) is
     missed; asserted at the measured levels with ~1.3-1.5x margins."""
     scene, problem, truth, result = recovered_volume
-    got = result.connectors["calibrated"]
-    n_cal = len(problem.calibration)
-    errors = {v: result.variants[v].errors for v in ("global", "calibrated")}
-    for experiment in ("indentation", "relaxation"):
-        assert errors["calibrated"][experiment][:n_cal].max() < 0.002
-        assert (errors["calibrated"][experiment][n_cal:].max()
-                < 0.6 * errors["global"][experiment][n_cal:].max())
-    kv_error = np.abs(got.kv / truth.kv - 1.0)
+    calibrated, held_out_ratio, spring, arms = _recovery(problem, truth, result)
+    assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.6
+    kv_error = np.abs(result.connectors["calibrated"].kv / truth.kv - 1.0)
     assert np.median(kv_error) < 0.025 and kv_error.max() < 0.15
-    reach = np.abs(linear_indentation(problem.mesh, problem.fixed, problem.test_points,
-                                      problem.normals).strain[:n_cal]).max(axis=0)
-    eps = np.linspace(-1.0, 1.0, 21)[None, :] * (0.002 * reach)[:, None]
-    K = lambda p: p.K0[:, None] + p.a[:, None] * eps + p.b[:, None] * eps ** 2  # noqa: E731
-    error = np.abs(K(got) / K(truth) - 1.0).max(axis=1)
-    assert np.median(error) < 0.11 and error.max() < 0.45
-    for name in ("k1", "tau1", "k2", "tau2"):
-        assert np.median(np.abs(getattr(got, name) / getattr(truth, name) - 1.0)) < 0.05, name
+    assert np.median(spring) < 0.11 and spring.max() < 0.45
+    assert max(arms.values()) < 0.05, arms
     assert 0 < result.gradient["weight"] < max(result.gradient["grid"])
 
 
