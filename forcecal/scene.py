@@ -105,12 +105,14 @@ class TestPointsSection:
         "farthest-point sampling along the surface; the coverage is logged and reported), "
         "'cover' (the paper's: the proven minimum cover, topped up; refused if larger than "
         "n_calibration or not proven within the solver's bounds) or an explicit list of "
-        "vertex ids")
+        "vertex ids; with a punch indenter 'auto' picks among the vertices the punch can "
+        "indent (footprint of >= 3 particles, off the clamp)")
     n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover'",
                              minimum=1)
     held_out: Union[str, tuple[int, ...]] = key(
         "auto", "'auto' (the free surface vertices farthest from the calibration points and "
-        "from each other; fast on any mesh) or a list of vertex ids, used only for validation")
+        "from each other; fast on any mesh; with a punch, among those it can indent) or a list "
+        "of vertex ids, used only for validation")
     n_held_out: int = key(8, "number of held-out points when 'auto'; at least "
                           f"{MIN_HELD_OUT} (an explicit held_out list too)", minimum=MIN_HELD_OUT)
 
