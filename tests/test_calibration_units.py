@@ -1,5 +1,7 @@
 """Calibration building blocks against closed-form answers: metrics, linear network,
 Van Gelder baseline, parametrisation, Nelder-Mead bookkeeping, initial guess."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -337,3 +339,44 @@ def test_initial_guess_is_exact_on_linear_data():
     assert g.K0 == pytest.approx(42.0)
     assert (g.alpha, g.beta) == (0.0, 0.0)
     assert g.k1 == pytest.approx(42.0 * 0.35 / 0.4) and g.tau2 == 10.0
+
+
+class _SpringCurves:
+    """A stand-in evaluation pool: each point's static curve is one spring's force
+    K(eps) eps = K0 eps + a eps^2 + b eps^3 at strains ``eps`` (linear in K0, as the
+    network's curves are)."""
+
+    def __init__(self, eps):
+        self.eps = eps
+
+    def curves(self, kind, params, points):
+        e = self.eps
+        row = params.K0[0] * e + params.a[0] * e ** 2 + params.b[0] * e ** 3
+        return np.tile(row, (len(points), 1))
+
+
+def test_global_static_fit_keeps_the_spring_stiff_on_its_feasible_range():
+    """A softening truth (beta = -20: tangent 0.4 K0 at eps = 0.1, negative from 0.13) seen
+    on strains up to 0.1: fitted on the experiments' range alone the global spring follows
+    it; on a feasible range reaching 0.3 (a gravity release), its tangent stays above the
+    floor there, as the gradient fit and local tuning then demand of every spring."""
+    from calibration.global_fit import fit_static
+    from forcecal.scene import CalibrationSection
+
+    eps = np.linspace(0.01, 0.1, 10)
+    truth = GlobalParams(K0=30.0, alpha=0.0, beta=-20.0, k1=26.0, tau1=0.5, k2=19.0,
+                         tau2=10.0)
+    reference = _SpringCurves(eps).curves("indentation", truth.connector_params(1), [0, 1])
+    start = dataclasses.replace(truth, K0=25.0, beta=0.0)
+    strain, wide = StrainRange(-0.05, 0.1), StrainRange(-0.05, 0.3)
+    settings = CalibrationSection(static_max_evaluations=400)
+    free, _ = fit_static(_SpringCurves(eps), start, strain, reference, 1, settings,
+                         progress=False)
+    held, _ = fit_static(_SpringCurves(eps), start, strain, reference, 1, settings,
+                         feasible=wide, progress=False)
+    # recovered to twice xatol (1e-3 in beta s^2, s = 0.1: 0.1 in beta): the truth is feasible
+    assert free.beta == pytest.approx(-20.0, abs=0.2)
+    low, _ = held.connector_params(1).extreme_tangent_stiffness(wide.bounds)
+    assert low[0] / held.K0 >= 0.1 - 1e-12  # calibration.stiffness_floor, relative to K0
+    low_free, _ = free.connector_params(1).extreme_tangent_stiffness(wide.bounds)
+    assert low_free[0] < 0  # ... which the experiments' range alone would have allowed
