@@ -161,8 +161,9 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     tp = scene.test_points
     # a punch near the clamp would hold clamped vertices: the "auto" rules pick among the
     # vertices a punch of the scene's radius can indent ("cover", the paper's, stays as it is)
+    auto = "auto" in (tp.calibration, tp.held_out)
     candidates = (punch_candidates(mesh, fixed, scene.indentation.radius)
-                  if scene.indentation.indenter == "punch" else None)
+                  if scene.indentation.indenter == "punch" and auto else None)
     if isinstance(tp.calibration, str):
         calibration = select_calibration_points(
             mesh, fixed, tp.n_calibration, tp.calibration,
