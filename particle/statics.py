@@ -297,17 +297,21 @@ def kernel_terms(p: ConnectorParams, nonlinear: bool, arms: ArmStep | None
     in each worker); a zero term adds exactly 0.0 to a tension or tangent, and its few
     flops per connector are lost next to the sparse factorisation.
     """
-    e = len(p.K0)
-    if nonlinear:
-        a, b = p.a, p.b
-    else:
-        a = np.zeros(e)
-        a.flags.writeable = False  # typed as the parameters' read-only arrays are
-        b = a
+    a, b = spring_terms(p, nonlinear)
     if arms is None:
+        e = len(p.K0)
         zero = np.zeros((e, 2))
         return a, b, zero, zero, zero, np.zeros(e)
     return a, b, arms.r, arms.c, arms.force_prev, arms.dx_prev
+
+
+def spring_terms(p: ConnectorParams, nonlinear: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(a, b)`` of :func:`kernel_terms`: the springs' coefficients, or read-only zeros."""
+    if nonlinear:
+        return p.a, p.b
+    zero = np.zeros(len(p.K0))
+    zero.flags.writeable = False  # typed as the parameters' read-only arrays are
+    return zero, zero
 
 
 def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
@@ -338,7 +342,7 @@ def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.n
     """CSC data (nnz,) of the tangent stiffness [N/m] at ``x`` in ``pat``'s storage
     (constraint rows and columns not yet applied)."""
     data = np.empty(len(pat.indices))
-    a, b = kernel_terms(p, nonlinear, arms)[:2]
+    a, b = spring_terms(p, nonlinear)
     arm_stiffness = np.zeros(len(p.K0)) if arms is None else arms.stiffness
     kernels.assemble_tangent(x, model.edges, model.rest_lengths, p.K0, a, b, arm_stiffness,
                              tension, pat.slots, data)
