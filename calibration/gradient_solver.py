@@ -114,21 +114,27 @@ class Regulariser:
                         inverse(self.tet_laplacian)))
         return out
 
-    def solve(self, rhs: np.ndarray | sp.spmatrix) -> np.ndarray:
-        """(size, m) ``A1^-1 rhs`` for a dense or sparse (size, m) ``rhs``."""
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """(size, m) ``A1^-1 rhs`` for a dense (size, m) ``rhs``."""
         out = np.empty(rhs.shape)
-        rows = rhs.tocsr() if sp.issparse(rhs) else None  # sliced by rows below
         for start, copies, n, solve in self._blocks:
             stop = start + copies * n
-            if rows is not None:
-                for c in range(copies):
-                    out[start + c * n:start + (c + 1) * n] = solve(
-                        rows[start + c * n:start + (c + 1) * n])
-                continue
             # (copies n, m) -> (n, copies m): one product for every copy's columns
             y = np.asarray(rhs[start:stop]).reshape(copies, n, -1).transpose(1, 0, 2)
             x = solve(y.reshape(n, -1)).reshape(n, copies, -1).transpose(1, 0, 2)
             out[start:stop] = x.reshape(copies * n, -1)
+        return out
+
+    def sandwich(self, rows: sp.spmatrix) -> np.ndarray:
+        """(k, k) ``R A1^-1 R^T`` for sparse (k, size) rows ``R``, block by block of A1:
+        only the blocks ``R`` touches are solved for (the hinge rows: three of seven)."""
+        rows = sp.csc_matrix(rows)
+        out = np.zeros((rows.shape[0], rows.shape[0]))
+        for start, copies, n, solve in self._blocks:
+            for c in range(copies):
+                block = rows[:, start + c * n:start + (c + 1) * n]
+                if block.nnz:
+                    out += np.asarray(block @ solve(block.T.tocsr()))
         return out
 
     def value(self, theta: np.ndarray, weight: float) -> float:
@@ -140,18 +146,24 @@ class Regulariser:
 class Linearisation:
     """Residuals and Jacobian at theta, with the products the steps need.
 
+    The rows are the dense data rows ``J`` followed by the sparse hinge rows ``H`` (three
+    non-zeros each, :meth:`calibration.gradient.Validity.hinge`); ``A1^-1 H^T`` is never
+    formed (:meth:`of`).
+
     Attributes:
         theta: (size,) coordinates.
         r: (m,) residuals (data rows, then the active hinge rows).
-        J: (m, size) their Jacobian.
-        P: (size, m) ``A1^-1 J^T``.
-        C: (m, m) ``J A1^-1 J^T``.
+        J: (n, size) the data rows' Jacobian (dense).
+        H: (m - n, size) the hinge rows' Jacobian (sparse CSR).
+        P: (size, n) ``A1^-1 J^T``.
+        C: (m, m) ``[J; H] A1^-1 [J; H]^T``.
         offset: squared norm of the residual left out of the rows [1] (:func:`compress`):
             ``|r_full + J_full d|^2 ~ |r + J d|^2 + offset``.
     """
     theta: np.ndarray
     r: np.ndarray
     J: np.ndarray
+    H: sp.csr_matrix
     P: np.ndarray
     C: np.ndarray
     offset: float = 0.0
@@ -159,36 +171,40 @@ class Linearisation:
     @classmethod
     @blas_threads()  # the parent's dense algebra on every core: the workers wait meanwhile
     def of(cls, theta: np.ndarray, r: np.ndarray, J: np.ndarray, reg: Regulariser,
-           offset: float = 0.0, n_dense: int | None = None) -> "Linearisation":
-        """The products for rows ``r``, ``J``; the rows after the first ``n_dense`` (None: all
-        rows are dense) are hinge rows with three non-zeros each.
+           offset: float = 0.0, hinge: sp.spmatrix | None = None) -> "Linearisation":
+        """The products for residuals ``r`` of the dense rows ``J`` and then the sparse
+        ``hinge`` rows (None: none).
 
-        Why the split: the hinge rows can outnumber the compressed data rows several times
-        (every spring below twice the floor somewhere on its strain range adds rows: 2,722
-        at the liver punch's global fit, against 372 data rows), and ``C = J P`` as one
-        dense product then costs (rows^2 x size): on average 19.7 s of a linearisation's
-        32 s there (10,685 coordinates, the reference BLAS). ``C`` is symmetric, so
-        its hinge rows come from sparse products and its data-hinge block from their
-        transpose.
+        Why the hinge rows stay sparse: they can outnumber the compressed data rows several
+        times (every spring below twice the floor somewhere on its strain range adds rows:
+        2,638 at the liver punch's global fit, against 276 data rows). Their block of
+        ``A1^-1 [J; H]^T`` would be a dense (size, rows) array (250 MB there) written and
+        read at every step; instead ``C``'s hinge blocks come from ``H P`` (data-hinge) and
+        ``H_q B^-1 H_q^T`` per coordinate block q that the hinge touches, and a step applies
+        ``A1^-1 H^T`` to one vector (:meth:`apply_P`).
         """
-        if not len(J):
-            return cls(theta, r, J, np.zeros((J.shape[1], 0)), np.zeros((0, 0)), offset)
-        n = len(J) if n_dense is None else n_dense
-        P = np.empty((J.shape[1], len(J)))
-        P[:, :n] = reg.solve(J[:n].T)
-        if n == len(J):
-            return cls(theta, r, J, P, J @ P, offset)
-        hinge = sp.csr_matrix(J[n:])
-        P[:, n:] = reg.solve(hinge.T)
-        C = np.empty((len(J), len(J)))
-        C[:n, :n] = J[:n] @ P[:, :n]
-        C[n:] = hinge @ P
-        C[:n, n:] = C[n:, :n].T
-        return cls(theta, r, J, P, C, offset)
+        n = len(J)
+        H = sp.csr_matrix((0, J.shape[1])) if hinge is None else sp.csr_matrix(hinge)
+        P = reg.solve(J.T) if n else np.zeros((J.shape[1], 0))
+        C = np.empty((n + H.shape[0], n + H.shape[0]))
+        C[:n, :n] = J @ P
+        if H.shape[0]:
+            C[n:, :n] = H @ P
+            C[:n, n:] = C[n:, :n].T
+            C[n:, n:] = reg.sandwich(H)
+        return cls(theta, r, J, H, P, C, offset)
 
-    def rows(self, keep: np.ndarray) -> "Linearisation":
-        return Linearisation(self.theta, self.r[keep], self.J[keep], self.P[:, keep],
-                             self.C[np.ix_(keep, keep)])
+    def apply_P(self, u: np.ndarray, reg: Regulariser) -> np.ndarray:
+        """(size,) ``A1^-1 [J; H]^T u`` for (m,) ``u``."""
+        n = len(self.J)
+        out = self.P @ u[:n]
+        if self.H.shape[0]:
+            out += reg.solve((self.H.T @ u[n:])[:, None])[:, 0]
+        return out
+
+    def apply_J(self, d: np.ndarray) -> np.ndarray:
+        """(m,) ``[J; H] d`` for (size,) ``d``."""
+        return np.concatenate([self.J @ d, self.H @ d])
 
     @blas_threads()
     def step(self, reg: Regulariser, weight: float, damping: float) -> np.ndarray:
@@ -201,14 +217,14 @@ class Linearisation:
         d0 = (self.theta - reg.theta0).ravel()
         if len(self.r):
             inner = cho_solve(cho_factor(alpha * np.eye(len(self.r)) + self.C),
-                              self.C @ self.r + weight * (self.J @ d0))
-            d = self.P @ (self.r - inner) + weight * d0
+                              self.C @ self.r + weight * self.apply_J(d0))
+            d = self.apply_P(self.r - inner, reg) + weight * d0
         else:
             d = weight * d0
         return (-d / alpha).reshape(self.theta.shape)
 
     def predict(self, d: np.ndarray) -> np.ndarray:
-        return self.r + self.J @ d.ravel()
+        return self.r + self.apply_J(d.ravel())
 
 
 def compress(r: np.ndarray, J: np.ndarray, rows_per_point: int, keep: int
@@ -306,13 +322,10 @@ def linearise(ev: LeastSquares, theta: np.ndarray, points: np.ndarray, reg: Regu
     """Compressed data rows (computed, or ``data_rows`` as ``ev.linearise`` returns them)
     plus the active hinge rows at ``theta``."""
     r, J, offset = ev.linearise(theta, points, ROWS_KEPT) if data_rows is None else data_rows
-    n_data = len(r)
     h, Jh = validity.hinge(theta)
     active = np.nonzero(h)[0]
-    if len(active):
-        r = np.concatenate([r, h[active]])
-        J = np.vstack([J, Jh[active].toarray()])
-    return Linearisation.of(theta, r, J, reg, offset, n_dense=n_data)
+    return Linearisation.of(theta, np.concatenate([r, h[active]]), J, reg, offset,
+                            hinge=Jh[active])
 
 
 def levenberg_marquardt(ev: LeastSquares, points: np.ndarray, reg: Regulariser, weight: float,

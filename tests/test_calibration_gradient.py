@@ -364,7 +364,7 @@ def test_cross_validation_picks_a_finite_weight(box):
     assert costs[0] > 2.0 * costs[best] and costs[-1] > 2.0 * costs[best]
 
 
-def test_regulariser_solve_is_the_metric_inverse_on_both_paths(box, monkeypatch):
+def test_regulariser_solve_and_sandwich_are_the_metric_inverse_on_both_paths(box, monkeypatch):
     # the block solve (seven connector coordinates sharing one block, then the tets) against
     # a sparse LU of the whole metric, for dense and sparse right-hand sides, with the blocks
     # inverted densely (the default at this size) and by their own sparse LU
@@ -381,10 +381,13 @@ def test_regulariser_solve_is_the_metric_inverse_on_both_paths(box, monkeypatch)
         reg = Regulariser(neighbour_laplacian(mesh.edges, mesh.n_vertices), np.zeros(size),
                           shared_laplacian(mesh.tets, mesh.n_vertices, 3))
         lu = splu(reg.metric)
-        for rhs in (dense, sparse):
-            want = lu.solve(rhs.toarray() if sp.issparse(rhs) else rhs)
-            got = reg.solve(rhs)
-            assert np.max(np.abs(got - want)) <= 1e-10 * np.max(np.abs(want))
+        want = lu.solve(dense)
+        got = reg.solve(dense)
+        assert np.max(np.abs(got - want)) <= 1e-10 * np.max(np.abs(want))
+        # the sparse rows' R A1^-1 R^T, solved only on the blocks they touch
+        want = sparse.T @ lu.solve(sparse.toarray())
+        got = reg.sandwich(sparse.T)
+        assert np.max(np.abs(got - want)) <= 1e-10 * np.max(np.abs(want))
 
 
 def test_validity_refuses_soft_springs():
@@ -507,8 +510,8 @@ def test_every_backend_indents_alike(box, indenter):
 
 
 def test_hinge_rows_products_equal_the_dense_ones(box):
-    """Linearisation.of with the hinge rows kept sparse (``n_dense``) gives the products and
-    the damped step of the all-dense computation, to round-off."""
+    """Linearisation.of with the hinge rows kept sparse (``hinge``) gives the products, the
+    prediction and the damped step of the all-dense computation, to round-off."""
     problem = build_problem(box)
     n = len(problem.mesh.edges)
     rng = np.random.default_rng(3)
@@ -520,8 +523,8 @@ def test_hinge_rows_products_equal_the_dense_ones(box):
     for row, e in enumerate(rng.choice(n, 30)):  # a hinge row: one connector's K0, alpha, beta
         hinge[row, [e, n + e, 2 * n + e]] = rng.normal(size=3)
     J, r = np.vstack([data, hinge]), rng.normal(size=54)
-    dense, split = Linearisation.of(theta, r, J, reg), Linearisation.of(theta, r, J, reg,
-                                                                      n_dense=24)
+    dense = Linearisation.of(theta, r, J, reg)
+    split = Linearisation.of(theta, r, data, reg, hinge=sp.csr_matrix(hinge))
     scale = np.abs(dense.C).max()
     np.testing.assert_allclose(split.C, dense.C, rtol=0, atol=1e-12 * scale)
     # the step solves with (alpha I + C), whose condition number (4e5 here) amplifies C's
@@ -529,3 +532,6 @@ def test_hinge_rows_products_equal_the_dense_ones(box):
     step = dense.step(reg, 0.3, 1.0)
     np.testing.assert_allclose(split.step(reg, 0.3, 1.0), step, rtol=0,
                                atol=1e-8 * np.abs(step).max())
+    predicted = dense.predict(step)
+    np.testing.assert_allclose(split.predict(step), predicted, rtol=0,
+                               atol=1e-12 * np.abs(predicted).max())
