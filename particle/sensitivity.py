@@ -256,6 +256,7 @@ class _Adjoint(_Recorded):
         carried = np.zeros(n_out, dtype=bool)  # samples whose abar, dbar may be nonzero
         unit, dx = np.empty((e, 3)), np.empty(e)
         dA_dk, dA_db = np.empty((e, 2)), np.empty((e, 2))
+        no_arms = np.zeros((e, 2))  # what the kernels get (unread) for an elastic step
         k_push = np.empty(pat.n_dofs)
         end_of = {s: j for j, s in enumerate(ends)}
         for s in range(len(steps) - 1, -1, -1):
@@ -270,9 +271,9 @@ class _Adjoint(_Recorded):
             data = self._tangent(solver, model, pat, eq, arms)
             kern.csc_columns_product(pat.indptr, pat.indices, data, push_cols, push_vals, k_push)
             kern.connector_geometry(eq.x, model.edges, model.rest_lengths, unit, dx)
-            c = None if arms is None else arms.c
             beta = np.empty((len(cols), e))
-            kern.elongation_adjoint(cols, dbar, abar, c, beta)
+            kern.elongation_adjoint(cols, dbar, abar, no_arms if arms is None else arms.c,
+                                    arms is not None, beta)
             rhs = np.empty((len(cols), pat.n_dofs))
             kern.pattern_product(end_dofs, unit, beta, rhs)
             rhs = k_push * w[:, None] - rhs
@@ -284,12 +285,12 @@ class _Adjoint(_Recorded):
             if arms is not None:
                 kern.arm_derivatives(arms.r, arms.c, arm_k, arm_b, arms.force_prev, dx,
                                      arms.dx_prev, dA_dk, dA_db)
-                kern.add_partials(cols, tau, dx, model.rest_lengths, jac, arms.r, arms.c,
+                kern.add_partials(cols, tau, dx, model.rest_lengths, jac, True, arms.r, arms.c,
                                   dA_dk, dA_db, abar, dbar)
                 carried = live
             else:
-                kern.add_partials(cols, tau, dx, model.rest_lengths, jac, None, None, None,
-                                  None, None, None)
+                kern.add_partials(cols, tau, dx, model.rest_lengths, jac, False, no_arms,
+                                  no_arms, dA_dk, dA_db, abar, dbar)
             if jac_kv is not None:
                 kern.add_volume_partials(eq.x, model.tets, tet_dofs, model.rest_volumes, cols,
                                          lam, jac_kv)

@@ -63,14 +63,17 @@ def csc_columns_product(indptr, indices, data, cols, values, out):
 
 
 @njit(**JIT)
-def elongation_adjoint(cols, dbar, abar, arm_c, beta):
+def elongation_adjoint(cols, dbar, abar, arm_c, with_arms, beta):
     """``beta`` (S', E) = ``dbar + sum_i c_i abar_i`` [1/m] of the samples ``cols``: the
-    adjoint of each connector's elongation; ``arm_c`` (E, 2) [N/m], None for an elastic
-    step (then ``abar`` is not read)."""
+    adjoint of each connector's elongation; ``arm_c`` (E, 2) [N/m], read only
+    ``with_arms`` (an elastic step: ``beta = dbar``).
+
+    Why a flag and not None for an elastic step: numba compiles one specialisation per
+    None/array combination, in every fresh worker of a calibration."""
     for k in range(cols.shape[0]):
         s = cols[k]
         for e in range(beta.shape[1]):
-            if arm_c is None:
+            if not with_arms:
                 beta[k, e] = dbar[s, e]
             else:
                 beta[k, e] = dbar[s, e] + (arm_c[e, 0] * abar[s, 0, e]
@@ -139,20 +142,23 @@ def arm_derivatives(r, c, k, b, force_prev, dx, dx_prev, dA_dk, dA_db):
 
 
 @njit(**JIT)
-def add_partials(cols, tau, dx, rest_lengths, jac, arm_r, arm_c, dA_dk, dA_db, abar, dbar):
+def add_partials(cols, tau, dx, rest_lengths, jac, with_arms, arm_r, arm_c, dA_dk, dA_db,
+                 abar, dbar):
     """``jac`` (S, 7, E) += this step's explicit parameter derivatives contracted with the
     adjoints of the samples ``cols``, and the history adjoints stepped back in place.
 
     ``tau`` (S', E) tension adjoints; springs: ``dT/d(K0, a, b) = dx, eps dx, eps^2 dx``
-    (``dx`` (E,) [m], ``eps = dx / rest_lengths``). With arms (``arm_r`` (E, 2) not None):
-    ``mu_i = abar_i + tau`` times ``dA_dk``, ``dA_db`` (:func:`arm_derivatives`), then
-    ``abar_i <- r_i mu_i``, ``dbar <- -sum_i c_i mu_i`` (``abar`` (S, 2, E), ``dbar`` (S, E)).
+    (``dx`` (E,) [m], ``eps = dx / rest_lengths``). ``with_arms`` (else the arm arrays are
+    not read, :func:`elongation_adjoint` says why a flag): ``mu_i = abar_i + tau`` times
+    ``dA_dk``, ``dA_db`` (:func:`arm_derivatives`), then ``abar_i <- r_i mu_i``,
+    ``dbar <- -sum_i c_i mu_i`` (``arm_r``, ``arm_c`` (E, 2), ``abar`` (S, 2, E),
+    ``dbar`` (S, E)).
     """
     for k in range(cols.shape[0]):
         s = cols[k]
         out = jac[s]
         t_row = tau[k]
-        if arm_r is not None:
+        if with_arms:
             a_row = abar[s]
             d_row = dbar[s]
         for e in range(t_row.shape[0]):
@@ -162,7 +168,7 @@ def add_partials(cols, tau, dx, rest_lengths, jac, arm_r, arm_c, dA_dk, dA_db, a
             out[0, e] += t * d
             out[1, e] += t * (eps * d)
             out[2, e] += t * (eps * eps * d)
-            if arm_r is not None:
+            if with_arms:
                 mu1 = a_row[0, e] + t
                 mu2 = a_row[1, e] + t
                 out[3, e] += mu1 * dA_dk[e, 0]

@@ -560,6 +560,11 @@ class Factor:
         if b.ndim == 1:
             out = np.empty(s.n)
             _solve_one(*args, b, out)
+        elif b.shape[1] == 1:
+            # one column, (n, 1): both C- and F-contiguous, which numba types as C, the
+            # usual (n, r) transposes as F: a second specialisation of _solve_many to compile
+            out = np.empty(b.shape, order="F")
+            _solve_one(*args, np.ascontiguousarray(b[:, 0]), out[:, 0])
         else:
             out = np.empty(b.shape, order="F")
             _solve_many(*args, b, out, -(-b.shape[1] // 16) * 16)
