@@ -219,7 +219,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
 
         validity = dataclasses.replace(validity, floor=settings.stiffness_floor * glob.K0,
                                        K0_global=glob.K0)
-        local = LocalParametrisation(glob, rings, strain, settings.stiffness_floor * glob.K0,
+        local = LocalParametrisation(glob, rings, strain, validity.floor,
                                      np.zeros((n_cal, STATIC_DIM)),
                                      np.zeros((n_cal, RELAXATION_DIM)),
                                      local_validity(validity, glob.connector_params(n_conn)))

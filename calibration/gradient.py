@@ -395,8 +395,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
             checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
             log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
                      "(%.1f s)", k + 1, weight, folds, time.perf_counter() - t)
-            hinge, _ = validity.hinge(theta)
-            start = lin if not hinge.any() else linearise(ev, theta, points, reg, validity, rows)
+            start = linearise(ev, theta, points, reg, validity, lin)
         else:
             weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)
         weights.append(weight)

@@ -184,15 +184,22 @@ class Linearisation:
         ``A1^-1 H^T`` to one vector (:meth:`apply_P`).
         """
         n = len(J)
-        H = sp.csr_matrix((0, J.shape[1])) if hinge is None else sp.csr_matrix(hinge)
         P = reg.solve(J.T) if n else np.zeros((J.shape[1], 0))
+        data = cls(theta, r[:n], J, sp.csr_matrix((0, J.shape[1])), P, J @ P, offset)
+        return data if hinge is None else data.with_hinge(r[n:], hinge, reg)
+
+    def with_hinge(self, r_hinge: np.ndarray, hinge: sp.spmatrix, reg: Regulariser
+                   ) -> "Linearisation":
+        """This linearisation of data rows only, with the sparse ``hinge`` rows (k, size) and
+        their residuals (k,) appended; ``P`` and ``C``'s data block are reused."""
+        n, H = len(self.J), sp.csr_matrix(hinge)
         C = np.empty((n + H.shape[0], n + H.shape[0]))
-        C[:n, :n] = J @ P
-        if H.shape[0]:
-            C[n:, :n] = H @ P
-            C[:n, n:] = C[n:, :n].T
-            C[n:, n:] = reg.sandwich(H)
-        return cls(theta, r, J, H, P, C, offset)
+        C[:n, :n] = self.C
+        C[n:, :n] = H @ self.P
+        C[:n, n:] = C[n:, :n].T
+        C[n:, n:] = reg.sandwich(H)
+        return Linearisation(self.theta, np.concatenate([self.r, r_hinge]), self.J, H, self.P,
+                             C, self.offset)
 
     def apply_P(self, u: np.ndarray, reg: Regulariser) -> np.ndarray:
         """(size,) ``A1^-1 [J; H]^T u`` for (m,) ``u``."""
@@ -317,15 +324,15 @@ class LMState:
 
 
 def linearise(ev: LeastSquares, theta: np.ndarray, points: np.ndarray, reg: Regulariser,
-              validity: Bounds, data_rows: tuple[np.ndarray, np.ndarray, float] | None = None
-              ) -> Linearisation:
-    """Compressed data rows (computed, or ``data_rows`` as ``ev.linearise`` returns them)
-    plus the active hinge rows at ``theta``."""
-    r, J, offset = ev.linearise(theta, points, ROWS_KEPT) if data_rows is None else data_rows
+              validity: Bounds, data: Linearisation | None = None) -> Linearisation:
+    """Compressed data rows (computed, or ``data``: their linearisation at ``theta``, as the
+    cross-validation has it) plus the active hinge rows at ``theta``."""
+    if data is None:
+        r, J, offset = ev.linearise(theta, points, ROWS_KEPT)
+        data = Linearisation.of(theta, r, J, reg, offset)
     h, Jh = validity.hinge(theta)
     active = np.nonzero(h)[0]
-    return Linearisation.of(theta, np.concatenate([r, h[active]]), J, reg, offset,
-                            hinge=Jh[active])
+    return data.with_hinge(h[active], Jh[active], reg) if len(active) else data
 
 
 def levenberg_marquardt(ev: LeastSquares, points: np.ndarray, reg: Regulariser, weight: float,
