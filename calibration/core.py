@@ -8,7 +8,10 @@ resumes where it stopped and ends with the same result:
    as the paper, the gradient method's relaxation fit by Gauss-Newton);
 4. local static sweeps, 5. local relaxation sweeps (:mod:`calibration.local`),
    unless ``calibration.local = false``;
-6. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
+6. gravity check: with gravity experiments in the scene, the calibrated model must complete
+   the particle side of the gravity test, or it is pulled back towards the global fit until it
+   does (:mod:`calibration.gravity_check`; only completion is used, never the FE's sag);
+7. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
    global-only and the calibrated (global + local, or gradient) models are evaluated at every
    test point; held-out points, never used by any fit, give the honest accuracy.
 
@@ -36,6 +39,7 @@ import numpy as np
 from calibration.baseline import van_gelder_params
 from calibration.checkpoint import Checkpoint
 from calibration.gradient import Validity, fit_gradient, gradient_backend
+from calibration.gravity_check import carry_gravity, gravity_failure
 from calibration.global_fit import (GAUSS_NEWTON, NELDER_MEAD, fe_initial_slopes, fit_relaxation,
                                    fit_static, initial_guess)
 from calibration.local import LocalParametrisation, Sweep, run_local_phase
@@ -57,6 +61,9 @@ from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 
+#: the scene's experiments that make a calibrated model run the gravity test
+#: (:mod:`calibration.gravity_check`)
+GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 #: the warning of a calibration without relaxation data (params.h5, report.json)
 ARMS_NOT_CALIBRATED = ("the Maxwell arms are not calibrated (the scene's experiments do not "
                        "include 'relaxation'): only the springs were fitted; the arms keep the "
@@ -252,9 +259,20 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                     f.evaluations for s in local_sweeps[phase] for f in s.fits)
                 stage_times[key] = time.perf_counter() - t
 
+        calibrated = gfit.params if gradient else local.params()
+        gravity_check = None
+        if ref.gravity is not None and any(scene.runs(e) for e in GRAVITY_EXPERIMENTS):
+            # only whether the model completes the test is used, never its FE comparison
+            t = time.perf_counter()
+            times = ref.gravity.time if scene.runs("gravity_dynamic") else None
+            calibrated, gravity_check = carry_gravity(
+                gfit.pulled_back if gradient else lambda f: local.scaled(f).params(),
+                lambda p: gravity_failure(scene, problem, p, times, strain.bounds))
+            if not gradient and gravity_check.scale is not None:
+                local = local.scaled(gravity_check.scale)  # the offsets params.h5 stores
+            stage_times["gravity_check"] = time.perf_counter() - t
         connectors = {"baseline": van_gelder_params(mesh, material),
-                      "global": glob.connector_params(n_conn),
-                      "calibrated": gfit.params if gradient else local.params()}
+                      "global": glob.connector_params(n_conn), "calibrated": calibrated}
         t = time.perf_counter()
         pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)
         variants = {}
@@ -270,6 +288,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     if not relax:
         warnings.append(ARMS_NOT_CALIBRATED)
     warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
+    if gravity_check is not None and gravity_check.warning() is not None:
+        warnings.append(gravity_check.warning())
     result = CalibrationResult(
         problem=problem, initial=initial, global_params=glob, connectors=connectors,
         variants=variants, z_static=local.z_static, z_relaxation=local.z_relaxation,

@@ -337,6 +337,8 @@ class GradientResult:
         weights: the weight chosen in each round.
         state: the final LM state (objective history [1]).
         jacobians: Jacobian evaluations (all calibration points each).
+        coords: the fit's coordinates; theta_start: (coords.size,) where the fit started (the
+            global fit).
     """
     params: ConnectorParams
     weight: float
@@ -344,7 +346,17 @@ class GradientResult:
     cv_costs: np.ndarray
     state: LMState
     jacobians: int
-    weights: tuple[float, ...] = ()
+    weights: tuple[float, ...]
+    coords: Coordinates
+    theta_start: np.ndarray
+
+    def pulled_back(self, fraction: float) -> ConnectorParams:
+        """The parameters a ``fraction`` of the way from the global fit to this fit, in the
+        fit's coordinates (1: :attr:`params`; 0: the global fit)."""
+        if fraction == 1.0:
+            return self.params
+        return self.coords.params(self.theta_start
+                                  + fraction * (self.state.theta - self.theta_start))
 
     def summary(self) -> dict:
         return {"weight": self.weight, "weights": list(self.weights), "grid": list(self.grid),
@@ -411,4 +423,5 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
             break  # the same weight again: this round continued the last one's fit
         theta = state.theta
     return GradientResult(coords.params(state.theta), weights[-1], tuple(grid),
-                          np.array(cv_costs), state, ev.jacobians, tuple(weights))
+                          np.array(cv_costs), state, ev.jacobians, tuple(weights), coords,
+                          theta0)

@@ -92,6 +92,11 @@ class LocalParametrisation:
         key = "z_static" if phase == "static" else "z_relaxation"
         return dataclasses.replace(self, **{key: np.asarray(z, dtype=float)})
 
+    def scaled(self, fraction: float) -> "LocalParametrisation":
+        """Every offset times ``fraction`` (0: the global fit; the factors' logs scale)."""
+        return dataclasses.replace(self, z_static=fraction * self.z_static,
+                                   z_relaxation=fraction * self.z_relaxation)
+
     def params(self) -> ConnectorParams:
         return local_params(self.glob, self.rings, self.strain, self.z_static, self.z_relaxation)
 

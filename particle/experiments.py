@@ -12,15 +12,20 @@ from __future__ import annotations
 
 import logging
 import math
+import time
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
 from forcecal.errors import ParameterError
+from forcecal.scene import ParticleSection
 from particle.integrator import Prescribed, VerletIntegrator, energy_bound
-from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
+from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, connector_strains,
+                                critical_time_step, release_strain_range, resolve_time_step)
 from particle.model import Model
 from particle.params import StrainBounds
+from particle.statics import check_stiffness, gravity_static
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +69,84 @@ def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: floa
         record_steps=record_steps, skip=skip)
     log.info("gravity: %d steps of %.3g s", n_steps, step)
     return positions - model.rest_positions[None]
+
+
+@dataclass(frozen=True, eq=False)
+class GravityTest:
+    """One particle model's gravity test (:func:`gravity_test`).
+
+    Attributes:
+        static_displacement: (N, 3) float64, static sag [m].
+        displacement: (S, N, 3) float64, dynamic displacements at the record times [m];
+            None without the dynamic release.
+        dt: explicit time step used [s].
+        critical_dt: stability limit of that step [s].
+        static_time: wall time of the static solve [s].
+        dynamic_time: wall time of the dynamic run [s], kernel compiled beforehand.
+        strain_min, strain_max: most compressive / most tensile connector strain reached [1].
+    """
+    static_displacement: np.ndarray
+    displacement: np.ndarray | None
+    dt: float
+    critical_dt: float
+    static_time: float
+    dynamic_time: float
+    strain_min: float
+    strain_max: float
+
+
+def gravity_test(model: Model, gravity: np.ndarray, times: np.ndarray | None, *,
+                 load_steps: int, particle: ParticleSection,
+                 strain_range: tuple[float, float], name: str) -> GravityTest:
+    """Static sag and dynamic release of ``model`` under ``gravity`` [m/s^2] (``times`` None:
+    the static sag only, with the step the release would take).
+
+    The static sag (:func:`~particle.statics.gravity_static`, ``load_steps``) uses the
+    long-term springs; the release starts undeformed and at rest at t = 0 and is sampled
+    at ``times`` [s]. ``strain_range`` is where the springs were calibrated (and must be
+    positive); the runs are refused (:class:`ParameterError`) if a spring's K(eps)
+    becomes <= 0 at a strain they reach, and the strain extremes are recorded so that
+    leaving the calibrated range can be reported. The explicit step is chosen for each
+    connector's strain range of the release (:func:`release_strain_range` of the static
+    sag, ``particle.strain_margin``), which the dynamic run verifies
+    (:class:`~forcecal.errors.StabilityError` if a connector leaves it); an explicit
+    ``particle.dt`` must be stable over the calibrated range as well. ``name`` names the
+    model in errors and the log.
+    """
+    t0 = time.perf_counter()
+    static = gravity_static(model, gravity, load_steps=load_steps, strain_range=strain_range)
+    t1 = time.perf_counter()
+    check_stiffness(model, connector_strains(model, static), f"static sag of the {name} model")
+    release = release_strain_range(model, static, particle.strain_margin)
+    if particle.dt != "auto":
+        release = (np.minimum(release[0], strain_range[0]),
+                   np.maximum(release[1], strain_range[1]))
+    critical = critical_time_step(model, strain_range=release, damping=particle.damping)
+    dt = resolve_time_step(particle, critical)
+    if times is None:
+        eps = connector_strains(model, static)
+        log.info("gravity, %s model: max static sag %.3g mm, strains [%.3g, %.3g], static "
+                 "%.2f s (no dynamic release)", name, 1e3 * np.linalg.norm(static, axis=1).max(),
+                 eps.min(), eps.max(), t1 - t0)
+        return GravityTest(static, None, dt, critical, t1 - t0, 0.0, float(eps.min()),
+                           float(eps.max()))
+    # a few steps first so that dynamic_time measures the simulation, not numba compiling
+    # (or loading from its cache) this model's kernel specialisation
+    gravity_dynamic(model, gravity, float(times[1]), dt, times[:2], damping=particle.damping,
+                    strain_range=release)
+    t2 = time.perf_counter()
+    dynamic = gravity_dynamic(model, gravity, float(times[-1]), dt, times,
+                              damping=particle.damping, strain_range=release)
+    t3 = time.perf_counter()
+    strain = np.vstack([connector_strains(model, static)[None], connector_strains(model, dynamic)])
+    for t, sample in zip(times, strain[1:]):
+        check_stiffness(model, sample, f"gravity dynamics of the {name} model at t = {t:.4g} s")
+    log.info("gravity, %s model: max static sag %.3g mm, dt %.3g s (limit %.3g s), strains "
+             "[%.3g, %.3g], static %.2f s, dynamic %.2f s (%d samples)", name,
+             1e3 * np.linalg.norm(static, axis=1).max(), dt, critical, strain.min(),
+             strain.max(), t1 - t0, t3 - t2, len(times))
+    return GravityTest(static, dynamic, dt, critical, t1 - t0, t3 - t2,
+                       float(strain.min()), float(strain.max()))
 
 
 def relaxation_dynamic(model: Model, node: int, normal: np.ndarray, times: np.ndarray,

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,12 +39,9 @@ from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem, write_problem
 from forcecal.problem import Problem
 from forcecal.scene import Scene
-from particle.experiments import gravity_dynamic
+from particle.experiments import GravityTest, gravity_test
 from particle.model import build_model
 from particle.params import ConnectorParams
-from particle.stability import (connector_strains, critical_time_step, release_strain_range,
-                                resolve_time_step)
-from particle.statics import check_stiffness, gravity_static
 
 log = logging.getLogger(__name__)
 
@@ -54,30 +50,6 @@ GRAVITY_SCHEMA = 1
 MODELS = ("calibrated", "baseline")
 GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 SCALARS = ("dt", "critical_dt", "static_time", "dynamic_time", "strain_min", "strain_max")
-
-
-@dataclass(frozen=True, eq=False)
-class ParticleGravity:
-    """One particle model's gravity test.
-
-    Attributes:
-        static_displacement: (N, 3) float64, static sag [m].
-        displacement: (S, N, 3) float64, dynamic displacements at the FE's record times [m];
-            None without the dynamic release.
-        dt: explicit time step used [s].
-        critical_dt: stability limit of that step [s].
-        static_time: wall time of the static solve [s].
-        dynamic_time: wall time of the dynamic run [s], kernel compiled beforehand.
-        strain_min, strain_max: most compressive / most tensile connector strain reached [1].
-    """
-    static_displacement: np.ndarray
-    displacement: np.ndarray | None
-    dt: float
-    critical_dt: float
-    static_time: float
-    dynamic_time: float
-    strain_min: float
-    strain_max: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,7 +68,7 @@ class GravityRuns:
     problem: Problem
     time: np.ndarray | None
     acceleration: np.ndarray
-    models: dict[str, ParticleGravity]
+    models: dict[str, GravityTest]
     reference_fingerprint: str = ""
     params_fingerprint: str = ""
     experiments: tuple[str, ...] = GRAVITY_EXPERIMENTS
@@ -104,7 +76,7 @@ class GravityRuns:
 
 def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: np.ndarray,
               times: np.ndarray | None, strain_range: tuple[float, float], name: str
-              ) -> ParticleGravity:
+              ) -> GravityTest:
     """Static sag and dynamic release of one parameter set (``times`` None: the static sag
     only, with the step the release would take).
 
@@ -117,42 +89,9 @@ def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: 
     which the dynamic run verifies; an explicit ``particle.dt`` must be stable
     over the calibrated range as well.
     """
-    model = build_model(problem, scene.material.density, params)
-    t0 = time.perf_counter()
-    static = gravity_static(model, gravity, load_steps=scene.gravity.static_load_steps,
-                            strain_range=strain_range)
-    t1 = time.perf_counter()
-    check_stiffness(model, connector_strains(model, static), f"static sag of the {name} model")
-    release = release_strain_range(model, static, scene.particle.strain_margin)
-    if scene.particle.dt != "auto":
-        release = (np.minimum(release[0], strain_range[0]),
-                   np.maximum(release[1], strain_range[1]))
-    critical = critical_time_step(model, strain_range=release, damping=scene.particle.damping)
-    dt = resolve_time_step(scene.particle, critical)
-    if times is None:
-        eps = connector_strains(model, static)
-        log.info("gravity, %s model: max static sag %.3g mm, strains [%.3g, %.3g], static "
-                 "%.2f s (no dynamic release: not in the scene's experiments)", name,
-                 1e3 * np.linalg.norm(static, axis=1).max(), eps.min(), eps.max(), t1 - t0)
-        return ParticleGravity(static, None, dt, critical, t1 - t0, 0.0, float(eps.min()),
-                               float(eps.max()))
-    # a few steps first so that dynamic_time measures the simulation, not numba compiling
-    # (or loading from its cache) this model's kernel specialisation
-    gravity_dynamic(model, gravity, float(times[1]), dt, times[:2],
-                    damping=scene.particle.damping, strain_range=release)
-    t2 = time.perf_counter()
-    dynamic = gravity_dynamic(model, gravity, float(times[-1]), dt, times,
-                              damping=scene.particle.damping, strain_range=release)
-    t3 = time.perf_counter()
-    strain = np.vstack([connector_strains(model, static)[None], connector_strains(model, dynamic)])
-    for t, sample in zip(times, strain[1:]):
-        check_stiffness(model, sample, f"gravity dynamics of the {name} model at t = {t:.4g} s")
-    log.info("gravity, %s model: max static sag %.3g mm, dt %.3g s (limit %.3g s), strains "
-             "[%.3g, %.3g], static %.2f s, dynamic %.2f s (%d samples)", name,
-             1e3 * np.linalg.norm(static, axis=1).max(), dt, critical, strain.min(),
-             strain.max(), t1 - t0, t3 - t2, len(times))
-    return ParticleGravity(static, dynamic, dt, critical, t1 - t0, t3 - t2,
-                           float(strain.min()), float(strain.max()))
+    return gravity_test(build_model(problem, scene.material.density, params), gravity, times,
+                        load_steps=scene.gravity.static_load_steps, particle=scene.particle,
+                        strain_range=strain_range, name=name)
 
 
 def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, ConnectorParams],
@@ -209,7 +148,7 @@ def read_gravity(path: str | Path) -> GravityRuns:
             if name not in fh:
                 raise DataFileError(f"{path}:/{name} is missing")
             a = fh[name].attrs
-            models[name] = ParticleGravity(
+            models[name] = GravityTest(
                 get(fh, f"{name}/static_displacement", (n, 3), dtype="float"),
                 get(fh, f"{name}/displacement", (len(times), n, 3), dtype="float")
                 if dynamic else None,

@@ -47,7 +47,7 @@ from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS
 from pipelines.dynamics import dynamic_metrics, release_modes
-from pipelines.gravity import GravityRuns, ParticleGravity
+from pipelines.gravity import GravityRuns, GravityTest
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def _mean(values: np.ndarray) -> float | None:
 
 
 def model_errors(reference: Reference, calibration: CalibrationResult,
-                 gravity: ParticleGravity | None, variants: dict[str, str],
+                 gravity: GravityTest | None, variants: dict[str, str],
                  ran: tuple[str, ...] = ALL_EXPERIMENTS) -> dict[str, float | None]:
     """The :data:`ERROR_KEYS` for one model; ``variants`` maps global/calibrated/held_out to the
     params.h5 variant evaluated on that point set. The keys of experiments not in ``ran``

@@ -13,10 +13,10 @@ from forcecal.problem import Problem
 from forcecal.scene import scene_from_dict
 from particle.model import build_model
 from particle.params import ConnectorParams
+from particle.stability import connector_strains
 from forcecal.provenance import code_digest, code_digests, file_digest, import_closure
 from pipelines.cache import Cache, StageInputs
-from pipelines.gravity import (GravityRuns, ParticleGravity, connector_strains, read_gravity,
-                               run_model, write_gravity)
+from pipelines.gravity import GravityRuns, GravityTest, read_gravity, run_model, write_gravity
 from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
                               gravity_static_error)
 from pipelines.stages import STAGES
@@ -298,7 +298,7 @@ def test_positive_spring_range_is_the_interval_between_the_nearest_roots(K0, a, 
 def test_gravity_file_round_trip_and_refusals(tmp_path, column):
     n, s = column.mesh.n_vertices, 4
     rng = np.random.default_rng(0)
-    models = {m: ParticleGravity(rng.normal(size=(n, 3)), rng.normal(size=(s, n, 3)), 1e-4,
+    models = {m: GravityTest(rng.normal(size=(n, 3)), rng.normal(size=(s, n, 3)), 1e-4,
                                  2e-4, 0.1, 0.2, -0.05, 0.07)
               for m in ("calibrated", "baseline")}
     runs = GravityRuns(column, np.linspace(0, 0.03, s), np.array([0, 0, -9.81]), models,

@@ -1,0 +1,109 @@
+"""The calibrated model must complete the scene's gravity test (issue 11, "valid where it will
+be used").
+
+The gravity test (static sag, dynamic release from rest) is the honest measure of a
+calibration: no fit sees its FE results. But a model whose fitted springs cannot carry the
+organ's weight (a limit point of the static equilibrium below 1 g) or leave, in the release,
+the strain range its explicit step was verified for has no gravity result at all. The fits
+keep every spring stiff on the gravity release range of the FE sag (``Validity``), which is
+necessary but not sufficient: springs that are each above their floor can still form a network
+that buckles under its weight (measured: the paper's local tuning on the punch scene without
+the volume term, Newton's last equilibrium at 0.914 g).
+
+So after fitting, the calibrated model runs the particle side of the scene's gravity test
+(:func:`particle.experiments.gravity_test`, with the scene's load steps, step rule and the FE's
+record times) and only its *completion* is used: its displacements are not compared with the
+FE's here, which only the gravity stage does. If it does not complete, the fit is pulled back
+towards the global fit, in the fit's own coordinates (the paper's ring offsets, the gradient
+method's log/feasible coordinates), by the factors :data:`PULL_BACK` until one completes; the
+global fit itself is the last candidate. The factor kept and every rejected candidate's failure
+are returned (a warning in ``params.h5`` and ``report.json``), never silent.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from forcecal.errors import ConvergenceError, ParameterError, StabilityError
+from forcecal.problem import Problem
+from forcecal.scene import Scene
+from particle.experiments import gravity_test
+from particle.model import build_model
+from particle.params import ConnectorParams
+
+log = logging.getLogger(__name__)
+
+#: fractions of the fit (over the global fit) tried after the fit itself fails the gravity test
+PULL_BACK = (0.5, 0.25, 0.125, 0.0625, 0.0)
+#: what a gravity run that does not complete raises (each names the load, step or connector)
+GRAVITY_FAILURES = (ConvergenceError, StabilityError, ParameterError)
+
+
+@dataclass(frozen=True)
+class GravityCheck:
+    """Outcome of :func:`carry_gravity`.
+
+    Attributes:
+        scale: fraction of the fit kept over the global fit (1: the fit as it is; 0: the
+            global fit); None if no candidate completed (the fit is kept as it is).
+        failures: (fraction, reason) of every candidate that did not complete, in order.
+        seconds: wall time of the checks [s].
+    """
+    scale: float | None
+    failures: tuple[tuple[float, str], ...]
+    seconds: float
+
+    def warning(self) -> str | None:
+        """The line for ``params.h5``'s warnings, None when the fit completed as it is."""
+        if not self.failures:
+            return None
+        first = self.failures[0][1]
+        if self.scale is None:
+            return (f"the calibrated model does not complete the scene's gravity test ({first}), "
+                    "and neither does the global fit; the gravity stage will fail")
+        kept = "the global fit" if self.scale == 0.0 else f"{self.scale:g} x the fit"
+        return (f"the calibrated model does not complete the scene's gravity test ({first}); "
+                f"pulled back towards the global fit to {kept} over the global fit, the "
+                f"largest of {[1.0, *PULL_BACK]} that completes")
+
+
+def gravity_failure(scene: Scene, problem: Problem, params: ConnectorParams,
+                    times: np.ndarray | None, strain_range: tuple[float, float]) -> str | None:
+    """Why ``params`` do not complete ``scene``'s gravity test (None if they do): the static
+    sag under ``scene.gravity.acceleration`` and, with ``times`` (s), the release sampled at
+    them, run as the gravity stage runs them (``strain_range``: the calibration's)."""
+    model = build_model(problem, scene.material.density, params)
+    try:
+        gravity_test(model, np.asarray(scene.gravity.acceleration, dtype=np.float64), times,
+                     load_steps=scene.gravity.static_load_steps, particle=scene.particle,
+                     strain_range=strain_range, name="calibrated")
+    except GRAVITY_FAILURES as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def carry_gravity(params_at: Callable[[float], ConnectorParams],
+                  failure: Callable[[ConnectorParams], str | None]
+                  ) -> tuple[ConnectorParams, GravityCheck]:
+    """The largest fraction of the fit, of 1 then :data:`PULL_BACK`, whose parameters
+    ``params_at(fraction)`` complete the gravity test (``failure`` returns None), and those
+    parameters. If none does, the fit itself (``params_at(1)``) with ``scale`` None."""
+    t = time.perf_counter()
+    failures: list[tuple[float, str]] = []
+    for fraction in (1.0, *PULL_BACK):
+        params = params_at(fraction)
+        reason = failure(params)
+        if reason is None:
+            if failures:
+                log.warning("gravity check: %g x the fit completes the gravity test "
+                            "(%d larger fractions did not)", fraction, len(failures))
+            return params, GravityCheck(fraction, tuple(failures), time.perf_counter() - t)
+        log.info("gravity check: %g x the fit does not complete the gravity test: %s",
+                 fraction, reason)
+        failures.append((fraction, reason))
+    return params_at(1.0), GravityCheck(None, tuple(failures), time.perf_counter() - t)
