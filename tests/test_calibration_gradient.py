@@ -8,7 +8,8 @@ import pytest
 import scipy.sparse as sp
 
 from calibration.core import calibrate
-from calibration.gradient import Coordinates, Validity, neighbour_laplacian, shared_laplacian
+from calibration.gradient import (Coordinates, GradientResult, Validity, neighbour_laplacian,
+                                  shared_laplacian)
 from calibration.gradient_solver import Linearisation, Regulariser, cross_validate, folds_of
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
@@ -235,6 +236,31 @@ def test_coordinates_chain_rule(n_tets):
         d[i] = 1e-6
         fd = (value(theta + d) - value(theta - d)) / 2e-6
         np.testing.assert_allclose(got[:, i], fd, rtol=1e-6, atol=1e-9)
+
+
+def test_pulled_back_fit_moves_along_the_fits_coordinates():
+    """The gravity check's pull-back of a gradient fit (calibration.gravity_check): a fraction
+    f of the way from the global fit in the fit's coordinates: 1 is the fit, 0 the global
+    fit, and K0, k_i, tau_i, kv move geometrically, alpha s and beta s^2 linearly."""
+    n, n_tets = 5, 3
+    coords = Coordinates(0.1, n, n_tets)
+    start = dataclasses.replace(GLOBAL.connector_params(n), kv=np.full(n_tets, 900.0))
+    theta0 = coords.theta_of(start)
+    theta = theta0 + np.random.default_rng(3).normal(0, 0.3, coords.size)
+    fit = coords.params(theta)
+    state = dataclasses.make_dataclass("State", ["theta"])(theta)
+    result = GradientResult(fit, 1.0, (1.0,), np.zeros((1, 1)), state, 1, (1.0,), coords, theta0)
+    assert result.pulled_back(1.0) is fit
+    back = result.pulled_back(0.0)
+    for name in (*PARAM_NAMES, "kv"):
+        np.testing.assert_allclose(getattr(back, name), getattr(start, name), rtol=1e-12,
+                                   atol=1e-12)
+    half = result.pulled_back(0.5)
+    for name in ("K0", "k1", "k2", "kv"):
+        np.testing.assert_allclose(getattr(half, name),
+                                   np.sqrt(getattr(start, name) * getattr(fit, name)), rtol=1e-12)
+    np.testing.assert_allclose(half.a / half.K0, 0.5 * (start.a / start.K0 + fit.a / fit.K0),
+                               rtol=1e-12)
 
 
 def _recovery(problem, truth: ConnectorParams, result):
