@@ -1,6 +1,6 @@
-"""Nelder-Mead (the paper's global and local fits) and a small Gauss-Newton (the gradient
-method's global fits), with the paper's bookkeeping: cost per evaluation and per iteration,
-warnings.
+"""Nelder-Mead (the paper's global fits) and a small Gauss-Newton (the local fits, the gradient
+method's global relaxation fit), with the paper's bookkeeping: cost per evaluation and per
+iteration, warnings.
 
 :func:`nelder_mead` wraps ``scipy.optimize.minimize(method="Nelder-Mead")``:
 
@@ -181,21 +181,24 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
 
 def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
                  step: np.ndarray, *, name: str, xatol: float, fatol: float,
-                 max_evaluations: int,
+                 max_evaluations: int, scale: float | None = None,
+                 max_step: float | None = None,
                  on_evaluation: Callable[[float], None] | None = None,
                  verbose: bool = False) -> Fit:
     """Minimise ``|residuals(x)|^2`` from ``x0`` by Levenberg-Marquardt with a forward-difference
     Jacobian; the same bookkeeping and :class:`Fit` as :func:`nelder_mead`.
 
-    For the few global coordinates of a smooth least-squares cost: d + 1
-    evaluations per iteration (d coordinates; the curves warm-start from the
-    last ones, so the difference quotients are cheap), against Nelder-Mead's
-    ~10 d-100 d evaluations in all. ``step`` (d,) is each coordinate's scale: the
-    difference quotient uses ``FD_STEP step_i`` (backward where forward is
+    For the few coordinates of a smooth least-squares cost (the global relaxation fit of the
+    gradient method, every local fit): d + 1 evaluations per iteration (d coordinates; the
+    curves warm-start from the last ones, so the difference quotients are cheap), against
+    Nelder-Mead's ~10 d-100 d evaluations in all. ``step`` (d,) is each coordinate's scale:
+    the difference quotient uses ``FD_STEP step_i`` (backward where forward is
     infeasible). A trial point raising one of :data:`INFEASIBLE` is rejected
-    like one that raises the cost (more damping). Converged when an accepted step
-    is below ``xatol`` in every coordinate or lowers the cost by less than
-    ``fatol`` of the initial cost.
+    like one that raises the cost (more damping). ``max_step``: a trial step's largest
+    coordinate is cut to it (a trust region: a full Gauss-Newton step from far away can
+    land in another basin of a non-convex cost, which Nelder-Mead's small simplex does
+    not). Converged when an accepted step is below ``xatol`` in every coordinate or lowers
+    the cost by less than ``fatol`` times ``scale`` (default: the initial cost).
 
     Raises:
         ConvergenceError: the starting point itself is infeasible.
@@ -224,6 +227,7 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
     if r is None:
         raise ConvergenceError(f"{name}: the starting point {x.tolist()} is infeasible")
     start = cost = float(r @ r)
+    tolerance = fatol * (start if scale is None else scale)
     damping, converged = 1e-3, False
     while start > 0.0 and len(evaluations) + len(x) + 1 <= max_evaluations:
         jac = np.empty((len(r), len(x)))
@@ -239,12 +243,17 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
                 raise ConvergenceError(f"{name}: infeasible on both sides of {x.tolist()} "
                                        f"in coordinate {i}")
         jtj, grad = jac.T @ jac, jac.T @ r
-        scale = np.maximum(np.diag(jtj), 1e-12 * np.max(np.diag(jtj)))
+        if not np.any(grad):  # a cost flat to round-off: no direction gains (converged)
+            converged = True
+            break
+        diagonal = np.maximum(np.diag(jtj), 1e-12 * np.max(np.diag(jtj)))
         accepted = False
         for _ in range(MAX_REJECTIONS):
             if len(evaluations) >= max_evaluations:
                 break
-            d = np.linalg.solve(jtj + damping * np.diag(scale), -grad)
+            d = np.linalg.solve(jtj + damping * np.diag(diagonal), -grad)
+            if max_step is not None and np.abs(d).max() > max_step:
+                d *= max_step / np.abs(d).max()
             r_new = evaluate(x + d)
             new = math.inf if r_new is None else float(r_new @ r_new)
             predicted = cost - float(np.sum((r + jac @ d) ** 2))
@@ -264,7 +273,7 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
         iterations.append((cost, len(evaluations)))
         log.log(level, "%s: iteration %d, %d evaluations, cost %.6g (%.4g of the start)", name,
                 len(iterations), len(evaluations), cost, cost / start)
-        if np.all(np.abs(d) < xatol) or gained < fatol * start:
+        if np.all(np.abs(d) < xatol) or gained < tolerance:
             converged = True
             break
     converged = converged or start == 0.0

@@ -226,8 +226,8 @@ class ParticleSection:
 
 @dataclass(frozen=True)
 class CalibrationSection:
-    method: str = key("paper", "after the global fit: \"paper\" = local ring tuning (Nelder-Mead "
-                      "Jacobi sweeps); \"gradient\" = every connector's parameters by "
+    method: str = key("paper", "after the global fit: \"paper\" = local ring tuning (Jacobi sweeps "
+                      "of per-point Gauss-Newton fits); \"gradient\" = every connector's parameters by "
                       "regularised Levenberg-Marquardt with adjoint Jacobians (README, "
                       "Calibration)", choices=("paper", "gradient"))
     local: bool = key(True, "run local tuning after global tuning")
@@ -236,9 +236,8 @@ class CalibrationSection:
     relaxation_max_evaluations: int = key(300, "budget of the global relaxation fit (cost "
                                           "evaluations; Nelder-Mead, Gauss-Newton for the "
                                           "gradient method)", minimum=1)
-    local_max_evaluations: int = key(300, "Nelder-Mead budget of one point's local fit, per "
-                                     "phase and sweep (cost evaluations; the default liver's "
-                                     "fits meet xatol within 275)", minimum=1)
+    local_max_evaluations: int = key(300, "budget of one point's local (Gauss-Newton) fit, per "
+                                     "phase and sweep (cost evaluations)", minimum=1)
     local_max_sweeps: int = key(3, "maximum Jacobi sweeps of each local phase (static, "
                                 "relaxation)", minimum=1)
     local_sweep_tolerance: float = key(1e-3, "a local phase stops sweeping once a sweep gains, "

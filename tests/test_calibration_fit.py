@@ -279,6 +279,9 @@ class InterruptingBackend:
             self.relaxation_started = True
             return relaxation(p, pts)
 
+        # forgetting warm starts where calibration checkpoints is what makes a resumed run
+        # repeat an uninterrupted one: the wrappers forward it
+        indentation.forget, relax.forget = static.forget, relaxation.forget
         return {"indentation": indentation, "relaxation": relax}
 
 
@@ -289,7 +292,7 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     code = code_fingerprint()
     monkeypatch.setattr("calibration.provenance.code_fingerprint", lambda: code)
     out = tmp_path / "params.h5"
-    # 1 sweep-start evaluation + point 0's fit (<= 60) + some of the next points'
+    # 1 sweep-start evaluation + point 0's fit (~20) + some of the next points'
     with pytest.raises(Interrupted):
         calibrate(box, d / "reference.h5", out, progress=False, backend=InterruptingBackend(75))
     assert not out.exists()
@@ -299,15 +302,17 @@ def test_interrupted_calibration_resumes_to_the_same_result(box, nonuniform, tmp
     result = calibrate(box, d / "reference.h5", out, progress=False)
     _assert_same_fit(result, reference_run)
     assert result.global_params == reference_run.global_params
-    # the global phases and point 0's local fit were loaded, not recomputed; an infeasible
-    # point (cost +inf) is refused before any curve is computed
+    # the global phases and the local fits done before the interruption (point 0's and
+    # maybe more) were loaded, not recomputed; an infeasible point (cost +inf) is refused
+    # before any curve is computed
     n_cal = len(result.problem.calibration)
 
     def feasible(fit) -> int:
         return int(np.isfinite(fit.history.evaluation_cost).sum())
 
     loaded = n_cal * sum(feasible(fit) for fit in result.global_fits.values())
-    loaded += n_cal + feasible(result.local_sweeps["static"][0].fits[0])  # sweep start + fit
+    done = [int(j) for j in saved["local_static"]["sweeps"][0]["fits"]]
+    loaded += n_cal + sum(feasible(result.local_sweeps["static"][0].fits[j]) for j in done)
     assert result.evaluations["point_curves"] == reference_run.evaluations["point_curves"] - loaded
     assert not checkpoint_path(out).exists()
 
