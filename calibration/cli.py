@@ -18,7 +18,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=None,
                         help="parallel workers (default: the scene's calibration.workers)")
     parser.add_argument("--verbose", action="store_true",
-                        help="log every Nelder-Mead iteration and infeasible point")
+                        help="log every optimiser iteration and infeasible point")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
 

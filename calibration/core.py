@@ -139,7 +139,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         out_path: the ``params.h5`` to write (atomically); the checkpoint lives in
             ``<out dir>/checkpoints/`` and is removed at the end.
         progress: tqdm bars (only on a terminal).
-        verbose: log every Nelder-Mead iteration (INFO) and every infeasible point.
+        verbose: log every optimiser iteration (INFO) and every infeasible point.
         workers: parallel workers; None = ``calibration.workers`` of the scene.
         backend: builds the evaluators of a worker's points (tests substitute it).
 

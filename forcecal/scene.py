@@ -226,10 +226,10 @@ class ParticleSection:
 
 @dataclass(frozen=True)
 class CalibrationSection:
-    method: str = key("paper", "after the global fit: \"paper\" = local ring tuning (Jacobi sweeps "
-                      "of per-point Gauss-Newton fits); \"gradient\" = every connector's parameters by "
-                      "regularised Levenberg-Marquardt with adjoint Jacobians (README, "
-                      "Calibration)", choices=("paper", "gradient"))
+    method: str = key("paper", "after the global fit: \"paper\" = local ring tuning (Jacobi "
+                      "sweeps of per-point Gauss-Newton fits); \"gradient\" = every connector's "
+                      "parameters by regularised Levenberg-Marquardt with adjoint Jacobians "
+                      "(README, Calibration)", choices=("paper", "gradient"))
     local: bool = key(True, "run local tuning after global tuning")
     static_max_evaluations: int = key(200, "Nelder-Mead budget of the global static fit "
                                       "(cost evaluations)", minimum=1)

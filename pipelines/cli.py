@@ -60,7 +60,7 @@ def _parser() -> argparse.ArgumentParser:
                        "its cache says it is up to date")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         p.add_argument("--verbose", action="store_true",
-                       help="log every Nelder-Mead iteration of the calibration, the "
+                       help="log every optimiser iteration of the calibration, the "
                        "traceback of a failure and mpirun's own text")
         p.add_argument("--ranks", type=_positive_int, default=2,
                        help="MPI ranks of the FE reference when not already under mpirun "

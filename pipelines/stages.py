@@ -155,7 +155,7 @@ def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report",
     """Bring ``until`` and every stage before it up to date in ``out``; see module docstring.
 
     ``force`` names stages to rerun even if their cache says they are up to date;
-    ``verbose`` logs every Nelder-Mead iteration of the calibration.
+    ``verbose`` logs every optimiser iteration of the calibration.
     Returns one :class:`Outcome` per stage (on every MPI rank).
     """
     from calibration.pool import mpi_world

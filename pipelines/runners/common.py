@@ -30,7 +30,7 @@ class Context:
         progress: show progress bars (on a terminal).
         ranks: MPI ranks for a spawned FE reference (1 = in-process).
         comm: the MPI world communicator under ``mpirun`` with > 1 rank, else None.
-        verbose: log every Nelder-Mead iteration of the calibration (no effect on results,
+        verbose: log every optimiser iteration of the calibration (no effect on results,
             so not part of any cache key).
         experiments: the scene's experiments the running stage uses.
         upstream: the files of ``out`` the running stage reads.
