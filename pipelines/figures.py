@@ -110,8 +110,8 @@ def _cost(ax, cal: CalibrationResult, stage: str, title: str) -> None:
         return
     cost = cal.global_fits[stage].history.iteration_cost
     ax.plot(np.arange(1, len(cost) + 1), cost, color="tab:orange")
-    ax.set(xlabel="iteration of the global fit", ylabel="cost G = sum (F_FE - F)^2 [N^2]", title=title,
-           yscale=_scale(cost))
+    ax.set(xlabel="iteration of the global fit", ylabel="cost G = sum (F_FE - F)^2 [N^2]",
+           title=title, yscale=_scale(cost))
     ax.grid(alpha=0.3, which="both")
 
 
