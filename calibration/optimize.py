@@ -194,10 +194,12 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
     Nelder-Mead's ~10 d-100 d evaluations in all. ``step`` (d,) is each coordinate's scale:
     the difference quotient uses ``FD_STEP step_i`` (backward where forward is
     infeasible). A trial point raising one of :data:`INFEASIBLE` is rejected
-    like one that raises the cost (more damping). ``max_step``: a trial step's largest
-    coordinate is cut to it (a trust region: a full Gauss-Newton step from far away can
-    land in another basin of a non-convex cost, which Nelder-Mead's small simplex does
-    not). Converged when an accepted step is below ``xatol`` in every coordinate or lowers
+    like one that raises the cost (more damping). ``max_step``: the initial radius of a
+    trust region on a trial step's largest coordinate (a full Gauss-Newton step from far
+    away can land in another basin of a non-convex cost, which Nelder-Mead's small simplex
+    does not), doubled after every accepted step that it cut and the linear model predicted
+    well (gain > 0.75), so a fit that must travel far is not held to small steps.
+    Converged when an accepted step is below ``xatol`` in every coordinate or lowers
     the cost by less than ``fatol`` times ``scale`` (default: the initial cost).
 
     Raises:
@@ -228,7 +230,7 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
         raise ConvergenceError(f"{name}: the starting point {x.tolist()} is infeasible")
     start = cost = float(r @ r)
     tolerance = fatol * (start if scale is None else scale)
-    damping, converged = 1e-3, False
+    damping, converged, radius = 1e-3, False, max_step
     while start > 0.0 and len(evaluations) + len(x) + 1 <= max_evaluations:
         jac = np.empty((len(r), len(x)))
         for i, h in enumerate(FD_STEP * step):
@@ -252,14 +254,17 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
             if len(evaluations) >= max_evaluations:
                 break
             d = np.linalg.solve(jtj + damping * np.diag(diagonal), -grad)
-            if max_step is not None and np.abs(d).max() > max_step:
-                d *= max_step / np.abs(d).max()
+            capped = radius is not None and np.abs(d).max() > radius
+            if capped:
+                d *= radius / np.abs(d).max()
             r_new = evaluate(x + d)
             new = math.inf if r_new is None else float(r_new @ r_new)
             predicted = cost - float(np.sum((r + jac @ d) ** 2))
             if new < cost:
                 gain = (cost - new) / predicted if predicted > 0 else 0.0
                 damping *= 1.0 / 3.0 if gain > 0.75 else (2.0 if gain < 0.25 else 1.0)
+                if capped and gain > 0.75:
+                    radius *= 2.0  # the model predicts well at the radius: let it reach further
                 accepted = True
                 break
             damping *= 4.0
