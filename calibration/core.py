@@ -55,15 +55,12 @@ from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import Reference, check_reference_settings, read_reference, reference_digest
 from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
-from forcecal.scene import Scene, load_scene
+from forcecal.scene import GRAVITY_EXPERIMENTS, Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 
-#: the scene's experiments that make a calibrated model run the gravity test
-#: (:mod:`calibration.gravity_check`)
-GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 #: the warning of a calibration without relaxation data (params.h5, report.json)
 ARMS_NOT_CALIBRATED = ("the Maxwell arms are not calibrated (the scene's experiments do not "
                        "include 'relaxation'): only the springs were fitted; the arms keep the "
@@ -259,15 +256,15 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                     f.evaluations for s in local_sweeps[phase] for f in s.fits)
                 stage_times[key] = time.perf_counter() - t
 
-        calibrated = gfit.params if gradient else local.params()
-        gravity_check = None
+        # the fit, or a fraction of it over the global fit (the gravity check's pull-back)
+        params_at = gfit.pulled_back if gradient else lambda f: local.scaled(f).params()
+        calibrated, gravity_check = params_at(1.0), None
         if ref.gravity is not None and any(scene.runs(e) for e in GRAVITY_EXPERIMENTS):
             # only whether the model completes the test is used, never its FE comparison
             t = time.perf_counter()
             times = ref.gravity.time if scene.runs("gravity_dynamic") else None
             calibrated, gravity_check = carry_gravity(
-                gfit.pulled_back if gradient else lambda f: local.scaled(f).params(),
-                lambda p: gravity_failure(scene, problem, p, times, strain.bounds))
+                params_at, lambda p: gravity_failure(scene, problem, p, times, strain.bounds))
             if not gradient and gravity_check.scale is not None:
                 local = local.scaled(gravity_check.scale)  # the offsets params.h5 stores
             stage_times["gravity_check"] = time.perf_counter() - t

@@ -269,11 +269,9 @@ def _damped_update(pool: Pool, start: LocalParametrisation, phase: str, referenc
                 break
             continue
         if best is not None and cost >= best["end_cost"]:
-            break
+            break  # halving further stopped lowering the cost
         if cost < start_cost:
             best = {"end": z.tolist(), "end_cost": cost, "halvings": halvings}
-        elif best is not None:
-            break
     if best is not None:
         return best
     log.info("local %s sweep: no damped update lowers the total cost; keeping the sweep's start",

@@ -298,6 +298,8 @@ TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
 
 #: the experiments a scene can ask for (top-level key ``experiments``), in pipeline order
 EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+#: the gravity test's experiments (the FE sag and release, the particle runs against them)
+GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 #: experiment -> the experiments it cannot do without, and why (checked at load)
 EXPERIMENT_NEEDS = {
     "indentation": (),

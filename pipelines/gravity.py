@@ -38,7 +38,7 @@ import numpy as np
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem, write_problem
 from forcecal.problem import Problem
-from forcecal.scene import Scene
+from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
 from particle.experiments import GravityTest, gravity_test
 from particle.model import build_model
 from particle.params import ConnectorParams
@@ -48,7 +48,6 @@ log = logging.getLogger(__name__)
 GRAVITY_KIND = "forcecal.gravity"
 GRAVITY_SCHEMA = 1
 MODELS = ("calibrated", "baseline")
-GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 SCALARS = ("dt", "critical_dt", "static_time", "dynamic_time", "strain_min", "strain_max")
 
 
