@@ -26,6 +26,7 @@ error path, kept in one module so that a change of the protocol is one change.)
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import os
 import socket
@@ -144,6 +145,16 @@ def forget_warm_starts(worker: PointWorker) -> None:
         forget = getattr(evaluator, "forget", None)
         if forget is not None:
             forget()
+
+
+def set_newton_tolerance(worker: PointWorker, rtol: float | None) -> None:
+    """Call run on a worker: its evaluators' Newton tolerance (see
+    :meth:`particle.evaluators._PointEvaluator.set_tolerance`; a backend without
+    ``set_tolerance`` solves nothing iteratively)."""
+    for evaluator in worker.evaluators.values():
+        set_tolerance = getattr(evaluator, "set_tolerance", None)
+        if set_tolerance is not None:
+            set_tolerance(rtol)
 
 
 def evaluation_count(worker: PointWorker) -> int:
@@ -429,14 +440,34 @@ class Pool:
         on the evaluations before it and a resumed run repeats an uninterrupted one
         exactly, not to the Newton tolerance.
         """
-        calls = [(int(np.nonzero(self.owner == w)[0][0]), ()) for w in range(self.n_workers)]
-        for _ in self.map(forget_warm_starts, calls):
-            pass
+        self._each_worker(forget_warm_starts)
+
+    @contextlib.contextmanager
+    def newton_tolerance(self, rtol: float | None) -> Iterator[None]:
+        """Inside the block every evaluator solves to Newton tolerance ``rtol`` (relative to
+        the indenter force; None: their own, nothing changes). Entering and leaving starts
+        them cold, so no curve after the block depends on an equilibrium of looser tolerance.
+        """
+        if rtol is None:
+            yield
+            return
+        self._each_worker(set_newton_tolerance, rtol)
+        try:
+            yield
+        finally:
+            self._each_worker(set_newton_tolerance, None)
+
+    def _each_worker(self, fn: Callable, *args) -> list:
+        """``fn(worker, *args)`` once on every worker; the results in worker order."""
+        calls = [(int(np.nonzero(self.owner == w)[0][0]), args) for w in range(self.n_workers)]
+        out: list = [None] * self.n_workers
+        for i, value in self.map(fn, calls):
+            out[i] = value
+        return out
 
     def evaluations(self) -> int:
         """Point-curves computed by all workers so far."""
-        calls = [(int(np.nonzero(self.owner == w)[0][0]), ()) for w in range(self.n_workers)]
-        return sum(v for _, v in self.map(evaluation_count, calls))
+        return sum(self._each_worker(evaluation_count))
 
 
 def in_point_order(parts: Sequence[np.ndarray], positions: np.ndarray,

@@ -91,7 +91,7 @@ class _PointEvaluator:
             reach = float(self.depths.max() / model.incident_min_length(self.nodes).min())
             strain_range = (-min(reach, 0.9), reach)
         self.strain_range = strain_range
-        self.rtol = rtol
+        self.rtol = self._own_rtol = rtol
         self._pattern = TangentPattern.of(model)
         self._solvers: dict[int, EquilibriumSolver] = {}
         self._warm: dict[int, np.ndarray] = {}
@@ -107,6 +107,16 @@ class _PointEvaluator:
         self._solvers.clear()
         self._warm.clear()
         self._factors.clear()
+
+    def set_tolerance(self, rtol: float | None) -> None:
+        """Newton tolerance of the next calls, relative to the indenter force (None: the one
+        the evaluator was built with); starts them cold (:meth:`forget`), so no equilibrium
+        solved to another tolerance seeds them."""
+        rtol = self._own_rtol if rtol is None else rtol
+        if not 0.0 < rtol < 1.0:
+            raise ParameterError(f"Newton tolerance {rtol!r} must lie in (0, 1)")
+        self.rtol = rtol
+        self.forget()
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()

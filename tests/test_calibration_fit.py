@@ -280,8 +280,11 @@ class InterruptingBackend:
             return relaxation(p, pts)
 
         # forgetting warm starts where calibration checkpoints is what makes a resumed run
-        # repeat an uninterrupted one: the wrappers forward it
+        # repeat an uninterrupted one, and the Nelder-Mead fits' Newton tolerance is part of
+        # the result: the wrappers forward both
         indentation.forget, relax.forget = static.forget, relaxation.forget
+        indentation.set_tolerance, relax.set_tolerance = (static.set_tolerance,
+                                                          relaxation.set_tolerance)
         return {"indentation": indentation, "relaxation": relax}
 
 

@@ -5,6 +5,7 @@ import sys
 import types
 
 import numpy as np
+import pytest
 
 from calibration.pool import Experiments, MpiTransport, Pool, serve
 from calibration.synthetic import box_scene
@@ -70,3 +71,40 @@ def test_pool_uses_at_most_one_worker_per_test_point(tmp_path, caplog):
         assert pool.n_workers == 1
         np.testing.assert_array_equal(pool.curves("indentation", params, [0]), [[1.0]])
     assert "3 workers asked for, 1 used (one per test point at most)" in caplog.text
+
+
+class _ToleranceEcho:
+    """An evaluator whose curve is its Newton tolerance (what the pool set, per worker)."""
+
+    def __init__(self):
+        self.rtol = 1e-8
+
+    def set_tolerance(self, rtol):
+        self.rtol = 1e-8 if rtol is None else rtol
+
+    def __call__(self, params, points=None):
+        return np.full((len(points), 1), self.rtol)
+
+
+def _echo_backend(experiments, points, params):
+    return {"indentation": _ToleranceEcho()}
+
+
+def test_newton_tolerance_reaches_every_worker_for_the_block_only(tmp_path):
+    """Pool.newton_tolerance sets every worker's evaluators (worker processes included) and
+    gives them their own back when the block ends, also when it ends by an error."""
+    p = build_problem(box_scene(tmp_path, test_points={"n_calibration": 4, "n_held_out": 8}))
+    experiments = Experiments(p, 1000.0, np.array([1e-3]), np.array([0.1]), np.array([1e-3]),
+                              (-0.5, 0.5))
+    params = ConnectorParams.uniform(len(p.mesh.edges), K0=1.0, k1=1.0, b1=1.0, k2=1.0, b2=10.0)
+    points = np.arange(4)
+    with Pool(experiments, params, backend=_echo_backend, workers=2) as pool:
+        assert pool.n_workers == 2
+        with pool.newton_tolerance(1e-6):
+            np.testing.assert_array_equal(pool.curves("indentation", params, points), 1e-6)
+        np.testing.assert_array_equal(pool.curves("indentation", params, points), 1e-8)
+        with pool.newton_tolerance(None):  # nothing changes
+            np.testing.assert_array_equal(pool.curves("indentation", params, points), 1e-8)
+        with pytest.raises(KeyError), pool.newton_tolerance(1e-5):
+            raise KeyError("a fit failed")
+        np.testing.assert_array_equal(pool.curves("indentation", params, points), 1e-8)

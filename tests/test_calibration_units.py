@@ -1,5 +1,6 @@
 """Calibration building blocks against closed-form answers: metrics, linear network,
 Van Gelder baseline, parametrisation, Nelder-Mead bookkeeping, initial guess."""
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -383,7 +384,17 @@ class _SpringCurves:
     def __init__(self, eps):
         self.eps = eps
 
+        self.rtol = None  # the Newton tolerance a fit asked for (None: the evaluators' own)
+        self.tolerances = set()  # ... at every curve evaluated
+
+    @contextlib.contextmanager
+    def newton_tolerance(self, rtol):
+        self.rtol = rtol
+        yield
+        self.rtol = None
+
     def curves(self, kind, params, points):
+        self.tolerances.add(self.rtol)
         e = self.eps
         row = params.K0[0] * e + params.a[0] * e ** 2 + params.b[0] * e ** 3
         return np.tile(row, (len(points), 1))
@@ -414,3 +425,21 @@ def test_global_static_fit_keeps_the_spring_stiff_on_its_feasible_range():
     assert low[0] / held.K0 >= 0.1 - 1e-12  # calibration.stiffness_floor, relative to K0
     low_free, _ = free.connector_params(1).extreme_tangent_stiffness(wide.bounds)
     assert low_free[0] < 0  # ... which the experiments' range alone would have allowed
+
+
+@pytest.mark.parametrize("optimizer", ["nelder-mead", "gauss-newton"])
+def test_nelder_mead_fits_compare_curves_at_their_looser_newton_tolerance(optimizer):
+    """Nelder-Mead only ranks costs: its curves are solved to NELDER_MEAD_RTOL; Gauss-Newton
+    differentiates them (difference quotients) and keeps the evaluators' own tolerance."""
+    from calibration.global_fit import NELDER_MEAD_RTOL, fit_static
+    from forcecal.scene import CalibrationSection
+
+    eps = np.linspace(0.01, 0.1, 10)
+    truth = GlobalParams(K0=30.0, alpha=0.0, beta=5.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)
+    pool = _SpringCurves(eps)
+    reference = pool.curves("indentation", truth.connector_params(1), [0, 1])
+    pool.tolerances.clear()
+    fit_static(pool, dataclasses.replace(truth, K0=25.0, beta=0.0), StrainRange(-0.05, 0.1),
+               reference, 1, CalibrationSection(), optimizer=optimizer, progress=False)
+    assert pool.tolerances == {NELDER_MEAD_RTOL if optimizer == "nelder-mead" else None}
+    assert pool.rtol is None  # the block ended

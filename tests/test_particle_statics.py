@@ -203,6 +203,41 @@ def test_evaluators_points_warm_starts_and_pickling():
                                rtol=1e-7)
 
 
+def test_a_looser_newton_tolerance_is_scoped_and_starts_cold():
+    """set_tolerance: the curves at 1e-6 lie within the looser tolerance of the 1e-8 ones;
+    back at the evaluator's own tolerance the next call starts cold, so it repeats a fresh
+    evaluator's curve bit for bit (no looser equilibrium seeds it)."""
+    model = box_model((3, 3, 2), a=-30.0, b=400.0)
+    x = model.rest_positions
+    top = np.nonzero(np.isclose(x[:, 2], x[:, 2].max()))[0][[1, 4]]
+    normals = np.tile(DOWN, (2, 1))
+    times, rdepths = relaxation_schedule(RelaxationSection(depth=0.002, ramp_time=0.05,
+                                                           ramp_steps=3, hold_time=2.5,
+                                                           hold_steps=6))
+    stiffer = dataclasses.replace(model.params, K0=1.1 * model.params.K0)
+
+    def make():
+        return RelaxationEvaluator(model, top, normals, times, rdepths)
+
+    for rtol in (None, 1e-6):
+        ev = make()
+        ev.set_tolerance(rtol)
+        ev(model.params)
+        curves = ev(stiffer)  # warm-started, as calibration's next evaluations are
+        if rtol is None:
+            reference = curves
+    # the Newton test is on the residual (<= rtol x the indenter force), the curve's
+    # error is of that order: well within 10 x rtol
+    np.testing.assert_allclose(curves, reference, rtol=1e-5)
+    assert not np.array_equal(curves, reference)
+    ev.set_tolerance(None)
+    assert ev.rtol == 1e-8 and not ev._warm and not ev._solvers
+    np.testing.assert_array_equal(ev(stiffer), make()(stiffer))
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(ParameterError, match="Newton tolerance"):
+            ev.set_tolerance(bad)
+
+
 def test_evaluator_refusals():
     model = box_model()
     node = top_centre(model)
