@@ -383,7 +383,6 @@ class _SpringCurves:
 
     def __init__(self, eps):
         self.eps = eps
-
         self.rtol = None  # the Newton tolerance a fit asked for (None: the evaluators' own)
         self.tolerances = set()  # ... at every curve evaluated
 
