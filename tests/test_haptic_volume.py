@@ -8,14 +8,15 @@ import scipy.sparse as sp
 
 from forcecal.errors import StabilityError
 from particle.haptics import HapticSession
-from particle.stability import critical_time_step
+from particle.stability import (EIGENVALUE_MARGIN, connector_stiffness_bound, critical_time_step,
+                                largest_eigenvalue, mass_scaled_laplacian)
 from particle.mass_scaling import scaled_inertia, stiffness_weights
 from particle.model import ModelBuilder
 from particle.params import connector_strain_bounds
 from particle.testing import box_model, top_centre, viscoelastic_params
 from particle.volume import signed_volumes, volume_hessian_numpy
 from particle.volume_bounds import (_irons_bound, _tet_bounds, node_volume_stiffness_bound,
-                                    volume_frequency_bound)
+                                    volume_edge_stiffness_bound, volume_frequency_bound)
 
 PERIOD = 1e-3
 
@@ -45,8 +46,13 @@ def jittered_box(seed=0, jitter=0.25, kv=2e4):
 
 
 def volume_eigenvalue(model, x):
-    """lambda_max(M^{-1/2} K_vol M^{-1/2}) [1/s^2] on the free particles at positions ``x``,
-    the volume tangent assembled from the per-tet numpy Hessians."""
+    """lambda_max(M^{-1/2} K_vol M^{-1/2}) [1/s^2] on the free particles at positions ``x``."""
+    return float(np.linalg.eigvalsh(mass_scaled_volume_tangent(model, x))[-1])
+
+
+def mass_scaled_volume_tangent(model, x):
+    """M^{-1/2} K_vol M^{-1/2} [1/s^2] (dense, the free particles' dofs in order) at positions
+    ``x``, the volume tangent assembled from the per-tet numpy Hessians."""
     n = model.n_particles
     rows, cols, vals = [], [], []
     for t, tet in enumerate(model.tets):
@@ -59,13 +65,32 @@ def volume_eigenvalue(model, x):
                       shape=(3 * n, 3 * n)).toarray()
     dof = np.repeat(~model.fixed, 3)
     scale = 1.0 / np.sqrt(np.repeat(model.masses, 3)[dof])
-    return float(np.linalg.eigvalsh(scale[:, None] * k[np.ix_(dof, dof)] * scale)[-1])
+    return scale[:, None] * k[np.ix_(dof, dof)] * scale
 
 
 def strains_and_ratios(model, x):
     d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
     return (np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0,
             signed_volumes(x, model.tets) / model.rest_volumes)
+
+
+def states_in_range(model, seed, reach):
+    """Positions of ``model``: the rest state, random perturbations of the free particles
+    (up to 1 mm) and stretches along z from the fixed bottom (0.75 and 1.29), those whose
+    connector strains lie in +-``reach``."""
+    free = ~model.fixed
+    rng = np.random.default_rng(seed)
+    states = []
+    for amplitude in (0.0, 3e-4, 6e-4, 1e-3):
+        for _ in range(3):
+            x = model.rest_positions.copy()
+            x[free] += amplitude * rng.standard_normal((int(free.sum()), 3))
+            states.append(x)
+    for stretch in (0.75, 1.29):  # |strain|, |V/V0 - 1| <= 0.29
+        x = model.rest_positions.copy()
+        x[:, 2] *= stretch
+        states.append(x)
+    return [x for x in states if np.all(np.abs(strains_and_ratios(model, x)[0]) <= reach)]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -79,25 +104,10 @@ def test_the_nodal_volume_bound_is_above_the_true_eigenvalue_on_deformed_irregul
     nodal = float(np.max(node_volume_stiffness_bound(model, lo, hi)[free] / model.masses[free]))
     irons = _irons_bound(model, *_tet_bounds(model, lo, hi))
     assert volume_frequency_bound(model, lo, hi) == min(nodal, irons)
-    rng = np.random.default_rng(seed)
-    checked = 0
-    states = []
-    for amplitude in (0.0, 3e-4, 6e-4, 1e-3):
-        for _ in range(3):
-            x = model.rest_positions.copy()
-            x[free] += amplitude * rng.standard_normal((int(free.sum()), 3))
-            states.append(x)
-    for stretch in (0.75, 1.29):  # along z from the fixed bottom: |strain|, |V/V0 - 1| <= 0.29
-        x = model.rest_positions.copy()
-        x[:, 2] *= stretch
-        states.append(x)
+    states = states_in_range(model, seed, 0.3)
+    assert len(states) >= 10
     for x in states:
-        strain, _ = strains_and_ratios(model, x)
-        if not np.all((strain >= -0.3) & (strain <= 0.3)):
-            continue
-        checked += 1
         assert volume_eigenvalue(model, x) <= nodal
-    assert checked >= 10
     # on this irregular mesh the nodal bound is the smaller one, and it is not vacuous:
     # within 10x of the true eigenvalue at rest
     assert nodal < irons
@@ -120,6 +130,52 @@ def test_the_nodal_bound_follows_the_closed_form_of_one_free_vertex():
     assert node_volume_stiffness_bound(model, zero, zero)[3] / 1e-3 == pytest.approx(
         expected, rel=1e-12)
     assert volume_eigenvalue(model, tet) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_edge_bound_of_the_volume_term_is_above_its_tangent_on_deformed_irregular_meshes(
+        seed):
+    """Rigour in the Loewner order: at the states of the nodal bound's test, ``L_w (x) I_3 -
+    K_vol`` (``w`` per connector, mass-scaled) has no negative eigenvalue (beyond round-off),
+    and the stable step, which takes the smaller of this bound (added to the connectors'
+    ``kappa``) and the springs' bound plus the volume term's own, is at least the latter's."""
+    model = jittered_box(seed)
+    reach = (-0.3, 0.3)
+    lo, hi = connector_strain_bounds(reach, model.n_connectors, model.edges)
+    bound = np.kron(mass_scaled_laplacian(model, volume_edge_stiffness_bound(model, lo, hi)
+                                          ).toarray(), np.eye(3))
+    states = states_in_range(model, seed, 0.3)
+    assert len(states) >= 10
+    for x in states:
+        tangent = mass_scaled_volume_tangent(model, x)
+        gap = np.linalg.eigvalsh(bound - tangent)[0]
+        assert gap >= -1e-12 * np.abs(tangent).max()
+    kappa = connector_stiffness_bound(model.params, lo, hi)
+    separate = (EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
+                + volume_frequency_bound(model, lo, hi))
+    assert critical_time_step(model, strain_range=reach) >= 2.0 / np.sqrt(separate)
+
+
+def test_the_edge_bound_is_exact_for_a_regular_tet_at_rest():
+    """Four free particles of equal mass on a regular tet, zero-width strain range: the
+    tangent is the rank-one ``kv/V0 g g^T`` (J = 1), with eigenvalue ``kv/V0 |g|^2/m``, and
+    the Laplacian of the six equal edge weights has ``4 w/m``: the same, since removing the
+    rigid translation loses nothing on one tet."""
+    builder = ModelBuilder()
+    side = 0.02
+    tet = side / np.sqrt(8.0) * np.array([[1.0, 1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, -1.0, -1.0],
+                                          [-1.0, -1.0, 1.0]])
+    builder.add_particles(tet, np.full(4, 1e-3), np.zeros(4, dtype=bool))
+    builder.add_connectors([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    params = dataclasses.replace(viscoelastic_params(6), kv=np.array([3000.0]))
+    model = builder.finalize(params, tets=np.array([[0, 1, 2, 3]]))
+    zero = np.zeros(6)
+    w = volume_edge_stiffness_bound(model, zero, zero)
+    np.testing.assert_allclose(w, w[0], rtol=1e-12)
+    face = np.sqrt(3.0) / 4.0 * side ** 2  # each |g_a| is a face's area over 3
+    exact = 3000.0 / model.rest_volumes[0] * 4.0 * (face / 3.0) ** 2 / 1e-3
+    assert volume_eigenvalue(model, tet) == pytest.approx(exact, rel=1e-12)
+    assert largest_eigenvalue(mass_scaled_laplacian(model, w)) == pytest.approx(exact, rel=1e-12)
 
 
 def test_a_session_on_a_narrower_strain_range_takes_a_larger_step_and_verifies_it():
@@ -178,7 +234,7 @@ def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
     model = box_model((3, 3, 2), K0=200.0)
     gravity = np.array([0.0, 0.0, -9.81])
     node, tracked = top_centre(model), int(model.free_nodes[-1])
-    rows = volume_rows("box", model, node, tracked, gravity, kv=2e4)
+    rows = volume_rows("box", model, node, tracked, gravity, kv=3e4)
     by = {r["variant"]: r for r in rows}
     narrow = ENVELOPE
     assert set(by) == {"float64", narrow, "mass-scaled 1", "mass-scaled 2"}
