@@ -148,7 +148,7 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
       ``K_t <= L_{kappa + w} (x) I_3``: one eigenvalue of the sum, which lets the
       springs' and the tets' stiffest modes differ (tighter on fine meshes: kv 8.9 kPa,
       strains +-0.5, stable step 0.217 -> 0.249 ms on the 12k-connector liver, 0.139 ->
-      0.169 ms on the 54k one, 1.171 -> 1.217 ms on the 1400-connector liver at rest).
+      0.169 ms on the 54k one, 0.541 -> 0.546 ms on the 1400-connector liver).
 
     Raises:
         ParameterError: the parameters are non-physical on ``strain_range``
