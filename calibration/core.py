@@ -236,6 +236,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                # per-tet kv too when the global fit carries the volume term
                                tets=mesh.tets if glob.connector_params(n_conn).kv is not None
                                else None,
+                               kv_per_tet=settings.kv_per_tet,
                                max_iterations=settings.gradient_max_iterations,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()

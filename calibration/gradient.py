@@ -134,16 +134,19 @@ class Coordinates:
 
     ``theta`` is flat: seven blocks of E connector coordinates ``(log K0, alpha s,
     beta s^2, log k1, log tau1, log k2, log tau2)``, then ``log kv`` of the T tets
-    when the volume term is on (T = 0 otherwise).
+    when each tet's kv is fitted (T = 0 otherwise).
 
     Attributes:
         scale: strain scale s of the experiments [1].
         n_connectors: E.
-        n_tets: T, 0 without the volume term.
+        n_tets: T, 0 without the volume term or with a kv that is not fitted.
+        fixed_kv: the kv [Pa] ((1,) or (T,)) every parameter set carries when ``n_tets`` is 0
+            with the volume term on (``calibration.kv_per_tet = false``); None otherwise.
     """
     scale: float
     n_connectors: int
     n_tets: int = 0
+    fixed_kv: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -166,7 +169,7 @@ class Coordinates:
         s, b = self.scale, lambda q: self.block(theta, q)  # noqa: E731
         K0 = np.exp(b(0))
         k1, k2 = np.exp(b(3)), np.exp(b(5))
-        kv = np.exp(theta[N_COORDS * self.n_connectors:]) if self.n_tets else None
+        kv = np.exp(theta[N_COORDS * self.n_connectors:]) if self.n_tets else self.fixed_kv
         return ConnectorParams(K0=K0, a=b(1) / s * K0, b=b(2) / (s * s) * K0, k1=k1,
                                b1=np.exp(b(4)) * k1, k2=k2, b2=np.exp(b(6)) * k2, kv=kv)
 
@@ -368,6 +371,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  reference: dict[str, np.ndarray], validity: Validity, edges: np.ndarray,
                  n_particles: int, *, folds: int, max_iterations: int,
                  tets: np.ndarray | None = None, kv0: float | None = None,
+                 kv_per_tet: bool = True,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
@@ -376,10 +380,16 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ``reference``: experiment -> (Pc, S) curves of the calibration points (test points
     0..Pc-1 of the pool). ``tets`` (T, 4): fit a per-tet kv of the volume term too, starting
     from the global fit's kv (or ``kv0`` [Pa] if the global parameters carry none); None:
-    springs only.
+    springs only. ``kv_per_tet`` False: the connectors only, every tet keeping that kv.
     """
     start_params = glob.connector_params(len(edges))
-    coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
+    if tets is not None and not kv_per_tet:
+        if start_params.kv is None:
+            start_params = dataclasses.replace(start_params, kv=np.array([kv0], dtype=float))
+        coords = Coordinates(strain.scale, len(edges), 0, start_params.kv)
+        tets = None  # no kv coordinates, no kv smoothness
+    else:
+        coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
     if coords.n_tets and start_params.kv is None:
         start_params = dataclasses.replace(start_params, kv=np.full(coords.n_tets, kv0))
     elif coords.n_tets and len(start_params.kv) != coords.n_tets:

@@ -238,6 +238,22 @@ def test_coordinates_chain_rule(n_tets):
         np.testing.assert_allclose(got[:, i], fd, rtol=1e-6, atol=1e-9)
 
 
+def test_coordinates_with_a_fixed_kv_carry_it_and_fit_the_connectors_only():
+    """``calibration.kv_per_tet = false``: no kv coordinates, every parameter set carries the
+    global kv as it is."""
+    n = 5
+    kv = np.array([900.0])
+    coords = Coordinates(0.1, n, 0, kv)
+    start = dataclasses.replace(GLOBAL.connector_params(n), kv=kv)
+    assert coords.size == 7 * n
+    theta = coords.theta_of(start) + np.random.default_rng(1).normal(0, 0.1, coords.size)
+    p = coords.params(theta)
+    assert p.kv.tolist() == [900.0]
+    np.testing.assert_allclose(coords.theta_of(p), theta, rtol=1e-12, atol=1e-14)
+    jac_p = np.random.default_rng(2).normal(size=(3, 7, n))
+    assert coords.chain(jac_p, np.ones((3, 4)), p).shape == (3, 7 * n)  # kv's ignored
+
+
 def test_pulled_back_fit_moves_along_the_fits_coordinates():
     """The gravity check's pull-back of a gradient fit (calibration.gravity_check): a fraction
     f of the way from the global fit in the fit's coordinates: 1 is the fit, 0 the global
@@ -357,6 +373,31 @@ def test_gradient_recovers_smooth_truth_with_the_volume_term(recovered_volume):
     assert np.median(spring) < 0.11 and spring.max() < 0.45
     assert max(arms.values()) < 0.05, arms
     assert 0 < result.gradient["weight"] < max(result.gradient["grid"])
+
+
+def test_a_global_kv_stays_global_while_the_connectors_are_fitted(tmp_path):
+    """``calibration.kv_per_tet = false`` on the volume truth of :func:`recovered_volume` but
+    with one kv for every tet (the springs' own bulk modulus): the gradient fit moves every
+    connector and keeps the global fit's kv (2.6 % below the truth after its 40 evaluations),
+    one value, in the calibrated parameters. Measured: calibration curves 0.12 % / 0.09 %
+    (max) where the global fit has 6.4 % / 5.2 %, held-out 1.6 % / 1.2 % where it has 4.0 % /
+    4.0 %; asserted with ~1.5-3x margins."""
+    scene = replace(_box(tmp_path, n_calibration=20), particle={"volume": True},
+                    calibration={"static_max_evaluations": 40, "relaxation_max_evaluations": 60,
+                                 "kv_per_tet": False})
+    problem = build_problem(scene)
+    truth = dataclasses.replace(smooth_truth(problem), kv=np.array(
+        [network_bulk_modulus(problem.mesh, GLOBAL.K0)]))
+    synthetic_reference(scene, truth, tmp_path / "reference.h5")
+    result = calibrate(scene, tmp_path / "reference.h5", tmp_path / "params.h5", progress=False)
+    got = result.connectors["calibrated"]
+    assert got.kv.tolist() == [result.global_params.kv]
+    assert np.ptp(np.log(got.K0)) > 0.1  # the connectors did move apart
+    n_cal = len(problem.calibration)
+    for experiment in ("indentation", "relaxation"):
+        errors = {v: result.variants[v].errors[experiment] for v in ("global", "calibrated")}
+        assert errors["calibrated"][:n_cal].max() < 0.05 * errors["global"][:n_cal].max()
+        assert errors["calibrated"][n_cal:].max() < 0.6 * errors["global"][n_cal:].max()
 
 
 def test_cross_validation_picks_a_finite_weight(box):
