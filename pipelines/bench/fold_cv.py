@@ -1,0 +1,123 @@
+"""Which calibration setting predicts points it was not fitted to: k-fold cross-validation of
+whole calibrations over a scene's calibration points.
+
+The gradient method chooses its smoothness weight by cross-validation on one linearisation
+at the global fit (:func:`calibration.gradient_solver.cross_validate`), which is reliable
+only near that fit. A choice of the fit's *structure*, such as whether each tet's ``kv`` is
+fitted (``calibration.kv_per_tet``), is judged here the slow, plain way: per variant and
+fold, the whole calibration (global fits, gradient fit, gravity check) of the scene with the
+fold's calibration points taken out, which then predicts the fold's curves. The folds are
+the gradient method's own (:func:`calibration.gradient_solver.folds_of`, ``calibration.
+cv_folds`` of them). The scene's held-out points are never fitted (as in every calibration)
+and never read: a scene needs :data:`forcecal.scene.MIN_HELD_OUT` held-out points, so the
+derived scenes hold them out next to the fold, and only the fold's errors are taken; the FE
+reference is sliced to the scene's points (:func:`pipelines.bench.configs.sliced_reference`).
+
+The score of a variant is the mean over every calibration point (each predicted once, by
+the fit that did not see it) of its relative RMS errors, indentation and relaxation
+averaged; the lowest wins.
+
+Not a bench item (about 5 x 2 calibrations, 6 min on the punch scene): ``python -m
+pipelines.bench.fold_cv --scene scenes/liver_punch.toml [--run DIR] [--variants JSON]
+[--work DIR] [--out FILE]``; ``--variants`` maps a label to ``[calibration]`` changes, by
+default ``{"kv per tet": {}, "kv global": {"kv_per_tet": false}}``. The committed result:
+``runs/bench/fold_cv.json`` (punch scene, 2026-12-04: fold error 4.96 / 5.23 % with per-tet
+``kv`` against 5.32 / 5.79 % with one ``kv``, so per-tet ``kv`` stays the default).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from forcecal.h5io import read_reference, write_reference
+from forcecal.scene import load_scene
+from pipelines.runners.common import PARAMS, REFERENCE
+
+log = logging.getLogger(__name__)
+
+EXPERIMENTS = ("indentation", "relaxation")
+DEFAULT_VARIANTS = {"kv per tet": {}, "kv global": {"kv_per_tet": False}}
+
+
+def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, dict[str, Any]],
+          work: str | Path | None = None) -> dict[str, Any]:
+    """The cross-validation of ``variants`` (label -> ``[calibration]`` changes) on the
+    calibration points of the scene's finished run folder ``run`` (its ``reference.h5``);
+    calibrations are written under ``work`` (default ``<run>/cache/fold_cv``)."""
+    from calibration.core import calibrate
+    from calibration.gradient_solver import folds_of
+    from pipelines.bench.configs import derived_scene, sliced_reference
+
+    scene = load_scene(scene_path)
+    run = Path(run) if run is not None else Path("runs") / scene.name
+    work = Path(work) if work is not None else run / "cache" / "fold_cv"
+    reference = read_reference(run / REFERENCE)
+    points = np.array([int(p) for p in reference.problem.calibration])
+    held_out = [int(p) for p in reference.problem.held_out]  # along for the minimum, unread
+    folds = folds_of(len(points), scene.calibration.cv_folds)
+    out: dict[str, Any] = {"scene": scene.name, "points": points.tolist(),
+                           "folds": [points[f].tolist() for f in folds], "variants": {}}
+    for label, changes in variants.items():
+        predicted = {e: np.full(len(points), np.nan) for e in (*EXPERIMENTS, "global")}
+        seconds = []
+        for k, fold in enumerate(folds):
+            train = np.setdiff1d(points, points[fold])
+            folder = work / label.replace(" ", "_") / f"fold{k}"
+            sub = derived_scene(scene, f"{scene.name}_cv", {
+                "test_points": {"calibration": train.tolist(),
+                                "held_out": points[fold].tolist() + held_out},
+                "calibration": changes}, folder)
+            write_reference(folder / REFERENCE, sliced_reference(reference, sub))
+            log.info("fold cv: %s, fold %d/%d: fitted to %d points, predicting %s", label,
+                     k + 1, len(folds), len(train), points[fold].tolist())
+            t = time.perf_counter()
+            result = calibrate(sub, folder / REFERENCE, folder / PARAMS, progress=False)
+            seconds.append(time.perf_counter() - t)
+            row = {int(v): i for i, v in enumerate(result.problem.test_points)}
+            at = [row[int(v)] for v in points[fold]]
+            for e in EXPERIMENTS:
+                predicted[e][fold] = result.variants["calibrated"].errors[e][at]
+            predicted["global"][fold] = np.mean(
+                [result.variants["global"].errors[e][at] for e in EXPERIMENTS], axis=0)
+        means = {e: float(predicted[e].mean()) for e in EXPERIMENTS}
+        out["variants"][label] = {
+            "changes": changes, "per_point": {e: predicted[e].tolist() for e in EXPERIMENTS},
+            "mean": means, "score": float(np.mean(list(means.values()))),
+            "global_fit_score": float(predicted["global"].mean()),
+            "calibration_s": seconds}
+    out["chosen"] = min(out["variants"], key=lambda v: out["variants"][v]["score"])
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m pipelines.bench.fold_cv",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
+    parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
+    parser.add_argument("--variants", type=json.loads, default=DEFAULT_VARIANTS,
+                        help="JSON: label -> [calibration] changes")
+    parser.add_argument("--work", help="folder of the fold calibrations")
+    parser.add_argument("--out", help="write the result to this JSON file")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    result = study(args.scene, args.run, args.variants, args.work)
+    print(f"{'variant':16s} {'indentation %':>14s} {'relaxation %':>13s} {'score %':>8s} "
+          f"{'global fit %':>13s}")
+    for label, v in result["variants"].items():
+        print(f"{label:16s} {100 * v['mean']['indentation']:14.2f} "
+              f"{100 * v['mean']['relaxation']:13.2f} {100 * v['score']:8.2f} "
+              f"{100 * v['global_fit_score']:13.2f}")
+    print(f"chosen: {result['chosen']}")
+    if args.out:
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
