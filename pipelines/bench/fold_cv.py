@@ -17,7 +17,7 @@ The score of a variant is the mean over every calibration point (each predicted 
 the fit that did not see it) of its relative RMS errors, indentation and relaxation
 averaged; the lowest wins.
 
-Not a bench item (about 5 x 2 calibrations, 6 min on the punch scene): ``python -m
+Not a bench item (5 x 2 calibrations, 4.5 min on the punch scene): ``python -m
 pipelines.bench.fold_cv --scene scenes/liver_punch.toml [--run DIR] [--variants JSON]
 [--work DIR] [--out FILE]``; ``--variants`` maps a label to ``[calibration]`` changes, by
 default ``{"kv per tet": {}, "kv global": {"kv_per_tet": false}}``. The committed result:
