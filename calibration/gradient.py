@@ -18,7 +18,7 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   Laplacian of the connectors that share a particle (each pair's squared
   difference), normalised by the mean number of such neighbours, i.e. a
   smoothness penalty between connectors sharing a particle; ``rho I`` a prior
-  towards the global fit (:data:`PRIOR_RATIO`).
+  towards the global fit (``calibration.prior_ratio``, default :data:`PRIOR_RATIO`).
 * **lambda by k-fold cross-validation over the calibration points only**
   (:func:`cross_validate`; held-out points are never used): on the Gauss-Newton
   linearisation at the global fit, each fold's points are predicted by the step
@@ -56,9 +56,10 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.gradient_solver import (N_COORDS, ROWS_KEPT, WEIGHT_GRID, Linearisation,
-                                         LMState, Regulariser, compress, cross_validate,
-                                         folds_of, levenberg_marquardt, linearise)
+from calibration.gradient_solver import (N_COORDS, PRIOR_RATIO, ROWS_KEPT, WEIGHT_GRID,
+                                         Linearisation, LMState, Regulariser, compress,
+                                         cross_validate, folds_of, levenberg_marquardt,
+                                         linearise)
 from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
 from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
@@ -371,7 +372,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  reference: dict[str, np.ndarray], validity: Validity, edges: np.ndarray,
                  n_particles: int, *, folds: int, max_iterations: int,
                  tets: np.ndarray | None = None, kv0: float | None = None,
-                 kv_per_tet: bool = True,
+                 kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
@@ -381,6 +382,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     0..Pc-1 of the pool). ``tets`` (T, 4): fit a per-tet kv of the volume term too, starting
     from the global fit's kv (or ``kv0`` [Pa] if the global parameters carry none); None:
     springs only. ``kv_per_tet`` False: the connectors only, every tet keeping that kv.
+    ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
     """
     start_params = glob.connector_params(len(edges))
     if tets is not None and not kv_per_tet:
@@ -403,7 +405,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ev = Evaluator(pool, data, coords)
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
-                      None if tets is None else shared_laplacian(tets, n_particles, 3))
+                      None if tets is None else shared_laplacian(tets, n_particles, 3),
+                      prior_ratio)
     theta, state, weights, cv_costs = theta0, None, [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")

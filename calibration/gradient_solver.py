@@ -23,14 +23,16 @@ from scipy.sparse.linalg import splu
 
 from calibration.optimize import INFEASIBLE
 from forcecal.blas import blas_threads
+from forcecal.scene import CalibrationSection
 
 log = logging.getLogger(__name__)
 
 #: coordinates per connector (:class:`calibration.gradient.Coordinates`)
 N_COORDS = 7
 #: prior weight relative to the smoothness weight (a mild pull towards the global fit that
-#: fixes the level of each smooth field where the data say nothing)
-PRIOR_RATIO = 1e-3
+#: fixes the level of each smooth field where the data say nothing): the scene default of
+#: ``calibration.prior_ratio``
+PRIOR_RATIO = CalibrationSection().prior_ratio
 #: smoothness weights lambda tried by cross-validation (data cost = sum of squared relative
 #: RMS errors; lambda multiplies the mean squared neighbour difference per connector)
 WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))
@@ -62,10 +64,10 @@ DENSE_INVERSE_LIMIT = 5000
 ROWS_KEPT = 12
 
 
-def _metric_block(lap: sp.spmatrix) -> sp.spmatrix:
+def _metric_block(lap: sp.spmatrix, rho: float) -> sp.spmatrix:
     """One diagonal block of the metric A1: ``(L + rho I) / n`` of an (n, n) Laplacian."""
     n = lap.shape[0]
-    return (lap + PRIOR_RATIO * sp.identity(n)) / n
+    return (lap + rho * sp.identity(n)) / n
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,17 +79,20 @@ class Regulariser:
         laplacian: (E, E) connectors sharing a particle (:func:`neighbour_laplacian`).
         theta0: (size,) the start (the global fit), also the prior's centre.
         tet_laplacian: (T, T) tets sharing a face, or None without the volume term.
+        prior_ratio: rho, the prior's weight relative to the smoothness weight [1].
     """
     laplacian: sp.csc_matrix
     theta0: np.ndarray
     tet_laplacian: sp.csc_matrix | None = None
+    prior_ratio: float = PRIOR_RATIO
 
     @functools.cached_property
     def metric(self) -> sp.csc_matrix:
         """(size, size) the penalty's metric A1 (also the LM damping metric)."""
-        blocks = [sp.kron(sp.identity(N_COORDS), _metric_block(self.laplacian))]
+        rho = self.prior_ratio
+        blocks = [sp.kron(sp.identity(N_COORDS), _metric_block(self.laplacian, rho))]
         if self.tet_laplacian is not None:
-            blocks.append(_metric_block(self.tet_laplacian))
+            blocks.append(_metric_block(self.tet_laplacian, rho))
         return sp.block_diag(blocks, format="csc")
 
     @functools.cached_property
@@ -100,7 +105,7 @@ class Regulariser:
         SuperLU's triangular solves), else the sparse LU."""
         def inverse(lap: sp.csc_matrix) -> Callable:
             n = lap.shape[0]
-            block = _metric_block(lap).tocsc()
+            block = _metric_block(lap, self.prior_ratio).tocsc()
             if n <= DENSE_INVERSE_LIMIT:
                 dense = np.linalg.inv(block.toarray())
                 return lambda y: np.asarray(dense @ y)

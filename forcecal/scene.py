@@ -261,6 +261,9 @@ class CalibrationSection:
     gradient_max_iterations: int = key(12, "gradient method: Levenberg-Marquardt iterations "
                                        "(one Jacobian of every calibration point each)",
                                        minimum=1)
+    prior_ratio: float = key(1e-3, "gradient method: weight of the pull towards the global fit "
+                             "relative to the smoothness weight (rho of the regulariser, README "
+                             "Calibration)", exclusive_minimum=0.0)
     kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv with "
                            "the connectors (false: kv keeps the global fit's one value)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
