@@ -385,18 +385,16 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
     """
     start_params = glob.connector_params(len(edges))
+    if tets is not None and start_params.kv is None:
+        start_params = dataclasses.replace(start_params, kv=np.array([kv0], dtype=float))
     if tets is not None and not kv_per_tet:
-        if start_params.kv is None:
-            start_params = dataclasses.replace(start_params, kv=np.array([kv0], dtype=float))
         coords = Coordinates(strain.scale, len(edges), 0, start_params.kv)
         tets = None  # no kv coordinates, no kv smoothness
     else:
         coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
-    if coords.n_tets and start_params.kv is None:
-        start_params = dataclasses.replace(start_params, kv=np.full(coords.n_tets, kv0))
-    elif coords.n_tets and len(start_params.kv) != coords.n_tets:
-        # the global fit's kv is one value for every tet ((1,), broadcast by the Model): the
-        # gradient fit starts each tet's own kv from it
+    if coords.n_tets and len(start_params.kv) != coords.n_tets:
+        # the global fit's kv (or kv0) is one value for every tet ((1,), broadcast by the
+        # Model): the gradient fit starts each tet's own kv from it
         start_params = dataclasses.replace(start_params,
                                            kv=np.broadcast_to(start_params.kv,
                                                               (coords.n_tets,)).copy())
