@@ -26,7 +26,7 @@ from forcecal.errors import ParameterError, StabilityError
 from forcecal.scene import ParticleSection
 from particle.model import Model, State
 from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
-from particle.volume_bounds import volume_edge_stiffness_bound, volume_frequency_bound
+from particle.volume_bounds import volume_step_bounds
 
 log = logging.getLogger(__name__)
 
@@ -163,11 +163,9 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     kappa = connector_stiffness_bound(p, lo, hi)
     omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
     if p.kv is not None:  # the smaller of two rigorous bounds (see the docstring)
-        with_kv = model.with_params(p)
-        joint = largest_eigenvalue(mass_scaled_laplacian(
-            model, kappa + volume_edge_stiffness_bound(with_kv, lo, hi)))
-        omega2 = min(omega2 + volume_frequency_bound(with_kv, lo, hi),
-                     EIGENVALUE_MARGIN * joint)
+        own, edge_weights = volume_step_bounds(model.with_params(p), lo, hi)
+        joint = largest_eigenvalue(mass_scaled_laplacian(model, kappa + edge_weights))
+        omega2 = min(omega2 + own, EIGENVALUE_MARGIN * joint)
     if not omega2 > 0.0:
         return math.inf  # no stiffness at all: nothing oscillates
     omega = math.sqrt(omega2)

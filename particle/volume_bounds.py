@@ -136,6 +136,10 @@ def volume_edge_stiffness_bound(model, lo: np.ndarray, hi: np.ndarray) -> np.nda
     against 7.5e7 1/s^2 for the term alone.
     """
     grad, lmax, dj, _ = _tet_bounds(model, lo, hi)
+    return _edge_weights(model, grad, lmax, dj)
+
+
+def _edge_weights(model, grad, lmax, dj) -> np.ndarray:
     kv, v0 = model.params.kv, model.rest_volumes
     curvature_norm = np.max([sum(lmax[:, OPPOSITE_EDGE[a, b]] for b in range(4) if b != a)
                              for a in range(4)], axis=0) / 6.0
@@ -172,9 +176,19 @@ def volume_frequency_bound(model, lo: np.ndarray, hi: np.ndarray) -> float:
     liver 3.8e7 vs 1.2e7. On a regular (Kuhn) box at kv 20 kPa: 4.9e7 vs 3.2e7
     on +-0.5, but at rest (strains +-0) Irons is the smaller (3.9e6 vs 4.5e6).
     """
+    return _frequency_bound(model, _tet_bounds(model, lo, hi))
+
+
+def _frequency_bound(model, bounds) -> float:
     if not (~model.fixed[model.tets]).any():
         return 0.0
-    bounds = _tet_bounds(model, lo, hi)
     free = ~model.fixed
     nodal = float(np.max(_nodal(model, *bounds)[free] / model.masses[free]))
     return min(_irons_bound(model, *bounds), nodal)
+
+
+def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray) -> tuple[float, np.ndarray]:
+    """(:func:`volume_frequency_bound`, :func:`volume_edge_stiffness_bound`) of one strain
+    range, the per-tet bounds they share computed once (the stable step takes both)."""
+    bounds = _tet_bounds(model, lo, hi)
+    return _frequency_bound(model, bounds), _edge_weights(model, *bounds[:3])
