@@ -368,11 +368,21 @@ class GradientResult:
                 "iterations": self.state.iteration, "jacobians": self.jacobians}
 
 
+def shape_smoothness_factors(shape_smoothness: float) -> np.ndarray:
+    """(N_COORDS,) the regulariser's smoothness factor per connector coordinate:
+    ``shape_smoothness`` on the spring shape's ``alpha s`` and ``beta s^2``
+    (:class:`Coordinates`), 1 elsewhere."""
+    scale = np.ones(N_COORDS)
+    scale[[1, 2]] = shape_smoothness
+    return scale
+
+
 def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  reference: dict[str, np.ndarray], validity: Validity, edges: np.ndarray,
                  n_particles: int, *, folds: int, max_iterations: int,
                  tets: np.ndarray | None = None, kv0: float | None = None,
                  kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
+                 shape_smoothness: float = 1.0,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
@@ -383,6 +393,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     from the global fit's kv (or ``kv0`` [Pa] if the global parameters carry none); None:
     springs only. ``kv_per_tet`` False: the connectors only, every tet keeping that kv.
     ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
+    ``shape_smoothness``: factor on the regulariser of the spring shape coordinates
+    (``alpha s``, ``beta s^2``) relative to the other coordinates'.
     """
     start_params = glob.connector_params(len(edges))
     if tets is not None and start_params.kv is None:
@@ -404,7 +416,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
                       None if tets is None else shared_laplacian(tets, n_particles, 3),
-                      prior_ratio)
+                      prior_ratio, shape_smoothness_factors(shape_smoothness))
     theta, state, weights, cv_costs = theta0, None, [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")

@@ -64,10 +64,10 @@ DENSE_INVERSE_LIMIT = 5000
 ROWS_KEPT = 12
 
 
-def _metric_block(lap: sp.spmatrix, rho: float) -> sp.spmatrix:
-    """One diagonal block of the metric A1: ``(L + rho I) / n`` of an (n, n) Laplacian."""
+def _metric_block(lap: sp.spmatrix, rho: float, smoothness: float = 1.0) -> sp.spmatrix:
+    """One diagonal block of the metric A1: ``(s L + rho I) / n`` of an (n, n) Laplacian."""
     n = lap.shape[0]
-    return (lap + rho * sp.identity(n)) / n
+    return (smoothness * lap + rho * sp.identity(n)) / n
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,32 +80,46 @@ class Regulariser:
         theta0: (size,) the start (the global fit), also the prior's centre.
         tet_laplacian: (T, T) tets sharing a face, or None without the volume term.
         prior_ratio: rho, the prior's weight relative to the smoothness weight [1].
+        smoothness: (N_COORDS,) factor s_q on each connector coordinate's smoothness term,
+            ``(s_q L + rho I)/E`` [1] (``calibration.shape_smoothness`` on the spring
+            shape's two); None: every factor 1.
     """
     laplacian: sp.csc_matrix
     theta0: np.ndarray
     tet_laplacian: sp.csc_matrix | None = None
     prior_ratio: float = PRIOR_RATIO
+    smoothness: np.ndarray | None = None
+
+    @functools.cached_property
+    def _smoothness(self) -> np.ndarray:
+        factors = (np.ones(N_COORDS) if self.smoothness is None
+                   else np.asarray(self.smoothness, dtype=float))
+        if factors.shape != (N_COORDS,) or not np.all(factors > 0):
+            raise ValueError(f"smoothness must be {N_COORDS} positive factors, "
+                             f"got {self.smoothness!r}")
+        return factors
 
     @functools.cached_property
     def metric(self) -> sp.csc_matrix:
         """(size, size) the penalty's metric A1 (also the LM damping metric)."""
         rho = self.prior_ratio
-        blocks = [sp.kron(sp.identity(N_COORDS), _metric_block(self.laplacian, rho))]
+        blocks = [_metric_block(self.laplacian, rho, s) for s in self._smoothness]
         if self.tet_laplacian is not None:
             blocks.append(_metric_block(self.tet_laplacian, rho))
         return sp.block_diag(blocks, format="csc")
 
     @functools.cached_property
     def _blocks(self) -> list[tuple[int, int, int, Callable]]:
-        """``(start, copies, n, solve)`` per distinct diagonal block of A1: the seven
-        connector coordinates share one (E, E) block, the tets have their own. ``solve``
+        """``(start, copies, n, solve)`` per run of equal diagonal blocks of A1: the seven
+        connector coordinates share one (E, E) block where their smoothness factors are
+        equal (all seven by default), the tets have their own. ``solve``
         applies the block's inverse to an (n, m) dense or sparse matrix: a dense inverse
         with BLAS while the block is small (:data:`DENSE_INVERSE_LIMIT`; measured on the
         liver punch, 10,685 coordinates and 372 columns: 0.28 s against 0.56 s for
         SuperLU's triangular solves), else the sparse LU."""
-        def inverse(lap: sp.csc_matrix) -> Callable:
+        def inverse(lap: sp.csc_matrix, smoothness: float = 1.0) -> Callable:
             n = lap.shape[0]
-            block = _metric_block(lap, self.prior_ratio).tocsc()
+            block = _metric_block(lap, self.prior_ratio, smoothness).tocsc()
             if n <= DENSE_INVERSE_LIMIT:
                 dense = np.linalg.inv(block.toarray())
                 return lambda y: np.asarray(dense @ y)
@@ -113,7 +127,17 @@ class Regulariser:
             return lambda y: lu.solve(y.toarray() if sp.issparse(y) else np.asarray(y))
 
         e = self.laplacian.shape[0]
-        out = [(0, N_COORDS, e, inverse(self.laplacian))]
+        out, q, inverses = [], 0, {}
+        factors = self._smoothness
+        while q < N_COORDS:  # runs of equal factors share one block and one product
+            run = 1
+            while q + run < N_COORDS and factors[q + run] == factors[q]:
+                run += 1
+            f = float(factors[q])
+            if f not in inverses:
+                inverses[f] = inverse(self.laplacian, f)
+            out.append((q * e, run, e, inverses[f]))
+            q += run
         if self.tet_laplacian is not None:
             out.append((N_COORDS * e, 1, self.tet_laplacian.shape[0],
                         inverse(self.tet_laplacian)))
