@@ -138,19 +138,25 @@ def import_closure(entries: tuple[str, ...]) -> dict[str, Path]:
     return found
 
 
-def source_digest(path: Path) -> str:
+def source_digest(path: Path, ignored_classes: frozenset[str] = frozenset()) -> str:
     """SHA-256 of a module's syntax tree without docstrings.
 
     Comments, formatting and docstrings do not change what the code computes,
     so editing them must not discard a result; every other change (code,
-    string constants such as messages) does.
+    string constants such as messages) does. ``ignored_classes``: names of
+    top-level classes left out as well (the scene sections a computation does
+    not read, :func:`code_digests`).
     """
-    return _tree_digest(path.read_text(), str(path))
+    return _tree_digest(path.read_text(), str(path), ignored_classes)
 
 
 @functools.lru_cache(maxsize=1024)  # keyed on the text: the stages share most of their modules
-def _tree_digest(source: str, filename: str) -> str:
+def _tree_digest(source: str, filename: str, ignored_classes: frozenset[str] = frozenset()
+                 ) -> str:
     tree = ast.parse(source, filename)
+    if ignored_classes:
+        tree.body = [node for node in tree.body
+                     if not (isinstance(node, ast.ClassDef) and node.name in ignored_classes)]
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
@@ -161,21 +167,31 @@ def _tree_digest(source: str, filename: str) -> str:
     return hashlib.sha256(ast.dump(tree).encode()).hexdigest()
 
 
-def code_digests(entries: tuple[str, ...]) -> dict[str, str]:
+def code_digests(entries: tuple[str, ...],
+                 ignored: dict[str, frozenset[str]] | None = None) -> dict[str, str]:
     """``{file path relative to its package root: source_digest}`` of the import closure of
-    ``entries`` (per file, so a cache can say which files changed)."""
+    ``entries`` (per file, so a cache can say which files changed).
+
+    ``ignored``: ``{module name: top-level class names}`` left out of those modules' digests,
+    e.g. the FE reference's ``{"forcecal.scene": {"CalibrationSection", ...}}``: the sections
+    a computation does not read are defined in the module that loads every scene, but neither
+    their code nor their values (left out of the section fingerprint too) change its result,
+    so a new calibration key does not make an FE reference stale.
+    """
     closure = import_closure(entries)
+    ignored = ignored or {}
     out = {}
     for name, path in closure.items():
         rel = path.relative_to(package_root(name.split(".")[0]))
-        out[str(rel)] = source_digest(path)
+        out[str(rel)] = source_digest(path, frozenset(ignored.get(name, ())))
     return dict(sorted(out.items()))
 
 
-def code_digest(*entries: str) -> str:
+def code_digest(*entries: str, ignored: dict[str, frozenset[str]] | None = None) -> str:
     """The code fingerprint of ``entries`` in one SHA-256 (over :func:`code_digests`), e.g.
     ``code_digest("reference_fe.run")``."""
-    return hashlib.sha256(json.dumps(code_digests(entries), sort_keys=True).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(code_digests(entries, ignored),
+                                     sort_keys=True).encode()).hexdigest()
 
 
 # ---------------------------------------------------------------------------- checkout

@@ -56,6 +56,7 @@ from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, Context
 from pipelines.runners.gravity import run_gravity_stage
 from pipelines.runners.reference import adopt_reference, run_reference
 from pipelines.runners.report import run_report
+from reference_fe.keys import FE_CODE_IGNORED
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,9 @@ class Stage:
         reads_mesh: the stage builds the mesh itself (its fingerprint is an input).
         experiments: the experiments it uses when the scene lists them; it does not run
             when the scene lists none of them.
+        code_ignored: ``{module: top-level class names}`` left out of its code digest (the
+            reference: the scene sections the FE does not read,
+            :func:`reference_fe.keys.unread_section_classes`).
     """
     name: str
     sections: tuple[str, ...]
@@ -84,6 +88,7 @@ class Stage:
     run: Callable[[Context], list[str]]
     reads_mesh: bool = False
     experiments: tuple[str, ...] = EXPERIMENTS
+    code_ignored: dict[str, frozenset[str]] = dataclasses.field(default_factory=dict)
 
     def used(self, scene: Scene) -> tuple[str, ...]:
         """The experiments of ``scene`` this stage uses."""
@@ -109,7 +114,7 @@ class Stage:
                      else ctx.scene.fingerprint(s)) for s in self.sections
                  if not skipped.get(s, False)}
         scene["experiments"] = hashlib.sha256(json.dumps(used).encode()).hexdigest()
-        code = code_digests(self.code)
+        code = code_digests(self.code, self.code_ignored)
         mesh = None
         if self.reads_mesh:  # the first stage: absurd work is refused before any is done
             mesh = load_mesh(ctx.scene)
@@ -126,7 +131,7 @@ class Stage:
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("reference", REFERENCE_SECTIONS,
           ("pipelines.runners.reference", "reference_fe.__main__"), (), run_reference,
-          reads_mesh=True),
+          reads_mesh=True, code_ignored=FE_CODE_IGNORED),
     Stage("calibrate", FIT_SECTIONS + ("particle",),  # particle.volume: the model fitted
           ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
           experiments=("indentation", "relaxation")),

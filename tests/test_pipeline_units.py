@@ -1,5 +1,6 @@
 """Pipeline parts: stage cache, particle gravity runs and gravity.h5, report errors, XDMF fields."""
 import os
+import re
 import subprocess
 import sys
 from typing import Callable
@@ -96,6 +97,39 @@ def test_code_digests_follow_the_import_closure_only(tmp_path, monkeypatch):
         code_digests(("fc_demo_pkg.missing",))
     with pytest.raises(DataFileError, match="not an importable package"):
         code_digests(("fc_no_such_package.mod",))
+
+
+def test_code_digests_leave_out_the_ignored_classes_only(tmp_path, monkeypatch):
+    pkg = tmp_path / "fc_ignore_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    source = "class Read:\n    x: int = {}\n\n\nclass Unread:\n    y: int = {}\n"
+    (pkg / "sections.py").write_text(source.format(1, 1))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    ignored = {"fc_ignore_pkg.sections": frozenset({"Unread"})}
+    before = code_digest("fc_ignore_pkg.sections", ignored=ignored)
+    whole = code_digest("fc_ignore_pkg.sections")
+    (pkg / "sections.py").write_text(source.format(1, 2))  # a new default in an unread class
+    assert code_digest("fc_ignore_pkg.sections", ignored=ignored) == before
+    assert code_digest("fc_ignore_pkg.sections") != whole
+    (pkg / "sections.py").write_text(source.format(2, 2))  # one in a class that is read
+    assert code_digest("fc_ignore_pkg.sections", ignored=ignored) != before
+
+
+def test_the_fe_code_key_leaves_out_the_sections_the_fe_does_not_read():
+    # a new [calibration] key must not make an FE reference stale; a new [fe] key must
+    from reference_fe.keys import FE_CODE_IGNORED, unread_section_classes
+    assert unread_section_classes() == {"ParticleSection", "CalibrationSection",
+                                        "OutputsSection"}
+    assert STAGES["reference"].code_ignored is FE_CODE_IGNORED
+    assert FE_CODE_IGNORED == {"forcecal.scene": unread_section_classes()}
+    # no module of the FE reads those sections' values (but forcecal.scene, which defines
+    # and validates them, and the cost check, which reads particle.dt for the particle
+    # side's estimate before any FE work)
+    for name, path in import_closure(("reference_fe.run", "reference_fe.__main__")).items():
+        if name not in ("forcecal.scene", "forcecal.cost"):
+            assert not re.search(r"\bscene\.(particle|calibration|outputs)\b",
+                                 path.read_text()), name
 
 
 def test_fe_stage_code_is_the_fe_and_shared_packages():

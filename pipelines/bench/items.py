@@ -28,6 +28,7 @@ from pipelines.bench import configs as bc
 from pipelines.report import gravity_dynamic_error, read_report
 from pipelines.runners.reference import mpirun_environment
 from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE
+from reference_fe.keys import FE_CODE_IGNORED
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +168,7 @@ def fe_key(scene: Scene) -> str:
     and the discretisation study, with everything they import), the scene's reference
     sections, the mesh."""
     return json_digest({"code": code_digest("reference_fe.__main__", "reference_fe.run",
-                                            "reference_fe.sensitivity"),
+                                            "reference_fe.sensitivity", ignored=FE_CODE_IGNORED),
                         "scene": section_fingerprint(scene, *REFERENCE_SECTIONS),
                         "mesh": load_mesh(scene).fingerprint()})
 
