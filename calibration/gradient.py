@@ -56,10 +56,10 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.gradient_solver import (N_COORDS, PRIOR_RATIO, ROWS_KEPT, WEIGHT_GRID,
-                                         Linearisation, LMState, Regulariser, compress,
-                                         cross_validate, folds_of, levenberg_marquardt,
-                                         linearise)
+from calibration.gradient_solver import (N_COORDS, PRIOR_RATIO, ROWS_KEPT, SHAPE_SMOOTHNESS,
+                                         WEIGHT_GRID, Linearisation, LMState, Regulariser,
+                                         compress, cross_validate, folds_of,
+                                         levenberg_marquardt, linearise)
 from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
 from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
@@ -382,7 +382,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  n_particles: int, *, folds: int, max_iterations: int,
                  tets: np.ndarray | None = None, kv0: float | None = None,
                  kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
-                 shape_smoothness: float = 1.0,
+                 shape_smoothness: float = SHAPE_SMOOTHNESS,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
@@ -393,8 +393,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     from the global fit's kv (or ``kv0`` [Pa] if the global parameters carry none); None:
     springs only. ``kv_per_tet`` False: the connectors only, every tet keeping that kv.
     ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
-    ``shape_smoothness``: factor on the regulariser of the spring shape coordinates
-    (``alpha s``, ``beta s^2``) relative to the other coordinates'.
+    ``shape_smoothness``: factor on the smoothness penalty of the spring shape coordinates
+    (``alpha s``, ``beta s^2``) relative to the other coordinates' (not on the prior).
     """
     start_params = glob.connector_params(len(edges))
     if tets is not None and start_params.kv is None:

@@ -33,6 +33,9 @@ N_COORDS = 7
 #: fixes the level of each smooth field where the data say nothing): the scene default of
 #: ``calibration.prior_ratio``
 PRIOR_RATIO = CalibrationSection().prior_ratio
+#: smoothness factor of the spring shape's coordinates (:class:`Regulariser` ``smoothness``):
+#: the scene default of ``calibration.shape_smoothness``
+SHAPE_SMOOTHNESS = CalibrationSection().shape_smoothness
 #: smoothness weights lambda tried by cross-validation (data cost = sum of squared relative
 #: RMS errors; lambda multiplies the mean squared neighbour difference per connector)
 WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))

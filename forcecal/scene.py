@@ -264,10 +264,11 @@ class CalibrationSection:
     prior_ratio: float = key(1e-3, "gradient method: weight of the pull towards the global fit "
                              "relative to the smoothness weight (rho of the regulariser, README "
                              "Calibration)", exclusive_minimum=0.0)
-    shape_smoothness: float = key(1.0, "gradient method: weight of the regulariser (smoothness "
-                                  "and prior) on each spring's shape alpha, beta relative to "
-                                  "the other parameters' (large: one shape for every "
-                                  "connector)", exclusive_minimum=0.0)
+    shape_smoothness: float = key(1.0, "gradient method: factor on the smoothness penalty of "
+                                  "each spring's shape alpha, beta relative to the other "
+                                  "parameters' (large: nearly one shape for every connector, "
+                                  "which moves as a whole; README Calibration)",
+                                  exclusive_minimum=0.0)
     kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv with "
                            "the connectors (false: kv keeps the global fit's one value)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "

@@ -301,18 +301,32 @@ def _recovery(problem, truth: ConnectorParams, result):
     return calibrated, held_out_ratio, spring, arms
 
 
-@pytest.fixture(scope="module")
-def recovered(tmp_path_factory):
-    """Smooth non-uniform truth on the box, 20 calibration points (every free surface vertex
-    but the 8 held out), fitted by the gradient method from a short global fit."""
-    d = tmp_path_factory.mktemp("recovery")
+def _recovery_run(d, volume: bool, **settings):
+    """Smooth non-uniform truth on the box (:func:`smooth_truth`; with ``volume`` plus a
+    smooth per-tet kv around the springs' own bulk modulus), 20 calibration points (every
+    free surface vertex but the 8 held out), fitted by the gradient method from a short
+    global fit with the ``[calibration]`` ``settings``."""
     scene = replace(_box(d, n_calibration=20),
-                    calibration={"static_max_evaluations": 40, "relaxation_max_evaluations": 60})
+                    calibration={"static_max_evaluations": 40, "relaxation_max_evaluations": 60,
+                                 **settings})
+    if volume:
+        scene = replace(scene, particle={"volume": True})
     problem = build_problem(scene)
     truth = smooth_truth(problem)
+    if volume:
+        centre = problem.mesh.vertices[problem.mesh.tets].mean(axis=1)
+        u, v = centre[:, 0] / 0.06 - 0.5, centre[:, 1] / 0.06 - 0.5
+        kv = network_bulk_modulus(problem.mesh, GLOBAL.K0) * np.exp(0.2 * (u - 0.5 * v))
+        truth = dataclasses.replace(truth, kv=kv)
     synthetic_reference(scene, truth, d / "reference.h5")
     result = calibrate(scene, d / "reference.h5", d / "params.h5", progress=False)
     return scene, problem, truth, result
+
+
+@pytest.fixture(scope="module")
+def recovered(tmp_path_factory):
+    """:func:`_recovery_run` of the springs, default settings."""
+    return _recovery_run(tmp_path_factory.mktemp("recovery"), volume=False)
 
 
 def test_gradient_recovers_smooth_truth(recovered):
@@ -340,20 +354,9 @@ def test_gradient_recovers_smooth_truth(recovered):
 
 @pytest.fixture(scope="module")
 def recovered_volume(tmp_path_factory):
-    """As :func:`recovered`, with the volume term: the smooth connector truth plus a smooth
-    per-tet kv around the springs' own bulk modulus, fitted by the gradient method (kv
-    globally, then per tet with the connectors)."""
-    d = tmp_path_factory.mktemp("recovery_volume")
-    scene = replace(_box(d, n_calibration=20), particle={"volume": True},
-                    calibration={"static_max_evaluations": 40, "relaxation_max_evaluations": 60})
-    problem = build_problem(scene)
-    centre = problem.mesh.vertices[problem.mesh.tets].mean(axis=1)
-    u, v = centre[:, 0] / 0.06 - 0.5, centre[:, 1] / 0.06 - 0.5
-    kv = network_bulk_modulus(problem.mesh, GLOBAL.K0) * np.exp(0.2 * (u - 0.5 * v))
-    truth = dataclasses.replace(smooth_truth(problem), kv=kv)
-    synthetic_reference(scene, truth, d / "reference.h5")
-    result = calibrate(scene, d / "reference.h5", d / "params.h5", progress=False)
-    return scene, problem, truth, result
+    """:func:`_recovery_run` with the volume term (kv globally, then per tet with the
+    connectors), default settings."""
+    return _recovery_run(tmp_path_factory.mktemp("recovery_volume"), volume=True)
 
 
 def test_gradient_recovers_smooth_truth_with_the_volume_term(recovered_volume):
@@ -373,6 +376,41 @@ def test_gradient_recovers_smooth_truth_with_the_volume_term(recovered_volume):
     assert np.median(spring) < 0.11 and spring.max() < 0.45
     assert max(arms.values()) < 0.05, arms
     assert 0 < result.gradient["weight"] < max(result.gradient["grid"])
+
+
+@pytest.mark.parametrize("volume", [False, True], ids=["springs", "springs+kv"])
+def test_one_spring_shape_recovers_the_truth_whose_shape_is_one(tmp_path, volume):
+    """The truth of :func:`smooth_truth` gives every connector the same spring shape
+    ``K(eps)/K0`` (a material's strain stiffening), and the uniform global fit does not find
+    it (alpha -4.7, beta -25 against 1 and 10: one shape makes up for the non-uniform K0).
+    ``calibration.shape_smoothness = 100`` (smoothness of alpha, beta 100x the others',
+    their common value free) lets the fit move every shape together. Measured:
+
+    * springs: K(eps) within 1.96 % (median, the issue's 2 %) and 10.5 % (max; the
+      connectors at the clamp, strained least: the most strained fifth 1.0 % / 4.0 %) of
+      the truth, against 4.6 % / 12 % by default; the median shape alpha 0.996, beta 9.87;
+      calibration curves 0.002 % (max), held-out 0.21x / 0.30x the global fit's;
+    * springs + kv (30 iterations: with 12 the fit stops on its way, K(eps) 6.5 %, held-out
+      0.93x): K(eps) 2.9 % / 11 %, kv 1.1 % / 5.9 %, against 7.8 % / 33 % and 1.8 % / 10 %
+      by default; held-out 0.48x / 0.30x the global fit's (0.47x / 0.29x by default).
+
+    Asserted with ~1.3-1.5x margins. Not the scenes' default: on the punch scene the fold
+    cross-validation of whole calibrations finds no difference (README Calibration)."""
+    settings = {"shape_smoothness": 100.0}
+    if volume:
+        settings["gradient_max_iterations"] = 30
+    scene, problem, truth, result = _recovery_run(tmp_path, volume, **settings)
+    calibrated, held_out_ratio, spring, arms = _recovery(problem, truth, result)
+    assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.6
+    got = result.connectors["calibrated"]
+    assert np.ptp(got.a / got.K0) < 0.2 * abs(result.global_params.alpha)  # nearly one shape
+    if volume:
+        kv_error = np.abs(got.kv / truth.kv - 1.0)
+        assert np.median(kv_error) < 0.015 and kv_error.max() < 0.08
+        assert np.median(spring) < 0.04 and spring.max() < 0.15
+    else:
+        assert np.median(spring) < 0.025 and spring.max() < 0.14
+    assert max(arms.values()) < 0.03, arms
 
 
 def test_a_global_kv_stays_global_while_the_connectors_are_fitted(tmp_path):
