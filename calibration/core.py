@@ -239,7 +239,6 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                kv_per_tet=settings.kv_per_tet,
                                prior_ratio=settings.prior_ratio,
                                shape_smoothness=settings.shape_smoothness,
-                               time_smoothness=settings.time_smoothness,
                                max_iterations=settings.gradient_max_iterations,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()

@@ -57,7 +57,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration.gradient_solver import (N_COORDS, PRIOR_RATIO, ROWS_KEPT, SHAPE_SMOOTHNESS,
-                                         TIME_SMOOTHNESS, WEIGHT_GRID, Linearisation, LMState, Regulariser,
+                                         WEIGHT_GRID, Linearisation, LMState, Regulariser,
                                          compress, cross_validate, folds_of,
                                          levenberg_marquardt, linearise)
 from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
@@ -368,16 +368,13 @@ class GradientResult:
                 "iterations": self.state.iteration, "jacobians": self.jacobians}
 
 
-def smoothness_factors(shape_smoothness: float = 1.0, time_smoothness: float = 1.0
-                       ) -> np.ndarray:
-    """(N_COORDS,) the regulariser's smoothness factor per connector coordinate
-    (:class:`Coordinates`): ``shape_smoothness`` on the spring shape's ``alpha s`` and
-    ``beta s^2``, ``time_smoothness`` on the arms' ``log tau1`` and ``log tau2``, 1 on the
-    stiffnesses ``log K0``, ``log k1``, ``log k2``."""
-    factors = np.ones(N_COORDS)
-    factors[[1, 2]] = shape_smoothness
-    factors[[4, 6]] = time_smoothness
-    return factors
+def shape_smoothness_factors(shape_smoothness: float) -> np.ndarray:
+    """(N_COORDS,) the regulariser's smoothness factor per connector coordinate:
+    ``shape_smoothness`` on the spring shape's ``alpha s`` and ``beta s^2``
+    (:class:`Coordinates`), 1 elsewhere."""
+    scale = np.ones(N_COORDS)
+    scale[[1, 2]] = shape_smoothness
+    return scale
 
 
 def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
@@ -386,7 +383,6 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  tets: np.ndarray | None = None, kv0: float | None = None,
                  kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
                  shape_smoothness: float = SHAPE_SMOOTHNESS,
-                 time_smoothness: float = TIME_SMOOTHNESS,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
@@ -398,8 +394,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     springs only. ``kv_per_tet`` False: the connectors only, every tet keeping that kv.
     ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
     ``shape_smoothness``: factor on the smoothness penalty of the spring shape coordinates
-    (``alpha s``, ``beta s^2``) relative to the other coordinates' (not on the prior);
-    ``time_smoothness`` likewise on the relaxation times (:func:`smoothness_factors`).
+    (``alpha s``, ``beta s^2``) relative to the other coordinates' (not on the prior).
     """
     start_params = glob.connector_params(len(edges))
     if tets is not None and start_params.kv is None:
@@ -421,7 +416,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
                       None if tets is None else shared_laplacian(tets, n_particles, 3),
-                      prior_ratio, smoothness_factors(shape_smoothness, time_smoothness))
+                      prior_ratio, shape_smoothness_factors(shape_smoothness))
     theta, state, weights, cv_costs = theta0, None, [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")

@@ -36,8 +36,6 @@ PRIOR_RATIO = CalibrationSection().prior_ratio
 #: smoothness factor of the spring shape's coordinates (:class:`Regulariser` ``smoothness``):
 #: the scene default of ``calibration.shape_smoothness``
 SHAPE_SMOOTHNESS = CalibrationSection().shape_smoothness
-#: and of the relaxation times' coordinates: ``calibration.time_smoothness``
-TIME_SMOOTHNESS = CalibrationSection().time_smoothness
 #: smoothness weights lambda tried by cross-validation (data cost = sum of squared relative
 #: RMS errors; lambda multiplies the mean squared neighbour difference per connector)
 WEIGHT_GRID = tuple(10.0 ** np.arange(-4.0, 3.01, 0.5))
@@ -87,8 +85,7 @@ class Regulariser:
         prior_ratio: rho, the prior's weight relative to the smoothness weight [1].
         smoothness: (N_COORDS,) factor s_q on each connector coordinate's smoothness term,
             ``(s_q L + rho I)/E`` [1] (``calibration.shape_smoothness`` on the spring
-            shape's two, ``calibration.time_smoothness`` on the relaxation times'); None:
-            every factor 1.
+            shape's two); None: every factor 1.
     """
     laplacian: sp.csc_matrix
     theta0: np.ndarray

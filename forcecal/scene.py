@@ -269,11 +269,6 @@ class CalibrationSection:
                                   "parameters' (large: nearly one shape for every connector, "
                                   "which moves as a whole; README Calibration)",
                                   exclusive_minimum=0.0)
-    time_smoothness: float = key(1.0, "gradient method: factor on the smoothness penalty of "
-                                 "each connector's relaxation times tau1, tau2 relative to "
-                                 "the other parameters' (large: nearly one pair of times for "
-                                 "every connector, as the FE's Prony series has)",
-                                 exclusive_minimum=0.0)
     kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv with "
                            "the connectors (false: kv keeps the global fit's one value)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "

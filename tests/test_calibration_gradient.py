@@ -9,7 +9,7 @@ import scipy.sparse as sp
 
 from calibration.core import calibrate
 from calibration.gradient import (Coordinates, GradientResult, Validity, neighbour_laplacian,
-                                  shared_laplacian, smoothness_factors)
+                                  shape_smoothness_factors, shared_laplacian)
 from calibration.gradient_solver import Linearisation, Regulariser, cross_validate, folds_of
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
@@ -492,14 +492,14 @@ def test_cross_validation_picks_a_finite_weight(box):
     assert costs[0] > 2.0 * costs[best] and costs[-1] > 2.0 * costs[best]
 
 
-@pytest.mark.parametrize("smoothness", [None, smoothness_factors(100.0, 10.0)],
-                         ids=["one block", "shape x100, times x10"])
+@pytest.mark.parametrize("smoothness", [None, shape_smoothness_factors(100.0)],
+                         ids=["one block", "shape x100"])
 def test_regulariser_solve_and_sandwich_are_the_metric_inverse_on_both_paths(box, monkeypatch,
                                                                             smoothness):
-    # the block solve (seven connector coordinates sharing one block, or six runs of blocks
-    # when the shape's two and the times have their own smoothness factors, then the tets)
-    # against a sparse LU of the whole metric, for dense and sparse right-hand sides, with the
-    # blocks inverted densely (the default at this size) and by their own sparse LU
+    # the block solve (seven connector coordinates sharing one block, or three runs of blocks
+    # when the shape's two have their own smoothness factor, then the tets) against a sparse
+    # LU of the whole metric, for dense and sparse right-hand sides, with the blocks inverted
+    # densely (the default at this size) and by their own sparse LU
     from scipy.sparse.linalg import splu
     import calibration.gradient_solver as solver
 
@@ -512,7 +512,7 @@ def test_regulariser_solve_and_sandwich_are_the_metric_inverse_on_both_paths(box
         monkeypatch.setattr(solver, "DENSE_INVERSE_LIMIT", limit)
         reg = Regulariser(neighbour_laplacian(mesh.edges, mesh.n_vertices), np.zeros(size),
                           shared_laplacian(mesh.tets, mesh.n_vertices, 3), smoothness=smoothness)
-        assert len(reg._blocks) == (2 if smoothness is None else 7)
+        assert len(reg._blocks) == (2 if smoothness is None else 4)
         e, lap = len(mesh.edges), reg.laplacian
         for q, factor in enumerate(np.ones(7) if smoothness is None else smoothness):
             block = reg.metric[q * e:(q + 1) * e, q * e:(q + 1) * e]
