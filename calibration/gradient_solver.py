@@ -12,6 +12,7 @@ only needs residuals and Jacobians: :class:`Regulariser` (the smoothness metric)
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence
@@ -131,16 +132,13 @@ class Regulariser:
 
         e = self.laplacian.shape[0]
         out, q, inverses = [], 0, {}
-        factors = self._smoothness
-        while q < N_COORDS:  # runs of equal factors share one block and one product
-            run = 1
-            while q + run < N_COORDS and factors[q + run] == factors[q]:
-                run += 1
-            f = float(factors[q])
-            if f not in inverses:
-                inverses[f] = inverse(self.laplacian, f)
-            out.append((q * e, run, e, inverses[f]))
-            q += run
+        # runs of equal factors share one block and one product; equal factors one inverse
+        for factor, run in itertools.groupby(self._smoothness.tolist()):
+            copies = len(list(run))
+            if factor not in inverses:
+                inverses[factor] = inverse(self.laplacian, factor)
+            out.append((q * e, copies, e, inverses[factor]))
+            q += copies
         if self.tet_laplacian is not None:
             out.append((N_COORDS * e, 1, self.tet_laplacian.shape[0],
                         inverse(self.tet_laplacian)))
