@@ -14,8 +14,8 @@ STAMP := $(VENV)/.forcecal-setup
 # indentation + relaxation at vertices 138 and 3 81.8 -> 54.1 s (same forces to 1e-15).
 # OMP_NUM_THREADS=1 below keeps it to one thread per process (MPI ranks, calibration workers).
 APT_PACKAGES := python3-dolfinx python3-gmsh python3-meshio python3-h5py python3-scipy \
-	python3-numba python3-pytest python3-matplotlib python3-hypothesis python3-tqdm \
-	python3-venv python3-pip-whl python3-setuptools-whl python3-wheel openmpi-bin \
+	python3-numba python3-pytest python3-pytest-xdist python3-matplotlib python3-hypothesis \
+	python3-tqdm python3-venv python3-pip-whl python3-setuptools-whl python3-wheel openmpi-bin \
 	libopenblas0-pthread
 
 # OpenMPI refuses to run as root without these; FFCx/numba caches go to a writable place.
@@ -58,8 +58,11 @@ $(STAMP): pyproject.toml constraints.txt Makefile
 	  print('setup: dolfinx', dolfinx.__version__, '| numpy', numpy.__version__, '| numba', numba.__version__)"
 	@touch $(STAMP)
 
+# Two test processes, one per core (most tests run one single-threaded process); whole test
+# files stay on one worker, so a module's fixtures are computed once. TEST_WORKERS=0 runs serially.
+TEST_WORKERS ?= 2
 test: setup
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile tests
 
 demo: setup
 	$(PY) -m pipelines demo $(STAGE_ARGS)

@@ -10,6 +10,15 @@ SCENES = ROOT / "scenes"
 os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT", "1")
 os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
 
+# `make test` runs two pytest workers side by side (pytest-xdist). FFCx's JIT cache lets a
+# process wait only 10 s for a form that another process is compiling, then raises
+# TimeoutError; its MPI ranks share one compile, separate processes do not. So each worker
+# gets a JIT cache of its own (set before anything imports dolfinx, which reads it once;
+# mpirun and subprocesses inherit it).
+if "PYTEST_XDIST_WORKER" in os.environ:
+    _cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    os.environ["XDG_CACHE_HOME"] = str(_cache / f"pytest-{os.environ['PYTEST_XDIST_WORKER']}")
+
 
 @pytest.fixture(scope="session")
 def liver_scene():
