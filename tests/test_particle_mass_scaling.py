@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ParameterError, StabilityError
-from particle.stability import empirical_critical_step
+from particle.empirical_limit import empirical_critical_step
 from particle.evaluators import IndentationEvaluator
 from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator

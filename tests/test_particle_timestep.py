@@ -17,7 +17,7 @@ from particle.model import Model, ModelBuilder
 from particle.params import ConnectorParams
 from particle.statics import gravity_static
 from particle.testing import box_model, two_particle_model, viscoelastic_params
-from particle.stability import blows_up
+from particle.empirical_limit import blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # Maxwell arms of negligible stiffness: a purely elastic model

@@ -20,7 +20,7 @@ from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_t
                              network_bulk_modulus, signed_volumes, volume_energy,
                              volume_forces_numpy, volume_hessian_numpy,
                              volume_kv_sensitivity_numpy)
-from particle.stability import bisect, blows_up
+from particle.empirical_limit import bisect, blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # arms of negligible stiffness: a purely elastic model

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ConvergenceError, StabilityError
-from particle.stability import bisect, blows_up, empirical_critical_step
+from particle.empirical_limit import bisect, blows_up, empirical_critical_step
 from particle.stability_cases import (PARAMETER_SETS, PRESTRAINS, case_model, clamped_cube,
                                       sliver_mesh, stability_meshes)
 from particle import kernels
