@@ -276,6 +276,26 @@ def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
     assert held_out_error({"indentation_held_out": 0.04}) is None
 
 
+def test_a_partial_run_is_refused_before_it_runs_without_a_whole_run_of_its_kind(tmp_path):
+    """``--only`` completes a whole run's bench.json: into a folder without one, or with one
+    of another size or scene, it is refused up front (it used to run its items and then
+    fail the file check, losing their work)."""
+    import json
+
+    from forcecal.errors import ForcecalError
+    from pipelines.bench.driver import run_bench
+
+    out = tmp_path / "bench"
+    with pytest.raises(ForcecalError, match="does not exist; --only reruns"):
+        run_bench(out, quick=True, only=("stability limits",))
+    out.mkdir()
+    (out / "bench.json").write_text(json.dumps({"scene": "liver", "quick": False}))
+    with pytest.raises(ForcecalError, match="is a full run of scene 'liver', this one a "
+                                            "--quick run of 'tiny'"):
+        run_bench(out, quick=True, only=("stability limits",))
+    assert sorted(p.name for p in out.iterdir()) == ["bench.json"]  # nothing ran
+
+
 def test_a_partial_run_keeps_the_full_runs_machine_and_records_its_own():
     """``--only`` keeps every key of the full run, its machine (date, commit) included, and
     records its own machine with the items it ran; an item rerun again moves to the new entry."""

@@ -212,6 +212,22 @@ def selected_items(names: list[str], only: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(name for name in names if name in set(only) | keep)
 
 
+def _check_partial_run(out: Path, previous: dict[str, Any], scene: str, quick: bool) -> None:
+    """Refuse an ``--only`` run before it runs anything when ``out`` holds no whole run to
+    complete (its other keys would be missing) or one of another scene or size (its keys
+    would mix two benches)."""
+    if not previous:
+        raise ForcecalError(f"bench --only: {out / 'bench.json'} does not exist; --only reruns "
+                            f"items of a whole bench run in that folder and keeps its other "
+                            f"keys: run the whole bench there first")
+    size = {True: "--quick", False: "full"}
+    earlier = (previous.get("scene"), bool(previous.get("quick")))
+    if earlier != (scene, quick):
+        raise ForcecalError(f"bench --only: {out / 'bench.json'} is a {size[earlier[1]]} run of "
+                            f"scene {earlier[0]!r}, this one a {size[quick]} run of {scene!r}: "
+                            f"pass the same scene and --quick, or another --out")
+
+
 def partial_bench(previous: dict[str, Any], this_machine: dict[str, Any],
                   only: tuple[str, ...], scene: str, quick: bool) -> dict[str, Any]:
     """The start of an ``--only`` run's bench.json: every key of the last run in the folder
@@ -302,6 +318,7 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         if unknown:
             raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
                                 f"{[name for name, _ in items]}")
+        _check_partial_run(out, previous, scene.name, quick)
         run = selected_items([name for name, _ in items], only)
         items = [(name, fn) for name, fn in items if name in run]
         bench = partial_bench(previous, bench["machine"], run, scene.name, quick)
