@@ -80,7 +80,7 @@ def bisect(unstable: Callable[[float], bool], stable: float, *, rel_tol: float =
 
 def empirical_critical_step(model: Model, *, steps: int = 3000, rel_tol: float = 1e-3,
                             seed: int = 0, prestrain: float = 0.0) -> float:
-    """Largest stable explicit step [s] found by bisection (see the section comment above).
+    """Largest stable explicit step [s] found by bisection (module docstring).
 
     ``prestrain``: the run starts dilated (:func:`perturbed_state`); with every
     surface particle clamped a uniform dilation of a Kuhn box is an equilibrium

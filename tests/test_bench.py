@@ -1,6 +1,7 @@
 """The benchmark's own logic (no timing is asserted): Pareto fronts, derived scenes, sliced
 references, recognising a resumed reference run."""
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from forcecal.scene import load_scene
 from pipelines.bench.items import _complete_run_seconds
 from pipelines.bench.configs import (Config, derived_scene, pareto_front, scene_toml,
                                      sliced_reference)
-from tests.conftest import SCENES
+from tests.conftest import ROOT, SCENES
 from tests.test_h5io import _fake_reference
 
 
@@ -143,7 +144,6 @@ def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message
 def test_the_committed_bench_has_every_fixed_key_and_the_readme_shows_its_goals():
     from pipelines.bench.driver import read_bench
     from pipelines.bench.report import goals_markdown
-    from tests.conftest import ROOT
     bench = read_bench(ROOT / "runs" / "bench" / "bench.json")
     assert goals_markdown(bench) in (ROOT / "README.md").read_text()
 
@@ -278,10 +278,8 @@ def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
 
 def test_a_partial_run_is_refused_before_it_runs_without_a_whole_run_of_its_kind(tmp_path):
     """``--only`` completes a whole run's bench.json: into a folder without one, or with one
-    of another size or scene, it is refused up front (it used to run its items and then
-    fail the file check, losing their work)."""
-    import json
-
+    of another size or scene, or with a corrupt or incomplete one, it is refused up front
+    (it used to run its items and then fail the file check, losing their work)."""
     from forcecal.errors import ForcecalError
     from pipelines.bench.driver import run_bench
 
@@ -289,7 +287,13 @@ def test_a_partial_run_is_refused_before_it_runs_without_a_whole_run_of_its_kind
     with pytest.raises(ForcecalError, match="does not exist; --only reruns"):
         run_bench(out, quick=True, only=("stability limits",))
     out.mkdir()
-    (out / "bench.json").write_text(json.dumps({"scene": "liver", "quick": False}))
+    (out / "bench.json").write_text("{")  # cut short
+    with pytest.raises(ForcecalError, match="cannot read .*bench.json"):
+        run_bench(out, quick=True, only=("stability limits",))
+    (out / "bench.json").write_text(json.dumps({"scene": "tiny", "quick": True}))
+    with pytest.raises(ForcecalError, match="bench.json: .* is missing"):  # not a whole run
+        run_bench(out, quick=True, only=("stability limits",))
+    shutil.copy(ROOT / "runs" / "bench" / "bench.json", out / "bench.json")
     with pytest.raises(ForcecalError, match="is a full run of scene 'liver', this one a "
                                             "--quick run of 'tiny'"):
         run_bench(out, quick=True, only=("stability limits",))

@@ -212,20 +212,24 @@ def selected_items(names: list[str], only: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(name for name in names if name in set(only) | keep)
 
 
-def _check_partial_run(out: Path, previous: dict[str, Any], scene: str, quick: bool) -> None:
-    """Refuse an ``--only`` run before it runs anything when ``out`` holds no whole run to
-    complete (its other keys would be missing) or one of another scene or size (its keys
-    would mix two benches)."""
-    if not previous:
-        raise ForcecalError(f"bench --only: {out / 'bench.json'} does not exist; --only reruns "
-                            f"items of a whole bench run in that folder and keeps its other "
-                            f"keys: run the whole bench there first")
+def whole_run(out: Path, scene: str, quick: bool) -> dict[str, Any]:
+    """The ``bench.json`` in ``out`` that an ``--only`` run completes, read and checked
+    (:func:`read_bench`) before the run runs anything: refused when there is none (its other
+    keys would be missing) or when it is of another scene or size (the keys would mix two
+    benches)."""
+    path = out / "bench.json"
+    if not path.is_file():
+        raise ForcecalError(f"bench --only: {path} does not exist; --only reruns items of a "
+                            f"whole bench run in that folder and keeps its other keys: run "
+                            f"the whole bench there first")
+    previous = read_bench(path)
     size = {True: "--quick", False: "full"}
     earlier = (previous.get("scene"), bool(previous.get("quick")))
     if earlier != (scene, quick):
-        raise ForcecalError(f"bench --only: {out / 'bench.json'} is a {size[earlier[1]]} run of "
-                            f"scene {earlier[0]!r}, this one a {size[quick]} run of {scene!r}: "
-                            f"pass the same scene and --quick, or another --out")
+        raise ForcecalError(f"bench --only: {path} is a {size[earlier[1]]} run of scene "
+                            f"{earlier[0]!r}, this one a {size[quick]} run of {scene!r}: pass "
+                            f"the same scene and --quick, or another --out")
+    return previous
 
 
 def partial_bench(previous: dict[str, Any], this_machine: dict[str, Any],
@@ -269,8 +273,9 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         (cache / COLD_MARKER).unlink()
     bench: dict[str, Any] = {"machine": machine(), "scene": scene.name, "quick": quick}
     state: dict[str, Any] = {}
+    # the last run's cold times (an --only run reads and checks it below: whole_run)
     previous = json.loads((out / "bench.json").read_text()) if (
-        out / "bench.json").is_file() else {}
+        not only and (out / "bench.json").is_file()) else {}
 
     def default_item():
         state["default"], state["row"] = default_run(scene, cache, ranks=ranks,
@@ -318,7 +323,7 @@ def run_bench(out: Path, *, quick: bool = False, scene_path: Path | None = None,
         if unknown:
             raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
                                 f"{[name for name, _ in items]}")
-        _check_partial_run(out, previous, scene.name, quick)
+        previous = whole_run(out, scene.name, quick)
         run = selected_items([name for name, _ in items], only)
         items = [(name, fn) for name, fn in items if name in run]
         bench = partial_bench(previous, bench["machine"], run, scene.name, quick)
