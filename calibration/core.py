@@ -47,7 +47,7 @@ from calibration.metrics import relative_rms_error
 from calibration.network import linear_indentation
 from calibration.optimize import Fit
 from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParams, StrainRange,
-                                         build_rings)
+                                         build_rings, global_shape)
 from calibration.pool import Backend, Experiments, Pool, particle_backend
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
@@ -164,8 +164,11 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
         mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
         scene.indentation.radius))
+    # the global set's spread over the connectors (None: uniform); its unit network gives the
+    # initial guess and the experiments' strain range
+    shape = global_shape(mesh, settings.global_shape)
     linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals,
-                                footprints=footprints)
+                                stiffness=shape, footprints=footprints)
     depth = float(max(ref.indentation.displacement.max(),
                       relax_depths.max() if relax else 0.0))
     strain = strain_range(linear.strain, depth, settings.strain_margin)
@@ -173,7 +176,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                               times, relax_depths, strain.bounds, footprints)
     fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal],
-                            mesh if scene.particle.volume else None)
+                            mesh if scene.particle.volume else None, shape)
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
 
     inputs = {**fit_inputs(scene, reference_path), "experiments": ",".join(fitted)}
@@ -190,9 +193,9 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     # where every spring must stay stiff, known before any fit (the FE sag's release range
     # is geometric); the global springs are uniform, so they must hold on all of it
     validity = spring_validity(ref, initial, strain, settings.stiffness_floor,
-                               scene.particle.strain_margin)
+                               scene.particle.strain_margin, shape)
     feasible = StrainRange(float(validity.low.min()), float(validity.high.max()))
-    with Pool(experiments, initial.connector_params(n_conn), backend=backend,
+    with Pool(experiments, initial.connector_params(n_conn, shape), backend=backend,
               workers=settings.workers if workers is None else workers) as pool:
         glob = initial
         global_fits: dict[str, Fit] = {}
@@ -208,7 +211,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                 pool.forget_warm_starts()  # as a resumed run starts (identical resumes)
                 glob, fit = fit_fn(pool, glob, strain, reference, n_conn, settings,
                                    optimizer=GAUSS_NEWTON if gradient and phase == "relaxation"
-                                   else NELDER_MEAD, feasible=feasible,
+                                   else NELDER_MEAD, feasible=feasible, shape=shape,
                                    progress=progress, verbose=verbose)
                 checkpoint.put(f"global_{phase}", {"params": glob.as_dict(),
                                                    "fit": fit.as_dict()})
@@ -221,12 +224,15 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
-        validity = dataclasses.replace(validity, floor=settings.stiffness_floor * glob.K0,
+        validity = dataclasses.replace(validity, floor=connector_floor(settings.stiffness_floor,
+                                                                       glob, shape),
                                        K0_global=glob.K0)
         local = LocalParametrisation(glob, rings, strain, validity.floor,
                                      np.zeros((n_cal, STATIC_DIM)),
                                      np.zeros((n_cal, RELAXATION_DIM)),
-                                     local_validity(validity, glob.connector_params(n_conn)))
+                                     local_validity(validity,
+                                                    glob.connector_params(n_conn, shape)),
+                                     shape)
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         gradient_summary: dict = {}
         if gradient:
@@ -234,8 +240,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             gfit = fit_gradient(pool, glob, strain, {e: ref_curves[e][:n_cal] for e in fitted},
                                validity, mesh.edges, mesh.n_vertices, folds=settings.cv_folds,
                                # per-tet kv too when the global fit carries the volume term
-                               tets=mesh.tets if glob.connector_params(n_conn).kv is not None
-                               else None,
+                               tets=mesh.tets if glob.has_volume else None,
+                               global_shape=shape,
                                kv_per_tet=settings.kv_per_tet,
                                prior_ratio=settings.prior_ratio,
                                shape_smoothness=settings.shape_smoothness,
@@ -272,7 +278,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                 local = local.scaled(gravity_check.scale)  # the offsets params.h5 stores
             stage_times["gravity_check"] = time.perf_counter() - t
         connectors = {"baseline": van_gelder_params(mesh, material),
-                      "global": glob.connector_params(n_conn), "calibrated": calibrated}
+                      "global": glob.connector_params(n_conn, shape), "calibrated": calibrated}
         t = time.perf_counter()
         pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)
         variants = {}
@@ -351,23 +357,30 @@ def local_validity(validity: Validity, glob: ConnectorParams
     return validity.low, validity.high, np.minimum(validity.floor, global_min)
 
 
+def connector_floor(stiffness_floor: float, glob: GlobalParams,
+                    shape: np.ndarray | None) -> float | np.ndarray:
+    """Smallest allowed spring tangent stiffness [N/m]: ``stiffness_floor`` x the global K0,
+    per connector times its ``shape`` factor (a scalar when the global set is uniform)."""
+    return stiffness_floor * glob.K0 * (1.0 if shape is None else shape)
+
+
 def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
-                      gravity_margin: float) -> Validity:
+                    gravity_margin: float, shape: np.ndarray | None = None) -> Validity:
     """Where a calibration keeps every spring stiff (the global fits on the overall range,
     the gradient fit per connector, local tuning as :func:`local_validity` says): the
     experiments' strain range united, per connector, with the gravity release range of the
     FE static sag (:func:`particle.stability.strain_range_for_release` with
     ``gravity_margin``; the experiments' range alone if the reference has no gravity run).
-    The range depends on the geometry only; the floor is ``floor`` x ``glob.K0``."""
+    The range depends on the geometry only; the floor is :func:`connector_floor`."""
     from particle.stability import strain_range_for_release
     from particle.model import build_model
 
     n = len(ref.problem.mesh.edges)
     low, high = np.full(n, strain.low), np.full(n, strain.high)
     if ref.gravity is not None:
-        model = build_model(ref.problem, ref.material.density, glob.connector_params(n))
+        model = build_model(ref.problem, ref.material.density, glob.connector_params(n, shape))
         lo, hi = strain_range_for_release(model, ref.gravity.static_displacement, gravity_margin)
         low, high = np.minimum(low, lo), np.maximum(high, hi)
         log.info("springs kept stiff on the experiments' strains and the gravity "
                  "release range of the FE sag, [%.3g, %.3g] overall", low.min(), high.max())
-    return Validity(low, high, floor * glob.K0, glob.K0, strain.scale)
+    return Validity(low, high, connector_floor(floor, glob, shape), glob.K0, strain.scale)

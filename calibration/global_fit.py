@@ -14,7 +14,10 @@
   and a kv that large locks the network as P1 tets lock (5-12x too stiff, see
   the generalisation notes) and divides the explicit step by ~sqrt(kappa/mu);
   the fitted kv lies between, and the static fit searches it in log
-  coordinates (first simplex step a factor 2).
+  coordinates (first simplex step a factor 2). With a global shape
+  (``calibration.global_shape``) every connector's stiffnesses are the set's
+  times its fixed factor: the unit network has stiffnesses ``w_c``, K0 is the
+  scale, and everything below holds as written.
 * Step 1, static: Nelder-Mead over ``x = (alpha s, beta s^2)`` on the static
   curves of all calibration points; for each x the curve of a uniform network
   is exactly proportional to K0, so K0 is solved in closed form (least squares)
@@ -76,10 +79,13 @@ def fe_initial_slopes(depths: np.ndarray, forces: np.ndarray) -> np.ndarray:
 
 
 def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
-                  unit_slope: np.ndarray, mesh: TetMesh | None = None) -> GlobalParams:
+                  unit_slope: np.ndarray, mesh: TetMesh | None = None,
+                  shape: np.ndarray | None = None) -> GlobalParams:
     """Closed-form start (module docstring) from per-point FE and unit-network slopes [N/m].
 
     ``mesh`` given: the volume term is on and kv starts at the network's bulk modulus.
+    ``shape``: the connectors' (E,) factors of the global set (None: uniform); the unit
+    network's slopes must be those of stiffnesses ``shape``.
     """
     K0 = float(np.dot(fe_slope, unit_slope) / np.dot(unit_slope, unit_slope))
     if not K0 > 0:
@@ -87,26 +93,34 @@ def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
                             "N/m give no positive stiffness; are the reference forces signed "
                             "along the inward normal?")
     ratio, tau = prony_arms(material)
-    kv = 0.0 if mesh is None else network_bulk_modulus(mesh, K0)
+    kv = 0.0
+    if mesh is not None:  # the network of stiffnesses K0 shape: sum K0 w L^2 / (9 V)
+        lengths2 = mesh.edge_lengths ** 2
+        mean_factor = 1.0 if shape is None else float(np.sum(shape * lengths2) / np.sum(lengths2))
+        kv = network_bulk_modulus(mesh, K0 * mean_factor)
     return GlobalParams(K0=K0, alpha=0.0, beta=0.0, k1=float(ratio[0] * K0), tau1=float(tau[0]),
                         k2=float(ratio[1] * K0), tau2=float(tau[1]), kv=kv)
 
 
 def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
                n_connectors: int, settings: CalibrationSection, *, optimizer: str = NELDER_MEAD,
-               feasible: StrainRange | None = None, progress: bool = True,
-               verbose: bool = False) -> tuple[GlobalParams, Fit]:
+               feasible: StrainRange | None = None, shape: np.ndarray | None = None,
+               progress: bool = True, verbose: bool = False) -> tuple[GlobalParams, Fit]:
     """Step 1: spring ``K0, a, b`` (and ``kv`` if the volume term is on) on the static curves
     ``reference`` (Pc, S) [N], by ``optimizer`` (:data:`OPTIMIZERS`). The spring's tangent
     stays above the floor on ``feasible`` (default ``strain``, the experiments' range; the
-    calibration passes that united with the gravity release range of the FE sag)."""
+    calibration passes that united with the gravity release range of the FE sag).
+    ``shape``: the connectors' (E,) factors (:func:`calibration.parametrisation.global_shape`)
+    or None (uniform)."""
     points = np.arange(len(reference))
     K0_of: dict[bytes, float] = {}
-    floor = settings.stiffness_floor * start.K0  # K(eps)/K0 does not depend on the K0 solved for
+    # K(eps)/K0 does not depend on the K0 solved for; a connector's floor scales with its shape
+    floor = settings.stiffness_floor * start.K0 * (1.0 if shape is None else shape)
     feasible = strain if feasible is None else feasible
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        params = start.with_static_coordinates(x, start.K0, strain).connector_params(n_connectors)
+        params = start.with_static_coordinates(x, start.K0, strain).connector_params(
+            n_connectors, shape)
         check_feasible(params, feasible, floor)
         sim = pool.curves("indentation", params, points)
         scale = float(np.sum(reference * sim) / np.sum(sim * sim))
@@ -126,15 +140,17 @@ def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: 
 def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
                    n_connectors: int, settings: CalibrationSection, *,
                    optimizer: str = NELDER_MEAD, feasible: StrainRange | None = None,
-                   progress: bool = True, verbose: bool = False) -> tuple[GlobalParams, Fit]:
+                   shape: np.ndarray | None = None, progress: bool = True,
+                   verbose: bool = False) -> tuple[GlobalParams, Fit]:
     """Step 2: arms ``k1, tau1, k2, tau2`` on the relaxation curves (Pc, S) [N], spring fixed,
-    by ``optimizer`` (:data:`OPTIMIZERS`); ``feasible`` as :func:`fit_static`."""
+    by ``optimizer`` (:data:`OPTIMIZERS`); ``feasible`` and ``shape`` as :func:`fit_static`."""
     points = np.arange(len(reference))
     feasible = strain if feasible is None else feasible
+    floor = settings.stiffness_floor * start.K0 * (1.0 if shape is None else shape)
 
     def residuals(y: np.ndarray) -> np.ndarray:
-        params = start.with_relaxation_coordinates(y).connector_params(n_connectors)
-        check_feasible(params, feasible, settings.stiffness_floor * start.K0)
+        params = start.with_relaxation_coordinates(y).connector_params(n_connectors, shape)
+        check_feasible(params, feasible, floor)
         return (reference - pool.curves("relaxation", params, points)).ravel()
 
     fit = _minimise(pool, residuals, start.relaxation_coordinates(), np.full(4, RELAXATION_STEP),

@@ -222,13 +222,14 @@ class Validity:
 
     Attributes:
         low, high: (E,) float64 strain range of each connector [1].
-        floor: smallest allowed spring tangent stiffness [N/m].
+        floor: smallest allowed spring tangent stiffness [N/m]: one for all, or (E,) per
+            connector (a global fit with a shape, :func:`calibration.parametrisation.global_shape`).
         K0_global: the global fit's K0 [N/m] (hinge scale).
         scale: strain scale of the coordinates [1].
     """
     low: np.ndarray
     high: np.ndarray
-    floor: float
+    floor: float | np.ndarray
     K0_global: float
     scale: float
 
@@ -252,7 +253,8 @@ class Validity:
         K0 = np.exp(t0)[:, None]
         q = 1.0 + 2.0 * t1[:, None] * eps / s + 3.0 * t2[:, None] * (eps / s) ** 2
         tangent = K0 * q / self.K0_global
-        target = HINGE_FACTOR * self.floor / self.K0_global
+        floor = np.broadcast_to(np.asarray(self.floor, dtype=float), (n,))[:, None]
+        target = HINGE_FACTOR * floor / self.K0_global
         active = tangent < target
         res = HINGE_WEIGHT * np.where(active, target - tangent, 0.0)
         w = -HINGE_WEIGHT * active * K0 / self.K0_global
@@ -383,6 +385,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  tets: np.ndarray | None = None, kv0: float | None = None,
                  kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
                  shape_smoothness: float = SHAPE_SMOOTHNESS,
+                 global_shape: np.ndarray | None = None,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
@@ -395,8 +398,11 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
     ``shape_smoothness``: factor on the smoothness penalty of the spring shape coordinates
     (``alpha s``, ``beta s^2``) relative to the other coordinates' (not on the prior).
+    ``global_shape``: the global fit's (E,) per-connector factors
+    (:func:`calibration.parametrisation.global_shape`), None if uniform; the fit starts from
+    that and the regulariser measures every connector's departure from it.
     """
-    start_params = glob.connector_params(len(edges))
+    start_params = glob.connector_params(len(edges), global_shape)
     if tets is not None and start_params.kv is None:
         start_params = dataclasses.replace(start_params, kv=np.array([kv0], dtype=float))
     if tets is not None and not kv_per_tet:

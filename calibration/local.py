@@ -90,20 +90,23 @@ class LocalParametrisation:
         rings: first rings of the calibration points.
         strain: strain range of the experiments (feasibility and coordinate scale).
         floor: smallest feasible spring stiffness K(eps) on that range [N/m]
-            (``calibration.stiffness_floor`` x the global K0).
+            (``calibration.stiffness_floor`` x the global K0, times ``shape`` if given: (E,)).
         z_static: (Pc, 3) static offsets.
         z_relaxation: (Pc, 4) relaxation offsets.
         validity: None, or per connector (low (E,), high (E,), floor (E,)): a strain range
             beyond the experiments' (the gravity release range of the FE sag) on which every
             spring's tangent must stay >= its floor [N/m] (:func:`calibration.core`).
+        shape: the global fit's (E,) per-connector factors
+            (:func:`calibration.parametrisation.global_shape`), None if uniform.
     """
     glob: GlobalParams
     rings: Rings
     strain: StrainRange
-    floor: float
+    floor: float | np.ndarray
     z_static: np.ndarray
     z_relaxation: np.ndarray
     validity: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    shape: np.ndarray | None = None
 
     def check(self, params: ConnectorParams) -> None:
         """Raise :class:`ParameterError` if ``params`` leave the searched region."""
@@ -124,7 +127,8 @@ class LocalParametrisation:
                                    z_relaxation=fraction * self.z_relaxation)
 
     def params(self) -> ConnectorParams:
-        return local_params(self.glob, self.rings, self.strain, self.z_static, self.z_relaxation)
+        return local_params(self.glob, self.rings, self.strain, self.z_static, self.z_relaxation,
+                            self.shape)
 
 
 @dataclass(frozen=True, eq=False)

@@ -5,7 +5,9 @@ Global parameters (one value for every connector), :class:`GlobalParams`:
 ``K(eps) = K0 (1 + alpha eps + beta eps^2)``), arm stiffnesses ``k1, k2`` [N/m]
 and relaxation times ``tau1 < tau2`` [s] (``b_i = tau_i k_i``); with the
 volume term (scene key ``particle.volume``) the volume stiffness ``kv`` [Pa] of
-every tet (0 = the term is off).
+every tet (0 = the term is off). With ``calibration.global_shape = "van_gelder"``
+(:func:`global_shape`) connector c's stiffnesses are these values times a fixed
+geometric factor ``w_c`` (mean 1), so the set is still one value per parameter.
 
 Optimiser coordinates are dimensionless and O(1) per unit change:
 
@@ -106,12 +108,21 @@ class GlobalParams:
     def has_volume(self) -> bool:
         return self.kv > 0.0
 
-    def connector_params(self, n_connectors: int) -> ConnectorParams:
-        """Uniform connector parameters (and, with the volume term, one kv (1,) for every tet)."""
+    def connector_params(self, n_connectors: int, shape: np.ndarray | None = None
+                         ) -> ConnectorParams:
+        """Connector parameters (and, with the volume term, one kv (1,) for every tet).
+
+        ``shape`` None: the same values for every connector (the paper's global set);
+        (E,) positive factors (:func:`global_shape`): connector c's stiffnesses ``K0, a, b,
+        k_i, b_i`` times ``shape[c]``, its spring's ``K(eps)/K0`` and its relaxation times
+        the same for all.
+        """
         params = ConnectorParams.uniform(n_connectors, K0=self.K0, a=self.alpha * self.K0,
                                          b=self.beta * self.K0, k1=self.k1,
                                          b1=self.tau1 * self.k1, k2=self.k2,
                                          b2=self.tau2 * self.k2)
+        if shape is not None:
+            params = params.scaled(check_shape(shape, n_connectors))
         return dataclasses.replace(params, kv=self.kv_array)
 
     @property
@@ -141,6 +152,40 @@ class GlobalParams:
 
     def as_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in self.__dataclass_fields__}
+
+
+#: ``calibration.global_shape``: how the global set's stiffness is spread over the connectors
+GLOBAL_SHAPES = ("uniform", "van_gelder")
+
+
+def global_shape(mesh: TetMesh, name: str) -> np.ndarray | None:
+    """The (E,) per-connector factors of the global fit's stiffnesses, mean 1, or None.
+
+    ``"uniform"``: None, every connector the same (the paper's global tuning).
+    ``"van_gelder"``: proportional to the closed-form baseline's spring of each edge,
+    ``sum_{t containing c} V_t / L_c^2`` (:mod:`calibration.baseline`): the share of
+    the surrounding material each connector stands for. One set of uniform springs on
+    an irregular mesh is stiffer where edges are short and many, so its force varies
+    with the local mesh as well as with the material; Van Gelder's weights make a
+    uniform dilation store the continuum's energy in every tet. The global fit still
+    searches one value per parameter (their scale), so both shapes have the same
+    number of fitted parameters and their global costs compare directly.
+    """
+    if name == "uniform":
+        return None
+    if name == "van_gelder":
+        w = mesh.edge_tet_volume / mesh.edge_lengths ** 2
+        return w / w.mean()
+    raise ParameterError(f"unknown calibration.global_shape {name!r}; one of {GLOBAL_SHAPES}")
+
+
+def check_shape(shape: np.ndarray, n_connectors: int) -> np.ndarray:
+    """``shape`` as (E,) float64, refused unless it has E finite positive factors."""
+    shape = np.asarray(shape, dtype=float)
+    if shape.shape != (n_connectors,) or not np.all(np.isfinite(shape) & (shape > 0.0)):
+        raise ParameterError(f"a global shape needs {n_connectors} finite positive factors, got "
+                             f"shape {shape.shape}, min {np.min(shape) if shape.size else None}")
+    return shape
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,12 +233,14 @@ def build_rings(mesh: TetMesh, points: np.ndarray,
 
 
 def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
-                 z_static: np.ndarray, z_relaxation: np.ndarray) -> ConnectorParams:
+                 z_static: np.ndarray, z_relaxation: np.ndarray,
+                 shape: np.ndarray | None = None) -> ConnectorParams:
     """Per-connector parameters: global values modified by the ring offsets (module docstring).
 
     Args:
         z_static: (Pc, 3) static offsets of the calibration points.
         z_relaxation: (Pc, 4) relaxation offsets.
+        shape: the global fit's (E,) per-connector factors (:func:`global_shape`) or None.
     """
     s = strain.scale
     o = rings.connector_offsets(z_static)
@@ -203,8 +250,9 @@ def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
     beta = glob.beta + o[:, 2] / (s * s)
     k1, tau1 = glob.k1 * np.exp(r[:, 0]), glob.tau1 * np.exp(r[:, 1])
     k2, tau2 = glob.k2 * np.exp(r[:, 2]), glob.tau2 * np.exp(r[:, 3])
-    return ConnectorParams(K0=K0, a=alpha * K0, b=beta * K0, k1=k1, b1=tau1 * k1,
-                           k2=k2, b2=tau2 * k2, kv=glob.kv_array)
+    params = ConnectorParams(K0=K0, a=alpha * K0, b=beta * K0, k1=k1, b1=tau1 * k1,
+                             k2=k2, b2=tau2 * k2, kv=glob.kv_array)
+    return params if shape is None else params.scaled(check_shape(shape, len(K0)))
 
 
 def check_offsets(phase: str, z: np.ndarray) -> None:
@@ -234,10 +282,12 @@ def check_spring_range(params: ConnectorParams, low: float | np.ndarray,
                              f"[{low[e]:.3g}, {high[e]:.3g}] ({len(soft)} connectors)")
 
 
-def check_feasible(params: ConnectorParams, strain: StrainRange, floor: float) -> None:
+def check_feasible(params: ConnectorParams, strain: StrainRange,
+                   floor: float | np.ndarray) -> None:
     """Raise :class:`ParameterError` if ``params`` is outside the searched region.
 
-    ``floor`` [N/m]: the smallest spring tangent stiffness allowed in the strain range.
+    ``floor`` [N/m]: the smallest spring tangent stiffness allowed in the strain range
+    (a scalar, or (E,) per connector).
     """
     params.validate(strain.bounds)
     check_spring_range(params, strain.low, strain.high, floor, "in the strain range")

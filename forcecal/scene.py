@@ -269,6 +269,11 @@ class CalibrationSection:
                                   "parameters' (large: nearly one shape for every connector, "
                                   "which moves as a whole; README Calibration)",
                                   exclusive_minimum=0.0)
+    global_shape: str = key("uniform", "how the global set's stiffnesses spread over the "
+                            "connectors: \"uniform\" (the paper's one value for all) or "
+                            "\"van_gelder\" (each connector's share of the surrounding tets, "
+                            "sum V_t / L^2, times one fitted scale; README Calibration)",
+                            choices=("uniform", "van_gelder"))
     kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv with "
                            "the connectors (false: kv keeps the global fit's one value)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "

@@ -153,6 +153,12 @@ class ConnectorParams:
         """True when the volume term is on (``kv`` given)."""
         return self.kv is not None
 
+    def scaled(self, factor: np.ndarray) -> "ConnectorParams":
+        """Every connector's stiffnesses and dashpots (``K0, a, b, k_i, b_i``) times its
+        (E,) ``factor``; ``K(eps)/K0``, relaxation times and ``kv`` unchanged."""
+        return ConnectorParams(**{name: getattr(self, name) * factor for name in PARAM_NAMES},
+                               kv=self.kv)
+
     def connectors(self, index: np.ndarray) -> "ConnectorParams":
         """The parameters of connectors ``index`` (reordered/selected); ``kv`` kept as is."""
         return ConnectorParams(**{name: getattr(self, name)[index] for name in PARAM_NAMES},

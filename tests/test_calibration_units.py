@@ -13,7 +13,7 @@ from calibration.network import linear_indentation
 from calibration.optimize import gauss_newton, nelder_mead
 from calibration.parametrisation import (MAX_LOCAL_FACTOR, GlobalParams, StrainRange,
                                          build_rings, check_feasible, check_offsets,
-                                         local_params)
+                                         global_shape, local_params)
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.mesh import TetMesh, box_mesh, check_mesh, fixed_nodes
 from forcecal.scene import MaterialSection
@@ -361,6 +361,40 @@ def test_gauss_newton_finishes_on_a_boundary_with_nelder_mead():
     same = gauss_newton(inside, start, scale, bound_finish=0.5, **kw)
     np.testing.assert_array_equal(free.x, same.x)
     assert free.evaluations == same.evaluations
+
+
+def test_van_gelder_global_shape_is_the_baselines_spread_with_mean_one():
+    material = MaterialSection()
+    mesh = box_mesh((2, 3, 2), (0.03, 0.05, 0.02))
+    assert global_shape(mesh, "uniform") is None
+    shape = global_shape(mesh, "van_gelder")
+    baseline = van_gelder_params(mesh, material)
+    np.testing.assert_allclose(shape, baseline.K0 / baseline.K0.mean(), rtol=1e-12)
+    # one global set with that shape: every connector scaled, K(eps)/K0 and the times shared
+    glob = GlobalParams(K0=10.0, alpha=0.5, beta=2.0, k1=5.0, tau1=0.5, k2=3.0, tau2=10.0,
+                        kv=7.0)
+    p = glob.connector_params(len(mesh.edges), shape)
+    np.testing.assert_allclose(p.K0, 10.0 * shape, rtol=1e-14)
+    np.testing.assert_allclose(p.a / p.K0, 0.5, rtol=1e-14)
+    np.testing.assert_allclose(p.b1 / p.k1, 0.5, rtol=1e-14)
+    np.testing.assert_allclose(p.k2, 3.0 * shape, rtol=1e-14)
+    np.testing.assert_array_equal(p.kv, [7.0])  # the volume term is not spread
+    # the initial guess: K0 scales the shaped unit network; kv starts at the bulk modulus of
+    # the shaped network, sum K0 w L^2 / (9 V)
+    top = int(np.argmax(mesh.vertices[:, 2]))
+    unit = linear_indentation(mesh, fixed_nodes(mesh, "z", "min", 1e-9), np.array([top]),
+                              np.array([[0.0, 0.0, -1.0]]), stiffness=shape)
+    g = initial_guess(material, 42.0 * unit.slope, unit.slope, mesh, shape)
+    assert g.K0 == pytest.approx(42.0)
+    volume = mesh.signed_volumes.sum()
+    expected = 42.0 * np.sum(shape * mesh.edge_lengths ** 2) / (9.0 * volume)
+    assert g.kv == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(ParameterError, match="unknown calibration.global_shape"):
+        global_shape(mesh, "voronoi")
+    with pytest.raises(ParameterError, match="finite positive factors"):
+        glob.connector_params(len(mesh.edges), np.r_[shape[:-1], 0.0])
+    with pytest.raises(ParameterError, match="finite positive factors"):
+        glob.connector_params(len(mesh.edges) + 1, shape)
 
 
 def test_initial_guess_is_exact_on_linear_data():
