@@ -191,7 +191,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     rings = build_rings(mesh, problem.calibration,
                         None if footprints is None else footprints[:n_cal])
     # where every spring must stay stiff, known before any fit (the FE sag's release range
-    # is geometric); the global springs are uniform, so they must hold on all of it
+    # is geometric); the global springs share one K(eps)/K0, so they must hold on all of it
     validity = spring_validity(ref, initial, strain, settings.stiffness_floor,
                                scene.particle.strain_margin, shape)
     feasible = StrainRange(float(validity.low.min()), float(validity.high.max()))

@@ -115,14 +115,19 @@ def _cost(ax, cal: CalibrationResult, stage: str, title: str) -> None:
     ax.grid(alpha=0.3, which="both")
 
 
-def _per_connector(ax, values: dict[str, np.ndarray], global_value: float, ylabel: str,
+def _per_connector(ax, values: dict[str, np.ndarray], global_values: np.ndarray, ylabel: str,
                    title: str) -> None:
+    """``values`` per connector; the global fit's (E,) values are a line when they are one
+    value for all (the paper's uniform set), points when spread by a global shape."""
     x = np.arange(len(values["calibrated"]))
     if "baseline" in values:
         ax.plot(x, values["baseline"], ".", ms=2, color="tab:gray", alpha=0.5,
                 label="baseline (Van Gelder)")
     ax.plot(x, values["calibrated"], ".", ms=3, color="tab:blue", label="calibrated")
-    ax.axhline(global_value, color="tab:orange", lw=1.5, label="global")
+    if np.ptp(global_values) <= 1e-12 * np.max(np.abs(global_values)):
+        ax.axhline(global_values[0], color="tab:orange", lw=1.5, label="global")
+    else:
+        ax.plot(x, global_values, "_", ms=4, color="tab:orange", label="global (shaped)")
     ax.set(xlabel="connector index", ylabel=ylabel, title=title,
            yscale=_scale(np.concatenate(list(values.values()))))
     ax.grid(alpha=0.3, which="both")
@@ -142,9 +147,9 @@ def calibration_figure(path: Path, reference: Reference, cal: CalibrationResult)
     _cost(axes[1, 1], cal, "relaxation", "(d) global relaxation tuning")
     conn = cal.connectors
     _per_connector(axes[2, 0], {v: conn[v].K0 for v in ("calibrated", "baseline")},
-                   cal.global_params.K0, "K0 [N/m]", "(e) spring stiffness K0 per connector")
+                   conn["global"].K0, "K0 [N/m]", "(e) spring stiffness K0 per connector")
     _per_connector(axes[2, 1], {"calibrated": conn["calibrated"].tau1},
-                   cal.global_params.tau1, "tau1 = b1/k1 [s]",
+                   conn["global"].tau1, "tau1 = b1/k1 [s]",
                    "(f) relaxation time tau1 per connector" + (
                        "" if "relaxation" in cal.experiments else " (not calibrated)"))
     fig.suptitle("Calibration against the FE reference")

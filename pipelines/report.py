@@ -234,6 +234,10 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
                              "is_calibration": calibration.is_calibration.tolist(), **per_point},
         "gravity": gravity_block,
         "global_parameters": calibration.global_params.as_dict(),
+        # how those values spread over the connectors (calibration.global_shape); files written
+        # before the key had the paper's uniform set
+        "global_shape": calibration.settings.get("calibration", {}).get("global_shape",
+                                                                        "uniform"),
         "warnings": warnings,
     }
 
