@@ -55,9 +55,15 @@ def prony_arms(material: MaterialSection) -> tuple[np.ndarray, np.ndarray]:
     return (np.asarray(material.prony_g)[order] / material.long_term_factor, tau[order])
 
 
+def van_gelder_weights(mesh: TetMesh) -> np.ndarray:
+    """(E,) ``sum_{t containing c} V_t / L_c^2`` [m] of every connector: its spring per unit
+    Young's modulus (module docstring)."""
+    return mesh.edge_tet_volume / mesh.edge_lengths ** 2
+
+
 def van_gelder_params(mesh: TetMesh, material: MaterialSection) -> ConnectorParams:
     """Per-connector baseline parameters (module docstring) for ``mesh.edges``."""
-    K0 = long_term_young_modulus(material) * mesh.edge_tet_volume / mesh.edge_lengths ** 2
+    K0 = long_term_young_modulus(material) * van_gelder_weights(mesh)
     ratio, tau = prony_arms(material)
     k1, k2 = ratio[0] * K0, ratio[1] * K0
     zero = np.zeros_like(K0)

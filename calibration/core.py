@@ -47,7 +47,7 @@ from calibration.metrics import relative_rms_error
 from calibration.network import linear_indentation
 from calibration.optimize import Fit
 from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParams, StrainRange,
-                                         build_rings, global_shape)
+                                         build_rings, connector_floor, global_shape)
 from calibration.pool import Backend, Experiments, Pool, particle_backend
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
@@ -224,9 +224,9 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                      fit.initial_cost, fit.cost, fit.evaluations)
         log.info("global parameters: %s", glob)
 
-        validity = dataclasses.replace(validity, floor=connector_floor(settings.stiffness_floor,
-                                                                       glob, shape),
-                                       K0_global=glob.K0)
+        validity = dataclasses.replace(
+            validity, floor=connector_floor(settings.stiffness_floor, glob.K0, shape),
+            K0_global=glob.K0)
         local = LocalParametrisation(glob, rings, strain, validity.floor,
                                      np.zeros((n_cal, STATIC_DIM)),
                                      np.zeros((n_cal, RELAXATION_DIM)),
@@ -357,13 +357,6 @@ def local_validity(validity: Validity, glob: ConnectorParams
     return validity.low, validity.high, np.minimum(validity.floor, global_min)
 
 
-def connector_floor(stiffness_floor: float, glob: GlobalParams,
-                    shape: np.ndarray | None) -> float | np.ndarray:
-    """Smallest allowed spring tangent stiffness [N/m]: ``stiffness_floor`` x the global K0,
-    per connector times its ``shape`` factor (a scalar when the global set is uniform)."""
-    return stiffness_floor * glob.K0 * (1.0 if shape is None else shape)
-
-
 def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
                     gravity_margin: float, shape: np.ndarray | None = None) -> Validity:
     """Where a calibration keeps every spring stiff (the global fits on the overall range,
@@ -371,7 +364,8 @@ def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, flo
     experiments' strain range united, per connector, with the gravity release range of the
     FE static sag (:func:`particle.stability.strain_range_for_release` with
     ``gravity_margin``; the experiments' range alone if the reference has no gravity run).
-    The range depends on the geometry only; the floor is :func:`connector_floor`."""
+    The range depends on the geometry only; the floor is
+    :func:`calibration.parametrisation.connector_floor`."""
     from particle.stability import strain_range_for_release
     from particle.model import build_model
 
@@ -383,4 +377,4 @@ def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, flo
         low, high = np.minimum(low, lo), np.maximum(high, hi)
         log.info("springs kept stiff on the experiments' strains and the gravity "
                  "release range of the FE sag, [%.3g, %.3g] overall", low.min(), high.max())
-    return Validity(low, high, connector_floor(floor, glob, shape), glob.K0, strain.scale)
+    return Validity(low, high, connector_floor(floor, glob.K0, shape), glob.K0, strain.scale)

@@ -42,7 +42,8 @@ import numpy as np
 
 from calibration.baseline import prony_arms
 from calibration.optimize import Fit, gauss_newton, nelder_mead
-from calibration.parametrisation import GlobalParams, StrainRange, check_feasible
+from calibration.parametrisation import (GlobalParams, StrainRange, check_feasible,
+                                         connector_floor)
 from calibration.pool import Pool
 from calibration.progress import cost_ticker, progress_bar
 from forcecal.errors import DataFileError, ParameterError
@@ -115,7 +116,7 @@ def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: 
     points = np.arange(len(reference))
     K0_of: dict[bytes, float] = {}
     # K(eps)/K0 does not depend on the K0 solved for; a connector's floor scales with its shape
-    floor = settings.stiffness_floor * start.K0 * (1.0 if shape is None else shape)
+    floor = connector_floor(settings.stiffness_floor, start.K0, shape)
     feasible = strain if feasible is None else feasible
 
     def residuals(x: np.ndarray) -> np.ndarray:
@@ -146,7 +147,7 @@ def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, referen
     by ``optimizer`` (:data:`OPTIMIZERS`); ``feasible`` and ``shape`` as :func:`fit_static`."""
     points = np.arange(len(reference))
     feasible = strain if feasible is None else feasible
-    floor = settings.stiffness_floor * start.K0 * (1.0 if shape is None else shape)
+    floor = connector_floor(settings.stiffness_floor, start.K0, shape)
 
     def residuals(y: np.ndarray) -> np.ndarray:
         params = start.with_relaxation_coordinates(y).connector_params(n_connectors, shape)

@@ -58,6 +58,7 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from calibration.baseline import van_gelder_weights
 from forcecal.errors import ParameterError
 from forcecal.mesh import TetMesh
 from particle.params import ConnectorParams
@@ -174,9 +175,16 @@ def global_shape(mesh: TetMesh, name: str) -> np.ndarray | None:
     if name == "uniform":
         return None
     if name == "van_gelder":
-        w = mesh.edge_tet_volume / mesh.edge_lengths ** 2
+        w = van_gelder_weights(mesh)
         return w / w.mean()
     raise ParameterError(f"unknown calibration.global_shape {name!r}; one of {GLOBAL_SHAPES}")
+
+
+def connector_floor(stiffness_floor: float, K0: float,
+                    shape: np.ndarray | None) -> float | np.ndarray:
+    """Smallest allowed spring tangent stiffness [N/m]: ``stiffness_floor`` x the global
+    ``K0``, per connector times its ``shape`` factor (a scalar when the set is uniform)."""
+    return stiffness_floor * K0 * (1.0 if shape is None else shape)
 
 
 def check_shape(shape: np.ndarray, n_connectors: int) -> np.ndarray:
