@@ -155,10 +155,6 @@ class GlobalParams:
         return {k: float(getattr(self, k)) for k in self.__dataclass_fields__}
 
 
-#: ``calibration.global_shape``: how the global set's stiffness is spread over the connectors
-GLOBAL_SHAPES = ("uniform", "van_gelder")
-
-
 def global_shape(mesh: TetMesh, name: str) -> np.ndarray | None:
     """The (E,) per-connector factors of the global fit's stiffnesses, mean 1, or None.
 
@@ -177,7 +173,8 @@ def global_shape(mesh: TetMesh, name: str) -> np.ndarray | None:
     if name == "van_gelder":
         w = van_gelder_weights(mesh)
         return w / w.mean()
-    raise ParameterError(f"unknown calibration.global_shape {name!r}; one of {GLOBAL_SHAPES}")
+    raise ParameterError(f"unknown calibration.global_shape {name!r}; one of 'uniform', "
+                         "'van_gelder'")
 
 
 def connector_floor(stiffness_floor: float, K0: float,
