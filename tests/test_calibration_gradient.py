@@ -283,7 +283,12 @@ def _recovery(problem, truth: ConnectorParams, result):
     """What the recovery tests check, per experiment (indentation, relaxation): the calibrated
     curves' largest error at the calibration points, and at the held-out points as a fraction
     of the global fit's; per connector the largest relative error of K(eps) over the strains
-    the experiments reach (linear network at full depth); the arms' median relative errors."""
+    the experiments reach (linear network at full depth); the arms' median relative errors.
+
+    The connectors between two clamped particles (33 of the box's 197) are left out of the
+    spring errors: they never change length, so no experiment (nor gravity) tests their K and
+    their fitted values are whatever the smoothness prior fills in (4.5 % median, 10.5 % max
+    with ``shape_smoothness`` 100, where they held the maximum)."""
     got = result.connectors["calibrated"]
     n_cal = len(problem.calibration)
     errors = {v: result.variants[v].errors for v in ("global", "calibrated")}
@@ -295,7 +300,11 @@ def _recovery(problem, truth: ConnectorParams, result):
                                       problem.normals).strain[:n_cal]).max(axis=0)
     eps = np.linspace(-1.0, 1.0, 21)[None, :] * (0.002 * reach)[:, None]
     K = lambda p: p.K0[:, None] + p.a[:, None] * eps + p.b[:, None] * eps ** 2  # noqa: E731
-    spring = np.abs(K(got) / K(truth) - 1.0).max(axis=1)
+    clamped = np.zeros(len(problem.mesh.vertices), dtype=bool)
+    clamped[problem.fixed] = True
+    tested = ~clamped[problem.mesh.edges].all(axis=1)
+    assert np.all(reach[tested] > 0) and not reach[~tested].any()
+    spring = np.abs(K(got) / K(truth) - 1.0).max(axis=1)[tested]
     arms = {name: float(np.median(np.abs(getattr(got, name) / getattr(truth, name) - 1.0)))
             for name in ("k1", "tau1", "k2", "tau2")}
     return calibrated, held_out_ratio, spring, arms
@@ -332,8 +341,8 @@ def recovered(tmp_path_factory):
 def test_gradient_recovers_smooth_truth(recovered):
     """Measured (box, 20 calibration points, 197 connectors x 7 parameters): calibration curves
     to 0.08 % / 0.09 % (max), held-out to 2.5 % / 1.6 % where the global fit has 10.8 % / 4.8 %;
-    K(eps) over each connector's strains reached (linear network at full depth) within 4.6 %
-    (median) and 12 % (max) of the truth, K0 within 2.7 % (median), the arms' k_i, tau_i within
+    K(eps) over each connector's strains reached (linear network at full depth) within 4.5 %
+    (median) and 11.9 % (max) of the truth, K0 within 2.7 % (median), the arms' k_i, tau_i within
     0.6-2.7 % (median). The issue's 2 % on every connector's K(eps) is not reached: 20 surface
     curves (1000 samples, far fewer independent ones) do not determine 1148 per-connector
     parameters; the smoothness prior fills in what they leave open (asserted with ~1.5x margins)."""
@@ -364,9 +373,9 @@ def test_gradient_recovers_smooth_truth_with_the_volume_term(recovered_volume):
     connectors x 7 + 108 tets = 1487 parameters): calibration curves to 0.13 % / 0.09 %
     (max), held-out to 1.8 % / 1.2 % where the global fit has 3.9 % / 4.0 %; kv within
     1.8 % (median) and 10 % (max) of the truth, the arms' k_i, tau_i within 0.8-3.3 %
-    (median), but K(eps) only within 7.8 % (median) and 33 % (max): a connector's spring and
+    (median), but K(eps) only within 8.7 % (median) and 33 % (max): a connector's spring and
     its tets' kv both stiffen the same surface curves, which pin their sum better than
-    either (springs alone: 4.6 % / 12 %, the test above). The issue's 2 % on K(eps) is
+    either (springs alone: 4.5 % / 11.9 %, the test above). The issue's 2 % on K(eps) is
     missed; asserted at the measured levels with ~1.3-1.5x margins."""
     scene, problem, truth, result = recovered_volume
     calibrated, held_out_ratio, spring, arms = _recovery(problem, truth, result)
@@ -386,12 +395,14 @@ def test_one_spring_shape_recovers_the_truth_whose_shape_is_one(tmp_path, volume
     ``calibration.shape_smoothness = 100`` (smoothness of alpha, beta 100x the others',
     their common value free) lets the fit move every shape together. Measured:
 
-    * springs: K(eps) within 1.96 % (median, the issue's 2 %) and 10.5 % (max; the
-      connectors at the clamp, strained least: the most strained fifth 1.0 % / 4.0 %) of
-      the truth, against 4.6 % / 12 % by default; the median shape alpha 0.996, beta 9.87;
-      calibration curves 0.002 % (max), held-out 0.21x / 0.30x the global fit's;
+    * springs: K(eps) within 1.73 % (median, the issue's 2 %) and 7.0 % (max, a connector
+      strained 16x less than the most strained: the least strained fifth 4.1 % median) of
+      the truth, against 4.5 % / 11.9 % by default; the median shape alpha 0.996, beta 9.87;
+      calibration curves 0.002 % (max), held-out 0.21x / 0.30x the global fit's; the fit
+      converges (the same result with 30 or 60 iterations), so what is left is what 20
+      surface curves do not determine, filled in by the smoothness prior;
     * springs + kv (30 iterations: with 12 the fit stops on its way, K(eps) 6.5 %, held-out
-      0.93x): K(eps) 2.9 % / 11 %, kv 1.1 % / 5.9 %, against 7.8 % / 33 % and 1.8 % / 10 %
+      0.93x): K(eps) 2.9 % / 7.4 %, kv 1.1 % / 5.9 %, against 8.7 % / 33 % and 1.8 % / 10 %
       by default; held-out 0.48x / 0.30x the global fit's (0.47x / 0.29x by default).
 
     Asserted with ~1.3-1.5x margins. Not the scenes' default: on the punch scene the fold
@@ -407,9 +418,9 @@ def test_one_spring_shape_recovers_the_truth_whose_shape_is_one(tmp_path, volume
     if volume:
         kv_error = np.abs(got.kv / truth.kv - 1.0)
         assert np.median(kv_error) < 0.015 and kv_error.max() < 0.08
-        assert np.median(spring) < 0.04 and spring.max() < 0.15
+        assert np.median(spring) < 0.04 and spring.max() < 0.11
     else:
-        assert np.median(spring) < 0.025 and spring.max() < 0.14
+        assert np.median(spring) < 0.025 and spring.max() < 0.1
     assert max(arms.values()) < 0.03, arms
 
 
