@@ -13,7 +13,11 @@
   :mod:`~pipelines.bench.calibration_methods`, :mod:`~pipelines.bench.volume`;
 - :mod:`pipelines.bench.report`: ``BENCH.md`` and ``pareto.png`` from ``bench.json``;
 - :mod:`pipelines.bench.release_levers`: not an item (run on its own, on a finished run):
-  what a consistent mass and a relaxing volume term would do to the gravity release.
+  what a consistent mass and a relaxing volume term would do to the gravity release;
+- :mod:`pipelines.bench.sag_split`: not an item either: how the static sag depends on the
+  calibrated model's split between springs and ``kv``;
+- :mod:`pipelines.bench.fold_cv`: not an item: k-fold cross-validation of whole calibrations
+  over the calibration points, to choose between calibration settings.
 
 Importing this package imports none of them (each item loads its own module when it runs).
 """
