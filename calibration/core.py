@@ -55,7 +55,7 @@ from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import Reference, check_reference_settings, read_reference, reference_digest
 from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
-from forcecal.scene import GRAVITY_EXPERIMENTS, Scene, load_scene
+from forcecal.scene import GRAVITY_EXPERIMENTS, CalibrationSection, Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.params import ConnectorParams
 
@@ -245,6 +245,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                kv_per_tet=settings.kv_per_tet,
                                prior_ratio=settings.prior_ratio,
                                shape_smoothness=settings.shape_smoothness,
+                               split_prior=settings.split_prior,
                                max_iterations=settings.gradient_max_iterations,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()
@@ -294,6 +295,10 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     if not relax:
         warnings.append(ARMS_NOT_CALIBRATED)
     warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
+    unused = split_prior_unused(settings, glob.has_volume)
+    if unused is not None:
+        log.warning(unused)
+        warnings.append(unused)
     if gravity_check is not None and gravity_check.warning() is not None:
         warnings.append(gravity_check.warning())
     result = CalibrationResult(
@@ -311,6 +316,17 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         log.warning(w)
     log.info("calibration done in %.1f s; wrote %s", result.wall_time, out_path)
     return result
+
+
+def split_prior_unused(settings: CalibrationSection, volume: bool) -> str | None:
+    """The warning for a ``calibration.split_prior`` > 0 that acts on nothing (it needs the
+    gradient method with the volume term and per-tet kv), else None."""
+    if settings.split_prior > 0 and not (settings.method == "gradient" and volume
+                                         and settings.kv_per_tet):
+        return (f"calibration.split_prior = {settings.split_prior:g} has no effect: it acts "
+                "between springs and per-tet kv, which needs calibration.method = \"gradient\", "
+                "particle.volume = true and calibration.kv_per_tet = true")
+    return None
 
 
 def _local_warnings(local_sweeps: dict[str, list[Sweep]], budget: int) -> list[str]:

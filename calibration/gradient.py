@@ -19,6 +19,9 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   difference), normalised by the mean number of such neighbours, i.e. a
   smoothness penalty between connectors sharing a particle; ``rho I`` a prior
   towards the global fit (``calibration.prior_ratio``, default :data:`PRIOR_RATIO`).
+  With per-tet kv the same over the tets sharing a face, and optionally a split prior
+  (``calibration.split_prior``) between each connector's log K0 and its tets' log kv
+  (:class:`~calibration.gradient_solver.Regulariser`).
 * **lambda by k-fold cross-validation over the calibration points only**
   (:func:`cross_validate`; held-out points are never used): on the Gauss-Newton
   linearisation at the global fit, each fold's points are predicted by the step
@@ -211,6 +214,24 @@ def shared_laplacian(members: np.ndarray, n_particles: int, shared: int) -> sp.c
     return (lap / max(degree.mean(), 1.0)).tocsc()
 
 
+def tet_connector_pairs(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(6 T, 2) (connector id, tet id) of every tet's six edges; ``edges`` (E, 2) sorted
+    unique pairs i < j (:class:`forcecal.mesh.TetMesh`). Raises ValueError for a tet edge
+    that is not a connector."""
+    tets = np.asarray(tets, dtype=np.int64)
+    local = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    ends = np.sort(tets[:, local], axis=2).reshape(-1, 2)  # (6 T, 2), i < j
+    n = int(max(edges.max(), ends.max())) + 1
+    keys = edges[:, 0].astype(np.int64) * n + edges[:, 1]
+    wanted = ends[:, 0] * n + ends[:, 1]
+    order = np.argsort(keys)
+    at = np.searchsorted(keys, wanted, sorter=order)
+    at = order[np.minimum(at, len(keys) - 1)]
+    if not np.array_equal(keys[at], wanted):
+        raise ValueError("a tet edge is not a connector: edges and tets of different meshes")
+    return np.column_stack([at, np.repeat(np.arange(len(tets)), 6)])
+
+
 def neighbour_laplacian(edges: np.ndarray, n_particles: int) -> sp.csc_matrix:
     """(E, E) :func:`shared_laplacian` of connectors sharing a particle."""
     return shared_laplacian(edges, n_particles, 1)
@@ -385,6 +406,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  tets: np.ndarray | None = None, kv0: float | None = None,
                  kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
                  shape_smoothness: float = SHAPE_SMOOTHNESS,
+                 split_prior: float = 0.0,
                  global_shape: np.ndarray | None = None,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
@@ -398,6 +420,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ``prior_ratio``: the regulariser's rho (:class:`calibration.gradient_solver.Regulariser`).
     ``shape_smoothness``: factor on the smoothness penalty of the spring shape coordinates
     (``alpha s``, ``beta s^2``) relative to the other coordinates' (not on the prior).
+    ``split_prior``: weight of the regulariser's split prior (:class:`Regulariser`) between
+    each connector's log K0 and its tets' log kv (per-tet kv only; 0: none).
     ``global_shape``: the global fit's (E,) per-connector factors
     (:func:`calibration.parametrisation.global_shape`), None if uniform; the fit starts from
     that and the regulariser measures every connector's departure from it.
@@ -422,7 +446,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
                       None if tets is None else shared_laplacian(tets, n_particles, 3),
-                      prior_ratio, shape_smoothness_factors(shape_smoothness))
+                      prior_ratio, shape_smoothness_factors(shape_smoothness),
+                      None if tets is None else tet_connector_pairs(tets, edges), split_prior)
     theta, state, weights, cv_costs = theta0, None, [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")

@@ -77,7 +77,12 @@ def _metric_block(lap: sp.spmatrix, rho: float, smoothness: float = 1.0) -> sp.s
 @dataclass(frozen=True, eq=False)
 class Regulariser:
     """``lambda (theta - theta0)^T A1 (theta - theta0)`` with the block-diagonal metric
-    ``A1 = I_7 (x) (L + rho I)/E  (+)  (L_tets + rho I)/T`` (module docstring).
+    ``A1 = I_7 (x) (L + rho I)/E  (+)  (L_tets + rho I)/T`` (module docstring), plus, with
+    a split prior, ``sigma S^T S / P``: one row ``e_{log K0 of c} - e_{log kv of t}`` per
+    pair (connector c, tet t having c as an edge), P pairs. That term penalises moving
+    stiffness between a spring and its tets' kv (which surface curves pin only as a sum:
+    README, parameter recovery), not raising both together. It couples the K0 and kv
+    blocks, so A1 is then inverted as one matrix.
 
     Attributes:
         laplacian: (E, E) connectors sharing a particle (:func:`neighbour_laplacian`).
@@ -87,12 +92,34 @@ class Regulariser:
         smoothness: (N_COORDS,) factor s_q on each connector coordinate's smoothness term,
             ``(s_q L + rho I)/E`` [1] (``calibration.shape_smoothness`` on the spring
             shape's two); None: every factor 1.
+        split_pairs: (P, 2) int (connector, tet) pairs of the split prior, or None.
+        split_prior: sigma, the split prior's weight relative to the smoothness weight
+            (``calibration.split_prior``) [1]; 0: no split prior.
     """
     laplacian: sp.csc_matrix
     theta0: np.ndarray
     tet_laplacian: sp.csc_matrix | None = None
     prior_ratio: float = PRIOR_RATIO
     smoothness: np.ndarray | None = None
+    split_pairs: np.ndarray | None = None
+    split_prior: float = 0.0
+
+    @property
+    def _split(self) -> bool:
+        return (self.split_prior > 0 and self.split_pairs is not None
+                and self.tet_laplacian is not None and len(self.split_pairs) > 0)
+
+    def _split_term(self) -> sp.csc_matrix:
+        """(size, size) ``sigma S^T S / P`` of the split prior."""
+        e, t = self.laplacian.shape[0], self.tet_laplacian.shape[0]
+        pairs = np.asarray(self.split_pairs, dtype=np.int64)
+        p = len(pairs)
+        rows = np.repeat(np.arange(p), 2)
+        cols = np.column_stack([pairs[:, 0], N_COORDS * e + pairs[:, 1]]).ravel()
+        vals = np.tile([1.0, -1.0], p)
+        size = N_COORDS * e + t
+        S = sp.csr_matrix((vals, (rows, cols)), shape=(p, size))
+        return (self.split_prior / p * (S.T @ S)).tocsc()
 
     @functools.cached_property
     def _smoothness(self) -> np.ndarray:
@@ -110,7 +137,8 @@ class Regulariser:
         blocks = [_metric_block(self.laplacian, rho, s) for s in self._smoothness]
         if self.tet_laplacian is not None:
             blocks.append(_metric_block(self.tet_laplacian, rho))
-        return sp.block_diag(blocks, format="csc")
+        metric = sp.block_diag(blocks, format="csc")
+        return (metric + self._split_term()).tocsc() if self._split else metric
 
     @functools.cached_property
     def _blocks(self) -> list[tuple[int, int, int, Callable]]:
@@ -121,15 +149,18 @@ class Regulariser:
         with BLAS while the block is small (:data:`DENSE_INVERSE_LIMIT`; measured on the
         liver punch, 10,685 coordinates and 372 columns: 0.28 s against 0.56 s for
         SuperLU's triangular solves), else the sparse LU."""
-        def inverse(lap: sp.csc_matrix, smoothness: float = 1.0) -> Callable:
-            n = lap.shape[0]
-            block = _metric_block(lap, self.prior_ratio, smoothness).tocsc()
-            if n <= DENSE_INVERSE_LIMIT:
+        def inverse_of(block: sp.csc_matrix) -> Callable:
+            if block.shape[0] <= DENSE_INVERSE_LIMIT:
                 dense = np.linalg.inv(block.toarray())
                 return lambda y: np.asarray(dense @ y)
-            lu = splu(block)
+            lu = splu(block.tocsc())
             return lambda y: lu.solve(y.toarray() if sp.issparse(y) else np.asarray(y))
 
+        def inverse(lap: sp.csc_matrix, smoothness: float = 1.0) -> Callable:
+            return inverse_of(_metric_block(lap, self.prior_ratio, smoothness).tocsc())
+
+        if self._split:  # the split prior couples the K0 and kv blocks: one block
+            return [(0, 1, self.metric.shape[0], inverse_of(self.metric))]
         e = self.laplacian.shape[0]
         out, q, inverses = [], 0, {}
         # runs of equal factors share one block and one product; equal factors one inverse

@@ -269,6 +269,10 @@ class CalibrationSection:
                                   "parameters' (large: nearly one shape for every connector, "
                                   "which moves as a whole; README Calibration)",
                                   exclusive_minimum=0.0)
+    split_prior: float = key(0.0, "gradient method with per-tet kv: weight of a penalty on "
+                             "moving stiffness between a spring and its tets' kv (their log "
+                             "departures from the global fit differing), relative to the "
+                             "smoothness weight; 0: none (README Calibration)", minimum=0.0)
     global_shape: str = key("uniform", "how the global set's stiffnesses spread over the "
                             "connectors: \"uniform\" (the paper's one value for all) or "
                             "\"van_gelder\" (each connector's share of the surrounding tets, "

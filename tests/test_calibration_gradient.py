@@ -9,7 +9,8 @@ import scipy.sparse as sp
 
 from calibration.core import calibrate
 from calibration.gradient import (Coordinates, GradientResult, Validity, neighbour_laplacian,
-                                  shape_smoothness_factors, shared_laplacian)
+                                  shape_smoothness_factors, shared_laplacian,
+                                  tet_connector_pairs)
 from calibration.gradient_solver import Linearisation, Regulariser, cross_validate, folds_of
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
@@ -537,6 +538,69 @@ def test_regulariser_solve_and_sandwich_are_the_metric_inverse_on_both_paths(box
         want = sparse.T @ lu.solve(sparse.toarray())
         got = reg.sandwich(sparse.T)
         assert np.max(np.abs(got - want)) <= 1e-10 * np.max(np.abs(want))
+
+
+def test_tet_connector_pairs_name_each_tets_six_edges(box):
+    mesh = build_problem(box).mesh
+    pairs = tet_connector_pairs(mesh.tets, mesh.edges)
+    assert pairs.shape == (6 * len(mesh.tets), 2)
+    assert np.array_equal(pairs[:, 1], np.repeat(np.arange(len(mesh.tets)), 6))
+    for c, t in pairs[::7]:
+        assert set(mesh.edges[c]) <= set(mesh.tets[t])
+    assert all(len(set(pairs[6 * k:6 * k + 6, 0])) == 6 for k in range(len(mesh.tets)))
+    with pytest.raises(ValueError, match="not a connector"):
+        tet_connector_pairs(mesh.tets, mesh.edges[1:])
+
+
+def test_split_prior_penalises_moving_stiffness_between_springs_and_kv_only(box, monkeypatch):
+    """``sigma S^T S / P``: K0 and kv raised together by one log step (what the curves and
+    the sag both see as a stiffer body) costs what it costs without the split prior; moving
+    stiffness from every spring to every kv (K0 up by c, kv down by c) costs sigma (2c)^2
+    more, exactly. The coupled metric is inverted as one block, densely or by sparse LU."""
+    from scipy.sparse.linalg import splu
+    import calibration.gradient_solver as solver
+
+    mesh = build_problem(box).mesh
+    e, t = len(mesh.edges), len(mesh.tets)
+    size = 7 * e + t
+    args = (neighbour_laplacian(mesh.edges, mesh.n_vertices), np.zeros(size),
+            shared_laplacian(mesh.tets, mesh.n_vertices, 3))
+    pairs = tet_connector_pairs(mesh.tets, mesh.edges)
+    plain = Regulariser(*args)
+    sigma, c, weight = 3.0, 0.2, 0.7
+    split = Regulariser(*args, split_pairs=pairs, split_prior=sigma)
+    together, apart = np.zeros(size), np.zeros(size)
+    together[:e], together[7 * e:] = c, c
+    apart[:e], apart[7 * e:] = c, -c
+    assert split.value(together, weight) == pytest.approx(plain.value(together, weight),
+                                                          rel=1e-12)
+    assert split.value(apart, weight) - plain.value(apart, weight) == pytest.approx(
+        weight * sigma * (2 * c) ** 2, rel=1e-12)
+    assert len(Regulariser(*args, split_pairs=pairs, split_prior=0.0)._blocks) == 2
+    rng = np.random.default_rng(7)
+    dense = rng.normal(size=(size, 5))
+    sparse = sp.random(size, 4, density=0.01, random_state=8, format="csc")
+    for limit in (solver.DENSE_INVERSE_LIMIT, 0):
+        monkeypatch.setattr(solver, "DENSE_INVERSE_LIMIT", limit)
+        reg = Regulariser(*args, split_pairs=pairs, split_prior=sigma)
+        assert len(reg._blocks) == 1
+        lu = splu(reg.metric)
+        want = lu.solve(dense)
+        assert np.max(np.abs(reg.solve(dense) - want)) <= 1e-10 * np.max(np.abs(want))
+        want = sparse.T @ lu.solve(sparse.toarray())
+        assert np.max(np.abs(reg.sandwich(sparse.T) - want)) <= 1e-10 * np.max(np.abs(want))
+
+
+def test_a_split_prior_without_per_tet_kv_is_reported_as_acting_on_nothing():
+    from calibration.core import split_prior_unused
+    from forcecal.scene import CalibrationSection
+
+    on = CalibrationSection(method="gradient", split_prior=1.0)
+    assert split_prior_unused(on, volume=True) is None
+    assert split_prior_unused(dataclasses.replace(on, split_prior=0.0), volume=False) is None
+    for settings, volume in ((on, False), (dataclasses.replace(on, method="paper"), True),
+                             (dataclasses.replace(on, kv_per_tet=False), True)):
+        assert "split_prior = 1 has no effect" in split_prior_unused(settings, volume)
 
 
 def test_validity_refuses_soft_springs():

@@ -7,7 +7,8 @@ import pytest
 from forcecal.errors import ParameterError
 from particle.statics import gravity_static
 from particle.testing import box_model
-from pipelines.bench.sag_split import mean_sag_ratio, sag_rows, split_ratios
+from pipelines.bench.sag_split import (heights, mean_sag_ratio, sag_rows, split_ratios,
+                                       variants)
 from pipelines.report import gravity_static_error
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -44,20 +45,48 @@ def test_mean_sag_ratio_compares_the_sags_along_gravity():
     assert mean_sag_ratio(fe, particle, np.array([0, 1, 2]), GRAVITY) == pytest.approx(2.0)
 
 
+def test_variants_put_back_the_global_values_where_and_what_they_say():
+    """Each mix takes exactly its connectors and tets from the global set (a global kv of one
+    value broadcast), and the calibrated values elsewhere."""
+    model = volume_box()
+    cal = model.params
+    glob = dataclasses.replace(cal, K0=2.0 * cal.K0, a=2.0 * cal.a, b=2.0 * cal.b,
+                               kv=np.array([5e3]))
+    x = model.rest_positions
+    ch = heights(x[model.edges].mean(axis=1), GRAVITY)
+    th = heights(x[model.tets].mean(axis=1), GRAVITY)
+    sets = variants(glob, cal, ch, th, (2.0,))
+    assert list(sets) == ["global", "calibrated", "calibrated springs, global kv",
+                          "global springs, calibrated kv", "calibrated, global below half height",
+                          "calibrated, global above half height", "calibrated, kv x2"]
+    assert np.array_equal(sets["calibrated springs, global kv"].K0, cal.K0)
+    assert np.all(sets["calibrated springs, global kv"].kv == 5e3)
+    assert np.array_equal(sets["global springs, calibrated kv"].K0, glob.K0)
+    assert np.array_equal(sets["global springs, calibrated kv"].kv, cal.kv)
+    middle = 0.5 * (min(ch.min(), th.min()) + max(ch.max(), th.max()))
+    below = sets["calibrated, global below half height"]
+    assert np.array_equal(below.K0, np.where(ch < middle, glob.K0, cal.K0))
+    assert np.array_equal(below.kv, np.where(th < middle, 5e3, cal.kv))
+    assert 0 < (ch < middle).sum() < len(ch)  # both halves hold connectors
+    assert np.array_equal(sets["calibrated, kv x2"].kv, 2.0 * cal.kv)
+    assert heights(np.array([0.0, 0.0, 0.3]), GRAVITY) == pytest.approx(0.3)
+    with pytest.raises(ParameterError, match="kv factors"):
+        variants(glob, cal, ch, th, (1.0, 0.0))
+
+
 def test_sag_rows_repeat_the_static_sag_and_a_stiffer_kv_sags_less():
-    """The unscaled row is the gravity stage's Newton sag itself (error 0 and ratio 1
+    """The calibrated row is the gravity stage's Newton sag itself (error 0 and ratio 1
     against it); scaling kv up makes the body sag less, monotonically."""
     model = volume_box()
     fe = gravity_static(model, GRAVITY)
-    rows = sag_rows({"calibrated": model}, GRAVITY, fe, (1.0, 2.0, 4.0))
-    assert [r["kv_factor"] for r in rows] == [1.0, 2.0, 4.0]
+    sets = {f"kv x{f:g}": dataclasses.replace(model.params, kv=f * model.params.kv)
+            for f in (1.0, 2.0, 4.0)}
+    rows = sag_rows(model, sets, GRAVITY, fe, (-0.5, 0.5))
+    assert [r["label"] for r in rows] == list(sets)
     assert np.array_equal(rows[0]["displacement"], fe)
     assert rows[0]["error"] == 0.0 and rows[0]["mean_sag_ratio"] == pytest.approx(1.0, rel=1e-12)
     ratios = [r["mean_sag_ratio"] for r in rows]
     assert ratios[0] > ratios[1] > ratios[2] > 0.0
-    stiffer = gravity_static(model.with_params(
-        dataclasses.replace(model.params, kv=2.0 * model.params.kv)), GRAVITY)
+    stiffer = gravity_static(model.with_params(sets["kv x2"]), GRAVITY)
     assert rows[1]["error"] == pytest.approx(gravity_static_error(fe, stiffer, model.free_nodes),
                                              rel=1e-12)
-    with pytest.raises(ParameterError, match="kv factors"):
-        sag_rows({"calibrated": model}, GRAVITY, fe, (1.0, 0.0))

@@ -1,24 +1,25 @@
-"""Where a calibrated model's static sag error comes from: the split between springs and kv.
+"""Where a calibrated model's static sag error comes from: which of its fitted changes, where.
 
-The gradient fit of the punch scene moves every connector and every tet from the
-global fit, and the punch curves it is fitted to pin the *sum* of a spring's and
-its tets' ``kv`` stiffness better than either (README, parameter recovery). The
-static sag, which no fit sees, depends on the split: the body hangs mostly in
-shear, which the springs carry, while a punch also compresses the tissue under
-it, which ``kv`` resists. This study measures, on a finished run folder,
-nothing refitted:
+The gradient fit of the punch scene moves every connector and every tet away from the
+global fit, and the punch curves it is fitted to pin the *sum* of a spring's and its tets'
+``kv`` stiffness better than either (README, parameter recovery). The static sag, which no
+fit sees, hangs on whatever the curves leave open. This study puts parts of the calibrated
+model back to the global fit's values, nothing refitted, and measures the static sag (the
+gravity stage's own Newton equilibrium on the calibrated strain range) of each mix:
 
-* the split: the geometric mean over connectors of ``K0`` calibrated / global
-  and over tets of ``kv`` calibrated / global;
-* the static sag (the gravity stage's own Newton equilibrium) of the global and
-  the calibrated model, each with ``kv`` as fitted and scaled by a few factors:
-  the sag error of the report and the *mean sag ratio*
-  ``sum_free u_particle . g / sum_free u_FE . g`` (1 = the body hangs as far as
-  the FE's on average).
+* ``global``, ``calibrated``: the two models of ``params.h5``;
+* ``calibrated springs, global kv`` and ``global springs, calibrated kv``: which of the two
+  terms' changes moves the sag;
+* ``calibrated, global below half height`` / ``above half height``: where (connector and
+  tet midpoints below or above the middle of the body's extent against gravity);
+* ``calibrated, kv x f``: every tet's kv scaled (how stiff a volume term would have to be).
 
-The first calibrated row repeats the gravity stage's static sag (checked against
-``gravity.h5`` to 1e-9 of its largest displacement). Not a bench item (seconds on
-a finished run folder): ``python -m pipelines.bench.sag_split --scene
+Each row has the report's sag error and the *mean sag ratio*
+``sum_free u_particle . g / sum_free u_FE . g`` (1 = the body hangs as far as the FE's on
+average); the result also has the geometric means over connectors and tets of ``K0`` and
+``kv`` calibrated / global. The ``calibrated`` row repeats the gravity stage's static sag
+(checked against ``gravity.h5`` to 1e-9 of its largest displacement). Not a bench item
+(seconds on a finished run folder): ``python -m pipelines.bench.sag_split --scene
 scenes/liver_punch.toml [--run DIR] [--out sag.json]``.
 """
 
@@ -42,7 +43,7 @@ from pipelines.report import gravity_static_error
 
 log = logging.getLogger(__name__)
 
-KV_FACTORS = (1.0, 1.5, 2.0, 3.0)
+KV_FACTORS = (1.5, 2.0)
 
 
 def _per_item(values: np.ndarray, n: int) -> np.ndarray:
@@ -74,39 +75,81 @@ def mean_sag_ratio(fe: np.ndarray, particle: np.ndarray, free: np.ndarray,
     return float(particle[free] @ down @ np.ones(len(free))) / fe_total
 
 
-def sag_rows(models: dict[str, Model], gravity: np.ndarray, fe: np.ndarray,
-             kv_factors: tuple[float, ...] = KV_FACTORS, load_steps: int = 4) -> list[dict]:
-    """Static sag of each model with its ``kv`` scaled by each factor (a model without the
-    volume term: its one row). Rows: ``model``, ``kv_factor``, ``max_sag_m``, ``error``
-    (the report's sag error against ``fe`` (N, 3) [m]), ``mean_sag_ratio``; ``sag`` (N, 3)
-    [m] of the unscaled rows is kept under ``displacement`` for checks."""
+def mixed(base: ConnectorParams, other: ConnectorParams, connectors: np.ndarray,
+          tets: np.ndarray | None) -> ConnectorParams:
+    """``base`` with the (E,) bool ``connectors`` and (T,) bool ``tets`` taken from ``other``
+    (its one global kv broadcast over the tets)."""
+    names = ("K0", "a", "b", "k1", "b1", "k2", "b2")
+    fields = {n: np.where(connectors, getattr(other, n), getattr(base, n)) for n in names}
+    if base.kv is not None and tets is not None:
+        n = len(tets)
+        fields["kv"] = np.where(tets, _per_item(other.kv, n), _per_item(base.kv, n))
+    return dataclasses.replace(base, **fields)
+
+
+def variants(global_params: ConnectorParams, calibrated: ConnectorParams,
+             connector_height: np.ndarray, tet_height: np.ndarray | None,
+             kv_factors: tuple[float, ...] = KV_FACTORS) -> dict[str, ConnectorParams]:
+    """The module docstring's parameter sets; heights [m] of the connector and tet midpoints
+    against gravity (the tets' None without the volume term)."""
     if not all(f > 0 for f in kv_factors):
         raise ParameterError(f"kv factors {kv_factors} must be > 0")
+    every, none = np.ones(len(connector_height), bool), np.zeros(len(connector_height), bool)
+    volume = calibrated.kv is not None and tet_height is not None
+    out = {"global": global_params, "calibrated": calibrated}
+    if volume:
+        all_tets = np.ones(len(tet_height), bool)
+        out["calibrated springs, global kv"] = mixed(calibrated, global_params, none, all_tets)
+        out["global springs, calibrated kv"] = mixed(calibrated, global_params, every,
+                                                     ~all_tets)
+    lo, hi = connector_height.min(), connector_height.max()
+    if volume:
+        lo, hi = min(lo, tet_height.min()), max(hi, tet_height.max())
+    middle = 0.5 * (lo + hi)
+    for label, below in (("below", True), ("above", False)):
+        side_c = (connector_height < middle) if below else (connector_height >= middle)
+        side_t = None if not volume else ((tet_height < middle) if below
+                                          else (tet_height >= middle))
+        out[f"calibrated, global {label} half height"] = mixed(calibrated, global_params,
+                                                               side_c, side_t)
+    if volume:
+        for f in kv_factors:
+            out[f"calibrated, kv x{f:g}"] = dataclasses.replace(calibrated,
+                                                                 kv=calibrated.kv * f)
+    return out
+
+
+def sag_rows(model: Model, sets: dict[str, ConnectorParams], gravity: np.ndarray,
+             fe: np.ndarray, strain_range: tuple[float, float], load_steps: int = 4
+             ) -> list[dict]:
+    """Static sag of ``model`` with each parameter set: rows ``label``, ``max_sag_m``,
+    ``error`` (the report's sag error against ``fe`` (N, 3) [m]), ``mean_sag_ratio``, and
+    ``displacement`` (N, 3) [m] for checks. ``strain_range``: where the springs are valid
+    (the calibration's), as in the gravity stage."""
     rows = []
-    for name, model in models.items():
+    for label, params in sets.items():
+        u = gravity_static(model.with_params(params), gravity, load_steps=load_steps,
+                           strain_range=strain_range)
         free = model.free_nodes
-        factors = kv_factors if model.params.kv is not None else (1.0,)
-        for factor in factors:
-            params = model.params
-            if params.kv is not None and factor != 1.0:
-                params = dataclasses.replace(params, kv=params.kv * factor)
-            u = gravity_static(model.with_params(params), gravity, load_steps=load_steps)
-            row = {"model": name, "kv_factor": float(factor),
-                   "max_sag_m": float(np.linalg.norm(u, axis=1).max()),
-                   "error": gravity_static_error(fe, u, free),
-                   "mean_sag_ratio": mean_sag_ratio(fe, u, free, gravity)}
-            if factor == 1.0:
-                row["displacement"] = u
-            rows.append(row)
-            log.info("%s, kv x%g: max sag %.2f mm, error %.2f %%, mean sag ratio %.3f", name,
-                     factor, 1e3 * row["max_sag_m"], 100 * row["error"], row["mean_sag_ratio"])
+        rows.append({"label": label, "max_sag_m": float(np.linalg.norm(u, axis=1).max()),
+                     "error": gravity_static_error(fe, u, free),
+                     "mean_sag_ratio": mean_sag_ratio(fe, u, free, gravity),
+                     "displacement": u})
+        log.info("%s: max sag %.2f mm, error %.2f %%, mean sag ratio %.3f", label,
+                 1e3 * rows[-1]["max_sag_m"], 100 * rows[-1]["error"],
+                 rows[-1]["mean_sag_ratio"])
     return rows
+
+
+def heights(points: np.ndarray, gravity: np.ndarray) -> np.ndarray:
+    """Height [m] of (..., 3) points against ``gravity`` (up = -g)."""
+    return -points @ (np.asarray(gravity, dtype=float) / np.linalg.norm(gravity))
 
 
 def study(scene_path: str | Path, run: str | Path | None = None,
           kv_factors: tuple[float, ...] = KV_FACTORS) -> dict:
-    """:func:`split_ratios` and :func:`sag_rows` of the global and calibrated models of the
-    finished run of ``scene_path`` (folder ``run``, default ``runs/<scene name>``)."""
+    """:func:`split_ratios` and :func:`sag_rows` of :func:`variants` on the finished run of
+    ``scene_path`` (folder ``run``, default ``runs/<scene name>``)."""
     from calibration import read_params
     from pipelines.gravity import read_gravity
 
@@ -118,21 +161,24 @@ def study(scene_path: str | Path, run: str | Path | None = None,
     if ref.gravity is None:
         raise DataFileError(f"{folder}: the reference has no gravity sag to compare with")
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
-    models = {name: build_model(ref.problem, scene.material.density, params.connectors[name])
-              for name in ("global", "calibrated")}
+    mesh = ref.problem.mesh
+    glob, cal = params.connectors["global"], params.connectors["calibrated"]
+    sets = variants(glob, cal, heights(mesh.vertices[mesh.edges].mean(axis=1), gravity),
+                    heights(mesh.vertices[mesh.tets].mean(axis=1), gravity), kv_factors)
     fe = ref.gravity.static_displacement
-    rows = sag_rows(models, gravity, fe, kv_factors, scene.gravity.static_load_steps)
+    model = build_model(ref.problem, scene.material.density, cal)
+    rows = sag_rows(model, sets, gravity, fe, params.strain.bounds,
+                    scene.gravity.static_load_steps)
     own = stage.models["calibrated"].static_displacement
-    ours = next(r["displacement"] for r in rows if r["model"] == "calibrated")
+    ours = next(r["displacement"] for r in rows if r["label"] == "calibrated")
     gap = float(np.abs(ours - own).max() / np.abs(own).max())
     if gap > 1e-9:
         raise DataFileError(f"the study's static sag differs from gravity.h5's by {gap:.3g} of "
                             "its largest displacement: not the same model")
     for r in rows:
-        r.pop("displacement", None)
+        r.pop("displacement")
     return {"scene": scene.name, "fe_max_sag_m": float(np.linalg.norm(fe, axis=1).max()),
-            "split": split_ratios(params.connectors["global"], params.connectors["calibrated"]),
-            "rows": rows}
+            "split": split_ratios(glob, cal), "rows": rows}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -148,10 +194,10 @@ def main(argv: list[str] | None = None) -> None:
     kv = "-" if split["kv"] is None else f"{split['kv']:.3f}"
     print(f"{result['scene']}: calibrated / global, geometric means: K0 {split['K0']:.3f}, "
           f"kv {kv}; FE max sag {1e3 * result['fe_max_sag_m']:.2f} mm")
-    print(f"{'model':12s} {'kv x':>5s} {'max sag mm':>10s} {'error %':>8s} {'mean sag ratio':>15s}")
+    print(f"{'parameters':40s} {'max sag mm':>10s} {'error %':>8s} {'mean sag ratio':>15s}")
     for r in result["rows"]:
-        print(f"{r['model']:12s} {r['kv_factor']:5.2f} {1e3 * r['max_sag_m']:10.2f} "
-              f"{100 * r['error']:8.2f} {r['mean_sag_ratio']:15.3f}")
+        print(f"{r['label']:40s} {1e3 * r['max_sag_m']:10.2f} {100 * r['error']:8.2f} "
+              f"{r['mean_sag_ratio']:15.3f}")
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
 
