@@ -17,7 +17,9 @@
 - :mod:`pipelines.bench.sag_split`: not an item either: how the static sag depends on the
   calibrated model's split between springs and ``kv``;
 - :mod:`pipelines.bench.fold_cv`: not an item: k-fold cross-validation of whole calibrations
-  over the calibration points, to choose between calibration settings.
+  over the calibration points, to choose between calibration settings;
+- :mod:`pipelines.bench.finished_run`: what those three studies share: the finished run
+  folder they read and their two command-line arguments.
 
 Importing this package imports none of them (each item loads its own module when it runs).
 """

@@ -27,7 +27,6 @@ default ``{"kv per tet": {}, "kv global": {"kv_per_tet": false}}``. The committe
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import time
@@ -38,6 +37,7 @@ import numpy as np
 
 from forcecal.h5io import read_reference, write_reference
 from forcecal.scene import load_scene
+from pipelines.bench.finished_run import parse_study, run_folder, study_parser
 from pipelines.runners.common import PARAMS, REFERENCE
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,7 @@ def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, di
     from pipelines.bench.configs import derived_scene, sliced_reference
 
     scene = load_scene(scene_path)
-    run = Path(run) if run is not None else Path("runs") / scene.name
+    run = run_folder(scene, run)
     work = Path(work) if work is not None else run / "cache" / "fold_cv"
     reference = read_reference(run / REFERENCE)
     points = np.array([int(p) for p in reference.problem.calibration])
@@ -97,16 +97,12 @@ def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, di
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m pipelines.bench.fold_cv",
-                                     description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
-    parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
+    parser = study_parser("pipelines.bench.fold_cv", __doc__)
     parser.add_argument("--variants", type=json.loads, default=DEFAULT_VARIANTS,
                         help="JSON: label -> [calibration] changes")
     parser.add_argument("--work", help="folder of the fold calibrations")
     parser.add_argument("--out", help="write the result to this JSON file")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args = parse_study(parser, argv)
     result = study(args.scene, args.run, args.variants, args.work)
     print(f"{'variant':16s} {'indentation %':>14s} {'relaxation %':>13s} {'score %':>8s} "
           f"{'global fit %':>13s}")

@@ -34,7 +34,6 @@ to 1e-9 of its largest displacement).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -46,12 +45,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from forcecal.errors import DataFileError
-from forcecal.h5io import read_reference
-from forcecal.scene import load_scene
 from particle.experiments import sample_steps
 from particle.model import Model, build_model
 from particle.reference_numpy import forces_numpy
 from particle.volume import signed_volumes, volume_gradients_numpy
+from pipelines.bench.finished_run import finished_run, parse_study, study_parser
 from pipelines.dynamics import release_modes
 from pipelines.report import gravity_dynamic_error
 
@@ -159,16 +157,10 @@ def default_levers(fe_ratio: float, global_ratio: float) -> list[Lever]:
 def study(scene_path: str | Path, run: str | Path | None = None) -> dict:
     """Every lever of :func:`default_levers` on the finished run of ``scene_path`` (folder
     ``run``, default ``runs/<scene name>``): RMS error and modes of the tracked vertex."""
-    from calibration import read_params
-    from pipelines.gravity import read_gravity
-
-    scene = load_scene(scene_path)
-    folder = Path(run or Path("runs") / scene.name)
-    ref = read_reference(folder / "reference.h5")
-    params = read_params(folder / "params.h5")
-    stage = read_gravity(folder / "gravity.h5")
+    done = finished_run(scene_path, run)
+    scene, ref, params, stage = done.scene, done.reference, done.params, done.gravity
     if ref.gravity is None or stage.time is None:
-        raise DataFileError(f"{folder}: no gravity release to compare with")
+        raise DataFileError(f"{done.folder}: no gravity release to compare with")
     g = params.global_params
     model = build_model(ref.problem, scene.material.density, params.connectors["calibrated"])
     node = ref.problem.tracked_node
@@ -232,14 +224,10 @@ def levers_figure(path: str | Path, result: dict) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m pipelines.bench.release_levers",
-                                     description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
-    parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
+    parser = study_parser("pipelines.bench.release_levers", __doc__)
     parser.add_argument("--out", help="write the rows to this JSON file")
     parser.add_argument("--figure", help="draw the releases into this PNG")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args = parse_study(parser, argv)
     result = study(args.scene, args.run)
     def modes(ms: list[dict]) -> str:
         return ", ".join(f"{m['frequency_hz']:.3f} Hz {1e3 * m['amplitude_m']:.2f} mm" for m in ms)

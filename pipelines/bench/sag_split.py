@@ -25,7 +25,6 @@ scenes/liver_punch.toml [--run DIR] [--out sag.json]``.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -34,11 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from forcecal.errors import DataFileError, ParameterError
-from forcecal.h5io import read_reference
-from forcecal.scene import load_scene
 from particle.model import Model, build_model
 from particle.params import ConnectorParams
 from particle.statics import gravity_static
+from pipelines.bench.finished_run import finished_run, parse_study, study_parser
 from pipelines.report import gravity_static_error
 
 log = logging.getLogger(__name__)
@@ -150,16 +148,10 @@ def study(scene_path: str | Path, run: str | Path | None = None,
           kv_factors: tuple[float, ...] = KV_FACTORS) -> dict:
     """:func:`split_ratios` and :func:`sag_rows` of :func:`variants` on the finished run of
     ``scene_path`` (folder ``run``, default ``runs/<scene name>``)."""
-    from calibration import read_params
-    from pipelines.gravity import read_gravity
-
-    scene = load_scene(scene_path)
-    folder = Path(run or Path("runs") / scene.name)
-    ref = read_reference(folder / "reference.h5")
-    params = read_params(folder / "params.h5")
-    stage = read_gravity(folder / "gravity.h5")
+    done = finished_run(scene_path, run)
+    scene, ref, params, stage = done.scene, done.reference, done.params, done.gravity
     if ref.gravity is None:
-        raise DataFileError(f"{folder}: the reference has no gravity sag to compare with")
+        raise DataFileError(f"{done.folder}: the reference has no gravity sag to compare with")
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
     mesh = ref.problem.mesh
     glob, cal = params.connectors["global"], params.connectors["calibrated"]
@@ -182,13 +174,9 @@ def study(scene_path: str | Path, run: str | Path | None = None,
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m pipelines.bench.sag_split",
-                                     description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
-    parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
+    parser = study_parser("pipelines.bench.sag_split", __doc__)
     parser.add_argument("--out", help="write the result to this JSON file")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args = parse_study(parser, argv)
     result = study(args.scene, args.run)
     split = result["split"]
     kv = "-" if split["kv"] is None else f"{split['kv']:.3f}"

@@ -1,0 +1,59 @@
+"""A finished run folder, as the studies that read one take it (release levers, sag split,
+fold cross-validation): the scene's TOML and its folder (``runs/<scene name>`` unless given),
+the same two command-line arguments, the same files read back."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from forcecal.h5io import Reference, read_reference
+from forcecal.scene import Scene, load_scene
+from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE
+
+
+def study_parser(module: str, doc: str) -> argparse.ArgumentParser:
+    """The parser of ``python -m <module>`` with ``--scene`` (required) and ``--run``; the
+    description is the first line of ``doc``."""
+    parser = argparse.ArgumentParser(prog=f"python -m {module}",
+                                     description=doc.splitlines()[0])
+    parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
+    parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
+    return parser
+
+
+def parse_study(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """Parse ``argv`` and log the study's progress at INFO level."""
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return args
+
+
+def run_folder(scene: Scene, run: str | Path | None) -> Path:
+    """``run``, or ``runs/<scene name>`` when None."""
+    return Path(run) if run is not None else Path("runs") / scene.name
+
+
+@dataclass(frozen=True)
+class FinishedRun:
+    """The scene and the files of a finished run (``reference.h5``, ``params.h5``,
+    ``gravity.h5``), read and checked by their readers."""
+    scene: Scene
+    folder: Path
+    reference: Reference
+    params: Any  # calibration.results.CalibrationResult
+    gravity: Any  # pipelines.gravity.GravityRuns
+
+
+def finished_run(scene_path: str | Path, run: str | Path | None = None) -> FinishedRun:
+    """Read the finished run of ``scene_path`` (folder ``run``, default ``runs/<name>``)."""
+    from calibration import read_params
+    from pipelines.gravity import read_gravity
+
+    scene = load_scene(scene_path)
+    folder = run_folder(scene, run)
+    return FinishedRun(scene, folder, read_reference(folder / REFERENCE),
+                       read_params(folder / PARAMS), read_gravity(folder / GRAVITY))
