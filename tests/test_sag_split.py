@@ -57,12 +57,18 @@ def test_variants_put_back_the_global_values_where_and_what_they_say():
     th = heights(x[model.tets].mean(axis=1), GRAVITY)
     sets = variants(glob, cal, ch, th, (2.0,))
     assert list(sets) == ["global", "calibrated", "calibrated springs, global kv",
-                          "global springs, calibrated kv", "calibrated, global below half height",
+                          "global springs, calibrated kv",
+                          "global springs x K0 mean, calibrated kv",
+                          "calibrated, global below half height",
                           "calibrated, global above half height", "calibrated, kv x2"]
     assert np.array_equal(sets["calibrated springs, global kv"].K0, cal.K0)
     assert np.all(sets["calibrated springs, global kv"].kv == 5e3)
     assert np.array_equal(sets["global springs, calibrated kv"].K0, glob.K0)
     assert np.array_equal(sets["global springs, calibrated kv"].kv, cal.kv)
+    even = sets["global springs x K0 mean, calibrated kv"]  # the level of cal / glob: 0.5
+    np.testing.assert_allclose(even.K0, cal.K0, rtol=1e-12)
+    np.testing.assert_allclose(even.b, cal.b, rtol=1e-12)
+    assert np.array_equal(even.kv, cal.kv)
     middle = 0.5 * (min(ch.min(), th.min()) + max(ch.max(), th.max()))
     below = sets["calibrated, global below half height"]
     assert np.array_equal(below.K0, np.where(ch < middle, glob.K0, cal.K0))

@@ -9,7 +9,9 @@ gravity stage's own Newton equilibrium on the calibrated strain range) of each m
 
 * ``global``, ``calibrated``: the two models of ``params.h5``;
 * ``calibrated springs, global kv`` and ``global springs, calibrated kv``: which of the two
-  terms' changes moves the sag;
+  terms' changes moves the sag; ``global springs x K0 mean, calibrated kv``: the global
+  springs scaled evenly by the calibrated ones' geometric mean (their level without their
+  spread);
 * ``calibrated, global below half height`` / ``above half height``: where (connector and
   tet midpoints below or above the middle of the body's extent against gravity);
 * ``calibrated, kv x f``: every tet's kv scaled (how stiff a volume term would have to be).
@@ -100,6 +102,12 @@ def variants(global_params: ConnectorParams, calibrated: ConnectorParams,
         out["calibrated springs, global kv"] = mixed(calibrated, global_params, none, all_tets)
         out["global springs, calibrated kv"] = mixed(calibrated, global_params, every,
                                                      ~all_tets)
+        # the springs' level without their spread: the global springs scaled evenly
+        level = split_ratios(global_params, calibrated)["K0"]
+        out["global springs x K0 mean, calibrated kv"] = mixed(
+            calibrated, dataclasses.replace(global_params, K0=level * global_params.K0,
+                                            a=level * global_params.a,
+                                            b=level * global_params.b), every, ~all_tets)
     lo, hi = connector_height.min(), connector_height.max()
     if volume:
         lo, hi = min(lo, tet_height.min()), max(hi, tet_height.max())
