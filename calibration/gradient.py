@@ -67,6 +67,7 @@ from calibration.parametrisation import GlobalParams, StrainRange, check_spring_
 from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
 from particle.params import ConnectorParams
+from particle.volume import tet_edge_connectors
 
 log = logging.getLogger(__name__)
 
@@ -212,24 +213,6 @@ def shared_laplacian(members: np.ndarray, n_particles: int, shared: int) -> sp.c
     degree = np.asarray(adj.sum(axis=1)).ravel()
     lap = sp.diags(degree) - adj
     return (lap / max(degree.mean(), 1.0)).tocsc()
-
-
-def tet_connector_pairs(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """(6 T, 2) (connector id, tet id) of every tet's six edges; ``edges`` (E, 2) sorted
-    unique pairs i < j (:class:`forcecal.mesh.TetMesh`). Raises ValueError for a tet edge
-    that is not a connector."""
-    tets = np.asarray(tets, dtype=np.int64)
-    local = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
-    ends = np.sort(tets[:, local], axis=2).reshape(-1, 2)  # (6 T, 2), i < j
-    n = int(max(edges.max(), ends.max())) + 1
-    keys = edges[:, 0].astype(np.int64) * n + edges[:, 1]
-    wanted = ends[:, 0] * n + ends[:, 1]
-    order = np.argsort(keys)
-    at = np.searchsorted(keys, wanted, sorter=order)
-    at = order[np.minimum(at, len(keys) - 1)]
-    if not np.array_equal(keys[at], wanted):
-        raise ValueError("a tet edge is not a connector: edges and tets of different meshes")
-    return np.column_stack([at, np.repeat(np.arange(len(tets)), 6)])
 
 
 def neighbour_laplacian(edges: np.ndarray, n_particles: int) -> sp.csc_matrix:
@@ -447,7 +430,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
                       None if tets is None else shared_laplacian(tets, n_particles, 3),
                       prior_ratio, shape_smoothness_factors(shape_smoothness),
-                      None if tets is None else tet_connector_pairs(tets, edges), split_prior)
+                      None if tets is None or not split_prior > 0
+                      else tet_edge_connectors(tets, edges), split_prior)
     theta, state, weights, cv_costs = theta0, None, [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")

@@ -79,7 +79,7 @@ class Regulariser:
     """``lambda (theta - theta0)^T A1 (theta - theta0)`` with the block-diagonal metric
     ``A1 = I_7 (x) (L + rho I)/E  (+)  (L_tets + rho I)/T`` (module docstring), plus, with
     a split prior, ``sigma S^T S / P``: one row ``e_{log K0 of c} - e_{log kv of t}`` per
-    pair (connector c, tet t having c as an edge), P pairs. That term penalises moving
+    pair (connector c, tet t having c as an edge), P = 6 T pairs. That term penalises moving
     stiffness between a spring and its tets' kv (which surface curves pin only as a sum:
     README, parameter recovery), not raising both together. It couples the K0 and kv
     blocks, so A1 is then inverted as one matrix.
@@ -92,7 +92,8 @@ class Regulariser:
         smoothness: (N_COORDS,) factor s_q on each connector coordinate's smoothness term,
             ``(s_q L + rho I)/E`` [1] (``calibration.shape_smoothness`` on the spring
             shape's two); None: every factor 1.
-        split_pairs: (P, 2) int (connector, tet) pairs of the split prior, or None.
+        tet_edges: (T, 6) connector id of each tet's edges
+            (:func:`particle.volume.tet_edge_connectors`): the split prior's pairs, or None.
         split_prior: sigma, the split prior's weight relative to the smoothness weight
             (``calibration.split_prior``) [1]; 0: no split prior.
     """
@@ -101,21 +102,22 @@ class Regulariser:
     tet_laplacian: sp.csc_matrix | None = None
     prior_ratio: float = PRIOR_RATIO
     smoothness: np.ndarray | None = None
-    split_pairs: np.ndarray | None = None
+    tet_edges: np.ndarray | None = None
     split_prior: float = 0.0
 
     @property
     def _split(self) -> bool:
-        return (self.split_prior > 0 and self.split_pairs is not None
-                and self.tet_laplacian is not None and len(self.split_pairs) > 0)
+        return (self.split_prior > 0 and self.tet_edges is not None
+                and self.tet_laplacian is not None and len(self.tet_edges) > 0)
 
     def _split_term(self) -> sp.csc_matrix:
         """(size, size) ``sigma S^T S / P`` of the split prior."""
         e, t = self.laplacian.shape[0], self.tet_laplacian.shape[0]
-        pairs = np.asarray(self.split_pairs, dtype=np.int64)
-        p = len(pairs)
+        connector = np.asarray(self.tet_edges, dtype=np.int64).ravel()
+        p = len(connector)
+        tet = np.repeat(np.arange(t), 6)
         rows = np.repeat(np.arange(p), 2)
-        cols = np.column_stack([pairs[:, 0], N_COORDS * e + pairs[:, 1]]).ravel()
+        cols = np.column_stack([connector, N_COORDS * e + tet]).ravel()
         vals = np.tile([1.0, -1.0], p)
         size = N_COORDS * e + t
         S = sp.csr_matrix((vals, (rows, cols)), shape=(p, size))

@@ -9,8 +9,7 @@ import scipy.sparse as sp
 
 from calibration.core import calibrate
 from calibration.gradient import (Coordinates, GradientResult, Validity, neighbour_laplacian,
-                                  shape_smoothness_factors, shared_laplacian,
-                                  tet_connector_pairs)
+                                  shape_smoothness_factors, shared_laplacian)
 from calibration.gradient_solver import Linearisation, Regulariser, cross_validate, folds_of
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
@@ -23,7 +22,7 @@ from forcecal.schedules import indentation_depths, relaxation_schedule
 from particle.model import build_model
 from particle.params import PARAM_NAMES, ConnectorParams
 from particle.sensitivity import IndentationSensitivity, RelaxationSensitivity
-from particle.volume import network_bulk_modulus
+from particle.volume import network_bulk_modulus, tet_edge_connectors
 
 GLOBAL = GlobalParams(K0=30.0, alpha=1.0, beta=10.0, k1=26.0, tau1=0.5, k2=19.0, tau2=10.0)
 # two top-face points of the box and a punch radius that holds 7 particles around each and
@@ -540,23 +539,13 @@ def test_regulariser_solve_and_sandwich_are_the_metric_inverse_on_both_paths(box
         assert np.max(np.abs(got - want)) <= 1e-10 * np.max(np.abs(want))
 
 
-def test_tet_connector_pairs_name_each_tets_six_edges(box):
-    mesh = build_problem(box).mesh
-    pairs = tet_connector_pairs(mesh.tets, mesh.edges)
-    assert pairs.shape == (6 * len(mesh.tets), 2)
-    assert np.array_equal(pairs[:, 1], np.repeat(np.arange(len(mesh.tets)), 6))
-    for c, t in pairs[::7]:
-        assert set(mesh.edges[c]) <= set(mesh.tets[t])
-    assert all(len(set(pairs[6 * k:6 * k + 6, 0])) == 6 for k in range(len(mesh.tets)))
-    with pytest.raises(ValueError, match="not a connector"):
-        tet_connector_pairs(mesh.tets, mesh.edges[1:])
-
-
 def test_split_prior_penalises_moving_stiffness_between_springs_and_kv_only(box, monkeypatch):
     """``sigma S^T S / P``: K0 and kv raised together by one log step (what the curves and
     the sag both see as a stiffer body) costs what it costs without the split prior; moving
     stiffness from every spring to every kv (K0 up by c, kv down by c) costs sigma (2c)^2
-    more, exactly. The coupled metric is inverted as one block, densely or by sparse LU."""
+    more, exactly; one connector's K0 alone up by c costs sigma c^2 n_c / (6 T), n_c the tets
+    having it as an edge (counted from the tets' vertices: the pairs are the mesh's). The
+    coupled metric is inverted as one block, densely or by sparse LU."""
     from scipy.sparse.linalg import splu
     import calibration.gradient_solver as solver
 
@@ -565,10 +554,10 @@ def test_split_prior_penalises_moving_stiffness_between_springs_and_kv_only(box,
     size = 7 * e + t
     args = (neighbour_laplacian(mesh.edges, mesh.n_vertices), np.zeros(size),
             shared_laplacian(mesh.tets, mesh.n_vertices, 3))
-    pairs = tet_connector_pairs(mesh.tets, mesh.edges)
+    pairs = tet_edge_connectors(mesh.tets, mesh.edges)
     plain = Regulariser(*args)
     sigma, c, weight = 3.0, 0.2, 0.7
-    split = Regulariser(*args, split_pairs=pairs, split_prior=sigma)
+    split = Regulariser(*args, tet_edges=pairs, split_prior=sigma)
     together, apart = np.zeros(size), np.zeros(size)
     together[:e], together[7 * e:] = c, c
     apart[:e], apart[7 * e:] = c, -c
@@ -576,13 +565,20 @@ def test_split_prior_penalises_moving_stiffness_between_springs_and_kv_only(box,
                                                           rel=1e-12)
     assert split.value(apart, weight) - plain.value(apart, weight) == pytest.approx(
         weight * sigma * (2 * c) ** 2, rel=1e-12)
-    assert len(Regulariser(*args, split_pairs=pairs, split_prior=0.0)._blocks) == 2
+    for one in (0, e // 2, e - 1):
+        alone = np.zeros(size)
+        alone[one] = c
+        n_c = sum(set(mesh.edges[one]) <= set(tet) for tet in mesh.tets.tolist())
+        assert n_c > 0
+        assert split.value(alone, weight) - plain.value(alone, weight) == pytest.approx(
+            weight * sigma * c ** 2 * n_c / (6 * t), rel=1e-12)
+    assert len(Regulariser(*args, tet_edges=pairs, split_prior=0.0)._blocks) == 2
     rng = np.random.default_rng(7)
     dense = rng.normal(size=(size, 5))
     sparse = sp.random(size, 4, density=0.01, random_state=8, format="csc")
     for limit in (solver.DENSE_INVERSE_LIMIT, 0):
         monkeypatch.setattr(solver, "DENSE_INVERSE_LIMIT", limit)
-        reg = Regulariser(*args, split_pairs=pairs, split_prior=sigma)
+        reg = Regulariser(*args, tet_edges=pairs, split_prior=sigma)
         assert len(reg._blocks) == 1
         lu = splu(reg.metric)
         want = lu.solve(dense)
