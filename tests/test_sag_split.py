@@ -22,14 +22,13 @@ def volume_box():
 
 def test_split_ratios_are_the_geometric_means_of_calibrated_over_global():
     """K0 halved on every connector, kv x2 on m tets and x8 on the other n - m: the
-    geometric means 0.5 and 2^((m + 3 (n - m))/n); a global kv of one value broadcasts."""
+    geometric means 0.5 and 2^((m + 3 (n - m))/n)."""
     p = volume_box().params
     n = len(p.kv)
     m = n // 3
     kv = np.where(np.arange(n) < m, 2.0, 8.0) * p.kv
     calibrated = dataclasses.replace(p, K0=0.5 * p.K0, kv=kv)
-    global_one_kv = dataclasses.replace(p, kv=p.kv[:1])
-    got = split_ratios(global_one_kv, calibrated)
+    got = split_ratios(p, calibrated)
     assert got["K0"] == pytest.approx(0.5, rel=1e-12)
     assert got["kv"] == pytest.approx(2.0 ** ((m + 3 * (n - m)) / n), rel=1e-12)
     assert split_ratios(dataclasses.replace(p, kv=None), dataclasses.replace(p, kv=None))["kv"] \
@@ -46,12 +45,12 @@ def test_mean_sag_ratio_compares_the_sags_along_gravity():
 
 
 def test_variants_put_back_the_global_values_where_and_what_they_say():
-    """Each mix takes exactly its connectors and tets from the global set (a global kv of one
-    value broadcast), and the calibrated values elsewhere."""
+    """Each mix takes exactly its connectors and tets from the global set, and the calibrated
+    values elsewhere."""
     model = volume_box()
     cal = model.params
     glob = dataclasses.replace(cal, K0=2.0 * cal.K0, a=2.0 * cal.a, b=2.0 * cal.b,
-                               kv=np.array([5e3]))
+                               kv=np.full(model.n_tets, 5e3))
     x = model.rest_positions
     ch = heights(x[model.edges].mean(axis=1), GRAVITY)
     th = heights(x[model.tets].mean(axis=1), GRAVITY)

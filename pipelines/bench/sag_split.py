@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from forcecal.errors import DataFileError, ParameterError
-from particle.model import Model, build_model
+from particle.model import Model, build_model, params_for
 from particle.params import ConnectorParams
 from particle.statics import gravity_static
 from pipelines.bench.finished_run import finished_run, parse_study, study_parser
@@ -46,22 +46,15 @@ log = logging.getLogger(__name__)
 KV_FACTORS = (1.5, 2.0)
 
 
-def _per_item(values: np.ndarray, n: int) -> np.ndarray:
-    """(n,) values from a (1,) global value or an (n,) array."""
-    values = np.asarray(values, dtype=float)
-    return np.broadcast_to(values, (n,)) if values.shape == (1,) else values
-
-
 def split_ratios(global_params: ConnectorParams, calibrated: ConnectorParams) -> dict:
     """Geometric means of calibrated / global: ``K0`` over the connectors, ``kv`` over the
-    tets (None without the volume term) [1]."""
+    tets (None without the volume term) [1]. Both sets with one kv per tet
+    (:func:`particle.model.params_for`)."""
     out = {"K0": float(np.exp(np.mean(np.log(calibrated.K0 / global_params.K0))))}
     if calibrated.kv is None or global_params.kv is None:
         out["kv"] = None
     else:
-        n = max(len(calibrated.kv), len(global_params.kv))
-        ratio = _per_item(calibrated.kv, n) / _per_item(global_params.kv, n)
-        out["kv"] = float(np.exp(np.mean(np.log(ratio))))
+        out["kv"] = float(np.exp(np.mean(np.log(calibrated.kv / global_params.kv))))
     return out
 
 
@@ -78,12 +71,11 @@ def mean_sag_ratio(fe: np.ndarray, particle: np.ndarray, free: np.ndarray,
 def mixed(base: ConnectorParams, other: ConnectorParams, connectors: np.ndarray,
           tets: np.ndarray | None) -> ConnectorParams:
     """``base`` with the (E,) bool ``connectors`` and (T,) bool ``tets`` taken from ``other``
-    (its one global kv broadcast over the tets)."""
+    (both with one kv per tet)."""
     names = ("K0", "a", "b", "k1", "b1", "k2", "b2")
     fields = {n: np.where(connectors, getattr(other, n), getattr(base, n)) for n in names}
     if base.kv is not None and tets is not None:
-        n = len(tets)
-        fields["kv"] = np.where(tets, _per_item(other.kv, n), _per_item(base.kv, n))
+        fields["kv"] = np.where(tets, other.kv, base.kv)
     return dataclasses.replace(base, **fields)
 
 
@@ -91,7 +83,8 @@ def variants(global_params: ConnectorParams, calibrated: ConnectorParams,
              connector_height: np.ndarray, tet_height: np.ndarray | None,
              kv_factors: tuple[float, ...] = KV_FACTORS) -> dict[str, ConnectorParams]:
     """The module docstring's parameter sets; heights [m] of the connector and tet midpoints
-    against gravity (the tets' None without the volume term)."""
+    against gravity (the tets' None without the volume term). Both sets with one kv per tet
+    (:func:`particle.model.params_for`)."""
     if not all(f > 0 for f in kv_factors):
         raise ParameterError(f"kv factors {kv_factors} must be > 0")
     every, none = np.ones(len(connector_height), bool), np.zeros(len(connector_height), bool)
@@ -162,7 +155,9 @@ def study(scene_path: str | Path, run: str | Path | None = None,
         raise DataFileError(f"{done.folder}: the reference has no gravity sag to compare with")
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
     mesh = ref.problem.mesh
-    glob, cal = params.connectors["global"], params.connectors["calibrated"]
+    # one kv per tet in both sets (the global fit's is one for all)
+    glob, cal = (params_for(params.connectors[name], len(mesh.edges), len(mesh.tets))
+                 for name in ("global", "calibrated"))
     sets = variants(glob, cal, heights(mesh.vertices[mesh.edges].mean(axis=1), gravity),
                     heights(mesh.vertices[mesh.tets].mean(axis=1), gravity), kv_factors)
     fe = ref.gravity.static_displacement
