@@ -15,7 +15,9 @@ ones the evaluator just solved, nothing is re-solved):
   and the arm forces ``A_i^s = r_i A_i^(s-1) + c_i (dx^s - dx^(s-1))``
   (:meth:`ConnectorParams.arm_recursion`, exact form); the output of a sample is
   ``F = -n . sum_h f_h`` over the particles the indenter holds (the normal indenter
-  force: the test particle alone, or a flat punch's footprint);
+  force: the test particle alone, or a flat punch's footprint), or with ``directions``
+  the force's component along each of them (``n`` replaced by each direction ``d``: D
+  outputs per sample, direction-major);
 * one adjoint solve per step with the exact tangent ``K = -df/dx`` at the
   equilibrium (refactorised there; one right-hand side per output sample that
   depends on the step: the one ending there and, through the arms' history,
@@ -146,18 +148,15 @@ class _Recorded:
 
     def force_vectors(self, params: ConnectorParams, points: Sequence[int] | None = None
                       ) -> np.ndarray:
-        for k in self._indices(points):  # their paths are about to be overwritten
+        idx = self._indices(points)
+        for k in idx:  # their paths are about to be overwritten (even if a solve fails)
             self._forward.pop(int(k), None)
-        return super().force_vectors(params, points)
-
-    def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None
-                 ) -> np.ndarray:
-        forces = super().__call__(params, points)
+        vectors = super().force_vectors(params, idx)
         # each point's path now belongs to these parameters: a Jacobian at equal
         # parameters (the fit's linearisation after an accepted trial) starts from it
-        for k, row in zip(self._indices(points), forces):
+        for k, row in zip(idx, vectors):
             self._forward[int(k)] = (params, row)
-        return forces
+        return vectors
 
     def forget(self) -> None:
         super().forget()
@@ -169,12 +168,12 @@ class _Recorded:
         return state
 
     def forward(self, params: ConnectorParams, idx: np.ndarray) -> np.ndarray:
-        """(P', S) curves of points ``idx`` at ``params``, their paths recorded: solved
-        only for points whose last curve was computed at other parameters."""
+        """(P', S, 3) indenter force vectors [N] of points ``idx`` at ``params``, their paths
+        recorded: solved only for points whose last curve was computed at other parameters."""
         stale = [int(k) for k in idx if int(k) not in self._forward
                  or not same_values(self._forward[int(k)][0], params)]
         if stale:
-            self(params, stale)
+            self.force_vectors(params, stale)
         return np.stack([self._forward[int(k)][1] for k in idx])
 
 
@@ -189,18 +188,31 @@ class _Adjoint(_Recorded):
 
     numpy_twin = False
 
-    def jacobian(self, params: ConnectorParams, points: Sequence[int] | None = None
-                 ) -> Sensitivities:
+    def jacobian(self, params: ConnectorParams, points: Sequence[int] | None = None,
+                 directions: np.ndarray | None = None) -> Sensitivities:
         """Curves and their derivatives at the selected points (all if None).
+
+        ``directions``: (D, 3) unit vectors; the outputs are then the components of the
+        indenter force along each (``force_vectors . d``), direction-major: output
+        ``d S + j`` is direction d at sample j (D S outputs per point). None: the normal
+        force curves of :meth:`__call__` (each point's own normal, S outputs).
 
         A point whose last curve was computed at equal parameters is not solved again:
         its recorded path and curve are used (what :meth:`__call__` returned then).
         """
         idx = self._indices(points)
-        forces = self.forward(params, idx)
+        vectors = self.forward(params, idx)
+        if directions is None:
+            forces = np.einsum("psc,pc->ps", vectors, self.normals[idx])
+        else:
+            directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+            if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):
+                raise ParameterError(f"output directions must be unit vectors, got "
+                                     f"{directions.tolist()}")
+            forces = np.einsum("psc,dc->pds", vectors, directions).reshape(len(idx), -1)
         model = self.model.with_params(params)
-        parts = [point_jacobian_numpy(self, model, int(k)) if self.numpy_twin
-                 else self._point_jacobian(model, int(k)) for k in idx]
+        parts = [point_jacobian_numpy(self, model, int(k), directions) if self.numpy_twin
+                 else self._point_jacobian(model, int(k), directions) for k in idx]
         return Sensitivities(forces, np.stack([c for c, _ in parts]),
                              None if params.kv is None else np.stack([v for _, v in parts]))
 
@@ -208,13 +220,16 @@ class _Adjoint(_Recorded):
         """The (sub)steps whose equilibria make point k's curve, and the step of each sample."""
         raise NotImplementedError
 
-    def _push(self, k: int, pat) -> tuple[np.ndarray, np.ndarray]:
-        """(n_dofs,) the indenter's normal on the dofs of the particles it holds (0 elsewhere)
-        and (3h,) those dofs."""
+    def _push(self, k: int, pat, directions: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(D, n_dofs) each output direction on the dofs of the particles the indenter holds
+        (0 elsewhere; ``directions`` (D, 3), None: the point's normal, D = 1) and (3h,) those
+        dofs."""
         prescribed = self._solvers[k].prescribed
         pdofs = pat.dofs(prescribed)
-        push = np.zeros(pat.n_dofs)
-        push[pdofs] = np.tile(self.normals[k], len(prescribed))
+        directions = self.normals[k][None] if directions is None else directions
+        push = np.zeros((len(directions), pat.n_dofs))
+        push[:, pdofs] = np.tile(directions, (1, len(prescribed)))
         return push, pdofs
 
     @staticmethod
@@ -231,20 +246,25 @@ class _Adjoint(_Recorded):
         data[solver._diag_slots] = 1.0
         return ldl_factor(pat, data)
 
-    def _point_jacobian(self, model: Model, k: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """(S, 7, E) connector derivatives and (S, T) kv derivatives (None without kv).
+    def _point_jacobian(self, model: Model, k: int, directions: np.ndarray | None = None
+                        ) -> tuple[np.ndarray, np.ndarray | None]:
+        """(D S, 7, E) connector derivatives and (D S, T) kv derivatives (None without kv) of
+        the outputs along ``directions`` (D, 3) (:meth:`jacobian`; None: the normal, D = 1).
 
-        The adjoints are kept sample-major (:mod:`particle.sensitivity_kernels`), and a
-        step solves only for the samples it carries: those that end there, and those
-        ending later when the arms carry their history back (the others' adjoints are 0).
+        The adjoints are kept output-major (:mod:`particle.sensitivity_kernels`), and a
+        step solves only for the outputs it carries: those whose sample ends there, and
+        those ending later when the arms carry their history back (the others' adjoints
+        are 0).
         """
         solver = self._solvers[k]
         steps, ends = self._steps(k)
-        n_out, e = len(self.depths), model.n_connectors
+        n_samples, e = len(self.depths), model.n_connectors
         pat = self.pattern_for(solver)
-        push, pdofs = self._push(k, pat)
+        push, pdofs = self._push(k, pat, directions)
+        n_dirs = len(push)
+        n_out = n_dirs * n_samples
+        direction_of = np.repeat(np.arange(n_dirs), n_samples)  # output -> its direction
         push_cols = np.unique(pdofs)
-        push_vals = push[push_cols]
         p = model.params
         end_dofs = pat.node_dof[model.edges]  # (E, 2) first dof of each end, -1 fixed
         tet_dofs = None if p.kv is None else pat.node_dof[model.tets]
@@ -253,33 +273,36 @@ class _Adjoint(_Recorded):
         jac_kv = None if p.kv is None else np.zeros((n_out, model.n_tets))
         abar = np.zeros((n_out, 2, e))  # adjoint of the arm forces passed to the next step
         dbar = np.zeros((n_out, e))  # adjoint of the elongation passed to the next step
-        carried = np.zeros(n_out, dtype=bool)  # samples whose abar, dbar may be nonzero
+        carried = np.zeros(n_out, dtype=bool)  # outputs whose abar, dbar may be nonzero
         unit, dx = np.empty((e, 3)), np.empty(e)
         dA_dk, dA_db = np.empty((e, 2)), np.empty((e, 2))
         no_arms = np.zeros((e, 2))  # what the kernels get (unread) for an elastic step
-        k_push = np.empty(pat.n_dofs)
+        k_push = np.empty((n_dirs, pat.n_dofs))
         end_of = {s: j for j, s in enumerate(ends)}
         for s in range(len(steps) - 1, -1, -1):
             arms, eq = steps[s]
             live = carried.copy()
-            if s in end_of:
-                live[end_of[s]] = True
+            ending = (np.arange(n_dirs) * n_samples + end_of[s] if s in end_of
+                      else np.empty(0, dtype=np.int64))  # the outputs whose sample ends here
+            live[ending] = True
             cols = np.flatnonzero(live)
             if not len(cols):
                 continue
-            w = (cols == end_of.get(s, -1)).astype(np.float64)  # (S',) output weights
+            w = np.isin(cols, ending).astype(np.float64)  # (S',) output weights
             data = self._tangent(solver, model, pat, eq, arms)
-            kern.csc_columns_product(pat.indptr, pat.indices, data, push_cols, push_vals, k_push)
+            for d in range(n_dirs):
+                kern.csc_columns_product(pat.indptr, pat.indices, data, push_cols,
+                                         push[d, push_cols], k_push[d])
             kern.connector_geometry(eq.x, model.edges, model.rest_lengths, unit, dx)
             beta = np.empty((len(cols), e))
             kern.elongation_adjoint(cols, dbar, abar, no_arms if arms is None else arms.c,
                                     arms is not None, beta)
             rhs = np.empty((len(cols), pat.n_dofs))
             kern.pattern_product(end_dofs, unit, beta, rhs)
-            rhs = k_push * w[:, None] - rhs
+            rhs = k_push[direction_of[cols]] * w[:, None] - rhs
             rhs[:, pdofs] = 0.0
             lam = self._constrained_factor(solver, pat, data).solve(rhs.T).T  # (S', n) C-order
-            lam[:, pdofs] = -push[pdofs] * w[:, None]
+            lam[:, pdofs] = -push[direction_of[cols]][:, pdofs] * w[:, None]
             tau = np.empty((len(cols), e))  # adjoint of each connector's tension
             kern.pattern_transpose_product(end_dofs, unit, lam, tau)
             if arms is not None:
@@ -300,15 +323,18 @@ class _Adjoint(_Recorded):
     def pattern_for(solver: EquilibriumSolver):
         return solver.pattern
 
-def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int
+def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
+                         directions: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray | None]:
-    """:meth:`_Adjoint._point_jacobian` of evaluator ``ev`` in plain numpy/scipy (every sample
+    """:meth:`_Adjoint._point_jacobian` of evaluator ``ev`` in plain numpy/scipy (every output
     at every step): its twin."""
     solver = ev._solvers[k]
     steps, ends = ev._steps(k)
-    n_out, e = len(ev.depths), model.n_connectors
+    n_samples, e = len(ev.depths), model.n_connectors
     pat = ev.pattern_for(solver)
-    push, pdofs = ev._push(k, pat)
+    push, pdofs = ev._push(k, pat, directions)  # (D, n_dofs)
+    n_out = len(push) * n_samples
+    push = np.repeat(push, n_samples, axis=0).T  # (n_dofs, D S): each output's direction
     jac = np.zeros((n_out, N_PARAMS, e))
     kv = model.params.kv
     jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
@@ -319,7 +345,7 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int
         arms, eq = steps[s]
         w = np.zeros(n_out)
         if s in end_of:
-            w[end_of[s]] = 1.0
+            w[end_of[s]::n_samples] = 1.0
         if not w.any() and not abar.any() and not dbar.any():
             continue
         geo = _Geometry(model, eq.x)
@@ -329,10 +355,10 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int
         beta = dbar.copy()
         if arms is not None:
             beta += np.einsum("ei,eis->es", arms.c, abar)
-        rhs = (full @ push)[:, None] * w[None, :] - G @ beta
+        rhs = (full @ push) * w[None, :] - G @ beta
         rhs[pdofs] = 0.0
         lam = ev._constrained_factor(solver, pat, data).solve(rhs)
-        lam[pdofs] = -push[pdofs, None] * w[None, :]
+        lam[pdofs] = -push[pdofs] * w[None, :]
         tau = G.T @ lam  # (E, S) adjoint of each connector's tension
         jac += partials_numpy(model, geo, arms, tau, abar)
         if kv is not None:
