@@ -237,6 +237,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         gradient_summary: dict = {}
         if gradient:
             t = time.perf_counter()
+            vectors = ({e: getattr(ref, e).force[:n_cal] for e in fitted}
+                       if settings.force_components == "vector" else None)
             gfit = fit_gradient(pool, glob, strain, {e: ref_curves[e][:n_cal] for e in fitted},
                                validity, mesh.edges, mesh.n_vertices, folds=settings.cv_folds,
                                # per-tet kv too when the global fit carries the volume term
@@ -246,6 +248,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                prior_ratio=settings.prior_ratio,
                                shape_smoothness=settings.shape_smoothness,
                                split_prior=settings.split_prior,
+                               force_vectors=vectors,
                                max_iterations=settings.gradient_max_iterations,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()
@@ -295,8 +298,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     if not relax:
         warnings.append(ARMS_NOT_CALIBRATED)
     warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
-    unused = split_prior_unused(settings, glob.has_volume)
-    if unused is not None:
+    for unused in unused_settings(settings, glob.has_volume):
         log.warning(unused)
         warnings.append(unused)
     if gravity_check is not None and gravity_check.warning() is not None:
@@ -318,15 +320,21 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     return result
 
 
-def split_prior_unused(settings: CalibrationSection, volume: bool) -> str | None:
-    """The warning for a ``calibration.split_prior`` > 0 that acts on nothing (it needs the
-    gradient method with the volume term and per-tet kv), else None."""
+def unused_settings(settings: CalibrationSection, volume: bool) -> list[str]:
+    """A warning for each gradient-method setting that acts on nothing: a
+    ``calibration.split_prior`` > 0 (it needs the gradient method with the volume term and
+    per-tet kv), ``calibration.force_components = "vector"`` (the gradient method's cost)."""
+    out = []
     if settings.split_prior > 0 and not (settings.method == "gradient" and volume
                                          and settings.kv_per_tet):
-        return (f"calibration.split_prior = {settings.split_prior:g} has no effect: it acts "
-                "between springs and per-tet kv, which needs calibration.method = \"gradient\", "
-                "particle.volume = true and calibration.kv_per_tet = true")
-    return None
+        out.append(f"calibration.split_prior = {settings.split_prior:g} has no effect: it "
+                   "acts between springs and per-tet kv, which needs calibration.method = "
+                   "\"gradient\", particle.volume = true and calibration.kv_per_tet = true")
+    if settings.force_components != "normal" and settings.method != "gradient":
+        out.append(f"calibration.force_components = \"{settings.force_components}\" has no "
+                   "effect: the paper's method fits the normal force; the force vector is "
+                   "fitted by calibration.method = \"gradient\"")
+    return out
 
 
 def _local_warnings(local_sweeps: dict[str, list[Sweep]], budget: int) -> list[str]:

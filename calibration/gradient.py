@@ -12,7 +12,10 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   global coordinates made per connector.
 * **Residuals**: per point and experiment ``(F_sim - F_ref) / (max|F_ref| sqrt(S))``,
   so a point's squared residual norm is its squared relative RMS error (the
-  number every report quotes), summed over both experiments.
+  number every report quotes), summed over both experiments. With
+  ``calibration.force_components = "vector"`` the residuals are the force vector's three
+  components, scaled alike (the normal curve's maximum): the bonded indenter's
+  tangential reaction is data the FE reference has and the normal curves leave out.
 * **Regulariser** ``(lambda / E) sum_q (theta_q - theta_glob_q)^T (L + rho I)
   (theta_q - theta_glob_q)`` over the seven coordinates q: ``L`` the graph
   Laplacian of the connectors that share a particle (each pair's squared
@@ -97,7 +100,13 @@ def point_residuals(worker: PointWorker, params: ConnectorParams, data: "Data",
                     points: Sequence[int]) -> np.ndarray:
     """Call run on a worker: residuals (P' R,) of owned ``points`` (global indices), every
     experiment of ``data`` in one call."""
-    curves = {kind: worker.curves(kind, params, points) for kind in data.kinds}
+    if data.directions is None:
+        curves = {kind: worker.curves(kind, params, points) for kind in data.kinds}
+    else:
+        local = [worker._local[int(p)] for p in points]
+        worker.evaluations += len(local) * len(data.kinds)
+        curves = {kind: data.components(worker.evaluators[kind].force_vectors(params, local))
+                  for kind in data.kinds}
     return data.residuals(curves, np.asarray(points))
 
 
@@ -114,7 +123,8 @@ def point_rows(worker: PointWorker, params: ConnectorParams, coords: "Coordinate
     """
     local = [worker._local[int(p)] for p in points]
     worker.evaluations += len(local) * len(data.kinds)
-    sens = {kind: worker.evaluators[kind].jacobian(params, local) for kind in data.kinds}
+    sens = {kind: worker.evaluators[kind].jacobian(params, local, data.directions)
+            for kind in data.kinds}
     points = np.asarray(points)
     n_rows = data.rows(points[:1])
     r = data.residuals({kind: s.forces for kind, s in sens.items()}, points)
@@ -277,17 +287,37 @@ class Data:
     """The calibration curves and how residuals are scaled.
 
     Attributes:
-        reference: experiment -> (Pc, S) reference curves of the calibration points [N].
-        weight: experiment -> (Pc,) 1 / (max|F_ref| sqrt(S)) per point [1/N].
+        reference: experiment -> (Pc, R) reference curves of the calibration points [N]:
+            the normal force (R = S samples), or with ``directions`` its components along
+            each (R = D S, direction-major: :meth:`components`).
+        weight: experiment -> (Pc,) 1 / (max|F_ref . n| sqrt(S)) per point [1/N]: a point's
+            squared residual norm is its squared relative RMS error (of the force vector's
+            with ``directions``, relative to the normal curve's maximum).
+        directions: (D, 3) the force components fitted (``calibration.force_components =
+            "vector"``: x, y, z), None: the normal force.
     """
     reference: dict[str, np.ndarray]
     weight: dict[str, np.ndarray]
+    directions: np.ndarray | None = None
 
     @classmethod
-    def of(cls, reference: dict[str, np.ndarray]) -> "Data":
+    def of(cls, reference: dict[str, np.ndarray],
+           vectors: dict[str, np.ndarray] | None = None) -> "Data":
+        """From experiment -> (Pc, S) normal curves ``reference``, and (Pc, S, 3) force
+        vectors ``vectors`` to fit the components of instead (None: the normal curves)."""
         weight = {k: 1.0 / (np.max(np.abs(v), axis=1) * np.sqrt(v.shape[1]))
                   for k, v in reference.items()}
-        return cls(reference, weight)
+        if vectors is None:
+            return cls(reference, weight)
+        data = cls(reference, weight, np.eye(3))
+        return dataclasses.replace(data, reference={k: data.components(vectors[k])
+                                                    for k in reference})
+
+    def components(self, vectors: np.ndarray) -> np.ndarray:
+        """(P', D S) the components along :attr:`directions` of (P', S, 3) force vectors,
+        direction-major (the order of :meth:`particle.sensitivity._Adjoint.jacobian`)."""
+        vectors = np.asarray(vectors, dtype=np.float64)
+        return np.einsum("psc,dc->pds", vectors, self.directions).reshape(len(vectors), -1)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -390,6 +420,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  kv_per_tet: bool = True, prior_ratio: float = PRIOR_RATIO,
                  shape_smoothness: float = SHAPE_SMOOTHNESS,
                  split_prior: float = 0.0,
+                 force_vectors: dict[str, np.ndarray] | None = None,
                  global_shape: np.ndarray | None = None,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
@@ -405,6 +436,9 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     (``alpha s``, ``beta s^2``) relative to the other coordinates' (not on the prior).
     ``split_prior``: weight of the regulariser's split prior (:class:`Regulariser`) between
     each connector's log K0 and its tets' log kv (per-tet kv only; 0: none).
+    ``force_vectors``: experiment -> (Pc, S, 3) reference force vectors: fit their three
+    components instead of the normal curves (``calibration.force_components = "vector"``,
+    :class:`Data`); None: the normal curves.
     ``global_shape``: the global fit's (E,) per-connector factors
     (:func:`calibration.parametrisation.global_shape`), None if uniform; the fit starts from
     that and the regulariser measures every connector's departure from it.
@@ -424,7 +458,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                                            kv=np.broadcast_to(start_params.kv,
                                                               (coords.n_tets,)).copy())
     theta0 = coords.theta_of(start_params)
-    data = Data.of(reference)
+    data = Data.of(reference, force_vectors)
     ev = Evaluator(pool, data, coords)
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,

@@ -273,6 +273,12 @@ class CalibrationSection:
                              "moving stiffness between a spring and its tets' kv (their log "
                              "departures from the global fit differing), relative to the "
                              "smoothness weight; 0: none (README Calibration)", minimum=0.0)
+    force_components: str = key("normal", "gradient method: which components of the "
+                                "indenter force the fit matches: \"normal\" (the paper's cost, "
+                                "force . normal) or \"vector\" (all three: the bonded "
+                                "indenter's tangential reaction too, each sample's vector "
+                                "error relative to the normal curve's maximum; README "
+                                "Calibration)", choices=("normal", "vector"))
     global_shape: str = key("uniform", "how the global set's stiffnesses spread over the "
                             "connectors: \"uniform\" (the paper's one value for all) or "
                             "\"van_gelder\" (each connector's share of the surrounding tets, "
