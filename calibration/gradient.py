@@ -103,9 +103,7 @@ def point_residuals(worker: PointWorker, params: ConnectorParams, data: "Data",
     if data.directions is None:
         curves = {kind: worker.curves(kind, params, points) for kind in data.kinds}
     else:
-        local = [worker._local[int(p)] for p in points]
-        worker.evaluations += len(local) * len(data.kinds)
-        curves = {kind: data.components(worker.evaluators[kind].force_vectors(params, local))
+        curves = {kind: data.components(worker.force_vectors(kind, params, points))
                   for kind in data.kinds}
     return data.residuals(curves, np.asarray(points))
 

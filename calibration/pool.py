@@ -130,6 +130,15 @@ class PointWorker:
         self.evaluations += len(local)
         return out
 
+    def force_vectors(self, kind: str, params: ConnectorParams, points: Sequence[int]
+                      ) -> np.ndarray:
+        """(len(points), S, 3) indenter force vectors [N] of owned test points (global
+        indices): the curves' whole force, not only its normal component."""
+        local = [self._local[int(p)] for p in points]
+        out = np.asarray(self.evaluators[kind].force_vectors(params, local), dtype=np.float64)
+        self.evaluations += len(local)
+        return out
+
 
 def point_curves(worker: PointWorker, kind: str, params: ConnectorParams,
                  points: Sequence[int]) -> np.ndarray:
