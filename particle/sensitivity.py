@@ -122,13 +122,13 @@ class _Recorded:
     """Mixin: an evaluator that records its forward pass, what the adjoint pass walks back.
 
     Each point's path (every (sub)step solved, :class:`_RecordingSolver`), where each
-    sample ends in it, and its last curve with the parameters it was computed at
+    sample ends in it, and its last force vectors with the parameters they were computed at
     (:meth:`forward`: a Jacobian at equal parameters starts from it).
     """
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._forward: dict[int, tuple[ConnectorParams, np.ndarray]] = {}  # point -> last curve
+        self._forward: dict[int, tuple[ConnectorParams, np.ndarray]] = {}  # point -> (S, 3)
         self._ends: dict[int, list[int]] = {}  # point -> the path step where each sample ends
 
     def _solver(self, k: int) -> EquilibriumSolver:
@@ -198,7 +198,8 @@ class _Adjoint(_Recorded):
         force curves of :meth:`__call__` (each point's own normal, S outputs).
 
         A point whose last curve was computed at equal parameters is not solved again:
-        its recorded path and curve are used (what :meth:`__call__` returned then).
+        its recorded path and force vectors are used (what :meth:`force_vectors`, hence
+        :meth:`__call__`, returned then).
         """
         idx = self._indices(points)
         vectors = self.forward(params, idx)
