@@ -34,7 +34,7 @@ from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
 from particle.model import Model, build_model, spatial_order
-from particle.params import ConnectorParams, StrainBounds
+from particle.params import PARAM_NAMES, ConnectorParams, StrainBounds
 from particle.reference_numpy import step_numpy
 from particle.testing import viscoelastic_params
 
@@ -237,9 +237,8 @@ def relative_history_error(history: np.ndarray, reference: np.ndarray) -> float:
 
 def _perturbed(params: ConnectorParams, rng: np.random.Generator, rel: float) -> ConnectorParams:
     """Every connector's parameters scaled by 1 + rel N(0, 1): a calibration-like step."""
-    names = ("K0", "a", "b", "k1", "b1", "k2", "b2")
     return dataclasses.replace(params, **{n: getattr(params, n) * (
-        1.0 + rel * rng.standard_normal(params.n_connectors)) for n in names})
+        1.0 + rel * rng.standard_normal(params.n_connectors)) for n in PARAM_NAMES})
 
 
 def evaluator_timings(model: Model, problem: Problem, scene: Scene, *, points: int = 4,

@@ -36,7 +36,7 @@ import numpy as np
 
 from forcecal.errors import DataFileError, ParameterError
 from particle.model import Model, build_model, params_for
-from particle.params import ConnectorParams
+from particle.params import PARAM_NAMES, ConnectorParams
 from particle.statics import gravity_static
 from pipelines.bench.finished_run import finished_run, parse_study, study_parser
 from pipelines.report import gravity_static_error
@@ -72,8 +72,7 @@ def mixed(base: ConnectorParams, other: ConnectorParams, connectors: np.ndarray,
           tets: np.ndarray | None) -> ConnectorParams:
     """``base`` with the (E,) bool ``connectors`` and (T,) bool ``tets`` taken from ``other``
     (both with one kv per tet)."""
-    names = ("K0", "a", "b", "k1", "b1", "k2", "b2")
-    fields = {n: np.where(connectors, getattr(other, n), getattr(base, n)) for n in names}
+    fields = {n: np.where(connectors, getattr(other, n), getattr(base, n)) for n in PARAM_NAMES}
     if base.kv is not None and tets is not None:
         fields["kv"] = np.where(tets, other.kv, base.kv)
     return dataclasses.replace(base, **fields)
