@@ -288,9 +288,12 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         variants = {}
         all_points = np.arange(len(problem.test_points))
         for variant, params in connectors.items():
-            curves = {e: pool.curves(e, params, all_points) for e in fitted}
+            evaluated = {e: pool.curves_and_forces(e, params, all_points) for e in fitted}
+            curves = {e: c for e, (c, _) in evaluated.items()}
+            forces = {e: f for e, (_, f) in evaluated.items()}
             errors = {e: relative_rms_error(curves[e], ref_curves[e]) for e in fitted}
-            variants[variant] = VariantCurves(curves, errors)
+            variants[variant] = VariantCurves(curves, errors, None if any(
+                f is None for f in forces.values()) else forces)
         evaluations["point_curves"] = pool.evaluations()
         stage_times["validation"] = time.perf_counter() - t
 

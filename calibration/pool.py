@@ -4,9 +4,9 @@ Every test point belongs to one worker (round robin over the point index), which
 builds the particle evaluators for its points once and keeps them, so warm starts
 and factorisations stay where they are used. The master sends *calls*: a
 module-level function and its arguments, run as ``fn(worker, *args)`` on the
-worker; the two calls calibration needs are :func:`point_curves` (curves of some
-points for one parameter set) and the local fit of one point
-(:func:`calibration.local.fit_point`).
+worker; the calls calibration needs are :func:`point_curves` (curves of some
+points for one parameter set), :func:`point_curves_and_forces` (with their whole force,
+for the validation) and the local fit of one point (:func:`calibration.local.fit_point`).
 
 One code path, three transports:
 
@@ -42,6 +42,7 @@ from calibration.metrics import point_costs
 from forcecal.failures import die_with_parent
 from forcecal.logs import configure_logging
 from forcecal.problem import Problem
+from particle.evaluators import normal_force
 from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,12 @@ class Experiments:
 
 
 class PointEvaluator(Protocol):
+    """A backend's evaluator of one experiment: called with parameters and test point
+    indices, it returns their (P', S) normal-force curves [N]. Optional, used when present:
+    ``force_vectors`` (same arguments, the (P', S, 3) forces: needed by the force-vector
+    fit, stored by the validation), ``forget`` and ``set_tolerance`` (see the calls
+    below); the particle engine's evaluators have all three."""
+
     def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None
                  ) -> np.ndarray: ...
 
@@ -139,11 +146,30 @@ class PointWorker:
         self.evaluations += len(local)
         return out
 
+    def curves_and_forces(self, kind: str, params: ConnectorParams, points: Sequence[int]
+                          ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The :meth:`curves` of owned test points and, from one evaluation, the
+        :meth:`force_vectors` they are the inward-normal components of; a backend whose
+        evaluators have no ``force_vectors`` (a plain :class:`PointEvaluator`) gives the
+        curves and None."""
+        if not hasattr(self.evaluators[kind], "force_vectors"):
+            return self.curves(kind, params, points), None
+        forces = self.force_vectors(kind, params, points)
+        normals = self.experiments.problem.normals[np.asarray(points, dtype=np.int64)]
+        return normal_force(forces, normals), forces
+
 
 def point_curves(worker: PointWorker, kind: str, params: ConnectorParams,
                  points: Sequence[int]) -> np.ndarray:
     """Call run on a worker: its curves of ``points`` (see :meth:`PointWorker.curves`)."""
     return worker.curves(kind, params, points)
+
+
+def point_curves_and_forces(worker: PointWorker, kind: str, params: ConnectorParams,
+                            points: Sequence[int]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Call run on a worker: its curves and force vectors of ``points`` (see
+    :meth:`PointWorker.curves_and_forces`)."""
+    return worker.curves_and_forces(kind, params, points)
 
 
 def forget_warm_starts(worker: PointWorker) -> None:
@@ -435,6 +461,18 @@ class Pool:
         """(len(points), S) normal-force curves [N] of test points ``points`` (indices)."""
         out, positions = self.by_owner(point_curves, points, kind, params)
         return in_point_order(out, positions)
+
+    def curves_and_forces(self, kind: str, params: ConnectorParams, points: Sequence[int]
+                          ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The (len(points), S) normal-force curves [N] of test points ``points`` (indices)
+        and the (len(points), S, 3) force vectors [N] they are the inward-normal components
+        of, None if the backend's evaluators do not give them (see
+        :meth:`PointWorker.curves_and_forces`)."""
+        out, positions = self.by_owner(point_curves_and_forces, points, kind, params)
+        curves = in_point_order([c for c, _ in out], positions)
+        if any(f is None for _, f in out):
+            return curves, None
+        return curves, in_point_order([f for _, f in out], positions)
 
     def total_cost(self, kind: str, params: ConnectorParams, points: Sequence[int],
                    reference: np.ndarray) -> float:

@@ -16,6 +16,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/local/z_static``, ``/local/z_relaxation`` | (Pc, 3), (Pc, 4) | 1 | ring offsets (see :mod:`calibration.parametrisation`) |
 | ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` (those fitted) |
 | ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples |
+| ``/forces/<variant>/<experiment>`` | (P, S, 3) | N | the simulated indenter force vectors whose inward-normal components the curves are (absent in files written before them) |
 | ``/history/global_<phase>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); phases ``static``, ``relaxation`` |
 | ``/history/local_<phase>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
 | ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per phase |
@@ -58,9 +59,12 @@ class VariantCurves:
     Attributes:
         curves: experiment -> (P, S) float64 normal forces [N].
         errors: experiment -> (P,) float64 relative RMS errors [1].
+        forces: experiment -> (P, S, 3) float64 force vectors [N] whose inward-normal
+            components ``curves`` are; None when read from a file written before them.
     """
     curves: dict[str, np.ndarray]
     errors: dict[str, np.ndarray]
+    forces: dict[str, np.ndarray] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -269,6 +273,9 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
             for e in result.experiments:
                 put(fh, f"errors/{variant}/{e}", vc.errors[e], "1", "relative RMS error (P,)")
                 put(fh, f"curves/{variant}/{e}", vc.curves[e], "N", "normal-force curves (P, S)")
+                if vc.forces is not None:
+                    put(fh, f"forces/{variant}/{e}", vc.forces[e], "N",
+                        "indenter force vectors (P, S, 3)")
         for phase, fit in result.global_fits.items():
             _put_history(fh.create_group(f"history/global_{phase}"), fit)
         for phase, sweeps in result.local_sweeps.items():
@@ -302,7 +309,9 @@ def read_params(path: str | Path) -> CalibrationResult:
         variants = {v: VariantCurves(
             curves={e: get(fh, f"curves/{v}/{e}", (n_p, None), dtype="float")
                     for e in fitted},
-            errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in fitted})
+            errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in fitted},
+            forces=({e: get(fh, f"forces/{v}/{e}", (n_p, None, 3), dtype="float")
+                     for e in fitted} if f"forces/{v}" in fh else None))
             for v in VARIANTS}
         local_sweeps = {}
         for phase in PHASES:

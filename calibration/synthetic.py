@@ -27,7 +27,7 @@ from forcecal.mesh import box_mesh
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
-from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
 from particle.model import build_model
 from particle.params import ConnectorParams
 
@@ -75,11 +75,11 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path)
                                   footprints=held).force_vectors(params)
     relax = RelaxationEvaluator(model, nodes, normals, times, relax_depths,
                                 footprints=held).force_vectors(params)
-    normal = lambda f: np.einsum("psc,pc->ps", f, normals)  # noqa: E731
     ref = Reference(problem=problem, material=scene.material,
-                    indentation=IndentationCurves(depths, static, normal(static),
+                    indentation=IndentationCurves(depths, static, normal_force(static, normals),
                                                   indenter=ind.indenter, radius=ind.radius),
-                    relaxation=RelaxationCurves(times, relax_depths, relax, normal(relax)),
+                    relaxation=RelaxationCurves(times, relax_depths, relax,
+                                                  normal_force(relax, normals)),
                     gravity=None, meta={"source": "particle model (synthetic reference)"})
     write_reference(path, ref)
     return ref

@@ -33,6 +33,12 @@ from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPa
 log = logging.getLogger(__name__)
 
 
+def normal_force(forces: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(P, S) normal components ``force . n`` [N] of (P, S, 3) force vectors [N] along the
+    (P, 3) unit normals of their points: what every normal-force curve is."""
+    return np.einsum("psc,pc->ps", forces, normals)
+
+
 def checked_footprints(model: Model, nodes: np.ndarray,
                        footprints: Sequence[np.ndarray] | None) -> tuple[np.ndarray, ...]:
     """Held particles of each test point ``nodes`` (k,) (default: the point alone, the paper's
@@ -155,7 +161,7 @@ class _PointEvaluator:
         """
         idx = self._indices(points)
         forces = self.force_vectors(params, idx)
-        return np.einsum("psc,pc->ps", forces, self.normals[idx])
+        return normal_force(forces, self.normals[idx])
 
     def evaluate_many(self, param_sets: Sequence[ConnectorParams],
                       points: Sequence[int] | None = None) -> np.ndarray:

@@ -61,7 +61,7 @@ import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
 from particle import sensitivity_kernels as kern
-from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
 from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams, same_values
 from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, ldl_factor, tangent_data
@@ -204,7 +204,7 @@ class _Adjoint(_Recorded):
         idx = self._indices(points)
         vectors = self.forward(params, idx)
         if directions is None:
-            forces = np.einsum("psc,pc->ps", vectors, self.normals[idx])
+            forces = normal_force(vectors, self.normals[idx])
         else:
             directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
             if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):

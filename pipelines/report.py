@@ -14,6 +14,14 @@ Errors (all dimensionless):
 * ``gravity_dynamic``: RMS over the sample times of ``|u_p(t) - u_FE(t)|`` of the
   tracked vertex divided by ``max_t |u_FE(t)|``.
 
+``force_vector_errors`` measures the whole indenter force, the tangential reaction a
+bonded indenter (and a haptic tool) also feels: for the calibrated and the baseline model
+the curve keys of ``errors`` with the relative RMS error of the force vector
+(``RMS |F_sim - F_ref| / max|F_ref . n|``, the normal curve's scale), and under
+``<model>_tangential`` of its tangential part alone
+(:func:`calibration.metrics.force_vector_errors`); null (with a warning) for a
+``params.h5`` written before it stored the force vectors.
+
 ``gravity.dynamic_metrics`` separates the tracked vertex's dynamic error into
 period, first-peak displacement and decay rate errors (:mod:`pipelines.dynamics`),
 for the calibrated and the baseline model, next to the RMS error, and identifies the
@@ -40,7 +48,7 @@ from typing import Any
 import numpy as np
 
 import forcecal
-from calibration.metrics import relative_rms_error
+from calibration.metrics import force_vector_errors, relative_rms_error
 from calibration.results import CalibrationResult
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
@@ -54,6 +62,10 @@ log = logging.getLogger(__name__)
 ERROR_KEYS = ("indentation_global", "indentation_calibrated", "indentation_held_out",
               "relaxation_global", "relaxation_calibrated", "relaxation_held_out",
               "gravity_static", "gravity_dynamic")
+# the params.h5 variant each point set of a model's errors is evaluated on
+CALIBRATED_VARIANTS = {"global": "global", "calibrated": "calibrated", "held_out": "calibrated"}
+BASELINE_VARIANTS = dict.fromkeys(("global", "calibrated", "held_out"), "baseline")
+CURVE_KEYS = ERROR_KEYS[:6]  # the test points' curves (the force_vector_errors keys)
 TIMING_KEYS = ("mesh", "reference", "calibration", "gravity_particle", "gravity_fe")
 
 
@@ -82,6 +94,31 @@ def gravity_dynamic_error(fe: np.ndarray, particle: np.ndarray) -> float:
     if scale == 0.0:
         raise DataFileError("the FE displacement of the tracked node is zero at every sample")
     return float(np.sqrt(np.mean(np.sum((particle - fe) ** 2, axis=1))) / scale)
+
+
+def vector_errors(reference: Reference, calibration: CalibrationResult,
+                  variants: dict[str, str]) -> tuple[dict[str, float | None],
+                                                     dict[str, float | None]] | None:
+    """(vector, tangential) errors of one model: the curve keys of :data:`ERROR_KEYS` (None for
+    experiments not fitted); ``variants`` as for :func:`model_errors`. None if a variant's
+    force vectors are not in ``params.h5``."""
+    if any(calibration.variants[v].forces is None for v in variants.values()):
+        return None
+    cal = calibration.is_calibration
+    vector: dict[str, float | None] = dict.fromkeys(CURVE_KEYS)
+    tangential: dict[str, float | None] = dict.fromkeys(CURVE_KEYS)
+    for experiment in calibration.experiments:
+        ref = getattr(reference, experiment).force
+        for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
+            sim = calibration.variants[variants[key]].forces[experiment]
+            if sim.shape != ref.shape:
+                raise DataFileError(f"params.h5 {variants[key]} {experiment} force vectors have "
+                                    f"shape {sim.shape}, the reference {ref.shape}; rerun the "
+                                    "calibration")
+            whole, tang = force_vector_errors(sim, ref, reference.problem.normals)
+            vector[f"{experiment}_{key}"] = _mean(whole[points])
+            tangential[f"{experiment}_{key}"] = _mean(tang[points])
+    return vector, tangential
 
 
 def _mean(values: np.ndarray) -> float | None:
@@ -164,15 +201,21 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     ran, not_run = experiments_run(experiments, calibration, gravity)
     models = gravity.models if gravity is not None else dict.fromkeys(("calibrated",
                                                                       "baseline"))
-    calibrated = model_errors(reference, calibration, models["calibrated"],
-                              {"global": "global", "calibrated": "calibrated",
-                               "held_out": "calibrated"}, ran)
-    baseline = model_errors(reference, calibration, models["baseline"],
-                            dict.fromkeys(("global", "calibrated", "held_out"), "baseline"), ran)
+    calibrated = model_errors(reference, calibration, models["calibrated"], CALIBRATED_VARIANTS,
+                              ran)
+    baseline = model_errors(reference, calibration, models["baseline"], BASELINE_VARIANTS, ran)
     held = ~calibration.is_calibration
     per_point = {f"{v}_{e}": curve_errors(reference, calibration, v, e).tolist()
                  for v in ("baseline", "global", "calibrated") for e in calibration.experiments}
     warnings = list(calibration.warnings)
+    by_model = {"calibrated": vector_errors(reference, calibration, CALIBRATED_VARIANTS),
+                "baseline": vector_errors(reference, calibration, BASELINE_VARIANTS)}
+    vector_block = None if None in by_model.values() else {
+        f"{m}{suffix}": errs[i] for m, errs in by_model.items()
+        for i, suffix in enumerate(("", "_tangential"))}
+    if vector_block is None:
+        warnings.append("params.h5 has no force vectors (written before they were stored): "
+                        "force_vector_errors is null; rerun the calibration")
     if not held.any():
         warnings.append("the scene has no held-out points: the *_held_out errors are null")
     lo, hi = calibration.strain.bounds
@@ -220,6 +263,7 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
                         "coverage": p.coverage},
         "errors": calibrated,
         "baseline_errors": baseline,
+        "force_vector_errors": vector_block,
         "timings_s": {"mesh": fe_t["mesh"], "reference": fe_t["total"],
                       "calibration": float(calibration.wall_time),
                       "gravity_particle": None if run is None else (run.static_time
@@ -247,12 +291,17 @@ def check_report(report: dict[str, Any]) -> None:
     null without a reason: an experiment in ``not_run``, or no held-out points)."""
     not_run = report.get("not_run", {})
     no_gravity = {"gravity_static", "gravity_dynamic"} <= set(not_run)
-    for group, keys in (("errors", ERROR_KEYS), ("baseline_errors", ERROR_KEYS),
-                        ("timings_s", TIMING_KEYS)):
+    groups = [("errors", report.get("errors", {}), ERROR_KEYS),
+              ("baseline_errors", report.get("baseline_errors", {}), ERROR_KEYS),
+              ("timings_s", report.get("timings_s", {}), TIMING_KEYS)]
+    # reports written before the force vector errors have no such key; null: not stored
+    vector = report.get("force_vector_errors") or {}
+    groups += [(f"force_vector_errors.{m}", values, CURVE_KEYS) for m, values in vector.items()]
+    for group, values, keys in groups:
         for k in keys:
-            if k not in report.get(group, {}):
+            if k not in values:
                 raise DataFileError(f"report.json: {group}.{k} is missing")
-            v = report[group][k]
+            v = values[k]
             explained = v is None and (k.endswith("held_out") or any(
                 k.startswith(e) for e in not_run) or (no_gravity and k.startswith("gravity")))
             if not explained and not (isinstance(v, (int, float)) and not isinstance(v, bool)

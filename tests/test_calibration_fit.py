@@ -25,6 +25,7 @@ from calibration.synthetic import (box_scene, noisy_params, ring_perturbed_param
 from forcecal.h5io import read_reference
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import replace
+from particle.evaluators import normal_force
 from particle.params import PARAM_NAMES
 from tests.conftest import ROOT
 
@@ -221,6 +222,11 @@ def test_params_file_round_trip(nonuniform):
         for experiment in ("indentation", "relaxation"):
             np.testing.assert_array_equal(back.variants[variant].errors[experiment],
                                           result.variants[variant].errors[experiment])
+            # the curves are the force vectors' inward-normal components, to every digit
+            forces = back.variants[variant].forces[experiment]
+            np.testing.assert_array_equal(forces, result.variants[variant].forces[experiment])
+            np.testing.assert_array_equal(normal_force(forces, back.problem.normals),
+                                          back.variants[variant].curves[experiment])
     assert back.global_params == result.global_params and back.initial == result.initial
     for phase in ("static", "relaxation"):
         a, b = back.global_fits[phase], result.global_fits[phase]

@@ -135,7 +135,13 @@ def test_an_optimiser_that_cannot_reduce_the_cost_is_reported(case, tmp_path):
         assert any(w.startswith(start) for w in result.warnings), start
     # a rejected first sweep ends the phase
     assert [len(result.local_sweeps[s]) for s in ("static", "relaxation")] == [1, 1]
-    assert read_params(tmp_path / "params.h5").warnings == result.warnings
+    back = read_params(tmp_path / "params.h5")
+    assert back.warnings == result.warnings
+    # evaluators without force_vectors: the curves are validated, no forces stored
+    shape = read_reference(reference).indentation.force_normal.shape
+    for variants in (result.variants, back.variants):
+        assert all(v.forces is None and v.curves["indentation"].shape == shape
+                   for v in variants.values())
 
 
 class Interrupted(Exception):

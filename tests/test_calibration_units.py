@@ -8,7 +8,7 @@ import pytest
 
 from calibration.baseline import long_term_young_modulus, van_gelder_params
 from calibration.global_fit import fe_initial_slopes, initial_guess
-from calibration.metrics import point_costs, relative_rms_error
+from calibration.metrics import force_vector_errors, point_costs, relative_rms_error
 from calibration.network import linear_indentation
 from calibration.optimize import gauss_newton, nelder_mead
 from calibration.parametrisation import (MAX_LOCAL_FACTOR, GlobalParams, StrainRange,
@@ -17,6 +17,7 @@ from calibration.parametrisation import (MAX_LOCAL_FACTOR, GlobalParams, StrainR
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.mesh import TetMesh, box_mesh, check_mesh, fixed_nodes
 from forcecal.scene import MaterialSection
+from particle.evaluators import normal_force
 from particle.model import build_model
 from particle.params import ConnectorParams
 
@@ -33,6 +34,37 @@ def test_metrics_closed_form():
         relative_rms_error(np.full_like(ref, np.nan), ref)
     with pytest.raises(ParameterError, match="identically zero"):
         relative_rms_error(sim, np.zeros_like(ref))
+
+
+def test_force_vector_errors_closed_form():
+    # two points, 4 samples; normals z and x; normal curves peak at 2 N and 4 N
+    normals = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    ref = np.zeros((2, 4, 3))
+    ref[0, :, 2] = [0.5, 1.0, 1.5, -2.0]
+    ref[1, :, 0] = [1.0, 2.0, 3.0, 4.0]
+    ref[1, :, 1] = 0.3  # a tangential reaction: not part of the scale
+    sim = ref.copy()
+    sim[0] += [0.3, 0.0, 0.4]  # |error| 0.5, its tangential part 0.3, at every sample
+    sim[1, :2] += [0.0, 0.0, 0.8]  # tangential 0.8 at half the samples: RMS 0.8 / sqrt(2)
+    vector, tangential = force_vector_errors(sim, ref, normals)
+    np.testing.assert_allclose(vector, [0.5 / 2.0, 0.8 / np.sqrt(2) / 4.0], rtol=1e-14)
+    np.testing.assert_allclose(tangential, [0.3 / 2.0, 0.8 / np.sqrt(2) / 4.0], rtol=1e-14)
+    # a purely normal error is the normal curve's error, and has no tangential part
+    along = ref + 0.1 * normals[:, None, :]
+    vector, tangential = force_vector_errors(along, ref, normals)
+    np.testing.assert_allclose(vector, relative_rms_error(normal_force(along, normals),
+                                                          normal_force(ref, normals)),
+                               rtol=1e-14)
+    np.testing.assert_allclose(vector, [0.1 / 2.0, 0.1 / 4.0], rtol=1e-14)
+    np.testing.assert_allclose(tangential, 0.0, atol=1e-16)
+    with pytest.raises(ParameterError, match=r"\(P, S, 3\)"):
+        force_vector_errors(sim[..., :2], ref[..., :2], normals)
+    with pytest.raises(ParameterError, match="normals"):
+        force_vector_errors(sim, ref, normals[:1])
+    with pytest.raises(ParameterError, match="NaN"):
+        force_vector_errors(np.full_like(ref, np.nan), ref, normals)
+    with pytest.raises(ParameterError, match="identically zero"):
+        force_vector_errors(sim, ref * [[[1.0, 1.0, 0.0]], [[1.0, 1.0, 1.0]]], normals)
 
 
 def _one_tet() -> TetMesh:

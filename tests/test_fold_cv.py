@@ -30,5 +30,12 @@ def test_every_calibration_point_is_predicted_once_and_the_better_fit_is_chosen(
         assert all(len(v["per_point"][e]) == len(points) for e in EXPERIMENTS)
         assert all(np.all(np.isfinite(v["per_point"][e])) for e in EXPERIMENTS)
     assert max(max(fitted["per_point"][e]) for e in EXPERIMENTS) < 3e-3
+    # the whole force vector's error, beside: never below the normal force's (same scale),
+    # and small where the fit holds the truth
+    for v in (fitted, stopped):
+        for e in EXPERIMENTS:
+            assert np.all(np.asarray(v["per_point_vector"][e])
+                          >= np.asarray(v["per_point"][e]) - 1e-12), e
+    assert max(max(fitted["per_point_vector"][e]) for e in EXPERIMENTS) < 3e-3
     assert stopped["score"] > 10.0 * fitted["score"]
     assert result["chosen"] == "fitted"

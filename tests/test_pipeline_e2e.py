@@ -4,6 +4,7 @@ One full run (FE reference with 2 MPI ranks, calibration with small budgets,
 gravity, report) is shared by the tests; each test that changes something
 works on its own copy of the output folder.
 """
+import dataclasses
 import json
 import math
 import shutil
@@ -13,10 +14,11 @@ import tomllib
 
 import pytest
 
+from calibration.results import read_params
 from forcecal.h5io import read_reference
 from forcecal.scene import load_scene
 from pipelines.gravity import read_gravity
-from pipelines.report import ERROR_KEYS, TIMING_KEYS
+from pipelines.report import CURVE_KEYS, ERROR_KEYS, TIMING_KEYS, build_report, check_report
 from pipelines.stages import ORDER, run_pipeline
 from tests.conftest import ROOT, SCENES
 
@@ -105,9 +107,33 @@ def test_report_has_every_key_finite_and_calibration_beats_the_baseline(first_ru
     # baseline's per-edge stiffness follows the tet volumes better than a uniform spring)
     for key in ("indentation_calibrated", "relaxation_calibrated"):
         assert report["errors"][key] < report["baseline_errors"][key], key
+    # the whole force vector: never below its normal component's error (same scale), and
+    # its tangential part is the rest of it
+    vector = report["force_vector_errors"]
+    for model, normal in (("calibrated", report["errors"]), ("baseline",
+                                                            report["baseline_errors"])):
+        for key in CURVE_KEYS:
+            whole, tangential = vector[model][key], vector[f"{model}_tangential"][key]
+            assert normal[key] <= whole + 1e-12 and tangential <= whole + 1e-12, (model, key)
+            assert whole <= normal[key] + tangential + 1e-12, (model, key)
     # the baseline is one model: its "global" and "calibrated" errors are the same points
     assert report["baseline_errors"]["indentation_global"] == report["baseline_errors"][
         "indentation_calibrated"]
+
+
+def test_a_params_file_without_force_vectors_reports_them_as_null(first_run):
+    """A ``params.h5`` written before the force vectors were stored (their group removed):
+    the report keeps every other number and says why ``force_vector_errors`` is null."""
+    _, out, _ = first_run
+    params = read_params(out / "params.h5")
+    older = dataclasses.replace(params, variants={
+        v: dataclasses.replace(c, forces=None) for v, c in params.variants.items()})
+    report = build_report("tiny", read_reference(out / "reference.h5"), older,
+                          read_gravity(out / "gravity.h5"))
+    check_report(report)
+    assert report["force_vector_errors"] is None
+    assert any("no force vectors" in w for w in report["warnings"])
+    assert report["errors"] == json.loads((out / "report.json").read_text())["errors"]
 
 
 def test_second_run_skips_every_stage_and_says_why(first_run, tmp_path):

@@ -18,8 +18,8 @@ from particle.stability import connector_strains
 from forcecal.provenance import code_digest, code_digests, file_digest, import_closure
 from pipelines.cache import Cache, StageInputs
 from pipelines.gravity import GravityRuns, GravityTest, read_gravity, run_model, write_gravity
-from pipelines.report import (ERROR_KEYS, TIMING_KEYS, check_report, gravity_dynamic_error,
-                              gravity_static_error)
+from pipelines.report import (CURVE_KEYS, ERROR_KEYS, TIMING_KEYS, check_report,
+                              gravity_dynamic_error, gravity_static_error)
 from pipelines.stages import STAGES
 from tests.conftest import ROOT
 
@@ -388,6 +388,21 @@ def test_check_report_refuses_missing_and_non_finite_numbers():
     r = _report()
     del r["timings_s"]["calibration"]
     with pytest.raises(DataFileError, match="timings_s.calibration is missing"):
+        check_report(r)
+    # the force vector errors: absent (older reports) or null (older params.h5) pass, and
+    # when present every curve key is checked as the normal errors' are
+    r = _report()
+    r["force_vector_errors"] = None
+    check_report(r)
+    r["force_vector_errors"] = {"calibrated": dict.fromkeys(CURVE_KEYS, 0.1)}
+    check_report(r)
+    r["force_vector_errors"]["calibrated"]["relaxation_held_out"] = None
+    check_report(r)
+    r["force_vector_errors"]["calibrated"]["relaxation_calibrated"] = float("inf")
+    with pytest.raises(DataFileError, match="calibrated.relaxation_calibrated = inf"):
+        check_report(r)
+    del r["force_vector_errors"]["calibrated"]["relaxation_calibrated"]
+    with pytest.raises(DataFileError, match="calibrated.relaxation_calibrated is missing"):
         check_report(r)
 
 
