@@ -109,13 +109,16 @@ def vector_errors(reference: Reference, calibration: CalibrationResult,
     tangential: dict[str, float | None] = dict.fromkeys(CURVE_KEYS)
     for experiment in calibration.experiments:
         ref = getattr(reference, experiment).force
-        for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
-            sim = calibration.variants[variants[key]].forces[experiment]
+        per_variant = {}  # (vector, tangential) (P,) errors of each variant, once
+        for variant in set(variants.values()):
+            sim = calibration.variants[variant].forces[experiment]
             if sim.shape != ref.shape:
-                raise DataFileError(f"params.h5 {variants[key]} {experiment} force vectors have "
+                raise DataFileError(f"params.h5 {variant} {experiment} force vectors have "
                                     f"shape {sim.shape}, the reference {ref.shape}; rerun the "
                                     "calibration")
-            whole, tang = force_vector_errors(sim, ref, reference.problem.normals)
+            per_variant[variant] = force_vector_errors(sim, ref, reference.problem.normals)
+        for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
+            whole, tang = per_variant[variants[key]]
             vector[f"{experiment}_{key}"] = _mean(whole[points])
             tangential[f"{experiment}_{key}"] = _mean(tang[points])
     return vector, tangential
