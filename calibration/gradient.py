@@ -69,6 +69,7 @@ from calibration.gradient_solver import (N_COORDS, PRIOR_RATIO, ROWS_KEPT, SHAPE
 from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
 from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
+from particle.evaluators import force_components
 from particle.params import ConnectorParams
 from particle.volume import tet_edge_connectors
 
@@ -314,8 +315,7 @@ class Data:
     def components(self, vectors: np.ndarray) -> np.ndarray:
         """(P', D S) the components along :attr:`directions` of (P', S, 3) force vectors,
         direction-major (the order of :meth:`particle.sensitivity._Adjoint.jacobian`)."""
-        vectors = np.asarray(vectors, dtype=np.float64)
-        return np.einsum("psc,dc->pds", vectors, self.directions).reshape(len(vectors), -1)
+        return force_components(vectors, self.directions)
 
     @property
     def kinds(self) -> tuple[str, ...]:

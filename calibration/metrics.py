@@ -60,16 +60,13 @@ def force_vector_errors(sim: np.ndarray, ref: np.ndarray, normals: np.ndarray
     peaks near zero load, where a relative measure of its own has no scale). A point whose
     normal curve is identically zero raises :class:`ParameterError`.
     """
-    sim = np.asarray(sim, dtype=np.float64)
-    ref = np.asarray(ref, dtype=np.float64)
+    if np.ndim(sim) != 3 or np.ndim(ref) != 3 or np.shape(sim)[2] != 3 or np.shape(ref)[2] != 3:
+        raise ParameterError(f"simulated force vectors have shape {np.shape(sim)}, reference "
+                             f"{np.shape(ref)}; both must be (P, S, 3)")
+    sim, ref = _pair(sim, ref)
     normals = np.asarray(normals, dtype=np.float64)
-    if sim.shape != ref.shape or sim.ndim != 3 or sim.shape[2] != 3:
-        raise ParameterError(f"simulated force vectors have shape {sim.shape}, reference "
-                             f"{ref.shape}; both must be (P, S, 3)")
     if normals.shape != (len(ref), 3):
         raise ParameterError(f"{len(ref)} points but normals of shape {normals.shape}")
-    if not (np.all(np.isfinite(sim)) and np.all(np.isfinite(ref))):
-        raise ParameterError("force vectors contain NaN/inf values")
     scale = np.max(np.abs(normal_force(ref, normals)), axis=1)
     if np.any(scale == 0.0):
         bad = np.nonzero(scale == 0.0)[0]

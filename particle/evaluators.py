@@ -39,6 +39,15 @@ def normal_force(forces: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.einsum("psc,pc->ps", forces, normals)
 
 
+def force_components(forces: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(P, D S) components [N] of (P, S, 3) force vectors [N] along each of the (D, 3)
+    ``directions``, direction-major (column ``d S + j``: direction d at sample j): the
+    outputs of a component fit and of their Jacobian
+    (:meth:`particle.sensitivity._Adjoint.jacobian`)."""
+    forces = np.asarray(forces, dtype=np.float64)
+    return np.einsum("psc,dc->pds", forces, directions).reshape(len(forces), -1)
+
+
 def checked_footprints(model: Model, nodes: np.ndarray,
                        footprints: Sequence[np.ndarray] | None) -> tuple[np.ndarray, ...]:
     """Held particles of each test point ``nodes`` (k,) (default: the point alone, the paper's

@@ -61,7 +61,8 @@ import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
 from particle import sensitivity_kernels as kern
-from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
+from particle.evaluators import (IndentationEvaluator, RelaxationEvaluator, force_components,
+                                 normal_force)
 from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams, same_values
 from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, ldl_factor, tangent_data
@@ -210,7 +211,7 @@ class _Adjoint(_Recorded):
             if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):
                 raise ParameterError(f"output directions must be unit vectors, got "
                                      f"{directions.tolist()}")
-            forces = np.einsum("psc,dc->pds", vectors, directions).reshape(len(idx), -1)
+            forces = force_components(vectors, directions)
         model = self.model.with_params(params)
         parts = [point_jacobian_numpy(self, model, int(k), directions) if self.numpy_twin
                  else self._point_jacobian(model, int(k), directions) for k in idx]
