@@ -19,9 +19,9 @@ builder, mutable State, integrators and solvers apart):
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.haptics import HapticSession
-from particle.integrator import Prescribed, VerletIntegrator
+from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step, resolve_time_step, strain_range_for_release
-from particle.model import Model, ModelBuilder, State, build_model
+from particle.model import Model, ModelBuilder, Prescribed, State, build_model
 from particle.params import ConnectorParams
 from particle.statics import gravity_static
 

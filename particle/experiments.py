@@ -20,10 +20,11 @@ from tqdm import tqdm
 
 from forcecal.errors import ParameterError
 from forcecal.scene import ParticleSection
-from particle.integrator import Prescribed, VerletIntegrator, energy_bound
+from particle.guard import energy_bound
+from particle.integrator import VerletIntegrator
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, connector_strains,
                                 critical_time_step, release_strain_range, resolve_time_step)
-from particle.model import Model
+from particle.model import Model, Prescribed
 from particle.params import StrainBounds
 from particle.statics import check_stiffness, gravity_static
 

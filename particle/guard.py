@@ -1,4 +1,4 @@
-"""What stops an explicit run: the divergence bound, the state check and the errors.
+"""What stops an explicit run: the divergence bound and the state check.
 
 A :class:`~particle.integrator.Run` checks the state it is given
 (:func:`check_state`), then the compiled loop checks every ``check_every`` steps
@@ -6,25 +6,20 @@ that no position is non-finite, that the kinetic energy stays below
 :func:`energy_bound` and that the connector strains (and with the volume term the
 tets' volumes) stay in the range the step was verified stable for
 (:mod:`particle.stability`); the first failure stops the loop with a code,
-which :func:`exit_error` turns into a :class:`StabilityError` naming the particle,
-connector or tet.
+which :func:`particle.integrator.exit_error` turns into a
+:class:`~forcecal.errors.StabilityError` naming the particle, connector or tet.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from forcecal.errors import ParameterError, StabilityError
-from particle import step_kernels
-from particle.model import Model, State
+from forcecal.errors import ParameterError
+from particle.model import Model, Prescribed, State
 from particle.statics import check_stiffness, check_volumes
-from particle.volume import node_volume_stiffness, signed_volumes, tet_name, volume_energy
-
-if TYPE_CHECKING:  # the integrator imports this module
-    from particle.integrator import Prescribed, Run
+from particle.volume import node_volume_stiffness, volume_energy
 
 # the kinetic energy may exceed the work the loads can do by this factor before a run is
 # declared divergent: a real run stays far below, an unstable one grows exponentially
@@ -101,55 +96,3 @@ def check_state(model: Model, state: State) -> None:
                 f" expected a writeable, C-contiguous float64 array of shape {shape}")
     if not math.isfinite(state.t):
         raise ParameterError(f"the state's time t = {state.t} s is not finite")
-
-
-def exit_error(run: Run, state: State, code: int, step: int, index: int,
-               energy_bound: float) -> StabilityError:
-    """The error for the kernel's exit ``code`` != OK at ``step`` (``index``: the tet,
-    connector or particle it names; ``energy_bound`` [J] the run's divergence bound)."""
-    if code == step_kernels.VOLUME:
-        return volume_exit(run, state, index, step)
-    if code == step_kernels.STRAIN:
-        return strain_exit(run, state, index, state.t + (step - 1) * run.dt)
-    what = ("has a non-finite position" if code == step_kernels.NONFINITE else
-            f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
-    return StabilityError(
-        f"explicit run diverged at step {step} (t = {state.t + step * run.dt:.6g} s): "
-        f"particle {index} {what}; dt = {run.dt:.4g} s, stability limit "
-        f"{run.integrator.critical_time_step(run.stability_model):.4g} s")
-
-
-def volume_exit(run: Run, state: State, t: int, step: int) -> StabilityError:
-    """The error for tet ``t`` found outside its volume range at step ``step`` (the
-    kernel stopped right after advancing the free particles: their positions then are
-    the state's ``x_prev``, the prescribed ones' still ``x``)."""
-    model, dt = run.model, run.dt
-    x = state.x_prev.copy()
-    x[run.prescribed] = state.x[run.prescribed]
-    ratio = float(signed_volumes(x, model.tets[t:t + 1])[0] / model.rest_volumes[t])
-    where = (f"at step {step} (t = {state.t + step * dt:.6g} s) of the explicit run; dt = "
-             f"{dt:.4g} s, stability limit {run.integrator.critical_time_step(model):.4g} s")
-    if not ratio > 0.0:
-        return StabilityError(f"{tet_name(t, model.tets)} inverted (volume ratio V/V0 = "
-                              f"{ratio:.3g} <= 0) {where}; the run stopped (the volume term "
-                              "is not meant for inverted tets)")
-    lo, hi = run.volume_ratio_range
-    return StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
-                          f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
-                          "was verified stable for; the run stopped rather than continue with "
-                          "an unverified step (widen the strain range: it sets this one)")
-
-
-def strain_exit(run: Run, state: State, e: int, t: float) -> StabilityError:
-    """The error for connector ``e`` found outside its monitored range at time ``t`` [s]."""
-    lo, hi = run.monitored
-    i, j = run.model.edges[e]
-    strain = state.dx_prev[e] / run.model.rest_lengths[e]
-    return StabilityError(
-        f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
-        f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {run.dt:.4g} s was "
-        f"verified stable for (limit "
-        f"{run.integrator.critical_time_step(run.stability_model):.4g} "
-        "s); the run stopped rather than continue with an unverified step. Widen the "
-        "range (in a scene: a larger particle.strain_margin) or use a smaller explicit "
-        "step verified for a wider range (particle.dt)")

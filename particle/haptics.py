@@ -21,9 +21,9 @@ import numpy as np
 
 from forcecal.errors import MeshError, ParameterError
 from particle.guard import energy_bound
-from particle.integrator import Prescribed, Run, VerletIntegrator, check_threads
+from particle.integrator import Run, VerletIntegrator, check_threads
 from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
-from particle.model import Model
+from particle.model import Model, Prescribed
 from particle.params import StrainBounds
 
 log = logging.getLogger(__name__)

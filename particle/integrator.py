@@ -11,8 +11,10 @@ Each step evaluates, in this order: connector elongations, the arm recursion
 ``F^t = r F^{t-1} + c (dx^t - dx^{t-1})`` with the paper's coefficients
 (:meth:`ConnectorParams.arm_recursion`), spring + arm tension, gravity ``m g``,
 and optional mass-proportional damping ``-gamma m v`` with the backward-difference
-velocity. What stops a run is :mod:`particle.guard`'s; the stable step and the
-strain ranges it holds on are :mod:`particle.stability`'s.
+velocity. What stops a run is :mod:`particle.guard`'s (the errors it stops with,
+:func:`exit_error`, are here: they read the :class:`Run`); the stable step and the
+strain ranges it holds on are :mod:`particle.stability`'s. The keyframed motion of
+prescribed particles is :class:`~particle.model.Prescribed`.
 
 Threads: a :class:`Run` with ``threads`` = T > 1 (opt-in, for large models on a
 dedicated core set) splits each step's connector pass into T contiguous connector
@@ -40,14 +42,14 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from forcecal.errors import ParameterError
+from forcecal.errors import ParameterError, StabilityError
 from particle import kernels, step_kernels
-from particle.model import Model, State
+from particle.model import Model, Prescribed, State
 from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
-from particle.guard import check_state, energy_bound, exit_error
-from particle.volume import node_volume_force, volume_ratio_range
+from particle.guard import check_state, energy_bound
+from particle.volume import node_volume_force, signed_volumes, tet_name, volume_ratio_range
 
 log = logging.getLogger(__name__)
 
@@ -113,36 +115,6 @@ class Terms:
             return cls(gravity=True, arms=True, nonlinear=True, damping=True)
         return cls(gravity=gravity is not None and bool(np.any(gravity)), arms=arms,
                    nonlinear=not params.is_linear, damping=damping > 0.0)
-
-
-@dataclass(frozen=True, eq=False)
-class Prescribed:
-    """Particles whose positions follow piecewise-linear keyframes (held after the last).
-
-    Attributes:
-        nodes: (k,) int64, prescribed particle ids.
-        times: (K,) float64, increasing keyframe times [s].
-        positions: (K, k, 3) float64, positions at the keyframes [m].
-    """
-    nodes: np.ndarray
-    times: np.ndarray
-    positions: np.ndarray
-
-    def __post_init__(self) -> None:
-        nodes = np.atleast_1d(np.asarray(self.nodes, dtype=np.int64))
-        times = np.atleast_1d(np.asarray(self.times, dtype=np.float64))
-        pos = np.asarray(self.positions, dtype=np.float64).reshape(len(times), len(nodes), 3)
-        if len(times) == 0 or np.any(np.diff(times) <= 0) or not np.all(np.isfinite(pos)):
-            raise ParameterError("prescribed motion needs increasing keyframe times and finite "
-                                 "positions")
-        object.__setattr__(self, "nodes", nodes)
-        object.__setattr__(self, "times", times)
-        object.__setattr__(self, "positions", pos)
-
-    @classmethod
-    def hold(cls, nodes, positions) -> "Prescribed":
-        """Nodes held at fixed positions (k, 3) [m]."""
-        return cls(nodes, [0.0], np.asarray(positions, dtype=np.float64)[None])
 
 
 class VerletIntegrator:
@@ -445,3 +417,55 @@ def incident(model: Model, node: int, tets: bool) -> tuple[np.ndarray, np.ndarra
     edges = kernels.index_view(model.incidence_edge[ptr[node]:ptr[node + 1]])
     return edges, (kernels.index_view(np.nonzero(np.any(model.tets == node, axis=1))[0])
                    if tets else None)
+
+
+def exit_error(run: Run, state: State, code: int, step: int, index: int,
+               energy_bound: float) -> StabilityError:
+    """The error for the kernel's exit ``code`` != OK at ``step`` (``index``: the tet,
+    connector or particle it names; ``energy_bound`` [J] the run's divergence bound)."""
+    if code == step_kernels.VOLUME:
+        return volume_exit(run, state, index, step)
+    if code == step_kernels.STRAIN:
+        return strain_exit(run, state, index, state.t + (step - 1) * run.dt)
+    what = ("has a non-finite position" if code == step_kernels.NONFINITE else
+            f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
+    return StabilityError(
+        f"explicit run diverged at step {step} (t = {state.t + step * run.dt:.6g} s): "
+        f"particle {index} {what}; dt = {run.dt:.4g} s, stability limit "
+        f"{run.integrator.critical_time_step(run.stability_model):.4g} s")
+
+
+def volume_exit(run: Run, state: State, t: int, step: int) -> StabilityError:
+    """The error for tet ``t`` found outside its volume range at step ``step`` (the
+    kernel stopped right after advancing the free particles: their positions then are
+    the state's ``x_prev``, the prescribed ones' still ``x``)."""
+    model, dt = run.model, run.dt
+    x = state.x_prev.copy()
+    x[run.prescribed] = state.x[run.prescribed]
+    ratio = float(signed_volumes(x, model.tets[t:t + 1])[0] / model.rest_volumes[t])
+    where = (f"at step {step} (t = {state.t + step * dt:.6g} s) of the explicit run; dt = "
+             f"{dt:.4g} s, stability limit {run.integrator.critical_time_step(model):.4g} s")
+    if not ratio > 0.0:
+        return StabilityError(f"{tet_name(t, model.tets)} inverted (volume ratio V/V0 = "
+                              f"{ratio:.3g} <= 0) {where}; the run stopped (the volume term "
+                              "is not meant for inverted tets)")
+    lo, hi = run.volume_ratio_range
+    return StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
+                          f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
+                          "was verified stable for; the run stopped rather than continue with "
+                          "an unverified step (widen the strain range: it sets this one)")
+
+
+def strain_exit(run: Run, state: State, e: int, t: float) -> StabilityError:
+    """The error for connector ``e`` found outside its monitored range at time ``t`` [s]."""
+    lo, hi = run.monitored
+    i, j = run.model.edges[e]
+    strain = state.dx_prev[e] / run.model.rest_lengths[e]
+    return StabilityError(
+        f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
+        f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {run.dt:.4g} s was "
+        f"verified stable for (limit "
+        f"{run.integrator.critical_time_step(run.stability_model):.4g} "
+        "s); the run stopped rather than continue with an unverified step. Widen the "
+        "range (in a scene: a larger particle.strain_margin) or use a smaller explicit "
+        "step verified for a wider range (particle.dt)")

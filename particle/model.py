@@ -263,6 +263,36 @@ class State:
         return self.x - model.rest_positions
 
 
+@dataclass(frozen=True, eq=False)
+class Prescribed:
+    """Particles whose positions follow piecewise-linear keyframes (held after the last).
+
+    Attributes:
+        nodes: (k,) int64, prescribed particle ids.
+        times: (K,) float64, increasing keyframe times [s].
+        positions: (K, k, 3) float64, positions at the keyframes [m].
+    """
+    nodes: np.ndarray
+    times: np.ndarray
+    positions: np.ndarray
+
+    def __post_init__(self) -> None:
+        nodes = np.atleast_1d(np.asarray(self.nodes, dtype=np.int64))
+        times = np.atleast_1d(np.asarray(self.times, dtype=np.float64))
+        pos = np.asarray(self.positions, dtype=np.float64).reshape(len(times), len(nodes), 3)
+        if len(times) == 0 or np.any(np.diff(times) <= 0) or not np.all(np.isfinite(pos)):
+            raise ParameterError("prescribed motion needs increasing keyframe times and finite "
+                                 "positions")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "positions", pos)
+
+    @classmethod
+    def hold(cls, nodes, positions) -> "Prescribed":
+        """Nodes held at fixed positions (k, 3) [m]."""
+        return cls(nodes, [0.0], np.asarray(positions, dtype=np.float64)[None])
+
+
 class ModelBuilder:
     """Accumulates particles and connectors, then freezes them into a :class:`Model`.
 

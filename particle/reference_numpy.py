@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from particle.integrator import Prescribed
-from particle.model import Model, State
+from particle.model import Model, Prescribed, State
 from particle.volume import volume_forces_numpy
 
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from forcecal.mesh import box_mesh
-from particle.integrator import Prescribed
-from particle.model import Model, ModelBuilder, State, build_model
+from particle.model import Model, ModelBuilder, Prescribed, State, build_model
 from particle.params import ConnectorParams, viscoelastic_params
 
 

@@ -8,7 +8,9 @@ from forcecal.schedules import relaxation_schedule
 from forcecal.scene import RelaxationSection
 from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
-from particle.integrator import Prescribed, VerletIntegrator, energy_bound
+from particle.guard import energy_bound
+from particle.integrator import VerletIntegrator
+from particle.model import Prescribed
 from particle.stability import critical_time_step
 from particle.statics import gravity_static
 from particle.testing import two_particle_model, viscoelastic_params

@@ -12,9 +12,9 @@ from forcecal.scene import RelaxationSection
 from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
-from particle.integrator import Prescribed, VerletIntegrator
+from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
-from particle.model import build_model
+from particle.model import Prescribed, build_model
 from particle.statics import ArmStep, EquilibriumSolver, TangentPattern, gravity_static
 from particle.testing import box_model, top_centre, two_particle_model, viscoelastic_params
 

@@ -6,7 +6,8 @@ import pytest
 
 from forcecal.errors import ParameterError, StabilityError
 from particle.haptics import HapticSession
-from particle.integrator import Prescribed, VerletIntegrator
+from particle.integrator import VerletIntegrator
+from particle.model import Prescribed
 from particle.stability import critical_time_step
 from particle.testing import box_model, top_centre
 

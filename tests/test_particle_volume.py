@@ -9,9 +9,9 @@ from forcecal.errors import MeshError, ParameterError, StabilityError
 from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.haptics import HapticSession
-from particle.integrator import Prescribed, VerletIntegrator
+from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
-from particle.model import ModelBuilder
+from particle.model import ModelBuilder, Prescribed
 from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static, tangent_data
 from particle.testing import (box_model, deformed_start_and_push, spring_energy, top_centre,
