@@ -7,7 +7,13 @@ import pytest
 from forcecal.errors import ParameterError
 from particle.statics import gravity_static
 from particle.testing import box_model
-from pipelines.bench.sag_split import (heights, mean_sag_ratio, sag_rows, split_ratios,
+from calibration.synthetic import box_scene
+from forcecal.problem import build_problem
+from forcecal.schedules import indentation_depths
+from particle.evaluators import IndentationEvaluator
+from particle.model import build_model
+from pipelines.bench.sag_split import (DISTANCES, calibration_errors, footprint_distance,
+                                       heights, mean_sag_ratio, sag_rows, split_ratios,
                                        variants)
 from pipelines.report import gravity_static_error
 
@@ -77,6 +83,41 @@ def test_variants_put_back_the_global_values_where_and_what_they_say():
     assert heights(np.array([0.0, 0.0, 0.3]), GRAVITY) == pytest.approx(0.3)
     with pytest.raises(ParameterError, match="kv factors"):
         variants(glob, cal, ch, th, (1.0, 0.0))
+    # with distances from the footprints: the global values beyond each distance
+    cd, td = 0.01 * np.arange(len(ch)) / len(ch) * 5, 0.01 * np.arange(len(th)) / len(th) * 5
+    sets = variants(glob, cal, ch, th, (), (cd, td))
+    for d in DISTANCES:
+        far = sets[f"calibrated, global beyond {1e3 * d:g} mm of the footprints"]
+        assert np.array_equal(far.K0, np.where(cd > d, glob.K0, cal.K0))
+        assert np.array_equal(far.kv, np.where(td > d, 5e3, cal.kv))
+        assert 0 < (cd > d).sum() < len(cd)
+
+
+def test_footprint_distance_is_the_distance_to_the_nearest_held_particle():
+    held = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    points = np.array([[0.0, 3.0, 4.0], [0.9, 0.0, 0.0], [1.0, 0.0, -2.0]])
+    np.testing.assert_allclose(footprint_distance(points, held), [5.0, 0.1, 2.0], rtol=1e-12)
+
+
+def test_calibration_errors_are_the_reports_indentation_errors(tmp_path):
+    """The set that made the reference curves fits them exactly; linear springs twice as
+    stiff hold the same equilibria with twice the forces, so each point's error is its
+    curve's RMS over its largest value."""
+    scene = box_scene(tmp_path, test_points={"n_calibration": 3, "n_held_out": 8},
+                      indentation={"depth": 0.001})
+    problem = build_problem(scene)
+    model = box_model((3, 3, 2), density=1000.0, K0=20.0)
+    truth = model.params
+    stiffer = dataclasses.replace(truth, K0=2.0 * truth.K0)
+    depths = indentation_depths(scene.indentation)
+    built = build_model(problem, 1000.0, truth)
+    reference = IndentationEvaluator(built, problem.test_points[:3], problem.normals[:3],
+                                     depths)(truth)
+    got = calibration_errors(problem, 1000.0, depths, reference, None, (-0.5, 0.5),
+                             {"truth": truth, "stiffer": stiffer})
+    assert got["truth"] == 0.0
+    rms_over_max = np.sqrt(np.mean(reference ** 2, axis=1)) / np.abs(reference).max(axis=1)
+    assert got["stiffer"] == pytest.approx(rms_over_max.mean(), rel=1e-6)
 
 
 def test_sag_rows_repeat_the_static_sag_and_a_stiffer_kv_sags_less():

@@ -14,11 +14,17 @@ gravity stage's own Newton equilibrium on the calibrated strain range) of each m
   spread);
 * ``calibrated, global below half height`` / ``above half height``: where (connector and
   tet midpoints below or above the middle of the body's extent against gravity);
+* ``calibrated, global beyond d mm of the footprints``: the connectors and tets whose
+  midpoints lie farther than d (:data:`DISTANCES`) from every particle a calibration point's
+  indenter holds, i.e. the parts the punch curves see least;
 * ``calibrated, kv x f``: every tet's kv scaled (how stiff a volume term would have to be).
 
-Each row has the report's sag error and the *mean sag ratio*
+Each row has the report's sag error, the *mean sag ratio*
 ``sum_free u_particle . g / sum_free u_FE . g`` (1 = the body hangs as far as the FE's on
-average); the result also has the geometric means over connectors and tets of ``K0`` and
+average) and, when the study reads a finished run, ``calibration_indentation_error``: the
+mean relative RMS error of the indentation curves at the calibration points (the report's
+``indentation_calibrated``), i.e. what putting those values back costs against the data the
+fit saw; the result also has the geometric means over connectors and tets of ``K0`` and
 ``kv`` calibrated / global. The ``calibrated`` row repeats the gravity stage's static sag
 (checked against ``gravity.h5`` to 1e-9 of its largest displacement). Not a bench item
 (seconds on a finished run folder): ``python -m pipelines.bench.sag_split --scene
@@ -34,7 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.metrics import relative_rms_error
 from forcecal.errors import DataFileError, ParameterError
+from forcecal.indenter import indenter_footprints
+from particle.evaluators import IndentationEvaluator
 from particle.model import Model, build_model, params_for
 from particle.params import PARAM_NAMES, ConnectorParams
 from particle.statics import gravity_static
@@ -44,6 +53,9 @@ from pipelines.report import gravity_static_error
 log = logging.getLogger(__name__)
 
 KV_FACTORS = (1.5, 2.0)
+#: distances [m] from the calibration footprints beyond which ``variants`` puts back the
+#: global set
+DISTANCES = (0.01, 0.02, 0.03)
 
 
 def split_ratios(global_params: ConnectorParams, calibrated: ConnectorParams) -> dict:
@@ -80,10 +92,13 @@ def mixed(base: ConnectorParams, other: ConnectorParams, connectors: np.ndarray,
 
 def variants(global_params: ConnectorParams, calibrated: ConnectorParams,
              connector_height: np.ndarray, tet_height: np.ndarray | None,
-             kv_factors: tuple[float, ...] = KV_FACTORS) -> dict[str, ConnectorParams]:
+             kv_factors: tuple[float, ...] = KV_FACTORS,
+             distances: tuple[np.ndarray, np.ndarray | None] | None = None
+             ) -> dict[str, ConnectorParams]:
     """The module docstring's parameter sets; heights [m] of the connector and tet midpoints
-    against gravity (the tets' None without the volume term). Both sets with one kv per tet
-    (:func:`particle.model.params_for`)."""
+    against gravity (the tets' None without the volume term); ``distances``: the connector
+    and tet midpoints' distances [m] from the calibration footprints (None: no distance
+    rows). Both sets with one kv per tet (:func:`particle.model.params_for`)."""
     if not all(f > 0 for f in kv_factors):
         raise ParameterError(f"kv factors {kv_factors} must be > 0")
     every, none = np.ones(len(connector_height), bool), np.zeros(len(connector_height), bool)
@@ -110,6 +125,12 @@ def variants(global_params: ConnectorParams, calibrated: ConnectorParams,
                                           else (tet_height >= middle))
         out[f"calibrated, global {label} half height"] = mixed(calibrated, global_params,
                                                                side_c, side_t)
+    if distances is not None:
+        connector_distance, tet_distance = distances
+        for d in DISTANCES:
+            out[f"calibrated, global beyond {1e3 * d:g} mm of the footprints"] = mixed(
+                calibrated, global_params, connector_distance > d,
+                None if not volume else tet_distance > d)
     if volume:
         for f in kv_factors:
             out[f"calibrated, kv x{f:g}"] = dataclasses.replace(calibrated,
@@ -144,6 +165,29 @@ def heights(points: np.ndarray, gravity: np.ndarray) -> np.ndarray:
     return -points @ (np.asarray(gravity, dtype=float) / np.linalg.norm(gravity))
 
 
+def footprint_distance(points: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """(M,) distance [m] of each of the (M, 3) ``points`` from the nearest of the (H, 3)
+    ``held`` particle positions."""
+    points, held = np.asarray(points, dtype=float), np.asarray(held, dtype=float)
+    return np.sqrt(((points[:, None, :] - held[None, :, :]) ** 2).sum(axis=2).min(axis=1))
+
+
+def calibration_errors(problem, density: float, depths: np.ndarray, reference: np.ndarray,
+                       footprints: list[np.ndarray] | None, strain_range: tuple[float, float],
+                       sets: dict[str, ConnectorParams]) -> dict[str, float]:
+    """Label -> mean relative RMS error of each set's indentation curves against
+    ``reference`` (Pc, S) at the first Pc test points of ``problem`` (the calibration points)
+    [1], with the calibration's evaluator (``footprints`` per calibration point, None: the
+    vertex indenter)."""
+    n_cal = len(reference)
+    model = build_model(problem, density, next(iter(sets.values())))
+    evaluator = IndentationEvaluator(model, problem.test_points[:n_cal],
+                                     problem.normals[:n_cal], depths,
+                                     strain_range=strain_range, footprints=footprints)
+    return {label: float(relative_rms_error(evaluator(params), reference).mean())
+            for label, params in sets.items()}
+
+
 def study(scene_path: str | Path, run: str | Path | None = None,
           kv_factors: tuple[float, ...] = KV_FACTORS) -> dict:
     """:func:`split_ratios` and :func:`sag_rows` of :func:`variants` on the finished run of
@@ -157,8 +201,16 @@ def study(scene_path: str | Path, run: str | Path | None = None,
     # one kv per tet in both sets (the global fit's is one for all)
     glob, cal = (params_for(params.connectors[name], len(mesh.edges), len(mesh.tets))
                  for name in ("global", "calibrated"))
-    sets = variants(glob, cal, heights(mesh.vertices[mesh.edges].mean(axis=1), gravity),
-                    heights(mesh.vertices[mesh.tets].mean(axis=1), gravity), kv_factors)
+    problem = ref.problem
+    n_cal = len(problem.calibration)
+    footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
+        mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
+        scene.indentation.radius)[:n_cal])
+    held = mesh.vertices[problem.test_points[:n_cal] if footprints is None
+                         else np.unique(np.concatenate(footprints))]
+    centres = (mesh.vertices[mesh.edges].mean(axis=1), mesh.vertices[mesh.tets].mean(axis=1))
+    sets = variants(glob, cal, heights(centres[0], gravity), heights(centres[1], gravity),
+                    kv_factors, tuple(footprint_distance(c, held) for c in centres))
     fe = ref.gravity.static_displacement
     model = build_model(ref.problem, scene.material.density, cal)
     rows = sag_rows(model, sets, gravity, fe, params.strain.bounds,
@@ -169,8 +221,12 @@ def study(scene_path: str | Path, run: str | Path | None = None,
     if gap > 1e-9:
         raise DataFileError(f"the study's static sag differs from gravity.h5's by {gap:.3g} of "
                             "its largest displacement: not the same model")
+    errors = calibration_errors(problem, scene.material.density, ref.indentation.displacement,
+                                ref.indentation.force_normal[:n_cal], footprints,
+                                params.strain.bounds, sets)
     for r in rows:
         r.pop("displacement")
+        r["calibration_indentation_error"] = errors[r["label"]]
     return {"scene": scene.name, "fe_max_sag_m": float(np.linalg.norm(fe, axis=1).max()),
             "split": split_ratios(glob, cal), "rows": rows}
 
@@ -184,10 +240,11 @@ def main(argv: list[str] | None = None) -> None:
     kv = "-" if split["kv"] is None else f"{split['kv']:.3f}"
     print(f"{result['scene']}: calibrated / global, geometric means: K0 {split['K0']:.3f}, "
           f"kv {kv}; FE max sag {1e3 * result['fe_max_sag_m']:.2f} mm")
-    print(f"{'parameters':40s} {'max sag mm':>10s} {'error %':>8s} {'mean sag ratio':>15s}")
+    print(f"{'parameters':52s} {'max sag mm':>10s} {'error %':>8s} {'mean sag ratio':>15s} "
+          f"{'calibration indentation %':>26s}")
     for r in result["rows"]:
-        print(f"{r['label']:40s} {1e3 * r['max_sag_m']:10.2f} {100 * r['error']:8.2f} "
-              f"{r['mean_sag_ratio']:15.3f}")
+        print(f"{r['label']:52s} {1e3 * r['max_sag_m']:10.2f} {100 * r['error']:8.2f} "
+              f"{r['mean_sag_ratio']:15.3f} {100 * r['calibration_indentation_error']:26.2f}")
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
 
