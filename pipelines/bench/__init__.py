@@ -15,10 +15,13 @@
 - :mod:`pipelines.bench.release_levers`: not an item (run on its own, on a finished run):
   what a consistent mass and a relaxing volume term would do to the gravity release;
 - :mod:`pipelines.bench.sag_split`: not an item either: how the static sag depends on the
-  calibrated model's split between springs and ``kv``;
+  calibrated model's split between springs and ``kv``, and where;
+- :mod:`pipelines.bench.sag_tradeoff`: not an item: whether region-wise scalings of the
+  calibrated model could fit its punch curves and hang like the FE at once (a diagnostic
+  with the FE sag as a constraint, never a calibration);
 - :mod:`pipelines.bench.fold_cv`: not an item: k-fold cross-validation of whole calibrations
   over the calibration points, to choose between calibration settings;
-- :mod:`pipelines.bench.finished_run`: what those three studies share: the finished run
+- :mod:`pipelines.bench.finished_run`: what those four studies share: the finished run
   folder they read and their two command-line arguments.
 
 Importing this package imports none of them (each item loads its own module when it runs).

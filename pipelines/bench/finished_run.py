@@ -1,6 +1,6 @@
-"""A finished run folder, as the studies that read one take it (release levers, sag split,
-fold cross-validation): the scene's TOML and its folder (``runs/<scene name>`` unless given),
-the same two command-line arguments, the same files read back."""
+"""A finished run folder, as the studies that read one take it (release levers, sag split, sag
+trade-off, fold cross-validation): the scene's TOML and its folder (``runs/<scene name>``
+unless given), the same two command-line arguments, the same files read back."""
 
 from __future__ import annotations
 
