@@ -21,11 +21,10 @@ gravity stage's own Newton equilibrium on the calibrated strain range) of each m
 
 Each row has the report's sag error, the *mean sag ratio*
 ``sum_free u_particle . g / sum_free u_FE . g`` (1 = the body hangs as far as the FE's on
-average) and, when the study reads a finished run, ``calibration_indentation_error``: the
-mean relative RMS error of the indentation curves at the calibration points (the report's
-``indentation_calibrated``), i.e. what putting those values back costs against the data the
-fit saw; the result also has the geometric means over connectors and tets of ``K0`` and
-``kv`` calibrated / global. The ``calibrated`` row repeats the gravity stage's static sag
+average) and ``calibration_indentation_error``: the mean relative RMS error of the
+indentation curves at the calibration points (the report's ``indentation_calibrated``), i.e.
+what putting those values back costs against the data the fit saw; the result also has the
+geometric means over connectors and tets of ``K0`` and ``kv`` calibrated / global. The ``calibrated`` row repeats the gravity stage's static sag
 (checked against ``gravity.h5`` to 1e-9 of its largest displacement). Not a bench item
 (seconds on a finished run folder): ``python -m pipelines.bench.sag_split --scene
 scenes/liver_punch.toml [--run DIR] [--out sag.json]``.
@@ -173,12 +172,14 @@ def footprint_distance(points: np.ndarray, held: np.ndarray) -> np.ndarray:
 
 
 def calibration_errors(problem, density: float, depths: np.ndarray, reference: np.ndarray,
-                       footprints: list[np.ndarray] | None, strain_range: tuple[float, float],
+                       footprints: tuple[np.ndarray, ...] | None,
+                       strain_range: tuple[float, float],
                        sets: dict[str, ConnectorParams]) -> dict[str, float]:
     """Label -> mean relative RMS error of each set's indentation curves against
     ``reference`` (Pc, S) at the first Pc test points of ``problem`` (the calibration points)
-    [1], with the calibration's evaluator (``footprints`` per calibration point, None: the
-    vertex indenter)."""
+    [1], with the calibration's evaluator (``footprints``: the particles the indenter holds,
+    per calibration point, :func:`forcecal.indenter.indenter_footprints`; None: the point
+    alone)."""
     n_cal = len(reference)
     model = build_model(problem, density, next(iter(sets.values())))
     evaluator = IndentationEvaluator(model, problem.test_points[:n_cal],
@@ -203,11 +204,10 @@ def study(scene_path: str | Path, run: str | Path | None = None,
                  for name in ("global", "calibrated"))
     problem = ref.problem
     n_cal = len(problem.calibration)
-    footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
-        mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
-        scene.indentation.radius)[:n_cal])
-    held = mesh.vertices[problem.test_points[:n_cal] if footprints is None
-                         else np.unique(np.concatenate(footprints))]
+    footprints = indenter_footprints(mesh, problem.fixed, problem.test_points[:n_cal],
+                                     problem.normals[:n_cal], scene.indentation.indenter,
+                                     scene.indentation.radius)
+    held = mesh.vertices[np.unique(np.concatenate(footprints))]
     centres = (mesh.vertices[mesh.edges].mean(axis=1), mesh.vertices[mesh.tets].mean(axis=1))
     sets = variants(glob, cal, heights(centres[0], gravity), heights(centres[1], gravity),
                     kv_factors, tuple(footprint_distance(c, held) for c in centres))

@@ -106,9 +106,8 @@ def study(scene_path: str | Path, run: str | Path | None = None, n_regions: int 
     n_cal = len(problem.calibration)
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
     calibrated = params_for(result.connectors["calibrated"], len(mesh.edges), len(mesh.tets))
-    footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
-        mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
-        scene.indentation.radius))
+    footprints = indenter_footprints(mesh, problem.fixed, problem.test_points, problem.normals,
+                                     scene.indentation.indenter, scene.indentation.radius)
     model = build_model(problem, scene.material.density, calibrated)
     evaluator = IndentationEvaluator(model, problem.test_points, problem.normals,
                                      ref.indentation.displacement,
