@@ -24,9 +24,9 @@ Each row has the report's sag error, the *mean sag ratio*
 average) and ``calibration_indentation_error``: the mean relative RMS error of the
 indentation curves at the calibration points (the report's ``indentation_calibrated``), i.e.
 what putting those values back costs against the data the fit saw; the result also has the
-geometric means over connectors and tets of ``K0`` and ``kv`` calibrated / global. The ``calibrated`` row repeats the gravity stage's static sag
-(checked against ``gravity.h5`` to 1e-9 of its largest displacement). Not a bench item
-(seconds on a finished run folder): ``python -m pipelines.bench.sag_split --scene
+geometric means over connectors and tets of ``K0`` and ``kv`` calibrated / global. The
+``calibrated`` row repeats the gravity stage's static sag (checked against ``gravity.h5`` to
+1e-9 of its largest displacement). Not a bench item (seconds on a finished run folder): ``python -m pipelines.bench.sag_split --scene
 scenes/liver_punch.toml [--run DIR] [--out sag.json]``.
 """
 
