@@ -26,8 +26,9 @@ indentation curves at the calibration points (the report's ``indentation_calibra
 what putting those values back costs against the data the fit saw; the result also has the
 geometric means over connectors and tets of ``K0`` and ``kv`` calibrated / global. The
 ``calibrated`` row repeats the gravity stage's static sag (checked against ``gravity.h5`` to
-1e-9 of its largest displacement). Not a bench item (seconds on a finished run folder): ``python -m pipelines.bench.sag_split --scene
-scenes/liver_punch.toml [--run DIR] [--out sag.json]``.
+1e-9 of its largest displacement). Not a bench item (seconds on a finished run folder):
+``python -m pipelines.bench.sag_split --scene scenes/liver_punch.toml [--run DIR]
+[--out sag.json]``.
 """
 
 from __future__ import annotations
