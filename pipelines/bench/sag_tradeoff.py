@@ -18,8 +18,9 @@ never a calibration: nothing in forcecal reads its result, and the held-out poin
 sag error it reports are only read. Each iteration's row: the indentation error at the
 calibration and the held-out points, the mean sag ratio and the report's sag error.
 ``python -m pipelines.bench.sag_tradeoff --scene scenes/liver_punch.toml [--run DIR]
-[--regions 12] [--iterations 20] [--out tradeoff.json]`` (about a minute per iteration with
-12 regions on the slow machine).
+[--regions 12] [--iterations 20] [--out tradeoff.json]`` (measured on a slow machine:
+``liver_punch`` with 24 regions 7 min for 20 iterations, ``user_organ_punch`` with 12
+regions 6 min for 10).
 """
 
 from __future__ import annotations
