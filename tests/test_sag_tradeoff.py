@@ -1,12 +1,14 @@
-"""The sag trade-off diagnostic (pipelines/bench/sag_tradeoff.py): its regions, its scalings
-and its constrained Gauss-Newton step."""
+"""The sag trade-off diagnostic (pipelines/bench/sag_tradeoff.py): its regions, its scalings,
+its constrained Gauss-Newton step, and the sag studies' refusal of a run without gravity."""
 import dataclasses
 
 import numpy as np
 import pytest
 
-from forcecal.errors import ParameterError
+from calibration.synthetic import box_scene, synthetic_reference
+from forcecal.errors import DataFileError, ParameterError
 from particle.testing import box_model
+from pipelines.bench.finished_run import FinishedRun
 from pipelines.bench.sag_tradeoff import constrained_step, regions, scaled
 
 
@@ -61,3 +63,15 @@ def test_the_constrained_step_meets_its_target_with_the_least_misfit():
     d, _ = constrained_step(J, g, r, 0.0)
     assert g @ d == pytest.approx(0.0, abs=1e-12)
     assert np.sum((r + J @ d) ** 2) < np.sum(r ** 2)
+
+
+def test_the_studies_refuse_a_reference_without_gravity(tmp_path):
+    """A finished run whose reference has no gravity experiments gives the sag studies a
+    DataFileError naming its folder, not an AttributeError from deep inside."""
+    scene = box_scene(tmp_path, test_points={"n_calibration": 3, "n_held_out": 8})
+    model = box_model((3, 3, 2), density=1000.0, K0=20.0)
+    reference = synthetic_reference(scene, model.params, tmp_path / "reference.h5")
+    assert reference.gravity is None
+    done = FinishedRun(scene, tmp_path, reference, None, None)
+    with pytest.raises(DataFileError, match=f"{tmp_path}: the reference has no gravity sag"):
+        done.fe_static_sag()

@@ -10,6 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, read_reference
 from forcecal.scene import Scene, load_scene
 from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE
@@ -46,6 +49,14 @@ class FinishedRun:
     reference: Reference
     params: Any  # calibration.results.CalibrationResult
     gravity: Any  # pipelines.gravity.GravityRuns
+
+    def fe_static_sag(self) -> np.ndarray:
+        """(N, 3) the FE's static sag [m] of the reference; :class:`DataFileError` naming the
+        folder when the reference has no gravity experiments."""
+        if self.reference.gravity is None:
+            raise DataFileError(f"{self.folder}: the reference has no gravity sag to compare "
+                                "with")
+        return self.reference.gravity.static_displacement
 
 
 def finished_run(scene_path: str | Path, run: str | Path | None = None) -> FinishedRun:

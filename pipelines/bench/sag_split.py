@@ -196,8 +196,7 @@ def study(scene_path: str | Path, run: str | Path | None = None,
     ``scene_path`` (folder ``run``, default ``runs/<scene name>``)."""
     done = finished_run(scene_path, run)
     scene, ref, params, stage = done.scene, done.reference, done.params, done.gravity
-    if ref.gravity is None:
-        raise DataFileError(f"{done.folder}: the reference has no gravity sag to compare with")
+    fe = done.fe_static_sag()
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
     mesh = ref.problem.mesh
     # one kv per tet in both sets (the global fit's is one for all)
@@ -212,7 +211,6 @@ def study(scene_path: str | Path, run: str | Path | None = None,
     centres = (mesh.vertices[mesh.edges].mean(axis=1), mesh.vertices[mesh.tets].mean(axis=1))
     sets = variants(glob, cal, heights(centres[0], gravity), heights(centres[1], gravity),
                     kv_factors, tuple(footprint_distance(c, held) for c in centres))
-    fe = ref.gravity.static_displacement
     model = build_model(ref.problem, scene.material.density, cal)
     rows = sag_rows(model, sets, gravity, fe, params.strain.bounds,
                     scene.gravity.static_load_steps)

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 
 from calibration.metrics import relative_rms_error
-from forcecal.errors import DataFileError, ParameterError
+from forcecal.errors import ParameterError
 from forcecal.indenter import indenter_footprints
 from particle.evaluators import IndentationEvaluator
 from particle.model import build_model, params_for
@@ -103,8 +103,7 @@ def study(scene_path: str | Path, run: str | Path | None = None, n_regions: int 
     """The module docstring's iterations on the finished run of ``scene_path``."""
     done = finished_run(scene_path, run)
     scene, ref, result = done.scene, done.reference, done.params
-    if ref.gravity is None:
-        raise DataFileError(f"{done.folder}: the reference has no gravity sag to compare with")
+    fe_sag = done.fe_static_sag()
     problem, mesh = ref.problem, ref.problem.mesh
     n_cal = len(problem.calibration)
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
@@ -126,7 +125,7 @@ def study(scene_path: str | Path, run: str | Path | None = None, n_regions: int 
         params = scaled(calibrated, *labels, np.r_[x, np.zeros(2 * n_regions - n_x)])
         curves = evaluator(params)
         errors = relative_rms_error(curves, fe)
-        sag = sag_rows(model, {"x": params}, gravity, ref.gravity.static_displacement,
+        sag = sag_rows(model, {"x": params}, gravity, fe_sag,
                        result.strain.bounds, scene.gravity.static_load_steps)[0]
         return {"residual": ((curves - fe) / scale)[:n_cal].ravel(),
                 "indentation_calibrated": float(errors[:n_cal].mean()),
