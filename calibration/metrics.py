@@ -41,11 +41,18 @@ def relative_rms_error(sim: np.ndarray, ref: np.ndarray) -> np.ndarray:
     and raises :class:`ParameterError` rather than returning inf/NaN.
     """
     sim, ref = _pair(sim, ref)
-    scale = np.max(np.abs(ref), axis=1)
+    return np.sqrt(np.mean((sim - ref) ** 2, axis=1)) / _curve_scale(ref)
+
+
+def _curve_scale(curves: np.ndarray) -> np.ndarray:
+    """(P,) ``max|F|`` of each (P, S) reference curve [N], the relative errors' denominator;
+    :class:`ParameterError` for a curve that is identically zero (no scale to compare
+    against)."""
+    scale = np.max(np.abs(curves), axis=1)
     if np.any(scale == 0.0):
         bad = np.nonzero(scale == 0.0)[0]
         raise ParameterError(f"reference curves of points {bad.tolist()} are identically zero")
-    return np.sqrt(np.mean((sim - ref) ** 2, axis=1)) / scale
+    return scale
 
 
 def force_vector_errors(sim: np.ndarray, ref: np.ndarray, normals: np.ndarray
@@ -67,11 +74,7 @@ def force_vector_errors(sim: np.ndarray, ref: np.ndarray, normals: np.ndarray
     normals = np.asarray(normals, dtype=np.float64)
     if normals.shape != (len(ref), 3):
         raise ParameterError(f"{len(ref)} points but normals of shape {normals.shape}")
-    scale = np.max(np.abs(normal_force(ref, normals)), axis=1)
-    if np.any(scale == 0.0):
-        bad = np.nonzero(scale == 0.0)[0]
-        raise ParameterError(f"reference normal curves of points {bad.tolist()} are "
-                             "identically zero")
+    scale = _curve_scale(normal_force(ref, normals))
     diff = sim - ref
     tangential = diff - normal_force(diff, normals)[:, :, None] * normals[:, None, :]
 
