@@ -117,11 +117,22 @@ def vector_errors(reference: Reference, calibration: CalibrationResult,
                                     f"shape {sim.shape}, the reference {ref.shape}; rerun the "
                                     "calibration")
             per_variant[variant] = force_vector_errors(sim, ref, reference.problem.normals)
-        for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
-            whole, tang = per_variant[variants[key]]
-            vector[f"{experiment}_{key}"] = _mean(whole[points])
-            tangential[f"{experiment}_{key}"] = _mean(tang[points])
+        vector.update(point_set_means({v: e[0] for v, e in per_variant.items()}, variants,
+                                      cal, experiment))
+        tangential.update(point_set_means({v: e[1] for v, e in per_variant.items()}, variants,
+                                          cal, experiment))
     return vector, tangential
+
+
+def point_set_means(errors: dict[str, np.ndarray], variants: dict[str, str],
+                    is_calibration: np.ndarray, experiment: str) -> dict[str, float | None]:
+    """``<experiment>_global``, ``_calibrated`` and ``_held_out``: the mean over the
+    calibration points (global, calibrated) or the held-out points of the (P,) per-point
+    ``errors`` of the params.h5 variant ``variants`` maps that key to (None for an empty
+    point set)."""
+    sets = (("global", is_calibration), ("calibrated", is_calibration),
+            ("held_out", ~is_calibration))
+    return {f"{experiment}_{key}": _mean(errors[variants[key]][points]) for key, points in sets}
 
 
 def _mean(values: np.ndarray) -> float | None:
@@ -134,12 +145,11 @@ def model_errors(reference: Reference, calibration: CalibrationResult,
     """The :data:`ERROR_KEYS` for one model; ``variants`` maps global/calibrated/held_out to the
     params.h5 variant evaluated on that point set. The keys of experiments not in ``ran``
     are None."""
-    cal = calibration.is_calibration
     out: dict[str, float | None] = dict.fromkeys(ERROR_KEYS)
     for experiment in calibration.experiments:
-        for key, points in (("global", cal), ("calibrated", cal), ("held_out", ~cal)):
-            err = curve_errors(reference, calibration, variants[key], experiment)
-            out[f"{experiment}_{key}"] = _mean(err[points])
+        errors = {v: curve_errors(reference, calibration, v, experiment)
+                  for v in set(variants.values())}
+        out.update(point_set_means(errors, variants, calibration.is_calibration, experiment))
     fe = reference.gravity
     node = reference.problem.tracked_node
     if "gravity_static" in ran:
