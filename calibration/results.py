@@ -37,7 +37,8 @@ from calibration.local import Sweep
 from calibration.optimize import Fit, History
 from calibration.parametrisation import GlobalParams, StrainRange
 from forcecal.errors import DataFileError
-from forcecal.h5io import atomic_h5, get, open_h5, put, read_problem, write_problem
+from forcecal.h5io import (atomic_h5, attr, get, json_attr, open_h5, put, read_problem,
+                           write_problem)
 from forcecal.problem import Problem
 from particle.params import PARAM_NAMES, ConnectorParams
 
@@ -189,12 +190,13 @@ def _put_history(group: h5py.Group, fit: Fit) -> None:
 
 
 def _get_fit(fh: h5py.File, path: str) -> Fit:
-    a = fh[path].attrs
+    g = fh[path]
     history = History(get(fh, f"{path}/evaluation_cost", (None,), finite=False, dtype="float"),
                       get(fh, f"{path}/iteration_cost", (None,), dtype="float"),
                       get(fh, f"{path}/iteration_evaluations", (None,), dtype="int"))
-    return Fit(np.asarray(a["x"], dtype=float), float(a["cost"]), float(a["initial_cost"]),
-               bool(a["converged"]), history, tuple(json.loads(a["warnings"])))
+    return Fit(np.asarray(attr(g, "x"), dtype=float), float(attr(g, "cost")),
+               float(attr(g, "initial_cost")), bool(attr(g, "converged")), history,
+               tuple(json_attr(g, "warnings")))
 
 
 def _ragged(group: h5py.Group, name: str, arrays: list[np.ndarray], unit: str, doc: str) -> None:
@@ -223,7 +225,7 @@ def _put_sweep(group: h5py.Group, sweep: Sweep) -> None:
 
 
 def _get_sweep(fh: h5py.File, path: str) -> Sweep:
-    a = fh[path].attrs
+    g = fh[path]
     x = get(fh, f"{path}/x", (None, None), dtype="float")
     n = len(x)
     cost = get(fh, f"{path}/cost", (n,), dtype="float")
@@ -234,12 +236,13 @@ def _get_sweep(fh: h5py.File, path: str) -> Sweep:
     it = get(fh, f"{path}/iteration_cost", (None,), dtype="float")
     it_n = get(fh, f"{path}/iteration_evaluations", (len(it),), dtype="int")
     it_off = get(fh, f"{path}/iteration_offsets", (n + 1,), dtype="int")
-    warnings = json.loads(a["warnings"])
+    warnings = json_attr(g, "warnings")
     fits = tuple(Fit(x[j], float(cost[j]), float(initial[j]), bool(converged[j]),
                      History(ev[ev_off[j]:ev_off[j + 1]], it[it_off[j]:it_off[j + 1]],
                              it_n[it_off[j]:it_off[j + 1]]), tuple(warnings[j]))
                  for j in range(n))
-    return Sweep(float(a["start_cost"]), float(a["end_cost"]), int(a["halvings"]), fits)
+    return Sweep(float(attr(g, "start_cost")), float(attr(g, "end_cost")),
+                 int(attr(g, "halvings")), fits)
 
 
 def write_params(path: str | Path, result: CalibrationResult) -> None:
@@ -296,8 +299,7 @@ def read_params(path: str | Path) -> CalibrationResult:
         problem = read_problem(fh)
         n_e, n_p, n_c = len(problem.mesh.edges), len(problem.test_points), len(problem.calibration)
         # a file without the attribute predates optional experiments: it has both
-        fitted = tuple(json.loads(fh.attrs["experiments"])) if "experiments" in fh.attrs \
-            else EXPERIMENTS
+        fitted = tuple(json_attr(fh, "experiments", EXPERIMENTS))
         if not set(fitted) <= set(EXPERIMENTS) or "indentation" not in fitted:
             raise DataFileError(f"{path}: attribute experiments = {list(fitted)} is not "
                                 f"'indentation' and maybe 'relaxation'")
@@ -318,25 +320,24 @@ def read_params(path: str | Path) -> CalibrationResult:
             group = f"history/local_{phase}"
             names = sorted(fh[group]) if group in fh else []
             local_sweeps[phase] = [_get_sweep(fh, f"{group}/{s}") for s in names]
-        a = fh.attrs
         return CalibrationResult(
             problem=problem, initial=_get_global(fh, "initial_guess"),
             global_params=_get_global(fh, "global"), connectors=connectors, variants=variants,
             z_static=get(fh, "local/z_static", (n_c, 3), dtype="float"),
             z_relaxation=get(fh, "local/z_relaxation", (n_c, 4), dtype="float"),
-            strain=StrainRange(float(fh["strain_range"].attrs["low"]),
-                               float(fh["strain_range"].attrs["high"])),
+            strain=StrainRange(float(attr(fh["strain_range"], "low")),
+                               float(attr(fh["strain_range"], "high"))),
             fe_slope=get(fh, "initial_guess/fe_slope", (n_c,), dtype="float"),
             unit_slope=get(fh, "initial_guess/unit_slope", (n_p,), dtype="float"),
             global_fits={s: _get_fit(fh, f"history/global_{s}") for s in PHASES
                          if f"history/global_{s}" in fh},
-            local_sweeps=local_sweeps, settings=json.loads(a["settings"]),
-            reference_fingerprint=str(a["reference_fingerprint"]),
-            reference_path=str(a["reference_path"]),
+            local_sweeps=local_sweeps, settings=json_attr(fh, "settings"),
+            reference_fingerprint=str(attr(fh, "reference_fingerprint")),
+            reference_path=str(attr(fh, "reference_path")),
             evaluations={k: int(v) for k, v in fh["evaluations"].attrs.items()},
             stage_times={k: float(v) for k, v in fh["stage_times"].attrs.items()},
-            wall_time=float(a["wall_time"]),
+            wall_time=float(attr(fh, "wall_time")),
             warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
                            for s in fh["warnings"][()]),
-            versions=json.loads(a["versions"]), experiments=fitted,
-            gradient=json.loads(a["gradient"]) if "gradient" in a else {})
+            versions=json_attr(fh, "versions"), experiments=fitted,
+            gradient=json_attr(fh, "gradient", {}))

@@ -131,7 +131,11 @@ def open_h5(path: str | Path, kind: str, schema: int) -> Iterator[h5py.File]:
         if version != schema:
             raise DataFileError(f"{path} has schema version {version}, this code reads {schema}; "
                                 "recompute it")
-        yield fh
+        try:
+            yield fh
+        except KeyError as exc:  # h5py's answer to a group or attribute the file lacks
+            raise DataFileError(f"{path}: {exc} (a group or attribute of the {kind} schema is "
+                                "missing: corrupt file, or not written by forcecal?)") from exc
 
 
 def put(group: h5py.Group, name: str, data: Any, unit: str, doc: str = "") -> h5py.Dataset:
@@ -193,6 +197,23 @@ def attr(obj: h5py.Group | h5py.File, name: str) -> Any:
     if not present:
         raise DataFileError(f"{where} is missing")
     return value.item() if isinstance(value, np.generic) else value
+
+
+_REQUIRED = object()
+
+
+def json_attr(obj: h5py.Group | h5py.File, name: str, default: Any = _REQUIRED) -> Any:
+    """Attribute ``name`` holding JSON text (:func:`attr`), decoded; ``default`` if it is
+    absent and a default is given. DataFileError naming the file, group and attribute if it
+    is missing (without a default), unreadable or not JSON."""
+    if default is not _REQUIRED and name not in obj.attrs:
+        return default
+    raw = attr(obj, name)
+    try:
+        return json.loads(raw)
+    except (TypeError, ValueError) as exc:
+        raise DataFileError(f"{obj.file.filename}:{obj.name} attribute {name!r} = {raw!r:.80} "
+                            f"is not JSON text (corrupt file?)") from exc
 
 
 def write_section(g: h5py.Group, section: Any) -> None:

@@ -36,7 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from forcecal.errors import DataFileError
-from forcecal.h5io import Reference, atomic_h5, get, open_h5, put, read_problem, write_problem
+from forcecal.h5io import (Reference, atomic_h5, attr, get, json_attr, open_h5, put,
+                           read_problem, write_problem)
 from forcecal.problem import Problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
 from particle.experiments import GravityTest, gravity_test
@@ -137,8 +138,7 @@ def read_gravity(path: str | Path) -> GravityRuns:
     """Read ``gravity.h5`` back (kind, schema, shapes and finiteness checked)."""
     with open_h5(path, GRAVITY_KIND, GRAVITY_SCHEMA) as fh:
         problem = read_problem(fh)
-        experiments = (tuple(json.loads(fh.attrs["experiments"])) if "experiments" in fh.attrs
-                       else GRAVITY_EXPERIMENTS)
+        experiments = tuple(json_attr(fh, "experiments", GRAVITY_EXPERIMENTS))
         dynamic = "gravity_dynamic" in experiments
         times = get(fh, "time", (None,), dtype="float") if dynamic else None
         n = problem.mesh.n_vertices
@@ -146,12 +146,11 @@ def read_gravity(path: str | Path) -> GravityRuns:
         for name in MODELS:
             if name not in fh:
                 raise DataFileError(f"{path}:/{name} is missing")
-            a = fh[name].attrs
             models[name] = GravityTest(
                 get(fh, f"{name}/static_displacement", (n, 3), dtype="float"),
                 get(fh, f"{name}/displacement", (len(times), n, 3), dtype="float")
                 if dynamic else None,
-                *(float(a[k]) for k in SCALARS))
-        return GravityRuns(problem, times, np.asarray(fh.attrs["acceleration"], dtype=float),
-                           models, str(fh.attrs["reference_fingerprint"]),
-                           str(fh.attrs["params_fingerprint"]), experiments)
+                *(float(attr(fh[name], k)) for k in SCALARS))
+        return GravityRuns(problem, times, np.asarray(attr(fh, "acceleration"), dtype=float),
+                           models, str(attr(fh, "reference_fingerprint")),
+                           str(attr(fh, "params_fingerprint")), experiments)

@@ -302,6 +302,13 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
 def check_report(report: dict[str, Any]) -> None:
     """Raise :class:`DataFileError` if a fixed key is missing or a number is not finite (or
     null without a reason: an experiment in ``not_run``, or no held-out points)."""
+    if not isinstance(report, dict):
+        raise DataFileError(f"report.json is a JSON {type(report).__name__}, not the report's "
+                            "object of keys")
+    for group in ("not_run", "force_vector_errors"):
+        if not isinstance(report.get(group) or {}, dict):
+            raise DataFileError(f"report.json: {group} = {report[group]!r:.80} is not an object "
+                                "of keys")
     not_run = report.get("not_run", {})
     no_gravity = {"gravity_static", "gravity_dynamic"} <= set(not_run)
     groups = [("errors", report.get("errors", {}), ERROR_KEYS),
@@ -311,6 +318,8 @@ def check_report(report: dict[str, Any]) -> None:
     vector = report.get("force_vector_errors") or {}
     groups += [(f"force_vector_errors.{m}", values, CURVE_KEYS) for m, values in vector.items()]
     for group, values, keys in groups:
+        if not isinstance(values, dict):
+            raise DataFileError(f"report.json: {group} = {values!r:.80} is not an object of keys")
         for k in keys:
             if k not in values:
                 raise DataFileError(f"report.json: {group}.{k} is missing")

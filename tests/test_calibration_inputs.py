@@ -111,6 +111,32 @@ def test_exhausted_budgets_are_recorded_as_warnings(case, tmp_path):
     assert "warning: global static fit" in result.summary()
 
 
+def test_a_damaged_params_file_is_refused_naming_what_is_wrong(case, tmp_path):
+    """Attributes that are not JSON, missing attributes and missing groups of params.h5 are
+    DataFileErrors naming the file and the entry, not a JSONDecodeError or KeyError."""
+    scene, reference = case
+    good = tmp_path / "params.h5"
+    _run(scene, reference, tmp_path)
+    assert read_params(good).settings["calibration"]["local"] is False
+    damaged = tmp_path / "damaged.h5"
+
+    def refused(edit, match):
+        damaged.write_bytes(good.read_bytes())
+        with h5py.File(damaged, "a") as fh:
+            edit(fh)
+        with pytest.raises(DataFileError, match=match):
+            read_params(damaged)
+
+    refused(lambda fh: fh.attrs.__setitem__("settings", "{not json"),
+            r"damaged.h5:/ attribute 'settings' = '\{not json' is not JSON")
+    refused(lambda fh: fh.attrs.__delitem__("wall_time"), "attribute 'wall_time' is missing")
+    refused(lambda fh: fh["history/global_static"].attrs.__setitem__("warnings", "[oops"),
+            "history/global_static attribute 'warnings'.*is not JSON")
+    refused(lambda fh: fh.__delitem__("strain_range"),
+            "damaged.h5: .*strain_range.*a group or attribute of the forcecal.params schema "
+            "is missing")
+
+
 def constant_backend(experiments, points, params):
     """Evaluators whose curves do not depend on the parameters: no optimiser can gain."""
     def constant(samples):

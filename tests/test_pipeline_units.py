@@ -5,6 +5,7 @@ import subprocess
 import sys
 from typing import Callable
 
+import h5py
 import numpy as np
 import pytest
 
@@ -346,6 +347,15 @@ def test_gravity_file_round_trip_and_refusals(tmp_path, column):
         assert np.array_equal(back.models[m].displacement, r.displacement)
         assert np.array_equal(back.models[m].static_displacement, r.static_displacement)
         assert (back.models[m].dt, back.models[m].strain_max) == (1e-4, 0.07)
+    with h5py.File(path, "a") as fh:
+        fh.attrs["experiments"] = "gravity_static, gravity_dynamic"
+    with pytest.raises(DataFileError, match="attribute 'experiments'.*is not JSON"):
+        read_gravity(path)
+    write_gravity(path, runs)
+    with h5py.File(path, "a") as fh:
+        del fh["baseline"].attrs["dt"]
+    with pytest.raises(DataFileError, match="baseline attribute 'dt' is missing"):
+        read_gravity(path)
     path.write_bytes(path.read_bytes()[:200])
     with pytest.raises(DataFileError, match="not a readable HDF5 file"):
         read_gravity(path)
@@ -404,6 +414,14 @@ def test_check_report_refuses_missing_and_non_finite_numbers():
     del r["force_vector_errors"]["calibrated"]["relaxation_calibrated"]
     with pytest.raises(DataFileError, match="calibrated.relaxation_calibrated is missing"):
         check_report(r)
+    # JSON of another shape: a list, or a group that is not an object
+    with pytest.raises(DataFileError, match="report.json is a JSON list"):
+        check_report([1, 2])
+    for group, value in (("errors", [0.1]), ("force_vector_errors", "x"), ("not_run", 3)):
+        r = _report()
+        r[group] = value
+        with pytest.raises(DataFileError, match=f"report.json: {group} = .* is not an object"):
+            check_report(r)
 
 
 # ------------------------------------------------------------------------------- fields
