@@ -83,6 +83,20 @@ def checked_normals_and_depths(nodes: np.ndarray, normals: np.ndarray, depths: n
     return normals, depths
 
 
+def check_depth_scale(model: Model, depths: np.ndarray) -> None:
+    """Refuse indentation depths [m] beyond the model's size (its bounding-box diagonal): no
+    indenter pushes a particle through the whole organ, so such a depth is a unit mistake
+    (mm for m). :class:`ParameterError` with the size and a units hint. (Scenes have the
+    stricter rule of :func:`forcecal.problem.check_depths`, below half the mean edge
+    length; an API call may strain a lone connector further, so it gets only this one.)"""
+    size = float(np.linalg.norm(np.ptp(model.rest_positions, axis=0)))
+    deepest = float(depths.max())
+    if not deepest <= size:
+        raise ParameterError(f"depth {deepest:g} m is beyond the model's size (bounding-box "
+                             f"diagonal {size:.3g} m): depths are in metres (5 mm is 0.005); "
+                             "a value in mm?")
+
+
 def warm_guess(warm: np.ndarray, solutions: np.ndarray, s: int) -> np.ndarray:
     """Previous call's equilibrium at sample ``s``, shifted by this call's change at ``s - 1``.
 
@@ -100,8 +114,11 @@ class _PointEvaluator:
                  footprints: Sequence[np.ndarray] | None = None):
         self.model = model
         self.nodes = model.check_nodes(nodes, "test points")
+        if len(self.nodes) == 0:
+            raise ParameterError("no test points: an evaluator needs at least one test particle")
         self.footprints = checked_footprints(model, self.nodes, footprints)
         self.normals, self.depths = checked_normals_and_depths(self.nodes, normals, depths)
+        check_depth_scale(model, self.depths)
         if strain_range is None:
             reach = float(self.depths.max() / model.incident_min_length(self.nodes).min())
             strain_range = (-min(reach, 0.9), reach)

@@ -1,11 +1,13 @@
 """What stops an explicit run: the divergence bound and the state check.
 
 A :class:`~particle.integrator.Run` checks the state it is given
-(:func:`check_state`), then the compiled loop checks every ``check_every`` steps
+(:func:`check_state`; ``VerletIntegrator.simulate`` also that it is finite), then the
+compiled loop checks every ``check_every`` steps and after the last one
 that no position is non-finite, that the kinetic energy stays below
 :func:`energy_bound` and that the connector strains (and with the volume term the
 tets' volumes) stay in the range the step was verified stable for
-(:mod:`particle.stability`); the first failure stops the loop with a code,
+(:mod:`particle.stability`), the state the run ends in included (its own pass,
+:func:`particle.step_kernels.final_strain_check`); the first failure stops the loop with a code,
 which :func:`particle.integrator.exit_error` turns into a
 :class:`~forcecal.errors.StabilityError` naming the particle, connector or tet.
 """
@@ -18,6 +20,7 @@ import numpy as np
 
 from forcecal.errors import ParameterError
 from particle.model import Model, Prescribed, State
+from particle.params import connector_name
 from particle.statics import check_stiffness, check_volumes
 from particle.volume import node_volume_stiffness, volume_energy
 
@@ -75,12 +78,15 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
     return ENERGY_MARGIN * energy + floor
 
 
-def check_state(model: Model, state: State) -> None:
+def check_state(model: Model, state: State, *, finite: bool = False) -> None:
     """Raise :class:`ParameterError` unless ``state`` fits ``model`` and the kernels.
 
     Its arrays must have the model's shapes and be C-contiguous, writeable
     float64 (another dtype would be truncated to it or compile another kernel
-    specialisation), and its time finite.
+    specialisation), and its time finite. With ``finite`` (at the start of a run: one
+    numpy pass over the state, so not on every haptic call) its arrays must hold finite
+    values too: a NaN put into the state would otherwise surface as a divergence steps
+    later, naming another particle and suggesting a smaller step.
     """
     shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
               ("arm_force", (model.n_connectors, 2)), ("dx_prev", (model.n_connectors,)))
@@ -96,3 +102,25 @@ def check_state(model: Model, state: State) -> None:
                 f" expected a writeable, C-contiguous float64 array of shape {shape}")
     if not math.isfinite(state.t):
         raise ParameterError(f"the state's time t = {state.t} s is not finite")
+    if finite:
+        check_finite_state(model, state)
+
+
+def check_finite_state(model: Model, state: State) -> None:
+    """Raise :class:`ParameterError` naming the first particles (x, x_prev) or connectors
+    (arm_force, dx_prev) where ``state`` (shapes already checked) holds NaN or inf."""
+    for name, what in (("x", "particle"), ("x_prev", "particle"), ("arm_force", "connector"),
+                       ("dx_prev", "connector")):
+        arr = getattr(state, name)
+        ok = np.isfinite(arr)
+        if ok.all():
+            continue
+        bad = np.nonzero(~ok if ok.ndim == 1 else ~ok.all(axis=1))[0]
+        first = int(bad[0])
+        if what == "particle":
+            name_first = f"particle {first}" + (" (fixed)" if model.fixed[first] else "")
+        else:
+            name_first = connector_name(first, model.edges)
+        more = f" and {len(bad) - 1} more {what}(s)" if len(bad) > 1 else ""
+        raise ParameterError(f"state.{name} has non-finite values at {name_first}{more}; "
+                             "a run needs a finite state (e.g. model.state())")

@@ -19,11 +19,11 @@ from collections import OrderedDict
 
 import numpy as np
 
-from forcecal.errors import MeshError, ParameterError
+from forcecal.errors import MeshError, ParameterError, StabilityError
 from particle.guard import energy_bound
 from particle.integrator import Run, VerletIntegrator, check_threads
 from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
-from particle.model import Model, Prescribed
+from particle.model import Model, Prescribed, check_gravity
 from particle.params import StrainBounds
 
 log = logging.getLogger(__name__)
@@ -90,7 +90,7 @@ class HapticSession:
         self.period = float(period)
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
         self.dt = self.period / self.substeps
-        self.gravity = gravity
+        self.gravity = check_gravity(gravity)
         self.integrator = VerletIntegrator(damping, strain_range=strain_range)
         self.inertia = None if inertia is None else np.asarray(inertia, dtype=np.float64)
         self.state = model.state()
@@ -124,7 +124,11 @@ class HapticSession:
         Returns the (3,) force the tissue exerts on the tool at the end of the
         period [N]. Raises MeshError for a tool node that is not an integer id
         of a free particle, ParameterError for a tool position that is not 3
-        finite coordinates, StabilityError on divergence.
+        finite coordinates, StabilityError on divergence or when the state at the
+        end of the period (or at a substep) leaves the session's ``strain_range``
+        (or a tet its volume range), naming the connector (tet) and the tool's
+        move; no force is returned then, and the session's state is invalid
+        (start a new session).
         """
         try:
             node = operator.index(tool_node)
@@ -145,4 +149,10 @@ class HapticSession:
         times[0], times[1] = state.t, state.t + self.period
         positions[0, 0] = state.x[node]
         positions[1, 0] = x, y, z
-        return run(state, self.substeps, self._keyframes, bound, probe=node)
+        try:
+            return run(state, self.substeps, self._keyframes, bound, probe=node)
+        except StabilityError as exc:  # the tool's move is the usual cause: say which one
+            move = float(np.linalg.norm(positions[1, 0] - positions[0, 0]))
+            raise StabilityError(
+                f"haptic step moving tool particle {node} by {move:.4g} m in {self.period:g} s "
+                f"(to [{x:.4g}, {y:.4g}, {z:.4g}] m): {exc}") from None

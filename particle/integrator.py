@@ -44,7 +44,7 @@ import numpy as np
 
 from forcecal.errors import ParameterError, StabilityError
 from particle import kernels, step_kernels
-from particle.model import Model, Prescribed, State
+from particle.model import Model, Prescribed, State, check_gravity
 from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
@@ -227,12 +227,13 @@ class VerletIntegrator:
             StabilityError: dt above the stability limit, the run diverged, or a
                 connector left the strain range the step was verified for.
         """
+        n_steps = check_steps(n_steps)
         run = self.prepare(model, dt, gravity=gravity, arms=arms, skip=skip, threads=threads,
                            inertia=inertia, _check_dt=_check_dt,
                            prescribed_nodes=None if prescribed is None else prescribed.nodes)
         record = recording(model, record_nodes, record_steps, n_steps)
         keyframes = None if prescribed is None else (prescribed.times, prescribed.positions)
-        check_state(model, state)
+        check_state(model, state, finite=True)
         bound = energy_bound(model, state, run.dt, n_steps, run.gravity, prescribed)
         run(state, n_steps, keyframes, bound, record)
         return record[2]
@@ -254,9 +255,7 @@ class Run:
                  skip: bool, monitored: tuple[np.ndarray, np.ndarray] | None = None,
                  threads: int = 1, stability: Model | None = None) -> None:
         p = model.params
-        g = None if gravity is None else np.asarray(gravity, dtype=np.float64).reshape(3)
-        if g is not None and not np.all(np.isfinite(g)):
-            raise ParameterError(f"gravity {g} m/s^2 is not finite")
+        g = check_gravity(gravity)
         self.terms = Terms.select(p, gravity=g, arms=arms, damping=integrator.damping, skip=skip)
         self.integrator, self.model, self.dt, self.gravity, self.arms = (
             integrator, model, dt, g, arms)
@@ -385,6 +384,18 @@ def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
                    ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes)
 
 
+def check_steps(n_steps: int) -> int:
+    """``n_steps`` as an int if it is an integer >= 0 (a step count), else
+    :class:`ParameterError` (a fractional count would be truncated)."""
+    try:
+        n = operator.index(n_steps)
+    except TypeError:
+        n = -1
+    if n < 0:
+        raise ParameterError(f"n_steps = {n_steps!r} must be an integer >= 0 (a number of steps)")
+    return n
+
+
 def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) -> tuple:
     """Check a call of ``run`` and bring ``state`` to its step; the keyframes to pass on.
 
@@ -392,8 +403,7 @@ def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) ->
     and its arms' last update (:func:`close_arm_step`); a run without arms holds
     their forces at zero.
     """
-    if n_steps < 0:
-        raise ParameterError(f"n_steps = {n_steps} must be >= 0")
+    check_steps(n_steps)
     check_state(run.model, state)
     if keyframes is None:
         keyframes = run._no_keyframes
@@ -425,8 +435,12 @@ def exit_error(run: Run, state: State, code: int, step: int, index: int,
     connector or particle it names; ``energy_bound`` [J] the run's divergence bound)."""
     if code == step_kernels.VOLUME:
         return volume_exit(run, state, index, step)
+    if code == step_kernels.VOLUME_END:
+        return volume_exit(run, state, index, step, final=True)
     if code == step_kernels.STRAIN:
         return strain_exit(run, state, index, state.t + (step - 1) * run.dt)
+    if code == step_kernels.STRAIN_END:
+        return strain_exit(run, state, index, state.t + step * run.dt, final=True)
     what = ("has a non-finite position" if code == step_kernels.NONFINITE else
             f"is the fastest particle; the kinetic energy exceeds {energy_bound:.3g} J")
     return StabilityError(
@@ -435,16 +449,22 @@ def exit_error(run: Run, state: State, code: int, step: int, index: int,
         f"{run.integrator.critical_time_step(run.stability_model):.4g} s")
 
 
-def volume_exit(run: Run, state: State, t: int, step: int) -> StabilityError:
+def volume_exit(run: Run, state: State, t: int, step: int, final: bool = False
+                ) -> StabilityError:
     """The error for tet ``t`` found outside its volume range at step ``step`` (the
     kernel stopped right after advancing the free particles: their positions then are
-    the state's ``x_prev``, the prescribed ones' still ``x``)."""
+    the state's ``x_prev``, the prescribed ones' still ``x``), or with ``final`` in the
+    run's final state (``state.x``, after its last step ``step``)."""
     model, dt = run.model, run.dt
-    x = state.x_prev.copy()
-    x[run.prescribed] = state.x[run.prescribed]
+    if final:
+        x = state.x
+    else:
+        x = state.x_prev.copy()
+        x[run.prescribed] = state.x[run.prescribed]
     ratio = float(signed_volumes(x, model.tets[t:t + 1])[0] / model.rest_volumes[t])
-    where = (f"at step {step} (t = {state.t + step * dt:.6g} s) of the explicit run; dt = "
-             f"{dt:.4g} s, stability limit {run.integrator.critical_time_step(model):.4g} s")
+    where = (f"{'after' if final else 'at'} step {step} (t = {state.t + step * dt:.6g} s) "
+             f"of the explicit run; dt = {dt:.4g} s, stability limit "
+             f"{run.integrator.critical_time_step(run.stability_model):.4g} s")
     if not ratio > 0.0:
         return StabilityError(f"{tet_name(t, model.tets)} inverted (volume ratio V/V0 = "
                               f"{ratio:.3g} <= 0) {where}; the run stopped (the volume term "
@@ -456,13 +476,20 @@ def volume_exit(run: Run, state: State, t: int, step: int) -> StabilityError:
                           "an unverified step (widen the strain range: it sets this one)")
 
 
-def strain_exit(run: Run, state: State, e: int, t: float) -> StabilityError:
-    """The error for connector ``e`` found outside its monitored range at time ``t`` [s]."""
+def strain_exit(run: Run, state: State, e: int, t: float, final: bool = False
+                ) -> StabilityError:
+    """The error for connector ``e`` found outside its monitored range at time ``t`` [s]:
+    at a checked step's start (its elongation is the state's ``dx_prev``) or, with
+    ``final``, in the run's final state ``state.x``."""
     lo, hi = run.monitored
     i, j = run.model.edges[e]
-    strain = state.dx_prev[e] / run.model.rest_lengths[e]
+    if final:
+        strain = float(np.linalg.norm(state.x[j] - state.x[i])) / run.model.rest_lengths[e] - 1.0
+    else:
+        strain = state.dx_prev[e] / run.model.rest_lengths[e]
+    when = f"{'at the end of the run, ' if final else 'at '}t = {t:.6g} s"
     return StabilityError(
-        f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} at t = {t:.6g} s, "
+        f"connector {e} (particles {i}-{j}) reached strain {strain:.4g} {when}, "
         f"outside [{lo[e]:.4g}, {hi[e]:.4g}], the range the step dt = {run.dt:.4g} s was "
         f"verified stable for (limit "
         f"{run.integrator.critical_time_step(run.stability_model):.4g} "

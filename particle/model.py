@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from forcecal.errors import MeshError, ParameterError
-from forcecal.mesh import TetMesh
+from forcecal.mesh import TetMesh, check_mesh_arrays, vertex_ids
 from forcecal.problem import Problem
 from particle.params import N_ARMS, ConnectorParams, frozen_copy
 from particle.volume import signed_volumes, tet_edge_connectors, tet_name
@@ -138,6 +138,8 @@ class Model:
     def check_nodes(self, nodes: np.ndarray, what: str, *, movable: bool = True) -> np.ndarray:
         """(k,) int64 particle ids, checked: in range, and (if ``movable``) not fixed."""
         nodes = np.atleast_1d(np.asarray(nodes))
+        if nodes.shape == (0,):  # [] is float64 to numpy: an empty list of ids all the same
+            nodes = nodes.astype(np.int64)
         if nodes.ndim != 1 or not np.issubdtype(nodes.dtype, np.integer):
             raise MeshError(f"{what}: particle ids must be a 1-D list of integers, got {nodes!r}")
         nodes = nodes.astype(np.int64)
@@ -164,8 +166,12 @@ def checked_tets(rest_positions: np.ndarray, tets: np.ndarray | None,
     computed from ``rest_positions`` when not given. :class:`MeshError` names the first tet
     with an unknown particle or a volume that is not > 0."""
     n = len(rest_positions)
-    tets = np.zeros((0, 4), np.int64) if tets is None else np.asarray(tets)
-    tets = frozen_copy(tets.reshape(-1, 4), np.int64)
+    tets = np.zeros((0, 4), np.int64) if tets is None else vertex_ids(tets, "tets")
+    if tets.size == 0:
+        tets = tets.reshape(0, 4)
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise MeshError(f"tets must be a (T, 4) array of particle ids, got shape {tets.shape}")
+    tets = frozen_copy(tets, np.int64)
     bad = np.nonzero(np.any((tets < 0) | (tets >= n), axis=1))[0]
     if len(bad):
         raise MeshError(f"{tet_name(bad[0], tets)} refers to unknown particles; particles are "
@@ -261,6 +267,25 @@ class State:
     def displacement(self, model: Model) -> np.ndarray:
         """(N, 3) displacement from the rest positions [m]."""
         return self.x - model.rest_positions
+
+
+def check_gravity(gravity) -> np.ndarray | None:
+    """``gravity`` as a (3,) float64 acceleration [m/s^2] (None stays None), checked: three
+    finite numbers, else :class:`ParameterError` (the one check of every run and solver that
+    takes a gravity vector)."""
+    if gravity is None:
+        return None
+    try:
+        g = np.asarray(gravity, dtype=np.float64)
+    except (TypeError, ValueError):
+        g = None
+    if g is None or g.shape != (3,):
+        shown = gravity.tolist() if isinstance(gravity, np.ndarray) else repr(gravity)
+        raise ParameterError(f"gravity = {shown} must be 3 components (x, y, z) in m/s^2, "
+                             "e.g. [0, 0, -9.81]")
+    if not np.all(np.isfinite(g)):
+        raise ParameterError(f"gravity {g.tolist()} m/s^2 is not finite")
+    return g
 
 
 @dataclass(frozen=True, eq=False)
@@ -381,6 +406,20 @@ class ModelBuilder:
         return model
 
 
+def check_density(density) -> float:
+    """``density`` [kg/m^3] as a float if it is one finite number > 0, else
+    :class:`ParameterError`."""
+    try:
+        value = float(np.asarray(density, dtype=np.float64).reshape(()))
+    except (TypeError, ValueError):
+        value = None
+    if value is None or not (np.isfinite(value) and value > 0):
+        shown = density.tolist() if isinstance(density, np.ndarray) else repr(density)
+        raise ParameterError(f"density = {shown} kg/m^3 must be one finite number > 0 "
+                             "(e.g. 1060.0)")
+    return value
+
+
 def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: ConnectorParams,
                 fixed: np.ndarray | None = None) -> Model:
     """Particle model of a mesh: one particle per vertex, one connector per ``mesh.edges`` row.
@@ -393,13 +432,16 @@ def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: Conn
     if isinstance(problem_or_mesh, Problem):
         mesh = problem_or_mesh.mesh
         fixed = problem_or_mesh.fixed if fixed is None else fixed
-    else:
+    elif isinstance(problem_or_mesh, TetMesh):
         mesh = problem_or_mesh
-    if not density > 0:
-        raise ParameterError(f"density = {density} kg/m^3 must be > 0")
+    else:
+        raise MeshError(f"build_model needs a Problem or a TetMesh, got "
+                        f"{type(problem_or_mesh).__name__}")
+    check_mesh_arrays(mesh)  # shapes, finite coordinates, ids in range; volumes: checked_tets
+    density = check_density(density)
     mask = np.zeros(mesh.n_vertices, dtype=bool)
     if fixed is not None:
-        fixed = np.asarray(fixed, dtype=np.int64)
+        fixed = vertex_ids(fixed, "fixed vertices").reshape(-1)
         bad = fixed[(fixed < 0) | (fixed >= mesh.n_vertices)]
         if len(bad):
             raise MeshError(f"fixed vertices {bad.tolist()} are not vertices of the mesh")

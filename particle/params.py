@@ -12,6 +12,7 @@ optional volume term adds a stiffness ``kv`` per tetrahedron (:mod:`particle.vol
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,9 +141,17 @@ class ConnectorParams:
     @classmethod
     def uniform(cls, n_connectors: int, *, K0: float, a: float = 0.0, b: float = 0.0,
                 k1: float, b1: float, k2: float, b2: float) -> "ConnectorParams":
-        """The same values for every one of ``n_connectors`` connectors."""
+        """The same values for every one of ``n_connectors`` connectors (an integer >= 0,
+        else :class:`ParameterError`)."""
+        try:
+            n = operator.index(n_connectors)
+        except TypeError:
+            n = -1
+        if n < 0:
+            raise ParameterError(f"n_connectors = {n_connectors!r} must be an integer >= 0 "
+                                 "(e.g. len(problem.mesh.edges))")
         values = dict(K0=K0, a=a, b=b, k1=k1, b1=b1, k2=k2, b2=b2)
-        return cls(**{n: np.full(n_connectors, float(v)) for n, v in values.items()})
+        return cls(**{n_: np.full(n, float(v)) for n_, v in values.items()})
 
     @property
     def n_connectors(self) -> int:

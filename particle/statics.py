@@ -35,7 +35,7 @@ import numpy as np
 
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle import kernels, sparse_ldl
-from particle.model import Model
+from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
 from particle.volume import add_volume_forces, add_volume_tangent, signed_volumes, tet_name
 from particle.volume import tet_slots as volume_tet_slots
@@ -426,7 +426,9 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
     increments (each halved on failure). The parameters are validated on
     ``strain_range`` and the springs' K(eps) checked at the strains reached.
     """
-    g = np.asarray(gravity, dtype=np.float64).reshape(3)
+    g = check_gravity(gravity)
+    if g is None:
+        raise ParameterError("gravity_static needs a gravity vector (3 components in m/s^2)")
     if load_steps < 1:
         raise ParameterError(f"load_steps = {load_steps} must be >= 1")
     if not len(model.free_nodes) < model.n_particles:

@@ -58,7 +58,7 @@ from numba import njit, prange
 
 from particle.kernels import (JIT, add_connector_forces, add_damping, add_gravity, net_forces,
                               node_force)
-from particle.volume import add_volume_forces, node_volume_force
+from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
 
 # status codes of run_verlet
 OK = 0
@@ -66,6 +66,10 @@ NONFINITE = 1
 ENERGY = 2
 STRAIN = 3
 VOLUME = 4
+# the final state of a run (after its last step) outside the checked range: the run's result
+# is refused, not handed back
+STRAIN_END = 5
+VOLUME_END = 6
 
 
 @njit(**JIT)
@@ -220,6 +224,56 @@ def divergent_node(x, x_prev, active, status):
 
 
 @njit(**JIT)
+def first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi):
+    """The first connector whose elongation at ``x`` is outside ``[dx_lo, dx_hi]`` (E,) [m]
+    (-1: none): the check of a run's final state, the only strain check not riding on a force
+    pass. Squared lengths are compared with the squared bounds (no sqrt, no division); a bound
+    ``L0 + dx_lo <= 0`` (strain <= -1) admits any length."""
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        l2 = d0 * d0 + d1 * d1 + d2 * d2
+        lo = rest_lengths[e] + dx_lo[e]
+        hi = rest_lengths[e] + dx_hi[e]
+        if not (l2 <= hi * hi and (lo <= 0.0 or l2 >= lo * lo)):  # NaN: outside
+            return np.int64(e)  # e may be unsigned (index views)
+    return np.int64(-1)
+
+
+@njit(**JIT)
+def final_strain_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi):
+    """The first connector whose elongation at ``x`` (a run's final state) is outside
+    ``[dx_lo, dx_hi]`` (E,) [m], -1 if none; ``x_prev`` (N, 3) are the positions the last
+    step started from and ``dx_prev`` (E,) the elongations there (stored by its force pass).
+
+    No particle moved more than ``D = max |x - x_prev|`` in that step, so no connector's
+    length changed by more than 2 D: when every ``dx_prev`` is 2 D inside its range, so is
+    the final state, which a pass over contiguous arrays decides (a node pass and a
+    connector pass without gathers; 1.2 us on the 1400-connector liver, the exact pass
+    4.3 us); otherwise (a connector near its bound, or a large last move) the exact pass
+    :func:`first_length_outside`.
+    """
+    d2 = 0.0
+    for n in range(x.shape[0]):
+        a = x[n, 0] - x_prev[n, 0]
+        b = x[n, 1] - x_prev[n, 1]
+        c = x[n, 2] - x_prev[n, 2]
+        v2 = a * a + b * b + c * c
+        if not v2 <= d2:  # NaN propagates: then the exact pass decides
+            d2 = v2
+    margin = 2.0 * math.sqrt(d2)
+    inside = True
+    for e in range(dx_prev.shape[0]):
+        inside &= (dx_lo[e] + margin <= dx_prev[e]) & (dx_prev[e] <= dx_hi[e] - margin)
+    if inside:
+        return np.int64(-1)
+    return first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi)
+
+
+@njit(**JIT)
 def prescribe(x, x_prev, nodes, times, positions, t):
     """Move prescribed nodes to their piecewise-linear keyframe position at time t."""
     k = np.searchsorted(times, t)
@@ -267,7 +321,12 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     are the probe node's tets.
 
     The checks ride on the force and position passes of the checked steps
-    (no extra pass over the model), so a checked step costs about an unchecked one.
+    (no extra pass over the model), so a checked step costs about an unchecked one;
+    they see the positions each step starts from, so the final state (after the last
+    step and its prescribed motion) gets one more pass of its own: a run that ends
+    with a tet outside ``(v_lo, v_hi]`` stops with code VOLUME_END, one that ends with
+    a connector outside ``[dx_lo, dx_hi]`` with STRAIN_END (step = ``n_steps``, id =
+    the tet or connector), before the probe force is computed.
     """
     status = np.zeros(3, dtype=np.int64)
     slot = 0
@@ -307,6 +366,21 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                 status[2] = outside
             if status[0] != OK:
                 status[1] = step + 1
+                return status
+    if n_steps > 0:  # the final state: the steps above checked the positions they started from
+        if volume is not None:
+            bad = first_volume_outside(x, volume[0], volume[3], volume[4])
+            if bad >= 0:
+                status[0] = VOLUME_END
+                status[1] = n_steps
+                status[2] = bad
+                return status
+        if dx_lo is not None:
+            outside = final_strain_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi)
+            if outside >= 0:
+                status[0] = STRAIN_END
+                status[1] = n_steps
+                status[2] = outside
                 return status
     if probe_out is not None:
         node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,

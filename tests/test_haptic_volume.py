@@ -253,3 +253,47 @@ def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
     cost = volume_cost(mesh_rows("box", model, node, tracked, gravity) + rows)
     assert len(cost) == 1 and cost[0]["substeps"][1] == ref["substeps"]
     assert cost[0]["ratio_median"] > 0.0
+
+
+@pytest.mark.parametrize("jump", [3.0, 30.0])  # x the mean connector length
+def test_a_step_ending_with_a_tet_outside_its_volume_range_is_refused_by_that_call(jump):
+    """The volume range is checked on each substep's start positions, and on the state a
+    call ends in: with one substep per call only the latter sees the tool's jump, and the
+    call that made it raises, naming a tet that is out of range (or inverted) there."""
+    model = with_kv(box_model((3, 3, 2)), 2e4)
+    node = top_centre(model)
+    dt = 0.5 * critical_time_step(model)
+    session = HapticSession(model, dt, period=dt)
+    assert session.substeps == 1
+    x0 = model.rest_positions[node]
+    session.step(node, x0)
+    move = jump * float(model.rest_lengths.mean())
+    with pytest.raises(StabilityError, match=rf"haptic step moving tool particle {node} .*: "
+                       r"tet \d+ \(particles \d+-\d+-\d+-\d+\) (reached volume ratio|inverted)"
+                       r".* after step 1 \(t = .* s\) of the explicit run") as err:
+        session.step(node, x0 + [0.0, 0.0, -move])
+    t = int(str(err.value).split(": tet ")[1].split()[0])
+    ratio = signed_volumes(session.state.x, model.tets[t:t + 1])[0] / model.rest_volumes[t]
+    lo, hi = session._run(node)[0].volume_ratio_range
+    assert not lo[t] < ratio <= hi[t]
+
+
+def test_the_final_volume_check_matches_numpy():
+    """volume.first_volume_outside (the final state's check) names the first tet whose
+    volume is outside (v_lo, v_hi], as numpy's signed volumes do."""
+    from particle import kernels
+    from particle.volume import first_volume_outside
+    model = jittered_box()
+    tets = kernels.index_view(model.tets)
+    v_lo, v_hi = 0.7 * model.rest_volumes, 1.3 * model.rest_volumes
+    rng = np.random.default_rng(5)
+    seen = set()
+    for amplitude in (1e-5, 3e-4, 1e-3, 3e-3):
+        for _ in range(20):
+            x = model.rest_positions + amplitude * rng.standard_normal((model.n_particles, 3))
+            v = signed_volumes(x, model.tets)
+            bad = np.nonzero(~((v > v_lo) & (v <= v_hi)))[0]
+            got = first_volume_outside(x, tets, v_lo, v_hi)
+            assert got == (bad[0] if len(bad) else -1)
+            seen.add(got >= 0)
+    assert seen == {False, True}

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from forcecal.errors import MeshError
-from forcecal.mesh import (TetMesh, box_mesh, check_mesh, coverage, fixed_nodes,
+from forcecal.mesh import (TetMesh, box_mesh, check_mesh, check_mesh_arrays, coverage, fixed_nodes,
                            free_surface_vertices, generate_liver, read_mesh,
                            select_calibration_points, select_held_out_points,
                            validate_test_points)
@@ -328,3 +328,49 @@ def test_read_mesh_refuses_2d_points(tmp_path, monkeypatch):
     monkeypatch.setattr(meshio, "read", lambda _: flat)
     with pytest.raises(MeshError, match="flat.vtu: 2-D points; a 3-D tetrahedral mesh"):
         read_mesh(path)
+
+
+@pytest.mark.parametrize("tets, message", [
+    (np.array([[0, 1, 2, 3.4]]), r"tets: vertex ids must be integers, got 3\.4 at index "
+                                 r"\(0, 3\) \(1 non-integer value\(s\)\)"),
+    (np.array([[0, 1, 2, np.nan]]), r"tets: vertex ids must be integers, got nan"),
+    (np.array([["0", "1", "2", "3"]]), r"tets: vertex ids must be integers, got an array of "
+                                       r"<U1"),
+    (np.array([[True, False, True, True]]), r"vertex ids must be integers, got an array of bool"),
+])
+def test_non_integer_tet_ids_are_refused_not_truncated(tets, message):
+    """TetMesh converted its tets to int64: 3.4 silently became vertex 3."""
+    v, _ = _one_tet()
+    with pytest.raises(MeshError, match=message):
+        TetMesh(v, tets)
+
+
+def test_integral_float_tet_ids_are_taken_as_they_are():
+    v, t = _one_tet()
+    mesh = check_mesh(TetMesh(v, t.astype(float)))
+    assert mesh.tets.dtype == np.int64
+    np.testing.assert_array_equal(mesh.tets, t)
+
+
+@pytest.mark.parametrize("vertices, tets, message", [
+    (lambda v: v[:, :2], lambda t: t, r"vertices must be an \(N, 3\) array, got shape \(4, 2\)"),
+    (lambda v: v, lambda t: t[:, :3], r"tets must be a \(T, 4\) array of vertex ids \(linear "
+                                      r"tetrahedra\), got shape \(1, 3\)"),
+    (lambda v: v, lambda t: t.ravel(), r"tets must be a \(T, 4\) array .* got shape \(4,\)"),
+    (lambda v: v, lambda t: t - 1, r"tet vertex ids must lie in \[0, 3\], got range \[-1, 2\] "
+                                   r"\(e\.g\. tet 0: \[-1, 0, 1, 2\]\)"),
+])
+def test_the_structural_checks_name_the_problem(vertices, tets, message):
+    """check_mesh_arrays: what build_model checks on a bare mesh, before any volume or edge is
+    computed from it (those used to fail inside numpy with an IndexError or einsum error)."""
+    v, t = _one_tet()
+    mesh = TetMesh(vertices(v), tets(t))
+    for check in (check_mesh_arrays, check_mesh):
+        with pytest.raises(MeshError, match=message):
+            check(mesh)
+
+
+def test_vertices_that_are_not_numbers_are_refused():
+    _, t = _one_tet()
+    with pytest.raises(MeshError, match=r"vertices must be an \(N, 3\) array of numbers"):
+        TetMesh([["a", "b", "c"]] * 4, t)

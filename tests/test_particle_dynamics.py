@@ -11,9 +11,9 @@ from particle import kernels
 from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step, resolve_time_step
-from particle.model import Model, State
+from particle.model import Model, Prescribed, State
 from particle.reference_numpy import step_numpy
-from particle.testing import box_model, deformed_start_and_push, mechanical_energy
+from particle.testing import box_model, deformed_start_and_push, mechanical_energy, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -277,7 +277,9 @@ def test_explicit_runs_refuse_springs_that_go_soft_in_their_own_strain_range():
 
 def test_divergence_names_a_non_finite_particle_or_the_fastest_one():
     """The checks ride on the kernel's force and position passes; a failed one names the
-    step, the time and the particle, never returns NaN."""
+    step, the time and the particle, never returns NaN. (``simulate`` refuses a non-finite
+    state before the run, :func:`test_a_non_finite_state_is_refused_before_the_run`; a
+    prepared run's call does not look, so the kernel's check is reached.)"""
     model = box_model()
     dt = 0.5 * critical_time_step(model)
     node = int(model.free_nodes[4])
@@ -285,9 +287,91 @@ def test_divergence_names_a_non_finite_particle_or_the_fastest_one():
     state.x[node, 1] = np.nan
     with pytest.raises(StabilityError, match=r"diverged at step 1 \(t = .* s\): particle "
                        r"\d+ has a non-finite position"):
-        VerletIntegrator(check_every=1).simulate(model, state, dt, 10)
+        VerletIntegrator(check_every=1).prepare(model, dt)(state, 10, None, 1e30)
     state = _perturbed(model, dt, 1e-3)
     run = VerletIntegrator(check_every=4).prepare(model, dt)
     with pytest.raises(StabilityError, match=r"diverged at step 4 \(t = .* s\): particle "
                        r"\d+ is the fastest particle; the kinetic energy exceeds 1e-30 J"):
         run(state, 10, None, 1e-30)
+
+
+def test_a_run_ending_outside_the_strain_range_is_refused_naming_the_connector():
+    """The strain checks see the positions a checked step starts from; the state after the
+    last step (and its prescribed motion) is checked too: a run whose last step takes a
+    connector out of range raises, not returns, naming a connector out of range there."""
+    model = box_model()
+    dt = 0.5 * critical_time_step(model)
+    node = top_centre(model)
+    x0 = model.rest_positions[node]
+    jump = x0 + [0.0, 0.0, -0.8 * float(model.rest_lengths.mean())]
+    motion = Prescribed([node], [0.0, 2 * dt, 3 * dt], [[x0], [x0], [jump]])
+    state = model.state()
+    with pytest.raises(StabilityError, match=r"connector \d+ \(particles \d+-\d+\) reached "
+                       rf"strain .* at the end of the run, t = {3 * dt:.6g} s, outside "
+                       r"\[-0\.5, 0\.5\]") as err:
+        VerletIntegrator().simulate(model, state, dt, 3, prescribed=motion)
+    e = int(str(err.value).split("connector ")[1].split()[0])
+    i, j = model.edges[e]
+    strain = np.linalg.norm(state.x[j] - state.x[i]) / model.rest_lengths[e] - 1.0
+    assert not -0.5 <= strain <= 0.5
+    # the same run stopping one step short ends in range and is accepted, and the state it
+    # ends in is the one an unmonitored run reaches, bitwise
+    state, free = model.state(), model.state()
+    VerletIntegrator().simulate(model, state, dt, 2, prescribed=motion)
+    VerletIntegrator().simulate(model, free, dt, 2, prescribed=motion, _check_dt=False)
+    np.testing.assert_array_equal(state.x, free.x)
+
+
+@pytest.mark.parametrize("field, index, where", [
+    ("x", (40, 0), "particle 40"),
+    ("x", (0, 2), r"particle 0 \(fixed\)"),
+    ("x_prev", (41, 1), "particle 41"),
+    ("arm_force", (3, 1), r"connector 3 \(particles \d+-\d+\)"),
+    ("dx_prev", (5,), r"connector 5 \(particles \d+-\d+\)"),
+])
+def test_a_non_finite_state_is_refused_before_the_run(field, index, where):
+    """A NaN put into the state used to surface as a divergence 10 steps later, naming another
+    particle and suggesting a smaller step; the run now refuses it before it starts."""
+    model = box_model()
+    assert model.fixed[0] and not model.fixed[40]
+    state = model.state()
+    getattr(state, field)[index] = np.nan
+    before = state.copy()
+    with pytest.raises(ParameterError, match=rf"state\.{field} has non-finite values at {where}"):
+        VerletIntegrator().simulate(model, state, 0.5 * critical_time_step(model), 10,
+                                    gravity=GRAVITY)
+    assert state.t == 0.0
+    np.testing.assert_array_equal(state.x, before.x)  # untouched
+
+
+@pytest.mark.parametrize("gravity, message", [
+    (np.array([0.0, -9.81]), r"gravity = \[0\.0, -9\.81\] must be 3 components \(x, y, z\)"),
+    ([[0.0, 0.0, -9.81]], r"gravity = \[\[0\.0, 0\.0, -9\.81\]\] must be 3 components"),
+    ("down", r"gravity = 'down' must be 3 components"),
+    ([0.0, np.inf, 0.0], r"gravity \[0\.0, inf, 0\.0\] m/s\^2 is not finite"),
+    (np.array([0.0, 0.0, np.nan]), r"gravity \[0\.0, 0\.0, nan\] m/s\^2 is not finite"),
+])
+def test_simulate_and_gravity_static_refuse_a_bad_gravity_alike(gravity, message):
+    from particle.statics import gravity_static
+    model = box_model()
+    with pytest.raises(ParameterError, match=message):
+        VerletIntegrator().simulate(model, model.state(), 0.5 * critical_time_step(model), 1,
+                                    gravity=gravity)
+    with pytest.raises(ParameterError, match=message):
+        gravity_static(model, gravity)
+
+
+@pytest.mark.parametrize("n_steps", [2.7, 3.0, -1, "3", None])
+def test_a_step_count_that_is_not_a_non_negative_integer_is_refused(n_steps):
+    model = box_model()
+    with pytest.raises(ParameterError, match=rf"n_steps = {n_steps!r} must be an integer >= 0"):
+        VerletIntegrator().simulate(model, model.state(), 0.5 * critical_time_step(model),
+                                    n_steps)
+
+
+def test_numpy_integer_step_counts_are_accepted():
+    model = box_model()
+    state = model.state()
+    dt = 0.5 * critical_time_step(model)
+    VerletIntegrator().simulate(model, state, dt, np.int64(3), gravity=GRAVITY)
+    assert state.t == pytest.approx(3 * dt)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from forcecal.errors import MeshError, ParameterError
-from forcecal.mesh import box_mesh
+from forcecal.mesh import TetMesh, box_mesh
 from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
 from particle.model import ModelBuilder, build_model, spatial_order
@@ -219,3 +219,68 @@ def test_a_renumbered_model_is_the_same_model_and_moves_the_same():
     for bad in (order[:-1], np.zeros_like(order), order + 0.5):
         with pytest.raises(ParameterError, match="must be a permutation of 0"):
             model.renumbered(bad)
+
+
+@pytest.mark.parametrize("make, error, message", [
+    (lambda v, t: (v, np.where(t == t.max(), 10 ** 6, t)), MeshError,
+     r"tet vertex ids must lie in \[0, \d+\], got range \[0, 1000000\] \(e\.g\. tet \d+: "),
+    (lambda v, t: (v, t - 1), MeshError, r"tet vertex ids must lie in \[0, \d+\], got range \[-1,"),
+    (lambda v, t: (v[:, :2], t), MeshError, r"vertices must be an \(N, 3\) array, got shape"),
+    (lambda v, t: (v, t[:, :3]), MeshError, r"tets must be a \(T, 4\) array of vertex ids"),
+    (lambda v, t: (v, t + 0.4), MeshError, r"tets: vertex ids must be integers, got 0\.4 at "
+                                           r"index \(0, 0\)"),
+    (lambda v, t: (np.where(np.arange(len(v))[:, None] == 5, np.nan, v), t), MeshError,
+     r"non-finite coordinates at vertices \[5\]"),
+])
+def test_a_bare_mesh_is_checked_before_the_model_is_built(make, error, message):
+    """build_model on a TetMesh: the shapes, dtypes and id ranges are checked beside the
+    finite-coordinate check (inverted or degenerate tets: the Model's own check), instead of
+    failing inside numpy or silently truncating float ids."""
+    mesh = box_mesh((1, 1, 1))
+    params = viscoelastic_params(len(mesh.edges))
+    v, t = np.array(mesh.vertices), np.array(mesh.tets)
+    with pytest.raises(error, match=message):
+        build_model(TetMesh(*make(v, t)), 1000.0, params)
+
+
+def test_inverted_tets_of_a_bare_mesh_are_still_refused_by_the_model():
+    mesh = box_mesh((1, 1, 1))
+    t = np.array(mesh.tets)
+    t[2] = t[2][[1, 0, 2, 3]]
+    with pytest.raises(MeshError, match=r"tet 2 \(particles .*\): rest volume .* must be > 0 "
+                       r"\(inverted or degenerate tet\)"):
+        build_model(TetMesh(mesh.vertices, t), 1000.0, viscoelastic_params(len(mesh.edges)))
+
+
+def test_bad_fixed_ids_density_and_connector_counts_are_refused():
+    mesh = box_mesh((1, 1, 1))
+    params = viscoelastic_params(len(mesh.edges))
+    with pytest.raises(MeshError, match=r"fixed vertices: vertex ids must be integers, got 0\.5 "
+                       r"at index 0 \(2 non-integer value\(s\)\)"):
+        build_model(mesh, 1000.0, params, fixed=[0.5, 1.7])
+    model = build_model(mesh, 1000.0, params, fixed=np.array([0.0, 1.0]))  # integral: taken
+    np.testing.assert_array_equal(np.nonzero(model.fixed)[0], [0, 1])
+    for density in (np.array([1060.0, 1.0]), 0.0, -5.0, np.nan, "dense", None):
+        with pytest.raises(ParameterError, match=r"density = .* kg/m\^3 must be one finite "
+                                                 r"number > 0"):
+            build_model(mesh, density, params)
+    assert build_model(mesh, np.float32(1000.0), params).masses.sum() == pytest.approx(1000.0)
+    with pytest.raises(MeshError, match="build_model needs a Problem or a TetMesh, got list"):
+        build_model([mesh], 1000.0, params)
+    for n in (-3, 2.5, "7"):
+        with pytest.raises(ParameterError, match=rf"n_connectors = {n!r} must be an integer >= 0"):
+            ConnectorParams.uniform(n, K0=40.0, k1=35.0, b1=19.0, k2=30.0, b2=270.0)
+    assert ConnectorParams.uniform(np.int64(4), K0=40.0, k1=35.0, b1=19.0, k2=30.0,
+                                   b2=270.0).n_connectors == 4
+
+
+def test_finalize_refuses_tets_that_are_not_four_particle_ids():
+    mesh = box_mesh((1, 1, 1))
+    for tets, message in ((mesh.tets[:, :3], r"tets must be a \(T, 4\) array of particle ids, "
+                                             r"got shape \(\d+, 3\)"),
+                          (mesh.tets + 0.5, r"tets: vertex ids must be integers")):
+        b = ModelBuilder()
+        b.add_particles(mesh.vertices, np.ones(mesh.n_vertices))
+        b.add_connectors(mesh.edges)
+        with pytest.raises(MeshError, match=message):
+            b.finalize(viscoelastic_params(len(mesh.edges)), tets=tets)

@@ -310,3 +310,26 @@ def test_newton_kernels_get_one_type_signature_for_every_term_combination():
     assert len(types) == 1
     a, b, r, c, prev, dx_prev = kernel_terms(p, False, None)
     assert not (a.any() or b.any() or r.any() or c.any() or prev.any() or dx_prev.any())
+
+
+def test_evaluators_refuse_no_test_points_and_depths_beyond_the_model_size():
+    """No test point used to end in numpy's 'zero-size array to reduction' and depths in mm
+    (x 1000) in a ConvergenceError naming a load step; both are refused up front, the depth
+    with the model's size and a units hint. Depths within it are accepted as before."""
+    model = box_model()
+    node = top_centre(model)
+    depths = np.linspace(0.5e-3, 5e-3, 4)
+    for make in (lambda d: IndentationEvaluator(model, np.array([], int), np.zeros((0, 3)), d),
+                 lambda d: RelaxationEvaluator(model, [], np.zeros((0, 3)), [0.1, 0.2, 0.3,
+                                                                             0.4], d)):
+        with pytest.raises(ParameterError, match="no test points: an evaluator needs at least "
+                                                 "one test particle"):
+            make(depths)
+    size = float(np.linalg.norm(np.ptp(model.rest_positions, axis=0)))
+    for make in (lambda d: IndentationEvaluator(model, [node], [DOWN], d),
+                 lambda d: RelaxationEvaluator(model, [node], [DOWN], [0.1, 0.2, 0.3, 0.4], d)):
+        with pytest.raises(ParameterError, match=rf"depth 5 m is beyond the model's size "
+                           rf"\(bounding-box diagonal {size:.3g} m\): depths are in metres "
+                           r"\(5 mm is 0\.005\); a value in mm\?"):
+            make(depths * 1000)
+        make(depths)  # metres: accepted
