@@ -32,6 +32,8 @@ def _run(args: argparse.Namespace) -> int:
         serve_mpi(comm)
         return 0
     configure_logging(logging.INFO)
+    from forcecal.h5io import check_output_file
+    check_output_file(args.out)  # before any work (and before its checkpoints/ folder)
     if args.verbose:
         logging.getLogger("forcecal.failures").setLevel(logging.DEBUG)
     from calibration.core import calibrate

@@ -52,7 +52,8 @@ from calibration.pool import Backend, Experiments, Pool, particle_backend
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
 from forcecal.errors import DataFileError, ParameterError
-from forcecal.h5io import Reference, check_reference_settings, read_reference, reference_digest
+from forcecal.h5io import (Reference, check_reference_settings, read_reference, reference_digest,
+                          section_differences)
 from forcecal.indenter import indenter_footprints
 from forcecal.problem import build_problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, CalibrationSection, Scene, load_scene
@@ -84,9 +85,10 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
         if not np.array_equal(np.sort(getattr(rp, what)), np.sort(getattr(problem, what))):
             raise DataFileError(f"{reference_path}: its {what} nodes differ from the scene's; "
                                 "recompute the reference for this scene")
-    if ref.material != dataclasses.replace(scene.material, reference=ref.material.reference):
-        raise DataFileError(f"{reference_path}: computed with material {ref.material} but the "
-                            f"scene has {scene.material}")
+    differ = section_differences("material", ref.material, scene.material, ("reference",))
+    if differ:
+        raise DataFileError(f"{reference_path}: computed with another material than the "
+                            f"scene's: {'; '.join(differ)}; recompute the reference")
     times, depths = relaxation_schedule(scene.relaxation)
     relax = scene.runs("relaxation")
     for name, got, want in (
@@ -192,8 +194,11 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                         None if footprints is None else footprints[:n_cal])
     # where every spring must stay stiff, known before any fit (the FE sag's release range
     # is geometric); the global springs share one K(eps)/K0, so they must hold on all of it
+    # (only for a scene that runs gravity: a reference holding more experiments than the
+    # scene lists does not change its fit)
+    gravity = ref.gravity is not None and any(scene.runs(e) for e in GRAVITY_EXPERIMENTS)
     validity = spring_validity(ref, initial, strain, settings.stiffness_floor,
-                               scene.particle.strain_margin, shape)
+                               scene.particle.strain_margin, shape, gravity=gravity)
     feasible = StrainRange(float(validity.low.min()), float(validity.high.max()))
     with Pool(experiments, initial.connector_params(n_conn, shape), backend=backend,
               workers=settings.workers if workers is None else workers) as pool:
@@ -272,7 +277,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         # the fit, or a fraction of it over the global fit (the gravity check's pull-back)
         params_at = gfit.pulled_back if gradient else lambda f: local.scaled(f).params()
         calibrated, gravity_check = params_at(1.0), None
-        if ref.gravity is not None and any(scene.runs(e) for e in GRAVITY_EXPERIMENTS):
+        if gravity:
             # only whether the model completes the test is used, never its FE comparison
             t = time.perf_counter()
             times = ref.gravity.time if scene.runs("gravity_dynamic") else None
@@ -385,12 +390,14 @@ def local_validity(validity: Validity, glob: ConnectorParams
 
 
 def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
-                    gravity_margin: float, shape: np.ndarray | None = None) -> Validity:
+                    gravity_margin: float, shape: np.ndarray | None = None, *,
+                    gravity: bool = True) -> Validity:
     """Where a calibration keeps every spring stiff (the global fits on the overall range,
     the gradient fit per connector, local tuning as :func:`local_validity` says): the
     experiments' strain range united, per connector, with the gravity release range of the
     FE static sag (:func:`particle.stability.strain_range_for_release` with
-    ``gravity_margin``; the experiments' range alone if the reference has no gravity run).
+    ``gravity_margin``; the experiments' range alone if the reference has no gravity run or
+    ``gravity`` is False: a scene without gravity experiments).
     The range depends on the geometry only; the floor is
     :func:`calibration.parametrisation.connector_floor`."""
     from particle.stability import strain_range_for_release
@@ -398,7 +405,7 @@ def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, flo
 
     n = len(ref.problem.mesh.edges)
     low, high = np.full(n, strain.low), np.full(n, strain.high)
-    if ref.gravity is not None:
+    if gravity and ref.gravity is not None:
         model = build_model(ref.problem, ref.material.density, glob.connector_params(n, shape))
         lo, hi = strain_range_for_release(model, ref.gravity.static_displacement, gravity_margin)
         low, high = np.minimum(low, lo), np.maximum(high, hi)

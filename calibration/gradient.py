@@ -472,11 +472,12 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
             t = time.perf_counter()
             rows = ev.linearise(theta, points, ROWS_KEPT)
             lin = Linearisation.of(theta, rows[0], rows[1], reg, rows[2])
+            used = folds_of(len(points), folds)  # at most one fold per point
             weight, costs = cross_validate(lin, min(ROWS_KEPT, data.rows(points[:1])), reg,
-                                           folds_of(len(points), folds), grid)
+                                           used, grid)
             checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
             log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
-                     "(%.1f s)", k + 1, weight, folds, time.perf_counter() - t)
+                     "(%.1f s)", k + 1, weight, len(used), time.perf_counter() - t)
             start = linearise(ev, theta, points, reg, validity, lin)
         else:
             weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)

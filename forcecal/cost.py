@@ -33,17 +33,48 @@ def n_test_points(scene: Scene) -> int:
     return n_cal + n_held
 
 
-def fe_work(scene: Scene, n_vertices: int) -> dict[str, float]:
+#: connectors (edges) per vertex of a generated liver, for an estimate before meshing
+#: (5.0 at the default 0.0182 m, 6.5 at 0.004 m)
+EDGES_PER_VERTEX = 6.5
+
+
+def refined_vertices(n_vertices: int, n_edges: int, levels: int) -> float:
+    """Vertices of a tet mesh after ``levels`` uniform refinements (``fe.refine``: each adds a
+    vertex per edge and splits every tet into 8), from its vertices and edges alone: the tets
+    from Euler's formula of a solid ball (t ~ e - v + 1, faces ~ 2 t), so exact after one
+    level and a few % high after more (the exact count: ``reference_fe.refine.refined_counts``)."""
+    v, e = float(n_vertices), float(n_edges)
+    t = max(e - v + 1.0, 0.0)
+    f = 2.0 * t
+    for _ in range(levels):
+        v, e, f, t = v + e, 2 * e + 3 * f + t, 4 * f + 8 * t, 8 * t
+    return v
+
+
+def local_refine_factor(scene: Scene) -> float:
+    """Factor on a punch's FE mesh of ``fe.local_refine`` rim refinements: at most 2 per
+    level (the estimate of :func:`reference_fe.refine.check_memory`, measured 1.5-2.0)."""
+    return 2.0 ** scene.fe.local_refine if scene.indentation.indenter == "punch" else 1.0
+
+
+def fe_work(scene: Scene, n_vertices: int, n_edges: int | None = None) -> dict[str, float]:
     """Vertex-steps of each FE experiment the scene runs (``experiments``), keyed by the
-    scene key that sets its step count."""
+    scene key that sets its step count, on the FE mesh: ``n_vertices`` refined ``fe.refine``
+    times (:func:`refined_vertices`, ``n_edges`` the particle mesh's edges, estimated from
+    :data:`EDGES_PER_VERTEX` if None), the indentation and relaxation on each punch's mesh
+    refined ``fe.local_refine`` times near its rim (:func:`local_refine_factor`)."""
+    n_edges = EDGES_PER_VERTEX * n_vertices if n_edges is None else n_edges
+    fe_vertices = refined_vertices(n_vertices, n_edges, scene.fe.refine)
+    local = local_refine_factor(scene)
     points = n_test_points(scene)
     r, g = scene.relaxation, scene.gravity
     work = {"indentation": ("indentation.steps", scene.indentation.steps * points),
             "relaxation": ("relaxation.hold_steps", (r.ramp_steps + r.hold_steps) * points),
             "gravity_dynamic": ("gravity.fe_dt", math.ceil(g.duration / g.fe_dt)),
             "gravity_static": ("gravity.static_load_steps", g.static_load_steps)}
-    return {key: steps * n_vertices for experiment, (key, steps) in work.items()
-            if experiment in scene.experiments}
+    return {key: steps * fe_vertices * (local if experiment in ("indentation", "relaxation")
+                                        else 1.0)
+            for experiment, (key, steps) in work.items() if experiment in scene.experiments}
 
 
 def particle_work(scene: Scene, n_connectors: int) -> dict[str, float]:
@@ -55,14 +86,21 @@ def particle_work(scene: Scene, n_connectors: int) -> dict[str, float]:
     return {"particle.dt": 2.0 * scene.gravity.duration / dt * n_connectors}
 
 
-def check_cost(scene: Scene, n_vertices: int, n_connectors: int) -> None:
+def check_cost(scene: Scene, n_vertices: int, n_connectors: int, *,
+               estimated: bool = False) -> None:
     """Refuse a scene whose estimated work exceeds :data:`FE_LIMIT` or :data:`PARTICLE_LIMIT`.
 
+    ``n_vertices`` and ``n_connectors`` are the particle mesh's (the FE mesh is derived from
+    it: ``fe.refine``, ``fe.local_refine``); ``estimated``: they are the estimate of the
+    generated liver before meshing (:func:`check_generated_cost`).
+
     Raises:
-        SceneError: with the estimate, its largest term and the key that sets it.
+        SceneError: with the estimate, its largest term and the key that sets it: a
+            refinement or the mesh length when the work without it would be within the limit
+            (the largest such factor), else the step key of the largest term.
     """
-    for side, work, limit, unit in (("FE reference", fe_work(scene, n_vertices), FE_LIMIT,
-                                     "vertex-steps"),
+    for side, work, limit, unit in (("FE reference", fe_work(scene, n_vertices, n_connectors),
+                                     FE_LIMIT, "vertex-steps"),
                                     ("particle gravity release",
                                      particle_work(scene, n_connectors), PARTICLE_LIMIT,
                                      "connector-steps")):
@@ -70,11 +108,65 @@ def check_cost(scene: Scene, n_vertices: int, n_connectors: int) -> None:
         if total <= limit:
             continue
         key = max(work, key=work.get)
+        cause = f"{key} = {_value(scene, key)}: change {key}"
+        if side == "FE reference":
+            cause = _mesh_cause(scene, n_vertices, n_connectors, total, limit, estimated) or cause
         hours = (f" (about {total * FE_SECONDS_PER_VERTEX_STEP / 3600:.3g} core-hours)"
                  if side == "FE reference" else "")
         raise SceneError(f"{scene.path or 'scene'}: the {side} would take about {total:.3g} "
                          f"{unit}{hours}, above the limit of {limit:.3g}; most of it comes "
-                         f"from {key} = {_value(scene, key)}: change {key}")
+                         f"from {cause}")
+
+
+#: vertices of the default generated liver (mesh.characteristic_length = 0.0182 m)
+DEFAULT_LIVER_VERTICES = 282
+
+
+def _mesh_cause(scene: Scene, n_vertices: int, n_edges: int, total: float, limit: float,
+                estimated: bool) -> str | None:
+    """The mesh key to blame for FE work ``total`` above ``limit`` (None: the steps): of
+    ``fe.refine``, ``fe.local_refine`` and, before meshing, ``mesh.characteristic_length``,
+    the one multiplying the work most, if the work without it is within the limit."""
+    fe_vertices = refined_vertices(n_vertices, n_edges, scene.fe.refine)
+    factors = {"fe.refine": (fe_vertices / n_vertices,
+                             f"the FE mesh would have about {fe_vertices:.3g} vertices, "
+                             f"{fe_vertices / n_vertices:.3g} x the particle mesh's "
+                             f"{n_vertices}; lower fe.refine"),
+               "fe.local_refine": (local_refine_factor(scene),
+                                   f"each punch's FE mesh up to {local_refine_factor(scene):g} x "
+                                   "the uniform one; lower fe.local_refine")}
+    if estimated:
+        factors["mesh.characteristic_length"] = (
+            n_vertices / DEFAULT_LIVER_VERTICES,
+            f"the generated liver would have about {n_vertices} vertices, estimated from its "
+            f"volume before meshing, {DEFAULT_LIVER_VERTICES} at the default 0.0182 m; raise "
+            "mesh.characteristic_length")
+    key = max(factors, key=lambda k: factors[k][0])
+    factor, why = factors[key]
+    if factor <= 1.0 or total / factor > limit:
+        return None
+    return f"{key} = {_value(scene, key)} ({why})"
+
+
+def check_generated_cost(scene: Scene) -> None:
+    """Before meshing: refuse a generated liver (``mesh.source = "generate"``) whose
+    ``mesh.characteristic_length`` is not small against the organ or gives, by the vertex
+    count estimated from the organ's volume and area
+    (:func:`forcecal.mesh.estimated_liver_vertices`), work above the limits of
+    :func:`check_cost` (gmsh alone would run for minutes or hours on it).
+
+    Raises:
+        SceneError: naming ``mesh.characteristic_length`` (or the key that causes most work).
+    """
+    from forcecal.mesh import estimated_liver_vertices, liver_length_error
+    if scene.mesh.source != "generate":
+        return
+    length = scene.mesh.characteristic_length
+    problem = liver_length_error(length)
+    if problem:
+        raise SceneError(f"{scene.path or 'scene'}: {problem}")
+    n = estimated_liver_vertices(length)
+    check_cost(scene, n, int(EDGES_PER_VERTEX * n), estimated=True)
 
 
 def _value(scene: Scene, key: str):

@@ -70,6 +70,31 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp.unlink()
 
 
+def check_output_file(path: str | Path, option: str = "--out") -> Path:
+    """Refuse, before any work, an output file path that cannot be written: a directory, a
+    parent that is a file or cannot be created, or a folder that is not writable (the
+    command-line ``option`` names it). Creates the parent folder; returns the path.
+
+    Raises:
+        DataFileError: naming the path, the problem and what is expected.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise DataFileError(f"{option} {path} is a directory; give the path of the file to "
+                            f"write (e.g. {path / 'reference.h5'} or {path / 'params.h5'})")
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise DataFileError(f"{option} {path}: its folder {parent} is a file, not a directory")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataFileError(f"{option} {path}: cannot create its folder {parent}: "
+                            f"{exc.strerror or exc}") from None
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise DataFileError(f"{option} {path}: its folder {parent} is not writable")
+    return path
+
+
 #: what :func:`atomic_path` puts between a file's name and the writing process's id
 TMP_MARK = ".tmp-"
 
@@ -333,6 +358,15 @@ class Reference:
             raise DataFileError(f"{path} has no {experiment} results (it holds "
                                 f"{list(self.experiments)}); add {experiment!r} to the scene's "
                                 "experiments and rerun the reference")
+
+
+def section_differences(section: str, stored: Any, wanted: Any,
+                        ignore: tuple[str, ...] = ()) -> list[str]:
+    """``"<section>.<key> = <stored> (scene: <wanted>)"`` for every key of two instances of a
+    scene section class that differs (``ignore``: keys not compared)."""
+    return [f"{section}.{f.name} = {getattr(stored, f.name)!r} (scene: "
+            f"{getattr(wanted, f.name)!r})" for f in dataclasses.fields(stored)
+            if f.name not in ignore and getattr(stored, f.name) != getattr(wanted, f.name)]
 
 
 def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> None:

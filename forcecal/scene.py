@@ -107,14 +107,15 @@ class TestPointsSection:
         "n_calibration or not proven within the solver's bounds) or an explicit list of "
         "vertex ids; with a punch indenter 'auto' picks among the vertices the punch can "
         "indent (footprint of >= 3 particles, off the clamp)")
-    n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover'",
-                             minimum=1)
+    n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover' (not "
+                             "with an explicit list: refused)", minimum=1)
     held_out: Union[str, tuple[int, ...]] = key(
         "auto", "'auto' (the free surface vertices farthest from the calibration points and "
         "from each other; fast on any mesh; with a punch, among those it can indent) or a list "
         "of vertex ids, used only for validation")
-    n_held_out: int = key(8, "number of held-out points when 'auto'; at least "
-                          f"{MIN_HELD_OUT} (an explicit held_out list too)", minimum=MIN_HELD_OUT)
+    n_held_out: int = key(8, "number of held-out points when 'auto' (not with an explicit list: "
+                          f"refused); at least {MIN_HELD_OUT} (an explicit held_out list too)",
+                          minimum=MIN_HELD_OUT)
 
 
 @dataclass(frozen=True)
@@ -158,10 +159,18 @@ class RelaxationSection:
         return None
 
 
+#: largest |gravity.acceleration| accepted [m/s^2]: about 10 g, the sustained load of a
+#: centrifuge or crash-test experiment on an organ; 981 (cm/s^2 by mistake) is 100 g and makes the
+#: FE's Newton diverge after its work
+MAX_GRAVITY = 100.0
+
+
 @dataclass(frozen=True)
 class GravitySection:
-    acceleration: tuple[float, float, float] = key((0.0, 0.0, -9.81), "gravitational acceleration",
-                                                   "m/s^2")
+    acceleration: tuple[float, float, float] = key(
+        (0.0, 0.0, -9.81), "gravitational acceleration; its magnitude must be non-zero and at "
+        f"most {MAX_GRAVITY:g} m/s^2 (about 10 g: a value in cm/s^2 or mm/s^2 is refused)",
+        "m/s^2")
     static_load_steps: int = key(4, "load steps of the static sag solve", minimum=1)
     duration: float = key(3.0, "simulated time of the dynamic test (released from rest at t=0)",
                           "s", exclusive_minimum=0.0)
@@ -209,7 +218,8 @@ class ParticleSection:
     dt_safety: float = key(0.9, "fraction of the critical step used by dt='auto': the estimate "
                            "is a rigorous eigenvalue bound on the strain range the run "
                            "verifies, 0.53-0.9 x the limit measured in the stability tests, "
-                           "so 0.9 keeps omega_max dt <= 1.8 < 2", exclusive_minimum=0.0)
+                           "so 0.9 keeps omega_max dt <= 1.8 < 2; must be in (0, 1)",
+                           exclusive_minimum=0.0)
     strain_margin: float = key(0.2, "gravity release: the step is chosen for each connector's "
                                "strains in [min(0, 2 eps_static) - m, max(0, 2 eps_static) + m] "
                                "(twice the static sag's strain, the overshoot of a release from "
@@ -257,7 +267,8 @@ class CalibrationSection:
                                  "10-fold, not to a nearly stiffness-less or snapping spring)",
                                  minimum=0.0)
     cv_folds: int = key(5, "gradient method: folds of the cross-validation over the calibration "
-                        "points that picks the smoothness weight", minimum=2)
+                        "points that picks the smoothness weight; at most the number of "
+                        "calibration points", minimum=2)
     gradient_max_iterations: int = key(12, "gradient method: Levenberg-Marquardt iterations "
                                        "(one Jacobian of every calibration point each)",
                                        minimum=1)
@@ -479,6 +490,11 @@ def section_from_values(name: str, values: dict[str, Any], origin: str) -> Any:
 
 
 def _cross_checks(scene: Scene, origin: str) -> None:
+    if scene.mesh.source == "generate":
+        from forcecal.mesh import liver_length_error
+        problem = liver_length_error(scene.mesh.characteristic_length)
+        if problem:
+            raise SceneError(f"{origin}: {problem}")
     m = scene.material
     problem = m.prony_error()
     if problem:
@@ -502,6 +518,12 @@ def _cross_checks(scene: Scene, origin: str) -> None:
         raise SceneError(f"{origin}: gravity.acceleration = {list(g.acceleration)}: the FE "
                          "reference's static sag and dynamic release need a non-zero gravity "
                          "(e.g. [0.0, 0.0, -9.81])")
+    magnitude = math.sqrt(sum(a * a for a in g.acceleration))
+    if magnitude > MAX_GRAVITY:
+        raise SceneError(f"{origin}: gravity.acceleration = {list(g.acceleration)}: its "
+                         f"magnitude {magnitude:.4g} m/s^2 is above {MAX_GRAVITY:g} m/s^2 (about "
+                         "10 g), far from physical for an organ; scene values are in m/s^2 "
+                         "(a value in cm/s^2? Earth's gravity is [0.0, 0.0, -9.81])")
     records = int(math.floor(g.duration / g.record_interval * (1 + 1e-12))) + 1
     if records < MIN_RECORDS:
         raise SceneError(f"{origin}: gravity.duration = {g.duration} s holds {records} "
@@ -527,12 +549,34 @@ def _cross_checks(scene: Scene, origin: str) -> None:
                          f"got {p.dt!r}")
     if isinstance(p.dt, float) and p.dt <= 0:
         raise SceneError(f"{origin}: particle.dt = {p.dt} must be > 0")
+    if not p.dt_safety < 1:
+        raise SceneError(f"{origin}: particle.dt_safety = {p.dt_safety}: must be in (0, 1) (the "
+                         "fraction of the critical time step particle.dt = 'auto' uses; 1 or "
+                         "more is at or above the stability limit)")
     for which, rules in (("calibration", ("auto", "cover")), ("held_out", ("auto",))):
         v = getattr(scene.test_points, which)
         if isinstance(v, str) and v not in rules:
             raise SceneError(f"{origin}: test_points.{which} must be "
                              + " or ".join(repr(r) for r in rules)
                              + f" or a list of vertex ids, got {v!r}")
+    _check_test_point_counts(scene, origin)
+
+
+def _check_test_point_counts(scene: Scene, origin: str) -> None:
+    """An explicit list of calibration points is not empty; the gradient method's
+    ``calibration.cv_folds`` is not above the number of calibration points."""
+    tp = scene.test_points
+    if not isinstance(tp.calibration, str) and not tp.calibration:
+        raise SceneError(f"{origin}: test_points.calibration = []: at least one calibration "
+                         "point is needed (list vertex ids, or use 'auto' or 'cover')")
+    n_cal = tp.n_calibration if isinstance(tp.calibration, str) else len(tp.calibration)
+    c = scene.calibration
+    if c.method == "gradient" and c.cv_folds > n_cal:
+        raise SceneError(f"{origin}: calibration.cv_folds = {c.cv_folds} is more than the "
+                         f"{n_cal} calibration points (test_points."
+                         + ("n_calibration" if isinstance(tp.calibration, str)
+                            else "calibration") + "); each fold needs at least one point: "
+                         f"lower calibration.cv_folds to at most {n_cal}")
 
 
 def check_experiments(value: Any, origin: str) -> tuple[str, ...]:
@@ -589,6 +633,9 @@ def scene_from_dict(data: dict[str, Any], *, path: Path | None = None,
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene TOML file."""
     path = Path(path).resolve()
+    if path.is_dir():
+        raise SceneError(f"scene file {path} is a directory, not a file; give a scene TOML "
+                         "file (e.g. scenes/liver.toml)")
     if not path.is_file():
         raise SceneError(f"scene file {path} does not exist")
     try:
@@ -601,7 +648,23 @@ def load_scene(path: str | Path) -> Scene:
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
     except OSError as exc:
         raise SceneError(f"scene file {path} cannot be read: {exc.strerror or exc}") from None
-    return scene_from_dict(data, path=path, default_name=path.stem)
+    scene = scene_from_dict(data, path=path, default_name=path.stem)
+    _refuse_ignored_counts(data.get("test_points", {}), path)
+    return scene
+
+
+def _refuse_ignored_counts(table: dict[str, Any], origin: Path) -> None:
+    """A scene file's [test_points] table giving a count next to the explicit list that makes
+    it meaningless (``n_calibration`` counts the points of 'auto' and 'cover', ``n_held_out``
+    those of 'auto'). Checked on the file's own table: scenes built in code carry every key."""
+    for which, count in (("calibration", "n_calibration"), ("held_out", "n_held_out")):
+        points = table.get(which, "auto")
+        if count in table and not isinstance(points, str):
+            raise SceneError(f"{origin}: test_points.{count} = {table[count]!r} is given next "
+                             f"to an explicit list test_points.{which} = {list(points)}, which "
+                             f"sets the points and their number ({len(points)}); remove "
+                             f"test_points.{count} (it counts the points of 'auto'"
+                             + (" and 'cover')" if which == "calibration" else ")"))
 
 
 def replace(scene: Scene, **sections: dict[str, Any]) -> Scene:

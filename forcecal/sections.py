@@ -17,7 +17,9 @@ EXPERIMENT_SECTIONS = {"indentation": ("indentation",),
 #: sections the whole FE reference reads (every experiment's)
 REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
                       "gravity", "fe")
-#: sections a calibration reads (of ``[particle]`` only ``volume``, the model it fits, which
-#: the calibration records separately)
+#: sections that set a calibration's fit (of ``[particle]`` only ``volume``, the model it fits,
+#: which the calibration records separately); with gravity experiments it also reads
+#: ``[gravity]`` and the rest of ``[particle]`` for its gravity check, which the pipeline's
+#: calibrate stage adds to its cache key (``pipelines.stages``)
 FIT_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
                 "calibration")

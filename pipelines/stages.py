@@ -132,9 +132,12 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("reference", REFERENCE_SECTIONS,
           ("pipelines.runners.reference", "reference_fe.__main__"), (), run_reference,
           reads_mesh=True, code_ignored=FE_CODE_IGNORED),
-    Stage("calibrate", FIT_SECTIONS + ("particle",),  # particle.volume: the model fitted
+    # [particle]: the model fitted (volume) and the explicit gravity run of its gravity check
+    # (dt, dt_safety, strain_margin, damping); [gravity] and the FE sag and release times of
+    # reference.h5: that check and the release strain range the springs are kept stiff on
+    Stage("calibrate", FIT_SECTIONS + ("gravity", "particle"),
           ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
-          experiments=("indentation", "relaxation")),
+          experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic")),
     Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
           (REFERENCE, PARAMS), run_gravity_stage,
           experiments=("gravity_static", "gravity_dynamic")),

@@ -27,6 +27,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     from mpi4py import MPI
 
+    from forcecal.h5io import check_output_file
     from forcecal.scene import load_scene
     from reference_fe.run import compute_reference
 
@@ -34,6 +35,7 @@ def _run(args: argparse.Namespace) -> int:
     configure_logging(logging.INFO if rank == 0 else logging.WARNING, prefix=f"[rank {rank}] ")
     try:
         scene = load_scene(args.scene)
+        check_output_file(args.out)  # before any FE work: not a directory, parent writable
     except ForcecalError as exc:  # every rank reads the same file
         raise collective(exc) from None
     compute_reference(scene, out_path=args.out, progress=not args.no_progress)

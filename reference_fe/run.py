@@ -433,9 +433,10 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     if failures:
         kind = getattr(errors, failures[0][0], None)
         kind = kind if isinstance(kind, type) and issubclass(kind, ForcecalError) else RuntimeError
+        kept = (f" (finished items are kept in {parts.folder}/ and reused by a rerun)"
+                if parts.folder.is_dir() and any(parts.folder.glob("*.npz")) else "")
         raise collective(kind("FE reference failed: " + "; ".join(m for _, m in failures)
-                              + f" (finished items are kept in {parts.folder}/ and reused by "
-                              "a rerun)"))
+                              + kept))
 
     def finish() -> Reference:
         reference = _assemble(scene, problem, items, parts, previous, computed, keys, comm.size,

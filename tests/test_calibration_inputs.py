@@ -67,8 +67,11 @@ def test_reference_of_another_scene_is_refused(case, tmp_path):
         _run(replace(scene, test_points={"n_held_out": 9}), reference, tmp_path)
     with pytest.raises(DataFileError, match="indentation/displacement does not match"):
         _run(replace(scene, indentation={"depth": 0.003}), reference, tmp_path)
-    with pytest.raises(DataFileError, match="computed with material"):
+    with pytest.raises(DataFileError, match="another material") as info:
         _run(replace(scene, material={"C10": 2500.0}), reference, tmp_path)
+    # the key that differs, with both values; not the whole sections
+    assert "material.C10 = 2000.0 (scene: 2500.0)" in str(info.value)
+    assert "MaterialSection" not in str(info.value) and "C01" not in str(info.value)
     # curves of another FE discretisation are another target
     ref = read_reference(reference)
     p2 = tmp_path / "p2.h5"

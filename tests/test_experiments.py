@@ -137,12 +137,15 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert not list(out.glob("gravity_*"))
     forces = ref.indentation.force
 
-    # 2. + gravity_static: that one FE item, the reused curves, no new calibration
+    # 2. + gravity_static: that one FE item, the reused curves; the calibration reruns, as a
+    # fresh run of this scene would: its springs are now kept stiff on the FE sag's release
+    # strains and its fit must carry gravity (the gravity check)
     scene_path.write_text(scene_path.read_text().replace(
         'experiments = ["indentation"]', 'experiments = ["indentation", "gravity_static"]'))
     scene = load_scene(scene_path)
     outcomes = run_pipeline(scene, out, progress=False, ranks=1)
-    assert ran(outcomes) == ["reference", "gravity", "report"]
+    assert ran(outcomes) == ["reference", "calibrate", "gravity", "report"]
+    assert "scene [experiments] changed" in outcomes[1].reasons
     ref = read_reference(out / "reference.h5")
     assert ref.experiments == ("indentation", "gravity_static")
     assert json.loads(ref.meta["items_computed"]) == {"gravity_static": 1}
@@ -160,10 +163,14 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert (out / "figures" / "gravity_static.png").is_file()
     assert not (out / "figures" / "gravity_dynamic.png").exists()
 
-    # 3. removing it again recomputes nothing upstream; the reference stays a superset
+    # 3. removing it again recomputes nothing upstream; the reference stays a superset, and
+    # the calibration, rerun, is the indentation-only scene's of step 1 (it reads the FE sag
+    # only for a scene that runs gravity)
     scene_path.write_text(scene_path.read_text().replace(', "gravity_static"]', "]"))
     outcomes = run_pipeline(load_scene(scene_path), out, progress=False, ranks=1)
-    assert ran(outcomes) == ["report"]
+    assert ran(outcomes) == ["calibrate", "report"]
+    again = read_params(out / "params.h5").connectors["calibrated"]
+    np.testing.assert_array_equal(again.K0, params.connectors["calibrated"].K0)
     assert read_reference(out / "reference.h5").experiments == ("indentation", "gravity_static")
     assert read_report(out / "report.json")["errors"]["gravity_static"] is None
     assert not (out / "figures" / "gravity_static.png").exists()

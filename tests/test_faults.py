@@ -282,7 +282,7 @@ HAND_WRITTEN = {
                          r"change particle.dt"),
     # meshes
     "missing mesh file": (tiny_with(mesh={"source": "nowhere.vtu"}), r"does not exist"),
-    "mesh is a folder": (tiny_with(mesh={"source": "."}), r"does not exist|could not read"),
+    "mesh is a folder": (tiny_with(mesh={"source": "."}), r"is a directory, not a file"),
 }
 
 
@@ -294,7 +294,7 @@ def test_hostile_scenes_are_refused_before_any_work(case, tmp_path, capsys):
 
 def test_missing_and_directory_scene_files(tmp_path, capsys):
     for scene, cause in ((tmp_path / "nope.toml", r"does not exist"),
-                         (tmp_path, r"does not exist")):
+                         (tmp_path, r"is a directory, not a file")):
         CASES["table"] += 1
         run_refused(tmp_path, capsys, [], cause, scene=scene)
 
@@ -546,9 +546,14 @@ def test_nan_filled_reference_is_not_adopted(tmp_path, monkeypatch):
                                 code={})
     CASES["fault"] += 1
     with pytest.raises(DataFileError, match=r"cannot be adopted: .*(NaN|non-finite).*"
-                       r"reference --force"):
+                       r"reference --force") as info:
         adopt_reference(ctx, inputs.mesh)
     assert Cache(tmp_path).check("reference", inputs)  # not recorded as done
+    # the error line must not offer the refused file for a resume ("rerun ... to resume")
+    from forcecal.failures import describe, note_stage
+    line = describe(note_stage(info.value, "reference", "reference.h5; rerun the same command "
+                               "to resume"))
+    assert line.endswith("[stage reference; kept: nothing]") and "resume" not in line, line
 
 
 def test_reference_without_keys_or_with_other_keys_is_not_adopted(tmp_path):

@@ -183,6 +183,18 @@ def test_calibration_keys_rerun_calibration_and_downstream_not_the_reference(fir
     assert (out / "reference.h5").read_bytes() == before
 
 
+def test_a_gravity_key_reruns_the_calibration_whose_gravity_check_reads_it(first_run,
+                                                                           tmp_path):
+    """The calibration's gravity check runs the particle release with [gravity], and its
+    springs are kept stiff on the strain range of the FE sag: a [gravity] change (here only
+    the static solve's load steps, a key of the FE's gravity runs alone) reruns it."""
+    scene_path, out = copy_run(first_run, tmp_path)
+    write_scene(scene_path, {"gravity": {"static_load_steps": 5}})
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False, until="calibrate")
+    assert ran(outcomes) == ["reference", "calibrate"]
+    assert "scene [gravity] changed" in outcomes[1].reasons
+
+
 def test_material_change_reruns_everything(first_run, tmp_path):
     scene_path, out = copy_run(first_run, tmp_path)
     write_scene(scene_path, {"material": {"C10": 2200.0}})

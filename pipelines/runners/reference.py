@@ -17,7 +17,7 @@ import threading
 import h5py
 
 from forcecal.errors import DataFileError, ForcecalError
-from forcecal.failures import INTERRUPTED, die_with_parent
+from forcecal.failures import INTERRUPTED, die_with_parent, note_stage
 from pipelines.runners.common import REFERENCE, Context
 
 log = logging.getLogger(__name__)
@@ -44,11 +44,15 @@ def run_reference(ctx: Context) -> list[str]:
     log.info("running %s", " ".join(cmd))
     rc, error = run_mpirun(cmd)
     if rc != 0:
-        kept = f"finished work items are kept in {path}.parts/ and reused by a rerun"
+        parts = path.with_name(path.name + ".parts")
+        # only when there are finished items: a refusal before any work kept nothing
+        kept = (f"finished work items are kept in {parts}/ and reused by a rerun"
+                if parts.is_dir() and any(parts.glob("*.npz")) else "")
         if error is not None:  # the ranks' own refusal, printed once by the pipeline
-            raise StageFailed(f"{error} ({kept})")
+            raise StageFailed(f"{error} ({kept})" if kept and "kept in" not in error
+                              else error)
         raise StageFailed(f"the FE reference failed (mpirun exit code {rc}; --verbose shows "
-                          f"mpirun's own text); {kept}")
+                          "mpirun's own text)" + (f"; {kept}" if kept else ""))
     return [REFERENCE]
 
 
@@ -165,8 +169,10 @@ def adopt_reference(ctx: Context, mesh_fingerprint: str) -> bool:
     try:  # the content too: a NaN-filled or damaged file would fail every later stage
         read_reference(path, expect_mesh=mesh_fingerprint)
     except DataFileError as exc:
-        raise DataFileError(f"{path} matches this scene but cannot be adopted: {exc}; delete "
-                            "it or recompute it with `reference --force`") from None
+        # nothing of it is reused: the stage's "kept" note must not offer it for a resume
+        raise note_stage(DataFileError(
+            f"{path} matches this scene but cannot be adopted: {exc}; delete it or recompute "
+            "it with `reference --force`"), "reference", "nothing") from None
     extra = sorted(set(stored) - set(ctx.scene.experiments))
     log.info("reference: %s already holds %s with the current keys%s: not recomputed",
              path, ", ".join(ctx.scene.experiments),
