@@ -107,14 +107,14 @@ class TestPointsSection:
         "n_calibration or not proven within the solver's bounds) or an explicit list of "
         "vertex ids; with a punch indenter 'auto' picks among the vertices the punch can "
         "indent (footprint of >= 3 particles, off the clamp)")
-    n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover' (not "
-                             "with an explicit list: refused)", minimum=1)
+    n_calibration: int = key(31, "number of calibration points for 'auto' and 'cover' (an "
+                             "explicit list sets its own)", minimum=1)
     held_out: Union[str, tuple[int, ...]] = key(
         "auto", "'auto' (the free surface vertices farthest from the calibration points and "
         "from each other; fast on any mesh; with a punch, among those it can indent) or a list "
         "of vertex ids, used only for validation")
-    n_held_out: int = key(8, "number of held-out points when 'auto' (not with an explicit list: "
-                          f"refused); at least {MIN_HELD_OUT} (an explicit held_out list too)",
+    n_held_out: int = key(8, "number of held-out points when 'auto' (an explicit list sets its "
+                          f"own); at least {MIN_HELD_OUT} (an explicit held_out list too)",
                           minimum=MIN_HELD_OUT)
 
 
@@ -267,8 +267,8 @@ class CalibrationSection:
                                  "10-fold, not to a nearly stiffness-less or snapping spring)",
                                  minimum=0.0)
     cv_folds: int = key(5, "gradient method: folds of the cross-validation over the calibration "
-                        "points that picks the smoothness weight; at most the number of "
-                        "calibration points", minimum=2)
+                        "points that picks the smoothness weight (with fewer calibration "
+                        "points, one fold per point: leave-one-out)", minimum=2)
     gradient_max_iterations: int = key(12, "gradient method: Levenberg-Marquardt iterations "
                                        "(one Jacobian of every calibration point each)",
                                        minimum=1)
@@ -559,24 +559,15 @@ def _cross_checks(scene: Scene, origin: str) -> None:
             raise SceneError(f"{origin}: test_points.{which} must be "
                              + " or ".join(repr(r) for r in rules)
                              + f" or a list of vertex ids, got {v!r}")
-    _check_test_point_counts(scene, origin)
+    _check_calibration_list(scene, origin)
 
 
-def _check_test_point_counts(scene: Scene, origin: str) -> None:
-    """An explicit list of calibration points is not empty; the gradient method's
-    ``calibration.cv_folds`` is not above the number of calibration points."""
+def _check_calibration_list(scene: Scene, origin: str) -> None:
+    """An explicit list of calibration points is not empty."""
     tp = scene.test_points
     if not isinstance(tp.calibration, str) and not tp.calibration:
         raise SceneError(f"{origin}: test_points.calibration = []: at least one calibration "
                          "point is needed (list vertex ids, or use 'auto' or 'cover')")
-    n_cal = tp.n_calibration if isinstance(tp.calibration, str) else len(tp.calibration)
-    c = scene.calibration
-    if c.method == "gradient" and c.cv_folds > n_cal:
-        raise SceneError(f"{origin}: calibration.cv_folds = {c.cv_folds} is more than the "
-                         f"{n_cal} calibration points (test_points."
-                         + ("n_calibration" if isinstance(tp.calibration, str)
-                            else "calibration") + "); each fold needs at least one point: "
-                         f"lower calibration.cv_folds to at most {n_cal}")
 
 
 def check_experiments(value: Any, origin: str) -> tuple[str, ...]:
@@ -648,23 +639,7 @@ def load_scene(path: str | Path) -> Scene:
         raise SceneError(f"{path}: not valid TOML: {exc}") from exc
     except OSError as exc:
         raise SceneError(f"scene file {path} cannot be read: {exc.strerror or exc}") from None
-    scene = scene_from_dict(data, path=path, default_name=path.stem)
-    _refuse_ignored_counts(data.get("test_points", {}), path)
-    return scene
-
-
-def _refuse_ignored_counts(table: dict[str, Any], origin: Path) -> None:
-    """A scene file's [test_points] table giving a count next to the explicit list that makes
-    it meaningless (``n_calibration`` counts the points of 'auto' and 'cover', ``n_held_out``
-    those of 'auto'). Checked on the file's own table: scenes built in code carry every key."""
-    for which, count in (("calibration", "n_calibration"), ("held_out", "n_held_out")):
-        points = table.get(which, "auto")
-        if count in table and not isinstance(points, str):
-            raise SceneError(f"{origin}: test_points.{count} = {table[count]!r} is given next "
-                             f"to an explicit list test_points.{which} = {list(points)}, which "
-                             f"sets the points and their number ({len(points)}); remove "
-                             f"test_points.{count} (it counts the points of 'auto'"
-                             + (" and 'cover')" if which == "calibration" else ")"))
+    return scene_from_dict(data, path=path, default_name=path.stem)
 
 
 def replace(scene: Scene, **sections: dict[str, Any]) -> Scene:
