@@ -368,20 +368,17 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                 status[1] = step + 1
                 return status
     if n_steps > 0:  # the final state: the steps above checked the positions they started from
+        code, bad = OK, np.int64(-1)
         if volume is not None:
-            bad = first_volume_outside(x, volume[0], volume[3], volume[4])
-            if bad >= 0:
-                status[0] = VOLUME_END
-                status[1] = n_steps
-                status[2] = bad
-                return status
-        if dx_lo is not None:
-            outside = final_strain_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi)
-            if outside >= 0:
-                status[0] = STRAIN_END
-                status[1] = n_steps
-                status[2] = outside
-                return status
+            code, bad = VOLUME_END, first_volume_outside(x, volume[0], volume[3], volume[4])
+        if bad < 0 and dx_lo is not None:
+            code, bad = STRAIN_END, final_strain_check(x, x_prev, edges, rest_lengths, dx_prev,
+                                                       dx_lo, dx_hi)
+        if bad >= 0:
+            status[0] = code
+            status[1] = n_steps
+            status[2] = bad
+            return status
     if probe_out is not None:
         node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                    arm_force, dx_prev, probe_out)

@@ -216,15 +216,9 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces):
 def first_volume_outside(x, tets, v_lo, v_hi):
     """The first tet whose volume at ``x`` is not in ``(v_lo, v_hi]`` (T,) [m^3] (-1: none):
     the range check of :func:`add_volume_forces` without the forces (a run's final state)."""
-    sixth = 1.0 / 6.0
     for t in range(tets.shape[0]):
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
-        a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
-        b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
-        c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
-        v = (a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2)
-             + a2 * (b0 * c1 - b1 * c0)) * sixth
+        # the gradients it also returns are dead code the compiler drops
+        v = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3])[4]
         if not (v > v_lo[t] and v <= v_hi[t]):
             return np.int64(t)
     return np.int64(-1)
