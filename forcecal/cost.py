@@ -150,22 +150,19 @@ def _mesh_cause(scene: Scene, n_vertices: int, n_edges: int, total: float, limit
 
 def check_generated_cost(scene: Scene) -> None:
     """Before meshing: refuse a generated liver (``mesh.source = "generate"``) whose
-    ``mesh.characteristic_length`` is not small against the organ or gives, by the vertex
-    count estimated from the organ's volume and area
+    ``mesh.characteristic_length`` gives, by the vertex count estimated from the organ's
+    volume and area
     (:func:`forcecal.mesh.estimated_liver_vertices`), work above the limits of
     :func:`check_cost` (gmsh alone would run for minutes or hours on it).
 
     Raises:
         SceneError: naming ``mesh.characteristic_length`` (or the key that causes most work).
     """
-    from forcecal.mesh import estimated_liver_vertices, liver_length_error
+    from forcecal.mesh import estimated_liver_vertices
     if scene.mesh.source != "generate":
         return
-    length = scene.mesh.characteristic_length
-    problem = liver_length_error(length)
-    if problem:
-        raise SceneError(f"{scene.path or 'scene'}: {problem}")
-    n = estimated_liver_vertices(length)
+    # a length not small against the organ never gets here: the scene refused it at load
+    n = estimated_liver_vertices(scene.mesh.characteristic_length)
     check_cost(scene, n, int(EDGES_PER_VERTEX * n), estimated=True)
 
 

@@ -9,7 +9,9 @@ or :func:`read_mesh` (any tetrahedral mesh meshio reads), and always pass
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import logging
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -301,13 +303,20 @@ def read_mesh(path: str | Path, scale: float = 1.0) -> TetMesh:
     import meshio
 
     path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"mesh file {path} is a directory, not a file; give a tetrahedral "
+                        "mesh file (.msh, .vtu, .vtk, .xdmf)")
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
+    said = io.StringIO()  # meshio prints an "Error: ..." line before exiting on some files
     try:
-        m = meshio.read(path)
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(path)
     except (Exception, SystemExit) as exc:  # many types for bad files; sys.exit for some
-        raise MeshError(f"{path}: meshio could not read it: {type(exc).__name__}: "
-                        f"{exc}") from None
+        words = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        fmt = path.suffix.lstrip(".") or "(no suffix)"
+        raise MeshError(f"{path}: meshio could not read it as {fmt}: {words} (a damaged file, "
+                        "or not a mesh of that format?)") from None
     blocks = [c.data for c in m.cells if c.type == "tetra"]
     if not blocks:
         kinds = sorted({c.type for c in m.cells})

@@ -8,12 +8,9 @@ particle side never re-derives geometry on its own.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import logging
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -72,41 +69,17 @@ def load_mesh(scene: Scene) -> TetMesh:
     """The scene's mesh: generated liver or file (already checked).
 
     A generated liver is priced before gmsh runs (:func:`forcecal.cost.check_generated_cost`:
-    ``mesh.characteristic_length`` not small against the organ, or an estimated vertex count
-    whose work is above the cost limit, is refused); a mesh file is read with meshio's own
-    output captured (:func:`read_mesh_file`)."""
+    an estimated vertex count whose work is above the cost limit is refused)."""
     path = scene.mesh_source_path()
     if path is None:
         from forcecal.cost import check_generated_cost
         check_generated_cost(scene)
         mesh = generate_liver(scene.mesh.characteristic_length)
     else:
-        mesh = read_mesh_file(path, scene.mesh.scale)
+        mesh = read_mesh(path, scale=scene.mesh.scale)
         check_organ_scale(mesh, str(path), scene.mesh.scale)
     log.info("mesh: %s", mesh.summary())
     return mesh
-
-
-def read_mesh_file(path: Path, scale: float = 1.0) -> TetMesh:
-    """:func:`forcecal.mesh.read_mesh` of a scene's ``mesh.source``, with the file checked
-    first (a directory is named as one) and meshio's own text (an ``Error: ...`` line it
-    prints before exiting on a file it cannot parse) captured: a file meshio cannot read is
-    one MeshError naming the file, its format (suffix) and meshio's words."""
-    if path.is_dir():
-        raise MeshError(f"mesh.source: {path} is a directory, not a file; give a tetrahedral "
-                        "mesh file (.msh, .vtu, .vtk, .xdmf) or 'generate'")
-    said = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
-            return read_mesh(path, scale=scale)
-    except MeshError as exc:
-        prefix = f"{path}: meshio could not read it: "
-        if not str(exc).startswith(prefix):
-            raise
-        text = " ".join(said.getvalue().split()) or str(exc)[len(prefix):]
-        fmt = path.suffix.lstrip(".") or "(no suffix)"
-        raise MeshError(f"{path}: meshio could not read it as {fmt}: {text} (a damaged file, "
-                        "or not a mesh of that format?)") from None
 
 
 #: bounding-box diagonals of a plausible organ [m]: outside, the file's unit is likely not metres
