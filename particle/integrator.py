@@ -45,7 +45,7 @@ import numpy as np
 from forcecal.errors import ParameterError, StabilityError
 from particle import kernels, step_kernels
 from particle.model import Model, Prescribed, State, check_gravity
-from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
+from particle.params import ConnectorParams, StrainBounds, check_count, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.guard import check_state, energy_bound
@@ -387,13 +387,7 @@ def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
 def check_steps(n_steps: int) -> int:
     """``n_steps`` as an int if it is an integer >= 0 (a step count), else
     :class:`ParameterError` (a fractional count would be truncated)."""
-    try:
-        n = operator.index(n_steps)
-    except TypeError:
-        n = -1
-    if n < 0:
-        raise ParameterError(f"n_steps = {n_steps!r} must be an integer >= 0 (a number of steps)")
-    return n
+    return check_count(n_steps, "n_steps", "a number of steps")
 
 
 def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) -> tuple:

@@ -94,6 +94,18 @@ def connector_strain_bounds(strain_range: StrainBounds, n_connectors: int,
     return lo, hi
 
 
+def check_count(value, name: str, hint: str) -> int:
+    """``value`` as an int if it is an integer >= 0 (numpy integers too), else
+    :class:`ParameterError` naming ``name`` with ``hint`` (a float would be truncated)."""
+    try:
+        n = operator.index(value)
+    except TypeError:
+        n = -1
+    if n < 0:
+        raise ParameterError(f"{name} = {value!r} must be an integer >= 0 ({hint})")
+    return n
+
+
 @dataclass(frozen=True, eq=False)
 class ConnectorParams:
     """Per-connector Maxwell-Solid parameters; seven (E,) float64 arrays.
@@ -143,13 +155,7 @@ class ConnectorParams:
                 k1: float, b1: float, k2: float, b2: float) -> "ConnectorParams":
         """The same values for every one of ``n_connectors`` connectors (an integer >= 0,
         else :class:`ParameterError`)."""
-        try:
-            n = operator.index(n_connectors)
-        except TypeError:
-            n = -1
-        if n < 0:
-            raise ParameterError(f"n_connectors = {n_connectors!r} must be an integer >= 0 "
-                                 "(e.g. len(problem.mesh.edges))")
+        n = check_count(n_connectors, "n_connectors", "e.g. len(problem.mesh.edges)")
         values = dict(K0=K0, a=a, b=b, k1=k1, b1=b1, k2=k2, b2=b2)
         return cls(**{n_: np.full(n, float(v)) for n_, v in values.items()})
 
