@@ -4,7 +4,8 @@
 #   docker run --rm forcecal                                   # make test, as user 1000
 #   docker run --rm --user "$(id -u):$(id -g)" --shm-size=1g -v "$PWD/runs:/forcecal/runs" forcecal make demo
 # The image runs as the unprivileged user `forcecal` (uid 1000) by default; any other uid
-# works too (`--user 12345`, as clusters do): the caches and runs/ are writable by everyone.
+# works too (`--user 12345`, as clusters do): the caches and runs/ are writable by everyone (and a
+# uid that cannot write to a folder another uid made inside a cache gets its own: forcecal/caches.py).
 FROM debian:12
 # the commit the image is built from (no .git in the image): recorded in every result's
 # versions.git_commit (forcecal.provenance.git_commit)

@@ -12,3 +12,9 @@ __version__ = "0.1.0"
 
 #: the project's top-level packages (their loggers, their code in the stage cache keys)
 PROJECT_PACKAGES = ("forcecal", "reference_fe", "particle", "calibration", "pipelines")
+
+from forcecal.caches import settle_caches as _settle_caches
+
+# before any project module imports numba or dolfinx: a shared cache another user id filled
+# is unusable to this one
+_settle_caches()

@@ -16,6 +16,7 @@ builder, mutable State, integrators and solvers apart):
 - :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``):
   forces, tangent, energy, its part of the stability bound.
 """
+import forcecal  # noqa: F401  (settles the numba cache folder before numba is imported: forcecal.caches)
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.haptics import HapticSession
