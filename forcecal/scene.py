@@ -229,9 +229,18 @@ class ParticleSection:
                                minimum=0.0)
     damping: float = key(0.0, "global mass-proportional viscous damping (off for the gravity "
                          "comparison: the arms are the only physical damping)", "1/s", minimum=0.0)
-    volume: bool = key(False, "add the elastic per-tet volume term kv/2 V0 (V/V0 - 1)^2 "
-                       "(particle/volume.py) to the springs; calibration method 'paper' then "
-                       "fits kv [Pa] with K0, a, b (false: the paper's springs-only model)")
+    volume: Union[bool, str] = key(
+        False, "true: add the elastic per-tet volume term kv/2 V0 (V/V0 - 1)^2 "
+        "(particle/volume.py) to the springs, kv [Pa] fitted with K0, a, b on the static "
+        "curves; \"viscoelastic\": the same term with two Maxwell arms in each tet's volume "
+        "strain (stiffnesses kv1, kv2 [Pa], the springs' relaxation times tau1, tau2), fitted "
+        "with the springs' arms on the relaxation curves (README, \"The volume term\"); "
+        "false: the paper's springs-only model", choices=(False, True, "viscoelastic"))
+
+    @property
+    def volume_arms(self) -> bool:
+        """True when the volume term relaxes (``volume = "viscoelastic"``)."""
+        return self.volume == "viscoelastic"
 
 
 @dataclass(frozen=True)

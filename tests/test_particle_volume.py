@@ -61,7 +61,7 @@ def test_uniform_dilation_of_one_tet_gives_the_closed_form_force_and_energy():
         f = np.zeros((4, 3))
         none = (np.zeros(1), np.full(1, np.inf))
         assert add_volume_forces(x, model.tets, model.rest_volumes, model.params.kv, *none,
-                                 f)[0] == -1
+                                 f, None)[0] == -1
         # the rest gradients: each vertex's opposite face normal (area vector)/3, inward
         grad_rest = np.array([np.cross(TET[3] - TET[1], TET[2] - TET[1]),
                               np.cross(TET[2] - TET[0], TET[3] - TET[0]),
@@ -86,7 +86,7 @@ def test_forces_are_minus_the_energy_gradient_and_numba_matches_numpy():
     kv = model.params.kv
     numba = np.zeros_like(x)
     none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-    assert add_volume_forces(x, model.tets, model.rest_volumes, kv, *none, numba)[0] == -1
+    assert add_volume_forces(x, model.tets, model.rest_volumes, kv, *none, numba, None)[0] == -1
     twin = volume_forces_numpy(x, model.tets, model.rest_volumes, kv)
     np.testing.assert_allclose(numba, twin, rtol=0, atol=1e-13 * np.abs(twin).max())
     h = 1e-7
@@ -204,12 +204,12 @@ def test_the_closed_form_tangent_kernel_equals_its_numpy_twin():
         add_volume_tangent_numpy(*args, reference)
         start = rng.standard_normal(nnz) * np.abs(reference).max()
         compiled, twin = start.copy(), start.copy()
-        add_volume_tangent(*args, compiled)
+        add_volume_tangent(*args, compiled, None)
         add_volume_tangent_numpy(*args, twin)
         np.testing.assert_allclose(compiled, twin, rtol=0,
                                    atol=1e-12 * np.abs(reference).max())
         alone = np.zeros(nnz)
-        add_volume_tangent(*args, alone)
+        add_volume_tangent(*args, alone, None)
         np.testing.assert_allclose(alone, reference, rtol=0,
                                    atol=1e-12 * np.abs(reference).max())
 
@@ -425,7 +425,7 @@ def test_volume_tangent_compiles_its_block_helper_once_and_matches_the_numpy_twi
     data, twin = np.zeros(4 * 4 * 9), np.zeros(4 * 4 * 9)
     # compiled here, without the on-disk cache: a kernel loaded from that cache types none
     # of its callees, and the helper would show no signature at all
-    numba.njit(volume.add_volume_tangent.py_func)(x, tets, rest, kv, slots, data)
+    numba.njit(volume.add_volume_tangent.py_func)(x, tets, rest, kv, slots, data, None)
     volume.add_volume_tangent_numpy(x, tets, rest, kv, slots, twin)
     assert len(volume._add_tet_block.signatures) == 1
     np.testing.assert_allclose(data, twin, rtol=1e-12, atol=1e-12 * np.abs(twin).max())
