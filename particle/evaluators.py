@@ -177,7 +177,7 @@ class _PointEvaluator:
         idx = self._indices(points)
         params.validate(self.strain_range, self.model.edges, self.model.tets)
         model = self.model.with_params(params)
-        prepared = self._prepare(params)
+        prepared = self._prepare(model.params)  # the volume arms broadcast to every tet
         return np.stack([self._curve(model, prepared, int(k)) for k in idx])
 
     def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None) -> np.ndarray:

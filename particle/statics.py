@@ -371,6 +371,12 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                                  "their step too (ArmStep.volume)")
         kernel_arms = None
         if step is not None:
+            if not (step.r.shape == step.c.shape == step.pressure_prev.shape
+                    == (model.n_tets, 2) and step.strain_prev.shape == (model.n_tets,)):
+                raise ParameterError(f"volume arm step of shapes r {step.r.shape}, c "
+                                     f"{step.c.shape}, pressures {step.pressure_prev.shape}, "
+                                     f"strains {step.strain_prev.shape}: the model has "
+                                     f"{model.n_tets} tets (one row each)")
             volume = (np.zeros((model.n_tets, 2)), np.empty(model.n_tets))
             kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev) + volume
         bad, _ = add_volume_forces(x, model.tets, model.rest_volumes, p.kv, volume_limits[0],
