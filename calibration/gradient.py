@@ -9,7 +9,8 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   by construction where they can be: ``theta = (log K0, alpha s, beta s^2,
   log k1, log tau1, log k2, log tau2)`` per connector (``a = alpha K0``, ``b =
   beta K0``, ``b_i = tau_i k_i``, ``s`` the experiments' strain scale), the paper's
-  global coordinates made per connector.
+  global coordinates made per connector; with the volume term ``log kv`` per tet, and
+  when it relaxes ``log kv1, log kv2`` per tet (their times the global fit's).
 * **Residuals**: per point and experiment ``(F_sim - F_ref) / (max|F_ref| sqrt(S))``,
   so a point's squared residual norm is its squared relative RMS error (the
   number every report quotes), summed over both experiments. With
@@ -22,7 +23,8 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   difference), normalised by the mean number of such neighbours, i.e. a
   smoothness penalty between connectors sharing a particle; ``rho I`` a prior
   towards the global fit (``calibration.prior_ratio``, default :data:`PRIOR_RATIO`).
-  With per-tet kv the same over the tets sharing a face, and optionally a split prior
+  With per-tet kv the same over the tets sharing a face (for each of ``log kv`` and, with
+  a viscoelastic volume term, ``log kv1, log kv2``), and optionally a split prior
   (``calibration.split_prior``) between each connector's log K0 and its tets' log kv
   (:class:`~calibration.gradient_solver.Regulariser`).
 * **lambda by k-fold cross-validation over the calibration points only**

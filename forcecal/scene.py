@@ -234,7 +234,7 @@ class ParticleSection:
         "(particle/volume.py) to the springs, kv [Pa] fitted with K0, a, b on the static "
         "curves; \"viscoelastic\": the same term with two Maxwell arms in each tet's volume "
         "strain (stiffnesses kv1, kv2 [Pa], the springs' relaxation times tau1, tau2), fitted "
-        "with the springs' arms on the relaxation curves (README, \"The volume term\"); "
+        "with the springs' arms on the relaxation curves (README, \"The particle model\"); "
         "false: the paper's springs-only model", choices=(False, True, "viscoelastic"))
 
     @property

@@ -39,8 +39,15 @@ of the curves returned, to round-off (tests compare with finite differences).
 
 The volume term's ``kv`` (:mod:`particle.volume`) enters the same way: its
 tangent is in ``K``, and ``dF/dkv_t = omega . df/dkv_t`` with ``df/dkv_t =
--(V/V0 - 1) dV/dx`` at fixed positions (it does not relax, so it carries no
-history). Another term plugs in likewise: its tangent in the assembly, its
+-(V/V0 - 1) dV/dx`` at fixed positions. A tet is a connector whose "tension" is its
+pressure ``P_t`` and whose "elongation" its volume change: the force pattern of a unit
+pressure is ``h_t = -dV/dx``, so ``pi_t = omega . h_t`` is the adjoint of the pressure
+(``dF/dkv_t = pi_t j_t``, ``j = V/V0 - 1``). Its Maxwell arms (a viscoelastic volume
+term) carry history exactly as the connectors' arms do, in the volume strain: ``mu_i =
+pbar_i + pi_t`` times ``dP_i/dkv_i, dP_i/dbv_i``, then ``pbar_i <- r_i mu_i``, ``jbar <-
+-sum_i c_i mu_i``, and the history enters the next (earlier) step's right-hand side as
+the forces of the pressures ``gamma/V0``, ``gamma = jbar + sum_i c_i pbar_i``
+(:class:`_VolumeAdjoint`). Another term plugs in likewise: its tangent in the assembly, its
 force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
 
 The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`

@@ -11,8 +11,9 @@ block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2``
 (:func:`particle.volume.add_volume_tangent`) through the same map (a tet's vertex
 pairs are connectors), and with its Maxwell arms in a quasi-static arm step their
 coefficients and pressures (:class:`VolumeArmStep`; without an arm step, as in the
-long-term indentation curves and the static sag, the arms are relaxed: ``kv`` alone); prescribed particles keep their rows and columns with an
-identity block, so one pattern serves every test point. :mod:`particle.sparse_ldl`
+long-term indentation curves and the static sag, the arms are relaxed: ``kv`` alone);
+prescribed particles keep their rows and columns with an identity block, so one
+pattern serves every test point. :mod:`particle.sparse_ldl`
 factorises it (``L D L^T`` without pivoting, its ordering and symbolic analysis
 done once per pattern: :attr:`TangentPattern.ldl`); :func:`superlu` is the
 reference it replaced.
