@@ -7,9 +7,10 @@ and relaxation times ``tau1 < tau2`` [s] (``b_i = tau_i k_i``); with the
 volume term (scene key ``particle.volume``) the volume stiffness ``kv`` [Pa] of
 every tet (0 = the term is off), and when it relaxes (``particle.volume =
 "viscoelastic"``) its arms' stiffnesses ``kv1, kv2`` [Pa] (0 = elastic), whose
-relaxation times are the springs' ``tau1, tau2`` (``bv_i = tau_i kv_i``). With ``calibration.global_shape = "van_gelder"``
-(:func:`global_shape`) connector c's stiffnesses are these values times a fixed
-geometric factor ``w_c`` (mean 1), so the set is still one value per parameter.
+relaxation times are the springs' ``tau1, tau2`` (``bv_i = tau_i kv_i``). With
+``calibration.global_shape = "van_gelder"`` (:func:`global_shape`) connector c's
+stiffnesses are these values times a fixed geometric factor ``w_c`` (mean 1), so the
+set is still one value per parameter.
 
 Optimiser coordinates are dimensionless and O(1) per unit change:
 

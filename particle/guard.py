@@ -87,7 +87,8 @@ def check_state(model: Model, state: State, *, finite: bool = False) -> None:
     Its arrays must have the model's shapes and be C-contiguous, writeable
     float64 (another dtype would be truncated to it or compile another kernel
     specialisation), and its time finite; with the volume term's arms, it must hold
-    their pressures and volume strains (``volume_arm`` (T, 2), ``volume_prev`` (T,)). With ``finite`` (at the start of a run: one
+    their pressures and volume strains (``volume_arm`` (T, 2), ``volume_prev`` (T,)).
+    With ``finite`` (at the start of a run: one
     numpy pass over the state, so not on every haptic call) its arrays must hold finite
     values too: a NaN put into the state would otherwise surface as a divergence steps
     later, naming another particle and suggesting a smaller step.

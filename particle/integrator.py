@@ -325,7 +325,8 @@ class Run:
                 *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
                 float(state.t), *record, self.integrator.check_every, float(energy_bound),
                 *self._elongation_limits, self._forces, probe, node_edges, out, self._blocks,
-                self._volume, self.volume_arms(state), node_tets)
+                self._volume, None if self.volume_arm_r is None else self.volume_arms(state),
+                node_tets)
         finally:
             if pool is not None:
                 numba.set_num_threads(pool)

@@ -201,9 +201,9 @@ def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     ``volume`` = (tets (T, 4), rest_volumes (T,), kv (T,), v_lo (T,), v_hi (T,))
     adds the volume term (:func:`particle.volume.add_volume_forces`), None
     compiles it out; ``volume_arms`` its arms (the kernels' tuple, outputs aliasing the
-    state: :mod:`particle.volume`), None: elastic. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
-    :func:`internal_forces`), the first tet whose volume is outside ``(v_lo,
-    v_hi]``), -1 for none.
+    state: :mod:`particle.volume`), None: elastic. Returns (the first connector outside
+    ``[dx_lo, dx_hi]`` (see :func:`internal_forces`), the first tet whose volume is
+    outside ``(v_lo, v_hi]``), -1 for none.
     """
     outside = internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force,
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)

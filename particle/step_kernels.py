@@ -317,10 +317,10 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
     rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out),
     ``volume_arms`` its Maxwell arms (:mod:`particle.volume`'s tuple, outputs aliasing the
-    state's arm pressures and volume strains; None: elastic); a tet whose volume leaves ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an
-    inverted tet always does) stops the run at once with code VOLUME (step = the
-    step whose start positions it was found at, id = the tet); ``probe_tets``
-    are the probe node's tets.
+    state's arm pressures and volume strains; None: elastic); a tet whose volume leaves
+    ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an inverted tet always does) stops
+    the run at once with code VOLUME (step = the step whose start positions it was found
+    at, id = the tet); ``probe_tets`` are the probe node's tets.
 
     The checks ride on the force and position passes of the checked steps
     (no extra pass over the model), so a checked step costs about an unchecked one;

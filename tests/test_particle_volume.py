@@ -118,27 +118,8 @@ def test_the_static_tangent_with_the_volume_term_is_the_derivative_of_the_forces
     and one tet's block against the numpy Hessian."""
     model = box_model((2, 2, 2), a=-20.0, b=300.0)
     model = with_kv(model, 4000.0)
-    p = model.params
     x = deformed(model, 5e-4, seed=3)
-    x[model.fixed] = model.rest_positions[model.fixed]
-    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
-    it = solver._evaluate(x, p, True, None, None)
-    pat = solver.pattern
-    data = tangent_data(model, pat, x, it.tension, p, True, None)
-    data[solver._zero_slots], data[solver._diag_slots] = 0.0, 1.0  # as the solver factorises
-    tangent = sp.csc_matrix((data, pat.indices, pat.indptr),
-                            shape=(pat.n_dofs, pat.n_dofs)).toarray()
-    free = model.free_nodes
-    h = 1e-8
-    fd = np.empty((3 * len(free), 3 * len(free)))
-    for k, n in enumerate(free):
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[n, c] += h
-            xm[n, c] -= h
-            df = (solver._evaluate(xp, p, True, None, None).forces
-                  - solver._evaluate(xm, p, True, None, None).forces)[free].ravel() / (2 * h)
-            fd[:, 3 * k + c] = -df
+    tangent, fd = tangent_and_differences(model, x)
     np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
     # the volume term alone, one tet, numpy Hessian vs central differences of its forces
     tet = single_tet(4000.0)
@@ -154,6 +135,32 @@ def test_the_static_tangent_with_the_volume_term_is_the_derivative_of_the_forces
                                            tet.params.kv)).ravel() / 2e-8
     np.testing.assert_allclose(hess, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
     np.testing.assert_allclose(hess, hess.T, atol=1e-12 * np.abs(hess).max())
+
+
+def tangent_and_differences(model, x, arms=None, h=1e-8):
+    """(the assembled static tangent (n, n) [N/m] on the free dofs at ``x`` (N, 3), fixed
+    particles put at rest, with the arm step ``arms`` (None: long-term), and its central
+    differences of the statics' forces (step ``h`` [m]))."""
+    p = model.params
+    x = x.copy()
+    x[model.fixed] = model.rest_positions[model.fixed]
+    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
+    it = solver._evaluate(x, p, True, arms, None)
+    pat = solver.pattern
+    data = tangent_data(model, pat, x, it.tension, p, True, arms, it.volume_arm)
+    tangent = sp.csc_matrix((data, pat.indices, pat.indptr),
+                            shape=(pat.n_dofs, pat.n_dofs)).toarray()
+    free = model.free_nodes
+    fd = np.empty((3 * len(free), 3 * len(free)))
+    for k, n in enumerate(free):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[n, c] += h
+            xm[n, c] -= h
+            df = (solver._evaluate(xp, p, True, arms, None).forces
+                  - solver._evaluate(xm, p, True, arms, None).forces)[free].ravel() / (2 * h)
+            fd[:, 3 * k + c] = -df
+    return tangent, fd
 
 
 def random_tets(n_tets, rng):

@@ -4,7 +4,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from forcecal.errors import ParameterError
 from forcecal.scene import load_scene, replace
@@ -17,15 +16,15 @@ from particle.model import ModelBuilder, Prescribed
 from particle.params import maxwell_recursions
 from particle.reference_numpy import step_numpy
 from particle.stability import critical_time_step
-from particle.statics import (ArmStep, EquilibriumSolver, TangentPattern, VolumeArmStep,
-                              gravity_static, tangent_data)
+from particle.statics import ArmStep, TangentPattern, VolumeArmStep, gravity_static
 from particle.testing import (box_model, deformed_start_and_push, spring_energy, top_centre,
                               viscoelastic_params)
 from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
-                             signed_volumes, volume_arm_energy, volume_arm_pressures_numpy,
+                             volume_arm_energy, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_gradients_numpy,
                              volume_strains)
-from tests.test_particle_volume import ELASTIC, GRAVITY, TET, deformed, random_tets
+from tests.test_particle_volume import (ELASTIC, GRAVITY, TET, deformed, random_tets,
+                                       tangent_and_differences)
 from tests.conftest import SCENES
 
 KV, ARMS, TAU = 1000.0, (600.0, 400.0), (0.05, 0.5)
@@ -183,29 +182,12 @@ def test_tangent_kernel_with_arms_equals_its_numpy_twin_and_the_force_derivative
     # the assembled tangent of a relaxation step on the box against the forces' derivative
     box = with_volume(box_model((2, 2, 2), a=-20.0, b=300.0), 4000.0, (2000.0, 1500.0))
     p = box.params
-    y = deformed(box, 5e-4, seed=3)
-    y[box.fixed] = box.rest_positions[box.fixed]
     e, t = box.n_connectors, box.n_tets
     rc = p.arm_recursion(0.02, exact=True)
     vrc = p.volume_arm_recursion(0.02, exact=True)
     step = ArmStep(*rc, rng.normal(0, 0.01, (e, 2)), rng.normal(0, 1e-4, e),
                    VolumeArmStep(*vrc, rng.normal(0, 20.0, (t, 2)), rng.normal(0, 0.01, t)))
-    solver = EquilibriumSolver(box, np.zeros(0, np.int64), TangentPattern.of(box))
-    it = solver._evaluate(y, p, True, step, None)
-    pat = solver.pattern
-    data = tangent_data(box, pat, y, it.tension, p, True, step, it.volume_arm)
-    tangent = sp.csc_matrix((data, pat.indices, pat.indptr),
-                            shape=(pat.n_dofs, pat.n_dofs)).toarray()
-    free, h = box.free_nodes, 1e-8
-    fd = np.empty_like(tangent)
-    for k, n in enumerate(free):
-        for comp in range(3):
-            yp, ym = y.copy(), y.copy()
-            yp[n, comp] += h
-            ym[n, comp] -= h
-            df = (solver._evaluate(yp, p, True, step, None).forces
-                  - solver._evaluate(ym, p, True, step, None).forces)[free].ravel() / (2 * h)
-            fd[:, 3 * k + comp] = -df
+    tangent, fd = tangent_and_differences(box, deformed(box, 5e-4, seed=3), step)
     np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
 
 
