@@ -304,8 +304,9 @@ class CalibrationSection:
                             "\"van_gelder\" (each connector's share of the surrounding tets, "
                             "sum V_t / L^2, times one fitted scale; README Calibration)",
                             choices=("uniform", "van_gelder"))
-    kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv with "
-                           "the connectors (false: kv keeps the global fit's one value)")
+    kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv (and, "
+                           "when it relaxes, its arms' kv1, kv2) with the connectors (false: "
+                           "they keep the global fit's one value)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
 

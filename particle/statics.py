@@ -294,7 +294,9 @@ class EquilibriumSolver:
         for it in range(self.max_iter + 1):
             held = cur.forces[self.prescribed].ravel()
             scale = max(floor, math.sqrt(held @ held))  # np.linalg.norm's sum, without its overhead
-            if cur.norm <= self.rtol * scale:
+            # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
+            # and inf <= rtol x inf must not pass for convergence
+            if cur.norm <= self.rtol * scale and math.isfinite(scale):
                 return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, it,
                                    *cur.volume_state(self.model))
             if it == self.max_iter:

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from forcecal.errors import ParameterError
+from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.scene import load_scene, replace
 from particle.empirical_limit import bisect, blows_up
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
@@ -16,11 +16,12 @@ from particle.model import ModelBuilder, Prescribed
 from particle.params import maxwell_recursions
 from particle.reference_numpy import step_numpy
 from particle.stability import critical_time_step
-from particle.statics import ArmStep, TangentPattern, VolumeArmStep, gravity_static
+from particle.statics import (ArmStep, EquilibriumSolver, TangentPattern, VolumeArmStep,
+                              gravity_static)
 from particle.testing import (box_model, deformed_start_and_push, spring_energy, top_centre,
                               viscoelastic_params)
 from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
-                             volume_arm_energy, volume_arm_pressures_numpy,
+                             signed_volumes, volume_arm_energy, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_gradients_numpy,
                              volume_strains)
 from tests.test_particle_volume import (ELASTIC, GRAVITY, TET, deformed, random_tets,
@@ -428,3 +429,17 @@ def test_the_scene_key_takes_viscoelastic_and_keeps_true_and_false():
         assert particle.volume == value and particle.volume_arms == arms
     with pytest.raises(Exception, match="particle.volume = 'elastic': must be one of"):
         replace(scene, particle={"volume": "elastic"})
+
+
+def test_an_inverted_guess_is_never_returned_as_an_equilibrium():
+    """A tet inverted at the guess makes every force infinite (no admissible iterate): the
+    indenter's reaction, hence the force scale of the convergence test, is infinite too,
+    which must not pass for convergence (inf <= rtol x inf). Here no particle is free, so
+    Newton cannot move the guess: ConvergenceError, never infinite reaction forces."""
+    model = single_tet(K0=1.0)
+    x = model.rest_positions.copy()
+    x[3, 2] = -x[3, 2]  # through its opposite face (z = 0)
+    assert signed_volumes(x, model.tets)[0] < 0
+    solver = EquilibriumSolver(model, np.array([3]), TangentPattern.of(model))
+    with pytest.raises(ConvergenceError, match="Newton did not converge"):
+        solver.solve(x, model.params)
