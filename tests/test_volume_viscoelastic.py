@@ -7,25 +7,21 @@ import pytest
 
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.scene import load_scene, replace
-from particle.empirical_limit import bisect, blows_up
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.guard import energy_bound
-from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.model import ModelBuilder, Prescribed
 from particle.params import maxwell_recursions
-from particle.reference_numpy import step_numpy
 from particle.stability import critical_time_step
 from particle.statics import (ArmStep, EquilibriumSolver, TangentPattern, VolumeArmStep,
                               gravity_static)
-from particle.testing import (box_model, deformed_start_and_push, spring_energy, top_centre,
-                              viscoelastic_params)
+from particle.testing import box_model, spring_energy, top_centre, viscoelastic_params
 from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
                              signed_volumes, volume_arm_energy, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_gradients_numpy,
                              volume_strains)
-from tests.test_particle_volume import (ELASTIC, GRAVITY, TET, deformed, random_tets,
-                                       tangent_and_differences)
+from tests.test_particle_volume import (ELASTIC, GRAVITY, TET, central_gradient, deformed,
+                                       random_tets, tangent_and_differences, with_kv)
 from tests.conftest import SCENES
 
 KV, ARMS, TAU = 1000.0, (600.0, 400.0), (0.05, 0.5)
@@ -34,11 +30,7 @@ KV, ARMS, TAU = 1000.0, (600.0, 400.0), (0.05, 0.5)
 def with_volume(model, kv=KV, arms=ARMS, tau=TAU):
     """The model with kv [Pa] and volume arms of stiffnesses ``arms`` [Pa] and times ``tau``
     [s] on every tet."""
-    t = model.n_tets
-    return model.with_params(dataclasses.replace(
-        model.params, kv=np.full(t, kv), kv1=np.full(t, arms[0]),
-        bv1=np.full(t, arms[0] * tau[0]), kv2=np.full(t, arms[1]),
-        bv2=np.full(t, arms[1] * tau[1])))
+    return with_kv(model, kv, arms, tau)
 
 
 def single_tet(K0=1e-9):
@@ -210,54 +202,8 @@ def test_the_forces_of_an_arm_step_are_minus_the_gradient_of_its_incremental_pot
     none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
     add_volume_forces(x, model.tets, v0, kv, *none, forces,
                       (r, c, prev, strain_prev, np.empty_like(prev), np.empty_like(strain_prev)))
-    h = 1e-7
-    fd = np.empty_like(x)
-    for n in range(model.n_particles):
-        for comp in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[n, comp] += h
-            xm[n, comp] -= h
-            fd[n, comp] = -(potential(xp) - potential(xm)) / (2 * h)
+    fd = -central_gradient(potential, x)
     np.testing.assert_allclose(forces, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
-
-
-def test_compiled_step_with_the_viscoelastic_volume_term_matches_the_numpy_step():
-    """All terms (nonlinear springs, arms, gravity, damping, a prescribed particle) and the
-    relaxing volume term: the compiled loop and the numpy step, 50 steps, round-off only; the
-    volume arms' state too."""
-    model = with_volume(box_model(a=-20.0, b=300.0), 2000.0, (1500.0, 1000.0))
-    dt = 0.5 * critical_time_step(model, damping=3.0)
-    compiled, motion = deformed_start_and_push(model, dt)
-    reference = compiled.copy()
-    VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY, prescribed=motion)
-    for _ in range(50):
-        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
-    scale = np.abs(reference.x - model.rest_positions).max()
-    np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
-    pressure = np.abs(reference.volume_arm).max()
-    assert pressure > 0
-    np.testing.assert_allclose(compiled.volume_arm, reference.volume_arm, rtol=0,
-                               atol=1e-10 * pressure)
-    np.testing.assert_allclose(compiled.volume_prev, reference.volume_prev, rtol=0, atol=1e-13)
-
-
-def test_threaded_and_split_runs_with_volume_arms_match_the_serial_one():
-    """Two threads: round-off; a run split in two calls: bit for bit (the state carries the
-    volume arms from one call to the next)."""
-    model = with_volume(box_model(), 2000.0, (1500.0, 1000.0))
-    dt = 0.5 * critical_time_step(model)
-    runs = []
-    for threads in (1, 2):
-        state = model.state()
-        VerletIntegrator().simulate(model, state, dt, 200, gravity=GRAVITY, threads=threads)
-        runs.append(state)
-    scale = np.abs(runs[0].x - model.rest_positions).max()
-    np.testing.assert_allclose(runs[1].x, runs[0].x, rtol=0, atol=1e-10 * scale)
-    split = model.state()
-    for n in (120, 80):
-        VerletIntegrator().simulate(model, split, dt, n, gravity=GRAVITY)
-    np.testing.assert_array_equal(split.x, runs[0].x)
-    np.testing.assert_array_equal(split.volume_arm, runs[0].volume_arm)
 
 
 def test_a_released_tet_loses_energy_only_to_its_dashpots():
@@ -290,23 +236,6 @@ def test_a_released_tet_loses_energy_only_to_its_dashpots():
         values.append(energy(state))
     assert max(values) < (1 + 1e-2) * e0
     assert values[-1] < 0.5 * e0
-
-
-@pytest.mark.parametrize("kv", [2e3, 2e4])
-def test_the_stability_bound_with_volume_arms_is_below_the_bisected_limit(kv):
-    """Rigorous: never above the limit found by bisection (as the elastic term's test), close
-    to it on a narrow strain range (> 0.5), and the arms' instantaneous stiffness lowers it
-    against the elastic term with the same long-term kv."""
-    model = with_volume(box_model((3, 3, 2), **ELASTIC), kv, (0.6 * kv, 0.4 * kv))
-    estimate = critical_time_step(model)
-    empirical = bisect(lambda dt: blows_up(model, dt), estimate)
-    assert estimate <= empirical
-    narrow = critical_time_step(model, strain_range=(-1e-3, 1e-3))
-    assert estimate < narrow <= empirical
-    assert narrow / empirical > 0.5
-    elastic = model.with_params(dataclasses.replace(model.params, kv1=None, bv1=None, kv2=None,
-                                                    bv2=None))
-    assert estimate < critical_time_step(elastic)
 
 
 def test_the_long_term_statics_are_the_elastic_terms():
@@ -348,40 +277,6 @@ def test_one_volume_arm_value_for_every_tet_is_broadcast_like_kv():
         states.append(state)
     np.testing.assert_array_equal(states[0].x, states[1].x)
     np.testing.assert_array_equal(states[0].volume_arm, states[1].volume_arm)
-
-
-def test_the_haptic_force_includes_the_volume_arms():
-    """The force a haptic step returns is minus the net internal force on the tool at the
-    step's end with both kinds of arms advanced one step (numpy), and Run.force_on gives it
-    bit for bit."""
-    model = with_volume(box_model(), 3000.0, (1800.0, 1200.0))
-    node = top_centre(model)
-    session = HapticSession(model, 0.5 * critical_time_step(model))
-    target = model.rest_positions[node] + [0.0, 0.0, -5e-4]
-    for _ in range(3):
-        force = session.step(node, target)
-    s = session.state
-    run, _ = session._run(node)
-    np.testing.assert_array_equal(force, run.force_on(s, node))
-    p = model.params
-    d = s.x[model.edges[:, 1]] - s.x[model.edges[:, 0]]
-    length = np.linalg.norm(d, axis=1)
-    dx = length - model.rest_lengths
-    r, c = p.arm_recursion(session.dt)
-    tension = (p.stiffness(dx / model.rest_lengths) * dx
-               + (r * s.arm_force + c * (dx - s.dx_prev)[:, None]).sum(axis=1))
-    pull = (tension / length)[:, None] * d
-    f = np.zeros_like(s.x)
-    np.add.at(f, model.edges[:, 0], pull)
-    np.add.at(f, model.edges[:, 1], -pull)
-    strain = volume_strains(s.x, model.tets, model.rest_volumes)
-    vr, vc = p.volume_arm_recursion(session.dt)
-    pressure = volume_arm_pressures_numpy(strain, vr, vc, s.volume_arm, s.volume_prev)
-    vol = volume_forces_numpy(s.x, model.tets, model.rest_volumes, p.kv, pressure.sum(axis=1))
-    np.testing.assert_allclose(force, (f + vol)[node], rtol=1e-9,
-                               atol=1e-12 * np.abs(f[node]).max())
-    elastic = volume_forces_numpy(s.x, model.tets, model.rest_volumes, p.kv)
-    assert np.linalg.norm(vol[node] - elastic[node]) > 0.01 * np.linalg.norm(force)
 
 
 def test_the_volume_arm_recursion_is_the_connectors_one():
