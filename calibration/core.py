@@ -178,7 +178,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                               times, relax_depths, strain.bounds, footprints)
     fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal],
-                            mesh if scene.particle.volume else None, shape)
+                            mesh if scene.particle.volume else None, shape,
+                            volume_arms=scene.particle.volume_arms)
     log.info("initial guess: %s; strain range [%.3g, %.3g]", initial, strain.low, strain.high)
 
     inputs = {**fit_inputs(scene, reference_path), "experiments": ",".join(fitted)}

@@ -14,7 +14,10 @@
   and a kv that large locks the network as P1 tets lock (5-12x too stiff, see
   the generalisation notes) and divides the explicit step by ~sqrt(kappa/mu);
   the fitted kv lies between, and the static fit searches it in log
-  coordinates (first simplex step a factor 2). With a global shape
+  coordinates (first simplex step a factor 2). A relaxing volume term
+  (``particle.volume = "viscoelastic"``) starts with the material's Prony ratios
+  too, ``kv_i = g_i/g_inf kv``: the volume term relaxes as the springs do, the
+  FE's shear modulus' share, which its arms then fit. With a global shape
   (``calibration.global_shape``) every connector's stiffnesses are the set's
   times its fixed factor: the unit network has stiffnesses ``w_c``, K0 is the
   scale, and everything below holds as written.
@@ -23,7 +26,9 @@
   is exactly proportional to K0, so K0 is solved in closed form (least squares)
   from one evaluation at a reference K0 -- a 2-D search instead of 3-D.
 * Step 2, relaxation: Nelder-Mead over ``(log k1, log tau1, log k2, log tau2)``
-  on the relaxation curves with the step-1 spring fixed.
+  on the relaxation curves with the step-1 spring fixed (with the volume arms also
+  ``log(kv1/kv), log(kv2/kv)``, kv fixed: the static fit identifies only the long-term
+  kv, the relaxation curves its arms).
 * The gradient method (:mod:`calibration.gradient`) runs step 2 by Gauss-Newton
   on the same coordinates and cost (:func:`calibration.optimize.gauss_newton`,
   forward-difference Jacobians): on the liver punch it reaches Nelder-Mead's
@@ -81,10 +86,11 @@ def fe_initial_slopes(depths: np.ndarray, forces: np.ndarray) -> np.ndarray:
 
 def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
                   unit_slope: np.ndarray, mesh: TetMesh | None = None,
-                  shape: np.ndarray | None = None) -> GlobalParams:
+                  shape: np.ndarray | None = None, volume_arms: bool = False) -> GlobalParams:
     """Closed-form start (module docstring) from per-point FE and unit-network slopes [N/m].
 
-    ``mesh`` given: the volume term is on and kv starts at the network's bulk modulus.
+    ``mesh`` given: the volume term is on and kv starts at the network's bulk modulus;
+    ``volume_arms``: it relaxes, its arms at the Prony ratios ``kv_i = g_i/g_inf kv``.
     ``shape``: the connectors' (E,) factors of the global set (None: uniform); the unit
     network's slopes must be those of stiffnesses ``shape``.
     """
@@ -99,8 +105,11 @@ def initial_guess(material: MaterialSection, fe_slope: np.ndarray,
         lengths2 = mesh.edge_lengths ** 2
         mean_factor = 1.0 if shape is None else float(np.sum(shape * lengths2) / np.sum(lengths2))
         kv = network_bulk_modulus(mesh, K0 * mean_factor)
+    elif volume_arms:
+        raise ParameterError("volume arms need the volume term (a mesh for its kv)")
+    arms = ({"kv1": float(ratio[0] * kv), "kv2": float(ratio[1] * kv)} if volume_arms else {})
     return GlobalParams(K0=K0, alpha=0.0, beta=0.0, k1=float(ratio[0] * K0), tau1=float(tau[0]),
-                        k2=float(ratio[1] * K0), tau2=float(tau[1]), kv=kv)
+                        k2=float(ratio[1] * K0), tau2=float(tau[1]), kv=kv, **arms)
 
 
 def fit_static(pool: Pool, start: GlobalParams, strain: StrainRange, reference: np.ndarray,
@@ -143,8 +152,9 @@ def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, referen
                    optimizer: str = NELDER_MEAD, feasible: StrainRange | None = None,
                    shape: np.ndarray | None = None, progress: bool = True,
                    verbose: bool = False) -> tuple[GlobalParams, Fit]:
-    """Step 2: arms ``k1, tau1, k2, tau2`` on the relaxation curves (Pc, S) [N], spring fixed,
-    by ``optimizer`` (:data:`OPTIMIZERS`); ``feasible`` and ``shape`` as :func:`fit_static`."""
+    """Step 2: arms ``k1, tau1, k2, tau2`` (and the volume arms' ``kv1, kv2`` when ``start``
+    has them) on the relaxation curves (Pc, S) [N], spring fixed, by ``optimizer``
+    (:data:`OPTIMIZERS`); ``feasible`` and ``shape`` as :func:`fit_static`."""
     points = np.arange(len(reference))
     feasible = strain if feasible is None else feasible
     floor = connector_floor(settings.stiffness_floor, start.K0, shape)
@@ -154,7 +164,8 @@ def fit_relaxation(pool: Pool, start: GlobalParams, strain: StrainRange, referen
         check_feasible(params, feasible, floor)
         return (reference - pool.curves("relaxation", params, points)).ravel()
 
-    fit = _minimise(pool, residuals, start.relaxation_coordinates(), np.full(4, RELAXATION_STEP),
+    y0 = start.relaxation_coordinates()
+    fit = _minimise(pool, residuals, y0, np.full(len(y0), RELAXATION_STEP),
                     "global relaxation fit", optimizer, settings.relaxation_max_evaluations,
                     settings, progress, verbose)
     return start.with_relaxation_coordinates(fit.x), fit

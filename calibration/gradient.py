@@ -9,7 +9,8 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   by construction where they can be: ``theta = (log K0, alpha s, beta s^2,
   log k1, log tau1, log k2, log tau2)`` per connector (``a = alpha K0``, ``b =
   beta K0``, ``b_i = tau_i k_i``, ``s`` the experiments' strain scale), the paper's
-  global coordinates made per connector.
+  global coordinates made per connector; with the volume term ``log kv`` per tet, and
+  when it relaxes ``log kv1, log kv2`` per tet (their times the global fit's).
 * **Residuals**: per point and experiment ``(F_sim - F_ref) / (max|F_ref| sqrt(S))``,
   so a point's squared residual norm is its squared relative RMS error (the
   number every report quotes), summed over both experiments. With
@@ -22,7 +23,8 @@ iteration with the exact Jacobian of :mod:`particle.sensitivity`.
   difference), normalised by the mean number of such neighbours, i.e. a
   smoothness penalty between connectors sharing a particle; ``rho I`` a prior
   towards the global fit (``calibration.prior_ratio``, default :data:`PRIOR_RATIO`).
-  With per-tet kv the same over the tets sharing a face, and optionally a split prior
+  With per-tet kv the same over the tets sharing a face (for each of ``log kv`` and, with
+  a viscoelastic volume term, ``log kv1, log kv2``), and optionally a split prior
   (``calibration.split_prior``) between each connector's log K0 and its tets' log kv
   (:class:`~calibration.gradient_solver.Regulariser`).
 * **lambda by k-fold cross-validation over the calibration points only**
@@ -70,7 +72,8 @@ from calibration.parametrisation import GlobalParams, StrainRange, check_spring_
 from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
 from particle.evaluators import force_components
-from particle.params import ConnectorParams
+from particle.model import params_for
+from particle.params import VOLUME_ARM_NAMES, ConnectorParams
 from particle.volume import tet_edge_connectors
 
 log = logging.getLogger(__name__)
@@ -132,8 +135,9 @@ def point_rows(worker: PointWorker, params: ConnectorParams, coords: "Coordinate
     # ~80 MB per temporary on the liver punch, 0.4 s more per linearisation)
     rows, jac, left_out = [], [], 0.0
     for j in range(len(points)):
-        jacs = {kind: coords.chain(s.connectors[j], None if s.kv is None else s.kv[j],
-                                   params)[None] for kind, s in sens.items()}
+        jacs = {kind: coords.chain(s.connectors[j], None if s.kv is None else s.kv[j], params,
+                                   None if s.volume_arms is None else s.volume_arms[j])[None]
+                for kind, s in sens.items()}
         r_j, J_j, left = compress(r[j * n_rows:(j + 1) * n_rows],
                                   data.jacobian(jacs, points[j:j + 1]), n_rows, keep)
         rows.append(r_j)
@@ -142,55 +146,84 @@ def point_rows(worker: PointWorker, params: ConnectorParams, coords: "Coordinate
     return np.concatenate(rows), np.concatenate(jac), left_out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Coordinates:
     """Per-connector (and per-tet) optimiser coordinates <-> parameters (module docstring).
 
     ``theta`` is flat: seven blocks of E connector coordinates ``(log K0, alpha s,
     beta s^2, log k1, log tau1, log k2, log tau2)``, then ``log kv`` of the T tets
-    when each tet's kv is fitted (T = 0 otherwise).
+    when each tet's kv is fitted (T = 0 otherwise), then, when the volume term relaxes,
+    ``log kv1`` and ``log kv2`` of the T tets (their relaxation times fixed: the global
+    fit's, the springs' global ``tau1, tau2``; :mod:`calibration.parametrisation` says why).
 
     Attributes:
         scale: strain scale s of the experiments [1].
         n_connectors: E.
         n_tets: T, 0 without the volume term or with a kv that is not fitted.
-        fixed_kv: the kv [Pa] ((1,) or (T,)) every parameter set carries when ``n_tets`` is 0
-            with the volume term on (``calibration.kv_per_tet = false``); None otherwise.
+        fixed_volume: the volume term's fields of :class:`ConnectorParams` (``kv`` and, if it
+            relaxes, ``kv1, bv1, kv2, bv2``; (1,) or (T,) each) that every parameter set
+            carries when ``n_tets`` is 0 with the volume term on
+            (``calibration.kv_per_tet = false``); None otherwise.
+        volume_tau: (T, 2) the volume arms' relaxation times [s] when their stiffnesses are
+            fitted per tet (``n_tets`` > 0), None for an elastic volume term.
     """
     scale: float
     n_connectors: int
     n_tets: int = 0
-    fixed_kv: np.ndarray | None = None
+    fixed_volume: dict[str, np.ndarray] | None = None
+    volume_tau: np.ndarray | None = None
+
+    @property
+    def tet_blocks(self) -> int:
+        """Blocks of T per-tet coordinates: log kv, and log kv1, log kv2 with the arms."""
+        return (1 + (2 if self.volume_tau is not None else 0)) if self.n_tets else 0
 
     @property
     def size(self) -> int:
-        return N_COORDS * self.n_connectors + self.n_tets
+        return N_COORDS * self.n_connectors + self.tet_blocks * self.n_tets
 
     def block(self, theta: np.ndarray, q: int) -> np.ndarray:
         """(E,) coordinate q of every connector."""
         return theta[q * self.n_connectors:(q + 1) * self.n_connectors]
 
+    def tet_block(self, theta: np.ndarray, q: int) -> np.ndarray:
+        """(T,) per-tet coordinate q (0: log kv, 1, 2: log kv1, log kv2)."""
+        first = N_COORDS * self.n_connectors + q * self.n_tets
+        return theta[first:first + self.n_tets]
+
     def theta_of(self, params: ConnectorParams) -> np.ndarray:
-        """(size,) coordinates of ``params`` (with kv iff ``n_tets``)."""
+        """(size,) coordinates of ``params`` (with kv iff ``n_tets``, and the volume arms'
+        stiffnesses iff ``volume_tau``)."""
         s, p = self.scale, params
         blocks = [np.log(p.K0), p.a / p.K0 * s, p.b / p.K0 * s * s, np.log(p.k1),
                   np.log(p.tau1), np.log(p.k2), np.log(p.tau2)]
         if self.n_tets:
             blocks.append(np.log(p.kv))
+        if self.tet_blocks == 3:
+            blocks += [np.log(p.kv1), np.log(p.kv2)]
         return np.concatenate(blocks).astype(float)
 
     def params(self, theta: np.ndarray) -> ConnectorParams:
         s, b = self.scale, lambda q: self.block(theta, q)  # noqa: E731
         K0 = np.exp(b(0))
         k1, k2 = np.exp(b(3)), np.exp(b(5))
-        kv = np.exp(theta[N_COORDS * self.n_connectors:]) if self.n_tets else self.fixed_kv
+        if not self.n_tets:
+            volume = self.fixed_volume or {}
+        elif self.tet_blocks == 1:
+            volume = {"kv": np.exp(self.tet_block(theta, 0))}
+        else:
+            kv1, kv2 = np.exp(self.tet_block(theta, 1)), np.exp(self.tet_block(theta, 2))
+            volume = {"kv": np.exp(self.tet_block(theta, 0)), "kv1": kv1,
+                      "bv1": self.volume_tau[:, 0] * kv1, "kv2": kv2,
+                      "bv2": self.volume_tau[:, 1] * kv2}
         return ConnectorParams(K0=K0, a=b(1) / s * K0, b=b(2) / (s * s) * K0, k1=k1,
-                               b1=np.exp(b(4)) * k1, k2=k2, b2=np.exp(b(6)) * k2, kv=kv)
+                               b1=np.exp(b(4)) * k1, k2=k2, b2=np.exp(b(6)) * k2, **volume)
 
     def chain(self, jac: np.ndarray, jac_kv: np.ndarray | None,
-              params: ConnectorParams) -> np.ndarray:
+              params: ConnectorParams, jac_arms: np.ndarray | None = None) -> np.ndarray:
         """(..., size) derivatives with respect to the coordinates, from those (..., 7, E)
-        with respect to ``K0, a, b, k1, b1, k2, b2`` and (..., T) to kv."""
+        with respect to ``K0, a, b, k1, b1, k2, b2``, (..., T) to kv and (..., 4, T) to the
+        volume arms' ``kv1, bv1, kv2, bv2`` (with ``volume_tau``)."""
         s, p = self.scale, params
         out = np.empty(jac.shape[:-2] + (N_COORDS, jac.shape[-1]))
         out[..., 0, :] = jac[..., 0, :] * p.K0 + jac[..., 1, :] * p.a + jac[..., 2, :] * p.b
@@ -203,6 +236,10 @@ class Coordinates:
         out = out.reshape(jac.shape[:-2] + (-1,))
         if self.n_tets:
             out = np.concatenate([out, jac_kv * p.kv], axis=-1)
+        if self.tet_blocks == 3:  # log kv_i at fixed tau_i: kv_i d/dkv_i + bv_i d/dbv_i
+            out = np.concatenate([out, jac_arms[..., 0, :] * p.kv1 + jac_arms[..., 1, :] * p.bv1,
+                                  jac_arms[..., 2, :] * p.kv2 + jac_arms[..., 3, :] * p.bv2],
+                                 axis=-1)
         return out
 
 
@@ -445,16 +482,17 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     if tets is not None and start_params.kv is None:
         start_params = dataclasses.replace(start_params, kv=np.array([kv0], dtype=float))
     if tets is not None and not kv_per_tet:
-        coords = Coordinates(strain.scale, len(edges), 0, start_params.kv)
+        coords = Coordinates(strain.scale, len(edges), 0, fixed_volume={
+            n: getattr(start_params, n) for n in ("kv",) + VOLUME_ARM_NAMES})
         tets = None  # no kv coordinates, no kv smoothness
+    elif tets is not None:
+        # the global fit's kv (or kv0) and volume arms are one value for every tet ((1,),
+        # broadcast by the Model): the gradient fit starts each tet's own from it
+        start_params = params_for(start_params, len(edges), len(tets))
+        coords = Coordinates(strain.scale, len(edges), len(tets), volume_tau=(
+            start_params.volume_arm_tau if start_params.has_volume_arms else None))
     else:
-        coords = Coordinates(strain.scale, len(edges), 0 if tets is None else len(tets))
-    if coords.n_tets and len(start_params.kv) != coords.n_tets:
-        # the global fit's kv (or kv0) is one value for every tet ((1,), broadcast by the
-        # Model): the gradient fit starts each tet's own kv from it
-        start_params = dataclasses.replace(start_params,
-                                           kv=np.broadcast_to(start_params.kv,
-                                                              (coords.n_tets,)).copy())
+        coords = Coordinates(strain.scale, len(edges))
     theta0 = coords.theta_of(start_params)
     data = Data.of(reference, force_vectors)
     ev = Evaluator(pool, data, coords)
@@ -463,7 +501,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                       None if tets is None else shared_laplacian(tets, n_particles, 3),
                       prior_ratio, shape_smoothness_factors(shape_smoothness),
                       None if tets is None or not split_prior > 0
-                      else tet_edge_connectors(tets, edges), split_prior)
+                      else tet_edge_connectors(tets, edges), split_prior,
+                      max(coords.tet_blocks, 1))
     theta, state, weights, cv_costs = theta0, None, [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")

@@ -96,6 +96,8 @@ class Regulariser:
             (:func:`particle.volume.tet_edge_connectors`): the split prior's pairs, or None.
         split_prior: sigma, the split prior's weight relative to the smoothness weight
             (``calibration.split_prior``) [1]; 0: no split prior.
+        tet_blocks: per-tet coordinate blocks, each with the tets' block ``(L_tets + rho
+            I)/T``: 1 (log kv), 3 with the volume arms (log kv, log kv1, log kv2).
     """
     laplacian: sp.csc_matrix
     theta0: np.ndarray
@@ -104,6 +106,7 @@ class Regulariser:
     smoothness: np.ndarray | None = None
     tet_edges: np.ndarray | None = None
     split_prior: float = 0.0
+    tet_blocks: int = 1
 
     @property
     def _split(self) -> bool:
@@ -119,7 +122,7 @@ class Regulariser:
         rows = np.repeat(np.arange(p), 2)
         cols = np.column_stack([connector, N_COORDS * e + tet]).ravel()
         vals = np.tile([1.0, -1.0], p)
-        size = N_COORDS * e + t
+        size = N_COORDS * e + self.tet_blocks * t
         S = sp.csr_matrix((vals, (rows, cols)), shape=(p, size))
         return (self.split_prior / p * (S.T @ S)).tocsc()
 
@@ -138,7 +141,7 @@ class Regulariser:
         rho = self.prior_ratio
         blocks = [_metric_block(self.laplacian, rho, s) for s in self._smoothness]
         if self.tet_laplacian is not None:
-            blocks.append(_metric_block(self.tet_laplacian, rho))
+            blocks += [_metric_block(self.tet_laplacian, rho)] * self.tet_blocks
         metric = sp.block_diag(blocks, format="csc")
         return (metric + self._split_term()).tocsc() if self._split else metric
 
@@ -173,7 +176,7 @@ class Regulariser:
             out.append((q * e, copies, e, inverses[factor]))
             q += copies
         if self.tet_laplacian is not None:
-            out.append((N_COORDS * e, 1, self.tet_laplacian.shape[0],
+            out.append((N_COORDS * e, self.tet_blocks, self.tet_laplacian.shape[0],
                         inverse(self.tet_laplacian)))
         return out
 

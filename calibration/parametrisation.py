@@ -5,9 +5,12 @@ Global parameters (one value for every connector), :class:`GlobalParams`:
 ``K(eps) = K0 (1 + alpha eps + beta eps^2)``), arm stiffnesses ``k1, k2`` [N/m]
 and relaxation times ``tau1 < tau2`` [s] (``b_i = tau_i k_i``); with the
 volume term (scene key ``particle.volume``) the volume stiffness ``kv`` [Pa] of
-every tet (0 = the term is off). With ``calibration.global_shape = "van_gelder"``
-(:func:`global_shape`) connector c's stiffnesses are these values times a fixed
-geometric factor ``w_c`` (mean 1), so the set is still one value per parameter.
+every tet (0 = the term is off), and when it relaxes (``particle.volume =
+"viscoelastic"``) its arms' stiffnesses ``kv1, kv2`` [Pa] (0 = elastic), whose
+relaxation times are the springs' ``tau1, tau2`` (``bv_i = tau_i kv_i``). With
+``calibration.global_shape = "van_gelder"`` (:func:`global_shape`) connector c's
+stiffnesses are these values times a fixed geometric factor ``w_c`` (mean 1), so the
+set is still one value per parameter.
 
 Optimiser coordinates are dimensionless and O(1) per unit change:
 
@@ -20,7 +23,20 @@ Optimiser coordinates are dimensionless and O(1) per unit change:
   closed-form least-squares factor for each (alpha, beta, kv/K0);
 * relaxation: ``y = (log k1, log tau1, log k2, log tau2)``; optimising log tau
   rather than log b keeps the two arms identifiable, and ``tau1 < tau2`` is
-  required (the swapped half is the same model).
+  required (the swapped half is the same model). With the volume arms two more,
+  ``log(kv1/kv), log(kv2/kv)``: the volume term's relative arm stiffnesses (its
+  Prony-like ratios; ``kv`` is fixed by the static fit, as ``K0`` is).
+
+Why the volume arms share the springs' relaxation times: the FE material has one
+relaxation spectrum (its Prony times), acting on the deviatoric stress; on coarse
+linear tets both the springs and the per-tet volume term carry that shear-like
+stiffness, so both relax with its times, each with its own share (its ratios
+``k_i/K0`` and ``kv_i/kv``). Times of their own would add two coordinates the
+surface relaxation curves cannot separate from the springs' (a sum of four
+exponentials fitted to curves that two describe: an ill-conditioned Prony fit),
+while the split of each arm's stiffness between springs and volume term is
+identified as the static fit identifies ``kv/K0``: the two terms load the
+indented neighbourhood differently.
 
 Local tuning (:class:`Rings`) gives every calibration point j offsets in the
 same coordinates that apply to its first ring (the connectors incident to j):
@@ -104,10 +120,17 @@ class GlobalParams:
     k2: float
     tau2: float
     kv: float = 0.0
+    kv1: float = 0.0
+    kv2: float = 0.0
 
     @property
     def has_volume(self) -> bool:
         return self.kv > 0.0
+
+    @property
+    def has_volume_arms(self) -> bool:
+        """True when the volume term relaxes (its arms' stiffnesses kv1, kv2 > 0)."""
+        return self.kv1 > 0.0
 
     def connector_params(self, n_connectors: int, shape: np.ndarray | None = None
                          ) -> ConnectorParams:
@@ -124,12 +147,19 @@ class GlobalParams:
                                          b2=self.tau2 * self.k2)
         if shape is not None:
             params = params.scaled(check_shape(shape, n_connectors))
-        return dataclasses.replace(params, kv=self.kv_array)
+        return dataclasses.replace(params, **self.volume_arrays)
 
     @property
-    def kv_array(self) -> np.ndarray | None:
-        """(1,) kv [Pa] for :class:`ConnectorParams` (one value for every tet), None if off."""
-        return np.array([self.kv]) if self.has_volume else None
+    def volume_arrays(self) -> dict[str, np.ndarray | None]:
+        """The volume term's fields of :class:`ConnectorParams`, each (1,) (one value for every
+        tet) or None: ``kv`` (None if the term is off) and ``kv1, bv1, kv2, bv2`` (None if
+        it is elastic; ``bv_i = tau_i kv_i``)."""
+        arms = self.has_volume_arms
+        return {"kv": np.array([self.kv]) if self.has_volume else None,
+                "kv1": np.array([self.kv1]) if arms else None,
+                "bv1": np.array([self.tau1 * self.kv1]) if arms else None,
+                "kv2": np.array([self.kv2]) if arms else None,
+                "bv2": np.array([self.tau2 * self.kv2]) if arms else None}
 
     def static_coordinates(self, strain: StrainRange) -> np.ndarray:
         s = strain.scale
@@ -138,18 +168,28 @@ class GlobalParams:
 
     def with_static_coordinates(self, x: np.ndarray, K0: float, strain: StrainRange
                                 ) -> "GlobalParams":
+        """The static coordinates ``x`` with ``K0`` [N/m]; the volume arms keep their ratios
+        ``kv_i/kv`` (the static curves are long-term: they see kv alone)."""
         s = strain.scale
         kv = float(K0 * np.exp(x[2])) if self.has_volume else 0.0
+        ratio = kv / self.kv if self.has_volume_arms else 0.0
         return dataclasses.replace(self, K0=float(K0), alpha=float(x[0]) / s,
-                                   beta=float(x[1]) / (s * s), kv=kv)
+                                   beta=float(x[1]) / (s * s), kv=kv, kv1=ratio * self.kv1,
+                                   kv2=ratio * self.kv2)
 
     def relaxation_coordinates(self) -> np.ndarray:
-        return np.log([self.k1, self.tau1, self.k2, self.tau2])
+        y = np.log([self.k1, self.tau1, self.k2, self.tau2])
+        if not self.has_volume_arms:
+            return y
+        return np.r_[y, np.log([self.kv1 / self.kv, self.kv2 / self.kv])]
 
     def with_relaxation_coordinates(self, y: np.ndarray) -> "GlobalParams":
-        k1, tau1, k2, tau2 = np.exp(np.asarray(y, dtype=float))
+        k1, tau1, k2, tau2 = np.exp(np.asarray(y[:4], dtype=float))
+        volume = {}
+        if self.has_volume_arms:
+            volume = {f"kv{i + 1}": float(self.kv * np.exp(y[4 + i])) for i in range(2)}
         return dataclasses.replace(self, k1=float(k1), tau1=float(tau1), k2=float(k2),
-                                   tau2=float(tau2))
+                                   tau2=float(tau2), **volume)
 
     def as_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in self.__dataclass_fields__}
@@ -256,7 +296,7 @@ def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
     k1, tau1 = glob.k1 * np.exp(r[:, 0]), glob.tau1 * np.exp(r[:, 1])
     k2, tau2 = glob.k2 * np.exp(r[:, 2]), glob.tau2 * np.exp(r[:, 3])
     params = ConnectorParams(K0=K0, a=alpha * K0, b=beta * K0, k1=k1, b1=tau1 * k1,
-                             k2=k2, b2=tau2 * k2, kv=glob.kv_array)
+                             k2=k2, b2=tau2 * k2, **glob.volume_arrays)
     return params if shape is None else params.scaled(check_shape(shape, len(K0)))
 
 

@@ -9,7 +9,8 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
 | ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local, or the gradient fit) |
 | ``/connectors/<variant>/kv`` | (T,) or (1,) | Pa | volume stiffness per tet ((1,): the same for every tet); only when the volume term is on (``particle.volume``) |
-| ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s, Pa | ``K0, alpha, beta, k1, tau1, k2, tau2, kv`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``; ``kv`` = 0: no volume term; absent in older files) |
+| ``/connectors/<variant>/<name>`` | (T,) or (1,) | Pa, Pa s | ``kv1, bv1, kv2, bv2``: the volume term's Maxwell arms per tet, shaped as ``kv``; only when it relaxes (``particle.volume = "viscoelastic"``) |
+| ``/global/<name>``, ``/initial_guess/<name>`` | () | N/m, 1, s, Pa | ``K0, alpha, beta, k1, tau1, k2, tau2, kv, kv1, kv2`` (``a = alpha K0``, ``b = beta K0``, ``b_i = tau_i k_i``; ``kv`` = 0: no volume term, absent in older files; ``kv1, kv2``: the volume arms' stiffnesses, their times ``tau1, tau2``, 0: an elastic volume term, absent in older files) |
 | ``/initial_guess/fe_slope`` | (Pc,) | N/m | FE initial static slope per calibration point |
 | ``/initial_guess/unit_slope`` | (P,) | N/m | unit-stiffness network slope per test point |
 | ``/strain_range`` attrs | | 1 | ``low``, ``high``: where K(eps) > 0 is required |
@@ -40,7 +41,7 @@ from forcecal.errors import DataFileError
 from forcecal.h5io import (atomic_h5, attr, get, json_attr, open_h5, put, read_problem,
                            write_problem)
 from forcecal.problem import Problem
-from particle.params import PARAM_NAMES, ConnectorParams
+from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams
 
 PARAMS_KIND = "forcecal.params"
 PARAMS_SCHEMA = 1
@@ -50,7 +51,9 @@ PHASES = ("static", "relaxation")
 PARAM_UNITS = {"K0": "N/m", "a": "N/m", "b": "N/m", "k1": "N/m", "b1": "N s/m", "k2": "N/m",
                "b2": "N s/m"}
 GLOBAL_UNITS = {"K0": "N/m", "alpha": "1", "beta": "1", "k1": "N/m", "tau1": "s", "k2": "N/m",
-                "tau2": "s", "kv": "Pa"}
+                "tau2": "s", "kv": "Pa", "kv1": "Pa", "kv2": "Pa"}
+#: the volume term's per-tet arrays of ``/connectors/<variant>/`` (besides ``kv``)
+VOLUME_ARM_UNITS = {"kv1": "Pa", "bv1": "Pa s", "kv2": "Pa", "bv2": "Pa s"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,9 +174,9 @@ def _put_global(group: h5py.Group, g: GlobalParams) -> None:
 
 
 def _get_global(fh: h5py.File, path: str) -> GlobalParams:
-    # kv is absent from files written before the volume term (springs only: kv = 0)
+    # kv (kv1, kv2) is absent from files written before the volume term (its arms): 0
     return GlobalParams(**{k: float(get(fh, f"{path}/{k}", ())) for k in GLOBAL_UNITS
-                           if k != "kv" or f"{path}/kv" in fh})
+                           if k not in ("kv", "kv1", "kv2") or f"{path}/{k}" in fh})
 
 
 def _put_history(group: h5py.Group, fit: Fit) -> None:
@@ -262,6 +265,10 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
                 put(g, name, getattr(params, name), PARAM_UNITS[name])
             if params.kv is not None:
                 put(g, "kv", params.kv, "Pa", "volume stiffness: one per tet, or (1,) for all")
+            if params.has_volume_arms:
+                for name in VOLUME_ARM_NAMES:
+                    put(g, name, getattr(params, name), VOLUME_ARM_UNITS[name],
+                        "the volume term's Maxwell arms, shaped as kv")
         _put_global(fh.create_group("global"), result.global_params)
         g = fh.create_group("initial_guess")
         _put_global(g, result.initial)
@@ -305,8 +312,9 @@ def read_params(path: str | Path) -> CalibrationResult:
                                 f"'indentation' and maybe 'relaxation'")
         connectors = {v: ConnectorParams(
             **{n: get(fh, f"connectors/{v}/{n}", (n_e,), dtype="float") for n in PARAM_NAMES},
-            kv=(get(fh, f"connectors/{v}/kv", (None,), dtype="float")
-                if f"connectors/{v}/kv" in fh else None))
+            **{n: (get(fh, f"connectors/{v}/{n}", (None,), dtype="float")
+                   if f"connectors/{v}/{n}" in fh else None)
+               for n in ("kv",) + VOLUME_ARM_NAMES})
             for v in VARIANTS}
         variants = {v: VariantCurves(
             curves={e: get(fh, f"curves/{v}/{e}", (n_p, None), dtype="float")

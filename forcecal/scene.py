@@ -229,9 +229,18 @@ class ParticleSection:
                                minimum=0.0)
     damping: float = key(0.0, "global mass-proportional viscous damping (off for the gravity "
                          "comparison: the arms are the only physical damping)", "1/s", minimum=0.0)
-    volume: bool = key(False, "add the elastic per-tet volume term kv/2 V0 (V/V0 - 1)^2 "
-                       "(particle/volume.py) to the springs; calibration method 'paper' then "
-                       "fits kv [Pa] with K0, a, b (false: the paper's springs-only model)")
+    volume: Union[bool, str] = key(
+        False, "true: add the elastic per-tet volume term kv/2 V0 (V/V0 - 1)^2 "
+        "(particle/volume.py) to the springs, kv [Pa] fitted with K0, a, b on the static "
+        "curves; \"viscoelastic\": the same term with two Maxwell arms in each tet's volume "
+        "strain (stiffnesses kv1, kv2 [Pa], the springs' relaxation times tau1, tau2), fitted "
+        "with the springs' arms on the relaxation curves (README, \"The particle model\"); "
+        "false: the paper's springs-only model", choices=(False, True, "viscoelastic"))
+
+    @property
+    def volume_arms(self) -> bool:
+        """True when the volume term relaxes (``volume = "viscoelastic"``)."""
+        return self.volume == "viscoelastic"
 
 
 @dataclass(frozen=True)
@@ -295,8 +304,9 @@ class CalibrationSection:
                             "\"van_gelder\" (each connector's share of the surrounding tets, "
                             "sum V_t / L^2, times one fitted scale; README Calibration)",
                             choices=("uniform", "van_gelder"))
-    kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv with "
-                           "the connectors (false: kv keeps the global fit's one value)")
+    kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv (and, "
+                           "when it relaxes, its arms' kv1, kv2) with the connectors (false: "
+                           "they keep the global fit's one value)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
 

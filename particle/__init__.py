@@ -13,8 +13,9 @@ builder, mutable State, integrators and solvers apart):
   :class:`RelaxationEvaluator` (batch force curves for calibration).
 - :mod:`particle.experiments`: :func:`gravity_dynamic`, :func:`relaxation_dynamic`.
 - :mod:`particle.haptics`: :class:`HapticSession`.
-- :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``):
-  forces, tangent, energy, its part of the stability bound.
+- :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``,
+  elastic or with Maxwell arms ``kv1, bv1, kv2, bv2``): forces, tangent, energy, its part
+  of the stability bound.
 """
 import forcecal  # noqa: F401  (settles the numba cache folder before numba is imported: forcecal.caches)
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator

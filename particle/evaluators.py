@@ -26,9 +26,9 @@ import numpy as np
 
 from forcecal.errors import ConvergenceError, ParameterError
 from particle.model import Model
-from particle.params import ConnectorParams, arm_recursions
+from particle.params import ConnectorParams, arm_recursions, volume_arm_recursions
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
-                              check_stiffness, continuation)
+                              VolumeArmStep, check_stiffness, continuation)
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +177,7 @@ class _PointEvaluator:
         idx = self._indices(points)
         params.validate(self.strain_range, self.model.edges, self.model.tets)
         model = self.model.with_params(params)
-        prepared = self._prepare(params)
+        prepared = self._prepare(model.params)  # the volume arms broadcast to every tet
         return np.stack([self._curve(model, prepared, int(k)) for k in idx])
 
     def __call__(self, params: ConnectorParams, points: Sequence[int] | None = None) -> np.ndarray:
@@ -300,7 +300,8 @@ class IndentationEvaluator(_PointEvaluator):
 class RelaxationEvaluator(_PointEvaluator):
     """Ramp-and-hold relaxation curves by the quasi-static path (inertia dropped).
 
-    At each sample time the equilibrium of springs + Maxwell arms is solved,
+    At each sample time the equilibrium of springs + Maxwell arms (and the volume
+    term's arms, when it has them) is solved,
     the arms advanced by the exact exponential recursion for the sample step
     (``r = exp(-dt/tau)``, ``c = k tau (1 - r)/dt``, see
     :meth:`ConnectorParams.arm_recursion`). The indenter follows the depth
@@ -337,9 +338,13 @@ class RelaxationEvaluator(_PointEvaluator):
             raise ParameterError("relaxation times must be increasing, > 0 and match the depths")
         self.times = times
 
-    def _prepare(self, params: ConnectorParams) -> list[tuple[np.ndarray, np.ndarray]]:
-        r, c = arm_recursions(params, np.diff(np.r_[0.0, self.times]), exact=True)
-        return list(zip(r, c))
+    def _prepare(self, params: ConnectorParams) -> list[tuple]:
+        """Each sample step's arm coefficients: (r, c, the volume arms' (r, c) or None)."""
+        steps = np.diff(np.r_[0.0, self.times])
+        r, c = arm_recursions(params, steps, exact=True)
+        volume = (list(zip(*volume_arm_recursions(params, steps, exact=True)))
+                  if params.has_volume_arms else [None] * len(steps))
+        return list(zip(r, c, volume))
 
     def _curve(self, model: Model, prepared, k: int) -> np.ndarray:
         solver = self._solver(k)
@@ -359,8 +364,8 @@ class RelaxationEvaluator(_PointEvaluator):
                 guess = (warm_guess(warm, solutions, sample) if full and warm is not None
                          else eq.x).copy()
                 guess[held] = self._target(k, np.interp(t1, times, depths))
-                coeffs = prepared[sample] if full else params.arm_recursion(t1 - t0, exact=True)
-                return solver.solve(guess, params, arms=ArmStep(*coeffs, eq.arm_force, eq.dx))
+                coeffs = prepared[sample] if full else arm_coefficients(params, t1 - t0)
+                return solver.solve(guess, params, arms=arm_step(coeffs, eq))
 
             eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
             check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
@@ -368,3 +373,16 @@ class RelaxationEvaluator(_PointEvaluator):
             forces[sample] = self._force(eq, k)
         self._warm[k] = solutions
         return forces
+
+
+def arm_coefficients(params: ConnectorParams, dt: float) -> tuple:
+    """(r, c, the volume arms' (r, c) or None) of one exact arm step of ``dt`` [s]."""
+    volume = params.volume_arm_recursion(dt, exact=True) if params.has_volume_arms else None
+    return (*params.arm_recursion(dt, exact=True), volume)
+
+
+def arm_step(coeffs: tuple, eq: Equilibrium) -> ArmStep:
+    """The arm step with ``coeffs`` (:func:`arm_coefficients`) from the equilibrium ``eq``."""
+    r, c, volume = coeffs
+    return ArmStep(r, c, eq.arm_force, eq.dx, None if volume is None else
+                   VolumeArmStep(*volume, eq.volume_arm, eq.volume_strain))

@@ -22,7 +22,7 @@ from forcecal.errors import ParameterError
 from particle.model import Model, Prescribed, State
 from particle.params import connector_name
 from particle.statics import check_stiffness, check_volumes
-from particle.volume import node_volume_stiffness, volume_energy
+from particle.volume import node_volume_stiffness, tet_name, volume_arm_energy, volume_energy
 
 # the kinetic energy may exceed the work the loads can do by this factor before a run is
 # declared divergent: a real run stays far below, an unstable one grows exponentially
@@ -59,6 +59,9 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
         check_volumes(model, state.x, f"explicit run from t = {state.t:.6g} s")
         energy += volume_energy(state.x, model.tets, model.rest_volumes, p.kv)
     energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
+    if p.has_volume_arms:
+        energy += volume_arm_energy(state.volume_arm, p.volume_arm_stiffness,
+                                    model.rest_volumes)
     if gravity is not None:
         g = float(np.linalg.norm(gravity))
         energy += total_mass * g * (size + 0.5 * g * duration ** 2)
@@ -83,15 +86,22 @@ def check_state(model: Model, state: State, *, finite: bool = False) -> None:
 
     Its arrays must have the model's shapes and be C-contiguous, writeable
     float64 (another dtype would be truncated to it or compile another kernel
-    specialisation), and its time finite. With ``finite`` (at the start of a run: one
+    specialisation), and its time finite; with the volume term's arms, it must hold
+    their pressures and volume strains (``volume_arm`` (T, 2), ``volume_prev`` (T,)).
+    With ``finite`` (at the start of a run: one
     numpy pass over the state, so not on every haptic call) its arrays must hold finite
     values too: a NaN put into the state would otherwise surface as a divergence steps
     later, naming another particle and suggesting a smaller step.
     """
     shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
               ("arm_force", (model.n_connectors, 2)), ("dx_prev", (model.n_connectors,)))
+    if model.params.has_volume_arms:
+        shapes += (("volume_arm", (model.n_tets, 2)), ("volume_prev", (model.n_tets,)))
     for name, shape in shapes:
         arr = getattr(state, name)
+        if arr is None:
+            raise ParameterError(f"the state has no {name}: this model's volume term has "
+                                 "arms, whose state a run needs (make it with model.state())")
         if not (isinstance(arr, np.ndarray) and arr.shape == shape
                 and arr.dtype == np.float64 and arr.flags.carray):
             what = (f"{arr.dtype} array of shape {arr.shape}" if isinstance(arr, np.ndarray)
@@ -107,10 +117,14 @@ def check_state(model: Model, state: State, *, finite: bool = False) -> None:
 
 
 def check_finite_state(model: Model, state: State) -> None:
-    """Raise :class:`ParameterError` naming the first particles (x, x_prev) or connectors
-    (arm_force, dx_prev) where ``state`` (shapes already checked) holds NaN or inf."""
-    for name, what in (("x", "particle"), ("x_prev", "particle"), ("arm_force", "connector"),
-                       ("dx_prev", "connector")):
+    """Raise :class:`ParameterError` naming the first particles (x, x_prev), connectors
+    (arm_force, dx_prev) or tets (volume_arm, volume_prev, with the volume arms) where
+    ``state`` (shapes already checked) holds NaN or inf."""
+    arrays = (("x", "particle"), ("x_prev", "particle"), ("arm_force", "connector"),
+              ("dx_prev", "connector"))
+    if model.params.has_volume_arms:
+        arrays += (("volume_arm", "tet"), ("volume_prev", "tet"))
+    for name, what in arrays:
         arr = getattr(state, name)
         ok = np.isfinite(arr)
         if ok.all():
@@ -119,6 +133,8 @@ def check_finite_state(model: Model, state: State) -> None:
         first = int(bad[0])
         if what == "particle":
             name_first = f"particle {first}" + (" (fixed)" if model.fixed[first] else "")
+        elif what == "tet":
+            name_first = tet_name(first, model.tets)
         else:
             name_first = connector_name(first, model.edges)
         more = f" and {len(bad) - 1} more {what}(s)" if len(bad) > 1 else ""

@@ -49,7 +49,8 @@ from particle.params import ConnectorParams, StrainBounds, check_count, connecto
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.guard import check_state, energy_bound
-from particle.volume import node_volume_force, signed_volumes, tet_name, volume_ratio_range
+from particle.volume import (node_volume_force, signed_volumes, tet_name, volume_ratio_range,
+                             volume_strains)
 
 log = logging.getLogger(__name__)
 
@@ -286,6 +287,11 @@ class Run:
         self._volume = None
         if p.kv is not None:
             self.volume_ratio_range, self._volume = volume_limits(model, monitored)
+        # the volume term's arms, with the paper's recursion like the connectors' (None: an
+        # elastic volume term, or a run without arms)
+        self.volume_arm_r = self.volume_arm_c = None
+        if p.has_volume_arms and arms:
+            self.volume_arm_r, self.volume_arm_c = p.volume_arm_recursion(dt)
         self._active = kernels.index_view(self.active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
@@ -319,7 +325,8 @@ class Run:
                 *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
                 float(state.t), *record, self.integrator.check_every, float(energy_bound),
                 *self._elongation_limits, self._forces, probe, node_edges, out, self._blocks,
-                self._volume, node_tets)
+                self._volume, None if self.volume_arm_r is None else self.volume_arms(state),
+                node_tets)
         finally:
             if pool is not None:
                 numba.set_num_threads(pool)
@@ -330,6 +337,14 @@ class Run:
         if n_steps:
             state.dt = dt
         return out
+
+    def volume_arms(self, state: State) -> tuple | None:
+        """The volume arms' kernel tuple of ``state`` (:mod:`particle.volume`; its pressures and
+        volume strains both read and written), None without arms."""
+        if self.volume_arm_r is None:
+            return None
+        return (self.volume_arm_r, self.volume_arm_c, state.volume_arm, state.volume_prev,
+                state.volume_arm, state.volume_prev)
 
     def _incident(self, node: int) -> tuple[np.ndarray, np.ndarray | None]:
         """:func:`incident` of ``node`` (cached)."""
@@ -350,25 +365,34 @@ class Run:
         kernels.node_force(state.x, node, edges, self._edges, self.model.rest_lengths,
                            *self._springs, state.arm_force, state.dx_prev, out)
         if self._volume is not None:
-            node_volume_force(state.x, node, tets, *self._volume, out)
+            node_volume_force(state.x, node, tets, *self._volume[:3], self.volume_arms(state),
+                              out)
         return out
 
 
-def close_arm_step(model: Model, state: State, arm_r: np.ndarray) -> None:
+def close_arm_step(run: "Run", state: State) -> None:
     """Let this run's first arm update close the previous run's last step exactly.
 
     The loop updates the arms at the start of each step for the step before
     it, which had the state's old length ``state.dt``: that update is done
     here with ``state.dt``'s coefficients, and stored so that the loop's
     first update (with this run's r, c) reproduces it: ``dx_prev = dx``,
-    ``arm_force = F / r``.
+    ``arm_force = F / r``; the volume term's arms likewise (``volume_prev = j``,
+    ``volume_arm = P / r``).
     """
+    model = run.model
     r_old, c_old = model.params.arm_recursion(state.dt)
     d = state.x[model.edges[:, 1]] - state.x[model.edges[:, 0]]
     dx = np.sqrt(np.einsum("ij,ij->i", d, d)) - model.rest_lengths
     force = r_old * state.arm_force + c_old * (dx - state.dx_prev)[:, None]
     state.dx_prev[:] = dx
-    state.arm_force[:] = force / arm_r
+    state.arm_force[:] = force / run.arm_r
+    if run.volume_arm_r is not None:
+        r_old, c_old = model.params.volume_arm_recursion(state.dt)
+        strain = volume_strains(state.x, model.tets, model.rest_volumes)
+        pressure = r_old * state.volume_arm + c_old * (strain - state.volume_prev)[:, None]
+        state.volume_prev[:] = strain
+        state.volume_arm[:] = pressure / run.volume_arm_r
 
 
 def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
@@ -395,7 +419,7 @@ def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) ->
 
     A state last advanced with another step keeps its velocity (``x_prev`` rescaled)
     and its arms' last update (:func:`close_arm_step`); a run without arms holds
-    their forces at zero.
+    their forces (and the volume arms' pressures) at zero.
     """
     check_steps(n_steps)
     check_state(run.model, state)
@@ -407,9 +431,11 @@ def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) ->
     if state.dt is not None and state.dt != run.dt:
         state.x_prev[:] = state.x - (state.x - state.x_prev) * (run.dt / state.dt)
         if run.arms and n_steps:
-            close_arm_step(run.model, state, run.arm_r)
+            close_arm_step(run, state)
     if not run.arms:
         state.arm_force[:] = 0.0
+        if state.volume_arm is not None:
+            state.volume_arm[:] = 0.0
     return keyframes
 
 

@@ -194,21 +194,23 @@ def add_damping(forces, masses, x, x_prev, rate, nodes):
 
 @njit(**JIT)
 def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-               masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, volume):
-    """All force terms of one explicit step, composed; commits the arm recursion in place.
+               masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, volume,
+               volume_arms):
+    """All force terms of one explicit step, composed; commits the arm recursions in place.
 
     ``volume`` = (tets (T, 4), rest_volumes (T,), kv (T,), v_lo (T,), v_hi (T,))
     adds the volume term (:func:`particle.volume.add_volume_forces`), None
-    compiles it out. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
-    :func:`internal_forces`), the first tet whose volume is outside ``(v_lo,
-    v_hi]``), -1 for none.
+    compiles it out; ``volume_arms`` its arms (the kernels' tuple, outputs aliasing the
+    state: :mod:`particle.volume`), None: elastic. Returns (the first connector outside
+    ``[dx_lo, dx_hi]`` (see :func:`internal_forces`), the first tet whose volume is
+    outside ``(v_lo, v_hi]``), -1 for none.
     """
     outside = internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force,
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)
     bad = -1
     if volume is not None:
         bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                   forces)
+                                   forces, volume_arms)
     if gravity is not None:
         add_gravity(forces, masses, gravity, active)
     if damping_rate is not None:

@@ -30,7 +30,7 @@ import numpy as np
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import TetMesh, check_mesh_arrays, vertex_ids
 from forcecal.problem import Problem
-from particle.params import N_ARMS, ConnectorParams, frozen_copy
+from particle.params import N_ARMS, VOLUME_ARM_NAMES, ConnectorParams, frozen_copy
 from particle.volume import signed_volumes, tet_edge_connectors, tet_name
 
 log = logging.getLogger(__name__)
@@ -130,10 +130,14 @@ class Model:
                      tets=new_id[self.tets], rest_volumes=self.rest_volumes), connectors
 
     def state(self) -> "State":
-        """A fresh State: at rest in the undeformed configuration, arms unloaded, t = 0."""
+        """A fresh State: at rest in the undeformed configuration, arms unloaded (the volume
+        term's too, when it has arms), t = 0."""
+        arms = self.params.has_volume_arms
         return State(x=self.rest_positions.copy(), x_prev=self.rest_positions.copy(),
                      arm_force=np.zeros((self.n_connectors, N_ARMS)),
-                     dx_prev=np.zeros(self.n_connectors), t=0.0)
+                     dx_prev=np.zeros(self.n_connectors), t=0.0,
+                     volume_arm=np.zeros((self.n_tets, N_ARMS)) if arms else None,
+                     volume_prev=np.zeros(self.n_tets) if arms else None)
 
     def check_nodes(self, nodes: np.ndarray, what: str, *, movable: bool = True) -> np.ndarray:
         """(k,) int64 particle ids, checked: in range, and (if ``movable``) not fixed."""
@@ -197,8 +201,8 @@ def incidence(edges: np.ndarray, n_particles: int) -> tuple[np.ndarray, np.ndarr
 
 
 def params_for(params: ConnectorParams, n_connectors: int, n_tets: int) -> ConnectorParams:
-    """``params`` checked against a model's connector and tet counts, a (1,) kv broadcast to
-    one per tet; :class:`ParameterError` when they do not fit."""
+    """``params`` checked against a model's connector and tet counts, a (1,) kv (and volume
+    arms) broadcast to one per tet; :class:`ParameterError` when they do not fit."""
     if params.n_connectors != n_connectors:
         raise ParameterError(f"parameters have {params.n_connectors} entries but the model "
                              f"has {n_connectors} connectors")
@@ -207,7 +211,9 @@ def params_for(params: ConnectorParams, n_connectors: int, n_tets: int) -> Conne
             raise ParameterError(f"kv has {params.kv.shape[0]} entries but the model has "
                                  f"{n_tets} tets (the volume term needs one kv per tet, or "
                                  "one for all)")
-        params = dataclasses.replace(params, kv=np.full(n_tets, params.kv[0]))
+        names = ("kv",) + (VOLUME_ARM_NAMES if params.has_volume_arms else ())
+        params = dataclasses.replace(params, **{n: np.full(n_tets, getattr(params, n)[0])
+                                                for n in names})
     return params
 
 
@@ -252,6 +258,10 @@ class State:
         t: time [s].
         dt: step that ``x_prev`` lags ``x`` by [s]; None for a state at rest that
             has not been stepped (the integrator then uses the start-up step).
+        volume_arm: (T, 2) float64, the volume term's arm pressures at the last completed
+            step [Pa], or None: the model's volume term has no arms (or is off).
+        volume_prev: (T,) float64, each tet's volume strain ``V/V0 - 1`` at the last
+            completed step [1] (with ``volume_arm``; None likewise).
     """
     x: np.ndarray
     x_prev: np.ndarray
@@ -259,10 +269,14 @@ class State:
     dx_prev: np.ndarray
     t: float = 0.0
     dt: float | None = None
+    volume_arm: np.ndarray | None = None
+    volume_prev: np.ndarray | None = None
 
     def copy(self) -> "State":
         return State(self.x.copy(), self.x_prev.copy(), self.arm_force.copy(),
-                     self.dx_prev.copy(), self.t, self.dt)
+                     self.dx_prev.copy(), self.t, self.dt,
+                     None if self.volume_arm is None else self.volume_arm.copy(),
+                     None if self.volume_prev is None else self.volume_prev.copy())
 
     def displacement(self, model: Model) -> np.ndarray:
         """(N, 3) displacement from the rest positions [m]."""

@@ -5,13 +5,15 @@ A connector of rest length ``L0`` and elongation ``dx`` (strain ``eps = dx/L0``)
 carries ``F = K(eps) dx + F_arm1 + F_arm2`` with ``K(eps) = K0 + a eps + b eps^2``;
 each Maxwell arm (spring ``k_i`` in series with a dashpot ``b_i``, ``tau_i =
 b_i/k_i``) follows ``dF/dt = k_i d(dx)/dt - F/tau_i`` (:func:`arm_recursion`). The
-optional volume term adds a stiffness ``kv`` per tetrahedron (:mod:`particle.volume`).
-:class:`ConnectorParams` holds them as flat (E,) arrays, immutable like the
+optional volume term adds a stiffness ``kv`` per tetrahedron (:mod:`particle.volume`),
+elastic or, with its own Maxwell arms ``kv_i, bv_i``, viscoelastic.
+:class:`ConnectorParams` holds them as flat (E,) (and (T,)) arrays, immutable like the
 :class:`~particle.model.Model` that carries them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import operator
 from dataclasses import dataclass
 
@@ -21,6 +23,8 @@ from forcecal.errors import ParameterError
 from particle.volume import check_kv
 
 PARAM_NAMES = ("K0", "a", "b", "k1", "b1", "k2", "b2")
+#: the volume term's Maxwell arms, per tet: stiffness [Pa] and viscosity [Pa s] of arm 1, 2
+VOLUME_ARM_NAMES = ("kv1", "bv1", "kv2", "bv2")
 N_ARMS = 2
 # a strain range: one (lo, hi) pair [1] for every connector, or per-connector (lo (E,), hi (E,))
 StrainBounds = tuple[float | np.ndarray, float | np.ndarray]
@@ -119,9 +123,15 @@ class ConnectorParams:
         kv: (T,) float64, volume stiffness of each tetrahedron [Pa = N/m^2] (the
             elastic volume term of :mod:`particle.volume`, energy ``kv/2 V0 (V/V0 -
             1)^2``), or None: the volume term is off (the paper's springs-only
-            model). It does not relax (the arms act on the connectors only). A
+            model). Its long-term stiffness: with no volume arms it does not relax. A
             (1,) array is one value for every tet (a global fit's): a Model stores
             it broadcast to (T,).
+        kv1, kv2: (T,) float64, stiffness of the volume term's Maxwell arm 1 and 2 [Pa],
+            or None (all four None: the volume term is elastic). Each arm is a spring
+            ``kv_i`` in series with a dashpot ``bv_i`` acting on the tet's volume strain
+            ``V/V0 - 1`` (:mod:`particle.volume`), so the term's instantaneous stiffness
+            is ``kv + kv1 + kv2`` and its long-term one ``kv``. (1,) broadcast like kv.
+        bv1, bv2: (T,) float64, dashpot of the volume arms [Pa s] (``tau = bv_i/kv_i``).
 
     Instances are immutable; calibration builds new ones with
     ``dataclasses.replace(params, K0=...)`` (``kv=...`` likewise).
@@ -134,6 +144,10 @@ class ConnectorParams:
     k2: np.ndarray
     b2: np.ndarray
     kv: np.ndarray | None = None
+    kv1: np.ndarray | None = None
+    bv1: np.ndarray | None = None
+    kv2: np.ndarray | None = None
+    bv2: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         arrays = [np.atleast_1d(np.asarray(getattr(self, n), dtype=np.float64))
@@ -149,6 +163,17 @@ class ConnectorParams:
             if kv.ndim != 1:
                 raise ParameterError(f"kv must be a 1-D array (one value per tet), got {kv.shape}")
             object.__setattr__(self, "kv", frozen_copy(kv, np.float64))
+        given = [n for n in VOLUME_ARM_NAMES if getattr(self, n) is not None]
+        if given and (len(given) < len(VOLUME_ARM_NAMES) or self.kv is None):
+            raise ParameterError(f"the volume term's arms need kv and all of "
+                                 f"{', '.join(VOLUME_ARM_NAMES)}; got kv "
+                                 f"{'None' if self.kv is None else 'given'} and {given}")
+        for name in given:
+            arm = np.atleast_1d(np.asarray(getattr(self, name), dtype=np.float64))
+            if arm.shape != self.kv.shape:
+                raise ParameterError(f"{name} of shape {arm.shape} does not match kv's "
+                                     f"{self.kv.shape} (one value per tet, or one for all)")
+            object.__setattr__(self, name, frozen_copy(arm, np.float64))
 
     @classmethod
     def uniform(cls, n_connectors: int, *, K0: float, a: float = 0.0, b: float = 0.0,
@@ -168,16 +193,38 @@ class ConnectorParams:
         """True when the volume term is on (``kv`` given)."""
         return self.kv is not None
 
+    @property
+    def has_volume_arms(self) -> bool:
+        """True when the volume term has Maxwell arms (it relaxes)."""
+        return self.kv1 is not None
+
+    @property
+    def volume_arm_stiffness(self) -> np.ndarray:
+        """(T, 2) float64, the volume arms' stiffnesses (kv1, kv2) [Pa]."""
+        return np.column_stack([self.kv1, self.kv2])
+
+    @property
+    def volume_arm_tau(self) -> np.ndarray:
+        """(T, 2) float64, the volume arms' relaxation times (bv1/kv1, bv2/kv2) [s]."""
+        return np.column_stack([self.bv1 / self.kv1, self.bv2 / self.kv2])
+
+    @property
+    def volume_instantaneous(self) -> np.ndarray:
+        """(T,) float64, the volume term's instantaneous stiffness kv + kv1 + kv2 [Pa] (kv
+        itself when it is elastic)."""
+        return self.kv + self.kv1 + self.kv2 if self.has_volume_arms else self.kv
+
     def scaled(self, factor: np.ndarray) -> "ConnectorParams":
         """Every connector's stiffnesses and dashpots (``K0, a, b, k_i, b_i``) times its
-        (E,) ``factor``; ``K(eps)/K0``, relaxation times and ``kv`` unchanged."""
-        return ConnectorParams(**{name: getattr(self, name) * factor for name in PARAM_NAMES},
-                               kv=self.kv)
+        (E,) ``factor``; ``K(eps)/K0``, relaxation times and the volume term unchanged."""
+        return dataclasses.replace(self, **{name: getattr(self, name) * factor
+                                            for name in PARAM_NAMES})
 
     def connectors(self, index: np.ndarray) -> "ConnectorParams":
-        """The parameters of connectors ``index`` (reordered/selected); ``kv`` kept as is."""
-        return ConnectorParams(**{name: getattr(self, name)[index] for name in PARAM_NAMES},
-                               kv=self.kv)
+        """The parameters of connectors ``index`` (reordered/selected); the volume term's
+        (per tet) kept as is."""
+        return dataclasses.replace(self, **{name: getattr(self, name)[index]
+                                            for name in PARAM_NAMES})
 
     @property
     def tau1(self) -> np.ndarray:
@@ -234,15 +281,24 @@ class ConnectorParams:
         """:func:`arm_recursion` of these parameters."""
         return arm_recursion(self, dt, exact=exact)
 
+    def volume_arm_recursion(self, dt: float, *, exact: bool = False
+                             ) -> tuple[np.ndarray, np.ndarray]:
+        """(r, c), each (T, 2), of the volume arms' step ``P^t = r P^{t-1} + c (j^t -
+        j^{t-1})`` in the volume strain ``j = V/V0 - 1`` (``c`` [Pa]): the connectors'
+        recursion (:func:`arm_recursion`) with ``kv_i``, ``bv_i``."""
+        r, c = volume_arm_recursions(self, np.array([check_step(dt)]), exact=exact)
+        return r[0], c[0]
+
 
 def same_values(p: ConnectorParams, q: ConnectorParams) -> bool:
     """True if every array of ``p`` and ``q`` (and kv, or its absence) is equal element by
     element."""
     if p is q:
         return True
-    if (p.kv is None) != (q.kv is None):
+    if (p.kv is None) != (q.kv is None) or p.has_volume_arms != q.has_volume_arms:
         return False
-    names = PARAM_NAMES + (() if p.kv is None else ("kv",))
+    names = (PARAM_NAMES + (() if p.kv is None else ("kv",))
+             + (VOLUME_ARM_NAMES if p.has_volume_arms else ()))
     return all(np.array_equal(getattr(p, n), getattr(q, n)) for n in names)
 
 
@@ -266,8 +322,9 @@ def validate_params(params: ConnectorParams, strain_range: StrainBounds = (-0.5,
     """Raise :class:`ParameterError` naming the first non-physical connector or tet; return
     ``params``.
 
-    Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, kv <= 0 (naming
-    the tet, with its particles if ``tets`` (T, 4) is given), and a secant
+    Refused: non-finite values, K0 <= 0, k_i <= 0, b_i <= 0, kv <= 0 and, with the
+    volume arms, kv_i <= 0 or bv_i <= 0 (naming the tet, with its particles if
+    ``tets`` (T, 4) is given), and a secant
     stiffness K(eps) <= 0 anywhere in ``strain_range`` (checked exactly at
     the quadratic's ends and vertex). ``strain_range`` is one (lo, hi) pair
     or per-connector (lo (E,), hi (E,)) arrays [1], checked by
@@ -291,6 +348,9 @@ def validate_params(params: ConnectorParams, strain_range: StrainBounds = (-0.5,
                                  "must be > 0")
     if params.kv is not None:
         check_kv(params.kv, tets)
+    if params.has_volume_arms:
+        for name in VOLUME_ARM_NAMES:
+            check_kv(getattr(params, name), tets, name)
     kmin, _ = params.extreme_stiffness((lo, hi))
     bad = np.nonzero(kmin <= 0.0)[0]
     if len(bad):
@@ -317,10 +377,15 @@ def arm_recursion(params: ConnectorParams, dt: float, *, exact: bool = False
     stays right for the coarse steps (dt up to ~tau) of the quasi-static
     relaxation path, where backward Euler would be badly off.
     """
+    r, c = arm_recursions(params, np.array([check_step(dt)], dtype=np.float64), exact=exact)
+    return r[0], c[0]
+
+
+def check_step(dt: float) -> float:
+    """``dt`` [s] if it is > 0, else :class:`ParameterError` (an arm recursion's step)."""
     if not dt > 0.0:
         raise ParameterError(f"arm recursion: time step {dt} s must be > 0")
-    r, c = arm_recursions(params, np.array([dt], dtype=np.float64), exact=exact)
-    return r[0], c[0]
+    return dt
 
 
 def arm_recursions(params: ConnectorParams, dts: np.ndarray, *, exact: bool = False
@@ -331,12 +396,27 @@ def arm_recursions(params: ConnectorParams, dts: np.ndarray, *, exact: bool = Fa
     cost 0.08 ms each as separate calls on 1,400 connectors); element by element
     the same operations, so the same numbers bit for bit.
     """
+    return maxwell_recursions(params.arm_stiffness, params.arm_tau, dts, exact=exact)
+
+
+def volume_arm_recursions(params: ConnectorParams, dts: np.ndarray, *, exact: bool = False
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`arm_recursions` of the volume term's arms: (r, c), each (S, T, 2) (``c``
+    [Pa] per unit volume strain)."""
+    return maxwell_recursions(params.volume_arm_stiffness, params.volume_arm_tau, dts,
+                              exact=exact)
+
+
+def maxwell_recursions(k: np.ndarray, tau: np.ndarray, dts: np.ndarray, *,
+                       exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(r, c), each (S, M, 2), of M pairs of Maxwell arms of stiffnesses ``k`` (M, 2) and
+    relaxation times ``tau`` (M, 2) [s] for S time steps ``dts`` (S,) [s]: the one
+    recursion of every arm (connectors and volume term; :func:`arm_recursion` says which
+    form ``exact`` picks)."""
     dts = np.asarray(dts, dtype=np.float64).reshape(-1)
     if not np.all(dts > 0.0):
         raise ParameterError(f"arm recursion: time steps {dts[~(dts > 0.0)].tolist()} s must "
                              "be > 0")
-    k = params.arm_stiffness
-    tau = params.arm_tau
     dt = dts[:, None, None]
     if exact:
         r = np.exp(-dt / tau)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from particle.model import Model, Prescribed, State
-from particle.volume import volume_forces_numpy
+from particle.volume import volume_arm_pressures_numpy, volume_forces_numpy, volume_strains
 
 
 def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
@@ -57,7 +57,8 @@ def forces_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray |
     """(N, 3) net force [N] on every particle at ``state``, for a step of ``dt`` [s].
 
     Connectors (with the arms advanced by the paper's recursion for ``dt``: this updates
-    ``state.arm_force`` and ``state.dx_prev``), the volume term, gravity ``m g`` and the
+    ``state.arm_force`` and ``state.dx_prev``), the volume term (its arms likewise:
+    ``state.volume_arm``, ``state.volume_prev``), gravity ``m g`` and the
     mass-proportional damping ``-m damping/dt (x - x_prev)``.
     """
     p = model.params
@@ -77,7 +78,15 @@ def forces_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray |
     np.add.at(forces, i, pull)
     np.add.at(forces, j, -pull)
     if p.kv is not None:
-        forces += volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv)
+        pressure = None
+        if p.has_volume_arms and arms:
+            strain = volume_strains(x, model.tets, model.rest_volumes)
+            r, c = p.volume_arm_recursion(dt)
+            state.volume_arm[:] = volume_arm_pressures_numpy(strain, r, c, state.volume_arm,
+                                                             state.volume_prev)
+            state.volume_prev[:] = strain
+            pressure = state.volume_arm.sum(axis=1)
+        forces += volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv, pressure)
     m = model.masses[:, None]
     if gravity is not None:
         forces += m * np.asarray(gravity)

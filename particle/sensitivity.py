@@ -39,8 +39,15 @@ of the curves returned, to round-off (tests compare with finite differences).
 
 The volume term's ``kv`` (:mod:`particle.volume`) enters the same way: its
 tangent is in ``K``, and ``dF/dkv_t = omega . df/dkv_t`` with ``df/dkv_t =
--(V/V0 - 1) dV/dx`` at fixed positions (it does not relax, so it carries no
-history). Another term plugs in likewise: its tangent in the assembly, its
+-(V/V0 - 1) dV/dx`` at fixed positions. A tet is a connector whose "tension" is its
+pressure ``P_t`` and whose "elongation" its volume change: the force pattern of a unit
+pressure is ``h_t = -dV/dx``, so ``pi_t = omega . h_t`` is the adjoint of the pressure
+(``dF/dkv_t = pi_t j_t``, ``j = V/V0 - 1``). Its Maxwell arms (a viscoelastic volume
+term) carry history exactly as the connectors' arms do, in the volume strain: ``mu_i =
+pbar_i + pi_t`` times ``dP_i/dkv_i, dP_i/dbv_i``, then ``pbar_i <- r_i mu_i``, ``jbar <-
+-sum_i c_i mu_i``, and the history enters the next (earlier) step's right-hand side as
+the forces of the pressures ``gamma/V0``, ``gamma = jbar + sum_i c_i pbar_i``
+(:class:`_VolumeAdjoint`). Another term plugs in likewise: its tangent in the assembly, its
 force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
 
 The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`
@@ -65,7 +72,8 @@ from particle.evaluators import (IndentationEvaluator, RelaxationEvaluator, forc
                                  normal_force)
 from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams, same_values
-from particle.statics import ArmStep, Equilibrium, EquilibriumSolver, ldl_factor, tangent_data
+from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, VolumeArmStep,
+                              ldl_factor, tangent_data)
 from particle.volume import signed_volumes, volume_gradients_numpy
 
 log = logging.getLogger(__name__)
@@ -83,10 +91,14 @@ class Sensitivities:
             ``K0, a, b, k1, b1, k2, b2`` of every connector (PARAM_NAMES order).
         kv: (P', S, T) derivatives [N/Pa] with respect to each tet's ``kv``, or None when
             the volume term is off.
+        volume_arms: (P', S, 4, T) derivatives [N/Pa, N/(Pa s)] with respect to each tet's
+            volume arm ``kv1, bv1, kv2, bv2`` (:data:`~particle.params.VOLUME_ARM_NAMES`), or
+            None when the volume term has no arms.
     """
     forces: np.ndarray
     connectors: np.ndarray
     kv: np.ndarray | None
+    volume_arms: np.ndarray | None = None
 
 
 class _RecordingSolver(EquilibriumSolver):
@@ -117,6 +129,44 @@ def volume_partials_numpy(model: Model, x: np.ndarray, pat, omega: np.ndarray) -
     moving = pat.node_dof >= 0
     virtual[moving] = omega[pat.node_dof[moving][:, None] + np.arange(3)]
     return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
+
+
+class _VolumeAdjoint:
+    """The volume arms' part of one point's adjoint pass (module docstring): their history
+    adjoints, output-major like the connectors' (``pbar`` (S, 2, T) of the arm pressures,
+    ``jbar`` (S, T) of the volume strains), and the derivatives ``jac`` (S, 4, T) with
+    respect to each tet's ``kv1, bv1, kv2, bv2``."""
+
+    def __init__(self, model: Model, n_out: int):
+        p = model.params
+        self.model = model
+        self.stiffness, self.viscosity = p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2])
+        t = model.n_tets
+        self.jac = np.zeros((n_out, 4, t))
+        self.pbar, self.jbar = np.zeros((n_out, 2, t)), np.zeros((n_out, t))
+        self.dP_dk, self.dP_db = np.empty((t, 2)), np.empty((t, 2))
+
+    def add_history(self, x: np.ndarray, tet_dofs: np.ndarray, cols: np.ndarray,
+                    step: VolumeArmStep, out: np.ndarray) -> None:
+        """``out`` (S', n) += the forces of the pressures ``gamma / V0`` carried back from
+        later steps (``gamma = jbar + sum_i c_i pbar_i``, the adjoint of each tet's volume
+        strain), as :func:`~particle.sensitivity_kernels.pattern_product` adds the
+        connectors' ``G beta``."""
+        m = self.model
+        gamma = np.empty((len(cols), m.n_tets))
+        kern.elongation_adjoint(cols, self.jbar, self.pbar, step.c, True, gamma)
+        kern.add_volume_pattern_product(x, m.tets, tet_dofs, m.rest_volumes, gamma, out)
+
+    def add_partials(self, cols: np.ndarray, step: VolumeArmStep, pressure: np.ndarray,
+                     strain: np.ndarray) -> None:
+        """This step's derivatives with respect to the volume arms, and their history
+        adjoints stepped back; ``pressure`` (S', T) the adjoints of the tets' pressures,
+        ``strain`` (T,) the volume strains at the step."""
+        kern.arm_derivatives(step.r, step.c, self.stiffness, self.viscosity,
+                             step.pressure_prev, strain, step.strain_prev, self.dP_dk,
+                             self.dP_db)
+        kern.add_volume_arm_partials(cols, pressure, self.jac, step.r, step.c, self.dP_dk,
+                                     self.dP_db, self.pbar, self.jbar)
 
 
 class _Recorded:
@@ -215,8 +265,10 @@ class _Adjoint(_Recorded):
         model = self.model.with_params(params)
         parts = [point_jacobian_numpy(self, model, int(k), directions) if self.numpy_twin
                  else self._point_jacobian(model, int(k), directions) for k in idx]
-        return Sensitivities(forces, np.stack([c for c, _ in parts]),
-                             None if params.kv is None else np.stack([v for _, v in parts]))
+        return Sensitivities(forces, np.stack([c for c, _, _ in parts]),
+                             None if params.kv is None else np.stack([v for _, v, _ in parts]),
+                             None if not params.has_volume_arms
+                             else np.stack([a for _, _, a in parts]))
 
     def _steps(self, k: int) -> tuple[list[tuple[ArmStep | None, Equilibrium]], list[int]]:
         """The (sub)steps whose equilibria make point k's curve, and the step of each sample."""
@@ -239,7 +291,8 @@ class _Adjoint(_Recorded):
                  arms: ArmStep | None) -> np.ndarray:
         """CSC data (nnz,) of the exact tangent ``K`` at the equilibrium (no constraints yet)."""
         it = solver._evaluate(eq.x, model.params, not model.params.is_linear, arms, None)
-        return tangent_data(model, pat, eq.x, it.tension, model.params, True, arms)
+        return tangent_data(model, pat, eq.x, it.tension, model.params, True, arms,
+                            it.volume_arm)
 
     @staticmethod
     def _constrained_factor(solver: EquilibriumSolver, pat, data: np.ndarray):
@@ -249,9 +302,10 @@ class _Adjoint(_Recorded):
         return ldl_factor(pat, data)
 
     def _point_jacobian(self, model: Model, k: int, directions: np.ndarray | None = None
-                        ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(D S, 7, E) connector derivatives and (D S, T) kv derivatives (None without kv) of
-        the outputs along ``directions`` (D, 3) (:meth:`jacobian`; None: the normal, D = 1).
+                        ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(D S, 7, E) connector derivatives, (D S, T) kv derivatives (None without kv) and
+        (D S, 4, T) volume arm derivatives (None without them) of the outputs along
+        ``directions`` (D, 3) (:meth:`jacobian`; None: the normal, D = 1).
 
         The adjoints are kept output-major (:mod:`particle.sensitivity_kernels`), and a
         step solves only for the outputs it carries: those whose sample ends there, and
@@ -273,6 +327,7 @@ class _Adjoint(_Recorded):
         arm_k, arm_b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
         jac = np.zeros((n_out, N_PARAMS, e))
         jac_kv = None if p.kv is None else np.zeros((n_out, model.n_tets))
+        volume = None if not p.has_volume_arms else _VolumeAdjoint(model, n_out)
         abar = np.zeros((n_out, 2, e))  # adjoint of the arm forces passed to the next step
         dbar = np.zeros((n_out, e))  # adjoint of the elongation passed to the next step
         carried = np.zeros(n_out, dtype=bool)  # outputs whose abar, dbar may be nonzero
@@ -301,6 +356,9 @@ class _Adjoint(_Recorded):
                                     arms is not None, beta)
             rhs = np.empty((len(cols), pat.n_dofs))
             kern.pattern_product(end_dofs, unit, beta, rhs)
+            step = None if arms is None else arms.volume
+            if volume is not None and step is not None:
+                volume.add_history(eq.x, tet_dofs, cols, step, rhs)
             rhs = k_push[direction_of[cols]] * w[:, None] - rhs
             rhs[:, pdofs] = 0.0
             lam = self._constrained_factor(solver, pat, data).solve(rhs.T).T  # (S', n) C-order
@@ -317,9 +375,13 @@ class _Adjoint(_Recorded):
                 kern.add_partials(cols, tau, dx, model.rest_lengths, jac, False, no_arms,
                                   no_arms, dA_dk, dA_db, abar, dbar)
             if jac_kv is not None:
+                pressure = np.empty((len(cols), model.n_tets))  # adjoint of each tet's pressure
+                strain = np.empty(model.n_tets)
                 kern.add_volume_partials(eq.x, model.tets, tet_dofs, model.rest_volumes, cols,
-                                         lam, jac_kv)
-        return jac, jac_kv
+                                         lam, jac_kv, pressure, strain)
+                if volume is not None and step is not None:
+                    volume.add_partials(cols, step, pressure, eq.volume_strain)
+        return jac, jac_kv, None if volume is None else volume.jac
 
     @staticmethod
     def pattern_for(solver: EquilibriumSolver):
@@ -327,7 +389,7 @@ class _Adjoint(_Recorded):
 
 def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
                          directions: np.ndarray | None = None
-                         ) -> tuple[np.ndarray, np.ndarray | None]:
+                         ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """:meth:`_Adjoint._point_jacobian` of evaluator ``ev`` in plain numpy/scipy (every output
     at every step): its twin."""
     solver = ev._solvers[k]
@@ -338,13 +400,17 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
     n_out = len(push) * n_samples
     push = np.repeat(push, n_samples, axis=0).T  # (n_dofs, D S): each output's direction
     jac = np.zeros((n_out, N_PARAMS, e))
-    kv = model.params.kv
-    jac_kv = None if kv is None else np.zeros((n_out, model.n_tets))
+    p = model.params
+    jac_kv = None if p.kv is None else np.zeros((n_out, model.n_tets))
+    jac_arms = np.zeros((n_out, 4, model.n_tets)) if p.has_volume_arms else None
     abar = np.zeros((e, 2, n_out))  # adjoint of the arm forces passed to the next step
     dbar = np.zeros((e, n_out))  # adjoint of the elongation passed to the next step
+    pbar = np.zeros((model.n_tets, 2, n_out))  # adjoint of the volume arms' pressures
+    jbar = np.zeros((model.n_tets, n_out))  # adjoint of the volume strains
     end_of = {s: j for j, s in enumerate(ends)}
     for s in range(len(steps) - 1, -1, -1):
         arms, eq = steps[s]
+        volume = None if arms is None else arms.volume
         w = np.zeros(n_out)
         if s in end_of:
             w[end_of[s]::n_samples] = 1.0
@@ -358,18 +424,59 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
         if arms is not None:
             beta += np.einsum("ei,eis->es", arms.c, abar)
         rhs = (full @ push) * w[None, :] - G @ beta
+        if p.kv is not None:
+            H = volume_pattern_matrix(model, eq.x, pat)  # (n_dofs, T): force of a unit pressure
+        if volume is not None:
+            gamma = jbar + np.einsum("ti,tis->ts", volume.c, pbar)
+            rhs -= H @ (gamma / model.rest_volumes[:, None])
         rhs[pdofs] = 0.0
         lam = ev._constrained_factor(solver, pat, data).solve(rhs)
         lam[pdofs] = -push[pdofs] * w[None, :]
         tau = G.T @ lam  # (E, S) adjoint of each connector's tension
         jac += partials_numpy(model, geo, arms, tau, abar)
-        if kv is not None:
+        if p.kv is not None:
             jac_kv += volume_partials_numpy(model, eq.x, pat, lam)
         if arms is not None:
             mu = abar + tau[:, None, :]
             abar = arms.r[:, :, None] * mu
             dbar = -np.einsum("ei,eis->es", arms.c, mu)
-    return jac, jac_kv
+        if volume is not None:
+            mu = pbar + (H.T @ lam)[:, None, :]  # (T, 2, S)
+            jac_arms += maxwell_partials_numpy(
+                volume.r, volume.c, p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2]),
+                volume.pressure_prev, eq.volume_strain - volume.strain_prev, mu)
+            pbar = volume.r[:, :, None] * mu
+            jbar = -np.einsum("ti,tis->ts", volume.c, mu)
+    return jac, jac_kv, jac_arms
+
+
+def volume_pattern_matrix(model: Model, x: np.ndarray, pat) -> sp.csr_matrix:
+    """(n_dofs, T) forces on the matrix dofs of a unit pressure in each tet: ``-dV/dx``."""
+    grad = volume_gradients_numpy(x, model.tets)  # (T, 4, 3)
+    dof = pat.node_dof[model.tets]  # (T, 4)
+    rows = dof[:, :, None] + np.arange(3)
+    cols = np.broadcast_to(np.arange(model.n_tets)[:, None, None], rows.shape)
+    keep = np.broadcast_to((dof >= 0)[:, :, None], rows.shape)
+    return sp.csr_matrix((-grad[keep], (rows[keep], cols[keep])),
+                         shape=(pat.n_dofs, model.n_tets))
+
+
+def maxwell_partials_numpy(r: np.ndarray, c: np.ndarray, k: np.ndarray, b: np.ndarray,
+                           force_prev: np.ndarray, step: np.ndarray, mu: np.ndarray
+                           ) -> np.ndarray:
+    """(S, 4, M): ``mu_i dA_i/dk_i, mu_i dA_i/db_i`` (i = 1, 2) of M elements' arms after one
+    exact step ``A_i = r_i A_i^prev + c_i step`` (``r``, ``c``, ``k``, ``b``, ``force_prev``
+    (M, 2); ``step`` (M,) the change of the elongation or volume strain; ``mu`` (M, 2, S)
+    the arm forces' adjoints): the twin of :func:`particle.sensitivity_kernels.arm_derivatives`
+    with :func:`~particle.sensitivity_kernels.arm_adjoint_step`."""
+    log_r = np.log(r)
+    dA_dk = (log_r * r / k) * force_prev + r * step[:, None]
+    dA_db = (-log_r * r / b) * force_prev + ((c - r * k) / b) * step[:, None]
+    out = np.empty((mu.shape[2], 4, len(r)))
+    for i in range(2):
+        out[:, 2 * i] = (mu[:, i, :] * dA_dk[:, i, None]).T
+        out[:, 2 * i + 1] = (mu[:, i, :] * dA_db[:, i, None]).T
+    return out
 
 
 def partials_numpy(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np.ndarray,
@@ -388,15 +495,9 @@ def partials_numpy(model: Model, geo: "_Geometry", arms: ArmStep | None, tau: np
     out[:, 2] = (tau * (eps * eps * dx)[:, None]).T
     if arms is not None:
         mu = abar + tau[:, None, :]  # (E, 2, S)
-        k, b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
-        r, c = arms.r, arms.c
-        log_r = np.log(r)
-        step = geo.dx[:, None] - arms.dx_prev[:, None]
-        dA_dk = (log_r * r / k) * arms.force_prev + r * step
-        dA_db = (-log_r * r / b) * arms.force_prev + ((c - r * k) / b) * step
-        for i, (ki, bi) in enumerate(((3, 4), (5, 6))):
-            out[:, ki] = (mu[:, i, :] * dA_dk[:, i, None]).T
-            out[:, bi] = (mu[:, i, :] * dA_db[:, i, None]).T
+        out[:, 3:] = maxwell_partials_numpy(arms.r, arms.c, p.arm_stiffness,
+                                            np.column_stack([p.b1, p.b2]), arms.force_prev,
+                                            geo.dx - arms.dx_prev, mu)
     return out
 
 

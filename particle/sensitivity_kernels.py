@@ -11,7 +11,8 @@ One adjoint step (the module docstring there) needs, besides the tangent's LU:
 * ``K_aP n`` (:func:`csc_columns_product`);
 * the explicit parameter derivatives contracted with the adjoints, and the
   history adjoints stepped back (:func:`arm_derivatives`, :func:`add_partials`),
-  and the volume term's (:func:`add_volume_partials`).
+  and the volume term's (:func:`add_volume_partials`; its arms':
+  :func:`add_volume_pattern_product`, :func:`add_volume_arm_partials`).
 
 The adjoints are stored sample-major: a row per output sample (``lam`` (S', n),
 ``tau`` (S', E), ``abar`` (S, 2, E), ``dbar`` (S, E)), so that the kernels run along
@@ -169,26 +170,70 @@ def add_partials(cols, tau, dx, rest_lengths, jac, with_arms, arm_r, arm_c, dA_d
             out[1, e] += t * (eps * d)
             out[2, e] += t * (eps * eps * d)
             if with_arms:
-                mu1 = a_row[0, e] + t
-                mu2 = a_row[1, e] + t
-                out[3, e] += mu1 * dA_dk[e, 0]
-                out[4, e] += mu1 * dA_db[e, 0]
-                out[5, e] += mu2 * dA_dk[e, 1]
-                out[6, e] += mu2 * dA_db[e, 1]
-                a_row[0, e] = arm_r[e, 0] * mu1
-                a_row[1, e] = arm_r[e, 1] * mu2
-                d_row[e] = -(arm_c[e, 0] * mu1 + arm_c[e, 1] * mu2)
+                arm_adjoint_step(e, t, a_row, d_row, out, 3, arm_r, arm_c, dA_dk, dA_db)
 
 
 @njit(**JIT)
-def add_volume_partials(x, tets, tet_dofs, rest_volumes, cols, lam, jac_kv):
+def arm_adjoint_step(e, adjoint, a_row, d_row, out, first, arm_r, arm_c, dA_dk, dA_db):
+    """One element's Maxwell arms in the adjoint pass (a connector's, or a tet's volume
+    arms): ``mu_i = a_row[i, e] + adjoint`` (the adjoint of the arm force, ``adjoint`` that
+    of the element's tension or pressure), ``out[first .. first + 3, e] += mu_1 dA_1/dk_1,
+    mu_1 dA_1/db_1, mu_2 dA_2/dk_2, mu_2 dA_2/db_2``, then the history adjoints stepped
+    back: ``a_row[i, e] = r_i mu_i``, ``d_row[e] = -sum_i c_i mu_i``."""
+    mu1 = a_row[0, e] + adjoint
+    mu2 = a_row[1, e] + adjoint
+    out[first, e] += mu1 * dA_dk[e, 0]
+    out[first + 1, e] += mu1 * dA_db[e, 0]
+    out[first + 2, e] += mu2 * dA_dk[e, 1]
+    out[first + 3, e] += mu2 * dA_db[e, 1]
+    a_row[0, e] = arm_r[e, 0] * mu1
+    a_row[1, e] = arm_r[e, 1] * mu2
+    d_row[e] = -(arm_c[e, 0] * mu1 + arm_c[e, 1] * mu2)
+
+
+@njit(**JIT)
+def add_volume_arm_partials(cols, pressure, jac, arm_r, arm_c, dP_dk, dP_db, pbar, jbar):
+    """``jac`` (S, 4, T) += this step's derivatives with respect to each tet's volume arms
+    ``kv1, bv1, kv2, bv2`` of the samples ``cols`` (``pressure`` (S', T) the adjoints of the
+    tets' pressures, ``dP_dk``, ``dP_db`` (T, 2) from :func:`arm_derivatives`), and the
+    history adjoints ``pbar`` (S, 2, T), ``jbar`` (S, T) stepped back
+    (:func:`arm_adjoint_step`)."""
+    for k in range(cols.shape[0]):
+        s = cols[k]
+        for t in range(pressure.shape[1]):
+            arm_adjoint_step(t, pressure[k, t], pbar[s], jbar[s], jac[s], 0, arm_r, arm_c,
+                             dP_dk, dP_db)
+
+
+@njit(**JIT)
+def add_volume_pattern_product(x, tets, tet_dofs, rest_volumes, gamma, out):
+    """``out`` (S', n) += the forces on the matrix dofs of the pressures ``gamma / V0``
+    (``gamma`` (S', T), the adjoints of the tets' volume strains): ``-gamma_t/V0_t dV/dp_a``
+    on the dofs of each vertex a (``tet_dofs`` (T, 4), -1 fixed: nothing)."""
+    g = np.empty((4, 3))
+    for t in range(tets.shape[0]):
+        _tet_gradient(x, tets, t, g)
+        for k in range(gamma.shape[0]):
+            w = gamma[k, t] / rest_volumes[t]
+            row = out[k]
+            for a in range(4):
+                d = tet_dofs[t, a]
+                if d >= 0:
+                    row[d] -= w * g[a, 0]
+                    row[d + 1] -= w * g[a, 1]
+                    row[d + 2] -= w * g[a, 2]
+
+
+@njit(**JIT)
+def add_volume_partials(x, tets, tet_dofs, rest_volumes, cols, lam, jac_kv, pressure, strain):
     """``jac_kv`` (S, T) += ``omega . df/dkv_t`` of the samples ``cols``, with ``df/dkv_t =
     -(V/V0 - 1) dV/dx`` at positions ``x`` (N, 3) [m] and ``omega`` the dof vectors ``lam``
     (S', n) (``tet_dofs`` (T, 4) first dof of each vertex, -1 fixed: omega = 0 there);
-    [N/Pa per unit adjoint]."""
+    [N/Pa per unit adjoint]. Writes ``pressure`` (S', T), the adjoint of each tet's
+    pressure ``omega . (-dV/dx)``, and ``strain`` (T,), the volume strains ``V/V0 - 1``
+    (the volume arms' partials need both)."""
     n_tets = tets.shape[0]
     grad = np.empty((n_tets, 4, 3))
-    strain = np.empty(n_tets)
     for t in range(n_tets):
         _tet_gradient(x, tets, t, grad[t])
         i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
@@ -211,4 +256,5 @@ def add_volume_partials(x, tets, tet_dofs, rest_volumes, cols, lam, jac_kv):
                     acc += g[a, 0] * row[d]
                     acc += g[a, 1] * row[d + 1]
                     acc += g[a, 2] * row[d + 2]
+            pressure[k, t] = -acc
             out[t] -= strain[t] * acc

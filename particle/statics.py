@@ -9,8 +9,11 @@ precomputed index map (:class:`TangentPattern`, no Python loop over
 connectors); with the volume term (``params.kv``) each tet adds its 12x12
 block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2``
 (:func:`particle.volume.add_volume_tangent`) through the same map (a tet's vertex
-pairs are connectors); prescribed particles keep their rows and columns with an
-identity block, so one pattern serves every test point. :mod:`particle.sparse_ldl`
+pairs are connectors), and with its Maxwell arms in a quasi-static arm step their
+coefficients and pressures (:class:`VolumeArmStep`; without an arm step, as in the
+long-term indentation curves and the static sag, the arms are relaxed: ``kv`` alone);
+prescribed particles keep their rows and columns with an identity block, so one
+pattern serves every test point. :mod:`particle.sparse_ldl`
 factorises it (``L D L^T`` without pivoting, its ordering and symbolic analysis
 done once per pattern: :attr:`TangentPattern.ldl`); :func:`superlu` is the
 reference it replaced.
@@ -37,7 +40,8 @@ from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle import kernels, sparse_ldl
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
-from particle.volume import add_volume_forces, add_volume_tangent, signed_volumes, tet_name
+from particle.volume import (add_volume_forces, add_volume_tangent, signed_volumes, tet_name,
+                             volume_strains)
 from particle.volume import tet_slots as volume_tet_slots
 
 log = logging.getLogger(__name__)
@@ -117,6 +121,27 @@ class TangentPattern:
 
 
 @dataclass
+class VolumeArmStep:
+    """One quasi-static step of the volume term's Maxwell arms: ``P = r P_prev + c (j -
+    j_prev)`` in each tet's volume strain ``j = V/V0 - 1``.
+
+    Attributes:
+        r, c: (T, 2) float64, recursion coefficients [-], [Pa].
+        pressure_prev: (T, 2) float64, arm pressures at the previous sample [Pa].
+        strain_prev: (T,) float64, volume strains at the previous sample [1].
+    """
+    r: np.ndarray
+    c: np.ndarray
+    pressure_prev: np.ndarray
+    strain_prev: np.ndarray
+
+    @property
+    def stiffness(self) -> np.ndarray:
+        """(T,) float64, the arms' contribution c_1 + c_2 to the volume stiffness [Pa]."""
+        return self.c.sum(axis=1)
+
+
+@dataclass
 class ArmStep:
     """One quasi-static step of the Maxwell arms: ``F = r F_prev + c (dx - dx_prev)``.
 
@@ -124,11 +149,13 @@ class ArmStep:
         r, c: (E, 2) float64, recursion coefficients [-], [N/m].
         force_prev: (E, 2) float64, arm forces at the previous sample [N].
         dx_prev: (E,) float64, connector elongations at the previous sample [m].
+        volume: the volume term's arms' step, or None (no volume arms).
     """
     r: np.ndarray
     c: np.ndarray
     force_prev: np.ndarray
     dx_prev: np.ndarray
+    volume: VolumeArmStep | None = None
 
     @property
     def stiffness(self) -> np.ndarray:
@@ -147,18 +174,26 @@ class Equilibrium:
         arm_force: (E, 2) float64, arm forces (zeros without arms) [N].
         dx: (E,) float64, connector elongations [m].
         iterations: Newton iterations used.
+        volume_arm: (T, 2) float64, the volume arms' pressures [Pa] (zeros without an arm
+            step), or None: the volume term has no arms.
+        volume_strain: (T,) float64, the tets' volume strains [1] with ``volume_arm``.
     """
     x: np.ndarray
     forces: np.ndarray
     arm_force: np.ndarray
     dx: np.ndarray
     iterations: int
+    volume_arm: np.ndarray | None = None
+    volume_strain: np.ndarray | None = None
 
     @classmethod
     def at_rest(cls, model: Model) -> "Equilibrium":
-        """The undeformed, unloaded state (arms unloaded)."""
+        """The undeformed, unloaded state (arms unloaded, the volume arms' too)."""
+        arms = model.params.has_volume_arms
         return cls(model.rest_positions.copy(), np.zeros((model.n_particles, 3)),
-                   np.zeros((model.n_connectors, 2)), np.zeros(model.n_connectors), 0)
+                   np.zeros((model.n_connectors, 2)), np.zeros(model.n_connectors), 0,
+                   np.zeros((model.n_tets, 2)) if arms else None,
+                   np.zeros(model.n_tets) if arms else None)
 
     def reaction(self, nodes: int | np.ndarray) -> np.ndarray:
         """Force [N] the constraint applies to prescribed particle(s) ``nodes``: (3,) or (k, 3)."""
@@ -216,13 +251,14 @@ class EquilibriumSolver:
 
     def _evaluate(self, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                   arms: ArmStep | None, gravity: np.ndarray | None) -> _Iterate:
-        forces, tension, arm_out, dx = net_forces(self.model, x, p, nonlinear, arms, gravity,
-                                                  self._no_volume_limit)
-        return _Iterate(x, forces, tension, arm_out, dx, forces.ravel()[self._flat])
+        forces, tension, arm_out, dx, volume = net_forces(self.model, x, p, nonlinear, arms,
+                                                          gravity, self._no_volume_limit)
+        return _Iterate(x, forces, tension, arm_out, dx, forces.ravel()[self._flat], volume)
 
     def _factorize(self, it: _Iterate, p: ConnectorParams, nonlinear: bool,
                    arms: ArmStep | None) -> None:
-        data = tangent_data(self.model, self.pattern, it.x, it.tension, p, nonlinear, arms)
+        data = tangent_data(self.model, self.pattern, it.x, it.tension, p, nonlinear, arms,
+                            it.volume_arm)
         data[self._zero_slots] = 0.0
         data[self._diag_slots] = 1.0
         self.factorization = factorize(self.pattern, data, self.prescribed)
@@ -258,8 +294,11 @@ class EquilibriumSolver:
         for it in range(self.max_iter + 1):
             held = cur.forces[self.prescribed].ravel()
             scale = max(floor, math.sqrt(held @ held))  # np.linalg.norm's sum, without its overhead
-            if cur.norm <= self.rtol * scale:
-                return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, it)
+            # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
+            # and inf <= rtol x inf must not pass for convergence
+            if cur.norm <= self.rtol * scale and math.isfinite(scale):
+                return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, it,
+                                   *cur.volume_state(self.model))
             if it == self.max_iter:
                 break
             if self._stale:
@@ -317,37 +356,58 @@ def spring_terms(p: ConnectorParams, nonlinear: bool) -> tuple[np.ndarray, np.nd
 def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                arms: ArmStep | None, gravity: np.ndarray | None,
                volume_limits: tuple[np.ndarray, np.ndarray]) -> tuple:
-    """(forces (N, 3) [N], tension (E,) [N], arm forces (E, 2) [N], elongations (E,) [m]) at
-    positions ``x``: connectors (an arm step if ``arms``), the volume term with ``p.kv``
-    (no volume outside ``volume_limits`` (lo (T,), hi (T,)) [m^3]) and gravity ``m g``."""
+    """(forces (N, 3) [N], tension (E,) [N], arm forces (E, 2) [N], elongations (E,) [m],
+    volume arms) at positions ``x``: connectors (an arm step if ``arms``), the volume term
+    with ``p.kv`` (no volume outside ``volume_limits`` (lo (T,), hi (T,)) [m^3]; its arms
+    stepped by ``arms.volume``, else relaxed) and gravity ``m g``. The volume arms are
+    (pressures (T, 2) [Pa], volume strains (T,)) after the step, or None without one."""
     n, e = model.n_particles, model.n_connectors
     forces, tension, arm_out, dx = (np.empty((n, 3)), np.empty(e), np.zeros((e, 2)),
                                     np.empty(e))
     kernels.internal_forces(x, model.edges, model.rest_lengths, p.K0,
                             *kernel_terms(p, nonlinear, arms), forces, tension, arm_out, dx)
+    volume = None
     if p.kv is not None:
+        step = None if arms is None else arms.volume
+        if step is None and arms is not None and p.has_volume_arms:
+            raise ParameterError("an arm step of a model whose volume term has arms needs "
+                                 "their step too (ArmStep.volume)")
+        kernel_arms = None
+        if step is not None:
+            if not (step.r.shape == step.c.shape == step.pressure_prev.shape
+                    == (model.n_tets, 2) and step.strain_prev.shape == (model.n_tets,)):
+                raise ParameterError(f"volume arm step of shapes r {step.r.shape}, c "
+                                     f"{step.c.shape}, pressures {step.pressure_prev.shape}, "
+                                     f"strains {step.strain_prev.shape}: the model has "
+                                     f"{model.n_tets} tets (one row each)")
+            volume = (np.zeros((model.n_tets, 2)), np.empty(model.n_tets))
+            kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev) + volume
         bad, _ = add_volume_forces(x, model.tets, model.rest_volumes, p.kv, volume_limits[0],
-                                   volume_limits[1], forces)
+                                   volume_limits[1], forces, kernel_arms)
         if bad >= 0:
             # an inverted tet is no admissible iterate: an infinite residual makes the
             # line search shorten the step (and a converged state is never inverted)
             forces[:] = np.inf
     if gravity is not None:
         forces += model.masses[:, None] * gravity
-    return forces, tension, arm_out, dx
+    return forces, tension, arm_out, dx, volume
 
 
 def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.ndarray,
-                 p: ConnectorParams, nonlinear: bool, arms: ArmStep | None) -> np.ndarray:
+                 p: ConnectorParams, nonlinear: bool, arms: ArmStep | None,
+                 volume_arm: np.ndarray | None = None) -> np.ndarray:
     """CSC data (nnz,) of the tangent stiffness [N/m] at ``x`` in ``pat``'s storage
-    (constraint rows and columns not yet applied)."""
+    (constraint rows and columns not yet applied); ``volume_arm`` (T, 2) [Pa]: the volume
+    arms' pressures at ``x`` after the step ``arms.volume`` (needed with that step)."""
     data = np.empty(len(pat.indices))
     a, b = spring_terms(p, nonlinear)
     arm_stiffness = np.zeros(len(p.K0)) if arms is None else arms.stiffness
     kernels.assemble_tangent(x, model.edges, model.rest_lengths, p.K0, a, b, arm_stiffness,
                              tension, pat.slots, data)
     if p.kv is not None:
-        add_volume_tangent(x, model.tets, model.rest_volumes, p.kv, pat.tet_slots, data)
+        step = None if arms is None else arms.volume
+        add_volume_tangent(x, model.tets, model.rest_volumes, p.kv, pat.tet_slots, data,
+                           None if step is None else (step.stiffness, volume_arm.sum(axis=1)))
     return data
 
 
@@ -390,12 +450,22 @@ def superlu(pat: TangentPattern, data: np.ndarray):
 
 class _Iterate:
     """One Newton iterate: positions and everything the force kernel returned for them."""
-    __slots__ = ("x", "forces", "tension", "arm_force", "dx", "res", "norm")
+    __slots__ = ("x", "forces", "tension", "arm_force", "dx", "res", "norm", "volume_arm",
+                 "volume_strain")
 
-    def __init__(self, x, forces, tension, arm_force, dx, res):
+    def __init__(self, x, forces, tension, arm_force, dx, res, volume=None):
         self.x, self.forces, self.tension = x, forces, tension
         self.arm_force, self.dx, self.res = arm_force, dx, res
+        self.volume_arm, self.volume_strain = (None, None) if volume is None else volume
         self.norm = float(np.sqrt(res @ res))
+
+    def volume_state(self, model: Model) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(volume arm pressures (T, 2), volume strains (T,)) of an :class:`Equilibrium`: the
+        arm step's, zeros when the arms are relaxed (no arm step), None without arms."""
+        if self.volume_arm is not None or not model.params.has_volume_arms:
+            return self.volume_arm, self.volume_strain
+        return (np.zeros((model.n_tets, 2)),
+                volume_strains(self.x, model.tets, model.rest_volumes))
 
 
 def continuation(step: Callable[[T, float, float], T], start: T, s0: float, s1: float, *,

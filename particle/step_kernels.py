@@ -99,7 +99,7 @@ def advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses
 @njit(**JIT)
 def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                   masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
-                  check, dt, energy_bound, status, blocks, volume):
+                  check, dt, energy_bound, status, blocks, volume, volume_arms):
     """One explicit step in place: :func:`net_forces` at ``x``, then :func:`advance_positions`.
 
     If ``check``, the divergence check of the new positions: the kinetic
@@ -109,12 +109,13 @@ def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, 
     ``[dx_lo, dx_hi]`` (-1: none, or ``dx_lo`` None), the first tet whose volume
     at ``x`` is outside its range (-1: none or no volume term)). ``blocks`` None runs the
     serial passes, else the same passes split over threads
-    (:func:`parallel_forces`, :func:`parallel_advance`).
+    (:func:`parallel_forces`, :func:`parallel_advance`). ``volume_arms``: the volume
+    term's arms (:func:`net_forces`), None: elastic.
     """
     if blocks is None:
         outside, bad = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0,
-                                       a, b, arm_r, arm_c, masses, active, gravity, damping_rate,
-                                       forces, dx_lo, dx_hi, volume)
+                                  a, b, arm_r, arm_c, masses, active, gravity, damping_rate,
+                                  forces, dx_lo, dx_hi, volume, volume_arms)
         energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
     else:
         outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
@@ -122,7 +123,7 @@ def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, 
         bad = -1
         if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
             bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                       blocks[0][0])
+                                       blocks[0][0], volume_arms)
         energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity,
                                   damping_rate, scale, check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
@@ -296,7 +297,7 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
                presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
                check_every, energy_bound, dx_lo, dx_hi, forces, probe_node, probe_edges,
-               probe_out, blocks, volume, probe_tets):
+               probe_out, blocks, volume, volume_arms, probe_tets):
     """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
@@ -314,11 +315,12 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
     a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
-    rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out); a
-    tet whose volume leaves ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an
-    inverted tet always does) stops the run at once with code VOLUME (step = the
-    step whose start positions it was found at, id = the tet); ``probe_tets``
-    are the probe node's tets.
+    rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out),
+    ``volume_arms`` its Maxwell arms (:mod:`particle.volume`'s tuple, outputs aliasing the
+    state's arm pressures and volume strains; None: elastic); a tet whose volume leaves
+    ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an inverted tet always does) stops
+    the run at once with code VOLUME (step = the step whose start positions it was found
+    at, id = the tet); ``probe_tets`` are the probe node's tets.
 
     The checks ride on the force and position passes of the checked steps
     (no extra pass over the model), so a checked step costs about an unchecked one;
@@ -343,12 +345,12 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
             outside, inverted = explicit_step(
                 x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                 masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
-                True, dt, energy_bound, status, blocks, volume)
+                True, dt, energy_bound, status, blocks, volume, volume_arms)
         else:
             outside, inverted = explicit_step(
                 x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                 masses, inv_masses, active, gravity, damping_rate, forces, None, None, scale,
-                False, dt, energy_bound, status, blocks, volume)
+                False, dt, energy_bound, status, blocks, volume, volume_arms)
         if volume is not None and inverted >= 0:
             status[0] = VOLUME
             status[1] = step  # the tet was inverted at the positions the step started from
@@ -384,5 +386,5 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                    arm_force, dx_prev, probe_out)
         if volume is not None:
             node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
-                              probe_out)
+                              volume_arms, probe_out)
     return status

@@ -2,35 +2,61 @@
 
 Each tetrahedron t of the mesh (vertices p0..p3, positively oriented) with rest
 volume ``V0`` and present volume ``V = (p1 - p0) . ((p2 - p0) x (p3 - p0)) / 6``
-stores the energy
+has the volume strain ``j = V/V0 - 1`` and a pressure-like generalised force
+
+    P_t = kv_t j + P_1 + P_2        [Pa]
+
+which pushes its four particles with ``f_a = -P_t dV/dp_a``, ``dV/dp_1 = (p2 - p0) x
+(p3 - p0)/6`` (cyclically; ``dV/dp_0 = -(sum of the others)``). The elastic part is
+the gradient of the energy
 
     E_t = kv_t / 2 * V0 * (V/V0 - 1)^2        [J],   kv_t [Pa = N/m^2]
 
-and pushes its four particles with ``f_a = -dE_t/dp_a = -kv_t (V/V0 - 1) dV/dp_a``,
-``dV/dp_1 = (p2 - p0) x (p3 - p0)/6`` (cyclically; ``dV/dp_0 = -(sum of the others)``).
-Under a small uniform dilation by strain eps, ``V/V0 - 1 = 3 eps`` and the term
-adds exactly ``kv`` to the body's bulk modulus (``E = 9/2 kv eps^2`` per unit
-volume), which is how ``kv`` is read and initialised (:func:`network_bulk_modulus`).
+Under a small uniform dilation by strain eps, ``V/V0 - 1 = 3 eps`` and it adds exactly
+``kv`` to the body's bulk modulus (``E = 9/2 kv eps^2`` per unit volume), which is how
+``kv`` is read and initialised (:func:`network_bulk_modulus`).
 
-The term is *elastic*: the Maxwell arms (the Prony series) act on the
-connectors, i.e. the deviatoric-like part of the response, and the volumetric
-response does not relax. This matches the FE material, whose Prony series acts
-on the deviatoric stress only (the bulk modulus is long-term).
+**Elastic or viscoelastic.** Without arms (``ConnectorParams.kv1`` None, scene
+``particle.volume = true``) the term does not relax. With them (``particle.volume =
+"viscoelastic"``) ``P_1, P_2`` are Maxwell arms in the volume strain, exactly the
+connectors' arms with ``j`` for the elongation: a spring ``kv_i`` [Pa] in series with a
+dashpot ``bv_i`` [Pa s], ``dP_i/dt = kv_i dj/dt - P_i/tau_i``, advanced by the
+connectors' recursion ``P_i^t = r_i P_i^{t-1} + c_i (j^t - j^{t-1})``
+(:meth:`particle.params.ConnectorParams.volume_arm_recursion`; the explicit runs the
+paper's backward Euler ``c_i = kv_i bv_i/(kv_i dt + bv_i)``, the quasi-static path the
+exact form). The term's instantaneous stiffness is then ``kv + kv1 + kv2``, its
+long-term one ``kv``. Why the volume term relaxes although the FE's Prony series acts
+on the deviatoric stress only: on coarse linear tets the per-tet term also carries
+shear-like (bending) stiffness, which relaxes in the FE material.
 
-``kv`` lives in :class:`particle.params.ConnectorParams` (field ``kv``, (T,) or
-None = volume term off), so :meth:`Model.with_params` and ``dataclasses.replace``
-carry it with the other parameters; the tetrahedra (``Model.tets``) and rest
-volumes (``Model.rest_volumes``) live in the Model. When ``kv`` is None the
-kernels receive None and numba compiles the term out.
+The arm state (pressures (T, 2), last volume strains (T,)) lives in the
+:class:`~particle.model.State` (``volume_arm``, ``volume_prev``), as the connectors'
+``arm_force``/``dx_prev``. The compiled kernels take it as one tuple ``arms = (r (M, 2),
+c (M, 2) [Pa], pressure_prev (M, 2) [Pa], strain_prev (M,), pressure_out (M, 2),
+strain_out (M,))`` (outputs aliasing the inputs commit a step in place, scratch outputs
+leave the state unchanged, as :func:`particle.kernels.internal_forces` does), or None,
+which compiles the arms out; :func:`volume_arm_pressures` / :func:`volume_arm_step`
+advance the arms of one *volume element* k given its volume strain: a tet here, and the
+same functions serve any other element with a volume strain (e.g. a particle's one-ring
+averaged volume).
+
+``kv`` and the arms live in :class:`particle.params.ConnectorParams` (``kv``, ``kv1``,
+``bv1``, ``kv2``, ``bv2``, each (T,) or None), so :meth:`Model.with_params` and
+``dataclasses.replace`` carry them with the other parameters; the tetrahedra
+(``Model.tets``) and rest volumes (``Model.rest_volumes``) live in the Model. When ``kv``
+is None the kernels receive None and numba compiles the term out.
 
 Functions:
 
-* :func:`add_volume_forces` (numba) / :func:`volume_forces_numpy` (twin): forces;
-* :func:`volume_energy`: the energy (numpy);
+* :func:`add_volume_forces` (numba) / :func:`volume_forces_numpy` (twin, with
+  :func:`volume_arm_pressures_numpy`): forces (and the arms' step);
+* :func:`volume_energy`: the elastic energy (numpy); :func:`volume_arm_energy`: the
+  energy held by the arms' springs;
 * :func:`volume_kv_sensitivity_numpy`: d(forces)/d(kv) per tet (numpy);
 * :func:`add_volume_tangent` (numba, closed form) / :func:`add_volume_tangent_numpy` (twin,
   per tet :func:`volume_hessian_numpy`): the tangent
-  ``d^2 E/dx^2 = kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2`` (``g = dV/dx``);
+  ``(kv + c_1 + c_2)/V0 g g^T + P d^2V/dx^2`` (``g = dV/dx``; ``c_i`` the arms' step
+  coefficients, 0 without arms or for the long-term, relaxed state);
 * :func:`volume_frequency_bound`: an upper bound of the term's largest mass-scaled
   eigenvalue over the states whose connector strains (and volume ratios,
   :func:`volume_ratio_range`) stay in a range, added to the springs' one by the
@@ -88,11 +114,34 @@ def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray,
     return float(np.sum(0.5 * kv * rest_volumes * j * j))
 
 
+def volume_arm_energy(pressure: np.ndarray, stiffness: np.ndarray,
+                      rest_volumes: np.ndarray) -> float:
+    """Energy [J] held by the volume arms' springs: ``sum V0 P_i^2 / (2 kv_i)`` of the arm
+    pressures ``pressure`` (T, 2) [Pa] with stiffnesses ``stiffness`` (T, 2) [Pa]."""
+    return float(np.sum(rest_volumes[:, None] * pressure ** 2 / (2.0 * stiffness)))
+
+
+def volume_strains(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray) -> np.ndarray:
+    """(T,) volume strains ``V/V0 - 1`` [1] of ``tets`` at positions ``x`` (N, 3)."""
+    return signed_volumes(x, tets) / rest_volumes - 1.0
+
+
+def volume_arm_pressures_numpy(strain: np.ndarray, r: np.ndarray, c: np.ndarray,
+                               pressure_prev: np.ndarray, strain_prev: np.ndarray
+                               ) -> np.ndarray:
+    """(M, 2) arm pressures [Pa] after one step to the volume strains ``strain`` (M,) from
+    ``pressure_prev`` (M, 2) at ``strain_prev`` (M,): ``r P + c (j - j_prev)`` (the twin of
+    :func:`volume_arm_pressures`)."""
+    return r * pressure_prev + c * (strain - strain_prev)[:, None]
+
+
 def volume_forces_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray,
-                        kv: np.ndarray) -> np.ndarray:
-    """(N, 3) volume forces [N] (the plain-numpy twin of :func:`add_volume_forces`)."""
-    j = signed_volumes(x, tets) / rest_volumes - 1.0
-    f = -(kv * j)[:, None, None] * volume_gradients_numpy(x, tets)
+                        kv: np.ndarray, arm_pressure: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) volume forces [N] (the plain-numpy twin of :func:`add_volume_forces`);
+    ``arm_pressure`` (T,) [Pa]: the arms' summed pressures at ``x`` (None: no arms)."""
+    j = volume_strains(x, tets, rest_volumes)
+    pressure = kv * j if arm_pressure is None else kv * j + arm_pressure
+    f = -pressure[:, None, None] * volume_gradients_numpy(x, tets)
     out = np.zeros_like(x, dtype=np.float64)
     np.add.at(out, tets.ravel(), f.reshape(-1, 3))
     return out
@@ -111,8 +160,12 @@ def volume_kv_sensitivity_numpy(x: np.ndarray, tets: np.ndarray,
 
 
 def volume_hessian_numpy(x: np.ndarray, tet: np.ndarray, rest_volume: float,
-                         kv: float) -> np.ndarray:
-    """(12, 12) d^2 E/dx^2 [N/m] of one tet (vertex-major: rows 3a..3a+2 are vertex a)."""
+                         kv: float, arm_stiffness: float | None = None,
+                         arm_pressure: float | None = None) -> np.ndarray:
+    """(12, 12) -d(forces)/dx [N/m] of one tet (vertex-major: rows 3a..3a+2 are vertex a):
+    d^2 E/dx^2 of the elastic term, and with ``arm_stiffness`` (the arms' step coefficients
+    c_1 + c_2 [Pa]) and ``arm_pressure`` (their summed pressure at ``x`` [Pa]) the arms'
+    part too."""
     p = x[tet]
     g = volume_gradients_numpy(p, np.arange(4)[None])[0].ravel()
     j = signed_volumes(p, np.arange(4)[None])[0] / rest_volume - 1.0
@@ -126,11 +179,15 @@ def volume_hessian_numpy(x: np.ndarray, tet: np.ndarray, rest_volume: float,
             h[:, 3 * b + q] = (volume_gradients_numpy(moved, np.arange(4)[None])[0].ravel() - g)
     for a in range(4):
         h[3 * a:3 * a + 3, 3 * a:3 * a + 3] = 0.0  # g_a does not depend on p_a
-    return kv / rest_volume * np.outer(g, g) + kv * j * h
+    if arm_stiffness is None:
+        return kv / rest_volume * np.outer(g, g) + kv * j * h
+    return ((kv + arm_stiffness) / rest_volume * np.outer(g, g)
+            + (kv * j + arm_pressure) * h)
 
 
 def add_volume_tangent_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray,
-                             kv: np.ndarray, tet_slots: np.ndarray, data: np.ndarray) -> None:
+                             kv: np.ndarray, tet_slots: np.ndarray, data: np.ndarray,
+                             arms: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """data (nnz,) += the volume tangent [N/m] (the plain-numpy twin of :func:`add_volume_tangent`).
 
     Same arguments; each tet's block from :func:`volume_hessian_numpy` (its second
@@ -139,7 +196,8 @@ def add_volume_tangent_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.n
     """
     blocks = np.empty((len(tets), 4, 4, 3, 3))
     for t in range(len(tets)):
-        h = volume_hessian_numpy(x, tets[t], rest_volumes[t], kv[t])
+        extra = () if arms is None else (arms[0][t], arms[1][t])
+        h = volume_hessian_numpy(x, tets[t], rest_volumes[t], kv[t], *extra)
         blocks[t] = h.reshape(4, 3, 4, 3).transpose(0, 2, 1, 3)
     valid = tet_slots >= 0
     np.add.at(data, tet_slots[valid], blocks[valid])
@@ -170,11 +228,35 @@ def _tet_gradient(x, tets, t, g):
 
 
 @njit(**JIT)
-def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces):
+def volume_arm_pressures(k, strain, arms):
+    """(P_1, P_2) [Pa]: the two arm pressures of volume element ``k`` after one step to
+    the volume strain ``strain`` [1], ``P_i = r_i P_i^prev + c_i (strain - strain_prev)``
+    (``arms``: module docstring; nothing stored)."""
+    r, c, prev, strain_prev = arms[0], arms[1], arms[2], arms[3]
+    d = strain - strain_prev[k]
+    return r[k, 0] * prev[k, 0] + c[k, 0] * d, r[k, 1] * prev[k, 1] + c[k, 1] * d
+
+
+@njit(**JIT)
+def volume_arm_step(k, strain, arms):
+    """:func:`volume_arm_pressures` of element ``k``, stored into the arms' outputs (the
+    pressures and ``strain``); returns their sum [Pa]."""
+    p1, p2 = volume_arm_pressures(k, strain, arms)
+    out = arms[4]
+    out[k, 0] = p1  # may alias the previous pressures: element k's are already read
+    out[k, 1] = p2
+    arms[5][k] = strain
+    return p1 + p2
+
+
+@njit(**JIT)
+def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms):
     """forces += the volume forces of every tet [N]; returns (first bad tet, its volume [m^3]).
 
     ``tets`` (T, 4), ``rest_volumes`` (T,) [m^3], ``kv`` (T,) [Pa], ``x``/``forces``
-    (N, 3). A tet is bad when its volume V is not in ``(v_lo, v_hi]`` (T,) [m^3]
+    (N, 3). ``arms``: the volume arms (module docstring), advanced by one step and
+    stored in their outputs, or None (elastic: compiled out). A tet is bad when its
+    volume V is not in ``(v_lo, v_hi]`` (T,) [m^3]
     (``v_lo`` >= 0: an inverted tet, V <= 0, is always bad); (-1, 0.0) if none. A bad
     tet still gets its (restoring) force; the caller decides to stop. Written with
     scalars (the same formulas as :func:`_tet_gradient`): 1.4x faster than through a
@@ -196,7 +278,11 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces):
         if bad < 0 and not (v > v_lo[t] and v <= v_hi[t]):
             bad = np.int64(t)
             bad_volume = v
-        s = -kv[t] * (v / rest_volumes[t] - 1.0) * sixth
+        strain = v / rest_volumes[t] - 1.0
+        pressure = kv[t] * strain
+        if arms is not None:
+            pressure += volume_arm_step(t, strain, arms)
+        s = -pressure * sixth
         forces[i1, 0] += s * g10
         forces[i1, 1] += s * g11
         forces[i1, 2] += s * g12
@@ -225,13 +311,18 @@ def first_volume_outside(x, tets, v_lo, v_hi):
 
 
 @njit(**JIT)
-def node_volume_force(x, node, node_tets, tets, rest_volumes, kv, out):
-    """out (3,) += the volume force [N] on particle ``node`` from its tets ``node_tets``."""
+def node_volume_force(x, node, node_tets, tets, rest_volumes, kv, arms, out):
+    """out (3,) += the volume force [N] on particle ``node`` from its tets ``node_tets``;
+    ``arms`` (or None) advanced one step into scratch (nothing stored)."""
     g = np.empty((4, 3))
     for k in range(node_tets.shape[0]):
         t = node_tets[k]
         v = _tet_gradient(x, tets, t, g)
-        s = -kv[t] * (v / rest_volumes[t] - 1.0)
+        strain = v / rest_volumes[t] - 1.0
+        s = -kv[t] * strain
+        if arms is not None:
+            p1, p2 = volume_arm_pressures(t, strain, arms)
+            s -= p1 + p2
         for a in range(4):
             if tets[t, a] == node:
                 out[0] += s * g[a, 0]
@@ -288,13 +379,16 @@ def _scaled_difference(k, p, q):
 
 
 @njit(**JIT)
-def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data):
-    """data += the volume tangent d^2E/dx^2 [N/m] through ``tet_slots`` (T, 4, 4, 3, 3).
+def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data, arms):
+    """data += the volume tangent -d(forces)/dx [N/m] through ``tet_slots`` (T, 4, 4, 3, 3).
 
     ``x`` (N, 3) [m], ``tets`` (T, 4), ``rest_volumes`` (T,) [m^3], ``kv`` (T,) [Pa],
-    ``data`` (nnz,) [N/m]. ``tet_slots[t, a, b, p, q]`` is the CSC data index of entry
+    ``data`` (nnz,) [N/m], ``arms`` None (elastic, or the arms relaxed) or (the arms' step
+    coefficients ``c_1 + c_2`` (T,) [Pa], their summed pressures at ``x`` (T,) [Pa]).
+    ``tet_slots[t, a, b, p, q]`` is the CSC data index of entry
     (3 tets[t,a] + p, 3 tets[t,b] + q), -1 where a fixed particle is involved. Per tet
-    the block (a, b) is ``kv/V0 g_a g_b^T + kv (V/V0 - 1) d^2V/dp_a dp_b``, in closed
+    the block (a, b) is ``k/V0 g_a g_b^T + P d^2V/dp_a dp_b`` with ``k = kv (+ c_1 +
+    c_2)`` and ``P = kv (V/V0 - 1) (+ P_1 + P_2)``, in closed
     form: V is linear in each vertex, so ``d^2V/dp_a dp_a = 0``, and for (a, b, c, d) an
     even permutation of (0, 1, 2, 3), ``d^2V/dp_a dp_b = [p_c - p_d]_x / 6`` (``[w]_x y
     = w x y``) and ``d^2V/dp_b dp_a = [p_d - p_c]_x / 6``, its transpose (exactly: the
@@ -312,8 +406,12 @@ def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data):
         p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
         p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
         g0, g1, g2, g3, v = _tet_gradient_tuples(x, i0, i1, i2, i3)
-        k1 = kv[t] / rest_volumes[t]
-        k2 = kv[t] * (v / rest_volumes[t] - 1.0) * sixth
+        if arms is None:
+            k1 = kv[t] / rest_volumes[t]
+            k2 = kv[t] * (v / rest_volumes[t] - 1.0) * sixth
+        else:
+            k1 = (kv[t] + arms[0][t]) / rest_volumes[t]
+            k2 = (kv[t] * (v / rest_volumes[t] - 1.0) + arms[1][t]) * sixth
         # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
         w01 = _scaled_difference(k2, p2, p3)  # (0, 1, 2, 3)
         w02 = _scaled_difference(k2, p3, p1)  # (0, 2, 3, 1)
@@ -369,9 +467,11 @@ def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
 def node_volume_stiffness(model) -> np.ndarray:
     """(N,) diagonal stiffness scale of the volume term at rest [N/m]: sum over a
-    particle's tets of ``kv/V0 |dV/dp|^2`` (for the divergence bound's work estimate)."""
+    particle's tets of ``k/V0 |dV/dp|^2`` with ``k`` the instantaneous stiffness ``kv (+
+    kv1 + kv2)`` (for the divergence bound's work estimate)."""
     g = volume_gradients_numpy(model.rest_positions, model.tets)
-    per = model.params.kv[:, None] / model.rest_volumes[:, None] * np.sum(g * g, axis=2)
+    per = (model.params.volume_instantaneous[:, None] / model.rest_volumes[:, None]
+           * np.sum(g * g, axis=2))
     return np.bincount(model.tets.ravel(), per.ravel(), model.n_particles)
 
 
@@ -400,12 +500,15 @@ def tet_slots(tets: np.ndarray, node_dof: np.ndarray, indptr: np.ndarray,
     return slots
 
 
-def check_kv(kv: np.ndarray, tets: np.ndarray | None = None) -> None:
-    """Raise :class:`~forcecal.errors.ParameterError` naming the first tet with kv <= 0 or non-finite."""
+def check_kv(kv: np.ndarray, tets: np.ndarray | None = None, name: str = "kv") -> None:
+    """Raise :class:`~forcecal.errors.ParameterError` naming the first tet whose ``name``
+    (``kv`` or a volume arm's ``kv_i``, ``bv_i``) is <= 0 or non-finite."""
     bad = np.nonzero(~(np.isfinite(kv) & (kv > 0.0)))[0]
     if len(bad):
         t = int(bad[0])
-        raise ParameterError(f"{tet_name(t, tets)}: volume stiffness kv = {kv[t]} Pa must be a "
+        what = "volume stiffness" if name == "kv" else "volume arm"
+        unit = "Pa s" if name.startswith("bv") else "Pa"
+        raise ParameterError(f"{tet_name(t, tets)}: {what} {name} = {kv[t]} {unit} must be a "
                              "finite number > 0")
 
 
@@ -426,6 +529,8 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
 
 __all__ = ["add_volume_forces", "add_volume_tangent", "add_volume_tangent_numpy", "check_kv",
            "network_bulk_modulus", "node_volume_force", "signed_volumes", "tet_edge_connectors",
-           "tet_name", "tet_slots", "volume_frequency_bound", "volume_ratio_range",
-           "node_volume_stiffness", "node_volume_stiffness_bound", "volume_energy",
-           "volume_forces_numpy", "volume_hessian_numpy", "volume_kv_sensitivity_numpy"]
+           "tet_name", "tet_slots", "volume_arm_energy", "volume_arm_pressures",
+           "volume_arm_pressures_numpy", "volume_arm_step", "volume_frequency_bound",
+           "volume_ratio_range", "node_volume_stiffness", "node_volume_stiffness_bound",
+           "volume_energy", "volume_forces_numpy", "volume_hessian_numpy",
+           "volume_kv_sensitivity_numpy", "volume_strains"]

@@ -9,6 +9,16 @@ Laplacian with :func:`volume_edge_stiffness_bound` added to its weights; mass sc
 lie in a range and whose tets' volume ratios lie in :func:`volume_ratio_range`, which the
 explicit runs verify at every step. Kept apart from the force kernels: numpy only, used
 when a run is prepared, never inside the loop.
+
+With the volume term's Maxwell arms (:mod:`particle.volume`) a tet's tangent is
+``k/V0 g g^T + P d^2V`` with the instantaneous stiffness ``k = kv + c_1 + c_2 <= kv + kv1 +
+kv2`` (an arm's step coefficient ``c_i = kv_i bv_i/(kv_i dt + bv_i)`` is at most
+``kv_i``) and the pressure ``P = kv j + P_1 + P_2``. An arm's pressure is ``kv_i`` times
+the volume strain minus a weighted mean of its past values (the Maxwell convolution, as
+the connectors' arms in :func:`particle.stability.connector_stiffness_bound`), so
+``|P_i| <= kv_i (J_hi - J_lo)`` while the volume ratios stay in ``[J_lo, J_hi]``; every
+bound below takes ``k`` and that bound of ``|P|`` (:func:`_tet_bounds`), which are ``kv``
+and ``kv |J - 1|_max`` for the elastic term.
 """
 
 from __future__ import annotations
@@ -45,8 +55,10 @@ def _max_triangle_area(a: tuple, b: tuple, c: tuple) -> np.ndarray:
 def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray):
     """Per-tet quantities of the volume term's frequency bounds over the strain box ``[lo, hi]``:
     (face gradient bounds G (T, 4) [m^2] >= |dV/dp_a| (the face opposite a over 3, Heron),
-    longest lengths lmax (T, 6) [m] of the edges (:data:`TET_PAIRS` order), largest
-    ``|V/V0 - 1|`` (T,) [1] (:func:`volume_ratio_range`), free vertices (T, 4) bool)."""
+    longest lengths lmax (T, 6) [m] of the edges (:data:`TET_PAIRS` order), the largest
+    instantaneous stiffness k (T,) [Pa] and the largest ``|P|`` (T,) [Pa] (module
+    docstring; ``|V/V0 - 1|`` from :func:`volume_ratio_range`), free vertices (T, 4)
+    bool)."""
     conn = model.tet_connectors  # (T, 6) in TET_PAIRS order: 01 02 03 12 13 23
     L0 = model.rest_lengths[conn]
     lmin, lmax = (1.0 + lo[conn]) * L0, (1.0 + hi[conn]) * L0
@@ -56,20 +68,24 @@ def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray):
     faces = ((3, 4, 5), (1, 2, 5), (0, 2, 4), (0, 1, 3))
     grad = np.column_stack([_max_triangle_area(*(side[k] for k in f)) / 3.0 for f in faces])
     j_lo, j_hi = volume_ratio_range(model, lo, hi)
-    return grad, lmax, np.maximum(1.0 - j_lo, j_hi - 1.0), ~model.fixed[model.tets]
+    p = model.params
+    pressure = p.kv * np.maximum(1.0 - j_lo, j_hi - 1.0)
+    if p.has_volume_arms:
+        pressure = pressure + (p.kv1 + p.kv2) * (j_hi - j_lo)
+    return grad, lmax, p.volume_instantaneous, pressure, ~model.fixed[model.tets]
 
 
-def _irons_bound(model, grad, lmax, dj, free) -> float:
+def _irons_bound(model, grad, lmax, modulus, pressure, free) -> float:
     """Irons' element bound [1/s^2]: the largest tet eigenvalue against its share of the
     particles' masses (see :func:`volume_frequency_bound`)."""
-    kv, tets, v0 = model.params.kv, model.tets, model.rest_volumes
+    tets, v0 = model.tets, model.rest_volumes
     volume_sum = np.bincount(tets.ravel(), np.repeat(v0, 4), model.n_particles)
     share = model.masses[tets] * v0[:, None] / volume_sum[tets]  # (T, 4) [kg]
-    rank_one = kv / v0 * np.sum(np.where(free, grad ** 2 / share, 0.0), axis=1)
+    rank_one = modulus / v0 * np.sum(np.where(free, grad ** 2 / share, 0.0), axis=1)
     row = np.maximum(np.maximum(lmax[:, 1] + lmax[:, 2], lmax[:, 0] + lmax[:, 2]),
                      lmax[:, 0] + lmax[:, 1]) / 6.0
     lightest = np.min(np.where(free, share, np.inf), axis=1)
-    curvature = kv * dj * 4.0 * row / lightest
+    curvature = pressure * 4.0 * row / lightest
     return float(np.max(np.where(free.any(axis=1), rank_one + curvature, 0.0)))
 
 
@@ -94,20 +110,19 @@ def node_volume_stiffness_bound(model, lo: np.ndarray, hi: np.ndarray) -> np.nda
     mass-scaled eigenvalue; the same ``D`` steers mass scaling's added mass
     (:func:`particle.mass_scaling.stiffness_weights`).
     """
-    grad, lmax, dj, free = _tet_bounds(model, lo, hi)
-    return _nodal(model, grad, lmax, dj, free)
+    return _nodal(model, *_tet_bounds(model, lo, hi))
 
 
-def _nodal(model, grad, lmax, dj, free) -> np.ndarray:
-    kv, v0 = model.params.kv, model.rest_volumes
+def _nodal(model, grad, lmax, modulus, pressure, free) -> np.ndarray:
+    v0 = model.rest_volumes
     g = np.where(free, grad, 0.0)
-    rank_one = (kv / v0 * g.sum(axis=1))[:, None] * g
+    rank_one = (modulus / v0 * g.sum(axis=1))[:, None] * g
     curvature = np.zeros_like(g)
     for a in range(4):
         for b in range(4):
             if a != b:
                 curvature[:, a] += np.where(free[:, b], lmax[:, OPPOSITE_EDGE[a, b]], 0.0)
-    curvature *= (kv * dj / 6.0)[:, None]
+    curvature *= (pressure / 6.0)[:, None]
     return np.bincount(model.tets.ravel(), np.where(free, rank_one + curvature, 0.0).ravel(),
                        model.n_particles)
 
@@ -135,15 +150,14 @@ def volume_edge_stiffness_bound(model, lo: np.ndarray, hi: np.ndarray) -> np.nda
     bound where the mesh is fine: kv 8.9 kPa on strains +-0.5, 12k-connector liver 5.5e7
     against 7.5e7 1/s^2 for the term alone.
     """
-    grad, lmax, dj, _ = _tet_bounds(model, lo, hi)
-    return _edge_weights(model, grad, lmax, dj)
+    return _edge_weights(model, *_tet_bounds(model, lo, hi)[:4])
 
 
-def _edge_weights(model, grad, lmax, dj) -> np.ndarray:
-    kv, v0 = model.params.kv, model.rest_volumes
+def _edge_weights(model, grad, lmax, modulus, pressure) -> np.ndarray:
+    v0 = model.rest_volumes
     curvature_norm = np.max([sum(lmax[:, OPPOSITE_EDGE[a, b]] for b in range(4) if b != a)
                              for a in range(4)], axis=0) / 6.0
-    per_edge = (kv / v0 * np.sum(grad ** 2, axis=1) + kv * dj * curvature_norm) / 4.0
+    per_edge = (modulus / v0 * np.sum(grad ** 2, axis=1) + pressure * curvature_norm) / 4.0
     return np.bincount(model.tet_connectors.ravel(), np.repeat(per_edge, 6), model.n_connectors)
 
 
@@ -191,4 +205,4 @@ def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray) -> tuple[float, np
     """(:func:`volume_frequency_bound`, :func:`volume_edge_stiffness_bound`) of one strain
     range, the per-tet bounds they share computed once (the stable step takes both)."""
     bounds = _tet_bounds(model, lo, hi)
-    return _frequency_bound(model, bounds), _edge_weights(model, *bounds[:3])
+    return _frequency_bound(model, bounds), _edge_weights(model, *bounds[:4])

@@ -17,9 +17,9 @@ from particle.statics import EquilibriumSolver, TangentPattern, gravity_static, 
 from particle.testing import (box_model, deformed_start_and_push, spring_energy, top_centre,
                               viscoelastic_params)
 from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
-                             network_bulk_modulus, signed_volumes, volume_energy,
-                             volume_forces_numpy, volume_hessian_numpy,
-                             volume_kv_sensitivity_numpy)
+                             network_bulk_modulus, signed_volumes, volume_arm_pressures_numpy,
+                             volume_energy, volume_forces_numpy, volume_hessian_numpy,
+                             volume_kv_sensitivity_numpy, volume_strains)
 from particle.empirical_limit import bisect, blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -27,9 +27,20 @@ ELASTIC = dict(g=(1e-12, 1e-12))  # arms of negligible stiffness: a purely elast
 TET = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.003, 0.018, 0.0], [0.004, 0.006, 0.017]])
 
 
-def with_kv(model, kv):
-    """The model with a volume stiffness kv [Pa] on every tet."""
-    return model.with_params(dataclasses.replace(model.params, kv=np.full(model.n_tets, kv)))
+def with_kv(model, kv, arms=None, tau=(0.05, 0.5)):
+    """The model with a volume stiffness kv [Pa] on every tet, elastic, or with Maxwell arms of
+    stiffnesses ``arms`` (kv1, kv2) [Pa] and relaxation times ``tau`` [s]."""
+    t = model.n_tets
+    volume = {"kv": np.full(t, kv)}
+    if arms is not None:
+        volume.update(kv1=np.full(t, arms[0]), bv1=np.full(t, arms[0] * tau[0]),
+                      kv2=np.full(t, arms[1]), bv2=np.full(t, arms[1] * tau[1]))
+    return model.with_params(dataclasses.replace(model.params, **volume))
+
+
+#: the elastic volume term and the relaxing one (arms kv1, kv2 [Pa])
+VOLUME_TERMS = pytest.mark.parametrize("arms", [None, (1500.0, 1000.0)],
+                                       ids=["elastic", "viscoelastic"])
 
 
 def single_tet(kv=1000.0, K0=1e-9, fixed=(False,) * 4):
@@ -61,7 +72,7 @@ def test_uniform_dilation_of_one_tet_gives_the_closed_form_force_and_energy():
         f = np.zeros((4, 3))
         none = (np.zeros(1), np.full(1, np.inf))
         assert add_volume_forces(x, model.tets, model.rest_volumes, model.params.kv, *none,
-                                 f)[0] == -1
+                                 f, None)[0] == -1
         # the rest gradients: each vertex's opposite face normal (area vector)/3, inward
         grad_rest = np.array([np.cross(TET[3] - TET[1], TET[2] - TET[1]),
                               np.cross(TET[2] - TET[0], TET[3] - TET[0]),
@@ -86,18 +97,10 @@ def test_forces_are_minus_the_energy_gradient_and_numba_matches_numpy():
     kv = model.params.kv
     numba = np.zeros_like(x)
     none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-    assert add_volume_forces(x, model.tets, model.rest_volumes, kv, *none, numba)[0] == -1
+    assert add_volume_forces(x, model.tets, model.rest_volumes, kv, *none, numba, None)[0] == -1
     twin = volume_forces_numpy(x, model.tets, model.rest_volumes, kv)
     np.testing.assert_allclose(numba, twin, rtol=0, atol=1e-13 * np.abs(twin).max())
-    h = 1e-7
-    fd = np.empty_like(x)
-    for n in range(model.n_particles):
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[n, c] += h
-            xm[n, c] -= h
-            fd[n, c] = -(volume_energy(xp, model.tets, model.rest_volumes, kv)
-                         - volume_energy(xm, model.tets, model.rest_volumes, kv)) / (2 * h)
+    fd = -central_gradient(lambda y: volume_energy(y, model.tets, model.rest_volumes, kv), x)
     np.testing.assert_allclose(numba, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
 
 
@@ -118,27 +121,8 @@ def test_the_static_tangent_with_the_volume_term_is_the_derivative_of_the_forces
     and one tet's block against the numpy Hessian."""
     model = box_model((2, 2, 2), a=-20.0, b=300.0)
     model = with_kv(model, 4000.0)
-    p = model.params
     x = deformed(model, 5e-4, seed=3)
-    x[model.fixed] = model.rest_positions[model.fixed]
-    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
-    it = solver._evaluate(x, p, True, None, None)
-    pat = solver.pattern
-    data = tangent_data(model, pat, x, it.tension, p, True, None)
-    data[solver._zero_slots], data[solver._diag_slots] = 0.0, 1.0  # as the solver factorises
-    tangent = sp.csc_matrix((data, pat.indices, pat.indptr),
-                            shape=(pat.n_dofs, pat.n_dofs)).toarray()
-    free = model.free_nodes
-    h = 1e-8
-    fd = np.empty((3 * len(free), 3 * len(free)))
-    for k, n in enumerate(free):
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[n, c] += h
-            xm[n, c] -= h
-            df = (solver._evaluate(xp, p, True, None, None).forces
-                  - solver._evaluate(xm, p, True, None, None).forces)[free].ravel() / (2 * h)
-            fd[:, 3 * k + c] = -df
+    tangent, fd = tangent_and_differences(model, x)
     np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
     # the volume term alone, one tet, numpy Hessian vs central differences of its forces
     tet = single_tet(4000.0)
@@ -154,6 +138,45 @@ def test_the_static_tangent_with_the_volume_term_is_the_derivative_of_the_forces
                                            tet.params.kv)).ravel() / 2e-8
     np.testing.assert_allclose(hess, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
     np.testing.assert_allclose(hess, hess.T, atol=1e-12 * np.abs(hess).max())
+
+
+def central_gradient(energy, x, h=1e-7):
+    """(N, 3) central differences (step ``h`` [m]) of the scalar ``energy(x)`` [J] at ``x``
+    (N, 3) [m]."""
+    grad = np.empty_like(x)
+    for n in range(x.shape[0]):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[n, c] += h
+            xm[n, c] -= h
+            grad[n, c] = (energy(xp) - energy(xm)) / (2 * h)
+    return grad
+
+
+def tangent_and_differences(model, x, arms=None, h=1e-8):
+    """(the assembled static tangent (n, n) [N/m] on the free dofs at ``x`` (N, 3), fixed
+    particles put at rest, with the arm step ``arms`` (None: long-term), and its central
+    differences of the statics' forces (step ``h`` [m]))."""
+    p = model.params
+    x = x.copy()
+    x[model.fixed] = model.rest_positions[model.fixed]
+    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
+    it = solver._evaluate(x, p, True, arms, None)
+    pat = solver.pattern
+    data = tangent_data(model, pat, x, it.tension, p, True, arms, it.volume_arm)
+    tangent = sp.csc_matrix((data, pat.indices, pat.indptr),
+                            shape=(pat.n_dofs, pat.n_dofs)).toarray()
+    free = model.free_nodes
+    fd = np.empty((3 * len(free), 3 * len(free)))
+    for k, n in enumerate(free):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[n, c] += h
+            xm[n, c] -= h
+            df = (solver._evaluate(xp, p, True, arms, None).forces
+                  - solver._evaluate(xm, p, True, arms, None).forces)[free].ravel() / (2 * h)
+            fd[:, 3 * k + c] = -df
+    return tangent, fd
 
 
 def random_tets(n_tets, rng):
@@ -204,20 +227,22 @@ def test_the_closed_form_tangent_kernel_equals_its_numpy_twin():
         add_volume_tangent_numpy(*args, reference)
         start = rng.standard_normal(nnz) * np.abs(reference).max()
         compiled, twin = start.copy(), start.copy()
-        add_volume_tangent(*args, compiled)
+        add_volume_tangent(*args, compiled, None)
         add_volume_tangent_numpy(*args, twin)
         np.testing.assert_allclose(compiled, twin, rtol=0,
                                    atol=1e-12 * np.abs(reference).max())
         alone = np.zeros(nnz)
-        add_volume_tangent(*args, alone)
+        add_volume_tangent(*args, alone, None)
         np.testing.assert_allclose(alone, reference, rtol=0,
                                    atol=1e-12 * np.abs(reference).max())
 
 
-def test_compiled_step_with_the_volume_term_matches_the_numpy_step():
-    """All terms (nonlinear springs, arms, gravity, damping, a prescribed particle) + volume:
-    same formulas, same order, round-off only (as the springs-only twin test)."""
-    model = with_kv(box_model(a=-20.0, b=300.0), 2000.0)
+@VOLUME_TERMS
+def test_compiled_step_with_the_volume_term_matches_the_numpy_step(arms):
+    """All terms (nonlinear springs, arms, gravity, damping, a prescribed particle) + volume
+    (elastic or relaxing): same formulas, same order, round-off only (as the springs-only twin
+    test), the volume arms' pressures and strains too."""
+    model = with_kv(box_model(a=-20.0, b=300.0), 2000.0, arms)
     dt = 0.5 * critical_time_step(model, damping=3.0)
     compiled, motion = deformed_start_and_push(model, dt)
     reference = compiled.copy()
@@ -226,18 +251,34 @@ def test_compiled_step_with_the_volume_term_matches_the_numpy_step():
         step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
     scale = np.abs(reference.x - model.rest_positions).max()
     np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
+    if arms is not None:
+        pressure = np.abs(reference.volume_arm).max()
+        assert pressure > 0
+        np.testing.assert_allclose(compiled.volume_arm, reference.volume_arm, rtol=0,
+                                   atol=1e-10 * pressure)
+        np.testing.assert_allclose(compiled.volume_prev, reference.volume_prev, rtol=0,
+                                   atol=1e-13)
 
 
-def test_threaded_step_with_the_volume_term_matches_the_serial_one():
-    model = with_kv(box_model(), 2000.0)
+@VOLUME_TERMS
+def test_threaded_and_split_runs_with_the_volume_term_match_the_serial_one(arms):
+    """Two threads: round-off; a run split in two calls: bit for bit (the state carries the
+    arms, the volume term's too, from one call to the next)."""
+    model = with_kv(box_model(), 2000.0, arms)
     dt = 0.5 * critical_time_step(model)
     runs = []
     for threads in (1, 2):
         state = model.state()
         VerletIntegrator().simulate(model, state, dt, 200, gravity=GRAVITY, threads=threads)
-        runs.append(state.x)
-    scale = np.abs(runs[0] - model.rest_positions).max()
-    np.testing.assert_allclose(runs[1], runs[0], rtol=0, atol=1e-10 * scale)
+        runs.append(state)
+    scale = np.abs(runs[0].x - model.rest_positions).max()
+    np.testing.assert_allclose(runs[1].x, runs[0].x, rtol=0, atol=1e-10 * scale)
+    split = model.state()
+    for n in (120, 80):
+        VerletIntegrator().simulate(model, split, dt, n, gravity=GRAVITY)
+    np.testing.assert_array_equal(split.x, runs[0].x)
+    if arms is not None:
+        np.testing.assert_array_equal(split.volume_arm, runs[0].volume_arm)
 
 
 def test_an_elastic_tet_vibrates_with_constant_energy():
@@ -269,23 +310,27 @@ def test_an_elastic_tet_vibrates_with_constant_energy():
     assert e0 > 0
 
 
+@pytest.mark.parametrize("arms", [None, (0.6, 0.4)], ids=["elastic", "viscoelastic"])
 @pytest.mark.parametrize("kv", [2e3, 2e4])
-def test_the_stability_bound_with_the_volume_term_is_below_the_bisected_limit(kv):
+def test_the_stability_bound_with_the_volume_term_is_below_the_bisected_limit(kv, arms):
     """Rigorous: never above the limit found by bisection (3000 steps from a state at rest,
     perturbed by 1e-6 m, 0.1 %). The bound covers every state of its strain range, where
     faces grow by (1 + hi)^2 and |V/V0 - 1| up to (1 + hi)^3 - 1, so on the default range
     +-0.5 it is well below the limit at rest; on a narrow range it must be close to it
-    (> 0.5: Irons' element bound of the volume term added to the springs' one)."""
-    model = with_kv(box_model((3, 3, 2), **ELASTIC), kv)
+    (> 0.5: Irons' element bound of the volume term added to the springs' one). The term
+    lowers the bound against springs only, and its arms (``arms`` x kv, whose instantaneous
+    stiffness the bound counts) against the elastic term of the same long-term kv."""
+    model = with_kv(box_model((3, 3, 2), **ELASTIC), kv,
+                    None if arms is None else (arms[0] * kv, arms[1] * kv))
     estimate = critical_time_step(model)
     empirical = bisect(lambda dt: blows_up(model, dt), estimate)
     assert estimate <= empirical
     narrow = critical_time_step(model, strain_range=(-1e-3, 1e-3))
     assert estimate < narrow <= empirical
     assert narrow / empirical > 0.5
-    springs_only = critical_time_step(model.with_params(dataclasses.replace(model.params,
-                                                                            kv=None)))
-    assert estimate < springs_only
+    simpler = dataclasses.replace(model.params, kv=None) if arms is None else \
+        dataclasses.replace(model.params, kv1=None, bv1=None, kv2=None, bv2=None)
+    assert estimate < critical_time_step(model.with_params(simpler))
 
 
 def test_bad_kv_is_refused_naming_the_tet():
@@ -370,32 +415,43 @@ def test_the_volume_term_does_not_relax():
     assert f_relax[0] > f_relax[-1]  # the arms still hold force early in the hold
 
 
-def test_the_haptic_force_includes_the_volume_term():
+@VOLUME_TERMS
+def test_the_haptic_force_includes_the_volume_term(arms):
     """The force returned by a haptic step is minus the net internal force (springs + volume)
-    on the tool particle at the step's end (numpy twin)."""
-    model = with_kv(box_model(), 3000.0)
+    on the tool particle at the step's end, both kinds of arms advanced one step (numpy
+    twin), and Run.force_on gives it bit for bit."""
+    model = with_kv(box_model(), 3000.0, arms)
     node = top_centre(model)
     session = HapticSession(model, 0.5 * critical_time_step(model))
     target = model.rest_positions[node] + [0.0, 0.0, -5e-4]
     for _ in range(3):
         force = session.step(node, target)
     s = session.state
+    np.testing.assert_array_equal(force, session._run(node)[0].force_on(s, node))
     x = s.x
     p = model.params
     d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
     length = np.linalg.norm(d, axis=1)
     dx = length - model.rest_lengths
     r, c = p.arm_recursion(session.dt)
-    arms = r * s.arm_force + c * (dx - s.dx_prev)[:, None]
-    tension = p.stiffness(dx / model.rest_lengths) * dx + arms.sum(axis=1)
+    tension = (p.stiffness(dx / model.rest_lengths) * dx
+               + (r * s.arm_force + c * (dx - s.dx_prev)[:, None]).sum(axis=1))
     pull = (tension / length)[:, None] * d
     f = np.zeros_like(x)
     np.add.at(f, model.edges[:, 0], pull)
     np.add.at(f, model.edges[:, 1], -pull)
-    vol = volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv)
+    pressure = None
+    if arms is not None:
+        vr, vc = p.volume_arm_recursion(session.dt)
+        pressure = volume_arm_pressures_numpy(volume_strains(x, model.tets, model.rest_volumes),
+                                              vr, vc, s.volume_arm, s.volume_prev).sum(axis=1)
+    vol = volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv, pressure)
     np.testing.assert_allclose(force, (f + vol)[node], rtol=1e-9,
                                atol=1e-12 * np.abs(f[node]).max())
     assert np.linalg.norm(vol[node]) > 0.05 * np.linalg.norm(force)
+    if arms is not None:  # the arms' share is really there
+        elastic = volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv)[node]
+        assert np.linalg.norm(vol[node] - elastic) > 0.01 * np.linalg.norm(force)
 
 
 def test_kv_is_the_added_bulk_modulus_and_the_network_one_is_closed_form():
@@ -425,7 +481,7 @@ def test_volume_tangent_compiles_its_block_helper_once_and_matches_the_numpy_twi
     data, twin = np.zeros(4 * 4 * 9), np.zeros(4 * 4 * 9)
     # compiled here, without the on-disk cache: a kernel loaded from that cache types none
     # of its callees, and the helper would show no signature at all
-    numba.njit(volume.add_volume_tangent.py_func)(x, tets, rest, kv, slots, data)
+    numba.njit(volume.add_volume_tangent.py_func)(x, tets, rest, kv, slots, data, None)
     volume.add_volume_tangent_numpy(x, tets, rest, kv, slots, twin)
     assert len(volume._add_tet_block.signatures) == 1
     np.testing.assert_allclose(data, twin, rtol=1e-12, atol=1e-12 * np.abs(twin).max())
