@@ -28,7 +28,7 @@ from forcecal.errors import ConvergenceError, ParameterError
 from particle.model import Model
 from particle.params import ConnectorParams, arm_recursions, volume_arm_recursions
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
-                              VolumeArmStep, check_stiffness, continuation)
+                              VolumeArmStep, check_stiffness, continuation, reaching)
 
 log = logging.getLogger(__name__)
 
@@ -287,9 +287,10 @@ class IndentationEvaluator(_PointEvaluator):
                     warm_eq = solve_at(warm_guess(warm, solutions, s), depth)
                 except ConvergenceError:
                     log.debug("point %d depth %g: warm start failed, continuing cold", node, depth)
-            eq = warm_eq or continuation(step, eq, reached, depth,
-                                         what=f"indentation of particle {node}")
-            check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
+            with reaching(lambda: reached):
+                eq = warm_eq or continuation(step, eq, reached, depth,
+                                             what=f"indentation of particle {node}")
+                check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             reached = depth
             solutions[s] = eq.x
             forces[s] = self._force(eq, k)
@@ -367,8 +368,9 @@ class RelaxationEvaluator(_PointEvaluator):
                 coeffs = prepared[sample] if full else arm_coefficients(params, t1 - t0)
                 return solver.solve(guess, params, arms=arm_step(coeffs, eq))
 
-            eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
-            check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
+            with reaching(lambda: whole[0]):
+                eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
+                check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             solutions[sample] = eq.x
             forces[sample] = self._force(eq, k)
         self._warm[k] = solutions

@@ -28,11 +28,12 @@ that still fails is halved by :func:`continuation`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Callable, TypeVar
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 
@@ -468,19 +469,35 @@ class _Iterate:
                 volume_strains(self.x, model.tets, model.rest_volumes))
 
 
+@contextlib.contextmanager
+def reaching(last: Callable[[], float]) -> Iterator[None]:
+    """Inside the block, an error of the model (Newton, a spring's stiffness, an inverted
+    tet) that does not say how far it got records ``last()`` in ``reached``: the load
+    parameter of the last state reached (depth [m], time [s] or load fraction [1])."""
+    try:
+        yield
+    except (ConvergenceError, ParameterError, StabilityError) as exc:
+        if exc.reached is None:
+            exc.reached = float(last())
+        raise
+
+
 def continuation(step: Callable[[T, float, float], T], start: T, s0: float, s1: float, *,
                  max_cuts: int = 6, what: str = "load step") -> T:
     """Advance ``start`` from load parameter ``s0`` to ``s1`` with ``step(state, s_from, s_to)``.
 
     If a step raises :class:`ConvergenceError` it is split in two halves,
-    recursively, at most ``max_cuts`` times deep.
+    recursively, at most ``max_cuts`` times deep. The error of a step that still fails
+    records in ``reached`` the load parameter it started from: the furthest one reached.
     """
     try:
         return step(start, s0, s1)
     except ConvergenceError as exc:
         if max_cuts <= 0:
-            raise ConvergenceError(f"{what} {s0:g} -> {s1:g} failed after repeated halving: "
-                                   f"{exc}") from None
+            error = ConvergenceError(f"{what} {s0:g} -> {s1:g} failed after repeated halving: "
+                                     f"{exc}")
+            error.reached = s0
+            raise error from None
     mid = 0.5 * (s0 + s1)
     log.debug("%s %g -> %g cut at %g", what, s0, s1, mid)
     half = continuation(step, start, s0, mid, max_cuts=max_cuts - 1, what=what)
@@ -494,7 +511,9 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
 
     Newton equilibrium with ``gravity`` [m/s^2] applied in ``load_steps`` equal
     increments (each halved on failure). The parameters are validated on
-    ``strain_range`` and the springs' K(eps) checked at the strains reached.
+    ``strain_range`` and the springs' K(eps) checked at the strains reached. An error
+    of the model (parameters, Newton, the final check) records in ``reached`` the
+    fraction of the load it had carried.
     """
     g = check_gravity(gravity)
     if g is None:
@@ -504,20 +523,24 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
     if not len(model.free_nodes) < model.n_particles:
         raise ParameterError("gravity_static needs fixed particles: a free body under gravity "
                              "has no static equilibrium")
-    model.params.validate(strain_range, model.edges, model.tets)
-    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
-                               rtol=rtol, refactor_ratio=0.1)
+    carried = 0.0
+    with reaching(lambda: carried):
+        model.params.validate(strain_range, model.edges, model.tets)
+        solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
+                                   rtol=rtol, refactor_ratio=0.1)
 
-    def step(x: np.ndarray, _: float, s1: float) -> np.ndarray:
-        return solver.solve(x, model.params, gravity=s1 * g).x
+        def step(x: np.ndarray, _: float, s1: float) -> np.ndarray:
+            return solver.solve(x, model.params, gravity=s1 * g).x
 
-    x = model.rest_positions.copy()
-    for k in range(load_steps):
-        x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
-    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-    check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0, "gravity_static")
-    if model.has_volume:
-        check_volumes(model, x, "gravity_static")
+        x = model.rest_positions.copy()
+        for k in range(load_steps):
+            x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
+            carried = (k + 1) / load_steps
+        d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+        check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0,
+                        "gravity_static")
+        if model.has_volume:
+            check_volumes(model, x, "gravity_static")
     return x - model.rest_positions
 
 
