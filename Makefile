@@ -28,10 +28,11 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 STAGE_ARGS := --scene $(SCENE) $(if $(OUT),--out $(OUT))
 
-.PHONY: help setup test demo reference calibrate gravity report bench bench-quick clean
+.PHONY: help setup test demo validate reference calibrate gravity report bench bench-quick clean
 
 help:
 	@echo "make demo        # install what is missing, then mesh -> FE reference -> calibration -> gravity -> report"
+	@echo "make validate    # demo, exit code 3 when the verdict fails (CI gate; SCENE=...)"
 	@echo "make test        # install what is missing, then run the test suite"
 	@echo "make reference | calibrate | gravity | report   # single stages (SCENE=... OUT=...)"
 	@echo "make bench       # run time vs error benchmarks -> runs/bench/ (bench-quick: a few minutes)"
@@ -66,6 +67,10 @@ test: setup
 
 demo: setup
 	$(PY) -m pipelines demo $(STAGE_ARGS)
+
+# the demo as a CI gate: exit code 3 when report.json's verdict fails, 0 when it passes
+validate: setup
+	$(PY) -m pipelines demo --require-pass $(STAGE_ARGS)
 
 reference: setup
 	$(PY) -m pipelines reference $(STAGE_ARGS)

@@ -13,7 +13,9 @@ resumes where it stopped and ends with the same result:
    does (:mod:`calibration.gravity_check`; only completion is used, never the FE's sag);
 7. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
    global-only and the calibrated (global + local, or gradient) models are evaluated at every
-   test point; held-out points, never used by any fit, give the honest accuracy.
+   test point; held-out points, never used by any fit, give the honest accuracy. A model
+   that does not complete a point's curve is a result, not a crash: its failure is recorded
+   (:mod:`calibration.validation`; NaN rows in ``params.h5``) and the others go on.
 
 Only the experiments of the scene's ``experiments`` list are fitted and
 evaluated: without ``relaxation`` the relaxation phases (3, 5) are skipped, the
@@ -51,6 +53,7 @@ from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParam
 from calibration.pool import Backend, Experiments, Pool, particle_backend
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
+from calibration.validation import per_completed_point, validate_points
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import (Reference, check_reference_settings, read_reference, reference_digest,
                           section_differences)
@@ -291,13 +294,14 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                       "global": glob.connector_params(n_conn, shape), "calibrated": calibrated}
         t = time.perf_counter()
         pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)
-        variants = {}
-        all_points = np.arange(len(problem.test_points))
+        variants, failures = {}, []
         for variant, params in connectors.items():
-            evaluated = {e: pool.curves_and_forces(e, params, all_points) for e in fitted}
-            curves = {e: c for e, (c, _) in evaluated.items()}
-            forces = {e: f for e, (_, f) in evaluated.items()}
-            errors = {e: relative_rms_error(curves[e], ref_curves[e]) for e in fitted}
+            curves, forces = {}, {}
+            for e in fitted:  # a point the model fails is a result (NaN rows), not a crash
+                curves[e], forces[e], failed = validate_points(pool, problem, variant, params, e)
+                failures += failed
+            errors = {e: per_completed_point(relative_rms_error, curves[e], ref_curves[e])
+                      for e in fitted}
             variants[variant] = VariantCurves(curves, errors, None if any(
                 f is None for f in forces.values()) else forces)
         evaluations["point_curves"] = pool.evaluations()
@@ -320,7 +324,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         reference_fingerprint=reference_digest(reference_path, fitted), experiments=fitted,
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
         wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions(),
-        gradient=gradient_summary)
+        gradient=gradient_summary, failures=tuple(failures))
     write_params(out_path, result)
     checkpoint.remove()
     for w in warnings:

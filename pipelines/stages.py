@@ -141,8 +141,10 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
           (REFERENCE, PARAMS), run_gravity_stage,
           experiments=("gravity_static", "gravity_dynamic")),
-    Stage("report", ("name", "outputs"), ("pipelines.runners.report",),
-          (REFERENCE, PARAMS, GRAVITY), run_report),
+    # [verdict]: the goals the report judges against (a change reruns this stage alone);
+    # [particle], [material], [indentation]: the real-time check's haptic session and drag
+    Stage("report", ("name", "outputs", "verdict", "particle", "material", "indentation"),
+          ("pipelines.runners.report",), (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)
 
