@@ -94,12 +94,14 @@ def _run(args: argparse.Namespace) -> int:
         print(results_markdown(read_report(args.report)))
         return 0
     if args.stage == "verdict-table":
+        from forcecal.scene import VerdictSection
         from pipelines.report import read_report
-        from pipelines.verdict import verdict_markdown
+        from pipelines.verdict import judge, measurements, verdict_markdown
         report = read_report(args.report)
-        if "verdict" not in report:
-            raise DataFileError(f"{args.report} has no verdict (written before it); rerun "
-                                "the report stage")
+        if "verdict" not in report:  # written before it: its measurements, the default goals
+            print(f"(judged now from the measurements of {args.report}, which has no verdict, "
+                  "against the default [verdict] goals)\n")
+            report["verdict"] = judge(measurements(report), VerdictSection())
         print(verdict_markdown(report["verdict"]))
         return 0
     if args.stage == "bench-table":

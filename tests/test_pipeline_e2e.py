@@ -119,6 +119,17 @@ def test_report_has_every_key_finite_and_calibration_beats_the_baseline(first_ru
     # the baseline is one model: its "global" and "calibrated" errors are the same points
     assert report["baseline_errors"]["indentation_global"] == report["baseline_errors"][
         "indentation_calibrated"]
+    # every model completed its validation; the verdict judges what the report measured
+    assert report["failures"] == []
+    checks = report["verdict"]["checks"]
+    assert checks["static_sag"]["calibrated"] == report["errors"]["gravity_static"]
+    assert checks["held_out_relaxation"]["baseline"] == report["baseline_errors"][
+        "relaxation_held_out"]
+    assert checks["release_period"]["calibrated"] == abs(
+        report["gravity"]["dynamic_metrics"]["calibrated"]["period_error"])
+    assert report["verdict"]["passed"] == all(c["status"] == "passed" for c in checks.values())
+    assert report["realtime"]["status"] == "measured"
+    assert report["realtime"]["substeps_per_ms"] >= 1
 
 
 def test_a_params_file_without_force_vectors_reports_them_as_null(first_run):
@@ -145,6 +156,9 @@ def test_second_run_skips_every_stage_and_says_why(first_run, tmp_path):
     for stage in ORDER:
         assert f"{stage:<10} skipped" in r.stdout
         assert f"{stage:<9} up to date, skipped" in r.stderr
+    # the command ends with the verdict table of the report kept
+    assert r.stdout.splitlines()[-2].startswith("verdict: ")
+    assert r.stdout.splitlines()[-1].startswith("real time (1 kHz): ")
 
 
 def test_deleted_output_reruns_only_its_stage(first_run, tmp_path):
