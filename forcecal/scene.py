@@ -317,43 +317,48 @@ class OutputsSection:
     fields: bool = key(True, "write XDMF/VTU fields for ParaView")
 
 
-#: the FE reference's own stiffness error in the static sag on the default liver (its P2 sag
-#: against the once-refined mesh's, README "The FE reference"): the accuracy below which a
-#: particle model's match to it says nothing more about tissue
-FE_STIFFNESS_ERROR = "15-18 %"
-
-
 @dataclass(frozen=True)
 class VerdictSection:
-    held_out_indentation: float = key(
-        0.15, "goal (at most) for the calibrated model's relative RMS error of the static "
-        "indentation force at the held-out points (report.json errors.indentation_held_out, "
-        "the mean over the points): 0.15, about twice the difference in force a hand feels "
-        f"(7-10 %) and the size of the FE reference's own stiffness error ({FE_STIFFNESS_ERROR} "
-        "in the default liver's sag): a closer match to the FE is not a closer match to "
-        "tissue; the default liver's calibrated model measured 12.2 %", "1", minimum=0.0)
-    held_out_relaxation: float = key(
-        0.15, "goal (at most) for the same error of the relaxation (ramp and hold) force "
-        "(errors.relaxation_held_out): 0.15, as the indentation's; the default liver: 14.2 %",
-        "1", minimum=0.0)
-    static_sag: float = key(
-        0.15, "goal (at most) for the static sag error (errors.gravity_static: mean |u_particle "
-        "- u_FE| over the free vertices over the largest FE sag): 0.15, the FE's own stiffness "
-        f"error in sag ({FE_STIFFNESS_ERROR}); the default liver: 5.2 %", "1", minimum=0.0)
-    release_period: float = key(
-        0.10, "goal (at most) for |period error| of the tracked vertex's release "
+    """The goals of the verdict's checks (``pipelines.verdict``); its helpers live in the class,
+    which the FE reference's code key leaves out (``reference_fe.keys``), so editing them
+    does not make an FE reference stale."""
+    #: the FE reference's own stiffness error in the static sag on the default liver (its P2
+    #: sag against the once-refined mesh's, README "The FE reference"): the accuracy below
+    #: which a particle model's match to it says nothing more about tissue
+    FE_STIFFNESS_ERROR = "15-18 %"
+
+    @staticmethod
+    def goal_at_most(default: float, doc: str) -> Any:
+        """Declare a goal that a check's value (a relative error) must not exceed."""
+        return key(default, f"goal (at most) for {doc}", "1", minimum=0.0)
+
+    held_out_indentation: float = goal_at_most(
+        0.15, "the calibrated model's relative RMS error of the static indentation force at "
+        "the held-out points (report.json errors.indentation_held_out, the mean over the "
+        "points): 0.15, about twice the difference in force a hand feels (7-10 %) and the size "
+        f"of the FE reference's own stiffness error ({FE_STIFFNESS_ERROR} in the default "
+        "liver's sag): a closer match to the FE is not a closer match to tissue; the default "
+        "liver's calibrated model measured 12.2 %")
+    held_out_relaxation: float = goal_at_most(
+        0.15, "the same error of the relaxation (ramp and hold) force "
+        "(errors.relaxation_held_out): 0.15, as the indentation's; the default liver: 14.2 %")
+    static_sag: float = goal_at_most(
+        0.15, "the static sag error (errors.gravity_static: the mean distance between the "
+        "particle and FE sags over the free vertices, over the largest FE sag): 0.15, the FE's "
+        f"own stiffness error in sag ({FE_STIFFNESS_ERROR}); the default liver: 5.2 %")
+    release_period: float = goal_at_most(
+        0.10, "the period error's magnitude of the tracked vertex's release "
         "(gravity.dynamic_metrics.calibrated.period_error: dominant period over the FE's, "
-        "- 1): 0.10, a swing within a tenth of the FE's rhythm; the default liver: 4.8 %",
-        "1", minimum=0.0)
-    release_first_peak: float = key(
-        0.15, "goal (at most) for |first-peak error| of the release (the deepest point of the "
+        "- 1): 0.10, a swing within a tenth of the FE's rhythm; the default liver: 4.8 %")
+    release_first_peak: float = goal_at_most(
+        0.15, "the first-peak error's magnitude of the release (the deepest point of the "
         "first swing, about twice the static sag; dynamic_metrics first_peak_error): 0.15, "
-        "the static sag's goal; the default liver: 7.6 %", "1", minimum=0.0)
-    release_rms: float = key(
-        0.30, "goal (at most) for the release's RMS error (errors.gravity_dynamic): it "
-        "compounds the period error over the run (with the default liver's light decay, "
-        "0.11/s over 3 s, a period 2 % off alone gives 29 %), so 0.30 asks for the period "
-        "within about 2 %, or more damping; the default liver: 26.9 %", "1", minimum=0.0)
+        "the static sag's goal; the default liver: 7.6 %")
+    release_rms: float = goal_at_most(
+        0.30, "the release's RMS error (errors.gravity_dynamic): it compounds the period "
+        "error over the run (with the default liver's light decay, 0.11/s over 3 s, a period "
+        "2 % off alone gives 29 %), so 0.30 asks for the period within about 2 %, or more "
+        "damping; the default liver: 26.9 %")
     carries_its_weight: float = key(
         1.0, "goal (at least) for the fraction of the scene's gravity the calibrated model's "
         "static sag carries (the load its Newton solve reached, 1 = the whole weight): 1.0, "

@@ -65,10 +65,12 @@ def _scale(values: np.ndarray) -> str:
 
 
 def median_point(errors: np.ndarray, mask: np.ndarray) -> int | None:
-    """Index (into the test points) of the point with the median error among ``mask``."""
+    """Index (into the test points) of the point with the median error among ``mask`` (among
+    the points the model completed; the first of ``mask`` if it completed none of them, None
+    if ``mask`` is empty)."""
     idx = np.nonzero(mask & np.isfinite(errors))[0]
     if not len(idx):
-        return None
+        return int(np.nonzero(mask)[0][0]) if mask.any() else None
     return int(idx[np.argsort(errors[idx])[len(idx) // 2]])
 
 

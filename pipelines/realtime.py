@@ -14,9 +14,10 @@ Keys: ``substeps_per_ms`` (explicit steps per 1 ms call), ``dt_s`` (the step) an
 ``critical_dt_s`` (its stability limit), ``step_min_us`` / ``step_median_us`` / ``step_p99_us`` /
 ``step_max_us`` (wall time per call) and ``step_cpu_us`` (the process CPU time per call, which
 time spent waiting for a core does not count: on a busy machine the p99 measures the other
-processes, the CPU time much less), ``calls``, ``tool_node`` and ``depth_m`` (the drag), ``load_average``
-(1 min, before the drag: the timings depend on it), ``limiting_edges`` and ``limiting_tets``
-(what sets the stable step, :func:`step_limiters`), ``edge_min_m`` (the mesh's shortest edge),
+processes, the CPU time much less), ``calls``, ``tool_node`` and ``depth_m`` (the drag),
+``load_average`` (1 min, before the drag: the timings depend on it), ``limiting_edges`` and
+``limiting_tets`` (what sets the stable step, :func:`step_limiters`), ``edge_min_m`` (the
+mesh's shortest edge),
 ``goal_us`` (the project's p99 goal per call), ``status`` (``measured``, or ``failed`` with
 ``reason`` and null timings when the drag cannot run: the session refused its step or a
 connector left its verified range).
@@ -129,7 +130,8 @@ def realtime_block(scene: Scene, problem: Problem, params: ConnectorParams) -> d
         "status": "measured", "reason": None, "calls": CALLS, "period_s": PERIOD,
         "tool_node": tool, "depth_m": depth, "substeps_per_ms": None, "dt_s": None,
         "critical_dt_s": None, "step_min_us": None, "step_median_us": None,
-        "step_p99_us": None, "step_max_us": None, "step_cpu_us": None, "goal_us": GOAL_US, "load_average": os.getloadavg()[0],
+        "step_p99_us": None, "step_max_us": None, "step_cpu_us": None, "goal_us": GOAL_US,
+        "load_average": os.getloadavg()[0],
         "strain_range": [float(strain_range[0].min()), float(strain_range[1].max())]}
     try:
         critical = critical_time_step(model, strain_range=strain_range)

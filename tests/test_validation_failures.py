@@ -274,3 +274,40 @@ def test_require_pass_exits_3_on_a_failed_verdict_and_0_on_a_passed_one(calibrat
         ["report", "ran"]]
     assert "scene [verdict] changed" in out.splitlines()[3]
     assert load_scene(scene.path).verdict.no_worse_than_baseline is False
+
+
+def test_what_sets_the_step_of_one_free_particle_is_its_own_connectors():
+    """One free corner of a clamped cube: the fastest mode moves that particle alone, so its
+    connectors share the Rayleigh quotient equally (uniform springs: equal stiffness bounds)
+    and every other connector has none."""
+    from forcecal.mesh import box_mesh
+    from forcecal.problem import Problem
+    from particle.model import build_model
+    from pipelines.realtime import session_strain_range, step_limiters
+    mesh = box_mesh((1, 1, 1), (0.01, 0.01, 0.01))
+    free = int(np.argmax(mesh.vertices.sum(axis=1)))
+    problem = Problem(mesh=mesh, fixed=np.setdiff1d(np.arange(mesh.n_vertices), [free]),
+                      calibration=np.array([free]), held_out=np.zeros(0, np.int64),
+                      tracked_node=free)
+    params = ConnectorParams.uniform(len(mesh.edges), K0=100.0, k1=10.0, b1=1.0, k2=10.0,
+                                     b2=10.0)
+    model = build_model(problem, 1000.0, params)
+    limiters = step_limiters(model, session_strain_range(params), count=len(mesh.edges))
+    incident = np.any(mesh.edges == free, axis=1)
+    shares = {e["connector"]: e["share"] for e in limiters["limiting_edges"]}
+    assert {e for e, v in shares.items() if v > 1e-12} == set(np.nonzero(incident)[0].tolist())
+    for e in np.nonzero(incident)[0]:
+        assert shares[int(e)] == pytest.approx(1.0 / incident.sum(), rel=1e-9)
+    assert all(free in t["particles"] for t in limiters["limiting_tets"] if t["share"] > 0)
+    assert limiters["edge_min_m"] == pytest.approx(0.01)
+
+
+def test_a_haptic_session_that_cannot_run_is_a_failed_real_time_check(tmp_path):
+    from pipelines.realtime import realtime_block
+    scene = _scene(tmp_path, particle={"dt": 0.01})  # 10 ms: above the box's stable step
+    problem = build_problem(scene)
+    block = realtime_block(scene, problem, TRUTH.connector_params(len(problem.mesh.edges)))
+    assert block["status"] == "failed"
+    assert block["reason"].startswith("StabilityError: time step dt = 0.01 s")
+    assert block["step_p99_us"] is None and block["substeps_per_ms"] is None
+    assert block["limiting_edges"]  # what sets the step is known before the session fails

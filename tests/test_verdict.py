@@ -106,7 +106,8 @@ def test_failures_fail_their_checks_and_a_failed_baseline_is_no_comparison():
         # the baseline cannot carry its weight: no comparison for the gravity checks
         {"model": "baseline", "experiment": "gravity_static", "point": None, "role": None,
          "reached": {"load_factor": 0.67}, "reason": "ConvergenceError: gravity load"}]
-    report["baseline_errors"]["gravity_static"] = report["baseline_errors"]["gravity_dynamic"] = None
+    for key in ("gravity_static", "gravity_dynamic"):
+        report["baseline_errors"][key] = None
     del report["gravity"]["dynamic_metrics"]["baseline"]
     checks = judge(measurements(report), VerdictSection())["checks"]
     held = checks["held_out_indentation"]
