@@ -17,7 +17,9 @@ Checks (:data:`CHECKS`), each the calibrated model's value against its goal and,
   ``gravity.dynamic_metrics``; at most;
 * ``release_rms``: ``errors.gravity_dynamic``; at most;
 * ``carries_its_weight``: the fraction of the scene's gravity the model's static sag carried
-  (1 when it completed, else the load its Newton solve reached, from ``failures``); at least.
+  (1 when it completed, else the load its Newton solve reached: the smallest load factor of
+  the model's ``gravity_static`` records in ``failures``, the gravity stage's or a
+  calibration's that fitted a load its model could not carry); at least.
 
 A check's status is ``failed`` when the calibrated model failed its experiment (a record
 in ``failures``: at a held-out point for the curve checks; the static sag or the release for
@@ -178,7 +180,9 @@ def _failed(failures: list[dict], model: str, experiments: tuple[str, ...],
     if not mine:
         return None
     first = mine[0]
-    if first["point"] is None:
+    if first["point"] is None:  # the gravity test: its static sag first, least far first
+        first = min((f for f in mine if f["point"] is None), key=lambda f: (
+            f["experiment"] != "gravity_static", next(iter(f["reached"].values()))))
         (key, reached), = first["reached"].items()
         return f"{first['experiment']} stopped at {key} = {reached:.4g}: {first['reason']}"
     points = sorted({f["point"] for f in mine})
@@ -189,13 +193,12 @@ def _failed(failures: list[dict], model: str, experiments: tuple[str, ...],
             f"{first['reason']})")
 
 
-def _carried(failures: list[dict], model: str) -> float | None:
-    """The fraction of the gravity ``model``'s static sag carried: its failure's load factor,
-    else 1 (None when no run of the model is known)."""
-    for f in failures:
-        if f["model"] == model and f["experiment"] == "gravity_static":
-            return float(f["reached"]["load_factor"])
-    return 1.0
+def _carried(failures: list[dict], model: str) -> float:
+    """The fraction of the gravity ``model`` carried: the smallest load factor of its
+    ``gravity_static`` failures (the gravity stage's static sag, or a calibration that records
+    a fitted body load its model had no equilibrium for), 1 when it has none."""
+    return min((float(f["reached"]["load_factor"]) for f in failures
+                if f["model"] == model and f["experiment"] == "gravity_static"), default=1.0)
 
 
 def _magnitude(value: float | None) -> float | None:

@@ -19,6 +19,8 @@ each test then provokes one failure with physically too-soft springs or a scene 
 import dataclasses
 import json
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -274,6 +276,27 @@ def test_require_pass_exits_3_on_a_failed_verdict_and_0_on_a_passed_one(calibrat
         ["report", "ran"]]
     assert "scene [verdict] changed" in out.splitlines()[3]
     assert load_scene(scene.path).verdict.no_worse_than_baseline is False
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(not shutil.which("mpirun"), reason="needs mpirun")
+def test_under_mpi_rank_0_decides_and_every_rank_returns_its_code(calibrated, tmp_path):
+    """``mpirun -n 2 python -m pipelines report --require-pass`` with a verdict that fails: the
+    report stage runs on rank 0, which reads the verdict, and both ranks end with exit code 3
+    (each rank's own return value recorded, not only mpirun's)."""
+    folder, scene = _copy(calibrated, tmp_path)
+    _gravity_and_report(folder, scene)
+    _record_upstream_stages(folder, scene)
+    scene.path.write_text(scene.path.read_text() + "\n[verdict]\nstatic_sag = 0.0\n")
+    record = ("import os, sys; from pipelines.cli import main; code = main(sys.argv[1:]); "
+              "open(os.path.join(sys.argv[-1], 'rank-' + os.environ['OMPI_COMM_WORLD_RANK']), "
+              "'w').write(str(code)); sys.exit(code)")
+    r = subprocess.run(["mpirun", "-n", "2", sys.executable, "-c", record, "report", "--scene",
+                        str(scene.path), "--no-progress", "--require-pass", "--out", str(folder)],
+                       capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert r.returncode == 3, r.stderr[-3000:]
+    assert [(folder / f"rank-{k}").read_text() for k in (0, 1)] == ["3", "3"]
+    assert r.stdout.count("verdict: FAILED (failed: static_sag)") == 1  # printed by rank 0
 
 
 def test_what_sets_the_step_of_one_free_particle_is_its_own_connectors():

@@ -140,6 +140,20 @@ def test_a_calibrated_model_that_cannot_carry_its_weight_fails_every_gravity_che
     assert checks["held_out_indentation"]["status"] == "passed"
 
 
+def test_the_weight_carried_is_the_smallest_load_factor_recorded():
+    """A calibration may record a load its fitted model had no equilibrium for (a body load,
+    written to params.h5 as a ``gravity_static`` failure) next to the gravity stage's run: the
+    model carried the smallest of them."""
+    report = _report()
+    record = {"model": "calibrated", "experiment": "gravity_static", "point": None,
+              "role": None, "reason": "ConvergenceError: no equilibrium"}
+    report["failures"] = [{**record, "reached": {"load_factor": 0.9}},
+                          {**record, "reached": {"load_factor": 0.8}}]
+    check = judge(measurements(report), VerdictSection())["checks"]["carries_its_weight"]
+    assert (check["calibrated"], check["baseline"], check["status"]) == (0.8, 1.0, "failed")
+    assert check["reason"].startswith("gravity_static stopped at load_factor = 0.8: ")
+
+
 def test_a_release_that_fails_fails_the_release_checks_only():
     report = _report()
     report["failures"] = [{"model": "calibrated", "experiment": "gravity_dynamic", "point": None,
@@ -179,7 +193,7 @@ def test_checks_not_measured_are_not_run_with_the_reason():
     for name in ("static_sag", "release_rms", "carries_its_weight"):
         assert checks[name]["status"] == "not_run", name
         assert checks[name]["reason"] == "the FE gravity test failed: diverged"
-        assert checks[name]["calibrated"] is None or name != "carries_its_weight"
+        assert checks[name]["calibrated"] is None and checks[name]["baseline"] is None
 
 
 def test_tables_show_every_check_and_the_reasons():
