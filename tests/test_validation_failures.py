@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from calibration.core import calibrate
+from calibration.gravity_check import gravity_outcome
 from calibration.parametrisation import GlobalParams
 from calibration.results import read_params, write_params
 from calibration.synthetic import box_scene, synthetic_reference
@@ -62,6 +63,19 @@ def softening(n: int, K0: float, root: float) -> ConnectorParams:
                            k2=np.full(n, 0.5 * K0), b2=np.full(n, 5.0 * K0))
 
 
+def _spy(calls: list):
+    """A :func:`gravity_outcome` that records its arguments and result in ``calls``."""
+    def spy(*args):
+        out = gravity_outcome(*args)
+        calls.append((args, out))
+        return out
+    return spy
+
+
+#: the calibration's gravity checks of the fixture's fit: (arguments, result) per call
+CHECK_CALLS: list = []
+
+
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     """(folder, scene) of a calibrated box whose models all complete their validation."""
@@ -69,7 +83,10 @@ def calibrated(tmp_path_factory):
     scene = _scene(d)
     n = len(build_problem(scene).mesh.edges)
     synthetic_reference(scene, TRUTH.connector_params(n), d / "reference.h5", gravity=True)
-    calibrate(scene, d / "reference.h5", d / "params.h5", progress=False)
+    CHECK_CALLS.clear()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("calibration.gravity_check.gravity_outcome", _spy(CHECK_CALLS))
+        calibrate(scene, d / "reference.h5", d / "params.h5", progress=False)
     return d, scene
 
 
@@ -120,6 +137,36 @@ def test_a_run_whose_models_complete_has_no_failures_and_a_verdict(calibrated, t
     shares = [e["share"] for e in rt["limiting_edges"]]
     assert shares == sorted(shares, reverse=True) and 0 < sum(shares) <= 1 + 1e-12
     assert rt["edge_min_m"] <= min(e["rest_length_m"] for e in rt["limiting_edges"])
+
+
+def test_the_calibrations_gravity_check_is_the_gravity_stages_run(calibrated, tmp_path,
+                                                                   monkeypatch):
+    """One check, so the two cannot disagree: the calibration's gravity check of the fit it
+    keeps and the gravity stage's run of the calibrated model call the same function with the
+    same scene, geometry, parameters, record times and strain range, and get the same test."""
+    folder, scene = _copy(calibrated, tmp_path)
+    stage_calls: list = []
+    monkeypatch.setattr("pipelines.gravity.gravity_outcome", _spy(stage_calls))
+    _gravity_and_report(folder, scene)
+    (check_args, (check_run, check_failure)), = CHECK_CALLS  # the fit completed: one call
+    (stage_args, (stage_run, stage_failure)), = [c for c in stage_calls
+                                                 if c[0][5] == "calibrated"]
+    check_scene, check_problem, check_params, check_times, check_range, _ = check_args
+    stage_scene, stage_problem, stage_params, stage_times, stage_range, _ = stage_args
+    assert check_scene.gravity == stage_scene.gravity
+    assert check_scene.particle == stage_scene.particle
+    assert check_scene.material == stage_scene.material
+    for name in ("vertices", "tets"):
+        assert np.array_equal(getattr(check_problem.mesh, name), getattr(stage_problem.mesh,
+                                                                         name))
+    assert np.array_equal(check_problem.fixed, stage_problem.fixed)
+    for field in dataclasses.fields(check_params):
+        a, b = getattr(check_params, field.name), getattr(stage_params, field.name)
+        assert (a is None and b is None) or np.array_equal(a, b), field.name
+    assert np.array_equal(check_times, stage_times) and check_range == stage_range
+    assert check_failure is None and stage_failure is None
+    assert np.array_equal(check_run.static_displacement, stage_run.static_displacement)
+    assert np.array_equal(check_run.displacement, stage_run.displacement)
 
 
 def test_a_baseline_that_cannot_reach_the_depth_is_recorded_at_its_points(calibrated,
