@@ -220,11 +220,19 @@ def gravity_static_figure(path: Path, reference: Reference, gravity: GravityRuns
         ax = fig.add_axes([0.0 + 0.46 * i, 0.02, 0.40, 0.86], projection="3d")
         _surface(ax, mesh.vertices, mesh.surface_faces, u, norm, scale,
                  f"{label}: max sag {MM * np.linalg.norm(u, axis=1).max():.2f} mm")
+    if run is None:  # the calibrated panel says how far its static sag got
+        carried = [f.reached for f in gravity.failures
+                   if f.model == "calibrated" and f.experiment == "gravity_static"]
+        ax = fig.add_axes([0.46, 0.02, 0.40, 0.86])
+        ax.axis("off")
+        ax.text(0.5, 0.5, "particle, calibrated: no static equilibrium"
+                + (f"\nbeyond {min(carried):.3g} g" if carried else "")
+                + "\n(report.json failures)", ha="center", va="center")
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"),
                        cax=fig.add_axes([0.92, 0.2, 0.015, 0.55]))
     bar.set_label("|u| [mm]")
     missing = "" if run is not None else "; the calibrated model did not carry its weight"
-    fig.suptitle(f"Static sag under gravity, base fixed (displacements drawn x{scale:g})"
+    fig.suptitle(f"Static sag under gravity, supported (displacements drawn x{scale:g})"
                  + missing)
     return save_figure(fig, path, tight=False)
 
