@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 
 from calibration.validation import MODEL_FAILURES, ValidationFailure, failure_from
+from forcecal.errors import TimeStepError
 from forcecal.problem import Problem
 from forcecal.scene import Scene
 from particle.experiments import GravityTest, gravity_release, gravity_static_test
@@ -84,7 +85,9 @@ def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
 
     Returns (the test, None) when it completes; a model that fails it is a result: (None,
     its failure) if the static sag fails, (the static sag alone, its failure) if the
-    release does.
+    release does. An explicit ``particle.dt`` above the model's stability limit is the
+    scene's setting, not the model's failure: refused
+    (:class:`~forcecal.errors.TimeStepError`).
     """
     model = build_model(problem, scene.material.density, params)
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
@@ -92,6 +95,8 @@ def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
     try:
         static = gravity_static_test(model, gravity, load_steps=scene.gravity.static_load_steps,
                                      **settings)
+    except TimeStepError:  # the scene's particle.dt: a setting to change, refused
+        raise
     except MODEL_FAILURES as exc:
         return None, failure_from(exc, name, "gravity_static")
     if times is None:

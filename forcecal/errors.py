@@ -40,5 +40,10 @@ class StabilityError(ForcecalError):
     """An explicit time step is above the stability limit, or a run diverged."""
 
 
+class TimeStepError(StabilityError):
+    """The explicit time step a scene sets (``particle.dt``) is above a model's stability limit:
+    a setting to change (a refusal), not a failure of the model."""
+
+
 class ConvergenceError(ForcecalError):
     """A nonlinear or optimisation solver failed to converge."""
