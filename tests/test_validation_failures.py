@@ -378,6 +378,6 @@ def test_a_haptic_session_that_cannot_run_is_a_failed_real_time_check(tmp_path):
     problem = build_problem(scene)
     block = realtime_block(scene, problem, TRUTH.connector_params(len(problem.mesh.edges)))
     assert block["status"] == "failed"
-    assert block["reason"].startswith("StabilityError: time step dt = 0.01 s")
+    assert block["reason"].startswith("TimeStepError: time step dt = 0.01 s")
     assert block["step_p99_us"] is None and block["substeps_per_ms"] is None
     assert block["limiting_edges"]  # what sets the step is known before the session fails
