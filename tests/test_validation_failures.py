@@ -40,6 +40,7 @@ from pipelines.gravity import read_gravity
 from pipelines.report import read_report
 from pipelines.runners.common import Context
 from pipelines.runners.gravity import run_gravity_stage
+from pipelines.runners.reference import mpirun_environment
 from pipelines.runners.report import run_report
 from pipelines.stages import STAGES
 
@@ -340,7 +341,8 @@ def test_under_mpi_rank_0_decides_and_every_rank_returns_its_code(calibrated, tm
               "'w').write(str(code)); sys.exit(code)")
     r = subprocess.run(["mpirun", "-n", "2", sys.executable, "-c", record, "report", "--scene",
                         str(scene.path), "--no-progress", "--require-pass", "--out", str(folder)],
-                       capture_output=True, text=True, cwd=tmp_path, timeout=600)
+                       capture_output=True, text=True, cwd=tmp_path, timeout=600,
+                       env=mpirun_environment())  # without what an in-process MPI set
     assert r.returncode == 3, r.stderr[-3000:]
     assert [(folder / f"rank-{k}").read_text() for k in (0, 1)] == ["3", "3"]
     assert r.stdout.count("verdict: FAILED (failed: static_sag)") == 1  # printed by rank 0
