@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 import re
 import signal
@@ -42,7 +41,6 @@ from forcecal.failures import EXIT_ERROR, describe, die_with_parent
 from forcecal.h5io import atomic_path
 from forcecal.provenance import git_commit
 
-log = logging.getLogger(__name__)
 
 KIND = "forcecal.corpus"
 VERSION = 1
@@ -162,9 +160,10 @@ def scene_entry(scene_path: Path, out: Path, mesh: dict[str, Any],
     """The ``corpus.json`` entry of one scene after its run.
 
     Stage times: a stage that ran now, its time now; one that was up to date, the time
-    recorded with its outputs. The verdict and haptic p99 are read from the report only
-    when this run wrote it or found it up to date (exit status 0 or 3): a report left by an
-    earlier run of other inputs is not this scene's result."""
+    recorded with its outputs (:func:`_total` for the scene's). The verdict and haptic p99
+    are read from the report only when this run wrote it or found it up to date (exit
+    status 0 or 3): a report left by an earlier run of other inputs is not this scene's
+    result."""
     stages = run["stages"]
     for stage, entry in stages.items():
         if entry["status"] == "up_to_date":
@@ -194,13 +193,12 @@ def scene_entry(scene_path: Path, out: Path, mesh: dict[str, Any],
     return entry
 
 
-def _total(stages: dict[str, dict[str, Any]], run: dict[str, Any]) -> float | None:
-    """The scene's pipeline time: its stages' times when every stage's is known, else
-    (a failed or interrupted run) this run's wall time."""
-    seconds = [stages.get(s, {}).get("seconds") for s in STAGE_NAMES]
-    if all(s is not None for s in seconds):
-        return float(sum(seconds))
-    return run["wall_time_s"]
+def _total(stages: dict[str, dict[str, Any]], run: dict[str, Any]) -> float:
+    """The scene's pipeline time: this run's wall time plus the recorded times of the stages
+    it found up to date (for a scene run from scratch, its wall time; for one that failed,
+    the time its stages took to reach the failure)."""
+    return run["wall_time_s"] + sum(e["seconds"] or 0.0 for e in stages.values()
+                                    if e["status"] == "up_to_date")
 
 
 def read_corpus(path: str | Path) -> dict[str, Any]:
@@ -278,8 +276,7 @@ def _finish(data: dict[str, Any], entries: dict[str, dict[str, Any]], t0: float,
     data["scenes"] = sorted(entries.values(), key=lambda e: (e.get("vertices", -1), e["scene"]))
     data["loadavg_end"] = list(os.getloadavg())
     data["wall_time_s"] = time.perf_counter() - t0
-    times = [e["total_time_s"] for e in data["scenes"]]
-    data["scenes_time_s"] = float(sum(times)) if all(t is not None for t in times) else None
+    data["scenes_time_s"] = float(sum(e["total_time_s"] for e in data["scenes"]))
     data["passed"] = all(e["passed"] is True for e in data["scenes"])
     write_corpus(corpus_path, data)
     if docs is not None:
@@ -343,7 +340,7 @@ def corpus_markdown(data: dict[str, Any]) -> str:
         f"Run of {data['date']} at commit `{data['git_commit']}` on {data['cpus']} cores, "
         f"load average (1/5/15 min) at start / end {load}; corpus wall time "
         f"{_minutes(data['wall_time_s'])} min (the scenes' pipeline times add up to "
-        f"{_minutes(data['scenes_time_s']) or '?'} min). Overall verdict (every scene's "
+        f"{_minutes(data['scenes_time_s'])} min). Overall verdict (every scene's "
         f"verdict passed): {'PASS' if data['passed'] else 'FAIL'}.",
         "",
         "A check's cell: its status, the calibrated model's and the closed-form baseline's "

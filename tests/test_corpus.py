@@ -11,7 +11,6 @@ import json
 import sys
 import textwrap
 import tomllib
-from pathlib import Path
 
 import pytest
 
@@ -125,12 +124,13 @@ def test_every_scene_runs_and_corpus_json_records_each_outcome(fake_corpus):
     assert broken["stages"] == {"reference": {"status": "ran", "seconds": 60.0},
                                 "calibrate": {"status": "failed", "seconds": None}}
     assert broken["fe_time_s"] == 60.0 and broken["calibration_time_s"] is None
-    assert broken["total_time_s"] == broken["run_wall_time_s"]  # no stage time for the rest
+    assert broken["total_time_s"] == broken["run_wall_time_s"]
     assert broken["verdict"] is None and broken["passed"] is None and broken["report"] is None
 
     ok = scene["b_ok"]
     assert ok["exit_status"] == 0 and ok["error"] is None and ok["missing"] == []
-    assert (ok["fe_time_s"], ok["calibration_time_s"], ok["total_time_s"]) == (60.0, 30.0, 99.0)
+    assert (ok["fe_time_s"], ok["calibration_time_s"]) == (60.0, 30.0)
+    assert ok["total_time_s"] == ok["run_wall_time_s"] < 60
     assert ok["haptic_p99_us"] == 412.5 and ok["passed"] is False
     assert ok["verdict"]["checks"]["static_sag"] == {
         "status": "failed", "calibrated": 0.196, "baseline": 0.138, "goal": 0.15,
@@ -154,8 +154,9 @@ def test_a_second_run_reruns_no_stage_of_an_up_to_date_scene(fake_corpus):
     assert report.stat().st_mtime_ns == written
     assert {s: e["status"] for s, e in ok["stages"].items()} == dict.fromkeys(
         corpus.STAGE_NAMES, "up_to_date")
-    # the times are those recorded with the outputs, not this run's few milliseconds
-    assert (ok["fe_time_s"], ok["calibration_time_s"], ok["total_time_s"]) == (60.0, 30.0, 99.0)
+    # the times are those recorded with the outputs, not this run's fraction of a second
+    assert (ok["fe_time_s"], ok["calibration_time_s"]) == (60.0, 30.0)
+    assert ok["total_time_s"] == pytest.approx(99.0 + ok["run_wall_time_s"])
     assert ok["passed"] is False and ok["haptic_p99_us"] == 412.5
     assert not any("running" in line for line in lines)
 
