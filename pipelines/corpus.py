@@ -29,8 +29,10 @@ import json
 import os
 import re
 import signal
+import queue
 import subprocess
 import sys
+import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -87,8 +89,18 @@ def mesh_summary(scene_path: Path) -> dict[str, Any]:
             "edge_mean_m": float(edges.mean())}
 
 
-def run_scene(command: list[str], log_path: Path, echo: Callable[[str], None]) -> dict[str, Any]:
+#: seconds between the lines saying a long stage is still running
+HEARTBEAT_S = 300.0
+
+
+def run_scene(command: list[str], log_path: Path, echo: Callable[[str], None],
+              status: Callable[[], str] = lambda: "",
+              heartbeat_s: float = HEARTBEAT_S) -> dict[str, Any]:
     """Run one scene's pipeline process to its end, its output into ``log_path``.
+
+    Echoes each stage's start and end and its ``error:`` line, and every ``heartbeat_s``
+    of silence which stage is running, for how long, and ``status()`` (e.g. the FE work
+    items finished so far).
 
     Returns ``{"exit_status", "error", "stages", "wall_time_s"}``: ``stages`` maps each
     stage to ``{"status": "ran" | "up_to_date" | "failed", "seconds"}`` as its log said
@@ -101,28 +113,19 @@ def run_scene(command: list[str], log_path: Path, echo: Callable[[str], None]) -
         fh.write(f"$ {' '.join(command)}\n")
         child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  text=True, bufsize=1, preexec_fn=die_with_parent)
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=_read_lines, args=(child.stdout, lines), daemon=True).start()
         try:
-            for line in child.stdout:
+            while (line := _next_line(lines, heartbeat_s)) is not None:
+                if line == "":  # silence: say what is running
+                    running = [s for s, e in stages.items() if e["status"] == "running"]
+                    echo(f"{running[-1] if running else 'starting'} running, "
+                         f"{(time.perf_counter() - t0) / 60:.0f} min so far{status()}")
+                    continue
                 fh.write(line)
                 fh.flush()
-                line = line.rstrip("\n")
-                if _ERROR_LINE.match(line):
-                    error = line.split("error: ", 1)[1]
-                    echo(f"error: {error}")
-                    continue
-                m = _STAGE_LINE.match(line)
-                if m is None:
-                    continue
-                stage, what = m["stage"], m["what"]
-                if what.startswith("running"):
-                    stages[stage] = {"status": "running", "seconds": None}
-                    echo(f"{stage} {what}")
-                elif m["seconds"] is not None:
-                    stages[stage] = {"status": "ran", "seconds": float(m["seconds"])}
-                    echo(f"{stage} done in {float(m['seconds']) / 60:.1f} min")
-                else:
-                    stages[stage] = {"status": "up_to_date", "seconds": None}
-            status = child.wait()
+                error = _follow(line.rstrip("\n"), stages, echo) or error
+            exit_status = child.wait()
         finally:
             if child.poll() is None:  # the runner itself is interrupted: stop the scene too
                 child.terminate()
@@ -133,8 +136,54 @@ def run_scene(command: list[str], log_path: Path, echo: Callable[[str], None]) -
     for entry in stages.values():
         if entry["status"] == "running":
             entry["status"] = "failed"
-    return {"exit_status": status, "error": error, "stages": stages,
+    return {"exit_status": exit_status, "error": error, "stages": stages,
             "wall_time_s": time.perf_counter() - t0}
+
+
+def _read_lines(stream, lines: queue.Queue) -> None:
+    """Put every line of ``stream`` into ``lines``, then None."""
+    for line in stream:
+        lines.put(line)
+    lines.put(None)
+
+
+def _next_line(lines: queue.Queue, timeout: float) -> str | None:
+    """The next line, None at the end, "" after ``timeout`` s without one."""
+    try:
+        return lines.get(timeout=timeout)
+    except queue.Empty:
+        return ""
+
+
+def _follow(line: str, stages: dict[str, dict[str, Any]],
+            echo: Callable[[str], None]) -> str | None:
+    """Record (and echo) what one output line of the pipeline says; returns the error of an
+    ``error:`` line."""
+    if _ERROR_LINE.match(line):
+        error = line.split("error: ", 1)[1]
+        echo(f"error: {error}")
+        return error
+    m = _STAGE_LINE.match(line)
+    if m is None:
+        return None
+    stage, what = m["stage"], m["what"]
+    if what.startswith("running"):
+        stages[stage] = {"status": "running", "seconds": None}
+        echo(f"{stage} {what}")
+    elif m["seconds"] is not None:
+        stages[stage] = {"status": "ran", "seconds": float(m["seconds"])}
+        echo(f"{stage} done in {float(m['seconds']) / 60:.1f} min")
+    else:
+        stages[stage] = {"status": "up_to_date", "seconds": None}
+    return None
+
+
+def fe_items_done(out: Path) -> str:
+    """``", N FE work items finished"`` while the FE reference of ``out`` runs (its finished
+    items are kept in ``reference.h5.parts/``), else ""."""
+    parts = out / "reference.h5.parts"
+    n = len(list(parts.glob("*.npz"))) if parts.is_dir() else 0
+    return f", {n} FE work items finished" if n else ""
 
 
 def _recorded_seconds(out: Path, stage: str) -> float | None:
@@ -258,7 +307,8 @@ def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] 
             echo(f"[{i}/{len(paths)}] {path.stem} ({size})")
             scene_out = out / path.stem
             run = run_scene(command(path, scene_out), out / "logs" / f"{path.stem}.log",
-                            lambda text, name=path.stem: echo(f"  {name}: {text}"))
+                            lambda text, name=path.stem: echo(f"  {name}: {text}"),
+                            lambda where=scene_out: fe_items_done(where))
             entries[str(path)] = scene_entry(path, scene_out, mesh, run)
             echo(f"  {path.stem}: {_outcome(entries[str(path)])}")
             _finish(data, entries, t0, corpus_path, docs)  # kept if the corpus stops later

@@ -39,6 +39,15 @@ FAKE_PIPELINE = textwrap.dedent('''
         print(f"error: {scene.parent / 'missing.vtu'}: mesh file does not exist [stage "
               "reference; kept: nothing]", file=sys.stderr)
         sys.exit(2)
+    if kind == "slow":  # an FE reference with two of its work items finished, then quiet
+        (out / "reference.h5.parts").mkdir()
+        for item in ("indentation-0000", "relaxation-0000"):
+            (out / "reference.h5.parts" / f"{item}.npz").write_bytes(b"")
+        print("INFO pipelines.stages: reference running: no cache record", file=sys.stderr,
+              flush=True)
+        import time
+        time.sleep(1.0)
+        sys.exit(0)
     if kind == "interrupted":
         print("INFO pipelines.stages: reference running: no cache record", file=sys.stderr)
         print("interrupted; rerun the same command to resume", file=sys.stderr)
@@ -196,6 +205,18 @@ def test_a_scene_whose_mesh_is_refused_is_recorded_with_the_refusal(fake_corpus)
     assert "vertices" not in entry and entry["verdict"] is None
     assert data["scenes"][0] is entry  # refused at load: run first
     assert "[1/4] f_refused (its mesh is refused)" in lines
+
+
+def test_a_long_quiet_stage_is_reported_with_the_fe_items_it_finished(fake_corpus):
+    scenes, out, command, calls = fake_corpus
+    scene = scenes / "g_slow.toml"
+    lines = []
+    run = corpus.run_scene(command(scene, out / "g_slow"), out / "g_slow.log", lines.append,
+                           lambda: corpus.fe_items_done(out / "g_slow"), heartbeat_s=0.3)
+    assert run["exit_status"] == 0
+    assert lines[0] == "reference running: no cache record"
+    assert "reference running, 0 min so far, 2 FE work items finished" in lines[1:]
+    assert "reference running: no cache record" in (out / "g_slow.log").read_text()
 
 
 def test_the_docs_table_is_generated_from_corpus_json_alone(fake_corpus, tmp_path):
