@@ -27,9 +27,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import queue
 import re
 import signal
-import queue
 import subprocess
 import sys
 import threading
@@ -42,7 +42,6 @@ from forcecal.errors import DataFileError, ForcecalError
 from forcecal.failures import EXIT_ERROR, describe, die_with_parent
 from forcecal.h5io import atomic_path
 from forcecal.provenance import git_commit
-
 
 KIND = "forcecal.corpus"
 VERSION = 1
@@ -274,8 +273,8 @@ def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] 
     """Run every scene of ``scenes`` (or the stems in ``only``); see the module docstring.
 
     Returns the corpus result, also written to ``out/corpus.json`` (and its table to
-    ``docs`` unless None). Entries of scenes not run now (``only``) are kept from an
-    earlier ``corpus.json``.
+    ``docs`` unless None). With ``only``, the entries of the other scenes of ``scenes`` are
+    kept from an earlier ``corpus.json`` (each entry has its own date and commit).
     """
     paths = sorted(scenes.glob("*.toml"))
     if only:
@@ -297,7 +296,8 @@ def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] 
             "git_commit": git_commit(), "cpus": os.cpu_count(),
             "loadavg_start": list(os.getloadavg()), "loadavg_end": None,
             "wall_time_s": None, "scenes_time_s": None, "passed": None, "scenes": []}
-    entries = dict(earlier)
+    kept = {str(p) for p in scenes.glob("*.toml")} - {str(p) for p in paths}
+    entries = {k: v for k, v in earlier.items() if k in kept}
     t0 = time.perf_counter()
     try:
         for i, path in enumerate(paths, 1):
@@ -306,10 +306,12 @@ def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] 
                     else "its mesh is refused")
             echo(f"[{i}/{len(paths)}] {path.stem} ({size})")
             scene_out = out / path.stem
+            when = datetime.now(timezone.utc).isoformat(timespec="seconds")
             run = run_scene(command(path, scene_out), out / "logs" / f"{path.stem}.log",
                             lambda text, name=path.stem: echo(f"  {name}: {text}"),
                             lambda where=scene_out: fe_items_done(where))
-            entries[str(path)] = scene_entry(path, scene_out, mesh, run)
+            entries[str(path)] = {**scene_entry(path, scene_out, mesh, run), "date": when,
+                                  "git_commit": data["git_commit"]}
             echo(f"  {path.stem}: {_outcome(entries[str(path)])}")
             _finish(data, entries, t0, corpus_path, docs)  # kept if the corpus stops later
             if run["exit_status"] in INTERRUPTED:

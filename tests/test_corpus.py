@@ -176,7 +176,12 @@ def test_only_keeps_the_other_scenes_entries(fake_corpus):
     data, _ = run(scenes, out, command, only=("c_noverdict",))
     assert [e["name"] for e in data["scenes"]] == ["a_broken", "b_ok", "c_noverdict"]
     assert by_name(data)["a_broken"] == by_name(first)["a_broken"]
-    assert calls.read_text().split() == ["a_broken", "b_ok", "c_noverdict", "c_noverdict"]
+    assert {"date", "git_commit"} <= set(by_name(data)["a_broken"])
+    (scenes / "a_broken.toml").unlink()  # a full run forgets a scene that is gone
+    data, _ = run(scenes, out, command)
+    assert [e["name"] for e in data["scenes"]] == ["b_ok", "c_noverdict"]
+    assert calls.read_text().split()[:4] == ["a_broken", "b_ok", "c_noverdict",
+                                             "c_noverdict"]
     with pytest.raises(corpus.DataFileError, match="no scene nope"):
         run(scenes, out, command, only=("nope",))
 
