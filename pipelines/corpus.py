@@ -118,7 +118,7 @@ def run_scene(command: list[str], log_path: Path, echo: Callable[[str], None],
             while (line := _next_line(lines, heartbeat_s)) is not None:
                 if line == "":  # silence: say what is running
                     running = [s for s, e in stages.items() if e["status"] == "running"]
-                    echo(f"{running[-1] if running else 'starting'} running, "
+                    echo(f"{running[-1] + ' running' if running else 'starting'}, "
                          f"{(time.perf_counter() - t0) / 60:.0f} min so far{status()}")
                     continue
                 fh.write(line)
