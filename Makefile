@@ -28,7 +28,7 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 STAGE_ARGS := --scene $(SCENE) $(if $(OUT),--out $(OUT))
 
-.PHONY: help setup test demo validate reference calibrate gravity report bench bench-quick clean
+.PHONY: help setup test demo validate reference calibrate gravity report bench bench-quick corpus clean
 
 help:
 	@echo "make demo        # install what is missing, then mesh -> FE reference -> calibration -> gravity -> report"
@@ -36,6 +36,7 @@ help:
 	@echo "make test        # install what is missing, then run the test suite"
 	@echo "make reference | calibrate | gravity | report   # single stages (SCENE=... OUT=...)"
 	@echo "make bench       # run time vs error benchmarks -> runs/bench/ (bench-quick: a few minutes)"
+	@echo "make corpus      # every scenes/corpus/*.toml through the pipeline -> runs/corpus/corpus.json, docs/corpus.md"
 
 setup: $(STAMP)
 
@@ -89,6 +90,9 @@ bench: setup
 
 bench-quick: setup
 	$(PY) -m pipelines bench --quick --out runs/bench-quick
+
+corpus: setup
+	$(PY) -m pipelines corpus
 
 clean:
 	rm -rf $(VENV) .cache build *.egg-info

@@ -53,6 +53,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("bench", help="bench.json")
     from pipelines.bench.driver import add_arguments as bench_arguments
     bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
+    from pipelines.corpus import add_arguments as corpus_arguments
+    corpus_arguments(sub.add_parser("corpus", help="every scenes/corpus/*.toml through the "
+                                    "pipeline, one process each (make corpus)"))
     helps = {"reference": "FE reference (reference.h5)",
              "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
              "gravity": "particle gravity runs (gravity.h5); runs earlier stages if needed",
@@ -113,6 +116,9 @@ def _run(args: argparse.Namespace) -> int:
         from pipelines.bench.driver import main as bench_main
         configure_logging(logging.INFO)
         return bench_main(args)
+    if args.stage == "corpus":
+        from pipelines.corpus import main as corpus_main
+        return corpus_main(args)
     from calibration.pool import mpi_world
     from forcecal.scene import load_scene
     from pipelines.stages import ORDER, run_pipeline
