@@ -329,3 +329,125 @@ def test_a_partial_run_records_the_default_run_it_brings_up_to_date():
     assert selected_items(names, ("calibration methods",)) == ("default pipeline run",
                                                                "calibration methods")
     assert selected_items(names, ("scale",)) == ("scale",)
+
+
+def test_make_bench_runs_the_headline_items_and_bench_full_every_item():
+    """``make bench`` (headline) runs the speed and error axes in the bench's order, leaving
+    the long items to ``make bench-full``; every reduced study names a headline item and a
+    function of the same signature."""
+    import importlib
+    import inspect
+
+    from pipelines.bench.driver import (BUILT_IN, HEADLINE, HEADLINE_STUDIES, STUDIES,
+                                        selection_items)
+
+    every = selection_items(True)
+    assert every == BUILT_IN + tuple(STUDIES)
+    assert selection_items(False) == ("default pipeline run", "run time vs error",
+                                      "reference timings", "particle engine",
+                                      "stability limits", "haptic scale", "fe_convergence",
+                                      "scale", "volume term")
+    assert set(every) - set(HEADLINE) == {"experiments", "calibration methods"}
+    assert set(HEADLINE_STUDIES) <= set(HEADLINE) & set(STUDIES)
+    for name, target in HEADLINE_STUDIES.items():
+        reduced = getattr(importlib.import_module(target.split(":")[0]), target.split(":")[1])
+        module, function = STUDIES[name].split(":")
+        whole = getattr(importlib.import_module(module), function)
+        assert list(inspect.signature(reduced).parameters) == list(
+            inspect.signature(whole).parameters)[:3]
+
+
+def test_the_headline_pareto_runs_the_first_settings_of_each_axis():
+    from pipelines.bench.configs import HEADLINE_SETTINGS, configs
+
+    scene = load_scene(SCENES / "tiny.toml")
+    full, headline = configs(scene, True, full=True), configs(scene, True, full=False)
+
+    def by_axis(rows):
+        out = {}
+        for c in rows:
+            out.setdefault(c.axis, []).append(c.label)
+        return out
+
+    full, headline = by_axis(full), by_axis(headline)
+    assert set(full) == set(headline) == {"mesh", "calibration points", "Nelder-Mead budget",
+                                          "local tuning"}
+    for axis, labels in headline.items():
+        assert labels == full[axis][:HEADLINE_SETTINGS.get(axis, len(full[axis]))], axis
+    assert len(headline["mesh"]) == 2 and len(full["mesh"]) == 3  # the coarse and the default
+
+
+def test_the_headline_scale_study_keeps_a_wide_range_of_sizes_without_the_rank_timing(
+        monkeypatch, tmp_path):
+    from pipelines.bench import scale
+
+    calls = []
+
+    def child(args, cwd, mpi_ranks=0):
+        calls.append((float(args[args.index("--length") + 1]), mpi_ranks))
+        n = int(1e-3 / calls[-1][0] ** 3)  # vertices ~ length^-3
+        return ({"ranks": mpi_ranks, "wall_s": 1.0} if mpi_ranks else
+                {"vertices": n, "step_us": 0.1 * n, "calibration_s": 1e-4 * n ** 1.5})
+
+    monkeypatch.setattr(scale, "_child", child)
+    scene = load_scene(SCENES / "liver.toml")
+    headline = scale.headline_study(scene, tmp_path, False)
+    assert calls == [(length, 0) for length in scale.HEADLINE_LENGTHS[False]]
+    assert headline["scale_study"]["ranks"]["runs"] == []
+    assert headline["scale_study"]["exponents"]["calibration_s"] == pytest.approx(1.5, abs=0.02)
+    calls.clear()
+    scale.study(scene, tmp_path, False)
+    assert [c for c, _ in calls] == list(scale.LENGTHS[False]) + [scale.LENGTHS[False][1]] * 2
+    assert [r for _, r in calls][-2:] == [1, 2]
+    vertices = sorted(int(1e-3 / length ** 3) for length in scale.HEADLINE_LENGTHS[False])
+    assert vertices[-1] / vertices[0] > 5  # exponents over at least a 5x range of sizes
+
+
+def test_the_headline_fe_convergence_leaves_out_the_finest_sag_level(monkeypatch, tmp_path):
+    from pipelines.bench import fe_convergence
+
+    seen = []
+    monkeypatch.setattr(fe_convergence, "convergence",
+                        lambda scene, levels, **kw: seen.append((levels, kw["sag_levels"])))
+    monkeypatch.setattr(fe_convergence, "load_scene", lambda path: None)
+    fe_convergence.headline_study(None, tmp_path, False)
+    fe_convergence.study(None, tmp_path, False)
+    assert seen == [(fe_convergence.LEVELS, fe_convergence.HEADLINE_SAG_LEVELS),
+                    (fe_convergence.LEVELS, fe_convergence.SAG_LEVELS)]
+    assert fe_convergence.HEADLINE_SAG_LEVELS == fe_convergence.SAG_LEVELS[:-1]
+
+
+def test_an_only_run_of_a_full_item_or_into_another_selection_is_refused(tmp_path):
+    from forcecal.errors import ForcecalError
+    from pipelines.bench.driver import default_out, run_bench
+
+    out = tmp_path / "bench"
+    with pytest.raises(ForcecalError, match=r"\['experiments'\] run in make bench-full only"):
+        run_bench(out, only=("experiments",))
+    out.mkdir()
+    shutil.copy(ROOT / "runs" / "bench" / "bench.json", out / "bench.json")  # a full run
+    with pytest.raises(ForcecalError, match="is a full run, this one a headline run: pass --full"):
+        run_bench(out, only=("stability limits",))
+    assert sorted(p.name for p in out.iterdir()) == ["bench.json"]  # nothing ran
+    assert default_out(False, False).as_posix() == "runs/bench-headline"
+    assert default_out(True, False).as_posix() == "runs/bench"
+
+
+def test_a_headline_bench_may_leave_the_1rank_reference_untimed(tmp_path):
+    """The headline times the reference on 2 ranks only: its bench.json and BENCH.md say so;
+    a full run must have both."""
+    from forcecal.errors import DataFileError
+    from pipelines.bench.driver import check_bench, read_bench
+    from pipelines.bench.report import write_markdown
+
+    bench = read_bench(ROOT / "runs" / "bench" / "bench.json")
+    bench["reference"]["wall_s_1rank"] = None
+    bench["reference"]["runs"].pop("1")
+    with pytest.raises(DataFileError, match="reference.wall_s_1rank = None"):
+        check_bench(bench)
+    bench["selection"] = "headline"
+    check_bench(bench)
+    write_markdown(tmp_path / "BENCH.md", bench)
+    text = (tmp_path / "BENCH.md").read_text()
+    assert "Produced by `make bench` (`python -m pipelines bench`: the headline items" in text
+    assert "not timed on 1 rank (`make bench-full` does)" in text

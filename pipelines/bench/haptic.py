@@ -1,6 +1,6 @@
 """``haptic scale`` benchmark: the haptic step at 1.4k, 12k and >= 50k connectors, per variant.
 
-``python -m pipelines bench --only "haptic scale"`` runs it alone (it does not need
+``python -m pipelines bench [--full] --only "haptic scale"`` runs it alone (it does not need
 the default pipeline run) and writes ``haptic_scale`` into ``bench.json``: one row
 per mesh and variant with the latency of :meth:`particle.haptics.HapticSession.step`
 (1 ms of simulated time per call) and the variant's error against the float64
@@ -276,7 +276,8 @@ def markdown(b: dict[str, Any]) -> list[str]:
         return []
     lines = ["", "## Haptic variants", "",
              "`HapticSession.step` (1 ms simulated per call, one thread) per mesh and variant "
-             "(`pipelines/bench/haptic.py`, `python -m pipelines bench --only \"haptic scale\"`): "
+             "(`pipelines/bench/haptic.py`, `python -m pipelines bench [--full] --only \"haptic "
+             "scale\"`): "
              f"a {h['calls']}-call drag of the top vertex 5 mm down, then held. Errors against "
              "the float64 default of the same mesh: `drag`, the tool force over the drag; "
              "`release`, the tracked vertex over 3 s of gravity release (relative RMS). "

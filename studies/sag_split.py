@@ -26,9 +26,8 @@ indentation curves at the calibration points (the report's ``indentation_calibra
 what putting those values back costs against the data the fit saw; the result also has the
 geometric means over connectors and tets of ``K0`` and ``kv`` calibrated / global. The
 ``calibrated`` row repeats the gravity stage's static sag (checked against ``gravity.h5`` to
-1e-9 of its largest displacement). Not a bench item (seconds on a finished run folder):
-``python -m pipelines.bench.sag_split --scene scenes/liver_punch.toml [--run DIR]
-[--out sag.json]``.
+1e-9 of its largest displacement). ``python -m studies.sag_split --scene
+scenes/liver_punch.toml [--run DIR] [--out sag.json]`` (seconds on a finished run folder).
 """
 
 from __future__ import annotations
@@ -47,7 +46,7 @@ from particle.evaluators import IndentationEvaluator
 from particle.model import Model, build_model, params_for
 from particle.params import PARAM_NAMES, ConnectorParams
 from particle.statics import gravity_static
-from pipelines.bench.finished_run import finished_run, parse_study, study_parser
+from studies._finished_run import finished_run, parse_study, study_parser
 from pipelines.report import gravity_static_error
 
 log = logging.getLogger(__name__)
@@ -231,7 +230,7 @@ def study(scene_path: str | Path, run: str | Path | None = None,
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = study_parser("pipelines.bench.sag_split", __doc__)
+    parser = study_parser("studies.sag_split", __doc__)
     parser.add_argument("--out", help="write the result to this JSON file")
     args = parse_study(parser, argv)
     result = study(args.scene, args.run)
