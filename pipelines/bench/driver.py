@@ -82,6 +82,7 @@ from forcecal.h5io import atomic_path
 from forcecal.provenance import git_commit
 from forcecal.scene import load_scene
 from pipelines.bench import configs as bc
+from pipelines.bench.report import selection
 from pipelines.bench.items import (COLD_MARKER, GOALS, PAPER, ROOT, calibration_item,
                                    default_run, dt_sweep, fe_rows, now_utc, particle_items,
                                    reference_timings)
@@ -166,12 +167,6 @@ def check_bench(bench: dict[str, Any]) -> None:
                     raise DataFileError(f"bench.json: {group}[{n}].{k} is missing")
             for k in keys[1:] if group == "skip" else ("wall_s",):
                 number(f"{group}[{n}].{k}", row[k], allow_none="failed" in row)
-
-
-def selection(bench: dict[str, Any]) -> str:
-    """"headline" (``make bench``) or "full" (``make bench-full``; runs written before the
-    headline existed ran every item)."""
-    return bench.get("selection", "full")
 
 
 def selection_items(full: bool) -> tuple[str, ...]:
