@@ -52,7 +52,8 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
     p.add_argument("bench", help="bench.json")
     from pipelines.bench.driver import add_arguments as bench_arguments
-    bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
+    bench_arguments(sub.add_parser("bench", help="speed and error benchmarks (make bench; "
+                                   "--full: make bench-full)"))
     helps = {"reference": "FE reference (reference.h5)",
              "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
              "gravity": "particle gravity runs (gravity.h5); runs earlier stages if needed",

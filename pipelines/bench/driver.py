@@ -4,11 +4,12 @@
 [--no-progress] [--only ITEMS | --cold]``
 writes ``DIR/bench.json`` (keys below), ``DIR/pareto.png`` and ``DIR/BENCH.md``.
 Without ``--full`` (``make bench``, ``DIR`` = ``runs/bench-headline``) it runs the headline
-items of :data:`HEADLINE`, some of them reduced (:data:`REDUCED`), within about a quarter of
-an hour on two idle cores; ``--full`` (``make bench-full``, ``DIR`` = ``runs/bench``, the
-committed one) runs every item at full size. ``--quick`` benchmarks ``scenes/tiny.toml``
-with small sizes (development, a few minutes; ``DIR`` = ``runs/bench-quick``); the default
-is the default liver. ``bench.json`` records which (``selection``: "headline" or "full").
+items, some of them reduced, within about a quarter of an hour on two idle cores; ``--full``
+(``make bench-full``, ``DIR`` = ``runs/bench``, the committed one) runs every item at full
+size. Which items each runs, and at what size, is the table :data:`ITEMS`. ``--quick``
+benchmarks ``scenes/tiny.toml`` with small sizes (development, a few minutes; ``DIR`` =
+``runs/bench-quick``); the default is the default liver. ``bench.json`` records which
+(``selection``: "headline" or "full").
 
 Items, in order (each logs ``bench [k/N] <item>`` and its time):
 
@@ -28,7 +29,9 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
    with and without the terms they do not need), haptic latency, evaluator times;
 5. ``stability limits``: estimated vs empirical stability limits
    (:mod:`pipelines.bench.stability`);
-6. every item of :data:`STUDIES` (one module each).
+6. the items in modules of their own (:class:`ModuleItem`): ``experiments`` (full bench
+   only), ``haptic scale``, ``fe_convergence``, ``scale``, ``calibration methods`` (full bench
+   only), ``volume term``.
 
 Investigations that answered one question once (cross-validation of calibration settings,
 the sag and release studies, the contact size) are no items: they live in the top-level
@@ -72,6 +75,8 @@ import os
 import platform
 import re
 import time
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -80,7 +85,7 @@ import numpy as np
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.h5io import atomic_path
 from forcecal.provenance import git_commit
-from forcecal.scene import load_scene
+from forcecal.scene import Scene, load_scene
 from pipelines.bench import configs as bc
 from pipelines.bench.report import selection
 from pipelines.bench.items import (COLD_MARKER, GOALS, PAPER, ROOT, calibration_item,
@@ -92,41 +97,150 @@ log = logging.getLogger(__name__)
 DT_FRACTIONS = {False: (0.1, 0.25, 0.5, 0.75, 1.0), True: (0.25, 0.5, 1.0)}
 
 
-#: the first five items (module docstring), in order
-BUILT_IN = ("default pipeline run", "run time vs error", "reference timings", "particle engine",
-            "stability limits")
-# Items after those five: item name -> "module:function", a function study(scene, cache
-# folder, quick) -> the bench.json keys it owns. Each lives in a module of its own (imported
-# only when it runs), so adding an item adds one line here.
-STUDIES: dict[str, str] = {
-    "experiments": "pipelines.bench.experiments:study",
-    "haptic scale": "pipelines.bench.haptic:study",
-    "fe_convergence": "pipelines.bench.fe_convergence:study",
-    "scale": "pipelines.bench.scale:study",
-    "calibration methods": "pipelines.bench.calibration_methods:study",
-    "volume term": "pipelines.bench.volume:study",
-}
-#: the items of ``make bench`` (``make bench-full`` runs every item): the headline axes, speed
-#: (kernel, haptic, stability) and error (run time vs error on the default scene, FE
-#: convergence, scale with its growth exponents). Left to the full bench: the 1-rank
-#: reference timing, ``experiments`` (a reference and a calibration per experiment list) and
-#: ``calibration methods`` (eight pipelines on two scenes).
-HEADLINE = ("default pipeline run", "run time vs error", "reference timings", "particle engine",
-            "stability limits", "haptic scale", "fe_convergence", "scale", "volume term")
-#: the headline's reduced versions of studies: item name -> "module:function" (same signature
-#: as the full one in :data:`STUDIES`). The built-in items "run time vs error" (fewer settings
-#: per axis, :func:`pipelines.bench.configs.configs`) and "reference timings" (2 ranks only)
-#: are reduced by the driver's ``full`` flag.
-HEADLINE_STUDIES = {"fe_convergence": "pipelines.bench.fe_convergence:headline_study",
-                    "scale": "pipelines.bench.scale:headline_study"}
+# ---------------------------------------------------------------------------- items
+
+@dataclass
+class BenchRun:
+    """What the items of one bench run share: the benchmarked scene, the cache folder,
+    ``--quick``, the MPI ranks of FE references, progress bars, and the default pipeline
+    run's folder and Pareto row once its item ran (the items of :data:`ITEMS` that
+    ``needs_default`` read them)."""
+    scene: Scene
+    cache: Path
+    quick: bool
+    ranks: int = 2
+    progress: bool = True
+    default: Path | None = None
+    default_row: dict[str, Any] | None = None
+
+
+def default_pipeline_run(run: BenchRun) -> dict[str, Any]:
+    """The default scene through the cached pipeline (module docstring, item 1)."""
+    run.default, run.default_row = default_run(run.scene, run.cache, ranks=run.ranks,
+                                               progress=run.progress)
+    return {"calibration": calibration_item(run.default)}
+
+
+def run_time_vs_error(run: BenchRun, full: bool) -> dict[str, Any]:
+    """The Pareto rows: the default, every configuration of
+    :func:`pipelines.bench.configs.configs` (``full`` False: the headline's), the particle
+    time-step sweep and the FE discretisation study."""
+    scene = run.scene
+    rows = [bc.default_row(run.default_row, scene)]
+    rows += bc.axis_defaults(scene, rows[0])
+    for config in bc.configs(scene, run.quick, full):
+        log.info("bench: configuration %s / %s", config.axis, config.label)
+        rows.append(bc.run_config(config, scene, run.default, run.cache / "runs",
+                                  ranks=run.ranks, progress=run.progress))
+    rows += dt_sweep(scene, run.default, DT_FRACTIONS[run.quick])
+    rows += fe_rows(scene, run.cache, run.ranks)
+    bc.mark_fronts(rows)
+    return {"pareto": rows}
+
+
+def reference_timings_item(run: BenchRun, ranks: tuple[int, ...]) -> dict[str, Any]:
+    """Wall time of the full default reference on each rank count of ``ranks``."""
+    return {"reference": reference_timings(run.scene, run.default, run.cache, run.progress,
+                                           ranks=ranks)}
+
+
+def particle_engine(run: BenchRun) -> dict[str, Any]:
+    """Kernel, gravity dynamics, term skipping, haptic latency, evaluators."""
+    return particle_items(run.scene, run.default, run.quick)
+
+
+def stability_limits(run: BenchRun) -> dict[str, Any]:
+    """Estimated vs empirical stability limits."""
+    from pipelines.bench.stability import stability_table
+
+    return {"stability": stability_table(run.quick)}
+
+
+@dataclass(frozen=True)
+class ModuleItem:
+    """An item in a module of its own, imported only when it runs: ``target`` =
+    "module:function", function(scene, cache folder, quick) -> the bench.json keys it owns."""
+    target: str
+
+    def function(self) -> Callable[[Scene, Path, bool], dict[str, Any]]:
+        module, name = self.target.split(":")
+        return getattr(importlib.import_module(module), name)
+
+    def __call__(self, run: BenchRun) -> dict[str, Any]:
+        return self.function()(run.scene, run.cache, run.quick)
+
+
+ItemRun = Callable[[BenchRun], dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class Item:
+    """One item of the bench: its name (logs, ``--only``, ``item_s``), what ``make
+    bench-full`` runs (``full``), what ``make bench`` runs (``headline``: the same, a reduced
+    version, or None: ``make bench-full`` only), whether it reads the default pipeline run
+    (that one is brought up to date first by ``--only``), and whether its rows of the shared
+    lists (:data:`ROW_KEYS`) carry ``"study": name`` (the default scene's own rows do not)."""
+    name: str
+    full: ItemRun
+    headline: ItemRun | None
+    needs_default: bool = False
+    labels_rows: bool = True
+
+
+def _same(function: ItemRun) -> tuple[ItemRun, ItemRun]:
+    return function, function
+
+
+#: every item, in the order a run runs them: the bench's one list of what ``make bench`` and
+#: ``make bench-full`` run. ``make bench`` keeps the headline axes, speed (kernel, haptic,
+#: stability) and error (run time vs error on the default scene, FE convergence, scale with
+#: its growth exponents), some reduced: fewer settings per Pareto axis
+#: (:data:`pipelines.bench.configs.HEADLINE_SETTINGS`), the reference on 2 ranks only, the
+#: haptic meshes up to 12k connectors, the FE sag without its finest level, three scale sizes
+#: without the rank timing. Left to ``make bench-full``: ``experiments`` (a reference and a
+#: calibration per experiment list) and ``calibration methods`` (eight pipelines on two
+#: scenes).
+ITEMS: tuple[Item, ...] = (
+    Item("default pipeline run", *_same(default_pipeline_run), labels_rows=False),
+    Item("run time vs error", partial(run_time_vs_error, full=True),
+         partial(run_time_vs_error, full=False), needs_default=True, labels_rows=False),
+    Item("reference timings", partial(reference_timings_item, ranks=(1, 2)),
+         partial(reference_timings_item, ranks=(2,)), needs_default=True, labels_rows=False),
+    Item("particle engine", *_same(particle_engine), needs_default=True, labels_rows=False),
+    Item("stability limits", *_same(stability_limits), labels_rows=False),
+    Item("experiments", ModuleItem("pipelines.bench.experiments:study"), None,
+         needs_default=True),
+    Item("haptic scale", ModuleItem("pipelines.bench.haptic:study"),
+         ModuleItem("pipelines.bench.haptic:headline_study")),
+    Item("fe_convergence", ModuleItem("pipelines.bench.fe_convergence:study"),
+         ModuleItem("pipelines.bench.fe_convergence:headline_study")),
+    Item("scale", ModuleItem("pipelines.bench.scale:study"),
+         ModuleItem("pipelines.bench.scale:headline_study")),
+    Item("calibration methods", ModuleItem("pipelines.bench.calibration_methods:study"), None,
+         needs_default=True),
+    Item("volume term", *_same(ModuleItem("pipelines.bench.volume:study"))),
+)
 # log messages (regular expressions) by which a cache hit announces itself: an item that logs
 # one reused earlier work, so its time is not a cold time
 REUSE_MESSAGES = re.compile(r"bench: reusing |up to date, skipped|already holds .* not "
                             r"recomputed|adopting the existing|resuming from checkpoint")
-# items that need the default pipeline run (its folder is in ``state["default"]``)
-NEEDS_DEFAULT = {"run time vs error", "reference timings", "particle engine", "experiments",
-                 "calibration methods"}
 
+
+def items_of(full: bool) -> tuple[Item, ...]:
+    """The items a whole run of ``make bench-full`` (``full``) or ``make bench`` runs, in
+    order."""
+    return ITEMS if full else tuple(item for item in ITEMS if item.headline is not None)
+
+
+def item_run(item: Item, full: bool) -> ItemRun:
+    """What ``item`` runs in ``make bench-full`` (``full``) or ``make bench``."""
+    run = item.full if full else item.headline
+    if run is None:
+        raise ForcecalError(f"bench: {item.name!r} is an item of make bench-full only")
+    return run
+
+
+# ---------------------------------------------------------------------------- bench.json
 
 # the fixed keys of bench.json, checked before it is written
 BENCH_KEYS = {"kernel": ("connectors", "updates_per_s", "numpy_ratio"),
@@ -169,13 +283,6 @@ def check_bench(bench: dict[str, Any]) -> None:
                 number(f"{group}[{n}].{k}", row[k], allow_none="failed" in row)
 
 
-def selection_items(full: bool) -> tuple[str, ...]:
-    """The items a whole run of ``make bench-full`` (``full``) or ``make bench`` runs, in
-    order."""
-    every = BUILT_IN + tuple(STUDIES)
-    return every if full else tuple(name for name in every if name in HEADLINE)
-
-
 def read_bench(path: str | Path) -> dict[str, Any]:
     """A ``bench.json`` with its fixed keys checked (:func:`check_bench`)."""
     try:
@@ -188,15 +295,12 @@ def read_bench(path: str | Path) -> dict[str, Any]:
     return bench
 
 
-# ---------------------------------------------------------------------------- default run
-
 # ---------------------------------------------------------------------------- driver
 
 def cpu() -> dict[str, Any]:
     """The CPU's model name and widest SIMD extension (Linux ``/proc/cpuinfo``; None
-    elsewhere). Two-core machines differ: the unchanged particle kernels measured 2-3x
-    slower on the AMD EPYC (AVX2) of the 2026-12-03 cold run than in the 2026-12-02 run,
-    whose CPU was not recorded."""
+    elsewhere). Two-core machines differ: the same particle kernels ran 2-4x slower on an AMD
+    EPYC with AVX2 than on one with AVX-512."""
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:
@@ -238,10 +342,11 @@ def cold_times(item_s: dict[str, float], reused: set[str], previous: dict[str, A
 
 def selected_items(names: list[str], only: tuple[str, ...]) -> tuple[str, ...]:
     """The items an ``--only`` run runs, in the bench's order: ``only`` and the default
-    pipeline run when one of them needs it (:data:`NEEDS_DEFAULT`). All of them are
+    pipeline run when one of them ``needs_default`` (:data:`ITEMS`). All of them are
     recorded in ``reruns``: the default run rewrites its keys (the calibration block,
     goals) too."""
-    keep = {"default pipeline run"} if set(only) & NEEDS_DEFAULT else set()
+    needs_default = {item.name for item in ITEMS if item.needs_default}
+    keep = {"default pipeline run"} if set(only) & needs_default else set()
     return tuple(name for name in names if name in set(only) | keep)
 
 
@@ -284,12 +389,24 @@ def partial_bench(previous: dict[str, Any], this_machine: dict[str, Any],
             "reruns": earlier + [{"items": list(only), **this_machine}]}
 
 
+def merge_keys(bench: dict[str, Any], keys: dict[str, Any], item: Item) -> None:
+    """Put the bench.json ``keys`` an item returned into ``bench``: each replaces the earlier
+    value, but a shared list of rows (:data:`ROW_KEYS`) keeps the rows of other items: the
+    item's rows replace only its own (labelled ``"study": name`` unless the item is one of the
+    default scene's, whose rows are not labelled)."""
+    label = item.name if item.labels_rows else None
+    for key, value in keys.items():
+        if key in ROW_KEYS:
+            value = [r for r in bench.get(key, []) if r.get("study") != label] + [
+                {**r, "study": label} if label else r for r in value]
+        bench[key] = value
+
+
 def run_bench(out: Path, *, full: bool = False, quick: bool = False,
               scene_path: Path | None = None, ranks: int = 2, progress: bool = True,
               only: tuple[str, ...] = (), cold: bool = False) -> dict[str, Any]:
-    """The items of ``make bench`` (:data:`HEADLINE`, some reduced) or, ``full``, of
-    ``make bench-full`` (every item of the module docstring, then every study of
-    :data:`STUDIES`); writes bench.json, pareto.png, BENCH.md in ``out``.
+    """The items of ``make bench`` or, ``full``, of ``make bench-full`` (:data:`ITEMS`, in
+    order); writes bench.json, pareto.png, BENCH.md in ``out``.
 
     ``only`` names the items to run (their keys replace those of the ``bench.json``
     already in ``out``, the rest are kept as they are; the default pipeline run is
@@ -297,11 +414,18 @@ def run_bench(out: Path, *, full: bool = False, quick: bool = False,
     (module docstring); needs an empty ``out/cache`` and no ``only``.
     """
     from pipelines.bench.report import write_markdown, write_pareto_plot
-    from pipelines.bench.stability import stability_table
 
     scene = load_scene(scene_path or ROOT / "scenes" / ("tiny.toml" if quick else "liver.toml"))
+    names = [item.name for item in ITEMS]
+    if only:  # refused before anything runs or is written
+        unknown = sorted(set(only) - set(names))
+        if unknown:
+            raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: {names}")
+        full_only = sorted(set(only) - {item.name for item in items_of(full)})
+        if full_only:
+            raise ForcecalError(f"bench --only: {full_only} run in make bench-full only: pass "
+                                "--full (and its folder, runs/bench by default)")
     cache = out / "cache"
-    runs = cache / "runs"
     if cold:
         if only:
             raise ForcecalError("bench: --cold runs every item; it cannot be combined with --only")
@@ -314,104 +438,47 @@ def run_bench(out: Path, *, full: bool = False, quick: bool = False,
         (cache / COLD_MARKER).unlink()
     bench: dict[str, Any] = {"machine": machine(), "scene": scene.name, "quick": quick,
                              "selection": "full" if full else "headline"}
-    state: dict[str, Any] = {}
-    # the last run's cold times, if it ran the same items (an --only run reads and checks it
-    # below: whole_run)
-    previous = json.loads((out / "bench.json").read_text()) if (
-        not only and (out / "bench.json").is_file()) else {}
-    if previous and (selection(previous), previous.get("scene"), bool(previous.get(
-            "quick"))) != (bench["selection"], scene.name, quick):
-        previous = {}
-
-    def default_item():
-        state["default"], state["row"] = default_run(scene, cache, ranks=ranks,
-                                                     progress=progress)
-        bench["calibration"] = calibration_item(state["default"])
-
-    def pareto_item():
-        rows = [bc.default_row(state["row"], scene)]
-        rows += bc.axis_defaults(scene, rows[0])
-        for config in bc.configs(scene, quick, full):
-            log.info("bench: configuration %s / %s", config.axis, config.label)
-            rows.append(bc.run_config(config, scene, state["default"], runs, ranks=ranks,
-                                      progress=progress))
-        rows += dt_sweep(scene, state["default"], DT_FRACTIONS[quick])
-        rows += fe_rows(scene, cache, ranks)
-        bc.mark_fronts(rows)
-        bench["pareto"] = rows
-
-    def reference_item():
-        bench["reference"] = reference_timings(scene, state["default"], cache, progress,
-                                               ranks=(1, 2) if full else (2,))
-
-    def particle_item():
-        keys = particle_items(scene, state["default"], quick)
-        keys["skip"] += [r for r in bench.get("skip", []) if "study" in r]  # the studies' rows
-        bench.update(keys)
-
-    def stability_item():
-        bench["stability"] = stability_table(quick)
-
-    def study_item(name: str) -> Callable[[], None]:
-        target = STUDIES[name] if full else HEADLINE_STUDIES.get(name, STUDIES[name])
-
-        def run() -> None:
-            module, function = target.split(":")
-            keys = getattr(importlib.import_module(module), function)(scene, cache, quick)
-            for k, rows in keys.items():
-                if k in ROW_KEYS:  # a shared list of rows: the study's replace its earlier ones
-                    rows = [r for r in bench.get(k, []) if r.get("study") != name] + [
-                        {**r, "study": name} for r in rows]
-                bench[k] = rows
-        return run
-
-    built_in = dict(zip(BUILT_IN, (default_item, pareto_item, reference_item, particle_item,
-                                   stability_item)))
-    items = [(name, built_in[name] if name in built_in else study_item(name))
-             for name in selection_items(True)]
     if only:
-        unknown = sorted(set(only) - {name for name, _ in items})
-        if unknown:
-            raise ForcecalError(f"bench --only: unknown item(s) {unknown}; known: "
-                                f"{[name for name, _ in items]}")
-        full_only = sorted(set(only) - set(selection_items(full)))
-        if full_only:
-            raise ForcecalError(f"bench --only: {full_only} run in make bench-full only: pass "
-                                "--full (and its folder, runs/bench by default)")
         previous = whole_run(out, scene.name, quick, full)
-        run = selected_items([name for name, _ in items], only)
-        items = [(name, fn) for name, fn in items if name in run]
-        bench = partial_bench(previous, bench["machine"], run, scene.name, quick, full)
-    else:
-        items = [(name, fn) for name, fn in items if name in selection_items(full)]
+        run_names = selected_items(names, only)
+        bench = partial_bench(previous, bench["machine"], run_names, scene.name, quick, full)
+    else:  # the last whole run's cold times, if it ran the same selection
+        previous = json.loads((out / "bench.json").read_text()) if (
+            out / "bench.json").is_file() else {}
+        if previous and (selection(previous), previous.get("scene"), bool(previous.get(
+                "quick"))) != (bench["selection"], scene.name, quick):
+            previous = {}
+        run_names = tuple(item.name for item in items_of(full))
+    items = [item for item in ITEMS if item.name in run_names]
+    run = BenchRun(scene, cache, quick, ranks, progress)
     bench["item_s"] = dict(bench.get("item_s", {}))
     reused: set[str] = set()
     start = time.perf_counter()
-    for k, (name, fn) in enumerate(items, 1):
-        log.info("bench [%d/%d] %s ...", k, len(items), name)
+    for k, item in enumerate(items, 1):
+        log.info("bench [%d/%d] %s ...", k, len(items), item.name)
         counter = ReuseCounter()
         logging.getLogger().addHandler(counter)
         t0 = time.perf_counter()
         try:
-            fn()
+            merge_keys(bench, item_run(item, full)(run), item)
         finally:
             logging.getLogger().removeHandler(counter)
-        bench["item_s"][name] = time.perf_counter() - t0
+        bench["item_s"][item.name] = time.perf_counter() - t0
         if counter.hits:
-            reused.add(name)
-        log.info("bench [%d/%d] %s done in %.1f s%s", k, len(items), name,
-                 bench["item_s"][name], " (reused earlier work)" if counter.hits else "")
-    if not only:  # a partial run keeps the full run's wall time
+            reused.add(item.name)
+        log.info("bench [%d/%d] %s done in %.1f s%s", k, len(items), item.name,
+                 bench["item_s"][item.name], " (reused earlier work)" if counter.hits else "")
+    if not only:  # a partial run keeps the whole run's wall time
         bench["wall_s"] = time.perf_counter() - start
     if cold:  # everything was computed in this run (reuse between its items included)
         bench["item_s_cold"] = dict(bench["item_s"])
     else:  # a partial run keeps the other items' cold times
         bench["item_s_cold"] = {**(previous.get("item_s_cold", {}) if only else {}),
-                                **cold_times({n: bench["item_s"][n] for n, _ in items},
+                                **cold_times({i.name: bench["item_s"][i.name] for i in items},
                                              reused, previous)}
-    cold = list(bench["item_s_cold"].values())
-    bench["wall_s_cold"] = (None if None in cold or set(bench["item_s_cold"]) != set(
-        bench["item_s"]) else float(sum(cold)))
+    cold_s = list(bench["item_s_cold"].values())
+    bench["wall_s_cold"] = (None if None in cold_s or set(bench["item_s_cold"]) != set(
+        bench["item_s"]) else float(sum(cold_s)))
     (bench["reruns"][-1] if only else bench["machine"])["load_average_end"] = list(
         os.getloadavg())
     bench["goals"], bench["paper"] = GOALS, PAPER
@@ -456,8 +523,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark from parsed ``args`` (see :func:`add_arguments`)."""
     out = Path(args.out) if args.out else default_out(args.full, args.quick)
-    run_bench(out, full=args.full, quick=args.quick, scene_path=Path(args.scene) if args.scene else None,
-              ranks=args.ranks, progress=not args.no_progress,
+    run_bench(out, full=args.full, quick=args.quick,
+              scene_path=Path(args.scene) if args.scene else None, ranks=args.ranks, progress=not args.no_progress,
               only=tuple(name.strip() for name in args.only.split(",") if name.strip()),
               cold=args.cold)
     print(f"bench: outputs in {out}/ (bench.json, pareto.png, BENCH.md)")
