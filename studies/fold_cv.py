@@ -39,7 +39,7 @@ import numpy as np
 from calibration.metrics import force_vector_errors
 from forcecal.h5io import read_reference, write_reference
 from forcecal.scene import load_scene
-from studies._finished_run import parse_study, run_folder, study_parser
+from studies._finished_run import parse_study, run_folder, study_parser, write_result
 from pipelines.runners.common import PARAMS, REFERENCE
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variants", type=json.loads, default=DEFAULT_VARIANTS,
                         help="JSON: label -> [calibration] changes")
     parser.add_argument("--work", help="folder of the fold calibrations")
-    parser.add_argument("--out", help="write the result to this JSON file")
     args = parse_study(parser, argv)
     result = study(args.scene, args.run, args.variants, args.work)
     print(f"{'variant':16s} {'indentation %':>14s} {'relaxation %':>13s} {'score %':>8s} "
@@ -122,8 +121,7 @@ def main(argv: list[str] | None = None) -> None:
               f"{100 * v['mean']['relaxation']:13.2f} {100 * v['score']:8.2f} "
               f"{100 * v['global_fit_score']:13.2f} {100 * v['score_vector']:15.2f}")
     print(f"chosen: {result['chosen']}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
 
 
 if __name__ == "__main__":

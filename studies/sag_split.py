@@ -33,7 +33,6 @@ scenes/liver_punch.toml [--run DIR] [--out sag.json]`` (seconds on a finished ru
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from pathlib import Path
 
@@ -46,7 +45,7 @@ from particle.evaluators import IndentationEvaluator
 from particle.model import Model, build_model, params_for
 from particle.params import PARAM_NAMES, ConnectorParams
 from particle.statics import gravity_static
-from studies._finished_run import finished_run, parse_study, study_parser
+from studies._finished_run import finished_run, parse_study, study_parser, write_result
 from pipelines.report import gravity_static_error
 
 log = logging.getLogger(__name__)
@@ -231,7 +230,6 @@ def study(scene_path: str | Path, run: str | Path | None = None,
 
 def main(argv: list[str] | None = None) -> None:
     parser = study_parser("studies.sag_split", __doc__)
-    parser.add_argument("--out", help="write the result to this JSON file")
     args = parse_study(parser, argv)
     result = study(args.scene, args.run)
     split = result["split"]
@@ -243,8 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     for r in result["rows"]:
         print(f"{r['label']:52s} {1e3 * r['max_sag_m']:10.2f} {100 * r['error']:8.2f} "
               f"{r['mean_sag_ratio']:15.3f} {100 * r['calibration_indentation_error']:26.2f}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
 
 
 if __name__ == "__main__":

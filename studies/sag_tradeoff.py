@@ -26,7 +26,6 @@ regions 6 min for 10).
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from pathlib import Path
 
@@ -39,7 +38,7 @@ from forcecal.indenter import indenter_footprints
 from particle.evaluators import IndentationEvaluator
 from particle.model import build_model, params_for
 from particle.params import ConnectorParams
-from studies._finished_run import finished_run, parse_study, study_parser
+from studies._finished_run import finished_run, parse_study, study_parser, write_result
 from studies.sag_split import sag_rows
 
 log = logging.getLogger(__name__)
@@ -161,7 +160,6 @@ def main(argv: list[str] | None = None) -> None:
     parser = study_parser("studies.sag_tradeoff", __doc__)
     parser.add_argument("--regions", type=int, default=12, help="k-means regions (default 12)")
     parser.add_argument("--iterations", type=int, default=20, help="default 20")
-    parser.add_argument("--out", help="write the result to this JSON file")
     args = parse_study(parser, argv)
     # the sag study logs every set it measures: here that is every finite difference
     logging.getLogger("studies.sag_split").setLevel(logging.WARNING)
@@ -172,8 +170,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{r['iteration']:9d} {100 * r['indentation_calibrated']:13.2f} "
               f"{100 * r['indentation_held_out']:10.2f} {r['mean_sag_ratio']:6.3f} "
               f"{100 * r['gravity_static']:11.2f}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
 
 
 if __name__ == "__main__":

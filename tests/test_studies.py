@@ -12,7 +12,7 @@ import studies
 from studies.catalogue import STUDIES, main as catalogue_main, page
 from tests.conftest import ROOT
 
-PRODUCT = ("forcecal", "particle", "calibration", "reference_fe", "pipelines")
+PRODUCT = ("forcecal", "particle", "calibration", "reference_fe", "pipelines", "examples")
 MODULES = sorted(m.name for m in pkgutil.iter_modules(studies.__path__)
                  if not m.name.startswith("_") and m.name != "catalogue")
 
@@ -123,3 +123,24 @@ def test_the_finished_run_studies_pass_their_arguments_on(module, argv, expected
     with pytest.raises(SystemExit) as done:
         target.main([])  # --scene is required
     assert done.value.code == 2
+
+
+@pytest.mark.parametrize("module, committed", [
+    ("fold_cv", "fold_cv_force_vector_user_organ.json"),
+    ("sag_split", "sag_split_force_vector.json"),
+    ("sag_tradeoff", "sag_tradeoff_liver_punch.json"),
+    ("release_levers", "release_levers_force_vector.json"),
+])
+def test_a_finished_run_study_writes_its_result_under_runs_studies(module, committed,
+                                                                   monkeypatch, tmp_path):
+    """Without ``--out`` the result goes to ``runs/studies/<study>_<scene>.json`` (relative
+    to where the command runs), with it where told; the study's own result, as JSON."""
+    result = json.loads((ROOT / "runs" / "studies" / committed).read_text())
+    target = importlib.import_module(f"studies.{module}")
+    monkeypatch.setattr(target, "study", lambda *args: result)
+    monkeypatch.chdir(tmp_path)
+    target.main(["--scene", "s.toml"])
+    written = tmp_path / "runs" / "studies" / f"{module}_{result['scene']}.json"
+    assert json.loads(written.read_text()) == result
+    target.main(["--scene", "s.toml", "--out", "elsewhere/result.json"])
+    assert json.loads((tmp_path / "elsewhere" / "result.json").read_text()) == result
