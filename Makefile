@@ -28,14 +28,15 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 STAGE_ARGS := --scene $(SCENE) $(if $(OUT),--out $(OUT))
 
-.PHONY: help setup test demo validate reference calibrate gravity report bench bench-quick corpus clean
+.PHONY: help setup test demo validate reference calibrate gravity report bench bench-full bench-quick corpus clean
 
 help:
 	@echo "make demo        # install what is missing, then mesh -> FE reference -> calibration -> gravity -> report"
 	@echo "make validate    # demo, exit code 3 when the verdict fails (CI gate; SCENE=...)"
 	@echo "make test        # install what is missing, then run the test suite"
 	@echo "make reference | calibrate | gravity | report   # single stages (SCENE=... OUT=...)"
-	@echo "make bench       # run time vs error benchmarks -> runs/bench/ (bench-quick: a few minutes)"
+	@echo "make bench       # headline benchmarks, about 11 min cold (estimated) -> runs/bench-headline/ (bench-quick: a few minutes)"
+	@echo "make bench-full  # every benchmark at full size, 1.5-2 h cold -> runs/bench/ (the committed bench.json)"
 	@echo "make corpus      # every scenes/corpus/*.toml through the pipeline -> runs/corpus/corpus.json, docs/corpus.md"
 
 setup: $(STAMP)
@@ -85,8 +86,13 @@ gravity: setup
 report: setup
 	$(PY) -m pipelines report $(STAGE_ARGS)
 
+# make bench: the headline items (kernel, haptic, stability, run time vs error, FE convergence,
+# scale), some reduced; make bench-full: every item at full size (what runs/bench/ holds)
 bench: setup
-	$(PY) -m pipelines bench --out runs/bench
+	$(PY) -m pipelines bench --out runs/bench-headline
+
+bench-full: setup
+	$(PY) -m pipelines bench --full --out runs/bench
 
 bench-quick: setup
 	$(PY) -m pipelines bench --quick --out runs/bench-quick

@@ -52,7 +52,8 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
     p.add_argument("bench", help="bench.json")
     from pipelines.bench.driver import add_arguments as bench_arguments
-    bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
+    bench_arguments(sub.add_parser("bench", help="speed and error benchmarks (make bench; "
+                                   "--full: make bench-full)"))
     from pipelines.corpus import add_arguments as corpus_arguments
     corpus_arguments(sub.add_parser("corpus", help="every scenes/corpus/*.toml through the "
                                     "pipeline, one process each (make corpus)"))
