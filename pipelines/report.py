@@ -35,6 +35,10 @@ Experiments the scene does not run (its ``experiments`` list) keep their keys
 with ``null``; ``not_run`` maps each such experiment to the reason, and
 ``experiments`` lists those that ran. The gravity timings are ``null`` without
 any gravity experiment, and so is the ``gravity`` block.
+
+``fe_failures`` and ``mesh_preflight`` repeat what the FE stage recorded in
+``reference.h5`` (:mod:`forcecal.fe_failures`: test points replaced or dropped, a failed
+FE gravity test, which is then the reason in ``not_run``; :mod:`forcecal.preflight`).
 """
 
 from __future__ import annotations
@@ -53,7 +57,7 @@ from calibration.results import CalibrationResult
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
-from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS
+from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS
 from pipelines.dynamics import dynamic_metrics, release_modes
 from pipelines.gravity import GravityRuns, GravityTest
 
@@ -212,6 +216,11 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     p = reference.problem
     fe_t = fe_timings(reference)
     ran, not_run = experiments_run(experiments, calibration, gravity)
+    fe_failures = reference.fe_failures
+    if fe_failures.gravity is not None:  # why the scene's gravity experiments did not run
+        not_run.update({e: f"the FE gravity test failed ({fe_failures.gravity['experiment']}: "
+                        f"{fe_failures.gravity['reason']}): no FE gravity reference"
+                        for e in GRAVITY_EXPERIMENTS if e in not_run})
     models = gravity.models if gravity is not None else dict.fromkeys(("calibrated",
                                                                       "baseline"))
     calibrated = model_errors(reference, calibration, models["calibrated"], CALIBRATED_VARIANTS,
@@ -296,6 +305,10 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "global_shape": calibration.settings.get("calibration", {}).get("global_shape",
                                                                         "uniform"),
         "warnings": warnings,
+        # FE test points replaced or dropped, a failed FE gravity test (forcecal.fe_failures)
+        "fe_failures": fe_failures.to_json(),
+        # the mesh as the FE stage saw it (forcecal.preflight; null for an older reference)
+        "mesh_preflight": reference.mesh_preflight,
     }
 
 
