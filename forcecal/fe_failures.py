@@ -184,12 +184,14 @@ def replay(problem: Problem, failures: list[PointFailure],
 def common_features(mesh: TetMesh, fixed: np.ndarray, test_points: np.ndarray,
                     failed: list[PointFailure], quality: np.ndarray,
                     footprints: dict[int, np.ndarray] | None = None) -> list[str]:
-    """What the failed test points share, as short phrases (empty if nothing stands out).
+    """What the failed test points share, as short phrases: the experiments always, the rest
+    when it stands out.
 
     Compared with the test points that did not fail: the experiment; how far it got; the
-    distance to the clamp (in the quarter of the free surface nearest to it); the spread (one region: all within a
-    quarter of the body's size); the worst tet touching the point (or its punch footprint,
-    ``footprints``: vertex -> footprint vertices) by :func:`forcecal.preflight.tet_quality`.
+    distance to the clamp (in the quarter of the free surface nearest to it); the spread
+    (one region: all within a quarter of the body's size); the worst tet touching the point
+    (or its punch footprint, ``footprints``: vertex -> footprint vertices) by
+    :func:`forcecal.preflight.tet_quality`.
     A feature is named when it holds for at least 3/4 of the failures and is at least
     twice as frequent among them as among the others.
     """

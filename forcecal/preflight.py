@@ -242,7 +242,7 @@ def mesh_preflight(scene: Scene, mesh: TetMesh, fixed: np.ndarray, *,
     ``support`` (the :class:`SupportCheck` numbers), ``particle_dt_s`` and
     ``particle_dt_edge`` (:func:`particle_step_estimate`), ``fe_cost``
     (``vertex_steps``, ``core_seconds``: :func:`forcecal.cost.fe_work`), ``implications``
-    (one sentence per finding), ``seconds``.
+    (one sentence per finding), ``warnings`` (those of them that are), ``seconds``.
     """
     from forcecal.cost import FE_SECONDS_PER_VERTEX_STEP, fe_work
 
@@ -278,48 +278,52 @@ def mesh_preflight(scene: Scene, mesh: TetMesh, fixed: np.ndarray, *,
         "fe_cost": {"vertex_steps": float(work),
                     "core_seconds": float(work * FE_SECONDS_PER_VERTEX_STEP)},
     }
-    out["implications"] = _implications(out, mesh, labels, quality, lengths[dt_edge])
+    said = _implications(out, mesh, labels, quality, lengths[dt_edge])
+    out["implications"] = [sentence for _, sentence in said]
+    out["warnings"] = [sentence for warn, sentence in said if warn]
     out["seconds"] = time.perf_counter() - start + support.seconds
     return out
 
 
 def _implications(pf: dict, mesh: TetMesh, labels: np.ndarray, quality: np.ndarray,
-                  dt_edge_length: float) -> list[str]:
-    """One sentence per finding of the preflight ``pf`` (what the number means for a run)."""
-    said = []
+                  dt_edge_length: float) -> list[tuple[bool, str]]:
+    """(whether it is a warning, sentence): one per finding of the preflight ``pf`` (what the
+    number means for a run)."""
+    said: list[tuple[bool, str]] = []
     worst = pf["worst_tets"][0]
     if pf["poor_tets"]:
-        said.append(f"{pf['poor_tets']} tets have a quality below {POOR_QUALITY:g} (worst: tet "
-                    f"{worst['tet']}, {worst['quality']:.3g}, vertices {worst['vertices']}): "
-                    "quadratic (P2/TH) elements on them are nearly singular; an FE step that "
-                    "fails near them is a mesh problem")
+        said.append((True, f"{pf['poor_tets']} tets have a quality below {POOR_QUALITY:g} "
+                     f"(worst: tet {worst['tet']}, {worst['quality']:.3g}, vertices "
+                     f"{worst['vertices']}): quadratic (P2/TH) elements on them are nearly "
+                     "singular; an FE step that fails near them is a mesh problem"))
     if pf["parts"] > 1:
-        sizes = np.bincount(labels)
-        shared = _part_contacts(mesh, labels)
-        said.append(f"{pf['parts']} face-connected parts ({sorted(sizes.tolist(), reverse=True)[:6]}"
-                    f" tets) joined only through {shared}: each is hinged there unless "
-                    "clamped on its own")
+        largest = sorted(np.bincount(labels).tolist(), reverse=True)[:6]
+        said.append((True, f"{pf['parts']} face-connected parts ({largest} tets) joined only "
+                     f"through {_part_contacts(mesh, labels)}: each is hinged there unless "
+                     "clamped on its own"))
     s = pf["support"]
     if s["linear_sag_m"] is not None:
-        ratio = s["linear_sag_m"] / s["body_size_m"]
+        sag, size = s["linear_sag_m"] * 1e3, s["body_size_m"] * 1e3
+        ratio = sag / size
         if s["holds"]:
-            said.append(f"linear sag under full gravity {s['linear_sag_m'] * 1e3:.3g} mm at "
-                        f"vertex {s['linear_sag_vertex']} ({ratio:.2g} x the body's size "
-                        f"{s['body_size_m'] * 1e3:.3g} mm): the support holds the body")
+            said.append((False, f"linear sag under full gravity {sag:.3g} mm at vertex "
+                         f"{s['linear_sag_vertex']} ({ratio:.2g} x the body's size {size:.3g} "
+                         "mm): the support holds the body"))
         else:
-            said.append(f"the support does not hold the body under its weight: the linear sag "
-                        f"under full gravity is {s['linear_sag_m'] * 1e3:.3g} mm at vertex "
-                        f"{s['linear_sag_vertex']}, {ratio:.2g} x the body's size "
-                        f"{s['body_size_m'] * 1e3:.3g} mm (a lower bound of the FE sag): the "
-                        "material is too soft for this shape and clamp; the FE gravity test is "
-                        "expected to fail (it runs first; the force checks still run)")
-    said.append(f"the explicit particle step can be at most about {pf['particle_dt_s'] * 1e6:.3g}"
-                f" us (closed-form connector {pf['particle_dt_edge']}, length "
-                f"{dt_edge_length * 1e3:.3g} mm; shortest edge {pf['edge_min_m'] * 1e3:.3g} mm): "
-                f"at least {math.ceil(1e-3 / pf['particle_dt_s'])} substeps per 1 ms haptic step")
+            said.append((True, f"the support does not hold the body under its weight: the "
+                         f"linear sag under full gravity is {sag:.3g} mm at vertex "
+                         f"{s['linear_sag_vertex']}, {ratio:.2g} x the body's size {size:.3g} "
+                         "mm (a lower bound of the FE sag): the material is too soft for this "
+                         "shape and clamp; the FE gravity test is expected to fail (it runs "
+                         "first; the force checks still run)"))
+    dt = pf["particle_dt_s"]
+    said.append((False, f"the explicit particle step can be at most about {dt * 1e6:.3g} us "
+                 f"(closed-form connector {pf['particle_dt_edge']}, length "
+                 f"{dt_edge_length * 1e3:.3g} mm; shortest edge {pf['edge_min_m'] * 1e3:.3g} "
+                 f"mm): at least {math.ceil(1e-3 / dt)} substeps per 1 ms haptic step"))
     cost = pf["fe_cost"]
-    said.append(f"FE reference: about {cost['vertex_steps']:.3g} vertex-steps, "
-                f"{cost['core_seconds'] / 60:.3g} core-minutes at the default liver's rate")
+    said.append((False, f"FE reference: about {cost['vertex_steps']:.3g} vertex-steps, "
+                 f"{cost['core_seconds'] / 60:.3g} core-minutes at the default liver's rate"))
     return said
 
 
@@ -373,5 +377,6 @@ def run_preflight(scene: Scene, mesh: TetMesh, fixed: np.ndarray) -> dict:
              pf["edge_mean_m"] * 1e3, pf["edge_max_m"] * 1e3, "radius ratio",
              pf["quality_min"], pf["quality_median"], pf["parts"])
     for sentence in pf["implications"]:
-        (log.info if support.holds else log.warning)("mesh preflight: %s", sentence)
+        (log.warning if sentence in pf["warnings"] else log.info)("mesh preflight: %s",
+                                                                   sentence)
     return pf

@@ -167,7 +167,8 @@ def replacement_point(scene: Scene, problem: Problem, index: int, avoid: set[int
     the points are an explicit list (the point is dropped) or no candidate is left.
 
     The rules pick points one at a time, each the farthest from those picked before
-    (:func:`forcecal.mesh.select_calibration_points`, :func:`~forcecal.mesh.select_held_out_points`);
+    (:func:`forcecal.mesh.select_calibration_points`,
+    :func:`~forcecal.mesh.select_held_out_points`);
     the next candidate continues that sequence: the free surface vertex (one the punch can
     indent, for a punch) farthest from every point picked so far (the failed one and
     ``avoid``, earlier failures, included), along the surface from the clamp and the

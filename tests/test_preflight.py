@@ -149,3 +149,4 @@ def test_preflight_numbers_of_a_box_with_known_edges_and_qualities():
     assert "radius ratio" in pf["quality_measure"]
     assert pf["fe_cost"]["vertex_steps"] > 0 and pf["particle_dt_s"] > 0
     assert any("the support holds the body" in s for s in pf["implications"])
+    assert pf["warnings"] == []
