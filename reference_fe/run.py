@@ -574,6 +574,10 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
 
     def finish() -> Reference:
         failures = points.records(gravity_failure or parts.gravity_failure(scheduled))
+        if failures.gravity is not None:
+            log.warning("the FE gravity test failed (%s: %s): both gravity experiments are "
+                        "left out of %s, the force curves are kept", failures.gravity[
+                            "experiment"], failures.gravity["reason"], out_path)
         reference = _assemble(scene, points, scheduled, parts, previous, computed, keys,
                               comm.size, mesh_seconds + build_seconds,
                               time.perf_counter() - start, failures, preflight)
@@ -629,8 +633,8 @@ class _Points:
             ConvergenceError: more than a quarter of the test points failed.
         """
         error = self.too_many(failures)
-        if error is not None:
-            raise collective(error)
+        if error is not None:  # met here by a resumed run whose failures were all recorded
+            raise collective(ConvergenceError(f"FE reference failed: {error}"))
         self.current, self._records, applied = replay(self.original, failures,
                                                       self._replacement)
         slots = self.original
