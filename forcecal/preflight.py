@@ -208,7 +208,13 @@ def _softest_modes(matrix: sp.csc_matrix, k: int, largest: float) -> tuple[np.nd
         values, vectors = scipy.linalg.eigh(matrix.toarray(), subset_by_index=[0, k - 1])
         return values, vectors
     start = np.random.default_rng(0).uniform(0.5, 1.5, n)  # reproducible
-    values, vectors = spl.eigsh(matrix, k=k, sigma=-1e-9 * largest, which="LM", v0=start)
+    try:
+        values, vectors = spl.eigsh(matrix, k=k, sigma=-1e-9 * largest, which="LM", v0=start)
+    except spl.ArpackNoConvergence as exc:  # the modes it found (the softest come first)
+        values, vectors = exc.eigenvalues, exc.eigenvectors
+        if not len(values):
+            raise StabilityError(f"the support check's eigenvalue solve (n = {n}) did not "
+                                 f"converge: {exc}") from None
     order = np.argsort(values)
     return values[order], vectors[:, order]
 
