@@ -58,6 +58,7 @@ from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import (Reference, check_reference_settings, read_reference, reference_digest,
                           section_differences)
 from forcecal.indenter import indenter_footprints
+from forcecal.fe_failures import apply_fe_failures
 from forcecal.problem import build_problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, CalibrationSection, Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -84,6 +85,8 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
         ref.require(e, reference_path)
     check_reference_settings(ref, scene, reference_path)  # [fe], [gravity], indenter
     rp = ref.problem
+    # test points whose FE runs failed were replaced or dropped (recorded in the reference)
+    problem = apply_fe_failures(problem, ref.fe_failures)
     for what in ("fixed", "calibration", "held_out"):
         if not np.array_equal(np.sort(getattr(rp, what)), np.sort(getattr(problem, what))):
             raise DataFileError(f"{reference_path}: its {what} nodes differ from the scene's; "

@@ -43,6 +43,9 @@ errors are the means over the points it completed (``null`` when it completed no
 failed has ``null`` gravity errors (its release did not run). ``verdict`` judges the
 calibrated model's checks against the scene's ``[verdict]`` goals (:mod:`pipelines.verdict`)
 and ``realtime`` its haptic cost on the mesh (:mod:`pipelines.realtime`).
+``fe_failures`` and ``mesh_preflight`` repeat what the FE stage recorded in
+``reference.h5`` (:mod:`forcecal.fe_failures`: test points replaced or dropped, a failed
+FE gravity test, which is then the reason in ``not_run``; :mod:`forcecal.preflight`).
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ from calibration.validation import per_completed_point
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
-from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, VerdictSection
+from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
 from pipelines.dynamics import dynamic_metrics, release_modes
 from pipelines.gravity import GravityRuns, GravityTest
 from pipelines.verdict import CHECKS, STATUSES, judge, measurements
@@ -230,6 +233,11 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     p = reference.problem
     fe_t = fe_timings(reference)
     ran, not_run = experiments_run(experiments, calibration, gravity)
+    fe_failures = reference.fe_failures
+    if fe_failures.gravity is not None:  # why the scene's gravity experiments did not run
+        not_run.update({e: f"the FE gravity test failed ({fe_failures.gravity['experiment']}: "
+                        f"{fe_failures.gravity['reason']}): no FE gravity reference"
+                        for e in GRAVITY_EXPERIMENTS if e in not_run})
     models = {m: None if gravity is None else gravity.models.get(m)
               for m in ("calibrated", "baseline")}
     calibrated = model_errors(reference, calibration, models["calibrated"], CALIBRATED_VARIANTS,
@@ -323,6 +331,10 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "warnings": warnings,
         "failures": failures,
         "realtime": realtime,
+        # FE test points replaced or dropped, a failed FE gravity test (forcecal.fe_failures)
+        "fe_failures": fe_failures.to_json(),
+        # the mesh as the FE stage saw it (forcecal.preflight; null for an older reference)
+        "mesh_preflight": reference.mesh_preflight,
     }
     # judged from what the report measured, nothing else
     report["verdict"] = judge(measurements(report), goals)
