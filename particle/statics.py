@@ -337,10 +337,11 @@ class EquilibriumSolver:
         (prescribed particles already at their targets); arguments as :meth:`solve`.
 
         What a physical load step does where the equilibrium :meth:`solve` follows has ended
-        (module docstring): implicit Euler steps of the motion ``M dx/dt = f(x) / mu``
-        (lumped masses ``M``, damping proportional to them, as ``particle.damping``), each
-        ``(K + mu M) dx = f``: with ``mu`` large a short, heavily damped step downhill, with
-        ``mu = 0`` Newton's. ``mu`` starts at the median ``K_ii / m_i`` of the free dofs (the
+        (module docstring): implicit Euler steps of the overdamped motion ``c M dx/dt =
+        f(x)`` (lumped masses ``M``, damping proportional to them, as ``particle.damping``), a
+        step of ``h`` being ``(K + mu M) dx = f`` with ``mu = c / h``: with ``mu`` large a
+        short step downhill, with ``mu = 0`` Newton's. ``mu`` starts at the median ``K_ii /
+        m_i`` of the free dofs (the
         squared natural frequency of a typical particle), is multiplied by 4 while ``K + mu
         M`` is not positive definite (a pivot of its ``L D L^T`` <= 0: the step would not go
         downhill), a step moves some particle by more than a quarter of the mean connector
