@@ -18,6 +18,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` (those fitted); NaN at a point the variant failed |
 | ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples; a row of NaN at a point the variant failed (recorded in ``failures``) |
 | ``/forces/<variant>/<experiment>`` | (P, S, 3) | N | the simulated indenter force vectors whose inward-normal components the curves are (absent in files written before them); NaN rows as the curves |
+| ``/strains/<variant>/<experiment>`` | (P, 2) | 1 | the smallest and the largest connector strain over every sample of each point's curve: where the variant's spring laws were evaluated (absent in files written before them); NaN rows as the curves |
 | ``/history/global_<phase>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); phases ``static``, ``relaxation`` |
 | ``/history/local_<phase>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
 | ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per phase |
@@ -68,10 +69,13 @@ class VariantCurves:
         errors: experiment -> (P,) float64 relative RMS errors [1].
         forces: experiment -> (P, S, 3) float64 force vectors [N] whose inward-normal
             components ``curves`` are; None when read from a file written before them.
+        strains: experiment -> (P, 2) float64, the smallest and largest connector strain [1]
+            over each point's curve; None when read from a file written before them.
     """
     curves: dict[str, np.ndarray]
     errors: dict[str, np.ndarray]
     forces: dict[str, np.ndarray] | None = None
+    strains: dict[str, np.ndarray] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -296,6 +300,9 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
                 if vc.forces is not None:
                     put(fh, f"forces/{variant}/{e}", vc.forces[e], "N",
                         "indenter force vectors (P, S, 3)")
+                if vc.strains is not None:
+                    put(fh, f"strains/{variant}/{e}", vc.strains[e], "1",
+                        "smallest and largest connector strain over each curve (P, 2)")
         for phase, fit in result.global_fits.items():
             _put_history(fh.create_group(f"history/global_{phase}"), fit)
         for phase, sweeps in result.local_sweeps.items():
@@ -378,4 +385,6 @@ def _read_variant(fh: h5py.File, variant: str, fitted: tuple[str, ...], points: 
         curves={e: read("curves", e, (n_points, None)) for e in fitted},
         errors={e: read("errors", e, (n_points,)) for e in fitted},
         forces=({e: read("forces", e, (n_points, None, 3)) for e in fitted}
-                if f"forces/{variant}" in fh else None))
+                if f"forces/{variant}" in fh else None),
+        strains=({e: read("strains", e, (n_points, 2)) for e in fitted}
+                 if f"strains/{variant}" in fh else None))

@@ -157,15 +157,18 @@ def per_completed_point(error: Callable[..., Any], sim: np.ndarray, ref: np.ndar
 
 
 def point_validation(worker: PointWorker, kind: str, params: ConnectorParams,
-                     points: Sequence[int]) -> tuple[np.ndarray, np.ndarray | None, list]:
+                     points: Sequence[int]) -> tuple[np.ndarray, np.ndarray | None,
+                                                     np.ndarray | None, list]:
     """Call run on a worker: the curves and force vectors of owned ``points`` (as
     :meth:`PointWorker.curves_and_forces`), each point on its own so that one that fails
-    leaves NaN rows and the others their curves. Returns (curves (P', S), forces (P', S, 3)
-    or None, [(test point index, reached, error)] of the failed points)."""
+    leaves NaN rows and the others their curves, and the connector strains each curve
+    reached (:meth:`PointWorker.strain_extremes`). Returns (curves (P', S), forces (P', S, 3)
+    or None, strains (P', 2) or None, [(test point index, error)] of the failed points)."""
     experiments = worker.experiments
     n = len(experiments.depths if kind == "indentation" else experiments.times)
     curves, forces = np.full((len(points), n), np.nan), np.full((len(points), n, 3), np.nan)
-    with_forces, failed = True, []
+    strains = np.full((len(points), 2), np.nan)
+    with_forces, with_strains, failed = True, True, []
     for i, point in enumerate(points):
         try:
             c, f = worker.curves_and_forces(kind, params, [point])
@@ -177,25 +180,48 @@ def point_validation(worker: PointWorker, kind: str, params: ConnectorParams,
             with_forces = False
         else:
             forces[i] = f[0]
-    return curves, forces if with_forces else None, failed
+        reached = worker.strain_extremes(kind, [point])
+        if reached is None:
+            with_strains = False
+        else:
+            strains[i] = reached[0]
+    return (curves, forces if with_forces else None, strains if with_strains else None,
+            failed)
+
+
+@dataclass(frozen=True, eq=False)
+class Validated:
+    """One model's results in one experiment at every test point (NaN rows where it failed).
+
+    Attributes:
+        curves: (P, S) normal-force curves [N].
+        forces: (P, S, 3) force vectors [N], or None (the backend gives none).
+        strains: (P, 2) the smallest and largest connector strain [1] each curve reached, or
+            None (the backend gives none).
+        failures: the points the model failed.
+    """
+    curves: np.ndarray
+    forces: np.ndarray | None
+    strains: np.ndarray | None
+    failures: list[ValidationFailure]
 
 
 def validate_points(pool: Pool, problem: Problem, model: str, params: ConnectorParams,
-                    experiment: str) -> tuple[np.ndarray, np.ndarray | None,
-                                              list[ValidationFailure]]:
-    """``model`` (``params``) at every test point of ``problem`` in ``experiment``: the
-    (P, S) curves [N] and (P, S, 3) force vectors [N] (None if the backend gives none),
-    NaN at the points it failed, and their failures."""
+                    experiment: str) -> Validated:
+    """``model`` (``params``) at every test point of ``problem`` in ``experiment``
+    (:class:`Validated`)."""
     points = np.arange(len(problem.test_points))
     out, positions = pool.by_owner(point_validation, points, experiment, params)
-    curves = in_point_order([c for c, _, _ in out], positions)
-    forces = (None if any(f is None for _, f, _ in out)
-              else in_point_order([f for _, f, _ in out], positions))
+
+    def gathered(i: int) -> np.ndarray | None:
+        parts = [o[i] for o in out]
+        return None if any(p is None for p in parts) else in_point_order(parts, positions)
+
     n_cal = len(problem.calibration)
-    failed = sorted((f for _, _, worker_failed in out for f in worker_failed),
+    failed = sorted((f for *_, worker_failed in out for f in worker_failed),
                     key=lambda f: f[0])
     failures = [failure_from(exc, model, experiment, int(problem.test_points[k]),
                              ROLES[0] if k < n_cal else ROLES[1]) for k, exc in failed]
     for failure in failures:
         log.warning("validation: %s", failure.describe())
-    return curves, forces, failures
+    return Validated(gathered(0), gathered(1), gathered(2), failures)

@@ -275,6 +275,12 @@ class CalibrationSection:
                                  "K0 on that strain range (local tuning may soften a ring "
                                  "10-fold, not to a nearly stiffness-less or snapping spring)",
                                  minimum=0.0)
+    stiffness_ceiling: float = key(10.0, "local tuning keeps every spring's tangent "
+                                   "stiffness <= this times the global spring's largest "
+                                   "tangent on the connector's strain range (one decade above "
+                                   "the global fit, as the floor is one below: the rigorous "
+                                   "stable explicit step shortens by at most its square root; "
+                                   "the gradient method does not read it)", minimum=1.0)
     cv_folds: int = key(5, "gradient method: folds of the cross-validation over the calibration "
                         "points that picks the smoothness weight (with fewer calibration "
                         "points, one fold per point: leave-one-out)", minimum=2)

@@ -46,6 +46,11 @@ and ``realtime`` its haptic cost on the mesh (:mod:`pipelines.realtime`).
 ``fe_failures`` and ``mesh_preflight`` repeat what the FE stage recorded in
 ``reference.h5`` (:mod:`forcecal.fe_failures`: test points replaced or dropped, a failed
 FE gravity test, which is then the reason in ``not_run``; :mod:`forcecal.preflight`).
+
+``strain_ranges`` says where the fitted spring laws hold (:func:`strain_ranges`): the
+connector strains the calibration points' curves reached, against those of each held-out
+point; a held-out point beyond them is judged on an extrapolated spring law, and the
+verdict's held-out checks say so.
 """
 
 from __future__ import annotations
@@ -335,10 +340,36 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "fe_failures": fe_failures.to_json(),
         # the mesh as the FE stage saw it (forcecal.preflight; null for an older reference)
         "mesh_preflight": reference.mesh_preflight,
+        "strain_ranges": strain_ranges(calibration),
     }
     # judged from what the report measured, nothing else
     report["verdict"] = judge(measurements(report), goals)
     return report
+
+
+def strain_ranges(calibration: CalibrationResult) -> dict[str, Any] | None:
+    """Where the fitted spring laws were evaluated, and where the validation took them:
+    experiment -> model (``global``, ``calibrated``) -> ``{"calibration": [lo, hi],
+    "held_out": {"<vertex>": [lo, hi] or null}}``, the smallest and largest connector strain
+    over the calibration points' curves (the range the fit saw) and over each held-out
+    point's (null: the model failed it). None for a ``params.h5`` written before it stored
+    the strains."""
+    out: dict[str, Any] = {}
+    points = calibration.problem.test_points
+    cal = calibration.is_calibration
+    for model in ("global", "calibrated"):
+        strains = calibration.variants[model].strains
+        if strains is None:
+            return None
+        for e, values in strains.items():
+            done = cal & np.all(np.isfinite(values), axis=1)
+            fitted = ([float(values[done, 0].min()), float(values[done, 1].max())]
+                      if done.any() else None)
+            out.setdefault(e, {})[model] = {
+                "calibration": fitted,
+                "held_out": {str(int(points[k])): (values[k].tolist() if np.all(
+                    np.isfinite(values[k])) else None) for k in np.nonzero(~cal)[0]}}
+    return out
 
 
 def _json_list(values: np.ndarray) -> list[float | None]:

@@ -44,11 +44,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from calibration.reach import check_experiment_depths
 from forcecal.cost import check_cost
 from forcecal.errors import DataFileError, SceneError
 from forcecal.failures import collective, note_stage
 from forcecal.h5io import reference_digest
-from forcecal.problem import load_mesh
+from forcecal.problem import build_problem, load_mesh
 from forcecal.provenance import code_digests, file_digest
 from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
@@ -121,6 +122,8 @@ class Stage:
         if self.reads_mesh:  # the first stage: absurd work is refused before any is done
             mesh = load_mesh(ctx.scene)
             check_cost(ctx.scene, mesh.n_vertices, len(mesh.edges))
+            # and depths the calibration would refuse after the FE (the linear network's)
+            check_experiment_depths(ctx.scene, build_problem(ctx.scene, mesh))
         return StageInputs(scene=scene,
                            mesh=mesh.fingerprint() if mesh is not None else None,
                            # of reference.h5, only the experiments it uses

@@ -28,6 +28,11 @@ baseline's; ``not_run`` (null values) when nothing was measured (the experiment 
 scene, the scene has no held-out points, the FE gravity test failed); ``passed`` otherwise.
 A baseline that failed the experiment has a null value and no comparison is made. The
 verdict passes only when every check passed: a check that was not run has not passed.
+
+A held-out check whose points drive the calibrated model's connectors beyond the strains
+the calibration points reached (``report.json``'s ``strain_ranges``) says so in its reason,
+whatever its status: there the fitted spring law (``K(eps) = K0 + a eps + b eps^2``) is
+extrapolated, which the goal alone does not tell.
 """
 
 from __future__ import annotations
@@ -68,17 +73,22 @@ class Measured:
         calibrated, baseline: the models' values (None: not measured, or the model failed).
         failure: why the calibrated model failed the check's experiment (None if it did not).
         not_run: why nothing was measured (None if something was).
+        note: what the reason says whatever the status (held-out points judged on an
+            extrapolated spring law), or None.
     """
     calibrated: float | None
     baseline: float | None
     failure: str | None = None
     not_run: str | None = None
+    note: str | None = None
 
 
 def judge_check(m: Measured, goal: float, spec: CheckSpec, no_worse: bool
                 ) -> dict[str, Any]:
     """One check's entry of the verdict (module docstring)."""
     def entry(status: str, reason: str | None) -> dict[str, Any]:
+        if status != "not_run" and m.note is not None:
+            reason = m.note if reason is None else f"{reason}; {m.note}"
         return {"calibrated": m.calibrated, "baseline": m.baseline, "goal": goal,
                 "status": status, "passed": None if status == "not_run" else status == "passed",
                 "reason": reason}
@@ -158,8 +168,27 @@ def measurements(report: dict[str, Any]) -> dict[str, Measured]:
             values[1] = None  # a baseline that failed is no comparison
         if why_not is not None:
             values = [None, None]
-        out[name] = Measured(values[0], values[1], failure, why_not)
+        note = _extrapolated(report, spec.experiment) if role == "held_out" else None
+        out[name] = Measured(values[0], values[1], failure, why_not, note)
     return out
+
+
+def _extrapolated(report: dict[str, Any], experiment: str) -> str | None:
+    """Which held-out points drive the calibrated model's connectors beyond the strains its
+    calibration points reached in ``experiment`` (``strain_ranges``), None if none do (or
+    the report has no strain ranges)."""
+    ranges = ((report.get("strain_ranges") or {}).get(experiment) or {}).get("calibrated")
+    if not ranges or ranges["calibration"] is None:
+        return None
+    lo, hi = ranges["calibration"]
+    outside = {int(p): r for p, r in ranges["held_out"].items()
+               if r is not None and (r[0] < lo or r[1] > hi)}
+    if not outside:
+        return None
+    reached = [min(r[0] for r in outside.values()), max(r[1] for r in outside.values())]
+    return (f"held-out point(s) {sorted(outside)} drive connectors to strains "
+            f"[{reached[0]:.3g}, {reached[1]:.3g}], beyond the range the calibration points "
+            f"reached [{lo:.3g}, {hi:.3g}]: the fitted spring law is extrapolated there")
 
 
 def _not_run(report: dict[str, Any], experiment: str) -> str | None:

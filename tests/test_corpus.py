@@ -294,14 +294,7 @@ def test_each_corpus_scene_loads_and_its_mesh_passes_the_checks(path):
     assert 150 <= n <= 3000
     assert 3 <= len(problem.fixed) <= 0.4 * n
     check_cost(scene, n, len(problem.mesh.edges))
-    # the calibration's refusal of a depth that collapses connectors, which it makes only
-    # after the whole FE reference: checked here on the same linear network
-    from calibration.core import strain_range
-    from calibration.network import linear_indentation
-    from calibration.parametrisation import global_shape
-    linear = linear_indentation(problem.mesh, problem.fixed, problem.test_points,
-                                problem.normals,
-                                stiffness=global_shape(problem.mesh,
-                                                       scene.calibration.global_shape))
-    strain_range(linear.strain, max(scene.indentation.depth, scene.relaxation.depth),
-                 scene.calibration.strain_margin)
+    # the calibration's refusal of a depth that collapses connectors (the pipeline makes it
+    # before the FE reference)
+    from calibration.reach import check_experiment_depths
+    check_experiment_depths(scene, problem)

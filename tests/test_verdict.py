@@ -94,6 +94,34 @@ def test_measurements_of_a_complete_run_and_the_default_goals():
     assert loose["passed"] is True
 
 
+def test_held_out_points_beyond_the_fitted_strains_are_named_whatever_the_status():
+    """A held-out point whose connectors the calibrated model drives beyond the strains the
+    calibration points reached is judged on an extrapolated spring law: its check says so in
+    its reason, passed or failed; points within them, a failed point (null) and a report
+    without strain ranges add nothing."""
+    report = _report()
+    report["strain_ranges"] = {
+        "indentation": {"calibrated": {"calibration": [-0.16, 0.20],
+                                       "held_out": {"3": [-0.47, 0.83], "4": [-0.1, 0.1]}},
+                        "global": {"calibration": [-0.1, 0.1], "held_out": {"3": [-0.5, 0.9],
+                                                                           "4": [-0.2, 0.1]}}},
+        "relaxation": {"calibrated": {"calibration": [-0.16, 0.20],
+                                      "held_out": {"3": None, "4": [-0.15, 0.2]}}}}
+    checks = judge(measurements(report), VerdictSection())["checks"]
+    note = ("held-out point(s) [3] drive connectors to strains [-0.47, 0.83], beyond the range "
+            "the calibration points reached [-0.16, 0.2]: the fitted spring law is "
+            "extrapolated there")
+    assert checks["held_out_indentation"]["status"] == "passed"
+    assert checks["held_out_indentation"]["reason"] == note
+    # only the calibrated model's ranges count; the relaxation's point 4 is within them
+    assert checks["held_out_relaxation"]["reason"] == ("14.00 % is worse than the closed-form "
+                                                       "baseline's 13.00 %")
+    report["errors"]["indentation_held_out"] = 0.2
+    failed = judge(measurements(report), VerdictSection())["checks"]["held_out_indentation"]
+    assert failed["reason"] == f"20.00 % is not at most the goal 15.00 %; {note}"
+    assert "strain" not in str(judge(measurements(_report()), VerdictSection()))
+
+
 def test_failures_fail_their_checks_and_a_failed_baseline_is_no_comparison():
     report = _report()
     report["failures"] = [
