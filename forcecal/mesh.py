@@ -434,20 +434,21 @@ def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
 
 
 def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
-                tolerance: float = 0.001) -> np.ndarray:
+                tolerance: float = 0.001, section: str = "fixed") -> np.ndarray:
     """(F,) int64 ids of the vertices within ``tolerance`` of the min/max coordinate along
-    ``axis``."""
+    ``axis``; ``section`` is the scene section whose keys they are (named in the errors)."""
     k = "xyz".index(axis)
     c = mesh.vertices[:, k]
     ref = c.min() if side == "min" else c.max()
     ids = np.nonzero(np.abs(c - ref) <= tolerance)[0]
-    rule = f"fixed-node rule ({axis} {side} +- {tolerance} m)"
+    rule = (f"fixed-node rule ({axis} {side} +- {tolerance} m)" if section == "fixed"
+            else f"{section} rule ({axis} {side} +- {tolerance} m)")
     if len(ids) < 3:
         raise MeshError(f"{rule} selects {len(ids)} vertices; at least 3 non-collinear ones are "
-                        "needed to hold the organ")
+                        f"needed to hold the organ (widen {section}.tolerance)")
     if len(ids) == mesh.n_vertices:
         raise MeshError(f"{rule} selects all {len(ids)} vertices: nothing is left free to "
-                        "indent or to sag; lower fixed.tolerance")
+                        f"indent or to sag; lower {section}.tolerance")
     # clamped points on one line leave the rotation about it free (a singular problem); they
     # are collinear when the second principal extent is below 1e-6 of the first
     x = mesh.vertices[ids]
@@ -455,7 +456,7 @@ def fixed_nodes(mesh: TetMesh, axis: str = "z", side: str = "min",
     if extent[1] <= 1e-6 * extent[0]:
         raise MeshError(f"{rule} selects {len(ids)} collinear vertices ({ids[:10].tolist()}); "
                         "the organ could rotate about their line: at least 3 non-collinear "
-                        "ones are needed (widen fixed.tolerance)")
+                        f"ones are needed (widen {section}.tolerance)")
     return ids.astype(np.int64)
 
 

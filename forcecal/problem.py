@@ -198,6 +198,86 @@ def replacement_point(scene: Scene, problem: Problem, index: int, avoid: set[int
     return int(farthest_points(distance, rest, 1, sources, "replacement test points")[0])
 
 
+@dataclass(frozen=True, eq=False)
+class SecondSupport:
+    """The vertices the second held-out body test clamps (``[second_support]``) and the vertex
+    whose release it compares.
+
+    Attributes:
+        fixed: (F2,) int64, ids of its clamped vertices (another set than ``problem.fixed``).
+        tracked_node: its ``gravity.tracked_node`` (a rule applied to these fixed vertices).
+    """
+    fixed: np.ndarray
+    tracked_node: int
+
+
+def second_support(scene: Scene, problem: Problem) -> SecondSupport:
+    """The scene's second support on ``problem``'s mesh, without the support check (the FE
+    and the particle side both take it from here; :func:`check_second_support` refuses one
+    that does not hold the body).
+
+    Raises:
+        SceneError: naming the ``second_support`` keys: the rule selects too few (or
+            collinear, or all) vertices, the same set as ``[fixed]``, or the explicit
+            ``gravity.tracked_node`` is one of them.
+    """
+    rule = _second_support_rule(scene)
+    s = scene.second_support
+    try:
+        fixed = fixed_nodes(problem.mesh, s.axis, s.side, s.tolerance, "second_support")
+    except MeshError as exc:
+        raise SceneError(str(exc)) from None
+    if np.array_equal(np.sort(fixed), np.sort(problem.fixed)):
+        raise SceneError(f"{rule} selects the same {len(fixed)} vertices as [fixed]: the second "
+                         "held-out body test needs another support (another "
+                         "second_support.axis or second_support.side)")
+    tracked = scene.gravity.tracked_node
+    if isinstance(tracked, str):
+        tracked = tracked_node_by_rule(problem.mesh, fixed, tracked)
+    elif tracked in set(fixed.tolist()):
+        raise SceneError(f"gravity.tracked_node = {tracked} is clamped by {rule}: the second "
+                         "support's release would track a vertex that cannot move; track a "
+                         "free vertex of both supports or use a rule")
+    return SecondSupport(fixed, int(tracked))
+
+
+def check_second_support(scene: Scene, problem: Problem) -> SecondSupport:
+    """:func:`second_support`, refused unless it holds the body under the scene's gravity
+    (:func:`forcecal.preflight.check_support`, the first support's linear check: no motion
+    that costs no energy, a linear sag below :data:`~forcecal.preflight.SAG_LIMIT` x the
+    body's size). Seconds on the meshes of the scenes (a sparse factorisation).
+
+    Raises:
+        SceneError: naming the ``second_support`` keys and what the check found.
+    """
+    from forcecal.preflight import SAG_LIMIT, check_support
+
+    support = second_support(scene, problem)
+    rule = _second_support_rule(scene)
+    check = check_support(problem.mesh, support.fixed, scene.material,
+                          scene.gravity.acceleration)
+    if check.rigid_modes:
+        raise SceneError(f"{rule} does not hold the body: with its {len(support.fixed)} "
+                         f"vertices clamped, {check.rigid_modes} motion(s) cost no energy "
+                         f"(they move {len(check.free_vertices)} vertices, e.g. "
+                         f"{check.free_vertices[:10].tolist()}); clamp a larger patch "
+                         "(second_support.tolerance) or another side")
+    if not check.holds:
+        raise SceneError(f"{rule} does not hold the body under its weight: the linear sag of "
+                         f"its {len(support.fixed)} clamped vertices is {check.sag_m * 1e3:.4g} "
+                         f"mm at vertex {check.sag_vertex}, more than {SAG_LIMIT:g} x the "
+                         f"body's size {check.body_size_m * 1e3:.3g} mm; clamp a larger patch "
+                         "(second_support.tolerance) or another side")
+    log.info("%s: %d vertices clamped, linear sag %.3g mm, tracked node %d", rule,
+             len(support.fixed), check.sag_m * 1e3, support.tracked_node)
+    return support
+
+
+def _second_support_rule(scene: Scene) -> str:
+    s = scene.second_support
+    return f"second_support (axis {s.axis!r}, side {s.side!r}, tolerance {s.tolerance} m)"
+
+
 def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     """Mesh + fixed nodes + test points of a scene, validated.
 

@@ -13,10 +13,11 @@ COMMON_SECTIONS = ("mesh", "material", "fixed", "test_points", "fe")
 EXPERIMENT_SECTIONS = {"indentation": ("indentation",),
                        "relaxation": ("indentation", "relaxation"),  # the indenter
                        "gravity_static": ("gravity",),
-                       "gravity_dynamic": ("gravity",)}
+                       "gravity_dynamic": ("gravity",),
+                       "second_support": ("gravity", "second_support")}
 #: sections the whole FE reference reads (every experiment's)
-REFERENCE_SECTIONS = ("mesh", "material", "fixed", "test_points", "indentation", "relaxation",
-                      "gravity", "fe")
+REFERENCE_SECTIONS = ("mesh", "material", "fixed", "second_support", "test_points",
+                      "indentation", "relaxation", "gravity", "fe")
 #: sections that set a calibration's fit (of ``[particle]`` only ``volume``, the model it fits,
 #: which the calibration records separately); with gravity experiments it also reads
 #: ``[gravity]`` and the rest of ``[particle]`` for its gravity check, which the pipeline's
