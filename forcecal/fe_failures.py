@@ -5,7 +5,8 @@ does not end the reference: with a rule (``test_points.calibration`` / ``held_ou
 ``"auto"`` or ``"cover"``) it is **replaced** by the next candidate of that rule
 (:func:`forcecal.problem.replacement_point`), in the same slot of the test points; with an
 explicit list it is **dropped**. A failed FE gravity test leaves both gravity experiments out
-of the reference: the gravity checks are then not run. Only when more than
+of the reference: the gravity checks are then not run; a failed FE test of the second
+support (experiment ``second_support``) leaves it out likewise. Only when more than
 :data:`MAX_FAILED_FRACTION` of the test points fail is the FE set-up itself wrong for the
 scene: the reference stops with :func:`too_many_failures`, which says what the failures share
 (:func:`common_features`).
@@ -15,7 +16,8 @@ scene: the reference stops with :func:`too_many_failures`, which says what the f
 
     {"replaced": [{"point", "by", "experiment", "reason", "role", "slot", "reached"}],
      "dropped":  [{"point", "experiment", "reason", "role", "slot", "reached"}],
-     "gravity":  null | {"experiment", "reason", "reached"}}
+     "gravity":  null | {"experiment", "reason", "reached"},
+     "second_support": null | {"experiment", "reason", "reached"}}
 
 ``point`` and ``by`` are vertex ids, ``slot`` the index into the scene's test points
 (calibration points first), ``reached`` how far the experiment got (``{"depth_m": ..}``,
@@ -64,14 +66,15 @@ class FEFailures:
     replaced: tuple[dict, ...] = ()
     dropped: tuple[dict, ...] = ()
     gravity: dict | None = None
+    second_support: dict | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"replaced": list(self.replaced), "dropped": list(self.dropped),
-                "gravity": self.gravity}
+                "gravity": self.gravity, "second_support": self.second_support}
 
     @property
     def any(self) -> bool:
-        return bool(self.replaced or self.dropped or self.gravity)
+        return bool(self.replaced or self.dropped or self.gravity or self.second_support)
 
     @classmethod
     def from_json(cls, text: str | None, origin: str) -> FEFailures:
@@ -87,16 +90,19 @@ class FEFailures:
             replaced = tuple(data["replaced"])
             dropped = tuple(data["dropped"])
             gravity = data["gravity"]
+            second = data.get("second_support")  # absent in files written before the test
             ok = (all(isinstance(r.get("point"), int) and isinstance(r.get("by"), int)
                       for r in replaced)
                   and all(isinstance(d.get("point"), int) for d in dropped)
-                  and (gravity is None or isinstance(gravity.get("experiment"), str)))
+                  and all(f is None or isinstance(f.get("experiment"), str)
+                          for f in (gravity, second)))
         except (TypeError, ValueError, KeyError, AttributeError):
             ok = False
         if not ok:
             raise DataFileError(f"{origin}: attribute fe_failures = {text!r} is not "
-                                '{"replaced": [...], "dropped": [...], "gravity": ...}')
-        return cls(replaced, dropped, gravity)
+                                '{"replaced": [...], "dropped": [...], "gravity": ..., '
+                                '"second_support": ...}')
+        return cls(replaced, dropped, gravity, second)
 
 
 def role_of(problem: Problem, slot: int) -> str:

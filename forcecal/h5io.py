@@ -13,19 +13,23 @@ A reference stores the scene settings it was computed with (``[material]``,
 against their scene with :func:`check_reference_settings`.
 
 A reference holds the experiments its scene asked for (``experiments``): the
-``/indentation`` group always, ``/relaxation`` and the datasets of ``/gravity``
-only when computed; the root attribute ``experiments`` (JSON list) names those
-present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
+``/indentation`` group always, ``/relaxation``, the datasets of ``/gravity`` and the
+``/second_support`` group only when computed; the root attribute ``experiments`` (JSON
+list) names those present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
 A file without the attribute (written before experiments were optional) holds
-all four.
+the first four. ``/second_support`` (:class:`SecondSupportResult`) holds the gravity test
+with the ``[second_support]`` vertices clamped: its keys as attributes, the subgroup
+``gravity`` (the ``[gravity]`` keys, ``tracked_node`` resolved for this support), the
+datasets ``fixed`` (F2,), ``static_displacement`` (N, 3) m, ``time`` (S,) s and
+``displacement`` (S, N, 3) m.
 
 What failed in the FE stage is recorded too: ``fe_failures`` (JSON,
 :class:`forcecal.fe_failures.FEFailures`: test points replaced or dropped, the gravity
-test that failed, which leaves both gravity experiments out) with
-``failed_experiment_keys`` (JSON, the keys the failed gravity experiments were computed
-with), and ``mesh_preflight`` (JSON, :func:`forcecal.preflight.mesh_preflight`). The
-test points stored are the ones the curves belong to (replacements in place of the
-failed points, dropped points left out).
+test that failed, which leaves both gravity experiments out, the second support's test that
+failed, which leaves ``second_support`` out) with ``failed_experiment_keys`` (JSON, the keys
+the failed experiments were computed with), and ``mesh_preflight`` (JSON,
+:func:`forcecal.preflight.mesh_preflight`). The test points stored are the ones the curves
+belong to (replacements in place of the failed points, dropped points left out).
 """
 
 from __future__ import annotations
@@ -49,7 +53,7 @@ from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, tracked_node_by_rule
 from forcecal.fe_failures import FEFailures
 from forcecal.scene import (EXPERIMENTS, GRAVITY_EXPERIMENTS, SECTIONS, FESection, GravitySection,
-                            MaterialSection, Scene, section_from_values)
+                            MaterialSection, Scene, SecondSupportSection, section_from_values)
 from forcecal.schedules import record_times
 
 REFERENCE_KIND = "forcecal.reference"
@@ -336,6 +340,23 @@ class GravityResult:
 
 
 @dataclass(frozen=True, eq=False)
+class SecondSupportResult:
+    """The gravity test with the second support (experiment ``second_support``): the organ
+    under the same weight, the ``[second_support]`` vertices clamped instead of ``[fixed]``'s.
+
+    Attributes:
+        section: the scene's ``[second_support]`` keys it was computed with.
+        fixed: (F2,) int64, its clamped vertices (:func:`forcecal.problem.second_support`).
+        runs: its static sag and release, as the gravity test's (both present); their
+            ``settings`` are the scene's ``[gravity]`` with ``tracked_node`` resolved for this
+            support.
+    """
+    section: SecondSupportSection
+    fixed: np.ndarray
+    runs: GravityResult
+
+
+@dataclass(frozen=True, eq=False)
 class Reference:
     """Everything in ``reference.h5``.
 
@@ -351,6 +372,7 @@ class Reference:
     gravity: GravityResult | None
     meta: dict[str, Any] = field(default_factory=dict)
     fe: FESection | None = None
+    second_support: SecondSupportResult | None = None
 
     @property
     def experiments(self) -> tuple[str, ...]:
@@ -358,7 +380,8 @@ class Reference:
         g = self.gravity
         present = {"indentation": True, "relaxation": self.relaxation is not None,
                    "gravity_static": g is not None and g.static_displacement is not None,
-                   "gravity_dynamic": g is not None and g.time is not None}
+                   "gravity_dynamic": g is not None and g.time is not None,
+                   "second_support": self.second_support is not None}
         return tuple(e for e in EXPERIMENTS if present[e])
 
     @property
@@ -378,10 +401,13 @@ class Reference:
         """Raise :class:`DataFileError` if ``experiment`` is not in this reference (naming the
         FE failure that left it out, if one did)."""
         if experiment not in self.experiments:
-            gravity = self.fe_failures.gravity
-            if gravity is not None and experiment in GRAVITY_EXPERIMENTS:
-                raise DataFileError(f"{path} has no {experiment} results: the FE gravity test "
-                                    f"failed ({gravity['experiment']}: {gravity['reason']})")
+            failures = self.fe_failures
+            failed = (failures.gravity if experiment in GRAVITY_EXPERIMENTS else
+                      failures.second_support if experiment == "second_support" else None)
+            if failed is not None:
+                test = "gravity" if experiment in GRAVITY_EXPERIMENTS else "second-support"
+                raise DataFileError(f"{path} has no {experiment} results: the FE {test} test "
+                                    f"failed ({failed['experiment']}: {failed['reason']})")
             raise DataFileError(f"{path} has no {experiment} results (it holds "
                                 f"{list(self.experiments)}); add {experiment!r} to the scene's "
                                 "experiments and rerun the reference")
@@ -431,6 +457,13 @@ def check_reference_settings(ref: Reference, scene: Scene, path: str | Path) -> 
                 ref.problem.mesh, ref.problem.fixed, wanted.tracked_node))
         compare("gravity", ref.gravity.settings, wanted,
                 tuple(f.name for f in dataclasses.fields(GravitySection)))
+    second = ref.second_support
+    if second is not None and scene.runs("second_support"):
+        compare("second_support", second.section, scene.second_support,
+                tuple(f.name for f in dataclasses.fields(SecondSupportSection)))
+        compare("gravity", second.runs.settings, scene.gravity,  # tracked node: its own rule
+                tuple(f.name for f in dataclasses.fields(GravitySection)
+                      if f.name != "tracked_node"))
     if differ:
         raise DataFileError(f"{path} was computed with other settings than the scene's: "
                             + "; ".join(differ) + "; recompute the reference")
@@ -536,6 +569,55 @@ def write_reference(path: str | Path, ref: Reference) -> None:
                 put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
                 put(g, "displacement", gr.displacement, "m",
                     "dynamic vertex displacements (S, N, 3)")
+        if ref.second_support is not None:
+            _write_second_support(fh, ref.second_support, n_v)
+
+
+def _write_second_support(fh: h5py.File, second: SecondSupportResult, n_v: int) -> None:
+    """The ``/second_support`` group (schema in the README, "HDF5 schemas")."""
+    runs = second.runs
+    _check_shape("second_support.static_displacement", runs.static_displacement, (n_v, 3))
+    _check_shape("second_support.displacement", runs.displacement, (len(runs.time), n_v, 3))
+    g = fh.create_group("second_support")
+    write_section(g, second.section)
+    write_section(g.create_group("gravity"), runs.settings)
+    put(g, "fixed", second.fixed, "1", "ids of the vertices the second support clamps (F2,)")
+    put(g, "static_displacement", runs.static_displacement, "m",
+        "static sag of every vertex with the second support (N, 3)")
+    put(g, "time", runs.time, "s", "release sample times, from rest at 0 (S,)")
+    put(g, "displacement", runs.displacement, "m",
+        "release vertex displacements with the second support (S, N, 3)")
+
+
+def _read_second_support(fh: h5py.File, path: str | Path, n_v: int) -> SecondSupportResult:
+    """The ``/second_support`` group back, checked: a set of vertices other than
+    ``/mesh/fixed``, a free tracked node, shapes, finiteness, record times."""
+    g = group(fh, "second_support")
+    section = read_section(g, "second_support")
+    settings = read_section(group(fh, "second_support/gravity"), "gravity")
+    fixed = get(fh, "second_support/fixed", (None,), dtype="int")
+    if len(fixed) == 0 or fixed.min() < 0 or fixed.max() >= n_v:
+        raise DataFileError(f"{path}:/second_support/fixed does not hold vertex ids of the mesh")
+    tracked = settings.tracked_node
+    if not isinstance(tracked, int) or tracked in set(fixed.tolist()):
+        raise DataFileError(f"{path}:/second_support/gravity tracked_node {tracked!r} is not a "
+                            "free vertex of the second support")
+    times = get(fh, "second_support/time", (None,), dtype="float")
+    _check_record_times(times, settings, f"{path}:/second_support/time")
+    runs = GravityResult(get(fh, "second_support/static_displacement", (n_v, 3), dtype="float"),
+                         times, get(fh, "second_support/displacement", (len(times), n_v, 3),
+                                    dtype="float"), settings)
+    return SecondSupportResult(section, fixed, runs)
+
+
+def _check_record_times(times: np.ndarray, settings: GravitySection, where: str) -> None:
+    """DataFileError unless ``times`` are the record times of ``settings``' duration and
+    record interval."""
+    expected = record_times(settings.duration, settings.record_interval)
+    if times.shape != expected.shape or not np.allclose(
+            times, expected, rtol=1e-12, atol=1e-12 * settings.duration):
+        raise DataFileError(f"{where} does not match its duration ({settings.duration} s) and "
+                            f"record_interval ({settings.record_interval} s)")
 
 
 def _check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
@@ -584,15 +666,12 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                 static = get(fh, "gravity/static_displacement", (n_v, 3), dtype="float")
             if "gravity_dynamic" in stored:
                 gt = get(fh, "gravity/time", (None,), dtype="float")
-                expected = record_times(settings.duration, settings.record_interval)
-                if gt.shape != expected.shape or not np.allclose(
-                        gt, expected, rtol=1e-12, atol=1e-12 * settings.duration):
-                    raise DataFileError(f"{path}:/gravity/time does not match its duration "
-                                        f"({settings.duration} s) and record_interval "
-                                        f"({settings.record_interval} s)")
+                _check_record_times(gt, settings, f"{path}:/gravity/time")
                 gu = get(fh, "gravity/displacement", (len(gt), n_v, 3), dtype="float")
             gravity = GravityResult(static_displacement=static, time=gt, displacement=gu,
                                     settings=settings)
+        second = (_read_second_support(fh, path, problem.mesh.n_vertices)
+                  if "second_support" in stored else None)
         meta = {k: attr(fh, k) for k in fh.attrs}
         for name in ("fe_failures", "mesh_preflight"):  # JSON written by the FE stage
             try:
@@ -601,7 +680,7 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                 raise DataFileError(f"{path}: attribute {name} is not JSON") from None
         FEFailures.from_json(meta.get("fe_failures"), str(path))
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
-                     gravity=gravity, meta=meta, fe=fe)
+                     gravity=gravity, meta=meta, fe=fe, second_support=second)
 
 
 def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
@@ -620,7 +699,7 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
                             f"of some of {list(EXPERIMENTS)}")
     for e, where in (("indentation", "indentation"), ("relaxation", "relaxation"),
                      ("gravity_static", "gravity/static_displacement"),
-                     ("gravity_dynamic", "gravity/time")):
+                     ("gravity_dynamic", "gravity/time"), ("second_support", "second_support")):
         if e in listed and where not in fh:
             raise DataFileError(f"{fh.filename}:/{where} is missing (the file lists {e!r} in "
                                 "its experiments)")
@@ -630,7 +709,8 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
 #: what each experiment's results are in ``reference.h5`` (groups or datasets)
 EXPERIMENT_PATHS = {"indentation": ("indentation",), "relaxation": ("relaxation",),
                     "gravity_static": ("gravity/static_displacement",),
-                    "gravity_dynamic": ("gravity/time", "gravity/displacement")}
+                    "gravity_dynamic": ("gravity/time", "gravity/displacement"),
+                    "second_support": ("second_support",)}
 #: what every experiment's results depend on (hashed by :func:`reference_digest` too)
 SHARED_PATHS = ("mesh", "test_points", "material", "fe")
 

@@ -208,11 +208,16 @@ def punch_relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, norma
                                  normal, times, depths, f"punch relaxation at vertex {vertex}")
 
 
+#: the scene section of a clamp -> the name of its gravity test in the messages
+TEST_NAMES = {"fixed": "gravity", "second_support": "second support"}
+
+
 def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
-                   load_steps: int) -> np.ndarray:
+                   load_steps: int, section: str = "fixed") -> np.ndarray:
     """(N, 3) static displacement of every vertex under gravity [m] (long-term material).
 
     Gravity is applied in ``load_steps`` equal increments (a single P2 step diverges).
+    ``section`` is the scene section of the clamp ``fixed`` (named in the messages).
     """
     held = clamp(model.clamp_dofs(fixed))
     g = np.asarray(acceleration, float)
@@ -226,12 +231,13 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
     first = None  # sag per unit load of the first step
     for factor, state in zip(factors, march(initial_state(model), factors, step,
                                             max_cuts=model.fe.max_step_cuts,
-                                            what="gravity static", unit="x gravity")):
+                                            what=f"{TEST_NAMES[section]} static",
+                                            unit="x gravity")):
         u = model.vertex_values(state.u)
         sag = float(np.linalg.norm(u, axis=1).max())
         first = sag / factor if first is None else first
         try:
-            check_sag(sag, factor, first, extent, len(fixed))
+            check_sag(sag, factor, first, extent, len(fixed), section)
         except StabilityError as error:
             error.reached = factor  # how far the experiment got
             raise
@@ -243,7 +249,8 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
 SAG_GROWTH_LIMIT = 5.0
 
 
-def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: int) -> None:
+def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: int,
+              section: str = "fixed") -> None:
     """Refuse a static sag that grows much faster than the load or exceeds half the body.
 
     Args:
@@ -252,6 +259,7 @@ def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: i
         first: sag per unit load of the first load step [m].
         extent: diagonal of the mesh's bounding box [m].
         n_fixed: number of fixed vertices (named in the message).
+        section: the scene section whose rule clamps them (its keys are named).
 
     Raises:
         StabilityError: the support does not hold the body.
@@ -259,17 +267,18 @@ def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: i
     growth = (sag / factor) / first if first > 0 else 1.0
     if growth > SAG_GROWTH_LIMIT or sag > 0.5 * extent:
         raise StabilityError(
-            f"gravity static: unstable support: the sag grows much faster than the load "
-            f"({sag * 1e3:.3g} mm at {factor:.3g} x gravity, {growth:.3g} x the first load "
-            f"step's sag per unit load; body size {extent * 1e3:.3g} mm): the {n_fixed} fixed "
-            "vertices of the [fixed] section do not hold the body; clamp a larger patch "
-            "(fixed.tolerance) or another side (fixed.axis, fixed.side)")
+            f"{TEST_NAMES[section]} static: unstable support: the sag grows much faster than "
+            f"the load ({sag * 1e3:.3g} mm at {factor:.3g} x gravity, {growth:.3g} x the first "
+            f"load step's sag per unit load; body size {extent * 1e3:.3g} mm): the {n_fixed} "
+            f"fixed vertices of the [{section}] section do not hold the body; clamp a larger "
+            f"patch ({section}.tolerance) or another side ({section}.axis, {section}.side)")
 
 
 def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
-                    duration: float, dt: float, record_interval: float) -> tuple[np.ndarray,
-                                                                                  np.ndarray]:
-    """Release from rest in the undeformed shape with gravity on at t = 0.
+                    duration: float, dt: float, record_interval: float,
+                    section: str = "fixed") -> tuple[np.ndarray, np.ndarray]:
+    """Release from rest in the undeformed shape with gravity on at t = 0 (``fixed`` clamped
+    by the rule of scene section ``section``, named in the messages).
 
     Each record interval is split into ``ceil(record_interval / dt)`` equal
     steps (so the step never exceeds ``dt``). Newton starts from the
@@ -295,7 +304,7 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
     state = initial_state(model)
     out = [model.vertex_values(state.u)]
     states = march(state, step_times, step, max_cuts=model.fe.max_step_cuts,
-                   what="gravity dynamic", unit="s")
+                   what=f"{TEST_NAMES[section]} dynamic", unit="s")
     for k, state in enumerate(states, start=1):
         if k % substeps == 0:
             out.append(model.vertex_values(state.u))

@@ -24,6 +24,7 @@ fit in the machine's memory (:func:`check_memory`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from dataclasses import dataclass
@@ -196,6 +197,25 @@ def fe_problem(problem: Problem, fe: FESection) -> FEProblem:
     if fe.refine:
         log.info("FE mesh: %d uniform refinement(s): %s", fe.refine, current.mesh.summary())
     return FEProblem(current, vertex_map, fe.refine)
+
+
+def fe_clamp(problem: Problem, fixed: np.ndarray, fe: FEProblem, section: FESection
+             ) -> np.ndarray:
+    """The FE vertices that clamp the particle vertices ``fixed`` (another support than
+    ``problem.fixed``) on ``fe``'s mesh: ``fixed`` itself at ``fe.refine = 0``, else the P2
+    clamp of every level (module docstring), from the same refinements of ``problem`` with
+    ``fixed`` clamped.
+
+    Raises:
+        MeshError: the refinement did not give ``fe``'s mesh again.
+    """
+    if fe.levels == 0:
+        return np.asarray(fixed, dtype=np.int64)
+    other = fe_problem(dataclasses.replace(problem, fixed=np.asarray(fixed, dtype=np.int64)),
+                       section)
+    if not np.array_equal(other.problem.mesh.vertices, fe.problem.mesh.vertices):
+        raise MeshError("refining the particle mesh again did not give the FE mesh")
+    return other.problem.fixed
 
 
 def rim_refined_problem(fe: FEProblem, mesh: TetMesh, footprint: np.ndarray,

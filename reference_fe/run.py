@@ -1,7 +1,8 @@
 """Compute a scene's whole FE reference and write ``reference.h5``: :func:`compute_reference`.
 
 Work items are the indentation curve and the relaxation curve of every test
-point, the static sag and the dynamic gravity run, of the experiments the
+point, the static sag and the dynamic gravity run, and the second support's static sag and
+release (one item, ``second_support``), of the experiments the
 scene asks for (``experiments``; the others are not computed). Under ``mpirun -n K`` every
 rank builds one :class:`~reference_fe.model.FEModel` on ``MPI.COMM_SELF``
 (forms compiled once per process) and claims items one at a time, largest
@@ -22,7 +23,9 @@ a round is done, rank 0 replaces each failed point by the next candidate of the 
 selection rule (or drops it from an explicit list) and the ranks compute the replacements'
 items in the next round. The decisions are a function of the recorded failures, so a
 resumed run decides the same. More than a quarter of the points failing stops the run
-(every rank, at its next step). A failed gravity test leaves both gravity experiments out;
+(every rank, at its next step). A failed gravity test leaves both gravity experiments out,
+a failed second-support test ``second_support`` (a second support that does not hold the
+body is refused before any FE work, :func:`forcecal.problem.check_second_support`);
 ``reference.h5`` records all of it (``fe_failures``).
 
 Parts and stored results are keyed per experiment (:mod:`reference_fe.keys`:
@@ -65,21 +68,22 @@ from forcecal.fe_failures import (FEFailures, PointFailure, common_features, rep
                                   too_many_failures, with_point)
 from forcecal.preflight import run_preflight, tet_quality
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
-                           atomic_path, read_reference, write_reference)
+                           SecondSupportResult, atomic_path, read_reference, write_reference)
 from forcecal.indenter import indenter_footprints, punch_footprint
-from forcecal.problem import Problem, build_problem, replacement_point
-from forcecal.scene import EXPERIMENTS, GRAVITY_EXPERIMENTS, Scene
+from forcecal.problem import (Problem, build_problem, check_second_support, replacement_point,
+                              second_support)
+from forcecal.scene import EXPERIMENTS, GRAVITY_EXPERIMENTS, SECOND_SUPPORT_PARTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from forcecal.sections import REFERENCE_SECTIONS
 from reference_fe import experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
-from reference_fe.refine import (FEProblem, check_memory, fe_problem, patch_on_fe_mesh,
+from reference_fe.refine import (FEProblem, check_memory, fe_clamp, fe_problem, patch_on_fe_mesh,
                                  rim_refined_problem)
 
 log = logging.getLogger(__name__)
 
-KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "second_support")
 T = TypeVar("T")
 
 
@@ -124,7 +128,10 @@ def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
     g = scene.gravity
     # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
     items = [WorkItem("gravity_dynamic", -1, 3.0 * g.duration / g.fe_dt),
-             WorkItem("gravity_static", -1, 5.0 * g.static_load_steps)]
+             WorkItem("gravity_static", -1, 5.0 * g.static_load_steps),
+             # the second support's sag and release, one item
+             WorkItem("second_support", -1, 3.0 * g.duration / g.fe_dt
+                      + 5.0 * g.static_load_steps)]
     for p in range(n_points):
         items.extend(point_items(scene, p))
     return sorted((it for it in items if it.kind in kinds),
@@ -217,6 +224,8 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
     fe = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0) if fe is None else fe
     fixed, at_particles = fe.problem.fixed, fe.vertex_map
     g = scene.gravity
+    if item.kind == "second_support":
+        return second_support_runs(model, scene, problem, fe)
     if item.kind == "gravity_static":
         disp = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps)
         return {"displacement": disp[at_particles]}
@@ -238,6 +247,34 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
         force = experiments.held_relaxation_curve(model, fixed, dofs, normal, times, depths,
                                                   what)
     return {"force": force}
+
+
+def second_support_runs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem) -> dict:
+    """The arrays of the ``second_support`` item: the gravity test's static sag and release
+    (:func:`~reference_fe.experiments.gravity_static`,
+    :func:`~reference_fe.experiments.gravity_dynamic`, the scene's ``[gravity]``) with the
+    second support's vertices clamped (:func:`forcecal.problem.second_support`; on a refined FE
+    mesh its P2 clamp, :func:`~reference_fe.refine.fe_clamp`), at the particle vertices.
+
+    A failure keeps its class (:data:`ITEM_FAILURES` are recorded) and says which part failed
+    in its ``experiment`` attribute (``second_support_static`` or ``second_support_dynamic``).
+    """
+    g = scene.gravity
+    fixed = fe_clamp(problem, second_support(scene, problem).fixed, fe, scene.fe)
+    at_particles = fe.vertex_map
+    part = SECOND_SUPPORT_PARTS[0]
+    try:
+        static = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps,
+                                            section="second_support")
+        part = SECOND_SUPPORT_PARTS[1]
+        times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration, g.duration,
+                                                  g.fe_dt, g.record_interval,
+                                                  section="second_support")
+    except ITEM_FAILURES as exc:
+        exc.experiment = part
+        raise
+    return {"static_displacement": static[at_particles], "time": times,
+            "displacement": disp[:, at_particles]}
 
 
 class _Parts:
@@ -301,6 +338,8 @@ class _Parts:
         class, message and how far it got (the error's ``reached`` attribute, if any)."""
         record = {"run_key": self.key_of(item), "kind": item.kind, "point": item.point,
                   "replacement": item.replacement, "vertex": vertex,
+                  # the part of an item of two experiments that failed (the second support)
+                  "experiment": getattr(error, "experiment", item.kind),
                   "error": type(error).__name__, "reason": str(error),
                   "reached": getattr(error, "reached", None), "seconds": seconds}
         with atomic_path(self.failure_path(item)) as tmp:
@@ -334,17 +373,19 @@ class _Parts:
                                     {unit: float(reached)}))
         return sorted(out, key=lambda f: (f.slot, f.vertex, f.experiment))
 
-    def gravity_failure(self, items: list[WorkItem]) -> dict | None:
-        """The ``fe_failures.gravity`` record of the first failed gravity item of ``items``
-        (None: none failed)."""
+    def test_failure(self, items: list[WorkItem], kinds: tuple[str, ...]) -> dict | None:
+        """The ``fe_failures`` record (``gravity``, ``second_support``) of the first failed
+        item of ``items`` of ``kinds``, None when none failed: the experiment (the part of
+        the item that failed), the reason and how far it got."""
         for item in items:
-            if item.kind not in GRAVITY_EXPERIMENTS:
+            if item.kind not in kinds:
                 continue
             record = self.failure(item)
             if record is not None:
-                unit = "load_factor" if item.kind == "gravity_static" else "time_s"
+                experiment = record.get("experiment", item.kind)
+                unit = "load_factor" if experiment.endswith("_static") else "time_s"
                 reached = record.get("reached")
-                return {"experiment": item.kind, "reason": record["reason"],
+                return {"experiment": experiment, "reason": record["reason"],
                         "reached": {} if reached is None else {unit: float(reached)}}
         return None
 
@@ -537,20 +578,22 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     check_indenter(scene, problem)
     check_memory(problem.mesh, scene.fe, comm.size)  # a refinement that cannot fit: refused
     preflight = _on_root(comm, lambda: run_preflight(scene, problem.mesh, problem.fixed))
+    if scene.runs("second_support"):  # a second support that does not hold: refused here
+        _on_root(comm, lambda: check_second_support(scene, problem))
     keys = run_keys(scene, problem)
     parts = _Parts(out_path, keys)
     previous: dict[str, dict] = {}
 
-    def take_previous() -> tuple[list[str], dict | None]:
+    def take_previous() -> tuple[list[str], dict[str, dict]]:
         previous.update(previous_results(out_path, keys, problem))
-        return sorted(previous), previous_gravity_failure(out_path, keys)
-    reused, gravity_failure = _on_root(comm, take_previous)  # arrays stay on rank 0
-    skip = set(reused) | (set(GRAVITY_EXPERIMENTS) if gravity_failure else set())
+        return sorted(previous), previous_failures(out_path, keys)
+    reused, failed_before = _on_root(comm, take_previous)  # arrays stay on rank 0
+    skip = set(reused) | {e for test in failed_before for e in BODY_TESTS[test]}
     items = work_items(scene, len(problem.test_points),
                        tuple(e for e in scene.experiments if e not in skip))
-    if reused or gravity_failure:
+    if reused or failed_before:
         log.info("reusing %s from %s (same keys); computing %d work item(s)",
-                 ", ".join(reused + (["the gravity failure"] if gravity_failure else [])),
+                 ", ".join(reused + [f"the {test} failure" for test in failed_before]),
                  out_path, len(items))
     _on_root(comm, parts.start)
     mesh_seconds = time.perf_counter() - start
@@ -573,11 +616,16 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         bar.close()
 
     def finish() -> Reference:
-        failures = points.records(gravity_failure or parts.gravity_failure(scheduled))
+        failures = points.records({test: failed_before.get(test) or parts.test_failure(
+            scheduled, kinds) for test, kinds in BODY_TESTS.items()})
         if failures.gravity is not None:
             log.warning("the FE gravity test failed (%s: %s): both gravity experiments are "
                         "left out of %s, the force curves are kept", failures.gravity[
                             "experiment"], failures.gravity["reason"], out_path)
+        if failures.second_support is not None:
+            log.warning("the FE test of the second support failed (%s: %s): second_support "
+                        "is left out of %s", failures.second_support["experiment"],
+                        failures.second_support["reason"], out_path)
         reference = _assemble(scene, points, scheduled, parts, previous, computed, keys,
                               comm.size, mesh_seconds + build_seconds,
                               time.perf_counter() - start, failures, preflight)
@@ -689,9 +737,10 @@ class _Points:
                                    self._quality, footprints)
         return too_many_failures(n_points, failures, features)
 
-    def records(self, gravity: dict | None) -> FEFailures:
-        """What failed and what was done, with the gravity failure (None: none)."""
-        return dataclasses.replace(self._records, gravity=gravity)
+    def records(self, tests: dict[str, dict | None]) -> FEFailures:
+        """What failed and what was done, with the body tests' failures (``{"gravity": ..,
+        "second_support": ..}``, None: none)."""
+        return dataclasses.replace(self._records, **tests)
 
 
 def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
@@ -839,17 +888,22 @@ def previous_results(out_path: Path, keys: dict[str, str], problem: Problem
             for e in old.experiments if stored.get(e) == keys[e]}
 
 
-def previous_gravity_failure(out_path: Path, keys: dict[str, str]) -> dict | None:
-    """The gravity failure an existing ``out_path`` records (``fe_failures.gravity``) if it
-    was met with the current keys of both gravity experiments (it would fail again), else
-    None."""
+#: the body tests whose FE failure leaves their experiments out of the reference (the
+#: ``fe_failures`` key of each -> its experiments)
+BODY_TESTS = {"gravity": GRAVITY_EXPERIMENTS, "second_support": ("second_support",)}
+
+
+def previous_failures(out_path: Path, keys: dict[str, str]) -> dict[str, dict]:
+    """The body test failures an existing ``out_path`` records (``fe_failures.gravity``,
+    ``.second_support``: :data:`BODY_TESTS`) that were met with the current keys of all the
+    test's experiments (they would fail again)."""
     old = _previous_reference(out_path)
-    if old is None or old.fe_failures.gravity is None:
-        return None
+    if old is None:
+        return {}
     failed = json.loads(old.meta.get("failed_experiment_keys", "{}"))
-    if all(failed.get(e) == keys[e] for e in GRAVITY_EXPERIMENTS):
-        return old.fe_failures.gravity
-    return None
+    recorded = old.fe_failures.to_json()
+    return {test: recorded[test] for test, kinds in BODY_TESTS.items()
+            if recorded[test] is not None and all(failed.get(e) == keys[e] for e in kinds)}
 
 
 def _previous_reference(out_path: Path) -> Reference | None:
@@ -875,6 +929,10 @@ def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.nda
         return {"displacement": g.static_displacement}
     if experiment == "gravity_dynamic":
         return {"time": g.time, "displacement": g.displacement}
+    if experiment == "second_support":
+        runs = reference.second_support.runs
+        return {"static_displacement": runs.static_displacement, "time": runs.time,
+                "displacement": runs.displacement}
     return {"force": getattr(reference, experiment).force}
 
 
@@ -913,11 +971,13 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
             else:
                 raise DataFileError(f"checkpoint of {name} is missing from {parts.folder}")
         results[kind] = {"force": np.stack(rows)}
-    for kind in GRAVITY_EXPERIMENTS:
-        if failures.gravity is not None:
-            results.pop(kind, None)  # the gravity test failed: neither run is kept
-        elif kind in data:
-            results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
+    recorded = failures.to_json()
+    for test, kinds in BODY_TESTS.items():
+        for kind in kinds:
+            if recorded[test] is not None:
+                results.pop(kind, None)  # the test failed: none of its runs is kept
+            elif kind in data:
+                results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
     present = [e for e in EXPERIMENTS if e in results]
     problem = points.current
     normals = problem.normals
@@ -939,9 +999,18 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
                                 displacement=dyn.get("displacement"),
                                 settings=dataclasses.replace(scene.gravity,
                                                              tracked_node=problem.tracked_node))
+    second = None
+    if "second_support" in results:
+        support = second_support(scene, problem)
+        runs = results["second_support"]
+        second = SecondSupportResult(
+            scene.second_support, support.fixed,
+            GravityResult(runs["static_displacement"], runs["time"], runs["displacement"],
+                          dataclasses.replace(scene.gravity,
+                                              tracked_node=support.tracked_node)))
     counted = {k: sum(1 for name in computed if name.split("-")[0] == k) for k in KINDS}
-    failed_keys = ({e: keys[e] for e in GRAVITY_EXPERIMENTS if e in scene.experiments}
-                   if failures.gravity is not None else {})
+    failed_keys = {e: keys[e] for test, kinds in BODY_TESTS.items() if recorded[test] is not None
+                   for e in kinds if e in scene.experiments}
     meta = {
         "dolfinx_version": dolfinx.__version__,
         "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
@@ -963,4 +1032,4 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
         indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind,
                                       normal(f_ind), indenter=scene.indentation.indenter,
                                       radius=scene.indentation.radius),
-        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe)
+        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe, second_support=second)
