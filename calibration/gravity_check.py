@@ -33,7 +33,7 @@ import numpy as np
 from calibration.validation import MODEL_FAILURES, ValidationFailure, failure_from
 from forcecal.errors import TimeStepError
 from forcecal.problem import Problem
-from forcecal.scene import Scene
+from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
 from particle.experiments import GravityTest, gravity_release, gravity_static_test
 from particle.model import build_model
 from particle.params import ConnectorParams
@@ -74,7 +74,8 @@ class GravityCheck:
 
 
 def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
-                    times: np.ndarray | None, strain_range: tuple[float, float], name: str
+                    times: np.ndarray | None, strain_range: tuple[float, float], name: str,
+                    parts: tuple[str, str] = GRAVITY_EXPERIMENTS
                     ) -> tuple[GravityTest | None, ValidationFailure | None]:
     """The particle side of ``scene``'s gravity test for one parameter set, as both the
     gravity stage and this check run it: the static sag under ``scene.gravity.acceleration``
@@ -85,8 +86,10 @@ def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
 
     Returns (the test, None) when it completes; a model that fails it is a result: (None,
     its failure) if the static sag fails, (the static sag alone, its failure) if the
-    release does. An explicit ``particle.dt`` above the model's stability limit is the
-    scene's setting, not the model's failure: refused
+    release does, the failure's experiment the first or the second of ``parts`` (the gravity
+    test's; the second support's test, run with its clamp as ``problem.fixed``, names
+    :data:`~forcecal.scene.SECOND_SUPPORT_PARTS`). An explicit ``particle.dt`` above the
+    model's stability limit is the scene's setting, not the model's failure: refused
     (:class:`~forcecal.errors.TimeStepError`).
     """
     model = build_model(problem, scene.material.density, params)
@@ -98,13 +101,13 @@ def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
     except TimeStepError:  # the scene's particle.dt: a setting to change, refused
         raise
     except MODEL_FAILURES as exc:
-        return None, failure_from(exc, name, "gravity_static")
+        return None, failure_from(exc, name, parts[0])
     if times is None:
         return static, None
     try:
         return gravity_release(model, gravity, times, static, **settings), None
     except MODEL_FAILURES as exc:
-        return static, failure_from(exc, name, "gravity_dynamic")
+        return static, failure_from(exc, name, parts[1])
 
 
 def gravity_failure(scene: Scene, problem: Problem, params: ConnectorParams,

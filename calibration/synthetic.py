@@ -24,10 +24,10 @@ import numpy as np
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings, local_params
 from forcecal.errors import ParameterError
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
-                           write_reference)
+                           SecondSupportResult, write_reference)
 from forcecal.indenter import indenter_footprints
 from forcecal.mesh import box_mesh
-from forcecal.problem import Problem, build_problem
+from forcecal.problem import Problem, build_problem, second_support
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, record_times, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
@@ -68,7 +68,8 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path,
     The curves are sampled exactly like the FE's (scene schedules). With ``gravity`` the
     gravity test too: the static sag and the release at the FE's record times, run as the
     gravity stage runs a particle model (:func:`calibration.gravity_check.gravity_outcome`,
-    ``params`` positive on +-0.5); otherwise gravity is not computed. The stage timings
+    ``params`` positive on +-0.5), and the second support's when the scene's experiments
+    include ``second_support``; otherwise gravity is not computed. The stage timings
     (``timings_s``) of a reference the FE did not compute are zero.
     """
     problem = build_problem(scene)
@@ -89,9 +90,12 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path,
                     relaxation=RelaxationCurves(times, relax_depths, relax,
                                                   normal_force(relax, normals)),
                     gravity=synthetic_gravity(scene, problem, params) if gravity else None,
+                    second_support=(synthetic_second_support(scene, problem, params)
+                                    if gravity and scene.runs("second_support") else None),
                     meta={"source": "particle model (synthetic reference)",
                           "timings_s": json.dumps(dict.fromkeys(
-                              ("mesh", "total", "gravity_static", "gravity_dynamic"), 0.0))})
+                              ("mesh", "total", "gravity_static", "gravity_dynamic",
+                               "second_support"), 0.0))})
     write_reference(path, ref)
     return ref
 
@@ -106,6 +110,17 @@ def synthetic_gravity(scene: Scene, problem: Problem, params: ConnectorParams) -
         raise ParameterError(f"the synthetic reference's gravity test failed: {failure.reason}")
     settings = dataclasses.replace(scene.gravity, tracked_node=problem.tracked_node)
     return GravityResult(run.static_displacement, times, run.displacement, settings)
+
+
+def synthetic_second_support(scene: Scene, problem: Problem, params: ConnectorParams
+                             ) -> SecondSupportResult:
+    """The particle model's gravity test with ``params`` and the scene's second support
+    (:func:`forcecal.problem.second_support`) as a reference's ``second_support``."""
+    support = second_support(scene, problem)
+    clamped = dataclasses.replace(problem, fixed=support.fixed,
+                                  tracked_node=support.tracked_node)
+    return SecondSupportResult(scene.second_support, support.fixed,
+                               synthetic_gravity(scene, clamped, params))
 
 
 def ring_perturbed_params(problem: Problem, glob: GlobalParams, strain: StrainRange, *,

@@ -40,7 +40,8 @@ MODEL_FAILURES = (ConvergenceError, StabilityError, ParameterError)
 MODELS = ("global", "calibrated", "baseline")
 #: experiment -> the key (and unit) of the load parameter a failure reached
 REACHED_KEYS = {"indentation": "depth_m", "relaxation": "time_s",
-                "gravity_static": "load_factor", "gravity_dynamic": "time_s"}
+                "gravity_static": "load_factor", "gravity_dynamic": "time_s",
+                "second_support_static": "load_factor", "second_support_dynamic": "time_s"}
 ROLES = ("calibration", "held_out")
 
 
@@ -50,8 +51,9 @@ class ValidationFailure:
 
     Attributes:
         model: ``global``, ``calibrated`` or ``baseline`` (:data:`MODELS`).
-        experiment: ``indentation``, ``relaxation``, ``gravity_static`` or
-            ``gravity_dynamic`` (:data:`REACHED_KEYS`).
+        experiment: ``indentation``, ``relaxation``, ``gravity_static``,
+            ``gravity_dynamic``, or the second support's ``second_support_static`` and
+            ``second_support_dynamic`` (:data:`REACHED_KEYS`).
         point: the test point's vertex id (the particle indented); None for gravity.
         role: ``calibration`` or ``held_out`` for a test point, None for gravity.
         reached: how far the model got, in the experiment's load parameter

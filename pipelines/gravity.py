@@ -25,6 +25,8 @@ function the calibration's gravity check runs too,
 | ``/<model>/displacement`` | (S, N, 3) | m | dynamic vertex displacements |
 | ``/<model>`` attrs | | | ``dt`` [s] explicit step used, ``critical_dt`` [s] its stability limit, ``static_time``, ``dynamic_time`` [s] wall times, ``strain_min``, ``strain_max`` [1] connector strain extremes over both runs |
 
+| ``/second_support`` | | | the same test with the second support's clamp (experiment ``second_support``, held out like the gravity test): attrs ``tracked_node``; datasets ``fixed`` (F2,) its clamped vertices, ``time`` (S,) s, and a ``<model>`` group as above for each model; failures recorded with ``experiment`` ``second_support_static`` / ``second_support_dynamic`` |
+
 ``<model>`` is ``calibrated`` (global + local tuning, or the gradient fit) and ``baseline``
 (Van Gelder). A model whose static sag failed has no group; one whose release failed has no
 ``displacement`` (and ``dynamic_time`` 0): each only with its failure recorded.
@@ -35,20 +37,22 @@ strains); the dynamic release only when the scene's experiments include
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from calibration.gravity_check import gravity_outcome
 from calibration.validation import ValidationFailure, failures_json, parse_failures
 from forcecal.errors import DataFileError
-from forcecal.h5io import (Reference, atomic_h5, attr, get, json_attr, open_h5, put,
+from forcecal.h5io import (Reference, atomic_h5, attr, get, group, json_attr, open_h5, put,
                            read_problem, write_problem)
 from forcecal.problem import Problem
-from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
+from forcecal.scene import BODY_EXPERIMENTS, GRAVITY_EXPERIMENTS, SECOND_SUPPORT_PARTS, Scene
 from particle.experiments import GravityTest
 from particle.params import ConnectorParams
 
@@ -58,6 +62,22 @@ GRAVITY_KIND = "forcecal.gravity"
 GRAVITY_SCHEMA = 1
 MODELS = ("calibrated", "baseline")
 SCALARS = ("dt", "critical_dt", "static_time", "dynamic_time", "strain_min", "strain_max")
+
+
+@dataclass(frozen=True, eq=False)
+class SupportRuns:
+    """The models' runs of the second support's test (``/second_support`` of ``gravity.h5``).
+
+    Attributes:
+        fixed: (F2,) int64, the vertices it clamps (the reference's).
+        tracked_node: the vertex whose release is compared.
+        time: (S,) float64, sample times [s] (the FE's).
+        models: model name -> its runs, as :attr:`GravityRuns.models`.
+    """
+    fixed: np.ndarray
+    tracked_node: int
+    time: np.ndarray
+    models: dict[str, GravityTest]
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,8 +92,9 @@ class GravityRuns:
             is absent; one whose release failed has no ``displacement``).
         reference_fingerprint, params_fingerprint: SHA-256 of the input files.
         experiments: the gravity experiments run (``time`` is None without
-            ``gravity_dynamic``).
+            ``gravity_dynamic``), and ``second_support`` when it ran.
         failures: what the models failed (their ``experiment`` says which run).
+        second_support: the second support's runs (None when not run).
     """
     problem: Problem
     time: np.ndarray | None
@@ -83,6 +104,7 @@ class GravityRuns:
     params_fingerprint: str = ""
     experiments: tuple[str, ...] = GRAVITY_EXPERIMENTS
     failures: tuple[ValidationFailure, ...] = ()
+    second_support: SupportRuns | None = None
 
 
 def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, ConnectorParams],
@@ -90,12 +112,14 @@ def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, Connec
                 params_fingerprint: str = "") -> GravityRuns:
     """Run every model of :data:`MODELS` through the reference's gravity experiments
     (:func:`calibration.gravity_check.gravity_outcome`: the static sag and the release, whose
-    explicit step is chosen for each connector's strain range of the release and verified).
+    explicit step is chosen for each connector's strain range of the release and verified)
+    and, with ``second_support``, through the same test with the second support's clamp
+    (``reference.h5:/second_support``).
 
     ``strain_range`` is the calibration's: where the calibrated springs are valid. A model
     that fails is recorded in ``failures`` and the others run on.
     """
-    experiments = tuple(e for e in GRAVITY_EXPERIMENTS if scene.runs(e))
+    experiments = tuple(e for e in BODY_EXPERIMENTS if scene.runs(e))
     for e in experiments:
         reference.require(e)
     g = np.asarray(scene.gravity.acceleration, dtype=np.float64)
@@ -103,17 +127,37 @@ def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, Connec
     missing = [m for m in MODELS if m not in connectors]
     if missing:
         raise DataFileError(f"params.h5 lacks connector parameters {missing}")
-    models, failures = {}, []
+    failures: list[ValidationFailure] = []
+    models = (_model_runs(scene, reference.problem, connectors, times, strain_range, failures)
+              if "gravity_static" in experiments else {})
+    second = None
+    if "second_support" in experiments:
+        ref = reference.second_support
+        clamped = dataclasses.replace(reference.problem, fixed=ref.fixed)
+        second = SupportRuns(ref.fixed, ref.runs.tracked_node, ref.runs.time, _model_runs(
+            scene, clamped, connectors, ref.runs.time, strain_range, failures,
+            SECOND_SUPPORT_PARTS))
+    return GravityRuns(reference.problem, times, g, models, reference_fingerprint,
+                       params_fingerprint, experiments, tuple(failures), second)
+
+
+def _model_runs(scene: Scene, problem: Problem, connectors: dict[str, ConnectorParams],
+                times: np.ndarray | None, strain_range: tuple[float, float],
+                failures: list[ValidationFailure],
+                parts: tuple[str, str] = GRAVITY_EXPERIMENTS) -> dict[str, GravityTest]:
+    """Every model's :func:`~calibration.gravity_check.gravity_outcome` with ``problem``'s
+    clamp, the runs that completed (their failures appended to ``failures``)."""
+    models = {}
     for m in MODELS:
-        run, failure = gravity_outcome(scene, reference.problem, connectors[m], times,
-                                       strain_range, m)
+        run, failure = gravity_outcome(scene, problem, connectors[m], times, strain_range, m,
+                                       parts)
         if run is not None:
             models[m] = run
         if failure is not None:
-            log.warning("gravity: %s", failure.describe())
+            log.warning("%s: %s", parts[0].rsplit("_", 1)[0].replace("_", " "),
+                        failure.describe())
             failures.append(failure)
-    return GravityRuns(reference.problem, times, g, models, reference_fingerprint,
-                       params_fingerprint, experiments, tuple(failures))
+    return models
 
 
 def write_gravity(path: str | Path, runs: GravityRuns) -> None:
@@ -127,13 +171,25 @@ def write_gravity(path: str | Path, runs: GravityRuns) -> None:
         write_problem(fh, runs.problem)
         if runs.time is not None:
             put(fh, "time", runs.time, "s", "sample times of the dynamic run (S,)")
-        for name, r in runs.models.items():
-            g = fh.create_group(name)
-            put(g, "static_displacement", r.static_displacement, "m", "static sag (N, 3)")
-            if r.displacement is not None:
-                put(g, "displacement", r.displacement, "m", "dynamic displacements (S, N, 3)")
-            for k in SCALARS:
-                g.attrs[k] = getattr(r, k)
+        _write_models(fh, runs.models)
+        second = runs.second_support
+        if second is not None:
+            g = fh.create_group("second_support")
+            g.attrs["tracked_node"] = second.tracked_node
+            put(g, "fixed", second.fixed, "1", "vertices the second support clamps (F2,)")
+            put(g, "time", second.time, "s", "sample times of its release (S,)")
+            _write_models(g, second.models)
+
+
+def _write_models(fh: h5py.Group, models: dict[str, GravityTest]) -> None:
+    """One ``<model>`` group per run of ``models`` under ``fh``."""
+    for name, r in models.items():
+        g = fh.create_group(name)
+        put(g, "static_displacement", r.static_displacement, "m", "static sag (N, 3)")
+        if r.displacement is not None:
+            put(g, "displacement", r.displacement, "m", "dynamic displacements (S, N, 3)")
+        for k in SCALARS:
+            g.attrs[k] = getattr(r, k)
 
 
 def read_gravity(path: str | Path) -> GravityRuns:
@@ -146,19 +202,37 @@ def read_gravity(path: str | Path) -> GravityRuns:
         dynamic = "gravity_dynamic" in experiments
         times = get(fh, "time", (None,), dtype="float") if dynamic else None
         n = problem.mesh.n_vertices
-        models = {}
-        for name in MODELS:
-            failed = {f.experiment for f in failures if f.model == name}
-            if name not in fh:
-                if "gravity_static" not in failed:
-                    raise DataFileError(f"{path}:/{name} is missing")
-                continue
-            released = dynamic and "gravity_dynamic" not in failed
-            models[name] = GravityTest(
-                get(fh, f"{name}/static_displacement", (n, 3), dtype="float"),
-                get(fh, f"{name}/displacement", (len(times), n, 3), dtype="float")
-                if released else None,
-                *(float(attr(fh[name], k)) for k in SCALARS))
+        models = (_read_models(fh, "", times, n, failures)
+                  if "gravity_static" in experiments else {})
+        second = None
+        if "second_support" in experiments:
+            g = group(fh, "second_support")
+            fixed = get(fh, "second_support/fixed", (None,), dtype="int")
+            t = get(fh, "second_support/time", (None,), dtype="float")
+            second = SupportRuns(fixed, int(attr(g, "tracked_node")), t, _read_models(
+                fh, "second_support/", t, n, failures, SECOND_SUPPORT_PARTS))
         return GravityRuns(problem, times, np.asarray(attr(fh, "acceleration"), dtype=float),
                            models, str(attr(fh, "reference_fingerprint")),
-                           str(attr(fh, "params_fingerprint")), experiments, failures)
+                           str(attr(fh, "params_fingerprint")), experiments, failures, second)
+
+
+def _read_models(fh: h5py.File, prefix: str, times: np.ndarray | None, n: int,
+                 failures: tuple[ValidationFailure, ...],
+                 parts: tuple[str, str] = GRAVITY_EXPERIMENTS) -> dict[str, GravityTest]:
+    """The ``<prefix><model>`` groups (a model's missing run must be one its recorded failure
+    of ``parts``, the test's static sag and release, explains)."""
+    models = {}
+    for name in MODELS:
+        failed = {f.experiment for f in failures if f.model == name}
+        path = f"{prefix}{name}"
+        if path not in fh:
+            if parts[0] not in failed:
+                raise DataFileError(f"{fh.filename}:/{path} is missing")
+            continue
+        released = times is not None and parts[1] not in failed
+        models[name] = GravityTest(
+            get(fh, f"{path}/static_displacement", (n, 3), dtype="float"),
+            get(fh, f"{path}/displacement", (len(times), n, 3), dtype="float")
+            if released else None,
+            *(float(attr(fh[path], k)) for k in SCALARS))
+    return models

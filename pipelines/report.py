@@ -47,6 +47,13 @@ and ``realtime`` its haptic cost on the mesh (:mod:`pipelines.realtime`).
 ``reference.h5`` (:mod:`forcecal.fe_failures`: test points replaced or dropped, a failed
 FE gravity test, which is then the reason in ``not_run``; :mod:`forcecal.preflight`).
 
+``second_support`` (null unless the scene's experiments include ``second_support``) is the
+second held-out body test: the gravity test with the ``[second_support]`` vertices clamped
+instead of ``[fixed]``'s, the FE against the calibrated and the baseline model
+(:func:`second_support_block`); no fit and no choice sees it. A model that fails it is in
+``failures`` (``second_support_static``, ``second_support_dynamic``), a failed FE test in
+``fe_failures.second_support`` and ``not_run``.
+
 ``strain_ranges`` says where the fitted spring laws hold (:func:`strain_ranges`): the
 connector strains the calibration points' curves reached, against those of each held-out
 point; a held-out point beyond them is judged on an extrapolated spring law, and the
@@ -72,7 +79,7 @@ from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
 from pipelines.dynamics import dynamic_metrics, release_modes
-from pipelines.gravity import GravityRuns, GravityTest
+from pipelines.gravity import GravityRuns, GravityTest, SupportRuns
 from pipelines.verdict import CHECKS, STATUSES, judge, measurements
 
 log = logging.getLogger(__name__)
@@ -239,10 +246,13 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     fe_t = fe_timings(reference)
     ran, not_run = experiments_run(experiments, calibration, gravity)
     fe_failures = reference.fe_failures
-    if fe_failures.gravity is not None:  # why the scene's gravity experiments did not run
-        not_run.update({e: f"the FE gravity test failed ({fe_failures.gravity['experiment']}: "
-                        f"{fe_failures.gravity['reason']}): no FE gravity reference"
-                        for e in GRAVITY_EXPERIMENTS if e in not_run})
+    for failed, kinds, test in ((fe_failures.gravity, GRAVITY_EXPERIMENTS, "gravity"),
+                                (fe_failures.second_support, ("second_support",),
+                                 "second-support")):
+        if failed is not None:  # why the scene's experiments of that test did not run
+            not_run.update({e: f"the FE {test} test failed ({failed['experiment']}: "
+                            f"{failed['reason']}): no FE {test} reference"
+                            for e in kinds if e in not_run})
     models = {m: None if gravity is None else gravity.models.get(m)
               for m in ("calibrated", "baseline")}
     calibrated = model_errors(reference, calibration, models["calibrated"], CALIBRATED_VARIANTS,
@@ -273,7 +283,8 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     node = p.tracked_node
     released = {m: r for m, r in gravity.models.items()
                 if r.displacement is not None} if gravity is not None else {}
-    gravity_block = None if gravity is None else {
+    gravity_ran = any(e in ran for e in GRAVITY_EXPERIMENTS)
+    gravity_block = None if not gravity_ran else {
         "tracked_node": int(node),
         "duration_s": None if gravity.time is None else float(gravity.time[-1]),
         "fe_max_static_sag_m": (None if reference.gravity.static_displacement is None
@@ -328,6 +339,8 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "per_point_errors": {"test_points": p.test_points.tolist(),
                              "is_calibration": calibration.is_calibration.tolist(), **per_point},
         "gravity": gravity_block,
+        "second_support": (second_support_block(reference, gravity.second_support)
+                           if "second_support" in ran else None),
         "global_parameters": calibration.global_params.as_dict(),
         # how those values spread over the connectors (calibration.global_shape); files written
         # before the key had the paper's uniform set
@@ -345,6 +358,50 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     # judged from what the report measured, nothing else
     report["verdict"] = judge(measurements(report), goals)
     return report
+
+
+def second_support_block(reference: Reference, runs: SupportRuns) -> dict[str, Any]:
+    """``report.json``'s ``second_support``: the gravity test with the second support's clamp,
+    held out like it (module docstring), each model against the FE: ``errors`` and
+    ``baseline_errors`` (``static_sag``: :func:`gravity_static_error` over the vertices this
+    support leaves free; ``release_rms``: :func:`gravity_dynamic_error` of its tracked
+    vertex; null for a run the model failed), the sags, the support and the release's
+    ``dynamic_metrics`` (:func:`pipelines.dynamics.dynamic_metrics`, as the gravity block's),
+    and ``fe_seconds``, the FE's compute time of the test."""
+    ref = reference.second_support
+    fe, node = ref.runs, runs.tracked_node
+    free = np.ones(reference.problem.mesh.n_vertices, dtype=bool)
+    free[ref.fixed] = False
+    errors = {m: {"static_sag": None, "release_rms": None} for m in ("calibrated", "baseline")}
+    for m, r in runs.models.items():
+        errors[m]["static_sag"] = gravity_static_error(fe.static_displacement,
+                                                       r.static_displacement, free)
+        if r.displacement is not None:
+            errors[m]["release_rms"] = gravity_dynamic_error(fe.displacement[:, node],
+                                                             r.displacement[:, node])
+    released = {m: r for m, r in runs.models.items() if r.displacement is not None}
+    timings = json.loads(reference.meta.get("timings_s", "{}"))
+
+    def sag(u: np.ndarray) -> float:
+        return float(np.linalg.norm(u, axis=1).max())
+
+    return {
+        "axis": ref.section.axis, "side": ref.section.side,
+        "tolerance_m": ref.section.tolerance, "fixed_vertices": int(len(ref.fixed)),
+        "tracked_node": int(node), "duration_s": float(fe.time[-1]),
+        "fe_max_static_sag_m": sag(fe.static_displacement),
+        **{f"{m}_max_static_sag_m": None if m not in runs.models else sag(
+            runs.models[m].static_displacement) for m in ("calibrated", "baseline")},
+        "errors": errors["calibrated"], "baseline_errors": errors["baseline"],
+        "fe_seconds": timings.get("second_support"),
+        "dynamic_metrics": dynamic_metrics(
+            fe.time, fe.displacement[:, node], fe.static_displacement[node],
+            {m: (r.displacement[:, node], r.static_displacement[node])
+             for m, r in released.items()},
+            {m: e["release_rms"] for m, e in errors.items()},
+            {"fe": release_modes(fe.time, fe.displacement, node),
+             **{m: release_modes(fe.time, r.displacement, node) for m, r in released.items()}}),
+    }
 
 
 def strain_ranges(calibration: CalibrationResult) -> dict[str, Any] | None:
@@ -411,11 +468,36 @@ def check_report(report: dict[str, Any]) -> None:
             explained = v is None and (k.endswith("held_out") or any(
                 k.startswith(e) for e in not_run) or (no_gravity and k.startswith("gravity"))
                 or k.split("_")[0] in failed)
-            if not explained and not (isinstance(v, (int, float)) and not isinstance(v, bool)
-                                      and np.isfinite(v)):
+            if not explained and not _finite(v):
                 raise DataFileError(f"report.json: {group}.{k} = {v!r} is not a finite number")
+    _check_second_support(report.get("second_support"), report.get("failures") or [])
     if "verdict" in report:
         check_verdict(report["verdict"])
+
+
+def _check_second_support(block: Any, failures: list[dict]) -> None:
+    """Raise :class:`DataFileError` unless ``block`` is null or its errors are finite numbers
+    (null only for a model with a recorded failure of the second support's test)."""
+    if block is None:
+        return
+    if not isinstance(block, dict):
+        raise DataFileError(f"report.json: second_support = {block!r:.80} is not an object")
+    for model, group in (("calibrated", "errors"), ("baseline", "baseline_errors")):
+        values = block.get(group)
+        if not isinstance(values, dict):
+            raise DataFileError(f"report.json: second_support.{group} is missing")
+        failed = any(f.get("model") == model and str(f.get("experiment", "")).startswith(
+            "second_support") for f in failures)
+        for k in ("static_sag", "release_rms"):
+            v = values.get(k)
+            if not (v is None and failed) and not _finite(v):
+                raise DataFileError(f"report.json: second_support.{group}.{k} = {v!r} is not "
+                                    "a finite number")
+
+
+def _finite(v: Any) -> bool:
+    """Whether ``v`` is a finite JSON number (not a boolean)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
 
 
 def check_verdict(verdict: Any) -> None:

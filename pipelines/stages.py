@@ -49,9 +49,9 @@ from forcecal.cost import check_cost
 from forcecal.errors import DataFileError, SceneError
 from forcecal.failures import collective, note_stage
 from forcecal.h5io import reference_digest
-from forcecal.problem import build_problem, load_mesh
+from forcecal.problem import build_problem, check_second_support, load_mesh
 from forcecal.provenance import code_digests, file_digest
-from forcecal.scene import EXPERIMENTS, Scene
+from forcecal.scene import BODY_EXPERIMENTS, EXPERIMENTS, Scene
 from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
 from pipelines.cache import Cache, StageInputs
 from pipelines.runners.calibrate import run_calibrate
@@ -100,7 +100,7 @@ class Stage:
     def upstream_files(self, scene: Scene) -> tuple[str, ...]:
         """The upstream files it reads for ``scene`` (no ``gravity.h5`` without gravity)."""
         return tuple(n for n in self.upstream
-                     if n != GRAVITY or any(e.startswith("gravity") for e in scene.experiments))
+                     if n != GRAVITY or any(e in BODY_EXPERIMENTS for e in scene.experiments))
 
     def inputs(self, ctx: Context) -> StageInputs:
         """Fingerprints of everything this stage reads, now."""
@@ -111,7 +111,8 @@ class Stage:
                                     "exist")
         # an experiment's own section is read only when the experiment runs
         skipped = {"relaxation": "relaxation" not in used,
-                   "gravity": not any(e.startswith("gravity") for e in used)}
+                   "gravity": not any(e in BODY_EXPERIMENTS for e in used),
+                   "second_support": "second_support" not in used}
         # "name" stands for the scene's top-level name (written into the report)
         scene = {s: (hashlib.sha256(ctx.scene.name.encode()).hexdigest() if s == "name"
                      else ctx.scene.fingerprint(s)) for s in self.sections
@@ -122,8 +123,12 @@ class Stage:
         if self.reads_mesh:  # the first stage: absurd work is refused before any is done
             mesh = load_mesh(ctx.scene)
             check_cost(ctx.scene, mesh.n_vertices, len(mesh.edges))
-            # and depths the calibration would refuse after the FE (the linear network's)
-            check_experiment_depths(ctx.scene, build_problem(ctx.scene, mesh))
+            # and depths the calibration would refuse after the FE (the linear network's),
+            # and a second support that does not hold the body
+            problem = build_problem(ctx.scene, mesh)
+            check_experiment_depths(ctx.scene, problem)
+            if ctx.scene.runs("second_support"):
+                check_second_support(ctx.scene, problem)
         return StageInputs(scene=scene,
                            mesh=mesh.fingerprint() if mesh is not None else None,
                            # of reference.h5, only the experiments it uses
@@ -143,9 +148,9 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("calibrate", FIT_SECTIONS + ("gravity", "particle"),
           ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
           experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic")),
+    # the gravity test and the second support's (its clamp is read from reference.h5)
     Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
-          (REFERENCE, PARAMS), run_gravity_stage,
-          experiments=("gravity_static", "gravity_dynamic")),
+          (REFERENCE, PARAMS), run_gravity_stage, experiments=BODY_EXPERIMENTS),
     # [verdict]: the goals the report judges against (a change reruns this stage alone);
     # [particle], [material], [indentation]: the real-time check's haptic session and drag
     Stage("report", ("name", "outputs", "verdict", "particle", "material", "indentation"),

@@ -19,7 +19,11 @@ Checks (:data:`CHECKS`), each the calibrated model's value against its goal and,
 * ``carries_its_weight``: the fraction of the scene's gravity the model's static sag carried
   (1 when it completed, else the load its Newton solve reached: the smallest load factor of
   the model's ``gravity_static`` records in ``failures``, the gravity stage's or a
-  calibration's that fitted a load its model could not carry); at least.
+  calibration's that fitted a load its model could not carry); at least;
+* ``second_support_static_sag``, ``second_support_release_rms``: the second held-out body
+  test's ``second_support.errors.static_sag`` and ``.release_rms`` (the gravity test with the
+  ``[second_support]`` clamp); at most; ``not_run`` when the scene's experiments do not
+  include ``second_support`` (or its FE test failed).
 
 A check's status is ``failed`` when the calibrated model failed its experiment (a record
 in ``failures``: at a held-out point for the curve checks; the static sag or the release for
@@ -40,7 +44,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from forcecal.scene import VerdictSection
+from forcecal.scene import SECOND_SUPPORT_PARTS, VerdictSection
 
 AT_MOST, AT_LEAST = "at most", "at least"
 
@@ -61,6 +65,8 @@ CHECKS = {
     "release_first_peak": CheckSpec("gravity_dynamic"),
     "release_rms": CheckSpec("gravity_dynamic"),
     "carries_its_weight": CheckSpec("gravity_static", AT_LEAST, "g"),
+    "second_support_static_sag": CheckSpec("second_support_static"),
+    "second_support_release_rms": CheckSpec("second_support_dynamic"),
 }
 STATUSES = ("passed", "failed", "not_run")
 
@@ -129,16 +135,25 @@ def _value(value: float | None, spec: CheckSpec) -> str:
 
 def measurements(report: dict[str, Any]) -> dict[str, Measured]:
     """Every check's :class:`Measured` from a report's keys (``errors``, ``baseline_errors``,
-    ``gravity.dynamic_metrics``, ``failures``, ``not_run``, ``test_points`` and, when the FE
-    stage records one, ``fe_failures.gravity``)."""
+    ``gravity.dynamic_metrics``, ``second_support``, ``failures``, ``not_run``,
+    ``test_points`` and, when the FE stage records one, ``fe_failures.gravity`` and
+    ``.second_support``)."""
     failures = report.get("failures") or []
     errors, baseline = report["errors"], report["baseline_errors"]
     metrics = (report.get("gravity") or {}).get("dynamic_metrics") or {}
     out = {}
+    second = report.get("second_support") or {}
     for name, spec in CHECKS.items():
         why_not = _not_run(report, spec.experiment)
         role = None
-        if name.startswith("held_out_"):
+        if name.startswith("second_support_"):
+            # its release starts from its static sag, as the gravity test's
+            experiments = (SECOND_SUPPORT_PARTS if spec.experiment == SECOND_SUPPORT_PARTS[1]
+                           else SECOND_SUPPORT_PARTS[:1])
+            key = "static_sag" if name.endswith("static_sag") else "release_rms"
+            values = [(second.get(group) or {}).get(key)
+                      for group in ("errors", "baseline_errors")]
+        elif name.startswith("held_out_"):
             role, experiments = "held_out", (spec.experiment,)
             if why_not is None and not report["test_points"]["held_out"]:
                 why_not = "the scene has no held-out points"
@@ -192,12 +207,17 @@ def _extrapolated(report: dict[str, Any], experiment: str) -> str | None:
 
 
 def _not_run(report: dict[str, Any], experiment: str) -> str | None:
-    """Why ``experiment`` was not measured (None if it was)."""
+    """Why ``experiment`` (or the second support's part of it) was not measured (None if
+    it was)."""
+    if experiment in SECOND_SUPPORT_PARTS:
+        experiment = "second_support"
     if experiment in (report.get("not_run") or {}):
         return report["not_run"][experiment]
-    fe_gravity = (report.get("fe_failures") or {}).get("gravity")
-    if experiment.startswith("gravity") and fe_gravity:
-        return f"the FE gravity test failed: {fe_gravity.get('reason')}"
+    fe = report.get("fe_failures") or {}
+    for test, failed in (("gravity", fe.get("gravity")),
+                         ("second_support", fe.get("second_support"))):
+        if experiment.startswith(test) and failed:
+            return f"the FE {test.replace('_', '-')} test failed: {failed.get('reason')}"
     return None
 
 
@@ -209,9 +229,9 @@ def _failed(failures: list[dict], model: str, experiments: tuple[str, ...],
     if not mine:
         return None
     first = mine[0]
-    if first["point"] is None:  # the gravity test: its static sag first, least far first
+    if first["point"] is None:  # a body test: its static sag first, least far first
         first = min((f for f in mine if f["point"] is None), key=lambda f: (
-            f["experiment"] != "gravity_static", next(iter(f["reached"].values()))))
+            not f["experiment"].endswith("_static"), next(iter(f["reached"].values()))))
         (key, reached), = first["reached"].items()
         return f"{first['experiment']} stopped at {key} = {reached:.4g}: {first['reason']}"
     points = sorted({f["point"] for f in mine})

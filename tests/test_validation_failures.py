@@ -14,7 +14,11 @@ each test then provokes one failure with physically too-soft springs or a scene 
   equilibrium beyond 0.79 g (measured: Newton's last converged load 0.789 g);
 * ``particle.strain_margin`` = 0: the release is verified on [min(0, 2 eps_static),
   max(0, 2 eps_static)] exactly, and a connector that the sag stretches is compressed early in
-  the swing (measured: at 4 ms).
+  the swing (measured: at 4 ms);
+* the second held-out body test with the box hung from its top face (``[second_support]`` z
+  max) and springs ``K0 (1 - eps / 0.5)``, ``K0`` = 20 N/m, that soften in tension: the box
+  stands on its base (compression stiffens them) but hung from its top has no static
+  equilibrium beyond 0.71 g (measured: Newton's last converged load 0.711 g).
 """
 import dataclasses
 import json
@@ -29,10 +33,11 @@ from calibration.core import calibrate
 from calibration.gravity_check import gravity_outcome
 from calibration.parametrisation import GlobalParams
 from calibration.results import read_params, write_params
-from calibration.synthetic import box_scene, synthetic_reference
+from calibration.synthetic import box_scene, synthetic_reference, synthetic_second_support
 from calibration.validation import ValidationFailure
+from forcecal.h5io import read_reference, write_reference
 from forcecal.problem import build_problem
-from forcecal.scene import load_scene
+from forcecal.scene import BODY_EXPERIMENTS, load_scene, replace
 from particle.params import ConnectorParams
 from pipelines.cache import Cache
 from pipelines.cli import main as pipelines_main
@@ -104,8 +109,8 @@ def _gravity_and_report(folder, scene) -> dict:
     ctx = Context(scene, folder, progress=False, ranks=1,
                   experiments=scene.experiments, upstream=("reference.h5", "params.h5",
                                                            "gravity.h5"))
-    run_gravity_stage(dataclasses.replace(ctx, experiments=("gravity_static",
-                                                            "gravity_dynamic")))
+    run_gravity_stage(dataclasses.replace(ctx, experiments=tuple(
+        e for e in scene.experiments if e in BODY_EXPERIMENTS)))
     outputs = run_report(ctx)
     assert "report.json" in outputs
     return read_report(folder / "report.json")
@@ -123,7 +128,9 @@ def test_a_run_whose_models_complete_has_no_failures_and_a_verdict(calibrated, t
     report = _gravity_and_report(folder, scene)
     assert report["failures"] == []
     checks = report["verdict"]["checks"]
-    assert {c["status"] for c in checks.values()} <= {"passed", "failed"}
+    # the scene does not ask for the second support: its two checks are not run
+    assert {c["status"] for n, c in checks.items()
+            if not n.startswith("second_support")} <= {"passed", "failed"}
     assert checks["carries_its_weight"]["calibrated"] == 1.0
     assert checks["static_sag"]["calibrated"] == report["errors"]["gravity_static"]
     rt = report["realtime"]
@@ -152,8 +159,8 @@ def test_the_calibrations_gravity_check_is_the_gravity_stages_run(calibrated, tm
     (check_args, (check_run, check_failure)), = CHECK_CALLS  # the fit completed: one call
     (stage_args, (stage_run, stage_failure)), = [c for c in stage_calls
                                                  if c[0][5] == "calibrated"]
-    check_scene, check_problem, check_params, check_times, check_range, _ = check_args
-    stage_scene, stage_problem, stage_params, stage_times, stage_range, _ = stage_args
+    check_scene, check_problem, check_params, check_times, check_range = check_args[:5]
+    stage_scene, stage_problem, stage_params, stage_times, stage_range = stage_args[:5]
     assert check_scene.gravity == stage_scene.gravity
     assert check_scene.particle == stage_scene.particle
     assert check_scene.material == stage_scene.material
@@ -256,6 +263,88 @@ def test_a_model_that_cannot_carry_its_weight_is_a_result(calibrated, tmp_path, 
         assert (folder / "figures" / f"{name}.png").is_file()
 
 
+#: the box hung from its top face: the second held-out body test of the box scene
+TOP = {"axis": "z", "side": "max", "tolerance": 1e-4}
+
+
+def _with_second_support(folder, scene):
+    """``scene`` asking for the second support (:data:`TOP`), and the folder's synthetic
+    reference with its test (the particle model with the truth, as the rest)."""
+    scene = replace(scene, second_support=TOP, experiments=[*scene.experiments,
+                                                            "second_support"])
+    ref = read_reference(folder / "reference.h5")
+    n = len(ref.problem.mesh.edges)
+    write_reference(folder / "reference.h5", dataclasses.replace(
+        ref, second_support=synthetic_second_support(scene, ref.problem,
+                                                     TRUTH.connector_params(n))))
+    return scene
+
+
+def test_the_second_support_is_reported_and_judged_and_changes_nothing_else(calibrated,
+                                                                            tmp_path):
+    """The second held-out body test adds its block and its two checks; the calibration it
+    was never fitted to recovers the truth, so the calibrated model matches the synthetic
+    reference there too, far better than the baseline; every other number is the report's
+    without it."""
+    folder, scene = _copy(calibrated, tmp_path)
+    without = _gravity_and_report(folder, scene)
+    report = _gravity_and_report(folder, _with_second_support(folder, scene))
+    block = report["second_support"]
+    assert without["second_support"] is None and report["failures"] == []
+    assert (block["axis"], block["side"], block["fixed_vertices"]) == ("z", "max", 16)
+    for key in ("static_sag", "release_rms"):
+        assert block["errors"][key] < 0.01 < block["baseline_errors"][key], key
+    assert block["dynamic_metrics"]["calibrated"]["rms_error"] == block["errors"]["release_rms"]
+    checks = report["verdict"]["checks"]
+    for name, key in (("second_support_static_sag", "static_sag"),
+                      ("second_support_release_rms", "release_rms")):
+        assert (checks[name]["calibrated"], checks[name]["baseline"], checks[name]["status"]) == (
+            block["errors"][key], block["baseline_errors"][key], "passed")
+        assert without["verdict"]["checks"][name]["status"] == "not_run"
+        assert without["verdict"]["checks"][name]["reason"].startswith(
+            "not in the scene's experiments")
+    assert report["experiments"] == without["experiments"] + ["second_support"]
+    for key in ("errors", "baseline_errors", "strain_ranges"):
+        assert report[key] == without[key], key
+    wall = "particle_dynamic_s"  # a wall time
+    assert {k: v for k, v in report["gravity"].items() if k != wall} == {
+        k: v for k, v in without["gravity"].items() if k != wall}
+    assert {n: c for n, c in report["verdict"]["checks"].items()
+            if not n.startswith("second_support")} == {
+        n: c for n, c in without["verdict"]["checks"].items()
+        if not n.startswith("second_support")}
+
+
+def test_a_model_that_cannot_carry_the_load_with_the_second_support_is_a_result(calibrated,
+                                                                               tmp_path):
+    folder, scene = _copy(calibrated, tmp_path)
+    n = len(build_problem(scene).mesh.edges)
+    _swap(folder, "calibrated", softening(n, 20.0, -0.5))  # softens in tension
+    report = _gravity_and_report(folder, _with_second_support(folder, scene))
+    gravity = read_gravity(folder / "gravity.h5")
+    (failure,) = gravity.failures
+    assert (failure.model, failure.experiment, failure.point, failure.role) == (
+        "calibrated", "second_support_static", None, None)
+    assert failure.reached == pytest.approx(0.711, abs=0.005)
+    assert failure.reason.startswith("ConvergenceError: gravity load 0.71")
+    # the scene's gravity test completed; of the second support's, the baseline's alone
+    assert gravity.models["calibrated"].displacement is not None
+    assert set(gravity.second_support.models) == {"baseline"}
+    assert report["failures"] == [failure.as_dict()]
+    block = report["second_support"]
+    assert block["errors"] == {"static_sag": None, "release_rms": None}
+    assert block["calibrated_max_static_sag_m"] is None and "calibrated" not in block[
+        "dynamic_metrics"]
+    checks = report["verdict"]["checks"]
+    for name in ("second_support_static_sag", "second_support_release_rms"):
+        assert checks[name]["status"] == "failed"
+        assert checks[name]["reason"].startswith("second_support_static stopped at "
+                                                 "load_factor = 0.71")
+    # carries_its_weight is the scene's gravity test's: it carried that
+    assert checks["carries_its_weight"]["calibrated"] == 1.0
+    assert checks["static_sag"]["calibrated"] == report["errors"]["gravity_static"]
+
+
 def test_a_release_that_leaves_its_strain_range_keeps_the_sag(calibrated, tmp_path):
     folder, scene = _copy(calibrated, tmp_path, particle={"strain_margin": 0.0})
     report = _gravity_and_report(folder, scene)
@@ -296,9 +385,15 @@ def _record_upstream_stages(folder, scene) -> None:
 def test_require_pass_exits_3_on_a_failed_verdict_and_0_on_a_passed_one(calibrated, tmp_path,
                                                                        capsys):
     folder, scene = _copy(calibrated, tmp_path)
+    # every check measured: a check not run (the second support's, unless asked for) has not
+    # passed
+    scene = _with_second_support(folder, scene)
+    text = (f"experiments = {json.dumps(list(scene.experiments))}\n" + scene.path.read_text()
+            + "\n[second_support]\n" + "".join(f"{k} = {json.dumps(v)}\n"
+                                               for k, v in TOP.items()))
+    scene.path.write_text(text)
     _gravity_and_report(folder, scene)  # gravity.h5 for the pipeline's report stage
     _record_upstream_stages(folder, scene)
-    text = scene.path.read_text()
     strict = text + "\n[verdict]\nstatic_sag = 0.0\n"
     scene.path.write_text(strict)
     code, out = _cli(capsys, scene.path, folder, "--require-pass")
@@ -312,12 +407,13 @@ def test_require_pass_exits_3_on_a_failed_verdict_and_0_on_a_passed_one(calibrat
     assert code == 0 and "verdict: FAILED" in out
     loose = text + "\n[verdict]\n" + "\n".join(
         f"{k} = 100.0" for k in ("held_out_indentation", "held_out_relaxation", "static_sag",
-                                 "release_period", "release_first_peak", "release_rms")) + (
+                                 "release_period", "release_first_peak", "release_rms",
+                                 "second_support_static_sag", "second_support_release_rms")) + (
         "\ncarries_its_weight = 0.01\nno_worse_than_baseline = false\n")
     scene.path.write_text(loose)
     code, out = _cli(capsys, scene.path, folder, "--require-pass")
     assert code == 0, out
-    assert "verdict: PASSED (7 checks)" in out
+    assert "verdict: PASSED (9 checks)" in out
     # a change of [verdict] reran the report stage alone
     assert [line.split()[:2] for line in out.splitlines()[:4]] == [
         ["reference", "skipped"], ["calibrate", "skipped"], ["gravity", "skipped"],
@@ -345,7 +441,9 @@ def test_under_mpi_rank_0_decides_and_every_rank_returns_its_code(calibrated, tm
                        env=mpirun_environment())  # without what an in-process MPI set
     assert r.returncode == 3, r.stderr[-3000:]
     assert [(folder / f"rank-{k}").read_text() for k in (0, 1)] == ["3", "3"]
-    assert r.stdout.count("verdict: FAILED (failed: static_sag)") == 1  # printed by rank 0
+    # printed by rank 0; the second support's checks are not run (not asked for)
+    assert r.stdout.count("verdict: FAILED (failed: static_sag; not run: "
+                          "second_support_static_sag, second_support_release_rms)") == 1
 
 
 def test_what_sets_the_step_of_one_free_particle_is_its_own_connectors():

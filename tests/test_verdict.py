@@ -77,6 +77,8 @@ def _report() -> dict:
                                         "baseline": {"period_error": 0.11,
                                                      "first_peak_error": -0.03}}},
         "test_points": {"calibration": [1, 2], "held_out": [3, 4]},
+        "second_support": {"errors": {"static_sag": 0.06, "release_rms": 0.28},
+                           "baseline_errors": {"static_sag": 0.09, "release_rms": 0.31}},
         "not_run": {}, "failures": []}
 
 
@@ -89,7 +91,9 @@ def test_measurements_of_a_complete_run_and_the_default_goals():
         "release_period": (0.05, 0.11, "passed"),  # |signed errors|
         "release_first_peak": (0.07, 0.03, "failed"),
         "release_rms": (0.25, 0.22, "failed"),
-        "carries_its_weight": (1.0, 1.0, "passed")}
+        "carries_its_weight": (1.0, 1.0, "passed"),
+        "second_support_static_sag": (0.06, 0.09, "passed"),
+        "second_support_release_rms": (0.28, 0.31, "passed")}
     loose = judge(measurements(_report()), VerdictSection(no_worse_than_baseline=False))
     assert loose["passed"] is True
 
@@ -208,7 +212,8 @@ def test_checks_not_measured_are_not_run_with_the_reason():
     assert statuses == {"held_out_indentation": "not_run", "held_out_relaxation": "not_run",
                         "static_sag": "passed", "release_period": "not_run",
                         "release_first_peak": "not_run", "release_rms": "not_run",
-                        "carries_its_weight": "passed"}
+                        "carries_its_weight": "passed", "second_support_static_sag": "passed",
+                        "second_support_release_rms": "passed"}
     assert verdict["checks"]["release_rms"]["reason"] == "not in the scene's experiments"
     assert verdict["checks"]["held_out_indentation"]["reason"] == "the scene has no held-out points"
     assert all(verdict["checks"][n]["passed"] is None for n, s in statuses.items()
@@ -222,6 +227,54 @@ def test_checks_not_measured_are_not_run_with_the_reason():
         assert checks[name]["status"] == "not_run", name
         assert checks[name]["reason"] == "the FE gravity test failed: diverged"
         assert checks[name]["calibrated"] is None and checks[name]["baseline"] is None
+
+
+def test_the_second_support_checks_judge_its_block_and_its_failures():
+    """The second held-out body test's checks read ``second_support``'s errors against their
+    goals (and the baseline's); a scene without it has them not run, the others unchanged; a
+    failed FE test is the reason; a model's failure of its sag fails both, of its release the
+    RMS only; a baseline that failed it is no comparison."""
+    checks = judge(measurements(_report()), VerdictSection(second_support_static_sag=0.05))[
+        "checks"]
+    assert checks["second_support_static_sag"]["reason"] == "6.00 % is not at most the goal 5.00 %"
+    report = _report()
+    report["second_support"]["errors"]["static_sag"] = 0.10  # worse than the baseline's 9 %
+    assert judge(measurements(report), VerdictSection())["checks"][
+        "second_support_static_sag"]["reason"] == ("10.00 % is worse than the closed-form "
+                                                   "baseline's 9.00 %")
+    why = "not in the scene's experiments ['indentation']: not computed (FE or particle)"
+    report = _report()
+    report["second_support"], report["not_run"] = None, {"second_support": why}
+    checks = judge(measurements(report), VerdictSection())["checks"]
+    for name in ("second_support_static_sag", "second_support_release_rms"):
+        assert (checks[name]["status"], checks[name]["reason"], checks[name]["calibrated"],
+                checks[name]["passed"]) == ("not_run", why, None, None)
+    assert checks["static_sag"]["status"] == "passed"  # the gravity test's checks as before
+    fe = copy.deepcopy(report)
+    fe["not_run"] = {}
+    fe["fe_failures"] = {"gravity": None, "second_support": {
+        "experiment": "second_support_static", "reason": "diverged"}}
+    checks = judge(measurements(fe), VerdictSection())["checks"]
+    assert checks["second_support_release_rms"]["reason"] == (
+        "the FE second-support test failed: diverged")
+    assert checks["release_rms"]["status"] == "failed"  # worse than its baseline, as before
+    record = {"point": None, "role": None, "reason": "ConvergenceError: no equilibrium"}
+    report = _report()
+    report["second_support"]["errors"] = {"static_sag": None, "release_rms": None}
+    report["second_support"]["baseline_errors"]["release_rms"] = None
+    report["failures"] = [
+        {**record, "model": "calibrated", "experiment": "second_support_static",
+         "reached": {"load_factor": 0.5}},
+        {**record, "model": "baseline", "experiment": "second_support_dynamic",
+         "reached": {"time_s": 0.2}}]
+    checks = judge(measurements(report), VerdictSection())["checks"]
+    for name in ("second_support_static_sag", "second_support_release_rms"):
+        assert checks[name]["status"] == "failed"
+        assert checks[name]["reason"] == ("second_support_static stopped at load_factor = 0.5: "
+                                          "ConvergenceError: no equilibrium")
+    assert checks["second_support_static_sag"]["baseline"] == 0.09
+    assert checks["second_support_release_rms"]["baseline"] is None
+    assert checks["carries_its_weight"]["status"] == "passed"  # the gravity test's weight
 
 
 def test_tables_show_every_check_and_the_reasons():

@@ -190,9 +190,10 @@ def adopt_reference(ctx: Context, mesh_fingerprint: str) -> bool:
 def scene_after_reference(ctx: Context) -> Scene:
     """The scene the stages after the reference run: the scene's, less the gravity
     experiments when the FE gravity test failed (``reference.h5`` records it in
-    ``fe_failures.gravity``): the calibration, the gravity stage and the report then skip the
-    gravity parts as for a scene without them, and the report says why they were not run.
-    The scene itself when ``reference.h5`` is absent or records no gravity failure."""
+    ``fe_failures.gravity``) and less ``second_support`` when the second support's FE test
+    did (``fe_failures.second_support``): the calibration, the gravity stage and the report
+    then skip those parts as for a scene without them, and the report says why they were not
+    run. The scene itself when ``reference.h5`` is absent or records no such failure."""
     from forcecal.fe_failures import FEFailures
     path = ctx.out / REFERENCE
     try:
@@ -200,11 +201,16 @@ def scene_after_reference(ctx: Context) -> Scene:
             failures = FEFailures.from_json(fh.attrs.get("fe_failures"), str(path))
     except (OSError, DataFileError):  # absent (a later stage says so) or damaged
         return ctx.scene
-    if failures.gravity is None or not any(e in GRAVITY_EXPERIMENTS
-                                           for e in ctx.scene.experiments):
+    left_out = set()
+    for failure, kinds, what in ((failures.gravity, GRAVITY_EXPERIMENTS, "gravity"),
+                                 (failures.second_support, ("second_support",),
+                                  "second support's")):
+        if failure is not None and any(e in kinds for e in ctx.scene.experiments):
+            left_out.update(kinds)
+            log.warning("the FE %s test failed (%s: %s): %s not run; the other experiments "
+                        "are", what, failure["experiment"], failure["reason"],
+                        " and ".join(k for k in kinds if ctx.scene.runs(k)))
+    if not left_out:
         return ctx.scene
-    kept = tuple(e for e in ctx.scene.experiments if e not in GRAVITY_EXPERIMENTS)
-    log.warning("the FE gravity test failed (%s: %s): the gravity experiments are not run; "
-                "the force experiments are", failures.gravity["experiment"],
-                failures.gravity["reason"])
+    kept = tuple(e for e in ctx.scene.experiments if e not in left_out)
     return dataclasses.replace(ctx.scene, experiments=kept)
