@@ -332,41 +332,70 @@ def folds_of(n_points: int, k: int) -> list[np.ndarray]:
     return [np.sort(order[f::k]) for f in range(min(k, n_points))]
 
 
-@blas_threads()
-def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
-                   folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID
-                   ) -> tuple[float, np.ndarray]:
-    """Smoothness weight by k-fold CV on the linearisation ``lin`` at the start.
+#: body weights w tried by cross-validation (:func:`cross_validate`): each whole-body item's
+#: squared relative error counts w times a calibration point's in the fit
+BODY_WEIGHT_GRID = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 
-    ``lin`` holds the data rows of every calibration point (point-major,
-    ``rows_per_point`` each). For each weight and fold, the Gauss-Newton step
-    fitted to the other folds' rows predicts the fold's residuals ``r_f + J_f
-    delta``; returns the weight with the smallest total predicted squared fold
-    residual and the (len(grid),) CV costs.
+
+@blas_threads()
+def cross_validate(lin: Linearisation, groups: np.ndarray, reg: Regulariser,
+                   folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID,
+                   body_grid: Sequence[float] = (0.0,), trained: np.ndarray | None = None
+                   ) -> tuple[float, float, np.ndarray]:
+    """Smoothness weight (and body weight) by cross-validation on the linearisation ``lin``.
+
+    ``groups`` (rows,) names the data each row of ``lin`` belongs to: a calibration point
+    (>= 0, its index) or a whole-body item (``-1 - item``), the body rows unweighted. The
+    groups left out in turn are the point ``folds`` and each whole-body item on its own. For
+    each body weight ``w`` of ``body_grid`` and smoothness weight of ``grid``, the
+    Gauss-Newton step fitted to every other row (the body rows weighted by ``w``) predicts
+    the left-out rows ``r + J delta`` (unweighted). The score adds the points' predicted
+    squared errors and the body items', the latter scaled by (points / items) so that the
+    body data as a whole weigh as much as the surface points (without body rows: the points'
+    predicted squared fold residual, as the smoothness weight was always chosen).
+    ``trained`` (rows,) False for whole-body rows that are predicted but never fitted (the
+    kinds a fit does not use: how well a fit predicts data it did not see); None: all.
+
+    Returns (smoothness weight, body weight, scores (len(body_grid), len(grid))).
     """
-    point_of_row = np.repeat(np.arange(len(lin.r) // rows_per_point), rows_per_point)
+    groups = np.asarray(groups)
+    body = groups < 0
+    trained = np.ones(len(groups), bool) if trained is None else np.asarray(trained, bool)
+    items = [np.flatnonzero(groups == g) for g in np.unique(groups[body])]
+    n_points = len(np.unique(groups[~body]))
+    if not (items and trained[body].any()):
+        body_grid = (0.0,)
+    left_out = [(np.isin(groups, fold) & ~body, 1.0) for fold in folds]
+    left_out += [(np.isin(np.arange(len(groups)), rows), n_points / len(items))
+                 for rows in items]
     d0 = lin.theta - reg.theta0
     Jd0 = lin.J @ d0
-    costs = np.zeros(len(grid))
-    for fold in folds:
-        test = np.isin(point_of_row, fold)
-        train = ~test
-        # everything in the rows' space: with C_TT = U diag(e) U^T, (alpha I + C_TT)^-1 costs
-        # nothing per weight, and the fold's prediction r_F + J_F d needs only C_FT
-        e, U = np.linalg.eigh(lin.C[np.ix_(train, train)])
-        C_FT = lin.C[np.ix_(test, train)]
-        r_T, r_F = lin.r[train], lin.r[test]
-        for g, weight in enumerate(grid):
-            alpha = weight  # no damping
-            rhs = lin.C[np.ix_(train, train)] @ r_T + weight * Jd0[train]
-            X = U @ ((U.T @ rhs) / (alpha + e))
-            Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
-            costs[g] += float(np.sum((r_F + Jd) ** 2))
-    best = int(np.argmin(costs))
+    costs = np.zeros((len(body_grid), len(grid)))
+    for b, body_weight in enumerate(body_grid):
+        scale = np.where(body, np.sqrt(body_weight), 1.0) * trained
+        for test, share in left_out:
+            train = ~test
+            s = scale[train]
+            # everything in the rows' space: with C_TT = U diag(e) U^T, (alpha I + C_TT)^-1
+            # costs nothing per weight, and the prediction r_F + J_F d needs only C_FT
+            C_TT = s[:, None] * lin.C[np.ix_(train, train)] * s[None, :]
+            e, U = np.linalg.eigh(C_TT)
+            C_FT = lin.C[np.ix_(test, train)] * s[None, :]
+            r_T, r_F = s * lin.r[train], lin.r[test]
+            for g, weight in enumerate(grid):
+                alpha = weight  # no damping
+                rhs = C_TT @ r_T + weight * s * Jd0[train]
+                X = U @ ((U.T @ rhs) / (alpha + e))
+                Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
+                costs[b, g] += share * float(np.sum((r_F + Jd) ** 2))
+    b, best = np.unravel_index(int(np.argmin(costs)), costs.shape)
     if best in (0, len(grid) - 1):
         log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
                     "[%g, %g]", grid[best], grid[0], grid[-1])
-    return float(grid[best]), costs
+    if len(body_grid) > 1 and b == len(body_grid) - 1:
+        log.warning("cross-validation picked the body weight %g at the end of the grid %s",
+                    body_grid[b], list(body_grid))
+    return float(grid[best]), float(body_grid[b]), costs
 
 
 @dataclass
@@ -423,10 +452,7 @@ def levenberg_marquardt(ev: LeastSquares, points: np.ndarray, reg: Regulariser, 
     if state is None:
         theta = reg.theta0 if theta_start is None else theta_start
         lin = start if start is not None else linearise(ev, theta, points, reg, validity)
-        n_data = ROWS_KEPT * len(points) if ROWS_KEPT < ev.data.rows(points[:1]) else \
-            ev.data.rows(points)
-        data = lin.r[:n_data]
-        cost = objective(theta, data) + lin.offset
+        cost = objective(theta, lin.r[:len(lin.J)]) + lin.offset
         state = LMState(theta.copy(), weight, cost, [cost])
     elif not state.done:
         lin = linearise(ev, state.theta, points, reg, validity)

@@ -13,11 +13,11 @@ A reference stores the scene settings it was computed with (``[material]``,
 against their scene with :func:`check_reference_settings`.
 
 A reference holds the experiments its scene asked for (``experiments``): the
-``/indentation`` group always, ``/relaxation`` and the datasets of ``/gravity``
-only when computed; the root attribute ``experiments`` (JSON list) names those
-present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
+``/indentation`` group always, ``/relaxation``, the datasets of ``/gravity`` and the
+``/body`` group only when computed; the root attribute ``experiments`` (JSON list) names
+those present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
 A file without the attribute (written before experiments were optional) holds
-all four.
+the four of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS`.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ import forcecal
 from forcecal.errors import DataFileError, MeshError, SceneError
 from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, tracked_node_by_rule
-from forcecal.scene import (EXPERIMENTS, SECTIONS, FESection, GravitySection, MaterialSection,
+from forcecal.scene import (DEFAULT_EXPERIMENTS, EXPERIMENTS, SECTIONS, FESection, GravitySection, MaterialSection,
                             Scene, section_from_values)
 from forcecal.schedules import record_times
 
@@ -326,6 +326,38 @@ class GravityResult:
         return int(self.settings.tracked_node)
 
 
+#: the moduli of the body modes, in the order of :attr:`BodyResult.frequencies`' rows
+BODY_MODULI = ("instantaneous", "long_term")
+
+
+@dataclass(frozen=True, eq=False)
+class BodyResult:
+    """Whole-body data (experiment ``body``, computed by :mod:`reference_fe.body`): natural
+    modes about the rest state and static body loads, both with the scene's support.
+
+    Attributes:
+        frequencies: (2, M) float64, the M lowest natural frequencies [Hz], ascending, at the
+            instantaneous (row 0) and the long-term (row 1) moduli (:data:`BODY_MODULI`).
+        shapes: (2, M, N, 3) float64, their mode shapes at the particle vertices,
+            mass-normalised with the FE's consistent mass [1/sqrt(kg)].
+        load_directions: (L, 3) float64, unit directions of the static body loads (the two
+            perpendicular to the scene's gravity).
+        load_acceleration: magnitude of the loads' acceleration [m/s^2] (the scene's |g|).
+        load_displacement: (L, N, 3) float64, static displacement of every vertex under each
+            load [m] (long-term material, nonlinear).
+    """
+    frequencies: np.ndarray
+    shapes: np.ndarray
+    load_directions: np.ndarray
+    load_acceleration: float
+    load_displacement: np.ndarray
+
+    @property
+    def load_accelerations(self) -> np.ndarray:
+        """(L, 3) the loads' accelerations [m/s^2]."""
+        return self.load_acceleration * self.load_directions
+
+
 @dataclass(frozen=True, eq=False)
 class Reference:
     """Everything in ``reference.h5``.
@@ -342,6 +374,7 @@ class Reference:
     gravity: GravityResult | None
     meta: dict[str, Any] = field(default_factory=dict)
     fe: FESection | None = None
+    body: BodyResult | None = None
 
     @property
     def experiments(self) -> tuple[str, ...]:
@@ -349,7 +382,8 @@ class Reference:
         g = self.gravity
         present = {"indentation": True, "relaxation": self.relaxation is not None,
                    "gravity_static": g is not None and g.static_displacement is not None,
-                   "gravity_dynamic": g is not None and g.time is not None}
+                   "gravity_dynamic": g is not None and g.time is not None,
+                   "body": self.body is not None}
         return tuple(e for e in EXPERIMENTS if present[e])
 
     def require(self, experiment: str, path: str | Path = "reference.h5") -> None:
@@ -509,6 +543,53 @@ def write_reference(path: str | Path, ref: Reference) -> None:
                 put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
                 put(g, "displacement", gr.displacement, "m",
                     "dynamic vertex displacements (S, N, 3)")
+        if ref.body is not None:
+            write_body(fh.create_group("body"), ref.body, n_v)
+
+
+def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:
+    """The ``/body`` group of ``reference.h5`` (:class:`BodyResult`)."""
+    n_modes = body.frequencies.shape[1] if np.ndim(body.frequencies) == 2 else -1
+    _check_shape("body.frequencies", body.frequencies, (len(BODY_MODULI), n_modes))
+    _check_shape("body.shapes", body.shapes, (len(BODY_MODULI), n_modes, n_vertices, 3))
+    n_loads = len(body.load_directions)
+    _check_shape("body.load_directions", body.load_directions, (n_loads, 3))
+    _check_shape("body.load_displacement", body.load_displacement, (n_loads, n_vertices, 3))
+    g.attrs["moduli"] = json.dumps(list(BODY_MODULI))
+    g.attrs["load_acceleration"] = float(body.load_acceleration)
+    put(g, "frequencies", body.frequencies, "Hz", "lowest natural frequencies, ascending, at "
+        "the instantaneous (row 0) and long-term (row 1) moduli (2, M)")
+    put(g, "shapes", body.shapes, "1/sqrt(kg)", "their mode shapes at the vertices, "
+        "mass-normalised with the FE's consistent mass (2, M, N, 3)")
+    put(g, "load_directions", body.load_directions, "1", "unit directions of the static "
+        "body loads, perpendicular to the scene's gravity (L, 3)")
+    put(g, "load_displacement", body.load_displacement, "m", "static displacement under "
+        "each body load (weight along that direction), long-term material (L, N, 3)")
+
+
+def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
+    """The ``/body`` group of an open ``reference.h5``, checked (:func:`write_body`)."""
+    moduli = json_attr(group(fh, "body"), "moduli")
+    if moduli != list(BODY_MODULI):
+        raise DataFileError(f"{fh.filename}:/body attribute moduli = {moduli!r}, expected "
+                            f"{list(BODY_MODULI)}")
+    frequencies = get(fh, "body/frequencies", (len(BODY_MODULI), None), dtype="float")
+    n_modes = frequencies.shape[1]
+    if np.any(frequencies <= 0) or np.any(np.diff(frequencies, axis=1) < 0):
+        raise DataFileError(f"{fh.filename}:/body/frequencies must be positive and ascending")
+    directions = get(fh, "body/load_directions", (None, 3), dtype="float")
+    if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):
+        raise DataFileError(f"{fh.filename}:/body/load_directions must be unit vectors")
+    acceleration = float(attr(group(fh, "body"), "load_acceleration"))
+    if not acceleration > 0:
+        raise DataFileError(f"{fh.filename}:/body attribute load_acceleration = "
+                            f"{acceleration!r} must be > 0")
+    return BodyResult(
+        frequencies=frequencies,
+        shapes=get(fh, "body/shapes", (len(BODY_MODULI), n_modes, n_vertices, 3), dtype="float"),
+        load_directions=directions, load_acceleration=acceleration,
+        load_displacement=get(fh, "body/load_displacement", (len(directions), n_vertices, 3),
+                              dtype="float"))
 
 
 def _check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
@@ -566,17 +647,18 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                 gu = get(fh, "gravity/displacement", (len(gt), n_v, 3), dtype="float")
             gravity = GravityResult(static_displacement=static, time=gt, displacement=gu,
                                     settings=settings)
+        body = read_body(fh, problem.mesh.n_vertices) if "body" in stored else None
         meta = {k: attr(fh, k) for k in fh.attrs}
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
-                     gravity=gravity, meta=meta, fe=fe)
+                     gravity=gravity, meta=meta, fe=fe, body=body)
 
 
 def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
-    """The experiments an open ``reference.h5`` holds: its ``experiments`` attribute (all four
-    in a file written before the attribute existed); DataFileError if it names an unknown
-    experiment or a group it lists is missing."""
+    """The experiments an open ``reference.h5`` holds: its ``experiments`` attribute (the four
+    of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS` in a file written before the attribute
+    existed); DataFileError if it names an unknown experiment or a group it lists is missing."""
     if "experiments" not in fh.attrs:
-        return EXPERIMENTS
+        return DEFAULT_EXPERIMENTS
     raw = attr(fh, "experiments")
     try:
         listed = json.loads(raw)
@@ -587,7 +669,7 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
                             f"of some of {list(EXPERIMENTS)}")
     for e, where in (("indentation", "indentation"), ("relaxation", "relaxation"),
                      ("gravity_static", "gravity/static_displacement"),
-                     ("gravity_dynamic", "gravity/time")):
+                     ("gravity_dynamic", "gravity/time"), ("body", "body")):
         if e in listed and where not in fh:
             raise DataFileError(f"{fh.filename}:/{where} is missing (the file lists {e!r} in "
                                 "its experiments)")
@@ -597,7 +679,8 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
 #: what each experiment's results are in ``reference.h5`` (groups or datasets)
 EXPERIMENT_PATHS = {"indentation": ("indentation",), "relaxation": ("relaxation",),
                     "gravity_static": ("gravity/static_displacement",),
-                    "gravity_dynamic": ("gravity/time", "gravity/displacement")}
+                    "gravity_dynamic": ("gravity/time", "gravity/displacement"),
+                    "body": ("body",)}
 #: what every experiment's results depend on (hashed by :func:`reference_digest` too)
 SHARED_PATHS = ("mesh", "test_points", "material", "fe")
 

@@ -185,6 +185,16 @@ class GravitySection:
 
 
 @dataclass(frozen=True)
+class BodySection:
+    modes: int = key(6, "experiment 'body': natural modes computed about the rest state with "
+                     "the scene's support, the lowest this many at the instantaneous and at the "
+                     "long-term moduli (frequencies and shapes at the vertices)", minimum=1)
+    load_steps: int = key(4, "experiment 'body': load steps of each static body load (the "
+                          "organ's weight along each of the two directions perpendicular to "
+                          "gravity.acceleration)", minimum=1)
+
+
+@dataclass(frozen=True)
 class FESection:
     element: str = key("P2", "element: 'P2' (quadratic displacement; sag ~15 % below the "
                        "refined mesh's on the default liver), 'TH' (Taylor-Hood P2-P1 u-p, "
@@ -307,6 +317,17 @@ class CalibrationSection:
     kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv (and, "
                            "when it relaxes, its arms' kv1, kv2) with the connectors (false: "
                            "they keep the global fit's one value)")
+    body_data: str = key("loads+modes", "gradient method, with the experiment 'body' in the "
+                         "scene's experiments: the whole-body data fitted jointly with the "
+                         "surface curves: \"loads\" (the weight along the two directions "
+                         "perpendicular to gravity, static), \"modes\" (natural frequencies and "
+                         "shapes at the instantaneous and long-term moduli), \"loads+modes\" or "
+                         "\"none\" (README Calibration)",
+                         choices=("none", "loads", "modes", "loads+modes"))
+    body_weight: Union[str, float] = key("cv", "gradient method: weight of each whole-body "
+                                         "item's squared relative error against a calibration "
+                                         "point's; \"cv\": chosen with the smoothness weight "
+                                         "by cross-validation on calibration data only")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
 
@@ -325,6 +346,7 @@ SECTIONS: dict[str, type] = {
     "indentation": IndentationSection,
     "relaxation": RelaxationSection,
     "gravity": GravitySection,
+    "body": BodySection,
     "fe": FESection,
     "particle": ParticleSection,
     "calibration": CalibrationSection,
@@ -343,7 +365,9 @@ TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
                   "description": "free text"}
 
 #: the experiments a scene can ask for (top-level key ``experiments``), in pipeline order
-EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "body")
+#: the experiments of a scene that does not list them (the whole-body data are asked for)
+DEFAULT_EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
 #: the gravity test's experiments (the FE sag and release, the particle runs against them)
 GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
 #: experiment -> the experiments it cannot do without, and why (checked at load)
@@ -358,11 +382,15 @@ EXPERIMENT_NEEDS = {
                          "indentation curves"),
                         ("relaxation", "the release is damped only by the Maxwell arms, which "
                          "are calibrated on the relaxation curves")),
+    "body": (("indentation", "the whole-body data are fitted jointly with the indentation "
+              "curves"),),
 }
 EXPERIMENTS_DOC = ("experiments the scene computes, stores and reports, in any order: "
                    "'indentation' (required: it calibrates the springs), 'relaxation' (the "
                    "Maxwell arms; needs indentation), 'gravity_static', 'gravity_dynamic' "
-                   "(needs relaxation); the others are skipped by every stage")
+                   "(needs relaxation), 'body' (whole-body data for the calibration: natural "
+                   "modes and static body loads, [body]; asked for explicitly, not in the "
+                   "default list); the others are skipped by every stage")
 
 
 @dataclass(frozen=True)
@@ -377,12 +405,13 @@ class Scene:
     indentation: IndentationSection
     relaxation: RelaxationSection
     gravity: GravitySection
+    body: BodySection
     fe: FESection
     particle: ParticleSection
     calibration: CalibrationSection
     outputs: OutputsSection
     path: Path | None = None
-    experiments: tuple[str, ...] = EXPERIMENTS
+    experiments: tuple[str, ...] = DEFAULT_EXPERIMENTS
 
     def runs(self, experiment: str) -> bool:
         """Whether ``experiment`` is in the scene's ``experiments`` list."""
@@ -569,6 +598,10 @@ def _cross_checks(scene: Scene, origin: str) -> None:
             raise SceneError(f"{origin}: test_points.{which} must be "
                              + " or ".join(repr(r) for r in rules)
                              + f" or a list of vertex ids, got {v!r}")
+    bw = scene.calibration.body_weight
+    if (isinstance(bw, str) and bw != "cv") or (isinstance(bw, float) and not bw >= 0):
+        raise SceneError(f"{origin}: calibration.body_weight = {bw!r}: must be \"cv\" or a "
+                         "number >= 0")
     _check_calibration_list(scene, origin)
 
 
@@ -623,7 +656,7 @@ def scene_from_dict(data: dict[str, Any], *, path: Path | None = None,
     description = data.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{origin}: description must be a string")
-    experiments = check_experiments(data.get("experiments", list(EXPERIMENTS)), origin)
+    experiments = check_experiments(data.get("experiments", list(DEFAULT_EXPERIMENTS)), origin)
     sections = {s: _build_section(s, cls, data.get(s, {}), origin) for s, cls in SECTIONS.items()}
     scene = Scene(name=name, description=description, path=path, experiments=experiments,
                   **sections)
@@ -673,7 +706,7 @@ def keys_table() -> str:
     rows = ["| key | default | unit | meaning |", "|---|---|---|---|"]
     for k, doc in TOP_LEVEL_KEYS.items():
         rows.append(f"| `{k}` | file name | | {doc} |")
-    rows.append(f"| `experiments` | `{json.dumps(list(EXPERIMENTS))}` | | {EXPERIMENTS_DOC} |")
+    rows.append(f"| `experiments` | `{json.dumps(list(DEFAULT_EXPERIMENTS))}` | | {EXPERIMENTS_DOC} |")
     for sec, cls in SECTIONS.items():
         for f in dataclasses.fields(cls):
             default = json.dumps(f.default if not isinstance(f.default, tuple) else list(f.default))

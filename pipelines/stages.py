@@ -108,7 +108,8 @@ class Stage:
                                     "exist")
         # an experiment's own section is read only when the experiment runs
         skipped = {"relaxation": "relaxation" not in used,
-                   "gravity": not any(e.startswith("gravity") for e in used)}
+                   "gravity": not any(e.startswith("gravity") or e == "body" for e in used),
+                   "body": "body" not in used}
         # "name" stands for the scene's top-level name (written into the report)
         scene = {s: (hashlib.sha256(ctx.scene.name.encode()).hexdigest() if s == "name"
                      else ctx.scene.fingerprint(s)) for s in self.sections
@@ -135,9 +136,11 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     # [particle]: the model fitted (volume) and the explicit gravity run of its gravity check
     # (dt, dt_safety, strain_margin, damping); [gravity] and the FE sag and release times of
     # reference.h5: that check and the release strain range the springs are kept stiff on
-    Stage("calibrate", FIT_SECTIONS + ("gravity", "particle"),
+    # [body]: the load steps of the whole-body loads it fits (the experiment "body")
+    Stage("calibrate", FIT_SECTIONS + ("gravity", "particle", "body"),
           ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
-          experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic")),
+          experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic",
+                       "body")),
     Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
           (REFERENCE, PARAMS), run_gravity_stage,
           experiments=("gravity_static", "gravity_dynamic")),

@@ -55,7 +55,7 @@ from forcecal.problem import Problem, build_problem
 from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from forcecal.sections import REFERENCE_SECTIONS
-from reference_fe import experiments
+from reference_fe import body, experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
 from reference_fe.refine import (FEProblem, check_memory, fe_problem, patch_on_fe_mesh,
@@ -63,7 +63,7 @@ from reference_fe.refine import (FEProblem, check_memory, fe_problem, patch_on_f
 
 log = logging.getLogger(__name__)
 
-KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "body")
 T = TypeVar("T")
 
 
@@ -93,7 +93,9 @@ def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
     g = scene.gravity
     # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
     items = [WorkItem("gravity_dynamic", -1, 3.0 * g.duration / g.fe_dt),
-             WorkItem("gravity_static", -1, 5.0 * g.static_load_steps)]
+             WorkItem("gravity_static", -1, 5.0 * g.static_load_steps),
+             # two static loads and two eigen-solves (each about a factorisation's cost)
+             WorkItem("body", -1, 2 * 5.0 * scene.body.load_steps + 2.0)]
     n_rel = scene.relaxation.ramp_steps + scene.relaxation.hold_steps
     for p in range(n_points):
         items.append(WorkItem("relaxation", p, 2.0 * n_rel))
@@ -186,6 +188,10 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
         times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
         return {"time": times, "displacement": disp[:, at_particles]}
+    if item.kind == "body":
+        return body.at_vertices(body.body_data(model, fixed, np.asarray(g.acceleration, float),
+                                               scene.body.modes, scene.body.load_steps),
+                                at_particles)
     if scene.indentation.indenter == "punch" and scene.fe.local_refine:
         fe, model = punch_model(scene, problem, fe, item.point)
         fixed = fe.problem.fixed
@@ -549,6 +555,8 @@ def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.nda
         return {"displacement": g.static_displacement}
     if experiment == "gravity_dynamic":
         return {"time": g.time, "displacement": g.displacement}
+    if experiment == "body":
+        return body.arrays_of(reference.body)
     return {"force": getattr(reference, experiment).force}
 
 
@@ -572,9 +580,11 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
         of_kind = sorted((it for it in items if it.kind == kind), key=lambda it: it.point)
         if of_kind:
             results[kind] = {"force": np.stack([data[it.name]["force"] for it in of_kind])}
-    for kind in ("gravity_static", "gravity_dynamic"):
+    for kind in ("gravity_static", "gravity_dynamic", "body"):
         if kind in data:
             results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
+    body_result = (body.result_of(results["body"], float(np.linalg.norm(scene.gravity.acceleration)))
+                   if "body" in results else None)
     present = [e for e in EXPERIMENTS if e in results]
     normals = problem.normals
 
@@ -614,4 +624,4 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
         indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind,
                                       normal(f_ind), indenter=scene.indentation.indenter,
                                       radius=scene.indentation.radius),
-        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe)
+        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe, body=body_result)

@@ -17,15 +17,16 @@ from calibration.core import ARMS_NOT_CALIBRATED
 from forcecal.errors import DataFileError, SceneError
 from forcecal.h5io import read_reference, reference_digest, write_reference
 from forcecal.problem import build_problem
-from forcecal.scene import EXPERIMENTS, load_scene, replace, scene_from_dict
+from forcecal.scene import DEFAULT_EXPERIMENTS, EXPERIMENTS, load_scene, replace, scene_from_dict
 from pipelines.report import ERROR_KEYS, read_report
 from pipelines.stages import run_pipeline
 from tests.conftest import SCENES
 from tests.test_pipeline_e2e import ran, write_scene
 
 
-def test_default_is_every_experiment_and_the_order_does_not_matter():
-    assert scene_from_dict({}).experiments == EXPERIMENTS
+def test_default_is_every_experiment_but_body_and_the_order_does_not_matter():
+    assert scene_from_dict({}).experiments == DEFAULT_EXPERIMENTS
+    assert set(EXPERIMENTS) - set(DEFAULT_EXPERIMENTS) == {"body"}  # asked for explicitly
     scene = scene_from_dict({"experiments": ["gravity_static", "indentation"]})
     assert scene.experiments == ("indentation", "gravity_static")
     assert replace(scene, experiments=["indentation"]).experiments == ("indentation",)
@@ -40,6 +41,7 @@ def test_default_is_every_experiment_and_the_order_does_not_matter():
     (["gravity_static"], "'gravity_static' needs 'indentation'"),
     (["indentation", "gravity_dynamic"],
      r"'gravity_dynamic' needs 'relaxation' \(the release is damped only by the Maxwell arms"),
+    (["body"], "'body' needs 'indentation'"),
 ])
 def test_impossible_lists_are_refused_at_load_with_the_reason(value, message):
     with pytest.raises(SceneError, match=message):
@@ -61,7 +63,7 @@ def test_a_partial_reference_round_trips_and_keys_each_experiment_on_its_own_con
                                   full.gravity.static_displacement)
     with pytest.raises(DataFileError, match="has no relaxation results"):
         back.require("relaxation", "part.h5")
-    assert read_reference(tmp_path / "full.h5").experiments == EXPERIMENTS
+    assert read_reference(tmp_path / "full.h5").experiments == DEFAULT_EXPERIMENTS
     # a stage reading some experiments keys on their content, not on the file's bytes
     for experiments in (("indentation",), ("indentation", "gravity_static"), ("gravity_static",)):
         assert (reference_digest(tmp_path / "part.h5", experiments)
@@ -87,7 +89,8 @@ def test_fe_keys_follow_each_experiments_own_sections(liver_scene):
     def changed(**sections):
         keys = experiment_keys(replace(liver_scene, **sections), "mesh")
         return sorted(e for e in EXPERIMENTS if keys[e] != base[e])
-    assert changed(gravity={"duration": 1.0}) == ["gravity_dynamic", "gravity_static"]
+    assert changed(gravity={"duration": 1.0}) == ["body", "gravity_dynamic", "gravity_static"]
+    assert changed(body={"modes": 4}) == ["body"]
     assert changed(relaxation={"hold_steps": 20}) == ["relaxation"]
     assert changed(indentation={"steps": 12}) == ["indentation", "relaxation"]
     assert changed(material={"C10": 2100.0}) == list(sorted(EXPERIMENTS))
@@ -125,7 +128,7 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert not (out / "gravity.h5").exists()
     report = read_report(out / "report.json")
     assert report["experiments"] == ["indentation"]
-    assert set(report["not_run"]) == {"relaxation", "gravity_static", "gravity_dynamic"}
+    assert set(report["not_run"]) == {"relaxation", "gravity_static", "gravity_dynamic", "body"}
     assert all("not in the scene's experiments" in why for why in report["not_run"].values())
     for key in ERROR_KEYS:
         assert (report["errors"][key] is None) == (not key.startswith("indentation")), key
@@ -155,7 +158,7 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert np.linalg.norm(ref.gravity.static_displacement, axis=1).max() > 1e-4  # it sags
     report = read_report(out / "report.json")
     assert report["experiments"] == ["indentation", "gravity_static"]
-    assert set(report["not_run"]) == {"relaxation", "gravity_dynamic"}
+    assert set(report["not_run"]) == {"relaxation", "gravity_dynamic", "body"}
     assert 0.0 < report["errors"]["gravity_static"] < 1.0
     assert report["errors"]["gravity_dynamic"] is None
     assert report["errors"]["relaxation_calibrated"] is None
@@ -176,5 +179,5 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert not (out / "figures" / "gravity_static.png").exists()
 
 
-def test_tiny_scene_lists_every_experiment():
-    assert load_scene(SCENES / "tiny.toml").experiments == EXPERIMENTS
+def test_tiny_scene_lists_every_default_experiment():
+    assert load_scene(SCENES / "tiny.toml").experiments == DEFAULT_EXPERIMENTS

@@ -1,0 +1,417 @@
+"""Whole-body responses of the particle model and their exact parameter derivatives.
+
+The FE reference's experiment ``body`` (:class:`forcecal.h5io.BodyResult`) holds two kinds of
+whole-body data; this module computes the particle model's counterparts, their residuals
+against the FE's and the Jacobians of those residuals with respect to every parameter:
+
+* **natural modes** about the rest state (the fixed particles held), at the instantaneous
+  stiffness (springs ``K0 + k1 + k2``, volume term ``kv + kv1 + kv2`` when it relaxes) and
+  at the long-term one (``K0``, ``kv``), with the model's lumped masses ``M``. At rest a
+  connector has no tension, so the tangent is linear in the stiffnesses::
+
+      K = G diag(k) G^T + H diag(kv / V0) H^T
+
+  (``G`` (n, E) the force pattern of unit connector tensions, ``H`` (n, T) that of unit tet
+  pressures ``-dV/dx``, on the free dofs). For a mode ``K phi = lambda M phi`` with
+  ``phi^T M phi = 1``, ``dlambda/dp = phi^T D(phi)_p`` with ``D(phi) = d(K phi)/dp`` (a
+  sparse (n, P) matrix: column ``G_e (G_e . phi)`` for a connector's stiffness, ``H_t
+  (H_t . phi)/V0_t`` for a tet's), and the mode's derivative ``dphi/dp = -S D(phi)_p``
+  with ``S = sum_{j != m} phi_j phi_j^T / (lambda_j - lambda_m)`` (the masses do not
+  depend on the parameters). ``S b`` is one solve of the bordered system ``[[K - lambda
+  M, M phi], [phi^T M, 0]]`` (exact, no modal truncation).
+* **static body loads**: the weight along a direction, long-term model, nonlinear, load
+  stepped (:func:`particle.statics.weight_equilibrium`); at the equilibrium ``f(x, p) =
+  0`` with tangent ``K_t = -df/dx``, ``du/dp = K_t^{-1} E`` with ``E = df/dp`` at fixed
+  positions (``G_e dx_e``, ``G_e eps dx``, ``G_e eps^2 dx`` for ``K0, a, b``, ``H_t j_t``
+  for ``kv``; arms relaxed).
+
+Every Jacobian is returned as ``L @ D`` (:class:`Rows`): dense *virtual fields* ``L``
+(rows, n) times a sparse parameter-force matrix ``D`` (n, P) in the parameter layout of
+:func:`parameter_layout` (``K0, a, b, k1, b1, k2, b2`` per connector, then ``kv`` and
+``kv1, bv1, kv2, bv2`` per tet), so that a caller can chain it to its own coordinates as
+a sparse product and never form a dense (rows, P) block it does not need.
+
+Residuals (each a relative error, so a whole-body item weighs like a calibration point):
+
+* a load: ``(u - u_FE) / (max |u_FE| sqrt(N_free))`` on every free particle's three
+  components: its squared norm is the squared RMS displacement error relative to the
+  largest FE displacement;
+* a mode (FE mode ``k`` at one modulus, paired with the model mode of largest MAC by an
+  optimal assignment): the frequency error ``f_m / f_k - 1`` and the shape error
+  ``Q^T M (phi_m - psi_k)`` in an ``M``-orthonormal basis ``Q`` of the FE modes' span at
+  that modulus (``psi``: the FE shapes at the particles, ``M``-normalised; ``phi_m``
+  signed to agree with ``psi_k``): its norm is the shape's relative error within the span
+  of the FE modes computed.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from scipy.optimize import linear_sum_assignment
+
+from forcecal.errors import ConvergenceError, ParameterError
+from forcecal.h5io import BODY_MODULI, BodyResult
+from particle.model import Model
+from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams
+from particle.sensitivity import _Geometry, volume_pattern_matrix
+from particle.statics import (TangentPattern, ldl_factor, net_forces, tangent_data,
+                              weight_equilibrium)
+from particle.volume import volume_strains
+
+log = logging.getLogger(__name__)
+
+#: the whole-body data kinds a calibration can fit (``calibration.body_data``)
+BODY_KINDS = ("loads", "modes")
+#: model modes computed beyond the FE's, so that each FE mode finds its partner by MAC
+EXTRA_MODES = 4
+
+
+def parameter_layout(n_connectors: int, n_tets: int, arms: bool) -> dict[str, slice]:
+    """Columns of each parameter block in a parameter-force matrix: ``K0, a, b, k1, b1, k2,
+    b2`` (E each), then ``kv`` and, with volume arms, ``kv1, bv1, kv2, bv2`` (T each)."""
+    names = list(PARAM_NAMES) + (["kv"] if n_tets else []) + (
+        list(VOLUME_ARM_NAMES) if arms else [])
+    out, start = {}, 0
+    for name in names:
+        size = n_connectors if name in PARAM_NAMES else n_tets
+        out[name] = slice(start, start + size)
+        start += size
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Rows:
+    """Residual rows and their Jacobian ``L @ D`` (module docstring).
+
+    Attributes:
+        residual: (R,) residuals [1].
+        fields: (R, n) virtual fields ``L`` on the free dofs.
+        forces: (n, P) sparse parameter-force matrix ``D`` (:func:`parameter_layout`).
+    """
+    residual: np.ndarray
+    fields: np.ndarray
+    forces: sp.csr_matrix
+
+    def jacobian(self) -> np.ndarray:
+        """(R, P) the dense Jacobian (for tests and small problems)."""
+        return np.asarray((self.forces.T @ self.fields.T).T)
+
+
+@dataclass(frozen=True, eq=False)
+class BodyTarget:
+    """The FE's whole-body data in the particle model's terms.
+
+    Attributes:
+        accelerations: (L, 3) the loads [m/s^2]; (0, 3) when loads are not fitted.
+        displacement: (L, N, 3) their FE displacements [m].
+        frequencies: (2, M) FE natural frequencies [Hz] (:data:`~forcecal.h5io.BODY_MODULI`);
+            (2, 0) when modes are not fitted.
+        shapes: (2, M, N, 3) FE mode shapes at the particles (any normalisation).
+    """
+    accelerations: np.ndarray
+    displacement: np.ndarray
+    frequencies: np.ndarray
+    shapes: np.ndarray
+
+    @classmethod
+    def of(cls, body: BodyResult, kinds: tuple[str, ...]) -> "BodyTarget":
+        """The data of ``kinds`` (some of :data:`BODY_KINDS`) of an FE ``body`` result."""
+        unknown = sorted(set(kinds) - set(BODY_KINDS))
+        if unknown:
+            raise ParameterError(f"whole-body data {unknown}: known kinds are {BODY_KINDS}")
+        n = body.shapes.shape[2]
+        loads, modes = "loads" in kinds, "modes" in kinds
+        return cls(body.load_accelerations if loads else np.zeros((0, 3)),
+                   body.load_displacement if loads else np.zeros((0, n, 3)),
+                   body.frequencies if modes else np.zeros((len(BODY_MODULI), 0)),
+                   body.shapes if modes else np.zeros((len(BODY_MODULI), 0, n, 3)))
+
+    @property
+    def items(self) -> list[str]:
+        """Names of the data items, in residual order: ``load <k>``, then ``<modulus> mode
+        <k>`` for each modulus."""
+        return ([f"load {k}" for k in range(len(self.accelerations))]
+                + [f"{modulus} mode {k}" for modulus in BODY_MODULI
+                   for k in range(self.frequencies.shape[1])])
+
+
+@dataclass(frozen=True, eq=False)
+class RestOperators:
+    """The model's linear operators at the rest state, on the dofs of its free particles.
+
+    Attributes:
+        pattern: the tangent pattern (dof numbering) of the model.
+        tension: (n, E) sparse ``G``: forces of unit connector tensions at rest.
+        pressure: (n, T) sparse ``H``: forces of unit tet pressures at rest (used with the
+            volume term only).
+        mass: (n,) lumped mass of each dof [kg].
+    """
+    pattern: TangentPattern
+    tension: sp.csr_matrix
+    pressure: sp.csr_matrix
+    mass: np.ndarray
+
+    @classmethod
+    def of(cls, model: Model) -> "RestOperators":
+        pat = TangentPattern.of(model)
+        x = model.rest_positions
+        pressure = volume_pattern_matrix(model, x, pat)  # (n, T); unused without kv
+        mass = np.repeat(model.masses[model.free_nodes], 3)
+        return cls(pat, _Geometry(model, x).pattern_matrix(pat), pressure, mass)
+
+    def stiffnesses(self, p: ConnectorParams, modulus: str) -> tuple[np.ndarray, np.ndarray]:
+        """((E,) connector [N/m], (T,) volume [Pa]) stiffnesses at ``modulus``."""
+        if modulus not in BODY_MODULI:
+            raise ParameterError(f"modulus {modulus!r}: one of {BODY_MODULI}")
+        instantaneous = modulus == "instantaneous"
+        springs = p.K0 + p.k1 + p.k2 if instantaneous else p.K0
+        if p.kv is None:
+            return springs, np.zeros(0)
+        volume = p.volume_instantaneous if instantaneous else p.kv
+        return springs, volume
+
+    def stiffness(self, model: Model, modulus: str) -> sp.csc_matrix:
+        """(n, n) the tangent ``K`` at rest at ``modulus`` [N/m]."""
+        springs, volume = self.stiffnesses(model.params, modulus)
+        G, H = self.tension, self.pressure
+        K = G @ sp.diags(springs) @ G.T
+        if model.params.kv is not None:
+            K = K + H @ sp.diags(volume / model.rest_volumes) @ H.T
+        return sp.csc_matrix(K)
+
+    def mode_forces(self, model: Model, phi: np.ndarray, modulus: str) -> sp.csr_matrix:
+        """(n, P) ``d(K phi)/dp`` at ``modulus`` (module docstring): a connector's ``K0`` (and
+        ``k1, k2`` at the instantaneous modulus) ``G_e (G_e . phi)``, a tet's ``kv`` (and
+        ``kv1, kv2`` when the volume term relaxes) ``H_t (H_t . phi) / V0_t``."""
+        p = model.params
+        layout = parameter_layout(model.n_connectors, model.n_tets if p.kv is not None else 0,
+                                  p.has_volume_arms)
+        instantaneous = modulus == "instantaneous"
+        blocks = {"K0": self.tension @ sp.diags(self.tension.T @ phi)}
+        if instantaneous:
+            blocks["k1"] = blocks["k2"] = blocks["K0"]
+        if p.kv is not None:
+            H = self.pressure
+            blocks["kv"] = H @ sp.diags((H.T @ phi) / model.rest_volumes)
+            if instantaneous and p.has_volume_arms:
+                blocks["kv1"] = blocks["kv2"] = blocks["kv"]
+        return assemble_blocks(blocks, layout, len(phi))
+
+
+def assemble_blocks(blocks: dict[str, sp.spmatrix], layout: dict[str, slice], n: int
+                    ) -> sp.csr_matrix:
+    """(n, P) the named (n, width) sparse blocks at their columns of ``layout``, zero
+    elsewhere."""
+    width = max(s.stop for s in layout.values())
+    parts = []
+    for name, cols in layout.items():
+        block = blocks.get(name)
+        parts.append(sp.csr_matrix((n, cols.stop - cols.start)) if block is None else block)
+    out = sp.hstack(parts, format="csr")
+    assert out.shape == (n, width)
+    return out
+
+
+def load_forces(model: Model, x: np.ndarray, pat: TangentPattern) -> sp.csr_matrix:
+    """(n, P) ``df/dp`` at positions ``x`` at fixed positions (long-term model, arms relaxed):
+    ``G_e dx_e``, ``G_e eps_e dx_e``, ``G_e eps_e^2 dx_e`` for ``K0, a, b``, ``H_t j_t`` for
+    ``kv`` (``j = V/V0 - 1``)."""
+    p = model.params
+    geometry = _Geometry(model, x)
+    G = geometry.pattern_matrix(pat)
+    dx = geometry.dx
+    eps = dx / model.rest_lengths
+    blocks = {"K0": G @ sp.diags(dx), "a": G @ sp.diags(eps * dx),
+              "b": G @ sp.diags(eps * eps * dx)}
+    if p.kv is not None:
+        strain = volume_strains(x, model.tets, model.rest_volumes)
+        blocks["kv"] = volume_pattern_matrix(model, x, pat) @ sp.diags(strain)
+    layout = parameter_layout(model.n_connectors, model.n_tets if p.kv is not None else 0,
+                              p.has_volume_arms)
+    return assemble_blocks(blocks, layout, pat.n_dofs)
+
+
+def free_dofs_values(model: Model, field: np.ndarray) -> np.ndarray:
+    """(n,) the free particles' components of an (N, 3) field, in the pattern's dof order."""
+    return np.asarray(field)[model.free_nodes].ravel()
+
+
+def load_rows(model: Model, acceleration: np.ndarray, target: np.ndarray, load_steps: int,
+              pat: TangentPattern | None = None) -> Rows:
+    """The residual rows of one static body load (module docstring) and their Jacobian.
+
+    Raises:
+        ConvergenceError: the model has no static equilibrium under the load (a model that
+            does not carry a load it is fitted to).
+    """
+    pat = TangentPattern.of(model) if pat is None else pat
+    x = weight_equilibrium(model, acceleration, load_steps)
+    free = model.free_nodes
+    u = (x - model.rest_positions)[free].ravel()
+    u_fe = np.asarray(target)[free].ravel()
+    scale = float(np.linalg.norm(target, axis=1).max()) * np.sqrt(len(free))
+    if not scale > 0:
+        raise ParameterError("a body load whose FE displacement is zero everywhere")
+    forces, tension, *_ = net_forces(model, x, model.params, not model.params.is_linear, None,
+                                     None, (np.zeros(model.n_tets),
+                                            np.full(model.n_tets, np.inf)))
+    data = tangent_data(model, pat, x, tension, model.params, True, None)
+    factor = ldl_factor(pat, data)
+    fields = factor.solve(np.eye(pat.n_dofs) / scale).T  # rows: K_t^{-1} e_i / scale
+    return Rows((u - u_fe) / scale, np.ascontiguousarray(fields), load_forces(model, x, pat))
+
+
+def model_modes(model: Model, ops: RestOperators, modulus: str, count: int
+                ) -> tuple[np.ndarray, np.ndarray, sp.csc_matrix]:
+    """The ``count`` lowest modes of ``model`` at ``modulus``: (eigenvalues (count,)
+    [1/s^2], mass-normalised shapes (n, count) on the free dofs, the stiffness ``K``)."""
+    K = ops.stiffness(model, modulus)
+    count = min(count, K.shape[0] - 1)
+    lu = sla.splu(K)
+    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
+    try:
+        values, vectors = sla.eigsh(K, k=count, M=sp.diags(ops.mass).tocsc(), sigma=0.0,
+                                    OPinv=inverse, which="LM")
+    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
+        raise ConvergenceError(f"particle modes at the {modulus} stiffness: the eigen-solve "
+                               f"did not converge ({exc})") from None
+    order = np.argsort(values)
+    if not values[order[0]] > 0:
+        raise ConvergenceError(f"particle modes at the {modulus} stiffness: eigenvalue "
+                               f"{values[order[0]]:.3g} <= 0 (the model is not held)")
+    return values[order], vectors[:, order], K
+
+
+def mass_orthonormal(shapes: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    """(n, k) an ``M``-orthonormal basis of the span of ``shapes`` (n, k) (``M = diag(mass)``)."""
+    w = np.sqrt(mass)[:, None]
+    q, _ = np.linalg.qr(w * shapes)
+    return q / w
+
+
+def pair_modes(fe: np.ndarray, model: np.ndarray, mass: np.ndarray) -> tuple[np.ndarray,
+                                                                           np.ndarray]:
+    """(partner (M,), MAC (M,)): the model mode paired with each FE mode ``fe`` (n, M) among
+    ``model`` (n, K), K >= M, by the assignment of largest total MAC (``mass``-weighted)."""
+    cross = fe.T @ (mass[:, None] * model)
+    norms = np.outer(np.einsum("nk,n,nk->k", fe, mass, fe),
+                     np.einsum("nk,n,nk->k", model, mass, model))
+    mac = cross ** 2 / norms
+    rows, cols = linear_sum_assignment(-mac)
+    partner = cols[np.argsort(rows)]
+    return partner, mac[np.arange(fe.shape[1]), partner]
+
+
+@dataclass(frozen=True, eq=False)
+class ModeMatch:
+    """The model's modes at one modulus paired with the FE's.
+
+    Attributes:
+        frequency_errors: (M,) ``f_m / f_k - 1`` of each FE mode's partner [1].
+        shape_errors: (M,) ``|Q^T M (phi_m - psi_k)|`` [1].
+        mac: (M,) the pairs' MAC [1].
+        partner: (M,) the model mode paired with each FE mode.
+        parts: each FE mode's residual rows (its frequency error, then its shape error's M
+            components) with their Jacobian.
+    """
+    frequency_errors: np.ndarray
+    shape_errors: np.ndarray
+    mac: np.ndarray
+    partner: np.ndarray
+    parts: list[Rows]
+
+
+def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.ndarray,
+              shapes: np.ndarray) -> ModeMatch:
+    """Residual rows of the FE modes ``frequencies`` (M,) [Hz], ``shapes`` (M, N, 3) at
+    ``modulus`` against the model's (module docstring), with their Jacobian."""
+    n_fe = len(frequencies)
+    values, vectors, K = model_modes(model, ops, modulus, n_fe + EXTRA_MODES)
+    mass = ops.mass
+    psi = np.stack([free_dofs_values(model, s) for s in shapes], axis=1)  # (n, M)
+    psi = psi / np.sqrt(np.einsum("nk,n,nk->k", psi, mass, psi))
+    basis = mass_orthonormal(psi, mass)
+    partner, mac = pair_modes(psi, vectors, mass)
+    parts = []
+    f_err, s_err = np.empty(n_fe), np.empty(n_fe)
+    M = sp.diags(mass).tocsc()
+    for k in range(n_fe):
+        m = partner[k]
+        lam, phi = values[m], vectors[:, m]
+        phi = phi * np.sign(psi[:, k] @ (mass * phi))
+        ratio = np.sqrt(lam) / (2.0 * np.pi) / frequencies[k]
+        shape = basis.T @ (mass * (phi - psi[:, k]))
+        f_err[k], s_err[k] = ratio - 1.0, np.linalg.norm(shape)
+        # S M Q: the bordered system's solution for each basis vector (module docstring)
+        mphi = mass * phi
+        bordered = sp.bmat([[K - lam * M, sp.csc_matrix(mphi[:, None])],
+                            [sp.csc_matrix(mphi[None, :]), None]], format="csc")
+        rhs = np.vstack([mass[:, None] * basis - np.outer(mphi, mphi @ basis),
+                         np.zeros((1, basis.shape[1]))])
+        solved = sla.splu(bordered).solve(rhs)[:-1]  # (n, M)
+        parts.append(Rows(np.r_[ratio - 1.0, shape],
+                          np.vstack([ratio / (2.0 * lam) * phi, -solved.T]),
+                          ops.mode_forces(model, phi, modulus)))
+    return ModeMatch(f_err, s_err, mac, partner, parts)
+
+
+@dataclass(frozen=True, eq=False)
+class BodyResponse:
+    """The model's whole-body residuals against a :class:`BodyTarget`.
+
+    Attributes:
+        items: name of each data item (:attr:`BodyTarget.items`).
+        parts: each item's residual rows with their Jacobian, in item order.
+        load_errors: (L,) RMS displacement error of each load relative to its largest FE
+            displacement [1].
+        modes: modulus -> its :class:`ModeMatch` (only with modes).
+    """
+    items: list[str]
+    parts: list[Rows]
+    load_errors: np.ndarray
+    modes: dict[str, ModeMatch]
+
+    @property
+    def residual(self) -> np.ndarray:
+        """(R,) every item's residuals, in order."""
+        return np.concatenate([p.residual for p in self.parts]) if self.parts else np.zeros(0)
+
+    def item_errors(self) -> np.ndarray:
+        """(items,) the norm of each item's residual [1]."""
+        return np.array([float(np.linalg.norm(p.residual)) for p in self.parts])
+
+    def summary(self) -> dict:
+        """Plain numbers for ``params.h5`` and the studies."""
+        out = {"items": self.items, "item_errors": self.item_errors().tolist(),
+               "load_errors": self.load_errors.tolist()}
+        for modulus, match in self.modes.items():
+            out[modulus] = {"frequency_errors": match.frequency_errors.tolist(),
+                            "shape_errors": match.shape_errors.tolist(),
+                            "mac": match.mac.tolist(), "partner": match.partner.tolist()}
+        return out
+
+
+def body_response(model: Model, target: BodyTarget, load_steps: int,
+                  ops: RestOperators | None = None) -> BodyResponse:
+    """Every whole-body residual of ``model`` against ``target`` with its Jacobian.
+
+    Raises:
+        ConvergenceError: a load has no static equilibrium, or an eigen-solve failed.
+    """
+    ops = RestOperators.of(model) if ops is None else ops
+    parts, load_errors, modes = [], [], {}
+    for g, u_fe in zip(target.accelerations, target.displacement):
+        rows = load_rows(model, g, u_fe, load_steps, ops.pattern)
+        parts.append(rows)
+        load_errors.append(float(np.linalg.norm(rows.residual)))
+    for i, modulus in enumerate(BODY_MODULI):
+        if target.frequencies.shape[1]:
+            modes[modulus] = mode_rows(model, ops, modulus, target.frequencies[i],
+                                       target.shapes[i])
+            parts += modes[modulus].parts
+    return BodyResponse(target.items, parts, np.array(load_errors), modes)

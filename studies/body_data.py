@@ -1,0 +1,201 @@
+"""Which whole-body data to fit with the surface curves: measured, on calibration data only.
+
+The calibrated punch models carry over at the surface but are no better than the closed-form
+baseline as bodies (README, "Why the release misses its goal"): nothing in the surface
+curves constrains the interior or the global modes. The FE stage's experiment ``body``
+(:mod:`reference_fe.body`) gives two kinds of whole-body data the gravity test does not use:
+the natural modes about the rest state (instantaneous and long-term moduli) and the static
+weight along the two directions perpendicular to the test's gravity. This study calibrates
+each scene with each choice of ``calibration.body_data`` (``none``, ``loads``, ``modes``,
+``loads+modes``; gradient method, the body weight chosen by the calibration's own
+cross-validation) and records, for every fit:
+
+* **what chooses** (calibration data only): the whole-body errors of every item, fitted or
+  not (an unfitted kind is predicted by the fit that did not see it: the cross-kind
+  check), the cross-validation's own numbers (predicted fold errors of the surface points
+  and of each left-out whole-body item), and the calibration points' surface errors;
+* **what is reported, never used to choose**: the held-out surface points, the gravity
+  test's static sag and release (period, first peak, RMS, modes), the baseline's same
+  numbers.
+
+The FE references of the scenes are computed already (``runs/<scene>/reference.h5``); the
+``body`` experiment is computed into a copy (``<folder>/<scene>/reference.h5``) by the FE
+stage's own code (:func:`reference_fe.run.compute_item`), because the FE code changed with
+the new experiment, so the pipeline's reference stage would recompute everything else too;
+its time is recorded against the reference's. The calibrate, gravity and report stages then
+run on that copy (their runners, without the pipeline's cache).
+
+``python -m studies.body_data --scene scenes/liver_punch.toml [--scene ...] [--variants
+none,loads,modes,loads+modes] [--folder runs/studies/body_data] [--out
+runs/studies/body_data.json]``; the JSON is written (atomically) after every variant, and a
+variant whose ``report.json`` exists is not rerun.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from forcecal.errors import DataFileError
+from forcecal.h5io import read_reference, write_reference
+from forcecal.scene import Scene, load_scene, replace
+
+log = logging.getLogger(__name__)
+
+VARIANTS = ("none", "loads", "modes", "loads+modes")
+FOLDER = Path("runs/studies/body_data")
+OUT = Path("runs/studies/body_data.json")
+
+
+def add_body_experiment(scene: Scene, source: Path, out: Path) -> dict[str, float]:
+    """Copy ``source`` (a ``reference.h5`` of ``scene``) to ``out`` with the experiment
+    ``body`` computed by the FE stage's code; returns its seconds and the reference's
+    compute seconds (summed over work items, as ``timings_s`` records them)."""
+    from reference_fe.body import result_of
+    from reference_fe.model import FEModel
+    from reference_fe.refine import fe_problem
+    from reference_fe.run import WorkItem, compute_item, run_keys
+
+    ref = read_reference(source)
+    problem = ref.problem
+    t = time.perf_counter()
+    fe = fe_problem(problem, scene.fe)
+    model = FEModel(fe.problem.mesh, scene.material, scene.fe)
+    build = time.perf_counter() - t
+    t = time.perf_counter()
+    arrays = compute_item(model, scene, problem, WorkItem("body", -1, 0.0), fe)
+    seconds = time.perf_counter() - t
+    timings = json.loads(ref.meta["timings_s"])
+    keys = json.loads(ref.meta["experiment_keys"])
+    keys["body"] = run_keys(scene, problem)["body"]
+    experiments = [e for e in ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
+                   if e in timings]
+    compute = float(sum(timings[e] for e in experiments))
+    meta = {**ref.meta, "timings_s": json.dumps({**timings, "body": seconds}),
+            "experiment_keys": json.dumps(keys),
+            "body_computed_by": "studies.body_data: reference_fe.run.compute_item into a copy "
+                                "of the reference; the other experiments as computed before"}
+    body = result_of(arrays, float(np.linalg.norm(scene.gravity.acceleration)))
+    write_reference(out, dataclasses.replace(ref, body=body, meta=meta))
+    return {"body_s": seconds, "model_build_s": build, "reference_compute_s": compute,
+            "share": seconds / compute, "load_average": list(os.getloadavg())}
+
+
+def run_variant(scene: Scene, body_data: str, folder: Path, reference: Path) -> dict[str, Any]:
+    """Calibrate ``scene`` fitting ``body_data`` on ``reference`` (hard-linked into
+    ``folder``), run the gravity test and the report there (the stages' runners); the
+    numbers of :func:`variant_numbers`. A folder whose report exists is read, not rerun."""
+    from pipelines.runners.calibrate import run_calibrate
+    from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, REPORT, Context
+    from pipelines.runners.gravity import run_gravity_stage
+    from pipelines.runners.report import run_report
+
+    variant = replace(scene, experiments=[*scene.experiments, "body"]
+                      if "body" not in scene.experiments else list(scene.experiments),
+                      calibration={"body_data": body_data})
+    folder.mkdir(parents=True, exist_ok=True)
+    target = folder / REFERENCE
+    if not target.exists():
+        os.link(reference, target)
+    if not (folder / REPORT).is_file():
+        t = time.perf_counter()
+        context = Context(variant, folder, progress=False, ranks=1)
+        run_calibrate(context)
+        gravity = tuple(e for e in variant.experiments if e.startswith("gravity"))
+        run_gravity_stage(dataclasses.replace(context, experiments=gravity))
+        run_report(dataclasses.replace(context, experiments=variant.experiments,
+                                       upstream=(REFERENCE, PARAMS, GRAVITY)))
+        log.info("%s, body_data %s: %.0f s", scene.name, body_data, time.perf_counter() - t)
+    return variant_numbers(json.loads((folder / REPORT).read_text()))
+
+
+def variant_numbers(report: dict[str, Any]) -> dict[str, Any]:
+    """The study's numbers of one ``report.json``: the calibrated model's and the baseline's
+    surface and gravity errors, and the whole-body record (fitted or predicted errors of
+    every item, the weight, the cross-validation's candidate scores)."""
+    dynamic = (report.get("gravity") or {}).get("dynamic_metrics") or {}
+
+    def model(errors: dict, metrics: dict | None) -> dict[str, Any]:
+        out = {k: errors.get(k) for k in ("indentation_calibrated", "indentation_held_out",
+                                          "relaxation_calibrated", "relaxation_held_out",
+                                          "gravity_static", "gravity_dynamic")}
+        if metrics:
+            out.update({k: metrics.get(k) for k in ("period_error", "first_peak_error",
+                                                     "rms_error", "mode_frequency_errors")})
+        return out
+
+    body = report.get("body") or {}
+    return {"calibrated": model(report["errors"], dynamic.get("calibrated")),
+            "baseline": model(report["baseline_errors"], dynamic.get("baseline")),
+            "body": body, "calibration_s": report.get("timings_s", {}).get("calibration"),
+            "warnings": report.get("warnings", [])}
+
+
+def whole_body_score(record: dict[str, Any], variant: str = "calibrated") -> float | None:
+    """Mean squared error over every whole-body item of ``variant`` (None if it has no
+    response): the whole-body part of the calibration data's error, fitted or predicted."""
+    errors = record.get("variants", {}).get(variant, {}).get("item_errors")
+    return None if errors is None else float(np.mean(np.square(errors)))
+
+
+def study(scene_paths: list[str | Path], variants: tuple[str, ...] = VARIANTS,
+          folder: Path = FOLDER, out: Path = OUT) -> dict[str, Any]:
+    """Every scene of ``scene_paths`` with each ``calibration.body_data`` of ``variants``;
+    written to ``out`` after each (module docstring)."""
+    result: dict[str, Any] = {"variants": list(variants), "scenes": {},
+                              "load_average_start": list(os.getloadavg())}
+    if out.is_file():  # a rerun keeps the rows it has (the folders' reports are reused)
+        result["scenes"] = json.loads(out.read_text()).get("scenes", {})
+    for path in scene_paths:
+        scene = load_scene(path)
+        source = Path("runs") / scene.name / "reference.h5"
+        if not source.is_file():
+            raise DataFileError(f"{source}: the scene's FE reference is not computed; the "
+                                "study adds the body experiment to it and never recomputes it")
+        base = folder / scene.name
+        reference = base / "reference.h5"
+        entry = result["scenes"].setdefault(scene.name, {"rows": {}})
+        if not reference.is_file():
+            entry["fe_cost"] = add_body_experiment(scene, source, reference)
+        for name in variants:
+            entry["rows"][name] = run_variant(scene, name, base / name.replace("+", "_"),
+                                              reference)
+            entry["rows"][name]["whole_body_score"] = whole_body_score(
+                entry["rows"][name]["body"])
+            result["load_average_end"] = list(os.getloadavg())
+            write_json(out, result)
+    return result
+
+
+def write_json(path: Path, data: dict) -> None:
+    """``data`` as JSON at ``path``, atomically (a temporary file renamed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m studies.body_data",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", action="append", required=True,
+                        help="scene TOML whose runs/<name>/reference.h5 is computed (repeat)")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help="comma-separated calibration.body_data values")
+    parser.add_argument("--folder", type=Path, default=FOLDER, help="run folders' parent")
+    parser.add_argument("--out", type=Path, default=OUT, help="the results as JSON")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    study(args.scene, tuple(args.variants.split(",")), args.folder, args.out)
+
+
+if __name__ == "__main__":
+    main()
