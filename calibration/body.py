@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from calibration.gradient_solver import compress
 from calibration.optimize import INFEASIBLE
 from forcecal.h5io import Reference
 from forcecal.h5io import BodyResult
@@ -38,15 +39,11 @@ from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
 
-#: ``calibration.body_data`` -> the kinds of whole-body data fitted
-BODY_DATA = {"none": (), "loads": ("loads",), "modes": ("modes",),
-             "loads+modes": ("loads", "modes")}
-
-
 def body_kinds(setting: str) -> tuple[str, ...]:
-    """The kinds (some of :data:`particle.body.BODY_KINDS`) of ``calibration.body_data``."""
-    kinds = BODY_DATA[setting]
-    assert set(kinds) <= set(BODY_KINDS)
+    """The kinds (some of :data:`particle.body.BODY_KINDS`) of ``calibration.body_data``
+    (``"none"`` or kinds joined by ``+``, :data:`forcecal.scene.BODY_DATA_CHOICES`)."""
+    kinds = () if setting == "none" else tuple(setting.split("+"))
+    assert set(kinds) <= set(BODY_KINDS), setting
     return kinds
 
 
@@ -102,7 +99,7 @@ class BodyData:
     @property
     def item_kinds(self) -> list[str]:
         """The kind of each of :attr:`items`."""
-        return ["loads" if name.startswith("load") else "modes" for name in self.items]
+        return self.target.item_kinds
 
     def response(self, params: ConnectorParams, *, fitted: bool = False) -> BodyResponse:
         """The model's whole-body response at ``params`` against every item, or the fitted
@@ -136,11 +133,18 @@ def compress_rows(part: Rows, chain: sp.csr_matrix, keep: int
                   ) -> tuple[np.ndarray, np.ndarray, float]:
     """(residual (k,), coordinate Jacobian (k, size), squared residual left out) of one
     item: its rows projected on the ``keep`` leading left singular vectors of its Jacobian
-    ``L (D C)`` when it has more rows (as :func:`calibration.gradient_solver.compress` does
-    for a point's curve samples), from the Gram matrix so that no (rows, size) block is
-    formed."""
+    ``L (D C) + X C`` when it has more rows (as :func:`calibration.gradient_solver.compress`
+    does for a point's curve samples), from the Gram matrix so that no (rows, size) block is
+    formed (an item with an explicit part ``X`` has few rows: it is formed)."""
     forces = sp.csr_matrix(part.forces @ chain)  # (n, size)
     fields, r = part.fields, part.residual
+    if part.explicit is not None:
+        jacobian = (np.asarray((forces.T @ fields.T).T)
+                    + np.asarray((sp.csr_matrix(part.explicit) @ chain).todense()))
+        if len(r) <= keep:
+            return r, jacobian, 0.0
+        return compress(r, jacobian, len(r), keep)
+    left = 0.0
     if len(r) > keep:
         gram = fields @ np.asarray((forces @ forces.T).todense()) @ fields.T
         _, vectors = np.linalg.eigh(gram)  # ascending
@@ -148,10 +152,7 @@ def compress_rows(part: Rows, chain: sp.csr_matrix, keep: int
         fields, r_kept = U.T @ fields, U.T @ r
         left = float(r @ r - r_kept @ r_kept)
         r = r_kept
-    else:
-        left = 0.0
-    jacobian = np.asarray((forces.T @ fields.T).T)
-    return r, jacobian, left
+    return r, np.asarray((forces.T @ fields.T).T), left
 
 
 def body_record(data: BodyData, weight: float | None, connectors: dict[str, ConnectorParams],

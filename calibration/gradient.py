@@ -65,6 +65,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration.body import BodyData
+from forcecal.scene import BODY_DATA_CHOICES
 from calibration.gradient_solver import (BODY_WEIGHT_GRID, N_COORDS, PRIOR_RATIO, ROWS_KEPT,
                                          SHAPE_SMOOTHNESS, WEIGHT_GRID, Linearisation, LMState,
                                          Regulariser, compress, cross_validate, folds_of,
@@ -552,9 +553,10 @@ class GradientResult:
         return out
 
 
-#: the whole-body data sets whose cross-validation scores a fit reports (``calibration.body_data``)
-BODY_CANDIDATES = {"none": (), "loads": ("loads",), "modes": ("modes",),
-                   "loads+modes": ("loads", "modes")}
+#: the whole-body data sets whose cross-validation scores a fit reports: every value of
+#: ``calibration.body_data``
+BODY_CANDIDATES = {name: () if name == "none" else tuple(name.split("+"))
+                   for name in BODY_DATA_CHOICES}
 
 
 def body_candidates(lin: Linearisation, grouped: GroupedRows, reg: Regulariser,

@@ -345,12 +345,17 @@ class BodyResult:
         load_acceleration: magnitude of the loads' acceleration [m/s^2] (the scene's |g|).
         load_displacement: (L, N, 3) float64, static displacement of every vertex under each
             load [m] (long-term material, nonlinear).
+        loaded_frequencies: (L, M) float64, the M lowest frequencies [Hz] of small motions
+            about each load's equilibrium (instantaneous incremental moduli), ascending.
+        loaded_shapes: (L, M, N, 3) float64, their shapes, normalised as ``shapes``.
     """
     frequencies: np.ndarray
     shapes: np.ndarray
     load_directions: np.ndarray
     load_acceleration: float
     load_displacement: np.ndarray
+    loaded_frequencies: np.ndarray
+    loaded_shapes: np.ndarray
 
     @property
     def load_accelerations(self) -> np.ndarray:
@@ -565,6 +570,12 @@ def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:
         "body loads, perpendicular to the scene's gravity (L, 3)")
     put(g, "load_displacement", body.load_displacement, "m", "static displacement under "
         "each body load (weight along that direction), long-term material (L, N, 3)")
+    _check_shape("body.loaded_frequencies", body.loaded_frequencies, (n_loads, n_modes))
+    _check_shape("body.loaded_shapes", body.loaded_shapes, (n_loads, n_modes, n_vertices, 3))
+    put(g, "loaded_frequencies", body.loaded_frequencies, "Hz", "lowest frequencies of small "
+        "motions about each load's equilibrium, instantaneous incremental moduli (L, M)")
+    put(g, "loaded_shapes", body.loaded_shapes, "1/sqrt(kg)", "their mode shapes at the "
+        "vertices, normalised as shapes (L, M, N, 3)")
 
 
 def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
@@ -575,9 +586,11 @@ def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
                             f"{list(BODY_MODULI)}")
     frequencies = get(fh, "body/frequencies", (len(BODY_MODULI), None), dtype="float")
     n_modes = frequencies.shape[1]
-    if np.any(frequencies <= 0) or np.any(np.diff(frequencies, axis=1) < 0):
-        raise DataFileError(f"{fh.filename}:/body/frequencies must be positive and ascending")
     directions = get(fh, "body/load_directions", (None, 3), dtype="float")
+    loaded = get(fh, "body/loaded_frequencies", (len(directions), n_modes), dtype="float")
+    for name, values in (("frequencies", frequencies), ("loaded_frequencies", loaded)):
+        if np.any(values <= 0) or np.any(np.diff(values, axis=1) < 0):
+            raise DataFileError(f"{fh.filename}:/body/{name} must be positive and ascending")
     if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):
         raise DataFileError(f"{fh.filename}:/body/load_directions must be unit vectors")
     acceleration = float(attr(group(fh, "body"), "load_acceleration"))
@@ -589,7 +602,10 @@ def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
         shapes=get(fh, "body/shapes", (len(BODY_MODULI), n_modes, n_vertices, 3), dtype="float"),
         load_directions=directions, load_acceleration=acceleration,
         load_displacement=get(fh, "body/load_displacement", (len(directions), n_vertices, 3),
-                              dtype="float"))
+                              dtype="float"),
+        loaded_frequencies=loaded,
+        loaded_shapes=get(fh, "body/loaded_shapes", (len(directions), n_modes, n_vertices, 3),
+                          dtype="float"))
 
 
 def _check_shape(name: str, arr: np.ndarray, shape: tuple) -> None:

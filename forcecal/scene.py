@@ -253,6 +253,14 @@ class ParticleSection:
         return self.volume == "viscoelastic"
 
 
+#: the kinds of whole-body data a calibration can fit (experiment "body")
+BODY_KINDS = ("loads", "modes", "loaded_modes")
+#: ``calibration.body_data``: "none" or kinds joined by "+", in :data:`BODY_KINDS` order
+BODY_DATA_CHOICES = ("none",) + tuple(
+    "+".join(k for b, k in enumerate(BODY_KINDS) if mask >> b & 1)
+    for mask in range(1, 2 ** len(BODY_KINDS)))
+
+
 @dataclass(frozen=True)
 class CalibrationSection:
     method: str = key("paper", "after the global fit: \"paper\" = local ring tuning (Jacobi "
@@ -319,11 +327,12 @@ class CalibrationSection:
                            "they keep the global fit's one value)")
     body_data: str = key("loads+modes", "gradient method, with the experiment 'body' in the "
                          "scene's experiments: the whole-body data fitted jointly with the "
-                         "surface curves: \"loads\" (the weight along the two directions "
-                         "perpendicular to gravity, static), \"modes\" (natural frequencies and "
-                         "shapes at the instantaneous and long-term moduli), \"loads+modes\" or "
-                         "\"none\" (README Calibration)",
-                         choices=("none", "loads", "modes", "loads+modes"))
+                         "surface curves, \"none\" or kinds joined by '+': \"loads\" (the "
+                         "weight along the two directions perpendicular to gravity, static), "
+                         "\"modes\" (natural frequencies and shapes at the instantaneous and "
+                         "long-term moduli), \"loaded_modes\" (those of quick motions about "
+                         "each load's equilibrium) (README Calibration)",
+                         choices=BODY_DATA_CHOICES)
     body_weight: Union[str, float] = key("cv", "gradient method: weight of each whole-body "
                                          "item's squared relative error against a calibration "
                                          "point's; \"cv\": chosen with the smoothness weight "

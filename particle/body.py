@@ -46,6 +46,7 @@ Residuals (each a relative error, so a whole-body item weighs like a calibration
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -56,17 +57,16 @@ from scipy.optimize import linear_sum_assignment
 
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.h5io import BODY_MODULI, BodyResult
+from forcecal.scene import BODY_KINDS
 from particle.model import Model
 from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams
 from particle.sensitivity import _Geometry, volume_pattern_matrix
-from particle.statics import (TangentPattern, ldl_factor, net_forces, tangent_data,
-                              weight_equilibrium)
+from particle.statics import (ArmStep, TangentPattern, VolumeArmStep, ldl_factor, net_forces,
+                              tangent_data, weight_equilibrium)
 from particle.volume import volume_strains
 
 log = logging.getLogger(__name__)
 
-#: the whole-body data kinds a calibration can fit (``calibration.body_data``)
-BODY_KINDS = ("loads", "modes")
 #: model modes computed beyond the FE's, so that each FE mode finds its partner by MAC
 EXTRA_MODES = 4
 
@@ -92,14 +92,17 @@ class Rows:
         residual: (R,) residuals [1].
         fields: (R, n) virtual fields ``L`` on the free dofs.
         forces: (n, P) sparse parameter-force matrix ``D`` (:func:`parameter_layout`).
+        explicit: (R, P) a part of the Jacobian given as it is (added to ``L D``), or None.
     """
     residual: np.ndarray
     fields: np.ndarray
     forces: sp.csr_matrix
+    explicit: np.ndarray | None = None
 
     def jacobian(self) -> np.ndarray:
         """(R, P) the dense Jacobian (for tests and small problems)."""
-        return np.asarray((self.forces.T @ self.fields.T).T)
+        out = np.asarray((self.forces.T @ self.fields.T).T)
+        return out if self.explicit is None else out + self.explicit
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,11 +115,17 @@ class BodyTarget:
         frequencies: (2, M) FE natural frequencies [Hz] (:data:`~forcecal.h5io.BODY_MODULI`);
             (2, 0) when modes are not fitted.
         shapes: (2, M, N, 3) FE mode shapes at the particles (any normalisation).
+        loaded_accelerations: (L', 3) the loads whose loaded states' modes are fitted
+            ((0, 3): none).
+        loaded_frequencies: (L', M') their FE frequencies [Hz]; loaded_shapes: (L', M', N, 3).
     """
     accelerations: np.ndarray
     displacement: np.ndarray
     frequencies: np.ndarray
     shapes: np.ndarray
+    loaded_accelerations: np.ndarray
+    loaded_frequencies: np.ndarray
+    loaded_shapes: np.ndarray
 
     @classmethod
     def of(cls, body: BodyResult, kinds: tuple[str, ...]) -> "BodyTarget":
@@ -125,19 +134,31 @@ class BodyTarget:
         if unknown:
             raise ParameterError(f"whole-body data {unknown}: known kinds are {BODY_KINDS}")
         n = body.shapes.shape[2]
-        loads, modes = "loads" in kinds, "modes" in kinds
+        loads, modes, loaded = (k in kinds for k in BODY_KINDS)
         return cls(body.load_accelerations if loads else np.zeros((0, 3)),
                    body.load_displacement if loads else np.zeros((0, n, 3)),
                    body.frequencies if modes else np.zeros((len(BODY_MODULI), 0)),
-                   body.shapes if modes else np.zeros((len(BODY_MODULI), 0, n, 3)))
+                   body.shapes if modes else np.zeros((len(BODY_MODULI), 0, n, 3)),
+                   body.load_accelerations if loaded else np.zeros((0, 3)),
+                   body.loaded_frequencies if loaded else np.zeros((0, 0)),
+                   body.loaded_shapes if loaded else np.zeros((0, 0, n, 3)))
 
     @property
     def items(self) -> list[str]:
-        """Names of the data items, in residual order: ``load <k>``, then ``<modulus> mode
-        <k>`` for each modulus."""
+        """Names of the data items, in residual order: ``load <k>``, ``<modulus> mode <j>``
+        for each modulus, then ``load <k> mode <j>``."""
         return ([f"load {k}" for k in range(len(self.accelerations))]
                 + [f"{modulus} mode {k}" for modulus in BODY_MODULI
-                   for k in range(self.frequencies.shape[1])])
+                   for k in range(self.frequencies.shape[1])]
+                + [f"load {k} mode {j}" for k in range(len(self.loaded_accelerations))
+                   for j in range(self.loaded_frequencies.shape[1])])
+
+    @property
+    def item_kinds(self) -> list[str]:
+        """The kind (:data:`BODY_KINDS`) of each of :attr:`items`."""
+        return [BODY_KINDS[2] if " mode " in name and name.startswith("load")
+                else BODY_KINDS[0] if name.startswith("load") else BODY_KINDS[1]
+                for name in self.items]
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,11 +287,13 @@ def load_rows(model: Model, acceleration: np.ndarray, target: np.ndarray, load_s
     return Rows((u - u_fe) / scale, np.ascontiguousarray(fields), load_forces(model, x, pat))
 
 
-def model_modes(model: Model, ops: RestOperators, modulus: str, count: int
+def model_modes(model: Model, ops: RestOperators, modulus: str, count: int,
+                stiffness: sp.csc_matrix | None = None
                 ) -> tuple[np.ndarray, np.ndarray, sp.csc_matrix]:
-    """The ``count`` lowest modes of ``model`` at ``modulus``: (eigenvalues (count,)
-    [1/s^2], mass-normalised shapes (n, count) on the free dofs, the stiffness ``K``)."""
-    K = ops.stiffness(model, modulus)
+    """The ``count`` lowest modes of ``model`` at ``modulus`` (or of the given ``stiffness``
+    on the free dofs, ``modulus`` then only names it): (eigenvalues (count,) [1/s^2],
+    mass-normalised shapes (n, count) on the free dofs, the stiffness ``K``)."""
+    K = ops.stiffness(model, modulus) if stiffness is None else stiffness
     count = min(count, K.shape[0] - 1)
     lu = sla.splu(K)
     inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
@@ -318,26 +341,30 @@ class ModeMatch:
         partner: (M,) the model mode paired with each FE mode.
         parts: each FE mode's residual rows (its frequency error, then its shape error's M
             components) with their Jacobian.
+        modes: (n,) each FE mode's partner, mass-normalised and signed like it.
     """
     frequency_errors: np.ndarray
     shape_errors: np.ndarray
     mac: np.ndarray
     partner: np.ndarray
     parts: list[Rows]
+    modes: list[np.ndarray]
 
 
 def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.ndarray,
-              shapes: np.ndarray) -> ModeMatch:
+              shapes: np.ndarray, stiffness: sp.csc_matrix | None = None) -> ModeMatch:
     """Residual rows of the FE modes ``frequencies`` (M,) [Hz], ``shapes`` (M, N, 3) at
-    ``modulus`` against the model's (module docstring), with their Jacobian."""
+    ``modulus`` against the model's (module docstring), with their Jacobian; with a given
+    ``stiffness`` (a loaded state's, :func:`loaded_mode_rows`) its modes, the rows' forces
+    left for the caller (None)."""
     n_fe = len(frequencies)
-    values, vectors, K = model_modes(model, ops, modulus, n_fe + EXTRA_MODES)
+    values, vectors, K = model_modes(model, ops, modulus, n_fe + EXTRA_MODES, stiffness)
     mass = ops.mass
     psi = np.stack([free_dofs_values(model, s) for s in shapes], axis=1)  # (n, M)
     psi = psi / np.sqrt(np.einsum("nk,n,nk->k", psi, mass, psi))
     basis = mass_orthonormal(psi, mass)
     partner, mac = pair_modes(psi, vectors, mass)
-    parts = []
+    parts, modes = [], []
     f_err, s_err = np.empty(n_fe), np.empty(n_fe)
     M = sp.diags(mass).tocsc()
     for k in range(n_fe):
@@ -356,8 +383,154 @@ def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.nd
         solved = sla.splu(bordered).solve(rhs)[:-1]  # (n, M)
         parts.append(Rows(np.r_[ratio - 1.0, shape],
                           np.vstack([ratio / (2.0 * lam) * phi, -solved.T]),
-                          ops.mode_forces(model, phi, modulus)))
-    return ModeMatch(f_err, s_err, mac, partner, parts)
+                          None if stiffness is not None
+                          else ops.mode_forces(model, phi, modulus)))
+        modes.append(phi)
+    return ModeMatch(f_err, s_err, mac, partner, parts, modes)
+
+
+def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
+                     ) -> tuple[float, np.ndarray, np.ndarray]:
+    """The instantaneous incremental tangent's quadratic form about the long-term state ``x``
+    (N, 3), ``q = phi^T K_t phi`` for a field ``phi`` (N, 3) (zero on fixed particles), with
+    its gradient with respect to the positions and its explicit parameter derivatives.
+
+    ``K_t`` is the tangent of small quick motions about a relaxed static state: each
+    connector ``s (u . w)^2 + (T / l) (|w|^2 - (u . w)^2)`` (``w`` the field's difference
+    across it, ``s = K0 + 2 a eps + 3 b eps^2 + k1 + k2`` the axial tangent with the arms'
+    instantaneous stiffness, ``T`` the long-term tension: the relaxed arms carry none), each
+    tet ``(kv + kv1 + kv2) / V0 (g . phi)^2 + P phi^T (d^2 V / dx^2) phi`` (``g = dV/dx``,
+    ``P = kv (V/V0 - 1)`` the long-term pressure; no ``kv1, kv2`` for an elastic term).
+
+    Returns (q [N m], (N, 3) dq/dx [N], (P,) dq/dp at fixed x in the layout of
+    :func:`parameter_layout`).
+    """
+    p = model.params
+    i, j = model.edges[:, 0], model.edges[:, 1]
+    d = x[j] - x[i]
+    length = np.linalg.norm(d, axis=1)
+    u = d / length[:, None]
+    L0 = model.rest_lengths
+    eps = length / L0 - 1.0
+    dx = length - L0
+    w = field[j] - field[i]
+    uw = np.einsum("ec,ec->e", u, w)
+    ww = np.einsum("ec,ec->e", w, w)
+    transverse = ww - uw ** 2
+    tension = (p.K0 + p.a * eps + p.b * eps ** 2) * dx
+    s_long = p.K0 + 2.0 * p.a * eps + 3.0 * p.b * eps ** 2
+    s = s_long + p.k1 + p.k2
+    q = float(np.sum(s * uw ** 2 + tension / length * transverse))
+    d_uw = (w - uw[:, None] * u) / length[:, None]
+    grad_d = ((uw ** 2 * (2.0 * p.a + 6.0 * p.b * eps) / L0)[:, None] * u
+              + (2.0 * (s - tension / length) * uw)[:, None] * d_uw
+              + (transverse * (s_long / length - tension / length ** 2))[:, None] * u)
+    grad = np.zeros_like(x)
+    np.add.at(grad, j, grad_d)
+    np.add.at(grad, i, -grad_d)
+    layout = parameter_layout(model.n_connectors, model.n_tets if p.kv is not None else 0,
+                              p.has_volume_arms)
+    explicit = np.zeros(max(s_.stop for s_ in layout.values()))
+    per_length = transverse * dx / length
+    explicit[layout["K0"]] = uw ** 2 + per_length
+    explicit[layout["a"]] = 2.0 * eps * uw ** 2 + eps * per_length
+    explicit[layout["b"]] = 3.0 * eps ** 2 * uw ** 2 + eps ** 2 * per_length
+    explicit[layout["k1"]] = explicit[layout["k2"]] = uw ** 2
+    if p.kv is None:
+        return q, grad, explicit
+    V0 = model.rest_volumes
+    t = model.tets
+    e = [x[t[:, a]] - x[t[:, 0]] for a in (1, 2, 3)]
+    f = [field[t[:, a]] - field[t[:, 0]] for a in (1, 2, 3)]
+    cross = np.cross
+    dot = lambda a, b: np.einsum("tc,tc->t", a, b)  # noqa: E731
+    volume = dot(e[0], cross(e[1], e[2])) / 6.0
+    strain = volume / V0 - 1.0
+    pressure = p.kv * strain
+    g_phi = (dot(f[0], cross(e[1], e[2])) + dot(e[0], cross(f[1], e[2]))
+             + dot(e[0], cross(e[1], f[2]))) / 6.0
+    h_phi = (dot(f[0], cross(f[1], e[2])) + dot(f[0], cross(e[1], f[2]))
+             + dot(e[0], cross(f[1], f[2]))) / 3.0
+    stiffness = p.volume_instantaneous if p.has_volume_arms else p.kv
+    q += float(np.sum(stiffness / V0 * g_phi ** 2 + pressure * h_phi))
+    # derivatives with respect to the edge vectors e1, e2, e3 (module docstring: V trilinear)
+    d_g = [(cross(f[1], e[2]) + cross(e[1], f[2])) / 6.0,
+           (cross(e[2], f[0]) + cross(f[2], e[0])) / 6.0,
+           (cross(f[0], e[1]) + cross(e[0], f[1])) / 6.0]
+    d_h = [cross(f[1], f[2]) / 3.0, cross(f[2], f[0]) / 3.0, cross(f[0], f[1]) / 3.0]
+    d_v = [cross(e[1], e[2]) / 6.0, cross(e[2], e[0]) / 6.0, cross(e[0], e[1]) / 6.0]
+    for a in range(3):
+        grad_e = ((2.0 * stiffness / V0 * g_phi)[:, None] * d_g[a]
+                  + (p.kv / V0 * h_phi)[:, None] * d_v[a] + pressure[:, None] * d_h[a])
+        np.add.at(grad, t[:, a + 1], grad_e)
+        np.add.at(grad, t[:, 0], -grad_e)
+    explicit[layout["kv"]] = g_phi ** 2 / V0 + strain * h_phi
+    if p.has_volume_arms:
+        explicit[layout["kv1"]] = explicit[layout["kv2"]] = g_phi ** 2 / V0
+    return q, grad, explicit
+
+
+def incremental_tangent(model: Model, pat: TangentPattern, x: np.ndarray) -> sp.csc_matrix:
+    """(n, n) the tangent ``K_t`` of :func:`incremental_form` on the free dofs [N/m]."""
+    p = model.params
+    forces, tension, *_ = net_forces(model, x, p, not p.is_linear, None, None,
+                                     (np.zeros(model.n_tets), np.full(model.n_tets, np.inf)))
+    e, t = model.n_connectors, model.n_tets
+    volume = None
+    if p.has_volume_arms:  # relaxed arms: no pressure, their instantaneous stiffness
+        volume = VolumeArmStep(np.ones((t, 2)), np.column_stack([p.kv1, p.kv2]),
+                               np.zeros((t, 2)), np.zeros(t))
+    arms = ArmStep(np.ones((e, 2)), np.column_stack([p.k1, p.k2]), np.zeros((e, 2)),
+                   np.zeros(e), volume)
+    data = tangent_data(model, pat, x, tension, p, True, arms,
+                        None if volume is None else np.zeros((t, 2)))
+    return sp.csc_matrix((data, pat.indices, pat.indptr), shape=(pat.n_dofs, pat.n_dofs))
+
+
+def loaded_mode_rows(model: Model, ops: RestOperators, acceleration: np.ndarray,
+                     load_steps: int, frequencies: np.ndarray, shapes: np.ndarray
+                     ) -> ModeMatch:
+    """Residual rows of the FE modes ``frequencies`` (M,) [Hz], ``shapes`` (M, N, 3) about
+    the equilibrium under the weight ``acceleration`` against the model's modes about its
+    own (:func:`incremental_form`), as :func:`mode_rows` for the rest state, with their
+    Jacobian.
+
+    Each row's derivative has an explicit part (the tangent's parameters at fixed
+    positions) and one through the equilibrium's positions: for a row ``v^T dK_t/dp phi``,
+    ``z^T df/dp`` with ``K_s z = d(v^T K_t phi)/dx`` (``K_s`` the static tangent, the
+    gradient by polarisation of :func:`incremental_form`): an adjoint solve per row.
+
+    Raises:
+        ConvergenceError: no equilibrium under the load, or the eigen-solve failed.
+    """
+    pat = ops.pattern
+    x = weight_equilibrium(model, acceleration, load_steps)
+    forces, tension, *_ = net_forces(model, x, model.params, not model.params.is_linear, None,
+                                     None, (np.zeros(model.n_tets),
+                                            np.full(model.n_tets, np.inf)))
+    static = ldl_factor(pat, tangent_data(model, pat, x, tension, model.params, True, None))
+    load = load_forces(model, x, pat)
+    K = incremental_tangent(model, pat, x)
+    match = mode_rows(model, ops, "loaded", frequencies, shapes, stiffness=K)
+    free = model.free_nodes
+
+    def field(v: np.ndarray) -> np.ndarray:
+        out = np.zeros((model.n_particles, 3))
+        out[free] = v.reshape(-1, 3)
+        return out
+
+    parts = []
+    for part, phi in zip(match.parts, match.modes):
+        gradients, explicit = [], []
+        for v in part.fields:  # the rows' virtual fields: v^T (dK/dp) phi, v = c phi or -y
+            _, g_plus, e_plus = incremental_form(model, x, field(v + phi))  # polarisation
+            _, g_minus, e_minus = incremental_form(model, x, field(v - phi))
+            gradients.append(0.25 * (g_plus - g_minus)[free].ravel())
+            explicit.append(0.25 * (e_plus - e_minus))
+        adjoint = static.solve(np.array(gradients).T).T  # (R, n): K_s z = gradient
+        parts.append(Rows(part.residual, np.ascontiguousarray(adjoint), load,
+                          np.array(explicit)))
+    return dataclasses.replace(match, parts=parts)
 
 
 @dataclass(frozen=True, eq=False)
@@ -369,7 +542,8 @@ class BodyResponse:
         parts: each item's residual rows with their Jacobian, in item order.
         load_errors: (L,) RMS displacement error of each load relative to its largest FE
             displacement [1].
-        modes: modulus -> its :class:`ModeMatch` (only with modes).
+        modes: modulus (rest state) or ``load <k>`` (about that load's equilibrium) -> its
+            :class:`ModeMatch` (only with modes).
     """
     items: list[str]
     parts: list[Rows]
@@ -414,4 +588,9 @@ def body_response(model: Model, target: BodyTarget, load_steps: int,
             modes[modulus] = mode_rows(model, ops, modulus, target.frequencies[i],
                                        target.shapes[i])
             parts += modes[modulus].parts
+    for k, g in enumerate(target.loaded_accelerations):
+        modes[f"load {k}"] = loaded_mode_rows(model, ops, g, load_steps,
+                                             target.loaded_frequencies[k],
+                                             target.loaded_shapes[k])
+        parts += modes[f"load {k}"].parts
     return BodyResponse(target.items, parts, np.array(load_errors), modes)

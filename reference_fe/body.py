@@ -17,9 +17,18 @@ not use (its gravity direction and its release stay held out):
   infinite and never among the lowest). Shapes are mass-normalised with the FE's mass
   (``phi^T M phi = 1``), each signed so its largest vertex component is positive;
 * **static body loads**: the organ's weight (``|gravity.acceleration|``) along the two
-  directions perpendicular to the test's gravity (:func:`load_directions`), each a
+  directions perpendicular to the test's gravity
+  (:func:`forcecal.problem.body_load_directions`), each a
   nonlinear, long-term, load-stepped static solve exactly like the gravity sag's
   (:func:`reference_fe.experiments.gravity_static`).
+
+* **modes about each loaded state**: the ``body.modes`` lowest modes of small motions
+  about each static load's equilibrium, at the instantaneous incremental moduli (the
+  material relaxed under the load, a quick motion about it: ``gamma = 1`` with the Prony
+  history ``H = -(1 - g_inf) S_iso0`` at the equilibrium, so the stress is the long-term
+  one and its increments the instantaneous ones; the stress enters the tangent's geometric
+  part): how the body's stiffness changes under a load of its own weight's size, which the
+  rest-state modes do not tell (a release swings about a loaded state).
 
 Both run on the model of the gravity experiments (the particle mesh refined ``fe.refine``
 times, read back at the particle vertices). Cost: two eigen-solves and two static solves,
@@ -38,6 +47,7 @@ from dolfinx.fem.petsc import assemble_matrix
 
 from forcecal.errors import ConvergenceError
 from forcecal.h5io import BodyResult
+from forcecal.problem import body_load_directions
 from reference_fe.experiments import gravity_static
 from reference_fe.model import FEModel, _set_material, initial_state
 
@@ -47,37 +57,50 @@ log = logging.getLogger(__name__)
 MODULI = ("instantaneous", "long_term")
 
 
-def load_directions(acceleration: np.ndarray) -> np.ndarray:
-    """(2, 3) unit vectors perpendicular to ``acceleration`` and to each other: the coordinate
-    axis least aligned with gravity with gravity projected out, then gravity's direction
-    crossed with it (for gravity along a coordinate axis: the other two axes, positive)."""
-    g = np.asarray(acceleration, dtype=np.float64)
-    g = g / np.linalg.norm(g)
-    first = np.eye(3)[int(np.argmin(np.abs(g)))]
-    first = first - (first @ g) * g
-    first /= np.linalg.norm(first)
-    second = np.cross(g, first)
-    if np.count_nonzero(np.abs(second) > 1e-12) == 1:  # an axis: point it the positive way
-        second = np.abs(second)
-    return np.stack([first, second / np.linalg.norm(second)])
-
-
 def static_loads(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
-                 load_steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """The organ's weight along each of :func:`load_directions`: ((2, 3) directions, (2, N, 3)
-    static displacements of every FE vertex [m]), long-term material, ``load_steps``
-    increments each (as the gravity sag)."""
-    directions = load_directions(acceleration)
+                 load_steps: int, modes: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The organ's weight along each of :func:`forcecal.problem.body_load_directions`: ((2, 3)
+    directions, (2, N, 3) static displacements of every FE vertex [m]), long-term material,
+    ``load_steps`` increments each (as the gravity sag); and the ``modes`` lowest modes about
+    each equilibrium (:func:`loaded_modes`: (2, modes) frequencies [Hz], (2, modes, N, 3)
+    shapes; empty for ``modes`` 0)."""
+    directions = body_load_directions(acceleration)
     magnitude = float(np.linalg.norm(acceleration))
-    displacement = np.stack([gravity_static(model, fixed, magnitude * d, load_steps)
-                             for d in directions])
-    return directions, displacement
+    displacement, frequencies, shapes = [], [], []
+    for d in directions:
+        u, state = gravity_static(model, fixed, magnitude * d, load_steps, with_state=True)
+        displacement.append(u)
+        if modes:
+            f, phi = loaded_modes(model, fixed, state.u, modes)
+            frequencies.append(f)
+            shapes.append(phi)
+    n = model.mesh.n_vertices
+    return (directions, np.stack(displacement),
+            np.stack(frequencies) if modes else np.zeros((len(directions), 0)),
+            np.stack(shapes) if modes else np.zeros((len(directions), 0, n, 3)))
 
 
-def _assembled(model: FEModel, inertia: float) -> sp.csr_matrix:
-    """The residual's Jacobian at ``u = 0`` with the inertia coefficient ``c_m = inertia``."""
+def loaded_modes(model: FEModel, fixed: np.ndarray, u: np.ndarray, count: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` lowest modes of small motions about the long-term static equilibrium
+    ``u`` (a solution vector), at the instantaneous incremental moduli (module docstring)."""
+    m = model.material
+    model._C10.value, model._C01.value, model._gamma.value = m.C10, m.C01, 1.0
+    model._hist.x.array[:] = 0.0
+    model.w.x.array[:] = u
+    model.set_history(-(1.0 - m.long_term_factor) * model.isochoric_stress_at_quadrature_points())
+    model._gravity.value[:] = 0.0  # a constant load: no part of the tangent
+    stiffness = _assembled(model, 0.0, u)
+    return _lowest_modes(model, fixed, stiffness, _assembled(model, 1.0, u) - stiffness, count,
+                         "about a loaded state")
+
+
+def _assembled(model: FEModel, inertia: float, u: np.ndarray | None = None) -> sp.csr_matrix:
+    """The residual's Jacobian at ``u`` (None: 0) with the inertia coefficient ``c_m =
+    inertia``."""
     model._c_m.value = inertia
-    model.w.x.array[:] = 0.0
+    model.w.x.array[:] = 0.0 if u is None else u
     matrix = assemble_matrix(model._problem.a)
     matrix.assemble()
     indptr, indices, data = matrix.getValuesCSR()
@@ -118,6 +141,13 @@ def natural_modes(model: FEModel, fixed: np.ndarray, count: int, modulus: str
             eigenvalue (a support that does not hold the body).
     """
     stiffness, mass = stiffness_and_mass(model, modulus)
+    return _lowest_modes(model, fixed, stiffness, mass, count, f"at the {modulus} moduli")
+
+
+def _lowest_modes(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
+                  mass: sp.csr_matrix, count: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`natural_modes` of the assembled ``stiffness`` and ``mass`` (whole solution
+    vector); ``what`` names them in an error."""
     held = model.clamp_dofs(fixed).ravel()
     free = np.setdiff1d(np.arange(model.n_dofs), held)
     K = stiffness[free][:, free].tocsc()
@@ -127,13 +157,13 @@ def natural_modes(model: FEModel, fixed: np.ndarray, count: int, modulus: str
     try:
         values, vectors = sla.eigsh(K, k=count, M=M, sigma=0.0, OPinv=inverse, which="LM")
     except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
-        raise ConvergenceError(f"body modes at the {modulus} moduli: the eigen-solve did not "
-                               f"converge ({exc})") from None
+        raise ConvergenceError(f"body modes {what}: the eigen-solve did not converge "
+                               f"({exc})") from None
     order = np.argsort(values)
     values, vectors = values[order], vectors[:, order]
     if not np.all(values > 0):
-        raise ConvergenceError(f"body modes at the {modulus} moduli: eigenvalue "
-                               f"{values.min():.3g} <= 0; the support does not hold the body")
+        raise ConvergenceError(f"body modes {what}: eigenvalue {values.min():.3g} <= 0; the "
+                               "support does not hold the body")
     full = np.zeros((model.n_dofs, count))
     full[free] = vectors
     shapes = np.moveaxis(full[model.vertex_dofs], 2, 0)  # (count, N, 3)
@@ -141,26 +171,30 @@ def natural_modes(model: FEModel, fixed: np.ndarray, count: int, modulus: str
         flat = shapes[k].ravel()
         shapes[k] *= np.sign(flat[np.argmax(np.abs(flat))])
     frequencies = np.sqrt(values) / (2.0 * np.pi)
-    log.debug("body modes at the %s moduli: %s Hz", modulus, np.round(frequencies, 3).tolist())
+    log.debug("body modes %s: %s Hz", what, np.round(frequencies, 3).tolist())
     return frequencies, shapes
 
 
 def body_data(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray, modes: int,
               load_steps: int) -> dict[str, np.ndarray]:
     """The arrays of the ``body`` work item at the FE vertices: ``frequencies`` (2, M) [Hz]
-    and ``shapes`` (2, M, N, 3) of :data:`MODULI`, ``load_directions`` (2, 3) and
-    ``load_displacement`` (2, N, 3) [m]."""
+    and ``shapes`` (2, M, N, 3) of :data:`MODULI`, ``load_directions`` (2, 3),
+    ``load_displacement`` (2, N, 3) [m], ``loaded_frequencies`` (2, M) [Hz] and
+    ``loaded_shapes`` (2, M, N, 3) about each load's equilibrium."""
     frequencies, shapes = zip(*(natural_modes(model, fixed, modes, m) for m in MODULI))
-    directions, displacement = static_loads(model, fixed, acceleration, load_steps)
+    directions, displacement, loaded_f, loaded_phi = static_loads(model, fixed, acceleration,
+                                                                  load_steps, modes)
     return {"frequencies": np.stack(frequencies), "shapes": np.stack(shapes),
-            "load_directions": directions, "load_displacement": displacement}
+            "load_directions": directions, "load_displacement": displacement,
+            "loaded_frequencies": loaded_f, "loaded_shapes": loaded_phi}
 
 
 def at_vertices(arrays: dict[str, np.ndarray], vertices: np.ndarray) -> dict[str, np.ndarray]:
     """The arrays of :func:`body_data` read at the FE vertices ``vertices`` (the particle
     vertices on a refined FE mesh)."""
     return {**arrays, "shapes": arrays["shapes"][:, :, vertices],
-            "load_displacement": arrays["load_displacement"][:, vertices]}
+            "load_displacement": arrays["load_displacement"][:, vertices],
+            "loaded_shapes": arrays["loaded_shapes"][:, :, vertices]}
 
 
 def result_of(arrays: dict[str, np.ndarray], acceleration: float) -> BodyResult:
@@ -168,7 +202,9 @@ def result_of(arrays: dict[str, np.ndarray], acceleration: float) -> BodyResult:
     particle vertices); ``acceleration`` the loads' magnitude [m/s^2]."""
     return BodyResult(frequencies=arrays["frequencies"], shapes=arrays["shapes"],
                       load_directions=arrays["load_directions"], load_acceleration=acceleration,
-                      load_displacement=arrays["load_displacement"])
+                      load_displacement=arrays["load_displacement"],
+                      loaded_frequencies=arrays["loaded_frequencies"],
+                      loaded_shapes=arrays["loaded_shapes"])
 
 
 def arrays_of(result: BodyResult) -> dict[str, np.ndarray]:
@@ -176,4 +212,6 @@ def arrays_of(result: BodyResult) -> dict[str, np.ndarray]:
     inverse)."""
     return {"frequencies": result.frequencies, "shapes": result.shapes,
             "load_directions": result.load_directions,
-            "load_displacement": result.load_displacement}
+            "load_displacement": result.load_displacement,
+            "loaded_frequencies": result.loaded_frequencies,
+            "loaded_shapes": result.loaded_shapes}

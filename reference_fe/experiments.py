@@ -207,8 +207,10 @@ def punch_relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, norma
 
 
 def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
-                   load_steps: int) -> np.ndarray:
-    """(N, 3) static displacement of every vertex under gravity [m] (long-term material).
+                   load_steps: int, *, with_state: bool = False
+                   ) -> np.ndarray | tuple[np.ndarray, FEState]:
+    """(N, 3) static displacement of every vertex under gravity [m] (long-term material), and
+    with ``with_state`` the converged :class:`FEState` too.
 
     Gravity is applied in ``load_steps`` equal increments (a single P2 step diverges).
     """
@@ -229,7 +231,7 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
         sag = float(np.linalg.norm(u, axis=1).max())
         first = sag / factor if first is None else first
         check_sag(sag, factor, first, extent, len(fixed))
-    return u
+    return (u, state) if with_state else u
 
 
 #: the static sag per unit load may grow this much over the load steps before the support is
