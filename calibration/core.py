@@ -275,6 +275,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                max_iterations=settings.gradient_max_iterations,
                                body=body, body_weight=(None if settings.body_weight == "cv"
                                                        else float(settings.body_weight)),
+                               body_candidates_report=settings.body_candidates,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()
             evaluations["gradient_jacobians"] = gfit.jacobians

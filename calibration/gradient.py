@@ -532,7 +532,7 @@ class GradientResult:
     @property
     def body_candidates(self) -> dict:
         """Each round's :func:`body_candidates` (for ``params.h5``)."""
-        return {f"round_{k + 1}": c for k, c in enumerate(self.body_choice)}
+        return {f"round_{k + 1}": c for k, c in enumerate(self.body_choice) if c}
 
     def pulled_back(self, fraction: float) -> ConnectorParams:
         """The parameters a ``fraction`` of the way from the global fit to this fit, in the
@@ -602,6 +602,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  force_vectors: dict[str, np.ndarray] | None = None,
                  global_shape: np.ndarray | None = None,
                  body: BodyData | None = None, body_weight: float | None = None,
+                 body_candidates_report: bool = False,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
                  grid: Sequence[float] = WEIGHT_GRID,
@@ -626,7 +627,9 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ``body``: whole-body data fitted jointly with the curves (:class:`BodyData`; the model
     must have an equilibrium under its loads at the global fit), each item's squared
     residual times ``body_weight``, or, when that is None, the weight of ``body_grid`` chosen
-    with the smoothness weight by the cross-validation (:func:`cross_validate`).
+    with the smoothness weight by the cross-validation (:func:`cross_validate`);
+    ``body_candidates_report``: also score every set of whole-body kinds
+    (:func:`body_candidates`, in :attr:`GradientResult.body_choice`).
     """
     start_params = glob.connector_params(len(edges), global_shape)
     if tets is not None and start_params.kv is None:
@@ -668,8 +671,9 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
             weight, bw, table = cross_validate(lin, grouped.groups, reg, used, grid,
                                                body_grid or (0.0,), grouped.fitted)
             costs = table[list(body_grid).index(bw) if len(table) > 1 else 0]
-            candidates = ({} if body is None else body_candidates(
-                lin, grouped, reg, used, grid, body_grid, body.item_kinds))
+            candidates = ({} if body is None or not body_candidates_report else
+                          body_candidates(lin, grouped, reg, used, grid, body_grid,
+                                          body.item_kinds))
             checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist(),
                                                 "body_weight": bw, "table": table.tolist(),
                                                 "candidates": candidates})

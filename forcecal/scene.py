@@ -337,6 +337,10 @@ class CalibrationSection:
                                          "item's squared relative error against a calibration "
                                          "point's; \"cv\": chosen with the smoothness weight "
                                          "by cross-validation on calibration data only")
+    body_candidates: bool = key(False, "gradient method with whole-body data: also report how "
+                                "well every set of whole-body kinds predicts the calibration "
+                                "data (each set's cross-validation score, in params.h5; costs "
+                                "about 8x the body weight's cross-validation)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
 

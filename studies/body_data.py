@@ -100,7 +100,7 @@ def run_variant(scene: Scene, body_data: str, folder: Path, reference: Path) -> 
 
     variant = replace(scene, experiments=[*scene.experiments, "body"]
                       if "body" not in scene.experiments else list(scene.experiments),
-                      calibration={"body_data": body_data})
+                      calibration={"body_data": body_data, "body_candidates": True})
     folder.mkdir(parents=True, exist_ok=True)
     target = folder / REFERENCE
     if not target.exists():

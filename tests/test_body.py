@@ -173,7 +173,7 @@ def test_gradient_fit_recovers_the_truth_from_curves_and_whole_body_data(tmp_pat
     scene = replace(_box(tmp_path, n_calibration=4),
                     experiments=["indentation", "relaxation", "body"],
                     calibration={"body_data": "loads+modes+loaded_modes",
-                                 "static_max_evaluations": 40,
+                                 "body_candidates": True, "static_max_evaluations": 40,
                                  "relaxation_max_evaluations": 60},
                     body={"modes": 3, "load_steps": 2})
     problem = build_problem(scene)
