@@ -26,7 +26,7 @@ from typing import Any
 
 from forcecal.errors import ForcecalError
 from forcecal.h5io import read_reference
-from forcecal.scene import EXPERIMENTS, Scene
+from forcecal.scene import DEFAULT_EXPERIMENTS as EXPERIMENTS, Scene
 from pipelines.bench.configs import derived_scene
 from pipelines.bench.items import default_folder
 from pipelines.cache import Cache
