@@ -3,17 +3,22 @@
 The calibrated punch models carry over at the surface but are no better than the closed-form
 baseline as bodies (README, "Why the release misses its goal"): nothing in the surface
 curves constrains the interior or the global modes. The FE stage's experiment ``body``
-(:mod:`reference_fe.body`) gives two kinds of whole-body data the gravity test does not use:
-the natural modes about the rest state (instantaneous and long-term moduli) and the static
-weight along the two directions perpendicular to the test's gravity. This study calibrates
-each scene with each choice of ``calibration.body_data`` (``none``, ``loads``, ``modes``,
-``loads+modes``; gradient method, the body weight chosen by the calibration's own
+(:mod:`reference_fe.body`) gives three kinds of whole-body data the gravity test does not
+use: the natural modes about the rest state (instantaneous and long-term moduli), the static
+weight along the two directions perpendicular to the test's gravity, and the modes about
+each of those loaded states. This study calibrates each scene with some choices of
+``calibration.body_data`` (gradient method, the body weight chosen by the calibration's own
 cross-validation) and records, for every fit:
 
-* **what chooses** (calibration data only): the whole-body errors of every item, fitted or
-  not (an unfitted kind is predicted by the fit that did not see it: the cross-kind
-  check), the cross-validation's own numbers (predicted fold errors of the surface points
-  and of each left-out whole-body item), and the calibration points' surface errors;
+* **what chooses** (calibration data only): the fit of every kind
+  (:data:`EVERY_KIND`) also scores every set of kinds by the cross-validation
+  (``calibration.body_candidates``; at the global fit and at the first round's fit): the
+  point folds and each whole-body item of every kind left out in turn, each predicted by the
+  fit to the rest of that set, so a kind the set does not use is predicted by fits that
+  never saw it. **Rule** (set before the other sets' nonlinear fits ran): the set with the
+  lowest score, summed over the scenes, the first round's (the fitted point's); a set with
+  fewer kinds wins a tie (within 1 %). Checked against each fit's whole-body errors on every
+  item (``whole_body_score``: fitted or predicted) and the calibration points' errors;
 * **what is reported, never used to choose**: the held-out surface points, the gravity
   test's static sag and release (period, first peak, RMS, modes), the baseline's same
   numbers.
@@ -22,11 +27,11 @@ The FE references of the scenes are computed already (``runs/<scene>/reference.h
 ``body`` experiment is computed into a copy (``<folder>/<scene>/reference.h5``) by the FE
 stage's own code (:func:`reference_fe.run.compute_item`), because the FE code changed with
 the new experiment, so the pipeline's reference stage would recompute everything else too;
-its time is recorded against the reference's. The calibrate, gravity and report stages then
-run on that copy (their runners, without the pipeline's cache).
+its time is recorded against the reference's (``fe_cost``). The calibrate, gravity and
+report stages then run on that copy (their runners, without the pipeline's cache).
 
 ``python -m studies.body_data --scene scenes/liver_punch.toml [--scene ...] [--variants
-none,loads,modes,loads+modes] [--folder runs/studies/body_data] [--out
+loads+modes+loaded_modes,none,...] [--folder runs/studies/body_data] [--out
 runs/studies/body_data.json]``; the JSON is written (atomically) after every variant, and a
 variant whose ``report.json`` exists is not rerun.
 """
@@ -92,10 +97,12 @@ def add_body_experiment(scene: Scene, source: Path, out: Path) -> dict[str, floa
             "share": seconds / compute, "load_average": list(os.getloadavg())}
 
 
-def run_variant(scene: Scene, body_data: str, folder: Path, reference: Path) -> dict[str, Any]:
+def run_variant(scene: Scene, body_data: str, folder: Path, reference: Path,
+                volume: bool | str | None = None) -> dict[str, Any]:
     """Calibrate ``scene`` fitting ``body_data`` on ``reference`` (hard-linked into
-    ``folder``), run the gravity test and the report there (the stages' runners); the
-    numbers of :func:`variant_numbers`. A folder whose report exists is read, not rerun."""
+    ``folder``; ``volume``: another ``particle.volume``, None: the scene's), run the gravity
+    test and the report there (the stages' runners); the numbers of :func:`variant_numbers`.
+    A folder whose report exists is read, not rerun."""
     from pipelines.runners.calibrate import run_calibrate
     from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, REPORT, Context
     from pipelines.runners.gravity import run_gravity_stage
@@ -106,7 +113,8 @@ def run_variant(scene: Scene, body_data: str, folder: Path, reference: Path) -> 
                       # every set's cross-validation score from the fit of every kind only:
                       # the other fits' times are the product's
                       calibration={"body_data": body_data,
-                                   "body_candidates": body_data == EVERY_KIND})
+                                   "body_candidates": body_data == EVERY_KIND},
+                      **({} if volume is None else {"particle": {"volume": volume}}))
     folder.mkdir(parents=True, exist_ok=True)
     target = folder / REFERENCE
     if not target.exists():
@@ -131,6 +139,27 @@ def variant_numbers(report: dict[str, Any]) -> dict[str, Any]:
     return {**report_numbers(report), "body": report.get("body") or {}}
 
 
+#: scores within this fraction of the lowest are a tie (the set with fewer kinds wins)
+TIE = 0.01
+
+
+def choose(result: dict[str, Any], round_: str = "round_2") -> dict[str, Any]:
+    """The rule of the module docstring on the scenes' candidate scores (those of the fit of
+    every kind, ``round_`` of its cross-validation): {"scores": summed per set, "chosen"}."""
+    totals: dict[str, float] = {}
+    for entry in result["scenes"].values():
+        cv = entry["rows"].get(EVERY_KIND, {}).get("body", {}).get("cv", {})
+        scores = cv.get(round_) or cv.get("round_1") or {}
+        for name, row in scores.items():
+            totals[name] = totals.get(name, 0.0) + row["score"]
+    if not totals:
+        return {"scores": {}, "chosen": None}
+    lowest = min(totals.values())
+    ties = [n for n, v in totals.items() if v <= (1.0 + TIE) * lowest]
+    chosen = min(ties, key=lambda n: (0 if n == "none" else n.count("+") + 1, totals[n]))
+    return {"scores": totals, "chosen": chosen, "round": round_}
+
+
 def whole_body_score(record: dict[str, Any], variant: str = "calibrated") -> float | None:
     """Mean squared error over every whole-body item of ``variant`` (None if it has no
     response): the whole-body part of the calibration data's error, fitted or predicted."""
@@ -139,9 +168,10 @@ def whole_body_score(record: dict[str, Any], variant: str = "calibrated") -> flo
 
 
 def study(scene_paths: list[str | Path], variants: tuple[str, ...] = VARIANTS,
-          folder: Path = FOLDER, out: Path = OUT) -> dict[str, Any]:
-    """Every scene of ``scene_paths`` with each ``calibration.body_data`` of ``variants``;
-    written to ``out`` after each (module docstring)."""
+          folder: Path = FOLDER, out: Path = OUT, volume: str | None = None) -> dict[str, Any]:
+    """Every scene of ``scene_paths`` with each ``calibration.body_data`` of ``variants``
+    (and ``particle.volume = volume`` if given: rows ``<variant> (<volume>)``); written to
+    ``out`` after each (module docstring)."""
     result: dict[str, Any] = {"variants": list(variants), "scenes": {},
                               "load_average_start": list(os.getloadavg())}
     if out.is_file():  # a rerun keeps the rows it has (the folders' reports are reused)
@@ -162,11 +192,13 @@ def study(scene_paths: list[str | Path], variants: tuple[str, ...] = VARIANTS,
             entry["fe_cost"] = add_body_experiment(scene, source, timing)
             timing.unlink()
         for name in variants:
-            entry["rows"][name] = run_variant(scene, name, base / name.replace("+", "_"),
-                                              reference)
-            entry["rows"][name]["whole_body_score"] = whole_body_score(
-                entry["rows"][name]["body"])
+            row = name if volume is None else f"{name} ({volume})"
+            where = base / (name.replace("+", "_") + ("" if volume is None else f"-{volume}"))
+            entry["rows"][row] = run_variant(scene, name, where, reference,
+                                             {"elastic": True}.get(volume, volume))
+            entry["rows"][row]["whole_body_score"] = whole_body_score(entry["rows"][row]["body"])
             result["load_average_end"] = list(os.getloadavg())
+            result["choice"] = choose(result)
             write_json(out, result)
     return result
 
@@ -180,9 +212,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated calibration.body_data values")
     parser.add_argument("--folder", type=Path, default=FOLDER, help="run folders' parent")
     parser.add_argument("--out", type=Path, default=OUT, help="the results as JSON")
+    parser.add_argument("--volume", choices=("elastic", "viscoelastic"),
+                        help="another particle.volume than the scenes' (rows named so)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    study(args.scene, tuple(args.variants.split(",")), args.folder, args.out)
+    study(args.scene, tuple(args.variants.split(",")), args.folder, args.out, args.volume)
 
 
 if __name__ == "__main__":
