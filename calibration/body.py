@@ -91,6 +91,26 @@ class BodyData:
         model = build_model(reference.problem, reference.material.density, params)
         return cls(model, reference.body, kinds, load_steps)
 
+    def with_kinds(self, kinds: tuple[str, ...]) -> "BodyData":
+        """The same data with ``kinds`` fitted (model and operators shared)."""
+        out = object.__new__(BodyData)
+        out.__dict__.update(self.__dict__)
+        out.kinds = tuple(kinds)
+        out.fitted = self.target.subset(out.kinds)
+        return out
+
+    def carried(self, params: ConnectorParams) -> dict[str, str | None]:
+        """For each fitted kind, None if the model at ``params`` has a response to every item
+        of it (an equilibrium under each load, its modes), else why not."""
+        out = {}
+        for kind in self.kinds:
+            try:
+                self.with_kinds((kind,)).response(params, fitted=True)
+                out[kind] = None
+            except INFEASIBLE as exc:
+                out[kind] = f"{type(exc).__name__}: {exc}"
+        return out
+
     @property
     def items(self) -> list[str]:
         """Every data item (fitted or not), in row order."""

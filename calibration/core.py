@@ -250,14 +250,16 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         if whole_body:
             body_all = BodyData.of(ref, kinds, glob.connector_params(n_conn, shape),
                                    scene.body.load_steps)
-        if kinds:
-            try:  # the fit starts from the global set: it must carry the loads
-                body_all.response(glob.connector_params(n_conn, shape))
-                body = body_all
-            except INFEASIBLE as exc:
-                body_failure = (f"the global fit has no whole-body response ({type(exc).__name__}:"
-                                f" {exc}); the whole-body data were not fitted")
+        if kinds:  # the fit starts from the global set: the kinds it has a response to
+            missing = {k: why for k, why in body_all.carried(
+                glob.connector_params(n_conn, shape)).items() if why is not None}
+            if missing:
+                body_failure = ("the global fit has no response to the whole-body data "
+                                + "; ".join(f"{k} ({why})" for k, why in missing.items())
+                                + "; they join the fit once it carries them")
                 log.warning("%s", body_failure)
+            carried = tuple(k for k in kinds if k not in missing)
+            body = body_all.with_kinds(carried) if carried else None
         if gradient:
             t = time.perf_counter()
             vectors = ({e: getattr(ref, e).force[:n_cal] for e in fitted}
@@ -273,7 +275,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                split_prior=settings.split_prior,
                                force_vectors=vectors,
                                max_iterations=settings.gradient_max_iterations,
-                               body=body, body_weight=(None if settings.body_weight == "cv"
+                               body=body, body_upgrade=body_all if body is not None else None,
+                               body_weight=(None if settings.body_weight == "cv"
                                                        else float(settings.body_weight)),
                                body_candidates_report=settings.body_candidates,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
@@ -312,9 +315,11 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         body_summary = {}
         if whole_body:  # every variant against every whole-body item, fitted or not
             t = time.perf_counter()
+            fitted_data = body_all if body is None else gfit.body_data
             body_summary = body_record(
-                body_all, gfit.body_weight if body is not None else None, connectors,
-                body_failure, gfit.body_candidates if body is not None else None)
+                fitted_data, gfit.body_weight if body is not None else None, connectors,
+                body_failure if fitted_data.kinds != kinds else None,
+                gfit.body_candidates if body is not None else None)
             stage_times["body"] = time.perf_counter() - t
         t = time.perf_counter()
         pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)

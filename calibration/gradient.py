@@ -512,7 +512,8 @@ class GradientResult:
             body_weights: chosen in each round; body_grid: the body weights tried;
             body_cv: per round, the cross-validation's scores (len(body_grid), len(grid));
             body_choice: per round, :func:`body_candidates` (which kinds of whole-body data
-            predict the calibration data best).
+            predict the calibration data best); body_data: the whole-body data of the final
+            fit (more kinds than at the start when the fit came to carry them).
     """
     params: ConnectorParams
     weight: float
@@ -528,6 +529,7 @@ class GradientResult:
     body_grid: tuple[float, ...] = ()
     body_cv: list[np.ndarray] = dataclasses.field(default_factory=list)
     body_choice: list[dict] = dataclasses.field(default_factory=list)
+    body_data: BodyData | None = None
 
     @property
     def body_candidates(self) -> dict:
@@ -601,7 +603,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  split_prior: float = 0.0,
                  force_vectors: dict[str, np.ndarray] | None = None,
                  global_shape: np.ndarray | None = None,
-                 body: BodyData | None = None, body_weight: float | None = None,
+                 body: BodyData | None = None, body_upgrade: BodyData | None = None,
+                 body_weight: float | None = None,
                  body_candidates_report: bool = False,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
@@ -628,6 +631,8 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     must have an equilibrium under its loads at the global fit), each item's squared
     residual times ``body_weight``, or, when that is None, the weight of ``body_grid`` chosen
     with the smoothness weight by the cross-validation (:func:`cross_validate`);
+    ``body_upgrade``: the whole-body data of more kinds than ``body`` (those the global fit
+    has no response to), fitted from the first round whose start has a response to all;
     ``body_candidates_report``: also score every set of whole-body kinds
     (:func:`body_candidates`, in :attr:`GradientResult.body_choice`).
     """
@@ -662,7 +667,12 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     body_weights, body_cv, body_choice = [], [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")
-        start = None
+        start, upgraded = None, False
+        if (k > 0 and body_upgrade is not None and ev.body is not body_upgrade
+                and not any(body_upgrade.carried(coords.params(theta)).values())):
+            log.info("gradient fit, round %d: the fit now has a response to every kind of "
+                     "whole-body data: %s fitted", k + 1, "+".join(body_upgrade.kinds))
+            ev.body, upgraded = body_upgrade, True
         if saved_cv is None:
             t = time.perf_counter()
             grouped = ev.linearise_groups(theta, points, ROWS_KEPT)
@@ -696,7 +706,7 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
         body_weights.append(bw)
         body_cv.append(table)
         body_choice.append(candidates)
-        same = k > 0 and (weight, bw) == (weights[-2], body_weights[-2])
+        same = k > 0 and not upgraded and (weight, bw) == (weights[-2], body_weights[-2])
         if same and state.done:
             break  # the same weights again, and the last round's fit had converged for them
         state = levenberg_marquardt(
@@ -710,4 +720,4 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     return GradientResult(coords.params(state.theta), weights[-1], tuple(grid),
                           np.array(cv_costs), state, ev.jacobians, tuple(weights), coords,
                           theta0, body_weights[-1], tuple(body_weights), body_grid,
-                          body_cv, body_choice)
+                          body_cv, body_choice, ev.body)

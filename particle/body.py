@@ -130,18 +130,25 @@ class BodyTarget:
     @classmethod
     def of(cls, body: BodyResult, kinds: tuple[str, ...]) -> "BodyTarget":
         """The data of ``kinds`` (some of :data:`BODY_KINDS`) of an FE ``body`` result."""
+        every = cls(body.load_accelerations, body.load_displacement, body.frequencies,
+                    body.shapes, body.load_accelerations, body.loaded_frequencies,
+                    body.loaded_shapes)
+        return every.subset(kinds)
+
+    def subset(self, kinds: tuple[str, ...]) -> "BodyTarget":
+        """The data of ``kinds`` of this target (empty arrays for the others)."""
         unknown = sorted(set(kinds) - set(BODY_KINDS))
         if unknown:
             raise ParameterError(f"whole-body data {unknown}: known kinds are {BODY_KINDS}")
-        n = body.shapes.shape[2]
         loads, modes, loaded = (k in kinds for k in BODY_KINDS)
-        return cls(body.load_accelerations if loads else np.zeros((0, 3)),
-                   body.load_displacement if loads else np.zeros((0, n, 3)),
-                   body.frequencies if modes else np.zeros((len(BODY_MODULI), 0)),
-                   body.shapes if modes else np.zeros((len(BODY_MODULI), 0, n, 3)),
-                   body.load_accelerations if loaded else np.zeros((0, 3)),
-                   body.loaded_frequencies if loaded else np.zeros((0, 0)),
-                   body.loaded_shapes if loaded else np.zeros((0, 0, n, 3)))
+        n = self.shapes.shape[2]
+        return BodyTarget(self.accelerations if loads else np.zeros((0, 3)),
+                          self.displacement if loads else np.zeros((0, n, 3)),
+                          self.frequencies if modes else np.zeros((len(BODY_MODULI), 0)),
+                          self.shapes if modes else np.zeros((len(BODY_MODULI), 0, n, 3)),
+                          self.loaded_accelerations if loaded else np.zeros((0, 3)),
+                          self.loaded_frequencies if loaded else np.zeros((0, 0)),
+                          self.loaded_shapes if loaded else np.zeros((0, 0, n, 3)))
 
     @property
     def items(self) -> list[str]:

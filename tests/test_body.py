@@ -194,3 +194,22 @@ def test_gradient_fit_recovers_the_truth_from_curves_and_whole_body_data(tmp_pat
     assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.3
     assert np.median(spring) < 0.03 and spring.max() < 0.2
     assert max(arms.values()) < 0.05, arms
+
+
+def test_the_kinds_a_model_has_no_response_to_are_named():
+    """:meth:`BodyData.carried` tells, kind by kind, whether a model has a response: the soft
+    box under 5 g sideways has its rest modes but no equilibrium under the loads, so neither
+    the loads nor the modes about them (what a fit then starts without, adding them once it
+    carries them)."""
+    model = _box_model(False)
+    body = dataclasses.replace(synthetic_body(model, np.array([0.0, 0.0, -9.81]), 2, 2),
+                               load_acceleration=5 * 9.81)
+    data = BodyData(model, body, BODY_KINDS, 4)
+    soft = dataclasses.replace(model.params, b=-20.0 * model.params.K0)
+    carried = data.carried(soft)
+    assert carried["modes"] is None
+    assert "ConvergenceError" in carried["loads"] and "ConvergenceError" in carried["loaded_modes"]
+    assert not any(data.carried(model.params).values())
+    only = data.with_kinds(("modes",))
+    assert only.kinds == ("modes",) and len(only.residuals(soft)) == 2 * 2 * (1 + 2)
+    assert only.items == data.items  # every item is still reported
