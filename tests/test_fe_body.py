@@ -145,3 +145,34 @@ def test_loaded_modes_follow_the_axial_stress_of_the_load():
     assert np.all((-0.04 < shift["compression"]) & (shift["compression"] < -0.015)), shift
     assert np.all(np.abs(shift["tension"] + shift["compression"])
                   < 0.1 * np.abs(shift["tension"]))
+
+
+def test_the_reference_stage_computes_stores_and_reuses_the_body_experiment(tmp_path):
+    """The tiny scene asking for indentation and body: ``compute_reference`` computes the
+    work item ``body`` (its arrays at the particle vertices), ``reference.h5`` holds /body as
+    documented (read back equal), its time is recorded, and a second run with the same keys
+    reuses it (no work item)."""
+    import json
+
+    from forcecal.h5io import read_reference
+    from forcecal.scene import load_scene, replace
+    from reference_fe.run import compute_reference
+    from tests.conftest import SCENES
+
+    scene = replace(load_scene(SCENES / "tiny.toml"), experiments=["indentation", "body"],
+                    body={"modes": 2, "load_steps": 2})
+    out = tmp_path / "reference.h5"
+    ref = compute_reference(scene, out_path=out, progress=False)
+    back = read_reference(out)
+    assert back.experiments == ("indentation", "body")
+    n = back.problem.mesh.n_vertices
+    assert back.body.shapes.shape == (2, 2, n, 3) and back.body.loaded_shapes.shape == (2, 2, n, 3)
+    np.testing.assert_array_equal(back.body.frequencies, ref.body.frequencies)
+    assert not back.body.shapes[:, :, back.problem.fixed].any()
+    assert back.body.load_acceleration == pytest.approx(9.81)
+    np.testing.assert_allclose(back.body.load_directions, [[1, 0, 0], [0, 1, 0]])
+    assert json.loads(back.meta["timings_s"])["body"] > 0
+    again = compute_reference(scene, out_path=out, progress=False)
+    assert json.loads(again.meta["reused"]) == ["indentation", "body"]
+    assert json.loads(again.meta["items_computed"]) == {}
+    np.testing.assert_array_equal(again.body.loaded_shapes, back.body.loaded_shapes)
