@@ -356,6 +356,9 @@ def cross_validate(lin: Linearisation, groups: np.ndarray, reg: Regulariser,
     ``trained`` (rows,) False for whole-body rows that are predicted but never fitted (the
     kinds a fit does not use: how well a fit predicts data it did not see); None: all.
 
+    One eigen-decomposition per body weight: each group's fit comes from the whole fit by the
+    block-inverse identity (the comment below; tested against refits by brute force).
+
     Returns (smoothness weight, body weight, scores (len(body_grid), len(grid))).
     """
     groups = np.asarray(groups)
@@ -368,26 +371,37 @@ def cross_validate(lin: Linearisation, groups: np.ndarray, reg: Regulariser,
     left_out = [(np.isin(groups, fold) & ~body, 1.0) for fold in folds]
     left_out += [(np.isin(np.arange(len(groups)), rows), n_points / len(items))
                  for rows in items]
-    d0 = lin.theta - reg.theta0
-    Jd0 = lin.J @ d0
+    # the fits are ridge regressions in delta = theta + d - theta0 (the prior's centre):
+    # minimise |S (y0 + J delta)|^2_T + alpha delta^T A1 delta, y0 = r - J (theta - theta0),
+    # S the rows' weights; solved in the rows' space with K = S C S = U diag(e) U^T over the
+    # rows that train at this body weight, and each left-out group's fit from the whole fit's
+    # G = (alpha I + K)^-1 by the block-inverse identity (no refit per group):
+    # z = (G y)_T' - G_T'F G_FF^-1 (G y)_F solves the system without F, and the group's rows
+    # are predicted unweighted, y0_F - C_FT' S z (also rows that never train)
+    y0 = lin.r - lin.J @ (lin.theta - reg.theta0)
     costs = np.zeros((len(body_grid), len(grid)))
     for b, body_weight in enumerate(body_grid):
         scale = np.where(body, np.sqrt(body_weight), 1.0) * trained
-        for test, share in left_out:
-            train = ~test
-            s = scale[train]
-            # everything in the rows' space: with C_TT = U diag(e) U^T, (alpha I + C_TT)^-1
-            # costs nothing per weight, and the prediction r_F + J_F d needs only C_FT
-            C_TT = s[:, None] * lin.C[np.ix_(train, train)] * s[None, :]
-            e, U = np.linalg.eigh(C_TT)
-            C_FT = lin.C[np.ix_(test, train)] * s[None, :]
-            r_T, r_F = s * lin.r[train], lin.r[test]
-            for g, weight in enumerate(grid):
-                alpha = weight  # no damping
-                rhs = C_TT @ r_T + weight * s * Jd0[train]
-                X = U @ ((U.T @ rhs) / (alpha + e))
-                Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
-                costs[b, g] += share * float(np.sum((r_F + Jd) ** 2))
+        live = np.flatnonzero(scale > 0)
+        s = scale[live]
+        e, U = np.linalg.eigh(s[:, None] * lin.C[np.ix_(live, live)] * s[None, :])
+        C_S = lin.C[:, live] * s[None, :]  # C_{all, T} S
+        y = s * y0[live]
+        position = np.full(len(groups), -1)
+        position[live] = np.arange(len(live))
+        held = [(test, share, position[test & (scale > 0)]) for test, share in left_out]
+        for g, alpha in enumerate(grid):  # alpha: the smoothness weight (no damping)
+            inverse = 1.0 / (alpha + e)
+            Gy = U @ (inverse * (U.T @ y))
+            for test, share, f in held:
+                z = Gy
+                if len(f):  # G_FF and G_T'F v from U's rows: no (n, n) product per group
+                    U_f = U[f]
+                    v = cho_solve(cho_factor((U_f * inverse[None, :]) @ U_f.T), Gy[f])
+                    z = Gy - U @ (inverse * (U_f.T @ v))
+                    z[f] = 0.0
+                predicted = y0[test] - C_S[test] @ z
+                costs[b, g] += share * float(predicted @ predicted)
     b, best = np.unravel_index(int(np.argmin(costs)), costs.shape)
     if best in (0, len(grid) - 1):
         log.warning("cross-validation picked the smoothness weight %g at the end of the grid "

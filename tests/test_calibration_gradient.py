@@ -644,6 +644,43 @@ def test_cross_validation_picks_a_finite_weight(box):
     assert costs[0] > 2.0 * costs[best] and costs[-1] > 2.0 * costs[best]
 
 
+def test_cross_validation_scores_are_refits_without_each_group(box):
+    """The scores against brute force: for each group left out (a fold of points, a
+    whole-body item, one never trained), the regularised Gauss-Newton step fitted to the
+    other rows (body rows weighted, the prior centred at theta0) by a dense solve of its
+    normal equations, its prediction of the group's rows squared (body items scaled by
+    points / items). Equal to 1e-8 (the block-inverse identity is exact)."""
+    _, J, r, rows, reg = _linear_case(build_problem(box))
+    rng = np.random.default_rng(7)
+    n_points = 4  # of the 12: the dense solves stay small
+    J, r = J[:n_points * rows], r[:n_points * rows]
+    J_body = 0.03 * rng.standard_normal((3 * 4, J.shape[1]))
+    r_body = 0.05 * rng.standard_normal(len(J_body))
+    groups = np.r_[np.repeat(np.arange(n_points), rows), -1 - np.repeat(np.arange(3), 4)]
+    trained = np.r_[np.ones(len(r), bool), np.repeat([True, True, False], 4)]
+    theta = reg.theta0 + 0.01 * rng.standard_normal(len(reg.theta0))
+    lin = Linearisation.of(theta, np.r_[r, r_body], np.vstack([J, J_body]), reg)
+    folds = folds_of(n_points, 2)
+    grid, body_grid = (0.1, 3.0), (0.0, 2.0)
+    _, _, costs = cross_validate(lin, groups, reg, folds, grid, body_grid, trained)
+    A1 = reg.metric.toarray()
+    body = groups < 0
+    tests = [(np.isin(groups, f) & ~body, 1.0) for f in folds]
+    tests += [(groups == -1 - k, n_points / 3) for k in range(3)]
+    for b, w in enumerate(body_grid):
+        for g, alpha in enumerate(grid):
+            total = 0.0
+            for test, share in tests:
+                weight = np.where(body, w, 1.0) * trained * ~test  # rows that train
+                Jw = lin.J * np.sqrt(weight)[:, None]
+                d = np.linalg.solve(Jw.T @ Jw + alpha * A1,
+                                    -(Jw.T @ (np.sqrt(weight) * lin.r)
+                                      + alpha * A1 @ (theta - reg.theta0)))
+                predicted = lin.r[test] + lin.J[test] @ d
+                total += share * float(predicted @ predicted)
+            assert costs[b, g] == pytest.approx(total, rel=1e-8)
+
+
 @pytest.mark.parametrize("consistent", [True, False], ids=["same truth", "noise"])
 def test_cross_validation_weighs_whole_body_data_that_predict_the_rest(box, consistent):
     """The linear case plus 4 whole-body items of 8 rows, each a smooth global functional of
