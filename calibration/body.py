@@ -31,6 +31,7 @@ import scipy.sparse as sp
 
 from calibration.gradient_solver import compress
 from calibration.optimize import INFEASIBLE
+from forcecal.errors import ConvergenceError
 from forcecal.h5io import Reference
 from forcecal.h5io import BodyResult
 from particle.body import BODY_KINDS, BodyResponse, BodyTarget, RestOperators, Rows, body_response
@@ -131,19 +132,44 @@ class BodyData:
         """(R,) the fitted items' unweighted residuals at ``params`` (rows uncompressed)."""
         return self.response(params, fitted=True).residual
 
+    def responses(self, params: ConnectorParams) -> tuple[dict[str, BodyResponse],
+                                                          dict[str, str]]:
+        """Kind by kind, the model's response at ``params`` to every item of each kind that
+        has one, and why the others have none ({kind: reason})."""
+        model = self.model.with_params(params)
+        out, failures = {}, {}
+        for kind in dict.fromkeys(self.item_kinds):
+            try:
+                out[kind] = body_response(model, self.target.subset((kind,)), self.load_steps,
+                                          self.ops)
+            except INFEASIBLE as exc:
+                failures[kind] = f"{type(exc).__name__}: {exc}"
+        return out, failures
+
     def rows(self, params: ConnectorParams, chain: sp.csr_matrix, keep: int) -> BodyRows:
-        """The compressed coordinate rows of every item at ``params``; ``chain`` (P, size) the
-        fit's chain matrix from the parameter layout to its coordinates
-        (:meth:`calibration.gradient.Coordinates.chain_matrix`)."""
-        response = self.response(params)
-        residual, jacobian, item, left = [], [], [], 0.0
+        """The compressed coordinate rows at ``params`` of every item of the fitted kinds and
+        of the other kinds the model has a response to (those it has none to give no rows:
+        the cross-validation cannot predict them); ``chain`` (P, size) the fit's chain matrix
+        from the parameter layout to its coordinates
+        (:meth:`calibration.gradient.Coordinates.chain_matrix`).
+
+        Raises:
+            ConvergenceError: no response to a fitted kind.
+        """
+        responses, failures = self.responses(params)
+        for kind in self.kinds:
+            if kind in failures:
+                raise ConvergenceError(f"whole-body data {kind}: {failures[kind]}")
         kinds = self.item_kinds
-        for k, part in enumerate(response.parts):
-            r, J, out = compress_rows(part, chain, keep)
-            residual.append(r)
-            jacobian.append(J)
-            item.append(np.full(len(r), k))
-            left += out if kinds[k] in self.kinds else 0.0
+        residual, jacobian, item, left = [], [], [], 0.0
+        for kind, response in responses.items():
+            first = kinds.index(kind)
+            for k, part in enumerate(response.parts):
+                r, J, out = compress_rows(part, chain, keep)
+                residual.append(r)
+                jacobian.append(J)
+                item.append(np.full(len(r), first + k))
+                left += out if kind in self.kinds else 0.0
         item = np.concatenate(item)
         return BodyRows(np.concatenate(residual), np.vstack(jacobian), item, left,
                         np.isin(np.array(kinds)[item], self.kinds))
@@ -175,6 +201,31 @@ def compress_rows(part: Rows, chain: sp.csr_matrix, keep: int
     return r, np.asarray((forces.T @ fields.T).T), left
 
 
+def variant_summary(data: BodyData, params: ConnectorParams) -> dict:
+    """One parameter set's whole-body errors (:meth:`particle.body.BodyResponse.summary`) on
+    every item it has a response to, ``item_errors`` in :attr:`BodyData.items` order (NaN
+    where it has none), and ``failures`` {kind: reason} with ``failure`` (the first reason)
+    for the kinds it has none to."""
+    responses, failures = data.responses(params)
+    errors = np.full(len(data.items), np.nan)
+    kinds = data.item_kinds
+    out: dict = {}
+    load_errors: list[float] = []
+    for kind, response in responses.items():
+        first = kinds.index(kind)
+        summary = response.summary()
+        errors[first:first + len(summary["item_errors"])] = summary["item_errors"]
+        load_errors += summary["load_errors"]
+        out.update({k: v for k, v in summary.items()
+                    if k not in ("items", "item_errors", "load_errors")})
+    out.update({"item_errors": [None if np.isnan(e) else float(e) for e in errors],
+                "load_errors": load_errors})
+    if failures:
+        out["failures"] = failures
+        out["failure"] = next(iter(failures.values()))
+    return out
+
+
 def body_record(data: BodyData, weight: float | None, connectors: dict[str, ConnectorParams],
                 failure: str | None = None, cv: dict | None = None) -> dict:
     """The ``body`` record of ``params.h5``.
@@ -187,12 +238,7 @@ def body_record(data: BodyData, weight: float | None, connectors: dict[str, Conn
     item (fitted or not), or ``{"failure": reason}``. ``cv``: the cross-validation's
     candidate scores (:func:`candidate_scores`), when computed.
     """
-    variants = {}
-    for name, params in connectors.items():
-        try:
-            variants[name] = data.response(params).summary()
-        except INFEASIBLE as exc:
-            variants[name] = {"failure": f"{type(exc).__name__}: {exc}"}
+    variants = {name: variant_summary(data, params) for name, params in connectors.items()}
     status = "fitted" if data.kinds and weight else "not fitted"
     if status == "fitted":
         try:

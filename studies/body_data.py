@@ -164,7 +164,9 @@ def whole_body_score(record: dict[str, Any], variant: str = "calibrated") -> flo
     """Mean squared error over every whole-body item of ``variant`` (None if it has no
     response): the whole-body part of the calibration data's error, fitted or predicted."""
     errors = record.get("variants", {}).get(variant, {}).get("item_errors")
-    return None if errors is None else float(np.mean(np.square(errors)))
+    if errors is None or any(e is None for e in errors):
+        return None
+    return float(np.mean(np.square(errors)))
 
 
 def study(scene_paths: list[str | Path], variants: tuple[str, ...] = VARIANTS,
