@@ -28,13 +28,16 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 STAGE_ARGS := --scene $(SCENE) $(if $(OUT),--out $(OUT))
 
-.PHONY: help setup test demo reference calibrate gravity report bench bench-quick clean
+.PHONY: help setup test demo validate reference calibrate gravity report bench bench-full bench-quick corpus clean
 
 help:
 	@echo "make demo        # install what is missing, then mesh -> FE reference -> calibration -> gravity -> report"
+	@echo "make validate    # demo, exit code 3 when the verdict fails (CI gate; SCENE=...)"
 	@echo "make test        # install what is missing, then run the test suite"
 	@echo "make reference | calibrate | gravity | report   # single stages (SCENE=... OUT=...)"
-	@echo "make bench       # run time vs error benchmarks -> runs/bench/ (bench-quick: a few minutes)"
+	@echo "make bench       # headline benchmarks, about 11 min cold (estimated) -> runs/bench-headline/ (bench-quick: a few minutes)"
+	@echo "make bench-full  # every benchmark at full size, 1.5-2 h cold -> runs/bench/ (the committed bench.json)"
+	@echo "make corpus      # every scenes/corpus/*.toml through the pipeline -> runs/corpus/corpus.json, docs/corpus.md"
 
 setup: $(STAMP)
 
@@ -67,6 +70,10 @@ test: setup
 demo: setup
 	$(PY) -m pipelines demo $(STAGE_ARGS)
 
+# the demo as a CI gate: exit code 3 when report.json's verdict fails, 0 when it passes
+validate: setup
+	$(PY) -m pipelines demo --require-pass $(STAGE_ARGS)
+
 reference: setup
 	$(PY) -m pipelines reference $(STAGE_ARGS)
 
@@ -79,11 +86,19 @@ gravity: setup
 report: setup
 	$(PY) -m pipelines report $(STAGE_ARGS)
 
+# make bench: the headline items (kernel, haptic, stability, run time vs error, FE convergence,
+# scale), some reduced; make bench-full: every item at full size (what runs/bench/ holds)
 bench: setup
-	$(PY) -m pipelines bench --out runs/bench
+	$(PY) -m pipelines bench --out runs/bench-headline
+
+bench-full: setup
+	$(PY) -m pipelines bench --full --out runs/bench
 
 bench-quick: setup
 	$(PY) -m pipelines bench --quick --out runs/bench-quick
+
+corpus: setup
+	$(PY) -m pipelines corpus
 
 clean:
 	rm -rf $(VENV) .cache build *.egg-info

@@ -13,7 +13,9 @@ resumes where it stopped and ends with the same result:
    does (:mod:`calibration.gravity_check`; only completion is used, never the FE's sag);
 7. validation: the Van Gelder baseline (:mod:`calibration.baseline`), the
    global-only and the calibrated (global + local, or gradient) models are evaluated at every
-   test point; held-out points, never used by any fit, give the honest accuracy.
+   test point; held-out points, never used by any fit, give the honest accuracy. A model
+   that does not complete a point's curve is a result, not a crash: its failure is recorded
+   (:mod:`calibration.validation`; NaN rows in ``params.h5``) and the others go on.
 
 Only the experiments of the scene's ``experiments`` list are fitted and
 evaluated: without ``relaxation`` the relaxation phases (3, 5) are skipped, the
@@ -45,17 +47,19 @@ from calibration.global_fit import (GAUSS_NEWTON, NELDER_MEAD, fe_initial_slopes
                                    fit_static, initial_guess)
 from calibration.local import LocalParametrisation, Sweep, run_local_phase
 from calibration.metrics import relative_rms_error
-from calibration.network import linear_indentation
-from calibration.optimize import INFEASIBLE, Fit
+from calibration.optimize import Fit
 from calibration.parametrisation import (RELAXATION_DIM, STATIC_DIM, GlobalParams, StrainRange,
                                          build_rings, connector_floor, global_shape)
 from calibration.pool import Backend, Experiments, Pool, particle_backend
+from calibration.reach import experiment_reach
 from calibration.provenance import fit_inputs, fit_settings, versions
 from calibration.results import (EXPERIMENTS, CalibrationResult, VariantCurves, write_params)
+from calibration.validation import per_completed_point, validate_points
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.h5io import (Reference, check_reference_settings, read_reference, reference_digest,
                           section_differences)
 from forcecal.indenter import indenter_footprints
+from forcecal.fe_failures import apply_fe_failures
 from forcecal.problem import build_problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, CalibrationSection, Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -82,6 +86,8 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
         ref.require(e, reference_path)
     check_reference_settings(ref, scene, reference_path)  # [fe], [gravity], indenter
     rp = ref.problem
+    # test points whose FE runs failed were replaced or dropped (recorded in the reference)
+    problem = apply_fe_failures(problem, ref.fe_failures)
     for what in ("fixed", "calibration", "held_out"):
         if not np.array_equal(np.sort(getattr(rp, what)), np.sort(getattr(problem, what))):
             raise DataFileError(f"{reference_path}: its {what} nodes differ from the scene's; "
@@ -108,17 +114,6 @@ def load_checked_reference(scene: Scene, reference_path: str | Path) -> Referenc
                                 f"{rp.test_points[bad].tolist()} never pushes back (<= 0 N); "
                                 "is the force signed along the inward normal?")
     return ref
-
-
-def strain_range(strain_per_depth: np.ndarray, depth: float, margin: float) -> StrainRange:
-    """Strains of the experiments (linear network at the deepest indentation) times ``margin``."""
-    low = float(strain_per_depth.min()) * depth * margin
-    high = float(strain_per_depth.max()) * depth * margin
-    if not (-1.0 < low < 0.0 < high):
-        raise ParameterError(f"indenting {depth} m compresses connectors by {-low:.3g} "
-                             f"(linear estimate x margin {margin}); the depth is too large for "
-                             "the mesh (connectors would collapse)")
-    return StrainRange(low, high)
 
 
 def checkpoint_path(out_path: Path) -> Path:
@@ -170,11 +165,9 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     # the global set's spread over the connectors (None: uniform); its unit network gives the
     # initial guess and the experiments' strain range
     shape = global_shape(mesh, settings.global_shape)
-    linear = linear_indentation(mesh, problem.fixed, problem.test_points, problem.normals,
-                                stiffness=shape, footprints=footprints)
-    depth = float(max(ref.indentation.displacement.max(),
-                      relax_depths.max() if relax else 0.0))
-    strain = strain_range(linear.strain, depth, settings.strain_margin)
+    # the scene's depths are the reference's (load_checked_reference compared the schedules)
+    reach = experiment_reach(scene, problem, shape, footprints)
+    linear, strain = reach.linear, reach.strain
     experiments = Experiments(problem, material.density, ref.indentation.displacement,
                               times, relax_depths, strain.bounds, footprints)
     fe_slope = fe_initial_slopes(experiments.depths, ref_static[:n_cal])
@@ -241,7 +234,8 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                      np.zeros((n_cal, STATIC_DIM)),
                                      np.zeros((n_cal, RELAXATION_DIM)),
                                      local_validity(validity,
-                                                    glob.connector_params(n_conn, shape)),
+                                                    glob.connector_params(n_conn, shape),
+                                                    settings.stiffness_ceiling),
                                      shape)
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         gradient_summary: dict = {}
@@ -323,15 +317,19 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             stage_times["body"] = time.perf_counter() - t
         t = time.perf_counter()
         pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)
-        variants = {}
-        all_points = np.arange(len(problem.test_points))
+        variants, failures = {}, []
         for variant, params in connectors.items():
-            evaluated = {e: pool.curves_and_forces(e, params, all_points) for e in fitted}
-            curves = {e: c for e, (c, _) in evaluated.items()}
-            forces = {e: f for e, (_, f) in evaluated.items()}
-            errors = {e: relative_rms_error(curves[e], ref_curves[e]) for e in fitted}
-            variants[variant] = VariantCurves(curves, errors, None if any(
-                f is None for f in forces.values()) else forces)
+            # a point the model fails is a result (NaN rows), not a crash
+            done = {e: validate_points(pool, problem, variant, params, e) for e in fitted}
+            failures += [f for e in fitted for f in done[e].failures]
+            errors = {e: per_completed_point(relative_rms_error, done[e].curves, ref_curves[e])
+                      for e in fitted}
+
+            def every(name: str) -> dict[str, np.ndarray] | None:
+                values = {e: getattr(done[e], name) for e in fitted}
+                return None if any(v is None for v in values.values()) else values
+            variants[variant] = VariantCurves({e: done[e].curves for e in fitted}, errors,
+                                              every("forces"), every("strains"))
         evaluations["point_curves"] = pool.evaluations()
         stage_times["validation"] = time.perf_counter() - t
 
@@ -354,7 +352,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         reference_fingerprint=reference_digest(reference_path, fitted), experiments=fitted,
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
         wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions(),
-        gradient=gradient_summary, body=body_summary)
+        gradient=gradient_summary, body=body_summary, failures=tuple(failures))
     write_params(out_path, result)
     checkpoint.remove()
     for w in warnings:
@@ -421,13 +419,27 @@ def _count(points: list[int], n: int) -> str:
     return f"{len(points)}/{n}{named}"
 
 
-def local_validity(validity: Validity, glob: ConnectorParams
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What local tuning keeps on the gravity release range: every spring's tangent above the
-    floor, or above the global spring's own minimum there where that one is lower (local
-    tuning starts from the global fit and cannot make it valid; it must not make it worse)."""
-    global_min, _ = glob.extreme_tangent_stiffness((validity.low, validity.high))
-    return validity.low, validity.high, np.minimum(validity.floor, global_min)
+def local_validity(validity: Validity, glob: ConnectorParams, ceiling: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What local tuning keeps on each connector's validity range (the experiments' strains
+    and the gravity release range): (low, high, floor, ceiling), each (E,). Every spring's
+    tangent stays above the floor, or above the global spring's own minimum there where that
+    one is lower (local tuning starts from the global fit and cannot make it valid; it must
+    not make it worse), and at most ``ceiling`` (``calibration.stiffness_ceiling``) times the
+    global spring's largest tangent there.
+
+    Why a ceiling: a point's curve constrains its ring's spring law only on the few strains
+    the ring reaches, and where the model's curve bends away from the FE's (a short connector
+    of the ring nearly collapsing) the fit trades a little cost for ever steeper quadratics:
+    on a 181-vertex liver one ring reached b = 4.2e6 N/m (the global fit: 610), a tangent
+    6,250 times the global spring's largest, and the model needed 166 substeps per 1 ms.
+    Bounded so, no connector outgrows the stiffest global spring by more than the factor,
+    so the rigorous stable step (a bound linear in the connectors' tangents over the masses)
+    shortens by at most its square root against the global model's."""
+    bounds = (validity.low, validity.high)
+    global_min, global_max = glob.extreme_tangent_stiffness(bounds)
+    return (validity.low, validity.high, np.minimum(validity.floor, global_min),
+            ceiling * global_max)
 
 
 def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,

@@ -4,16 +4,17 @@ be used").
 The gravity test (static sag, dynamic release from rest) is the honest measure of a
 calibration: no fit sees its FE results. But a model whose fitted springs cannot carry the
 organ's weight (a limit point of the static equilibrium below 1 g) or leave, in the release,
-the strain range its explicit step was verified for has no gravity result at all. The fits
+the strain range its explicit step was verified for fails the gravity checks. The fits
 keep every spring stiff on the gravity release range of the FE sag (``Validity``), which is
 necessary but not sufficient: springs that are each above their floor can still form a network
 that buckles under its weight (measured: the paper's local tuning on the punch scene without
 the volume term, Newton's last equilibrium at 0.914 g).
 
 So after fitting, the calibrated model runs the particle side of the scene's gravity test
-(:func:`particle.experiments.gravity_test`, with the scene's load steps, step rule and the FE's
-record times) and only its *completion* is used: its displacements are not compared with the
-FE's here, which only the gravity stage does. If it does not complete, the fit is pulled back
+(:func:`gravity_outcome`, the very function the gravity stage runs, with the scene's load
+steps, step rule and the FE's record times: one check, so the two cannot disagree) and only
+its *completion* is used: its displacements are not compared with the FE's here, which only
+the gravity stage does. If it does not complete, the fit is pulled back
 towards the global fit, in the fit's own coordinates (the paper's ring offsets, the gradient
 method's log/feasible coordinates), by the factors :data:`PULL_BACK` until one completes; the
 global fit itself is the last candidate. The factor kept and every rejected candidate's failure
@@ -29,10 +30,11 @@ from typing import Callable
 
 import numpy as np
 
-from forcecal.errors import ConvergenceError, ParameterError, StabilityError
+from calibration.validation import MODEL_FAILURES, ValidationFailure, failure_from
+from forcecal.errors import TimeStepError
 from forcecal.problem import Problem
 from forcecal.scene import Scene
-from particle.experiments import gravity_test
+from particle.experiments import GravityTest, gravity_release, gravity_static_test
 from particle.model import build_model
 from particle.params import ConnectorParams
 
@@ -40,8 +42,6 @@ log = logging.getLogger(__name__)
 
 #: fractions of the fit (over the global fit) tried after the fit itself fails the gravity test
 PULL_BACK = (0.5, 0.25, 0.125, 0.0625, 0.0)
-#: what a gravity run that does not complete raises (each names the load, step or connector)
-GRAVITY_FAILURES = (ConvergenceError, StabilityError, ParameterError)
 
 
 @dataclass(frozen=True)
@@ -65,26 +65,54 @@ class GravityCheck:
         first = self.failures[0][1]
         if self.scale is None:
             return (f"the calibrated model does not complete the scene's gravity test ({first}), "
-                    "and neither does the global fit; the gravity stage will fail")
+                    "and neither does the global fit; the gravity stage records the failure "
+                    "(the verdict's gravity checks fail)")
         kept = "the global fit" if self.scale == 0.0 else f"{self.scale:g} x the fit"
         return (f"the calibrated model does not complete the scene's gravity test ({first}); "
                 f"pulled back towards the global fit to {kept} over the global fit, the "
                 f"largest of {[1.0, *PULL_BACK]} that completes")
 
 
+def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
+                    times: np.ndarray | None, strain_range: tuple[float, float], name: str
+                    ) -> tuple[GravityTest | None, ValidationFailure | None]:
+    """The particle side of ``scene``'s gravity test for one parameter set, as both the
+    gravity stage and this check run it: the static sag under ``scene.gravity.acceleration``
+    (:func:`particle.experiments.gravity_static_test`, ``scene.gravity.static_load_steps``)
+    and, with ``times`` [s], the release sampled at them
+    (:func:`particle.experiments.gravity_release`); ``strain_range`` is the calibration's,
+    ``name`` the model's (``calibrated``, ``baseline``).
+
+    Returns (the test, None) when it completes; a model that fails it is a result: (None,
+    its failure) if the static sag fails, (the static sag alone, its failure) if the
+    release does. An explicit ``particle.dt`` above the model's stability limit is the
+    scene's setting, not the model's failure: refused
+    (:class:`~forcecal.errors.TimeStepError`).
+    """
+    model = build_model(problem, scene.material.density, params)
+    gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
+    settings = dict(particle=scene.particle, strain_range=strain_range, name=name)
+    try:
+        static = gravity_static_test(model, gravity, load_steps=scene.gravity.static_load_steps,
+                                     **settings)
+    except TimeStepError:  # the scene's particle.dt: a setting to change, refused
+        raise
+    except MODEL_FAILURES as exc:
+        return None, failure_from(exc, name, "gravity_static")
+    if times is None:
+        return static, None
+    try:
+        return gravity_release(model, gravity, times, static, **settings), None
+    except MODEL_FAILURES as exc:
+        return static, failure_from(exc, name, "gravity_dynamic")
+
+
 def gravity_failure(scene: Scene, problem: Problem, params: ConnectorParams,
                     times: np.ndarray | None, strain_range: tuple[float, float]) -> str | None:
-    """Why ``params`` do not complete ``scene``'s gravity test (None if they do): the static
-    sag under ``scene.gravity.acceleration`` and, with ``times`` (s), the release sampled at
-    them, run as the gravity stage runs them (``strain_range``: the calibration's)."""
-    model = build_model(problem, scene.material.density, params)
-    try:
-        gravity_test(model, np.asarray(scene.gravity.acceleration, dtype=np.float64), times,
-                     load_steps=scene.gravity.static_load_steps, particle=scene.particle,
-                     strain_range=strain_range, name="calibrated")
-    except GRAVITY_FAILURES as exc:
-        return f"{type(exc).__name__}: {exc}"
-    return None
+    """Why ``params`` do not complete ``scene``'s gravity test (None if they do): the
+    :func:`gravity_outcome` of the calibrated model, the gravity stage's own run."""
+    _, failure = gravity_outcome(scene, problem, params, times, strain_range, "calibrated")
+    return None if failure is None else failure.reason
 
 
 def carry_gravity(params_at: Callable[[float], ConnectorParams],

@@ -93,9 +93,10 @@ class LocalParametrisation:
             (``calibration.stiffness_floor`` x the global K0, times ``shape`` if given: (E,)).
         z_static: (Pc, 3) static offsets.
         z_relaxation: (Pc, 4) relaxation offsets.
-        validity: None, or per connector (low (E,), high (E,), floor (E,)): a strain range
-            beyond the experiments' (the gravity release range of the FE sag) on which every
-            spring's tangent must stay >= its floor [N/m] (:func:`calibration.core`).
+        validity: None, or per connector (low (E,), high (E,), floor (E,), ceiling (E,)): a
+            strain range beyond the experiments' (the gravity release range of the FE sag) on
+            which every spring's tangent must stay within [floor, ceiling] [N/m]
+            (:func:`calibration.core.local_validity`).
         shape: the global fit's (E,) per-connector factors
             (:func:`calibration.parametrisation.global_shape`), None if uniform.
     """
@@ -105,14 +106,15 @@ class LocalParametrisation:
     floor: float | np.ndarray
     z_static: np.ndarray
     z_relaxation: np.ndarray
-    validity: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    validity: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
     shape: np.ndarray | None = None
 
     def check(self, params: ConnectorParams) -> None:
         """Raise :class:`ParameterError` if ``params`` leave the searched region."""
         check_feasible(params, self.strain, self.floor)
         if self.validity is not None:
-            check_spring_range(params, *self.validity, "on its gravity release range")
+            low, high, floor, ceiling = self.validity
+            check_spring_range(params, low, high, floor, "on its validity range", ceiling)
 
     def offsets(self, phase: str) -> np.ndarray:
         return self.z_static if phase == "static" else self.z_relaxation

@@ -112,8 +112,11 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
 
     ``fatol`` is relative to ``scale`` [N^2] (default: the cost at ``x0``).
 
+    An infeasible ``x0`` is replaced by the best feasible point of :func:`feasible_start`
+    (a warning says so).
+
     Raises:
-        ConvergenceError: the starting point itself is infeasible.
+        ConvergenceError: no feasible point to start from (:func:`feasible_start`).
     """
     x0 = np.asarray(x0, dtype=float)
     evaluations: list[float] = []
@@ -136,9 +139,11 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
         return c
 
     start, reason = evaluate(x0)
+    warnings = []
     if not math.isfinite(start):
-        raise ConvergenceError(f"{name}: the starting point {x0.tolist()} is infeasible: "
-                               f"{reason or 'cost is not finite'}")
+        x0, start, moved = feasible_start(evaluate, x0, step, name, reason)
+        warnings.append(moved)
+        log.warning(moved)
     record(x0, start)
     if start == 0.0:  # nothing to fit (synthetic data that the start reproduces exactly)
         return Fit(x0, 0.0, 0.0, True, History(np.array([0.0]), np.zeros(0), np.zeros(0, int)))
@@ -163,7 +168,6 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
     res = minimize(objective, x0, method="Nelder-Mead", callback=callback,
                    options={"initial_simplex": simplex, "xatol": xatol, "fatol": fatol,
                             "maxfev": max_evaluations, "maxiter": 100 * max_evaluations})
-    warnings = []
     if res.status != 0:
         warnings.append(f"{name}: stopped at its budget of {max_evaluations} evaluations without "
                         f"meeting xatol={xatol:g} and fatol={fatol:g} (cost {best[0]:.4g}, "
@@ -177,6 +181,32 @@ def nelder_mead(cost: Callable[[np.ndarray], float], x0: np.ndarray, step: np.nd
                       np.asarray([n for _, n in iterations], dtype=np.int64))
     return Fit(np.asarray(best[1], dtype=float), best[0], start, res.status == 0, history,
                tuple(warnings))
+
+
+def feasible_start(evaluate: Callable[[np.ndarray], tuple[float, str]], x0: np.ndarray,
+                   step: np.ndarray, name: str, reason: str) -> tuple[np.ndarray, float, str]:
+    """Where a fit whose start ``x0`` is infeasible (``reason``) starts instead: the point of
+    lowest finite cost among ``x0 +- f step_i`` (each coordinate alone, ``f`` = 1, 2, 4: the
+    initial simplex's vertices and their mirror images, then further out), the nearest
+    ``f`` first. ``evaluate(x) -> (cost, reason)`` (+inf where infeasible). Returns (the
+    point, its cost, a warning naming both starts).
+
+    Raises:
+        ConvergenceError: every candidate is infeasible too (naming ``x0``'s reason).
+    """
+    for factor in (1.0, 2.0, 4.0):
+        candidates = [x0 + sign * factor * step[i] * np.eye(len(x0))[i]
+                      for i in range(len(x0)) for sign in (1.0, -1.0)]
+        costs = [evaluate(x)[0] for x in candidates]
+        best = int(np.argmin(costs))
+        if math.isfinite(costs[best]):
+            x = candidates[best]
+            return x, costs[best], (f"{name}: the starting point {x0.tolist()} is infeasible "
+                                    f"({reason or 'cost is not finite'}); started from the "
+                                    f"feasible point {np.round(x, 6).tolist()} next to it")
+    raise ConvergenceError(f"{name}: the starting point {x0.tolist()} is infeasible: "
+                           f"{reason or 'cost is not finite'} (and so is every point up to 4 "
+                           "initial steps from it along each coordinate)")
 
 
 def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,

@@ -63,6 +63,9 @@ minima of 0.02 % and 0.5 % of K0 and negative tangents, failed so; with the
 floor both sag and release). The FE material keeps the global spring's tangent
 above 93 % of K0 on the default liver's range and the local factors only
 compensate the discretisation, so a 10-fold softening (floor 0.1) is generous.
+Local tuning also keeps every spring's tangent below ``calibration.stiffness_ceiling``
+times the global spring's largest on the connector's range (one decade above, as the floor
+is one below; :func:`calibration.core.local_validity` says why).
 """
 
 from __future__ import annotations
@@ -239,11 +242,15 @@ class Rings:
 
     Attributes:
         members: tuple of Pc (R_j,) int64 arrays, each point's ring (:func:`build_rings`).
-        weights: (E, Pc) CSR float64, ``1/n_c`` where connector c is in ring j and
-            belongs to ``n_c`` rings (rows of connectors in no ring are empty).
+        weights: (E, Pc) CSR float64, ``1/n_c`` where connector c is in ring ``order[k]``
+            (column k) and belongs to ``n_c`` rings (rows of connectors in no ring are empty).
+        order: (Pc,) int64, the points by increasing vertex id: a connector's mean over its
+            rings is summed in that order, so it does not depend on the points' order (a sum
+            of three or more offsets rounds differently in another order).
     """
     members: tuple[np.ndarray, ...]
     weights: sp.csr_matrix
+    order: np.ndarray
 
     @property
     def n_points(self) -> int:
@@ -251,7 +258,7 @@ class Rings:
 
     def connector_offsets(self, z: np.ndarray) -> np.ndarray:
         """(E, d) mean offset of each connector's rings for per-point offsets z (Pc, d)."""
-        return np.asarray(self.weights @ z)
+        return np.asarray(self.weights @ np.asarray(z)[self.order])
 
 
 def build_rings(mesh: TetMesh, points: np.ndarray,
@@ -270,11 +277,14 @@ def build_rings(mesh: TetMesh, points: np.ndarray,
     if len(held) != len(points):
         raise ValueError(f"{len(held)} footprints for {len(points)} points")
     members = tuple(np.nonzero(np.isin(e[:, 0], h) != np.isin(e[:, 1], h))[0] for h in held)
+    order = np.argsort(np.asarray(points), kind="stable")
+    rank = np.empty(len(points), dtype=np.int64)
+    rank[order] = np.arange(len(points))
     rows = np.concatenate(members)
-    cols = np.repeat(np.arange(len(points)), [len(m) for m in members])
+    cols = np.repeat(rank, [len(m) for m in members])
     count = np.bincount(rows, minlength=len(e)).astype(float)
     weights = sp.csr_matrix((1.0 / count[rows], (rows, cols)), shape=(len(e), len(points)))
-    return Rings(members=members, weights=weights)
+    return Rings(members=members, weights=weights, order=order)
 
 
 def local_params(glob: GlobalParams, rings: Rings, strain: StrainRange,
@@ -312,11 +322,13 @@ def check_offsets(phase: str, z: np.ndarray) -> None:
 
 
 def check_spring_range(params: ConnectorParams, low: float | np.ndarray,
-                       high: float | np.ndarray, floor: float | np.ndarray, where: str) -> None:
+                       high: float | np.ndarray, floor: float | np.ndarray, where: str,
+                       ceiling: float | np.ndarray | None = None) -> None:
     """Raise :class:`ParameterError` naming the first spring whose tangent stiffness
-    ``K0 + 2 a eps + 3 b eps^2`` falls below ``floor`` [N/m] somewhere on its strain range
-    ``[low, high]`` (each a scalar or (E,)); ``where`` names the range in the message."""
-    tangent, _ = params.extreme_tangent_stiffness((low, high))
+    ``K0 + 2 a eps + 3 b eps^2`` falls below ``floor`` [N/m], or rises above ``ceiling`` [N/m]
+    (if given), somewhere on its strain range ``[low, high]`` (each a scalar or (E,));
+    ``where`` names the range in the message."""
+    tangent, top = params.extreme_tangent_stiffness((low, high))
     low, high, floor = (np.broadcast_to(np.asarray(v, dtype=float), tangent.shape)
                         for v in (low, high, floor))
     soft = np.nonzero(~(tangent >= floor))[0]
@@ -325,6 +337,15 @@ def check_spring_range(params: ConnectorParams, low: float | np.ndarray,
         raise ParameterError(f"connector {e}: spring tangent stiffness K0 + 2 a eps + 3 b eps^2 "
                              f"reaches {tangent[e]:g} N/m < the floor {floor[e]:g} N/m {where} "
                              f"[{low[e]:.3g}, {high[e]:.3g}] ({len(soft)} connectors)")
+    if ceiling is None:
+        return
+    ceiling = np.broadcast_to(np.asarray(ceiling, dtype=float), top.shape)
+    stiff = np.nonzero(~(top <= ceiling))[0]
+    if len(stiff):
+        e = int(stiff[0])
+        raise ParameterError(f"connector {e}: spring tangent stiffness K0 + 2 a eps + 3 b eps^2 "
+                             f"reaches {top[e]:g} N/m > the ceiling {ceiling[e]:g} N/m {where} "
+                             f"[{low[e]:.3g}, {high[e]:.3g}] ({len(stiff)} connectors)")
 
 
 def check_feasible(params: ConnectorParams, strain: StrainRange,

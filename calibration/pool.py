@@ -158,6 +158,15 @@ class PointWorker:
         normals = self.experiments.problem.normals[np.asarray(points, dtype=np.int64)]
         return normal_force(forces, normals), forces
 
+    def strain_extremes(self, kind: str, points: Sequence[int]) -> np.ndarray | None:
+        """(len(points), 2) the smallest and largest connector strain [1] of owned test
+        points' last ``kind`` curves (their evaluators' ``strain_extremes``), or None if the
+        backend's evaluators do not give them."""
+        evaluator = self.evaluators[kind]
+        if not hasattr(evaluator, "strain_extremes"):
+            return None
+        return evaluator.strain_extremes([self._local[int(p)] for p in points])
+
 
 def point_curves(worker: PointWorker, kind: str, params: ConnectorParams,
                  points: Sequence[int]) -> np.ndarray:
@@ -417,7 +426,9 @@ class Pool:
 
         Yields ``(item index, result)`` as calls complete; each worker runs its
         calls in the given order, one at a time. On a worker error, the calls
-        already running finish and the first error is raised.
+        already running finish, the items before the failed one still run, and the error of
+        the first item (in ``items``' order) that failed is raised: which one that is does
+        not depend on which worker answered first.
         """
         queues: dict[int, collections.deque] = collections.defaultdict(collections.deque)
         for i, (point, args) in enumerate(items):
@@ -432,18 +443,19 @@ class Pool:
 
         for w in list(queues):
             start(w)
-        error = None
+        errors: dict[int, BaseException] = {}
         while running:
             w, (status, value) = self.transport.receive()
             i = running.pop(w)
             if status == "error":
-                error = error or value
-                continue
-            if error is None:
+                errors[i] = value
+            if not errors:
                 start(w)
                 yield i, value
-        if error is not None:
-            raise error
+            elif queues[w] and queues[w][0][0] < min(errors):
+                start(w)  # an earlier item might fail too: its error is the one raised
+        if errors:
+            raise errors[min(errors)]
 
     def by_owner(self, fn: Callable, points: Sequence[int], *args) -> tuple[list, np.ndarray]:
         """``fn(worker, *args, owned)`` on every worker owning some of ``points``, ``owned``

@@ -15,14 +15,16 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 | ``/initial_guess/unit_slope`` | (P,) | N/m | unit-stiffness network slope per test point |
 | ``/strain_range`` attrs | | 1 | ``low``, ``high``: where K(eps) > 0 is required |
 | ``/local/z_static``, ``/local/z_relaxation`` | (Pc, 3), (Pc, 4) | 1 | ring offsets (see :mod:`calibration.parametrisation`) |
-| ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` (those fitted) |
-| ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples |
-| ``/forces/<variant>/<experiment>`` | (P, S, 3) | N | the simulated indenter force vectors whose inward-normal components the curves are (absent in files written before them) |
+| ``/errors/<variant>/<experiment>`` | (P,) | 1 | relative RMS error per test point; experiments ``indentation``, ``relaxation`` (those fitted); NaN at a point the variant failed |
+| ``/curves/<variant>/<experiment>`` | (P, S) | N | simulated normal-force curves at the reference's samples; a row of NaN at a point the variant failed (recorded in ``failures``) |
+| ``/forces/<variant>/<experiment>`` | (P, S, 3) | N | the simulated indenter force vectors whose inward-normal components the curves are (absent in files written before them); NaN rows as the curves |
+| ``/strains/<variant>/<experiment>`` | (P, 2) | 1 | the smallest and the largest connector strain over every sample of each point's curve: where the variant's spring laws were evaluated (absent in files written before them); NaN rows as the curves |
 | ``/history/global_<phase>/`` | | | ``evaluation_cost`` (n,) N^2, ``iteration_cost`` (m,) N^2, ``iteration_evaluations`` (m,); attrs ``x``, ``cost``, ``initial_cost``, ``converged``, ``warnings`` (JSON); phases ``static``, ``relaxation`` |
 | ``/history/local_<phase>/sweep_<k>/`` | | | attrs ``start_cost``, ``end_cost`` [N^2], ``halvings`` (-1 = rejected); per point: ``x`` (Pc, d), ``cost``, ``initial_cost`` (Pc,), ``converged`` (Pc,), ``evaluation_cost`` (all points concatenated) with ``evaluation_offsets`` (Pc+1,), ``iteration_cost``/``iteration_evaluations`` with ``iteration_offsets`` (Pc+1,); attr ``warnings`` (JSON list per point) |
 | ``/evaluations`` attrs | | | point-curve and cost-function evaluation counts per phase |
 | ``/stage_times`` attrs | | s | wall time this run spent on each phase (a phase loaded from a checkpoint: the time to load it, about 0; a phase resumed part-way: the rest of its work) |
 | ``/warnings`` | (n,) | | every warning of the run (strings) |
+| ``/`` attr ``failures`` | | | JSON list of the validation failures: a variant that did not complete an experiment at a test point (:class:`calibration.validation.ValidationFailure` records: ``model`` (the variant), ``experiment``, ``point`` (vertex id), ``role`` (``calibration`` / ``held_out``), ``reached`` (``{"depth_m": ...}`` or ``{"time_s": ...}``), ``reason``); absent in files written before it: none. Its rows are the only non-finite values of the file |
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ import numpy as np
 from calibration.local import Sweep
 from calibration.optimize import Fit, History
 from calibration.parametrisation import GlobalParams, StrainRange
+from calibration.validation import (ValidationFailure, check_failed_rows, failures_json,
+                                    parse_failures)
 from forcecal.errors import DataFileError
 from forcecal.h5io import (atomic_h5, attr, get, json_attr, open_h5, put, read_problem,
                            write_problem)
@@ -65,10 +69,13 @@ class VariantCurves:
         errors: experiment -> (P,) float64 relative RMS errors [1].
         forces: experiment -> (P, S, 3) float64 force vectors [N] whose inward-normal
             components ``curves`` are; None when read from a file written before them.
+        strains: experiment -> (P, 2) float64, the smallest and largest connector strain [1]
+            over each point's curve; None when read from a file written before them.
     """
     curves: dict[str, np.ndarray]
     errors: dict[str, np.ndarray]
     forces: dict[str, np.ndarray] | None = None
+    strains: dict[str, np.ndarray] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,6 +108,8 @@ class CalibrationResult:
             history; empty for the paper's method).
         body: the whole-body record (:func:`calibration.body.body_record`; empty without
             the experiment ``body``).
+        failures: the validation failures: a variant that did not complete an experiment at
+            a test point (its rows of ``variants`` are NaN there).
     """
     problem: Problem
     initial: GlobalParams
@@ -125,6 +134,7 @@ class CalibrationResult:
     experiments: tuple[str, ...] = EXPERIMENTS
     gradient: dict = field(default_factory=dict)
     body: dict = field(default_factory=dict)
+    failures: tuple[ValidationFailure, ...] = ()
 
     @property
     def is_calibration(self) -> np.ndarray:
@@ -134,7 +144,8 @@ class CalibrationResult:
 
     def error_summary(self) -> dict[str, dict[str, dict[str, float]]]:
         """variant -> experiment -> {"calibration_mean", "calibration_max", "held_out_mean",
-        "held_out_max"} relative RMS errors [1] (held-out keys absent without held-out points)."""
+        "held_out_max"} relative RMS errors [1] over the points the variant completed (keys
+        absent without such points)."""
         out: dict = {}
         for v, vc in self.variants.items():
             out[v] = {}
@@ -142,6 +153,7 @@ class CalibrationResult:
                 row = {}
                 for group, mask in (("calibration", self.is_calibration),
                                     ("held_out", ~self.is_calibration)):
+                    mask = mask & np.isfinite(err)
                     if mask.any():
                         row[f"{group}_mean"] = float(err[mask].mean())
                         row[f"{group}_max"] = float(err[mask].max())
@@ -168,6 +180,7 @@ class CalibrationResult:
                          for grp in ("calibration", "held_out")]
                 lines.append(f"{v:<11} {e:<12} {cells[0]:>17} {cells[1]:>17}")
         lines += [f"warning: {w}" for w in self.warnings]
+        lines += [f"failed: {f.describe()}" for f in self.failures]
         return "\n".join(lines)
 
 
@@ -262,6 +275,7 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
         fh.attrs["experiments"] = json.dumps(list(result.experiments))
         fh.attrs["gradient"] = json.dumps(result.gradient)
         fh.attrs["body"] = json.dumps(result.body)
+        fh.attrs["failures"] = failures_json(result.failures)
         write_problem(fh, result.problem)
         for variant, params in result.connectors.items():
             g = fh.create_group(f"connectors/{variant}")
@@ -290,6 +304,9 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
                 if vc.forces is not None:
                     put(fh, f"forces/{variant}/{e}", vc.forces[e], "N",
                         "indenter force vectors (P, S, 3)")
+                if vc.strains is not None:
+                    put(fh, f"strains/{variant}/{e}", vc.strains[e], "1",
+                        "smallest and largest connector strain over each curve (P, 2)")
         for phase, fit in result.global_fits.items():
             _put_history(fh.create_group(f"history/global_{phase}"), fit)
         for phase, sweeps in result.local_sweeps.items():
@@ -320,13 +337,9 @@ def read_params(path: str | Path) -> CalibrationResult:
                    if f"connectors/{v}/{n}" in fh else None)
                for n in ("kv",) + VOLUME_ARM_NAMES})
             for v in VARIANTS}
-        variants = {v: VariantCurves(
-            curves={e: get(fh, f"curves/{v}/{e}", (n_p, None), dtype="float")
-                    for e in fitted},
-            errors={e: get(fh, f"errors/{v}/{e}", (n_p,), dtype="float") for e in fitted},
-            forces=({e: get(fh, f"forces/{v}/{e}", (n_p, None, 3), dtype="float")
-                     for e in fitted} if f"forces/{v}" in fh else None))
-            for v in VARIANTS}
+        failures = parse_failures(json_attr(fh, "failures", []), f"{path}: failures")
+        variants = {v: _read_variant(fh, v, fitted, problem.test_points, failures)
+                    for v in VARIANTS}
         local_sweeps = {}
         for phase in PHASES:
             group = f"history/local_{phase}"
@@ -352,4 +365,31 @@ def read_params(path: str | Path) -> CalibrationResult:
             warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
                            for s in fh["warnings"][()]),
             versions=json_attr(fh, "versions"), experiments=fitted,
-            gradient=json_attr(fh, "gradient", {}), body=json_attr(fh, "body", {}))
+            gradient=json_attr(fh, "gradient", {}), body=json_attr(fh, "body", {}),
+            failures=failures)
+
+
+def _read_variant(fh: h5py.File, variant: str, fitted: tuple[str, ...], points: np.ndarray,
+                  failures: tuple[ValidationFailure, ...]) -> VariantCurves:
+    """One variant's curves, errors and force vectors: NaN only in the rows of the test
+    ``points`` (vertex ids) it failed (``failures``)."""
+    n_points = len(points)
+    index = {int(p): k for k, p in enumerate(points)}
+
+    def read(kind: str, e: str, shape: tuple) -> np.ndarray:
+        failed = [index.get(f.point, -1) for f in failures
+                  if f.model == variant and f.experiment == e]
+        if -1 in failed:
+            raise DataFileError(f"{fh.filename}: a failure names a point that is not a test "
+                                "point")
+        name = f"{kind}/{variant}/{e}"
+        return check_failed_rows(get(fh, name, shape, finite=False, dtype="float"), failed,
+                                 f"{fh.filename}:/{name}")
+
+    return VariantCurves(
+        curves={e: read("curves", e, (n_points, None)) for e in fitted},
+        errors={e: read("errors", e, (n_points,)) for e in fitted},
+        forces=({e: read("forces", e, (n_points, None, 3)) for e in fitted}
+                if f"forces/{variant}" in fh else None),
+        strains=({e: read("strains", e, (n_points, 2)) for e in fitted}
+                 if f"strains/{variant}" in fh else None))

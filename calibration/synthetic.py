@@ -13,6 +13,7 @@ run them on.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any, Sequence
@@ -21,13 +22,14 @@ import meshio
 import numpy as np
 
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings, local_params
-from forcecal.h5io import (BODY_MODULI, BodyResult, IndentationCurves, Reference,
+from forcecal.errors import ParameterError
+from forcecal.h5io import (BODY_MODULI, BodyResult, GravityResult, IndentationCurves, Reference,
                            RelaxationCurves, write_reference)
 from forcecal.indenter import indenter_footprints
 from forcecal.mesh import box_mesh
 from forcecal.problem import Problem, body_load_directions, build_problem
 from forcecal.scene import Scene, load_scene
-from forcecal.schedules import indentation_depths, relaxation_schedule
+from forcecal.schedules import indentation_depths, record_times, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
 from particle.body import RestOperators, incremental_tangent, model_modes
 from particle.model import Model, build_model
@@ -86,11 +88,16 @@ def synthetic_body(model: Model, acceleration: np.ndarray, modes: int, load_step
                       np.stack(loaded_f), np.stack(loaded_phi))
 
 
-def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path) -> Reference:
+def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path, *,
+                        gravity: bool = False) -> Reference:
     """Write (and return) a ``reference.h5`` whose curves are the particle model's with ``params``.
 
-    The curves are sampled exactly like the FE's (scene schedules); gravity is not computed;
-    the whole-body data (:func:`synthetic_body`) when the scene runs the experiment ``body``.
+    The curves are sampled exactly like the FE's (scene schedules). With ``gravity`` the
+    gravity test too: the static sag and the release at the FE's record times, run as the
+    gravity stage runs a particle model (:func:`calibration.gravity_check.gravity_outcome`,
+    ``params`` positive on +-0.5); otherwise gravity is not computed. The whole-body data
+    (:func:`synthetic_body`) when the scene runs the experiment ``body``. The stage timings
+    (``timings_s``) of a reference the FE did not compute are zero.
     """
     problem = build_problem(scene)
     model = build_model(problem, scene.material.density, params)
@@ -109,12 +116,27 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path)
                                                   indenter=ind.indenter, radius=ind.radius),
                     relaxation=RelaxationCurves(times, relax_depths, relax,
                                                   normal_force(relax, normals)),
-                    gravity=None, meta={"source": "particle model (synthetic reference)"},
+                    gravity=synthetic_gravity(scene, problem, params) if gravity else None,
+                    meta={"source": "particle model (synthetic reference)",
+                          "timings_s": json.dumps(dict.fromkeys(
+                              ("mesh", "total", "gravity_static", "gravity_dynamic"), 0.0))},
                     body=synthetic_body(model, np.asarray(scene.gravity.acceleration, float),
                                         scene.body.modes, scene.body.load_steps)
                     if scene.runs("body") else None)
     write_reference(path, ref)
     return ref
+
+
+def synthetic_gravity(scene: Scene, problem: Problem, params: ConnectorParams) -> GravityResult:
+    """The particle model's gravity test with ``params`` as a reference's gravity runs."""
+    from calibration.gravity_check import gravity_outcome
+
+    times = record_times(scene.gravity.duration, scene.gravity.record_interval)
+    run, failure = gravity_outcome(scene, problem, params, times, (-0.5, 0.5), "calibrated")
+    if failure is not None:
+        raise ParameterError(f"the synthetic reference's gravity test failed: {failure.reason}")
+    settings = dataclasses.replace(scene.gravity, tracked_node=problem.tracked_node)
+    return GravityResult(run.static_displacement, times, run.displacement, settings)
 
 
 def ring_perturbed_params(problem: Problem, glob: GlobalParams, strain: StrainRange, *,

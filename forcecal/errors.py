@@ -8,7 +8,16 @@ should ever see a NaN-filled result instead.
 
 
 class ForcecalError(Exception):
-    """Base class of every error forcecal raises on purpose."""
+    """Base class of every error forcecal raises on purpose.
+
+    Attributes:
+        reached: how far the computation that failed got, in its own load parameter, when
+            it knows: the indentation depth [m], the time [s] of a relaxation or an
+            explicit run, the fraction of the load of a static solve [1]; None otherwise.
+            Set by the raiser (or the caller that knows the parameter), read by the
+            validation, which records it.
+    """
+    reached: float | None = None
 
 
 class SceneError(ForcecalError):
@@ -29,6 +38,11 @@ class ParameterError(ForcecalError):
 
 class StabilityError(ForcecalError):
     """An explicit time step is above the stability limit, or a run diverged."""
+
+
+class TimeStepError(StabilityError):
+    """The explicit time step a scene sets (``particle.dt``) is above a model's stability limit:
+    a setting to change (a refusal), not a failure of the model."""
 
 
 class ConvergenceError(ForcecalError):

@@ -18,6 +18,14 @@ A reference holds the experiments its scene asked for (``experiments``): the
 those present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
 A file without the attribute (written before experiments were optional) holds
 the four of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS`.
+
+What failed in the FE stage is recorded too: ``fe_failures`` (JSON,
+:class:`forcecal.fe_failures.FEFailures`: test points replaced or dropped, the gravity
+test that failed, which leaves both gravity experiments out) with
+``failed_experiment_keys`` (JSON, the keys the failed gravity experiments were computed
+with), and ``mesh_preflight`` (JSON, :func:`forcecal.preflight.mesh_preflight`). The
+test points stored are the ones the curves belong to (replacements in place of the
+failed points, dropped points left out).
 """
 
 from __future__ import annotations
@@ -39,8 +47,10 @@ import forcecal
 from forcecal.errors import DataFileError, MeshError, SceneError
 from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, tracked_node_by_rule
-from forcecal.scene import (DEFAULT_EXPERIMENTS, EXPERIMENTS, SECTIONS, FESection, GravitySection, MaterialSection,
-                            Scene, section_from_values)
+from forcecal.fe_failures import FEFailures
+from forcecal.scene import (DEFAULT_EXPERIMENTS, EXPERIMENTS, GRAVITY_EXPERIMENTS, SECTIONS,
+                            FESection, GravitySection, MaterialSection, Scene,
+                            section_from_values)
 from forcecal.schedules import record_times
 
 REFERENCE_KIND = "forcecal.reference"
@@ -391,9 +401,27 @@ class Reference:
                    "body": self.body is not None}
         return tuple(e for e in EXPERIMENTS if present[e])
 
+    @property
+    def fe_failures(self) -> FEFailures:
+        """The FE test points replaced or dropped and the gravity failure (root attribute
+        ``fe_failures``, :mod:`forcecal.fe_failures`; none recorded: nothing failed)."""
+        return FEFailures.from_json(self.meta.get("fe_failures"), "reference.h5")
+
+    @property
+    def mesh_preflight(self) -> dict | None:
+        """The mesh preflight the FE stage logged (root attribute ``mesh_preflight``,
+        :func:`forcecal.preflight.mesh_preflight`), or None in a file without it."""
+        text = self.meta.get("mesh_preflight")
+        return None if text is None else json.loads(text)
+
     def require(self, experiment: str, path: str | Path = "reference.h5") -> None:
-        """Raise :class:`DataFileError` if ``experiment`` is not in this reference."""
+        """Raise :class:`DataFileError` if ``experiment`` is not in this reference (naming the
+        FE failure that left it out, if one did)."""
         if experiment not in self.experiments:
+            gravity = self.fe_failures.gravity
+            if gravity is not None and experiment in GRAVITY_EXPERIMENTS:
+                raise DataFileError(f"{path} has no {experiment} results: the FE gravity test "
+                                    f"failed ({gravity['experiment']}: {gravity['reason']})")
             raise DataFileError(f"{path} has no {experiment} results (it holds "
                                 f"{list(self.experiments)}); add {experiment!r} to the scene's "
                                 "experiments and rerun the reference")
@@ -665,6 +693,12 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                                     settings=settings)
         body = read_body(fh, problem.mesh.n_vertices) if "body" in stored else None
         meta = {k: attr(fh, k) for k in fh.attrs}
+        for name in ("fe_failures", "mesh_preflight"):  # JSON written by the FE stage
+            try:
+                json.loads(meta.get(name, "null"))
+            except (TypeError, ValueError):
+                raise DataFileError(f"{path}: attribute {name} is not JSON") from None
+        FEFailures.from_json(meta.get("fe_failures"), str(path))
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
                      gravity=gravity, meta=meta, fe=fe, body=body)
 

@@ -531,8 +531,8 @@ def _greedy_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray) -> np.ndarr
     return np.sort(vertices[np.asarray(kept, dtype=np.int64)])
 
 
-def _euclidean(mesh: TetMesh, candidates: np.ndarray):
-    """Distance function for :func:`_farthest_points`: straight-line distances [m]."""
+def euclidean_distance(mesh: TetMesh, candidates: np.ndarray):
+    """Distance function for :func:`farthest_points`: straight-line distances [m]."""
     x = mesh.vertices[candidates]
 
     def to(sources: np.ndarray) -> np.ndarray:
@@ -540,8 +540,8 @@ def _euclidean(mesh: TetMesh, candidates: np.ndarray):
     return to
 
 
-def _geodesic(mesh: TetMesh, candidates: np.ndarray):
-    """Distance function for :func:`_farthest_points`: shortest paths along the surface
+def geodesic_distance(mesh: TetMesh, candidates: np.ndarray):
+    """Distance function for :func:`farthest_points`: shortest paths along the surface
     triangles' edges [m] (a part the surface does not reach is infinitely far)."""
     from scipy.sparse.csgraph import dijkstra
 
@@ -557,8 +557,8 @@ def _geodesic(mesh: TetMesh, candidates: np.ndarray):
     return to
 
 
-def _farthest_points(distance_to, candidates: np.ndarray, n: int, avoid: np.ndarray,
-                     what: str) -> list[int]:
+def farthest_points(distance_to, candidates: np.ndarray, n: int, avoid: np.ndarray,
+                    what: str) -> list[int]:
     """n candidates chosen one by one as far as possible from ``avoid`` and from each other
     (``distance_to(sources)`` gives the distance of every candidate to the nearest source;
     ``what`` names them in the error raised when there are fewer than n)."""
@@ -635,7 +635,7 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
             raise MeshError(f"covering the free surface needs {len(cover)} calibration points "
                             f"but test_points.n_calibration = {n}; use 'auto' or raise "
                             "n_calibration")
-        distance_to = _euclidean(mesh, np.setdiff1d(free_surface, cover))
+        distance_to = euclidean_distance(mesh, np.setdiff1d(free_surface, cover))
     else:
         cover = _greedy_dominating_set(mesh.adjacency, free_surface)
         if len(cover) > n:
@@ -643,12 +643,12 @@ def select_calibration_points(mesh: TetMesh, fixed: np.ndarray, n: int = 31,
                      "test_points.n_calibration = %d: sampling %d far-apart points instead",
                      len(cover), n, n)
             seeds = np.asarray(fixed, dtype=np.int64)  # the first point: farthest from them
-            chosen = _farthest_points(_geodesic(mesh, free_surface), free_surface, n, seeds,
-                                      what)
+            chosen = farthest_points(geodesic_distance(mesh, free_surface), free_surface, n,
+                                     seeds, what)
             return np.sort(np.asarray(chosen, dtype=np.int64))
-        distance_to = _geodesic(mesh, np.setdiff1d(free_surface, cover))
+        distance_to = geodesic_distance(mesh, np.setdiff1d(free_surface, cover))
     rest = np.setdiff1d(free_surface, cover)
-    chosen = list(cover) + _farthest_points(distance_to, rest, n - len(cover), cover, what)
+    chosen = list(cover) + farthest_points(distance_to, rest, n - len(cover), cover, what)
     return np.sort(np.asarray(chosen, dtype=np.int64))
 
 
@@ -660,8 +660,8 @@ def select_held_out_points(mesh: TetMesh, fixed: np.ndarray, calibration: np.nda
     rest = np.setdiff1d(free_surface_vertices(mesh, fixed), calibration)
     if candidates is not None:
         rest = np.intersect1d(rest, candidates)
-    held = _farthest_points(_euclidean(mesh, rest), rest, n, np.asarray(calibration),
-                            "held-out points (test_points.n_held_out)")
+    held = farthest_points(euclidean_distance(mesh, rest), rest, n, np.asarray(calibration),
+                           "held-out points (test_points.n_held_out)")
     return np.sort(np.asarray(held, dtype=np.int64))
 
 

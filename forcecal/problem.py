@@ -16,7 +16,8 @@ import numpy as np
 
 from forcecal.errors import MeshError, SceneError
 from forcecal.indenter import punch_candidates
-from forcecal.mesh import (TetMesh, coverage, fixed_nodes, generate_liver, read_mesh,
+from forcecal.mesh import (TetMesh, coverage, euclidean_distance, farthest_points, fixed_nodes,
+                           free_surface_vertices, generate_liver, geodesic_distance, read_mesh,
                            select_calibration_points, select_held_out_points, validate_test_points)
 from forcecal.scene import MIN_HELD_OUT, Scene
 
@@ -151,6 +152,52 @@ def check_depths(scene: Scene, mesh: TetMesh) -> None:
                              "(5 mm is 0.005)")
 
 
+def indentable_vertices(scene: Scene, mesh: TetMesh, fixed: np.ndarray) -> np.ndarray | None:
+    """The vertices the scene's punch can indent (:func:`forcecal.indenter.punch_candidates`),
+    or None for the vertex indenter (any free surface vertex)."""
+    if scene.indentation.indenter != "punch":
+        return None
+    return punch_candidates(mesh, fixed, scene.indentation.radius)
+
+
+def replacement_point(scene: Scene, problem: Problem, index: int, avoid: set[int]
+                      ) -> int | None:
+    """The vertex that takes the place of test point ``index`` (of ``problem.test_points``)
+    after its FE run failed: the next candidate of the scene's selection rule, or None when
+    the points are an explicit list (the point is dropped) or no candidate is left.
+
+    The rules pick points one at a time, each the farthest from those picked before
+    (:func:`forcecal.mesh.select_calibration_points`,
+    :func:`~forcecal.mesh.select_held_out_points`);
+    the next candidate continues that sequence: the free surface vertex (one the punch can
+    indent, for a punch) farthest from every point picked so far (the failed one and
+    ``avoid``, earlier failures, included), along the surface from the clamp and the
+    calibration points for ``"auto"`` calibration points, in a straight line from the
+    calibration points for ``"cover"`` ones and from every test point for held-out points.
+    It is never a current test point nor one of ``avoid``.
+    """
+    calibration = index < len(problem.calibration)
+    tp = scene.test_points
+    rule = tp.calibration if calibration else tp.held_out
+    if not isinstance(rule, str):
+        return None
+    mesh = problem.mesh
+    taken = np.union1d(problem.test_points, np.fromiter(avoid, np.int64, len(avoid)))
+    rest = np.setdiff1d(free_surface_vertices(mesh, problem.fixed), taken)
+    indentable = indentable_vertices(scene, mesh, problem.fixed)
+    if indentable is not None:
+        rest = np.intersect1d(rest, indentable)
+    if not len(rest):
+        return None
+    picked = problem.calibration if calibration else problem.test_points
+    if calibration and rule == "auto":  # its sampling starts from the clamp
+        picked = np.union1d(picked, problem.fixed)
+    sources = np.union1d(picked, np.fromiter(avoid, np.int64, len(avoid)))
+    distance = (geodesic_distance if calibration and rule == "auto"
+                else euclidean_distance)(mesh, rest)
+    return int(farthest_points(distance, rest, 1, sources, "replacement test points")[0])
+
+
 def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     """Mesh + fixed nodes + test points of a scene, validated.
 
@@ -167,8 +214,7 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
     # a punch near the clamp would hold clamped vertices: the "auto" rules pick among the
     # vertices a punch of the scene's radius can indent ("cover", the paper's, stays as it is)
     auto = "auto" in (tp.calibration, tp.held_out)
-    candidates = (punch_candidates(mesh, fixed, scene.indentation.radius)
-                  if scene.indentation.indenter == "punch" and auto else None)
+    candidates = indentable_vertices(scene, mesh, fixed) if auto else None
     if isinstance(tp.calibration, str):
         calibration = select_calibration_points(
             mesh, fixed, tp.n_calibration, tp.calibration,

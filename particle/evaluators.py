@@ -15,6 +15,13 @@ next call (calibration moves parameters by small steps, so the previous
 solution is an excellent guess and the old factorisation a good one).
 Evaluators pickle (caches are rebuilt in the receiving process) so
 calibration can run them in worker processes.
+
+Where a point's loading path reaches a fold of the model (a weakly held particle snaps
+through; :mod:`particle.statics`), the curve follows the model to the state it snaps to
+(:meth:`~particle.statics.EquilibriumSolver.settle`), as a slow physical push would: the
+curve is the path's from rest. Near such a fold the model has two equilibria, so from the
+first sample where the previous call's or this call's path snapped on, a point's samples are
+not warm-started (a warm start could land on the other one): they follow this call's path.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from forcecal.errors import ConvergenceError, ParameterError
 from particle.model import Model
 from particle.params import ConnectorParams, arm_recursions, volume_arm_recursions
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
-                              VolumeArmStep, check_stiffness, continuation)
+                              VolumeArmStep, check_stiffness, continuation, reaching)
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +135,8 @@ class _PointEvaluator:
         self._solvers: dict[int, EquilibriumSolver] = {}
         self._warm: dict[int, np.ndarray] = {}
         self._factors: dict[int, list] = {}
+        # point -> the first sample where its last call's path snapped (module docstring)
+        self._snapped: dict[int, int] = {}
 
     def forget(self) -> None:
         """Drop every point's warm start and factorisations: the next call starts cold.
@@ -139,6 +148,7 @@ class _PointEvaluator:
         self._solvers.clear()
         self._warm.clear()
         self._factors.clear()
+        self._snapped.clear()
 
     def set_tolerance(self, rtol: float | None) -> None:
         """Newton tolerance of the next calls, relative to the indenter force (None: the one
@@ -189,6 +199,22 @@ class _PointEvaluator:
         forces = self.force_vectors(params, idx)
         return normal_force(forces, self.normals[idx])
 
+    def strain_extremes(self, points: Sequence[int] | None = None) -> np.ndarray:
+        """(P', 2) the smallest and the largest connector strain [1] over every sample of the
+        selected points' last curves: the strains their spring laws were evaluated at.
+        :class:`ParameterError` for a point without a curve yet."""
+        idx = self._indices(points)
+        model = self.model
+        out = np.empty((len(idx), 2))
+        for row, k in enumerate(idx):
+            x = self._warm.get(int(k))
+            if x is None:
+                raise ParameterError(f"test point {self.nodes[k]} has no curve yet")
+            d = x[:, model.edges[:, 1]] - x[:, model.edges[:, 0]]
+            strain = np.sqrt(np.sum(d * d, axis=2)) / model.rest_lengths - 1.0
+            out[row] = strain.min(), strain.max()
+        return out
+
     def evaluate_many(self, param_sets: Sequence[ConnectorParams],
                       points: Sequence[int] | None = None) -> np.ndarray:
         """(M, P', S) normal forces [N] of M parameter sets at the selected points (all if None).
@@ -229,6 +255,10 @@ class _PointEvaluator:
             yield s
             used.append(solver.factorization)
         self._factors[k] = used
+
+    def _snaps(self, k: int, n: int) -> "_Snaps":
+        """Point ``k``'s record of where its path snaps, for a call over ``n`` samples."""
+        return _Snaps(self._snapped.get(k, n), n)
 
     def _target(self, k: int, depth: float) -> np.ndarray:
         """(K, 3) positions of point ``k``'s held particles at ``depth`` [m]."""
@@ -276,24 +306,32 @@ class IndentationEvaluator(_PointEvaluator):
         def step(eq: Equilibrium, _: float, depth: float) -> Equilibrium:
             return solve_at(eq.x, depth)
 
+        def settle(eq: Equilibrium, _: float, depth: float) -> Equilibrium:
+            guess = eq.x.copy()
+            guess[held] = self._target(k, depth)
+            return snaps.settled(s, solver.settle(guess, params))
+
         solutions = np.empty((len(self.depths), model.n_particles, 3))
         forces = np.empty((len(self.depths), 3))
         eq, reached = Equilibrium.at_rest(model), 0.0
+        snaps = self._snaps(k, len(self.depths))
         for s in self._samples(k, solver, len(self.depths)):
             depth = self.depths[s]
             warm_eq = None
-            if warm is not None:
+            if warm is not None and snaps.warm(s):
                 try:
                     warm_eq = solve_at(warm_guess(warm, solutions, s), depth)
                 except ConvergenceError:
                     log.debug("point %d depth %g: warm start failed, continuing cold", node, depth)
-            eq = warm_eq or continuation(step, eq, reached, depth,
-                                         what=f"indentation of particle {node}")
-            check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
+            with reaching(lambda: reached):
+                eq = warm_eq or continuation(step, eq, reached, depth, settle=settle,
+                                             what=f"indentation of particle {node}")
+                check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             reached = depth
             solutions[s] = eq.x
             forces[s] = self._force(eq, k)
         self._warm[k] = solutions
+        self._snapped[k] = snaps.first
         return forces
 
 
@@ -356,23 +394,54 @@ class RelaxationEvaluator(_PointEvaluator):
         solutions = np.empty((len(self.times), model.n_particles, 3))
         forces = np.empty((len(self.times), 3))
         eq = Equilibrium.at_rest(model)
+        snaps = self._snaps(k, len(self.times))
         for sample in self._samples(k, solver, len(self.times)):
             whole = (times[sample], times[sample + 1])
 
-            def step(eq: Equilibrium, t0: float, t1: float, sample=sample, whole=whole):
+            def step(eq: Equilibrium, t0: float, t1: float, sample=sample, whole=whole,
+                     settling=False):
                 full = (t0, t1) == whole
-                guess = (warm_guess(warm, solutions, sample) if full and warm is not None
-                         else eq.x).copy()
+                warm_start = full and warm is not None and snaps.warm(sample) and not settling
+                guess = (warm_guess(warm, solutions, sample) if warm_start else eq.x).copy()
                 guess[held] = self._target(k, np.interp(t1, times, depths))
                 coeffs = prepared[sample] if full else arm_coefficients(params, t1 - t0)
+                if settling:
+                    return snaps.settled(sample, solver.settle(guess, params,
+                                                               arms=arm_step(coeffs, eq)))
                 return solver.solve(guess, params, arms=arm_step(coeffs, eq))
 
-            eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}")
-            check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
+            with reaching(lambda: whole[0]):
+                eq = continuation(step, eq, *whole, what=f"relaxation of particle {node}",
+                                  settle=lambda eq, t0, t1, step=step: step(eq, t0, t1,
+                                                                            settling=True))
+                check_stiffness(model, eq.dx / model.rest_lengths, f"test point {self.nodes[k]}")
             solutions[sample] = eq.x
             forces[sample] = self._force(eq, k)
         self._warm[k] = solutions
+        self._snapped[k] = snaps.first
         return forces
+
+
+class _Snaps:
+    """Where the paths of a point's previous call and of this call snap (module docstring).
+
+    Attributes:
+        previous: the first sample whose path snapped in the previous call (the number of
+            samples if none did).
+        first: the same in this call, so far.
+    """
+
+    def __init__(self, previous: int, n: int):
+        self.previous, self.first = previous, n
+
+    def warm(self, sample: int) -> bool:
+        """True if ``sample`` may be warm-started (it comes before every snap)."""
+        return sample < min(self.previous, self.first)
+
+    def settled(self, sample: int, eq: Equilibrium) -> Equilibrium:
+        """Record that ``sample``'s path snapped to ``eq``; returns ``eq``."""
+        self.first = min(self.first, sample)
+        return eq
 
 
 def arm_coefficients(params: ConnectorParams, dt: float) -> tuple:

@@ -10,6 +10,7 @@ d >= 0; the reported force is the force the indenter applies to that particle
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -26,7 +27,7 @@ from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, connector
                                 critical_time_step, release_strain_range, resolve_time_step)
 from particle.model import Model, Prescribed
 from particle.params import StrainBounds
-from particle.statics import check_stiffness, gravity_static
+from particle.statics import check_stiffness, gravity_static, reaching
 
 log = logging.getLogger(__name__)
 
@@ -102,52 +103,90 @@ def gravity_test(model: Model, gravity: np.ndarray, times: np.ndarray | None, *,
     """Static sag and dynamic release of ``model`` under ``gravity`` [m/s^2] (``times`` None:
     the static sag only, with the step the release would take).
 
+    The static sag (:func:`gravity_static_test`) and the release from it
+    (:func:`gravity_release`, sampled at ``times`` [s]); see those.
+    """
+    static = gravity_static_test(model, gravity, load_steps=load_steps, particle=particle,
+                                 strain_range=strain_range, name=name)
+    if times is None:
+        return static
+    return gravity_release(model, gravity, times, static, particle=particle,
+                           strain_range=strain_range, name=name)
+
+
+def gravity_static_test(model: Model, gravity: np.ndarray, *, load_steps: int,
+                        particle: ParticleSection, strain_range: tuple[float, float],
+                        name: str) -> GravityTest:
+    """The static sag of ``model`` under ``gravity`` [m/s^2] and the step its release would
+    take (a :class:`GravityTest` without ``displacement``).
+
     The static sag (:func:`~particle.statics.gravity_static`, ``load_steps``) uses the
-    long-term springs; the release starts undeformed and at rest at t = 0 and is sampled
-    at ``times`` [s]. ``strain_range`` is where the springs were calibrated (and must be
-    positive); the runs are refused (:class:`ParameterError`) if a spring's K(eps)
-    becomes <= 0 at a strain they reach, and the strain extremes are recorded so that
-    leaving the calibrated range can be reported. The explicit step is chosen for each
-    connector's strain range of the release (:func:`release_strain_range` of the static
-    sag, ``particle.strain_margin``), which the dynamic run verifies
-    (:class:`~forcecal.errors.StabilityError` if a connector leaves it); an explicit
-    ``particle.dt`` must be stable over the calibrated range as well. ``name`` names the
-    model in errors and the log.
+    long-term springs. ``strain_range`` is where the springs were calibrated (and must be
+    positive); the sag is refused (:class:`ParameterError`) if a spring's K(eps) becomes
+    <= 0 at a strain it reaches, and the strain extremes are recorded so that leaving the
+    calibrated range can be reported. The explicit step is chosen for each connector's
+    strain range of the release (:func:`release_strain_range` of the static sag,
+    ``particle.strain_margin``); an explicit ``particle.dt`` must be stable over the
+    calibrated range as well. ``name`` names the model in errors and the log.
     """
     t0 = time.perf_counter()
     static = gravity_static(model, gravity, load_steps=load_steps, strain_range=strain_range)
     t1 = time.perf_counter()
-    check_stiffness(model, connector_strains(model, static), f"static sag of the {name} model")
+    eps = connector_strains(model, static)
+    with reaching(lambda: 1.0):  # the whole load was carried
+        check_stiffness(model, eps, f"static sag of the {name} model")
+        critical = critical_time_step(model, strain_range=_release_range(
+            model, static, particle, strain_range), damping=particle.damping)
+    dt = resolve_time_step(particle, critical)
+    log.info("gravity, %s model: max static sag %.3g mm, strains [%.3g, %.3g], static %.2f s",
+             name, 1e3 * np.linalg.norm(static, axis=1).max(), eps.min(), eps.max(), t1 - t0)
+    return GravityTest(static, None, dt, critical, t1 - t0, 0.0, float(eps.min()),
+                       float(eps.max()))
+
+
+def gravity_release(model: Model, gravity: np.ndarray, times: np.ndarray, static: GravityTest,
+                    *, particle: ParticleSection, strain_range: tuple[float, float],
+                    name: str) -> GravityTest:
+    """``static`` (:func:`gravity_static_test` of the same model) completed by the release
+    from rest in the undeformed shape at t = 0, sampled at ``times`` [s], at its step.
+
+    The step was chosen for each connector's strain range of the release, which the run
+    verifies (:class:`~forcecal.errors.StabilityError` if a connector leaves it); a spring
+    whose K(eps) <= 0 at a sample is refused (:class:`ParameterError`). Either error records
+    in ``reached`` the time [s] the release had reached.
+    """
+    release = _release_range(model, static.static_displacement, particle, strain_range)
+    # a few steps first so that dynamic_time measures the simulation, not numba compiling
+    # (or loading from its cache) this model's kernel specialisation
+    gravity_dynamic(model, gravity, float(times[1]), static.dt, times[:2],
+                    damping=particle.damping, strain_range=release)
+    t2 = time.perf_counter()
+    dynamic = gravity_dynamic(model, gravity, float(times[-1]), static.dt, times,
+                              damping=particle.damping, strain_range=release)
+    t3 = time.perf_counter()
+    strain = np.vstack([connector_strains(model, static.static_displacement)[None],
+                        connector_strains(model, dynamic)])
+    for t, sample in zip(times, strain[1:]):
+        with reaching(lambda: t):
+            check_stiffness(model, sample, f"gravity dynamics of the {name} model at "
+                            f"t = {t:.4g} s")
+    log.info("gravity, %s model: dt %.3g s (limit %.3g s), strains [%.3g, %.3g], dynamic "
+             "%.2f s (%d samples)", name, static.dt, static.critical_dt, strain.min(),
+             strain.max(), t3 - t2, len(times))
+    return dataclasses.replace(static, displacement=dynamic, dynamic_time=t3 - t2,
+                               strain_min=float(strain.min()), strain_max=float(strain.max()))
+
+
+def _release_range(model: Model, static: np.ndarray, particle: ParticleSection,
+                   strain_range: tuple[float, float]) -> StrainBounds:
+    """Each connector's strain range of the release from the static sag ``static`` (N, 3)
+    [m] (:func:`release_strain_range`), widened to the calibrated ``strain_range`` for an
+    explicit ``particle.dt``, which must be stable there too."""
     release = release_strain_range(model, static, particle.strain_margin)
     if particle.dt != "auto":
         release = (np.minimum(release[0], strain_range[0]),
                    np.maximum(release[1], strain_range[1]))
-    critical = critical_time_step(model, strain_range=release, damping=particle.damping)
-    dt = resolve_time_step(particle, critical)
-    if times is None:
-        eps = connector_strains(model, static)
-        log.info("gravity, %s model: max static sag %.3g mm, strains [%.3g, %.3g], static "
-                 "%.2f s (no dynamic release)", name, 1e3 * np.linalg.norm(static, axis=1).max(),
-                 eps.min(), eps.max(), t1 - t0)
-        return GravityTest(static, None, dt, critical, t1 - t0, 0.0, float(eps.min()),
-                           float(eps.max()))
-    # a few steps first so that dynamic_time measures the simulation, not numba compiling
-    # (or loading from its cache) this model's kernel specialisation
-    gravity_dynamic(model, gravity, float(times[1]), dt, times[:2], damping=particle.damping,
-                    strain_range=release)
-    t2 = time.perf_counter()
-    dynamic = gravity_dynamic(model, gravity, float(times[-1]), dt, times,
-                              damping=particle.damping, strain_range=release)
-    t3 = time.perf_counter()
-    strain = np.vstack([connector_strains(model, static)[None], connector_strains(model, dynamic)])
-    for t, sample in zip(times, strain[1:]):
-        check_stiffness(model, sample, f"gravity dynamics of the {name} model at t = {t:.4g} s")
-    log.info("gravity, %s model: max static sag %.3g mm, dt %.3g s (limit %.3g s), strains "
-             "[%.3g, %.3g], static %.2f s, dynamic %.2f s (%d samples)", name,
-             1e3 * np.linalg.norm(static, axis=1).max(), dt, critical, strain.min(),
-             strain.max(), t1 - t0, t3 - t2, len(times))
-    return GravityTest(static, dynamic, dt, critical, t1 - t0, t3 - t2,
-                       float(strain.min()), float(strain.max()))
+    return release
 
 
 def relaxation_dynamic(model: Model, node: int, normal: np.ndarray, times: np.ndarray,

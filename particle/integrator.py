@@ -332,7 +332,9 @@ class Run:
                 numba.set_num_threads(pool)
         code, step, node = status.tolist()
         if code != step_kernels.OK:
-            raise exit_error(self, state, code, step, node, energy_bound)
+            error = exit_error(self, state, code, step, node, energy_bound)
+            error.reached = state.t + max(step - 1, 0) * dt  # the last step completed
+            raise error
         state.t += n_steps * dt
         if n_steps:
             state.dt = dt

@@ -118,6 +118,11 @@ class _RecordingSolver(EquilibriumSolver):
         self.path.append((arms, eq))
         return eq
 
+    def settle(self, x, params, *, arms=None, gravity=None):
+        eq = super().settle(x, params, arms=arms, gravity=gravity)
+        self.path.append((arms, eq))
+        return eq
+
 
 def volume_partials_numpy(model: Model, x: np.ndarray, pat, omega: np.ndarray) -> np.ndarray:
     """(S, T): ``omega . df/dkv_t`` with ``df/dkv_t = -(V/V0 - 1) dV/dx`` at fixed x

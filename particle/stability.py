@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import ArpackNoConvergence, eigsh
 
-from forcecal.errors import ParameterError, StabilityError
+from forcecal.errors import ParameterError, StabilityError, TimeStepError
 from forcecal.scene import ParticleSection
 from particle.model import Model
 from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
@@ -201,10 +201,13 @@ def strain_range_for_release(model: Model, static_displacement: np.ndarray, marg
 def resolve_time_step(section: ParticleSection, critical: float) -> float:
     """The scene's explicit step [s] for a model whose stability limit is ``critical`` [s]
     (:func:`critical_time_step` with ``section.damping``): dt_safety x critical for 'auto',
-    else the checked number."""
+    else the checked number (:class:`~forcecal.errors.TimeStepError` above ``critical``)."""
     if section.dt == "auto":
         return section.dt_safety * critical
-    check_time_step(float(section.dt), critical)
+    try:
+        check_time_step(float(section.dt), critical)
+    except StabilityError as exc:
+        raise TimeStepError(str(exc)) from None
     return float(section.dt)
 
 

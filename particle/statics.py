@@ -24,15 +24,24 @@ steps and calls, and refactorises only when the residual stops contracting
 fast (ratio above ``refactor_ratio``). A step that does not reduce the
 residual with a fresh factorisation is backtracked (line search); a load step
 that still fails is halved by :func:`continuation`.
+
+Where the equilibrium being followed ends (a fold of the loading path: a weakly held
+particle snaps through a face of its neighbours, the tangent's smallest eigenvalue going to
+zero like the square root of the distance to the fold), no Newton iteration and no
+shorter load step finds a nearby state: the model itself moves on to another one. A
+physical push comes to rest there through its damping, and :meth:`EquilibriumSolver.settle`
+computes that state by pseudo-transient continuation (implicit Euler steps of an overdamped
+motion ending in Newton's iteration); :func:`continuation` calls it where halving ends.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Callable, TypeVar
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 
@@ -47,6 +56,9 @@ from particle.volume import tet_slots as volume_tet_slots
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+#: most damped steps of :meth:`EquilibriumSolver.settle`, and most increases of its shift
+#: in one step (4^30: the step is then a vanishing move along the force)
+SETTLE_ITERATIONS, SETTLE_SHIFTS = 200, 30
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,6 +242,9 @@ class EquilibriumSolver:
         self._lu = None
         self._stale = True  # refactorise before the next step
         self.factorizations = 0
+        # the lumped masses on the tangent's dofs (the damping of settle's overdamped motion)
+        self._mass_diagonal = np.zeros(pattern.n_dofs)
+        self._mass_diagonal[self._mat] = np.repeat(model.masses[active], 3)
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
@@ -285,20 +300,12 @@ class EquilibriumSolver:
         brought below the tolerance in ``max_iter`` iterations.
         """
         args = (params, not params.is_linear, arms, gravity)
-        if self._floor_of[0] is not params:  # the same parameters for a whole curve
-            self._floor_of = (params, 1e-3 * float(np.mean(params.K0) * self._mean_length))
-        floor = self._floor_of[1] if gravity is None else max(
-            self._floor_of[1], float(np.linalg.norm(gravity) * self.model.masses.sum()))
+        floor = self._force_floor(params, gravity)
         cur = self._evaluate(np.array(x, dtype=np.float64), *args)
         fresh = False
         for it in range(self.max_iter + 1):
-            held = cur.forces[self.prescribed].ravel()
-            scale = max(floor, math.sqrt(held @ held))  # np.linalg.norm's sum, without its overhead
-            # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
-            # and inf <= rtol x inf must not pass for convergence
-            if cur.norm <= self.rtol * scale and math.isfinite(scale):
-                return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, it,
-                                   *cur.volume_state(self.model))
+            if self._converged(cur, floor):
+                return self._equilibrium(cur, it)
             if it == self.max_iter:
                 break
             if self._stale:
@@ -323,6 +330,95 @@ class EquilibriumSolver:
         raise ConvergenceError(f"Newton did not converge for prescribed particles "
                                f"{self.prescribed.tolist()}: residual {cur.norm:.3g} N after {it} "
                                f"iterations (tolerance {self.rtol:g} x force scale)")
+
+    def settle(self, x: np.ndarray, params: ConnectorParams, *, arms: ArmStep | None = None,
+               gravity: np.ndarray | None = None) -> Equilibrium:
+        """The stable equilibrium an overdamped motion from ``x`` (N, 3) comes to rest in
+        (prescribed particles already at their targets); arguments as :meth:`solve`.
+
+        What a physical load step does where the equilibrium :meth:`solve` follows has ended
+        (module docstring): implicit Euler steps of the overdamped motion ``c M dx/dt =
+        f(x)`` (lumped masses ``M``, damping proportional to them, as ``particle.damping``), a
+        step of ``h`` being ``(K + mu M) dx = f`` with ``mu = c / h``: with ``mu`` large a
+        short step downhill, with ``mu = 0`` Newton's. ``mu`` starts at the median ``K_ii /
+        m_i`` of the free dofs (the
+        squared natural frequency of a typical particle), is multiplied by 4 while ``K + mu
+        M`` is not positive definite (a pivot of its ``L D L^T`` <= 0: the step would not go
+        downhill), a step moves some particle by more than a quarter of the mean connector
+        length (the tangent would not describe it) or reaches a state of non-finite forces
+        (an inverted tet), and divided by 4 after every accepted step, so the iteration ends
+        as Newton's at a minimum. Converged as :meth:`solve`; :class:`ConvergenceError`
+        after ``SETTLE_ITERATIONS`` steps.
+        """
+        args = (params, not params.is_linear, arms, gravity)
+        floor = self._force_floor(params, gravity)
+        cur = self._evaluate(np.array(x, dtype=np.float64), *args)
+        step_cap = 0.25 * self._mean_length
+        mu = None
+        for it in range(SETTLE_ITERATIONS + 1):
+            if self._converged(cur, floor):
+                self.factorization = None  # the next solve factorises where it starts
+                log.debug("prescribed particles %s: settled in %d steps", self.prescribed.tolist(),
+                          it)
+                return self._equilibrium(cur, it)
+            if it == SETTLE_ITERATIONS:
+                break
+            data = tangent_data(self.model, self.pattern, cur.x, cur.tension, *args[:3],
+                                cur.volume_arm)
+            data[self._zero_slots] = 0.0
+            data[self._diag_slots] = 1.0
+            if mu is None:
+                free = self._mass_diagonal > 0.0
+                mu = float(np.median(data[self.pattern.diagonal][free]
+                                     / self._mass_diagonal[free]))
+            for _ in range(SETTLE_SHIFTS):
+                shifted = data.copy()
+                shifted[self.pattern.diagonal] += mu * self._mass_diagonal
+                try:
+                    lu = ldl_factor(self.pattern, shifted)
+                    downhill = bool(np.all(lu.d > 0.0))
+                except RuntimeError:  # a zero pivot: not positive definite either
+                    downhill = False
+                self.factorizations += 1
+                if downhill:
+                    rhs = np.zeros(self.pattern.n_dofs)
+                    rhs[self._mat] = cur.res
+                    step = lu.solve(rhs)[self._mat]
+                    moves = np.sqrt(np.sum(step.reshape(-1, 3) ** 2, axis=1))
+                    if moves.max() <= step_cap:
+                        trial = self._moved(cur, step, *args)
+                        if math.isfinite(trial.norm):
+                            break
+                mu *= 4.0
+            else:
+                break
+            cur, mu = trial, 0.25 * mu
+        raise ConvergenceError(f"no equilibrium reached by settling from the last one for "
+                               f"prescribed particles {self.prescribed.tolist()}: residual "
+                               f"{cur.norm:.3g} N after {it} damped steps (tolerance "
+                               f"{self.rtol:g} x force scale)")
+
+    def _force_floor(self, params: ConnectorParams, gravity: np.ndarray | None) -> float:
+        """The smallest force scale [N] a residual is measured against: the force of 0.1 %
+        strain on a mean connector, or the total weight."""
+        if self._floor_of[0] is not params:  # the same parameters for a whole curve
+            self._floor_of = (params, 1e-3 * float(np.mean(params.K0) * self._mean_length))
+        if gravity is None:
+            return self._floor_of[1]
+        return max(self._floor_of[1], float(np.linalg.norm(gravity) * self.model.masses.sum()))
+
+    def _converged(self, cur: "_Iterate", floor: float) -> bool:
+        """The residual within ``rtol`` x the force scale (the constraint reaction, at least
+        ``floor``)."""
+        held = cur.forces[self.prescribed].ravel()
+        scale = max(floor, math.sqrt(held @ held))  # np.linalg.norm's sum, without its overhead
+        # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
+        # and inf <= rtol x inf must not pass for convergence
+        return cur.norm <= self.rtol * scale and math.isfinite(scale)
+
+    def _equilibrium(self, cur: "_Iterate", iterations: int) -> Equilibrium:
+        return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, iterations,
+                           *cur.volume_state(self.model))
 
 
 def kernel_terms(p: ConnectorParams, nonlinear: bool, arms: ArmStep | None
@@ -468,23 +564,51 @@ class _Iterate:
                 volume_strains(self.x, model.tets, model.rest_volumes))
 
 
+@contextlib.contextmanager
+def reaching(last: Callable[[], float]) -> Iterator[None]:
+    """Inside the block, an error of the model (Newton, a spring's stiffness, an inverted
+    tet) that does not say how far it got records ``last()`` in ``reached``: the load
+    parameter of the last state reached (depth [m], time [s] or load fraction [1])."""
+    try:
+        yield
+    except (ConvergenceError, ParameterError, StabilityError) as exc:
+        if exc.reached is None:
+            exc.reached = float(last())
+        raise
+
+
 def continuation(step: Callable[[T, float, float], T], start: T, s0: float, s1: float, *,
-                 max_cuts: int = 6, what: str = "load step") -> T:
+                 max_cuts: int = 6, what: str = "load step",
+                 settle: Callable[[T, float, float], T] | None = None) -> T:
     """Advance ``start`` from load parameter ``s0`` to ``s1`` with ``step(state, s_from, s_to)``.
 
     If a step raises :class:`ConvergenceError` it is split in two halves,
-    recursively, at most ``max_cuts`` times deep.
+    recursively, at most ``max_cuts`` times deep. Where the shortest step still fails,
+    ``settle(state, s_from, s_to)`` (if given; :meth:`EquilibriumSolver.settle`) takes it:
+    the path has reached a fold and the model moves on to the state it snaps to. The error
+    of a step that still fails records in ``reached`` the load parameter it started from: the
+    furthest one reached.
     """
     try:
         return step(start, s0, s1)
     except ConvergenceError as exc:
         if max_cuts <= 0:
-            raise ConvergenceError(f"{what} {s0:g} -> {s1:g} failed after repeated halving: "
-                                   f"{exc}") from None
+            if settle is not None:
+                try:
+                    state = settle(start, s0, s1)
+                    log.debug("%s %g -> %g: no nearby equilibrium (a fold); settled on the "
+                              "one the model snaps to", what, s0, s1)
+                    return state
+                except ConvergenceError as unsettled:
+                    exc = unsettled
+            error = ConvergenceError(f"{what} {s0:g} -> {s1:g} failed after repeated halving"
+                                     f"{' and settling' if settle is not None else ''}: {exc}")
+            error.reached = s0
+            raise error from None
     mid = 0.5 * (s0 + s1)
     log.debug("%s %g -> %g cut at %g", what, s0, s1, mid)
-    half = continuation(step, start, s0, mid, max_cuts=max_cuts - 1, what=what)
-    return continuation(step, half, mid, s1, max_cuts=max_cuts - 1, what=what)
+    half = continuation(step, start, s0, mid, max_cuts=max_cuts - 1, what=what, settle=settle)
+    return continuation(step, half, mid, s1, max_cuts=max_cuts - 1, what=what, settle=settle)
 
 
 def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
@@ -494,22 +618,28 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
 
     Newton equilibrium with ``gravity`` [m/s^2] applied in ``load_steps`` equal
     increments (each halved on failure, :func:`weight_equilibrium`). The parameters are
-    validated on ``strain_range`` and the springs' K(eps) checked at the strains reached.
+    validated on ``strain_range`` and the springs' K(eps) checked at the strains reached. An
+    error of the model (parameters, Newton, the final check) records in ``reached`` the
+    fraction of the load it had carried.
     """
-    model.params.validate(strain_range, model.edges, model.tets)
-    x = weight_equilibrium(model, gravity, load_steps, rtol=rtol)
-    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-    check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0, "gravity_static")
-    if model.has_volume:
-        check_volumes(model, x, "gravity_static")
+    x = weight_equilibrium(model, gravity, load_steps, rtol=rtol, strain_range=strain_range)
+    with reaching(lambda: 1.0):
+        d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+        check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0,
+                        "gravity_static")
+        if model.has_volume:
+            check_volumes(model, x, "gravity_static")
     return x - model.rest_positions
 
 
 def weight_equilibrium(model: Model, gravity: np.ndarray, load_steps: int, *,
-                       rtol: float = 1e-10) -> np.ndarray:
+                       rtol: float = 1e-10,
+                       strain_range: tuple[float, float] | None = None) -> np.ndarray:
     """(N, 3) positions [m] of the static equilibrium under the weight ``m gravity``
     [m/s^2] (long-term model, arms relaxed), the load applied in ``load_steps`` equal
-    increments, each halved on failure (:func:`continuation`).
+    increments, each halved on failure (:func:`continuation`). With ``strain_range`` the
+    parameters are validated on it first. An error of the model records in ``reached`` the
+    fraction of the load it had carried.
 
     Raises:
         ParameterError: no gravity vector, no load step or no fixed particle.
@@ -523,15 +653,20 @@ def weight_equilibrium(model: Model, gravity: np.ndarray, load_steps: int, *,
     if not len(model.free_nodes) < model.n_particles:
         raise ParameterError("a static weight needs fixed particles: a free body under "
                              "gravity has no static equilibrium")
-    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
-                               rtol=rtol, refactor_ratio=0.1)
+    carried = 0.0
+    with reaching(lambda: carried):
+        if strain_range is not None:
+            model.params.validate(strain_range, model.edges, model.tets)
+        solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
+                                   rtol=rtol, refactor_ratio=0.1)
 
-    def step(x: np.ndarray, _: float, s1: float) -> np.ndarray:
-        return solver.solve(x, model.params, gravity=s1 * g).x
+        def step(x: np.ndarray, _: float, s1: float) -> np.ndarray:
+            return solver.solve(x, model.params, gravity=s1 * g).x
 
-    x = model.rest_positions.copy()
-    for k in range(load_steps):
-        x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
+        x = model.rest_positions.copy()
+        for k in range(load_steps):
+            x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
+            carried = (k + 1) / load_steps
     return x
 
 

@@ -4,8 +4,11 @@
 with stages ``reference``, ``calibrate``, ``gravity``, ``report`` (each brings the
 stages before it up to date first, like make) and ``demo`` (all of them).
 ``python -m pipelines scene-keys`` prints the README's table of scene keys.
-Every command ends through :func:`forcecal.failures.run_command`: one ``error:`` line
-and exit code 2 on any failure, exit code 130 on Ctrl-C.
+``report`` and ``demo`` end with the verdict table (``report.json`` ``verdict``); with
+``--require-pass`` they exit with :data:`EXIT_VERDICT_FAILED` (3) when the verdict failed
+and 0 when it passed (a CI job gates on it; under MPI rank 0 reads the verdict and every
+rank returns its code). Every command ends through :func:`forcecal.failures.run_command`:
+one ``error:`` line and exit code 2 on any failure, exit code 130 on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -14,12 +17,14 @@ import argparse
 import logging
 from pathlib import Path
 
-from forcecal.errors import ForcecalError
+from forcecal.errors import DataFileError, ForcecalError
 from forcecal.failures import collective, run_command
 from forcecal.logs import configure_logging
 
 STAGE_COMMANDS = {"reference": "reference", "calibrate": "calibrate", "gravity": "gravity",
                   "report": "report", "demo": "report"}
+#: exit code of ``--require-pass`` when the verdict failed (2 stays "error")
+EXIT_VERDICT_FAILED = 3
 
 
 def default_out(scene_name: str) -> Path:
@@ -42,10 +47,16 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scene-keys", help="print the Markdown table of every scene key")
     p = sub.add_parser("results-table", help="print the README's results tables from a report")
     p.add_argument("report", help="report.json")
+    p = sub.add_parser("verdict-table", help="print the README's verdict table from a report")
+    p.add_argument("report", help="report.json")
     p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
     p.add_argument("bench", help="bench.json")
     from pipelines.bench.driver import add_arguments as bench_arguments
-    bench_arguments(sub.add_parser("bench", help="run time vs error benchmarks (make bench)"))
+    bench_arguments(sub.add_parser("bench", help="speed and error benchmarks (make bench; "
+                                   "--full: make bench-full)"))
+    from pipelines.corpus import add_arguments as corpus_arguments
+    corpus_arguments(sub.add_parser("corpus", help="every scenes/corpus/*.toml through the "
+                                    "pipeline, one process each (make corpus)"))
     helps = {"reference": "FE reference (reference.h5)",
              "calibrate": "calibrate the particle model (params.h5); runs reference if needed",
              "gravity": "particle gravity runs (gravity.h5); runs earlier stages if needed",
@@ -65,6 +76,10 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--ranks", type=_positive_int, default=2,
                        help="MPI ranks of the FE reference when not already under mpirun "
                        "(1 = in-process; default 2)")
+        if name in ("report", "demo"):
+            p.add_argument("--require-pass", action="store_true",
+                           help=f"exit with code {EXIT_VERDICT_FAILED} when the verdict "
+                           "(report.json) failed, 0 when it passed (for CI)")
     return parser
 
 
@@ -82,6 +97,17 @@ def _run(args: argparse.Namespace) -> int:
         from pipelines.report import read_report, results_markdown
         print(results_markdown(read_report(args.report)))
         return 0
+    if args.stage == "verdict-table":
+        from forcecal.scene import VerdictSection
+        from pipelines.report import read_report
+        from pipelines.verdict import judge, measurements, verdict_markdown
+        report = read_report(args.report)
+        if "verdict" not in report:  # written before it: its measurements, the default goals
+            print(f"(judged now from the measurements of {args.report}, which has no verdict, "
+                  "against the default [verdict] goals)\n")
+            report["verdict"] = judge(measurements(report), VerdictSection())
+        print(verdict_markdown(report["verdict"]))
+        return 0
     if args.stage == "bench-table":
         from pipelines.bench.driver import read_bench
         from pipelines.bench.report import goals_markdown
@@ -91,6 +117,9 @@ def _run(args: argparse.Namespace) -> int:
         from pipelines.bench.driver import main as bench_main
         configure_logging(logging.INFO)
         return bench_main(args)
+    if args.stage == "corpus":
+        from pipelines.corpus import main as corpus_main
+        return corpus_main(args)
     from calibration.pool import mpi_world
     from forcecal.scene import load_scene
     from pipelines.stages import ORDER, run_pipeline
@@ -111,9 +140,29 @@ def _run(args: argparse.Namespace) -> int:
     outcomes = run_pipeline(scene, out, until=until, force=force,
                             progress=not args.no_progress, ranks=args.ranks,
                             verbose=args.verbose)
+    code = 0
     if rank == 0:
         for o in outcomes:
             print(f"{o.stage:<10} {'ran' if o.ran else 'skipped':<8} "
                   f"{o.seconds:8.1f} s  {'; '.join(o.reasons) or 'up to date'}")
         print(f"outputs in {out}/")
-    return 0
+        if until == "report":
+            code = _print_verdict(out, getattr(args, "require_pass", False))
+    if comm is not None:  # rank 0 decides; every rank ends with its code
+        code = comm.bcast(code, root=0)
+    return code
+
+
+def _print_verdict(out: Path, require_pass: bool) -> int:
+    """Print the verdict table of ``out``'s report; the exit code ``--require-pass`` asks for."""
+    from pipelines.realtime import realtime_line
+    from pipelines.report import read_report
+    from pipelines.verdict import verdict_text
+    report = read_report(out / "report.json")
+    if "verdict" not in report:
+        raise DataFileError(f"{out / 'report.json'} has no verdict (written before it); rerun "
+                            "the report stage (--force)")
+    print()
+    print(verdict_text(report["verdict"]))
+    print(realtime_line(report.get("realtime")))
+    return EXIT_VERDICT_FAILED if require_pass and not report["verdict"]["passed"] else 0

@@ -15,7 +15,8 @@ calibrated indentation error, so the figure shows a typical point, not the best.
 
 Only what the scene's experiments produced is drawn: without relaxation the
 relaxation panels say so (and tau1 is the uncalibrated initial guess); without
-a gravity experiment its figure is not written.
+a gravity experiment its figure is not written. A curve, bar or sag a model did not
+complete (``report.json`` ``failures``) is not drawn; its legend entry says so.
 """
 
 from __future__ import annotations
@@ -64,10 +65,12 @@ def _scale(values: np.ndarray) -> str:
 
 
 def median_point(errors: np.ndarray, mask: np.ndarray) -> int | None:
-    """Index (into the test points) of the point with the median error among ``mask``."""
-    idx = np.nonzero(mask)[0]
+    """Index (into the test points) of the point with the median error among ``mask`` (among
+    the points the model completed; the first of ``mask`` if it completed none of them, None
+    if ``mask`` is empty)."""
+    idx = np.nonzero(mask & np.isfinite(errors))[0]
     if not len(idx):
-        return None
+        return int(np.nonzero(mask)[0][0]) if mask.any() else None
     return int(idx[np.argsort(errors[idx])[len(idx) // 2]])
 
 
@@ -81,9 +84,9 @@ def _curves(ax_force, ax_relax, k: int, reference: Reference, cal: CalibrationRe
         ax_relax.plot(rel.time, rel.force_normal[k], "o-", ms=3, **STYLE["fe"])
     for v in variants:
         curves = cal.variants[v].curves
-        ax_force.plot(MM * ind.displacement, curves["indentation"][k], **STYLE[v])
+        _plot_completed(ax_force, MM * ind.displacement, curves["indentation"][k], v)
         if relax:
-            ax_relax.plot(rel.time, curves["relaxation"][k], **STYLE[v])
+            _plot_completed(ax_relax, rel.time, curves["relaxation"][k], v)
     ax_force.set(xlabel="indentation depth [mm]", ylabel="normal force [N]")
     if not relax:
         _not_run(ax_relax)
@@ -94,6 +97,15 @@ def _curves(ax_force, ax_relax, k: int, reference: Reference, cal: CalibrationRe
     for ax in (ax_force, ax_relax):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
+
+
+def _plot_completed(ax, x: np.ndarray, y: np.ndarray, model: str) -> None:
+    """``y`` against ``x`` in ``model``'s style, or, when the model did not complete the
+    curve (NaN), only a legend entry saying so."""
+    if np.all(np.isfinite(y)):
+        ax.plot(x, y, **STYLE[model])
+    else:
+        ax.plot([], [], **{**STYLE[model], "label": f"{STYLE[model]['label']}: did not complete"})
 
 
 def _not_run(ax, what: str = "relaxation") -> None:
@@ -190,25 +202,38 @@ def _surface(ax, vertices: np.ndarray, faces: np.ndarray, u: np.ndarray, norm, s
 
 
 def gravity_static_figure(path: Path, reference: Reference, gravity: GravityRuns) -> Path:
-    """FE vs calibrated particle static sag, deformed surfaces on a shared colour scale."""
+    """FE vs calibrated particle static sag, deformed surfaces on a shared colour scale (the
+    FE's alone when the calibrated model's static sag did not complete)."""
     mesh = reference.problem.mesh
     fe = reference.gravity.static_displacement
-    particle = gravity.models["calibrated"].static_displacement
-    peak = max(np.linalg.norm(fe, axis=1).max(), np.linalg.norm(particle, axis=1).max())
+    run = gravity.models.get("calibrated")
+    panels = [(fe, "FE reference")] + ([] if run is None else [
+        (run.static_displacement, "particle, calibrated")])
+    peak = max(np.linalg.norm(u, axis=1).max() for u, _ in panels)
     size = float(np.ptp(mesh.vertices, axis=0).max())
     # magnify so the largest sag shows as ~10 % of the organ (1x if it already does)
     scale = max(1.0, round(0.1 * size / peak)) if peak > 0 else 1.0
     norm = colors.Normalize(0.0, MM * peak)
     fig = plt.figure(figsize=(13, 5.5))
-    for i, (u, label) in enumerate(((fe, "FE reference"), (particle, "particle, calibrated"))):
+    for i, (u, label) in enumerate(panels):
         # the 3-D axes draw their z label outside their box: leave room for it before the next
         ax = fig.add_axes([0.0 + 0.46 * i, 0.02, 0.40, 0.86], projection="3d")
         _surface(ax, mesh.vertices, mesh.surface_faces, u, norm, scale,
                  f"{label}: max sag {MM * np.linalg.norm(u, axis=1).max():.2f} mm")
+    if run is None:  # the calibrated panel says how far its static sag got
+        carried = [f.reached for f in gravity.failures
+                   if f.model == "calibrated" and f.experiment == "gravity_static"]
+        ax = fig.add_axes([0.46, 0.02, 0.40, 0.86])
+        ax.axis("off")
+        ax.text(0.5, 0.5, "particle, calibrated: no static equilibrium"
+                + (f"\nbeyond {min(carried):.3g} g" if carried else "")
+                + "\n(report.json failures)", ha="center", va="center")
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"),
                        cax=fig.add_axes([0.92, 0.2, 0.015, 0.55]))
     bar.set_label("|u| [mm]")
-    fig.suptitle(f"Static sag under gravity, base fixed (displacements drawn x{scale:g})")
+    missing = "" if run is not None else "; the calibrated model did not carry its weight"
+    fig.suptitle(f"Static sag under gravity, supported (displacements drawn x{scale:g})"
+                 + missing)
     return save_figure(fig, path, tight=False)
 
 
@@ -217,11 +242,15 @@ def gravity_dynamic_figure(path: Path, reference: Reference, gravity: GravityRun
     node = reference.problem.tracked_node
     t_fe, u_fe = reference.gravity.time, reference.gravity.displacement[:, node]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    series = [("fe", t_fe, u_fe)] + [(m, gravity.time, r.displacement[:, node])
-                                     for m, r in gravity.models.items()]
-    for name, t, u in series:
-        axes[0].plot(t, MM * u[:, 2], **STYLE[name])
-        axes[1].plot(t, MM * np.linalg.norm(u, axis=1), **STYLE[name])
+    series = [("fe", t_fe, u_fe)] + [
+        (m, gravity.time, None if m not in gravity.models or gravity.models[m].displacement
+         is None else gravity.models[m].displacement[:, node]) for m in ("calibrated",
+                                                                           "baseline")]
+    nothing = np.full(len(t_fe), np.nan)
+    for name, t, u in series:  # a release a model did not complete: a legend entry only
+        _plot_completed(axes[0], t, nothing if u is None else MM * u[:, 2], name)
+        _plot_completed(axes[1], t, nothing if u is None else MM * np.linalg.norm(u, axis=1),
+                        name)
     axes[0].set(xlabel="time [s]", ylabel="u_z [mm]", title=f"vertical displacement, node {node}")
     axes[1].set(xlabel="time [s]", ylabel="|u| [mm]", title=f"displacement magnitude, node {node}")
     for ax in axes:
@@ -241,20 +270,27 @@ def errors_figure(path: Path, reference: Reference, cal: CalibrationResult) -> P
                              squeeze=False)
     axes = axes[:, 0]
     for ax, e in zip(axes, cal.experiments):
-        for offset, v in ((-0.2, "calibrated"), (0.2, "baseline")):
-            err = 100 * cal.variants[v].errors[e]
-            ax.bar(x[:n_cal] + offset, err[:n_cal], 0.4, color=STYLE[v]["color"],
-                   label=f"{v}, calibration points")
-            ax.bar(x[n_cal:] + offset, err[n_cal:], 0.4, color=STYLE[v]["color"], hatch="//",
-                   edgecolor="white", label=f"{v}, held-out points")
-        if n_cal < len(nodes):
-            ax.axvline(n_cal - 0.5, color="black", lw=0.8)
         errors = 100 * np.concatenate([cal.variants[v].errors[e] for v in ("calibrated",
                                                                           "baseline")])
+        errors = errors[np.isfinite(errors) & (errors > 0)]
+        low, high = (0.5 * errors.min(), 30 * errors.max()) if len(errors) else (0.1, 100.0)
+        for offset, v in ((-0.2, "calibrated"), (0.2, "baseline")):
+            err = 100 * cal.variants[v].errors[e]
+            done = np.isfinite(err)  # a point the model failed has no bar, but a cross
+            cal_points, held = done & (x < n_cal), done & (x >= n_cal)
+            ax.bar(x[cal_points] + offset, err[cal_points], 0.4, color=STYLE[v]["color"],
+                   label=f"{v}, calibration points")
+            ax.bar(x[held] + offset, err[held], 0.4, color=STYLE[v]["color"], hatch="//",
+                   edgecolor="white", label=f"{v}, held-out points")
+            if not done.all():
+                ax.plot(x[~done] + offset, np.full(int((~done).sum()), 2 * low), "x",
+                        color=STYLE[v]["color"], label=f"{v}, did not complete")
+        if n_cal < len(nodes):
+            ax.axvline(n_cal - 0.5, color="black", lw=0.8)
         ax.set(ylabel="relative RMS error [%]", yscale="log",
                title=f"{e}: RMS(F_particle - F_FE) / max|F_FE| per test point")
         # log axis set before its limits; room above the bars for the legend
-        ax.set_ylim(0.5 * errors[errors > 0].min(), 30 * errors.max())
+        ax.set_ylim(low, high)
         ax.grid(alpha=0.3, axis="y", which="both")
         ax.legend(fontsize=7, ncol=4)
     axes[-1].set_xticks(x, [str(n) for n in nodes], rotation=90, fontsize=7)

@@ -7,12 +7,18 @@ gravity ``scene.gravity.acceleration``; the static sag uses the long-term model
 its undeformed shape at t = 0 with the Maxwell arms active and is sampled at
 exactly the FE's record times, so the comparison needs no interpolation.
 
+A model that does not complete its test (no static equilibrium at full load, a release that
+leaves its verified strain range, a spring whose stiffness reaches zero) is a result, not a
+crash: its failure is recorded (:class:`calibration.validation.ValidationFailure`, by the
+function the calibration's gravity check runs too,
+:func:`calibration.gravity_check.gravity_outcome`) and the other model's results are kept.
+
 ``gravity.h5`` (kind ``forcecal.gravity``, schema 1; every dataset has a
 ``unit`` attribute):
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``acceleration`` (3,) m/s^2, ``reference_fingerprint`` (SHA-256 of the reference's gravity content, :func:`forcecal.h5io.reference_digest`), ``params_fingerprint`` (SHA-256 of the file), ``experiments`` (JSON list of the gravity experiments run; absent = both) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``acceleration`` (3,) m/s^2, ``reference_fingerprint`` (SHA-256 of the reference's gravity content, :func:`forcecal.h5io.reference_digest`), ``params_fingerprint`` (SHA-256 of the file), ``experiments`` (JSON list of the gravity experiments run; absent = both), ``failures`` (JSON list of the models' failures, records as in ``params.h5`` with ``experiment`` ``gravity_static`` (``reached``: ``{"load_factor": ...}``, the fraction of the gravity carried) or ``gravity_dynamic`` (``{"time_s": ...}``), ``point`` and ``role`` null; absent in files written before it: none) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` |
 | ``/time`` | (S,) | s | sample times of the dynamic run (the FE's), from rest at 0 (only with ``gravity_dynamic``, like ``displacement``) |
 | ``/<model>/static_displacement`` | (N, 3) | m | static sag of every vertex |
@@ -20,7 +26,8 @@ exactly the FE's record times, so the comparison needs no interpolation.
 | ``/<model>`` attrs | | | ``dt`` [s] explicit step used, ``critical_dt`` [s] its stability limit, ``static_time``, ``dynamic_time`` [s] wall times, ``strain_min``, ``strain_max`` [1] connector strain extremes over both runs |
 
 ``<model>`` is ``calibrated`` (global + local tuning, or the gradient fit) and ``baseline``
-(Van Gelder).
+(Van Gelder). A model whose static sag failed has no group; one whose release failed has no
+``displacement`` (and ``dynamic_time`` 0): each only with its failure recorded.
 The static sag is always computed (the release's time step is chosen from its
 strains); the dynamic release only when the scene's experiments include
 ``gravity_dynamic`` (otherwise ``dynamic_time`` is 0).
@@ -35,13 +42,14 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.gravity_check import gravity_outcome
+from calibration.validation import ValidationFailure, failures_json, parse_failures
 from forcecal.errors import DataFileError
 from forcecal.h5io import (Reference, atomic_h5, attr, get, json_attr, open_h5, put,
                            read_problem, write_problem)
 from forcecal.problem import Problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
-from particle.experiments import GravityTest, gravity_test
-from particle.model import build_model
+from particle.experiments import GravityTest
 from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
@@ -60,10 +68,12 @@ class GravityRuns:
         problem: mesh, fixed nodes, test points, tracked node.
         time: (S,) float64, sample times [s].
         acceleration: (3,) float64, gravitational acceleration [m/s^2].
-        models: model name (:data:`MODELS`) -> its runs.
+        models: model name (:data:`MODELS`) -> its runs (a model whose static sag failed
+            is absent; one whose release failed has no ``displacement``).
         reference_fingerprint, params_fingerprint: SHA-256 of the input files.
         experiments: the gravity experiments run (``time`` is None without
             ``gravity_dynamic``).
+        failures: what the models failed (their ``experiment`` says which run).
     """
     problem: Problem
     time: np.ndarray | None
@@ -72,34 +82,18 @@ class GravityRuns:
     reference_fingerprint: str = ""
     params_fingerprint: str = ""
     experiments: tuple[str, ...] = GRAVITY_EXPERIMENTS
-
-
-def run_model(scene: Scene, problem: Problem, params: ConnectorParams, gravity: np.ndarray,
-              times: np.ndarray | None, strain_range: tuple[float, float], name: str
-              ) -> GravityTest:
-    """Static sag and dynamic release of one parameter set (``times`` None: the static sag
-    only, with the step the release would take).
-
-    ``strain_range`` is where the springs were calibrated (and must be
-    positive); the runs are refused (:class:`ParameterError`) if a spring's
-    K(eps) becomes <= 0 at a strain they reach, and the strain extremes are
-    recorded so that leaving the calibrated range can be reported. The
-    explicit step is chosen for each connector's strain range of the release
-    (:func:`release_strain_range` of the static sag, ``particle.strain_margin``),
-    which the dynamic run verifies; an explicit ``particle.dt`` must be stable
-    over the calibrated range as well.
-    """
-    return gravity_test(build_model(problem, scene.material.density, params), gravity, times,
-                        load_steps=scene.gravity.static_load_steps, particle=scene.particle,
-                        strain_range=strain_range, name=name)
+    failures: tuple[ValidationFailure, ...] = ()
 
 
 def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, ConnectorParams],
                 strain_range: tuple[float, float], *, reference_fingerprint: str = "",
                 params_fingerprint: str = "") -> GravityRuns:
-    """Run every model of :data:`MODELS` through the reference's gravity experiments.
+    """Run every model of :data:`MODELS` through the reference's gravity experiments
+    (:func:`calibration.gravity_check.gravity_outcome`: the static sag and the release, whose
+    explicit step is chosen for each connector's strain range of the release and verified).
 
-    ``strain_range`` is the calibration's: where the calibrated springs are valid.
+    ``strain_range`` is the calibration's: where the calibrated springs are valid. A model
+    that fails is recorded in ``failures`` and the others run on.
     """
     experiments = tuple(e for e in GRAVITY_EXPERIMENTS if scene.runs(e))
     for e in experiments:
@@ -109,10 +103,17 @@ def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, Connec
     missing = [m for m in MODELS if m not in connectors]
     if missing:
         raise DataFileError(f"params.h5 lacks connector parameters {missing}")
-    models = {m: run_model(scene, reference.problem, connectors[m], g, times, strain_range, m)
-              for m in MODELS}
+    models, failures = {}, []
+    for m in MODELS:
+        run, failure = gravity_outcome(scene, reference.problem, connectors[m], times,
+                                       strain_range, m)
+        if run is not None:
+            models[m] = run
+        if failure is not None:
+            log.warning("gravity: %s", failure.describe())
+            failures.append(failure)
     return GravityRuns(reference.problem, times, g, models, reference_fingerprint,
-                       params_fingerprint, experiments)
+                       params_fingerprint, experiments, tuple(failures))
 
 
 def write_gravity(path: str | Path, runs: GravityRuns) -> None:
@@ -122,6 +123,7 @@ def write_gravity(path: str | Path, runs: GravityRuns) -> None:
         fh.attrs["reference_fingerprint"] = runs.reference_fingerprint
         fh.attrs["params_fingerprint"] = runs.params_fingerprint
         fh.attrs["experiments"] = json.dumps(list(runs.experiments))
+        fh.attrs["failures"] = failures_json(runs.failures)
         write_problem(fh, runs.problem)
         if runs.time is not None:
             put(fh, "time", runs.time, "s", "sample times of the dynamic run (S,)")
@@ -135,22 +137,28 @@ def write_gravity(path: str | Path, runs: GravityRuns) -> None:
 
 
 def read_gravity(path: str | Path) -> GravityRuns:
-    """Read ``gravity.h5`` back (kind, schema, shapes and finiteness checked)."""
+    """Read ``gravity.h5`` back (kind, schema, shapes and finiteness checked; a model's
+    missing run must be one its recorded failure explains)."""
     with open_h5(path, GRAVITY_KIND, GRAVITY_SCHEMA) as fh:
         problem = read_problem(fh)
         experiments = tuple(json_attr(fh, "experiments", GRAVITY_EXPERIMENTS))
+        failures = parse_failures(json_attr(fh, "failures", []), f"{path}: failures")
         dynamic = "gravity_dynamic" in experiments
         times = get(fh, "time", (None,), dtype="float") if dynamic else None
         n = problem.mesh.n_vertices
         models = {}
         for name in MODELS:
+            failed = {f.experiment for f in failures if f.model == name}
             if name not in fh:
-                raise DataFileError(f"{path}:/{name} is missing")
+                if "gravity_static" not in failed:
+                    raise DataFileError(f"{path}:/{name} is missing")
+                continue
+            released = dynamic and "gravity_dynamic" not in failed
             models[name] = GravityTest(
                 get(fh, f"{name}/static_displacement", (n, 3), dtype="float"),
                 get(fh, f"{name}/displacement", (len(times), n, 3), dtype="float")
-                if dynamic else None,
+                if released else None,
                 *(float(attr(fh[name], k)) for k in SCALARS))
         return GravityRuns(problem, times, np.asarray(attr(fh, "acceleration"), dtype=float),
                            models, str(attr(fh, "reference_fingerprint")),
-                           str(attr(fh, "params_fingerprint")), experiments)
+                           str(attr(fh, "params_fingerprint")), experiments, failures)

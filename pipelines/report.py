@@ -35,6 +35,22 @@ Experiments the scene does not run (its ``experiments`` list) keep their keys
 with ``null``; ``not_run`` maps each such experiment to the reason, and
 ``experiments`` lists those that ran. The gravity timings are ``null`` without
 any gravity experiment, and so is the ``gravity`` block.
+
+A particle model that failed a validation experiment (:mod:`calibration.validation`) is
+listed in ``failures`` (model, experiment, point, role, what it reached, the reason); its
+errors are the means over the points it completed (``null`` when it completed none, and its
+``per_point_errors`` are ``null`` at the points it failed), and a model whose static sag
+failed has ``null`` gravity errors (its release did not run). ``verdict`` judges the
+calibrated model's checks against the scene's ``[verdict]`` goals (:mod:`pipelines.verdict`)
+and ``realtime`` its haptic cost on the mesh (:mod:`pipelines.realtime`).
+``fe_failures`` and ``mesh_preflight`` repeat what the FE stage recorded in
+``reference.h5`` (:mod:`forcecal.fe_failures`: test points replaced or dropped, a failed
+FE gravity test, which is then the reason in ``not_run``; :mod:`forcecal.preflight`).
+
+``strain_ranges`` says where the fitted spring laws hold (:func:`strain_ranges`): the
+connector strains the calibration points' curves reached, against those of each held-out
+point; a held-out point beyond them is judged on an extrapolated spring law, and the
+verdict's held-out checks say so.
 """
 
 from __future__ import annotations
@@ -50,12 +66,14 @@ import numpy as np
 import forcecal
 from calibration.metrics import force_vector_errors, relative_rms_error
 from calibration.results import CalibrationResult
+from calibration.validation import per_completed_point
 from forcecal.errors import DataFileError
 from forcecal.h5io import Reference, atomic_path
 from forcecal.provenance import git_commit
-from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS
+from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
 from pipelines.dynamics import dynamic_metrics, release_modes
 from pipelines.gravity import GravityRuns, GravityTest
+from pipelines.verdict import CHECKS, STATUSES, judge, measurements
 
 log = logging.getLogger(__name__)
 
@@ -71,13 +89,14 @@ TIMING_KEYS = ("mesh", "reference", "calibration", "gravity_particle", "gravity_
 
 def curve_errors(reference: Reference, calibration: CalibrationResult, variant: str,
                  experiment: str) -> np.ndarray:
-    """(P,) relative RMS error of every test point's normal-force curve for one model variant."""
+    """(P,) relative RMS error of every test point's normal-force curve for one model variant
+    (NaN at a point it failed)."""
     ref = getattr(reference, experiment).force_normal
     sim = calibration.variants[variant].curves[experiment]
     if sim.shape != ref.shape:
         raise DataFileError(f"params.h5 {variant} {experiment} curves have shape {sim.shape}, "
                             f"the reference {ref.shape}; rerun the calibration")
-    return relative_rms_error(sim, ref)
+    return per_completed_point(relative_rms_error, sim, ref)
 
 
 def gravity_static_error(fe: np.ndarray, particle: np.ndarray, free: np.ndarray) -> float:
@@ -116,7 +135,8 @@ def vector_errors(reference: Reference, calibration: CalibrationResult,
                 raise DataFileError(f"params.h5 {variant} {experiment} force vectors have "
                                     f"shape {sim.shape}, the reference {ref.shape}; rerun the "
                                     "calibration")
-            per_variant[variant] = force_vector_errors(sim, ref, reference.problem.normals)
+            per_variant[variant] = per_completed_point(force_vector_errors, sim, ref,
+                                                       reference.problem.normals)
         vector.update(point_set_means({v: e[0] for v, e in per_variant.items()}, variants,
                                       cal, experiment))
         tangential.update(point_set_means({v: e[1] for v, e in per_variant.items()}, variants,
@@ -128,14 +148,15 @@ def point_set_means(errors: dict[str, np.ndarray], variants: dict[str, str],
                     is_calibration: np.ndarray, experiment: str) -> dict[str, float | None]:
     """``<experiment>_global``, ``_calibrated`` and ``_held_out``: the mean over the
     calibration points (global, calibrated) or the held-out points of the (P,) per-point
-    ``errors`` of the params.h5 variant ``variants`` maps that key to (None for an empty
-    point set)."""
+    ``errors`` of the params.h5 variant ``variants`` maps that key to, over the points it
+    completed (None for an empty point set, or one it failed everywhere)."""
     sets = (("global", is_calibration), ("calibrated", is_calibration),
             ("held_out", ~is_calibration))
     return {f"{experiment}_{key}": _mean(errors[variants[key]][points]) for key, points in sets}
 
 
 def _mean(values: np.ndarray) -> float | None:
+    values = values[np.isfinite(values)]  # a point a model failed has no error
     return float(np.mean(values)) if len(values) else None
 
 
@@ -144,7 +165,8 @@ def model_errors(reference: Reference, calibration: CalibrationResult,
                  ran: tuple[str, ...] = ALL_EXPERIMENTS) -> dict[str, float | None]:
     """The :data:`ERROR_KEYS` for one model; ``variants`` maps global/calibrated/held_out to the
     params.h5 variant evaluated on that point set. The keys of experiments not in ``ran``
-    are None."""
+    are None, and so are the gravity keys of a run the model failed (``gravity`` None, or
+    without ``displacement``)."""
     out: dict[str, float | None] = dict.fromkeys(ERROR_KEYS)
     for experiment in calibration.experiments:
         errors = {v: curve_errors(reference, calibration, v, experiment)
@@ -152,11 +174,11 @@ def model_errors(reference: Reference, calibration: CalibrationResult,
         out.update(point_set_means(errors, variants, calibration.is_calibration, experiment))
     fe = reference.gravity
     node = reference.problem.tracked_node
-    if "gravity_static" in ran:
+    if "gravity_static" in ran and gravity is not None:
         out["gravity_static"] = gravity_static_error(fe.static_displacement,
                                                      gravity.static_displacement,
                                                      reference.problem.free)
-    if "gravity_dynamic" in ran:
+    if "gravity_dynamic" in ran and gravity is not None and gravity.displacement is not None:
         out["gravity_dynamic"] = gravity_dynamic_error(fe.displacement[:, node],
                                                        gravity.displacement[:, node])
     return out
@@ -208,20 +230,31 @@ def experiments_run(experiments: tuple[str, ...], calibration: CalibrationResult
 
 def build_report(scene_name: str, reference: Reference, calibration: CalibrationResult,
                  gravity: GravityRuns | None,
-                 experiments: tuple[str, ...] = ALL_EXPERIMENTS) -> dict[str, Any]:
+                 experiments: tuple[str, ...] = ALL_EXPERIMENTS, *,
+                 goals: VerdictSection = VerdictSection(),
+                 realtime: dict[str, Any] | None = None) -> dict[str, Any]:
     """The report dictionary (fixed keys of the README plus documented extras) of the scene's
-    ``experiments``; ``gravity`` is None when they include no gravity experiment."""
+    ``experiments``; ``gravity`` is None when they include no gravity experiment. ``goals``
+    are the scene's ``[verdict]``, ``realtime`` the :func:`pipelines.realtime.realtime_block`
+    (None: not measured)."""
     p = reference.problem
     fe_t = fe_timings(reference)
     ran, not_run = experiments_run(experiments, calibration, gravity)
-    models = gravity.models if gravity is not None else dict.fromkeys(("calibrated",
-                                                                      "baseline"))
+    fe_failures = reference.fe_failures
+    if fe_failures.gravity is not None:  # why the scene's gravity experiments did not run
+        not_run.update({e: f"the FE gravity test failed ({fe_failures.gravity['experiment']}: "
+                        f"{fe_failures.gravity['reason']}): no FE gravity reference"
+                        for e in GRAVITY_EXPERIMENTS if e in not_run})
+    models = {m: None if gravity is None else gravity.models.get(m)
+              for m in ("calibrated", "baseline")}
     calibrated = model_errors(reference, calibration, models["calibrated"], CALIBRATED_VARIANTS,
                               ran)
     baseline = model_errors(reference, calibration, models["baseline"], BASELINE_VARIANTS, ran)
     held = ~calibration.is_calibration
-    per_point = {f"{v}_{e}": curve_errors(reference, calibration, v, e).tolist()
+    per_point = {f"{v}_{e}": _json_list(curve_errors(reference, calibration, v, e))
                  for v in ("baseline", "global", "calibrated") for e in calibration.experiments}
+    failures = [f.as_dict() for f in calibration.failures + (
+        () if gravity is None else gravity.failures)]
     warnings = list(calibration.warnings)
     by_model = {"calibrated": vector_errors(reference, calibration, CALIBRATED_VARIANTS),
                 "baseline": vector_errors(reference, calibration, BASELINE_VARIANTS)}
@@ -240,35 +273,40 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
                         f"{run.strain_max:.3g}] leave the calibrated range [{lo:.3g}, {hi:.3g}] "
                         "(the springs are extrapolated there)")
     node = p.tracked_node
+    released = {m: r for m, r in gravity.models.items()
+                if r.displacement is not None} if gravity is not None else {}
     gravity_block = None if gravity is None else {
         "tracked_node": int(node),
         "duration_s": None if gravity.time is None else float(gravity.time[-1]),
         "fe_max_static_sag_m": (None if reference.gravity.static_displacement is None
                                 or "gravity_static" not in ran else float(np.linalg.norm(
                                     reference.gravity.static_displacement, axis=1).max())),
-        **{f"{m}_max_static_sag_m": float(np.linalg.norm(
-            r.static_displacement, axis=1).max()) for m, r in gravity.models.items()},
-        **{f"{m}_dt_s": r.dt for m, r in gravity.models.items()},
-        **{f"{m}_critical_dt_s": r.critical_dt for m, r in gravity.models.items()},
-        **{f"{m}_strain_range": [r.strain_min, r.strain_max]
-           for m, r in gravity.models.items()},
+        # null for a model whose static sag failed (failures)
+        **{f"{m}_max_static_sag_m": None if r is None else float(np.linalg.norm(
+            r.static_displacement, axis=1).max()) for m, r in models.items()},
+        **{f"{m}_dt_s": None if r is None else r.dt for m, r in models.items()},
+        **{f"{m}_critical_dt_s": None if r is None else r.critical_dt
+           for m, r in models.items()},
+        **{f"{m}_strain_range": None if r is None else [r.strain_min, r.strain_max]
+           for m, r in models.items()},
         # where the calibrated springs were required to stay positive (the
         # runs' own extremes are the *_strain_range keys above)
         "calibration_strain_bounds": [lo, hi],
-        **({"particle_dynamic_s": run.dynamic_time, "fe_dynamic_s": fe_t["gravity_dynamic"]}
+        **({"particle_dynamic_s": None if "calibrated" not in released
+            else run.dynamic_time, "fe_dynamic_s": fe_t["gravity_dynamic"]}
            if "gravity_dynamic" in ran else {}),
         # period, first peak and decay need the release and the static sag it swings about
         "dynamic_metrics": dynamic_metrics(
             gravity.time, reference.gravity.displacement[:, node],
             reference.gravity.static_displacement[node],
             {m: (r.displacement[:, node], r.static_displacement[node])
-             for m, r in gravity.models.items()},
+             for m, r in released.items()},
             {"calibrated": calibrated["gravity_dynamic"], "baseline": baseline["gravity_dynamic"]},
             {"fe": release_modes(gravity.time, reference.gravity.displacement, node),
              **{m: release_modes(gravity.time, r.displacement, node)
-                for m, r in gravity.models.items()}})
+                for m, r in released.items()}})
         if {"gravity_dynamic", "gravity_static"} <= set(ran) else None}
-    return {
+    report = {
         "scene": scene_name,
         "experiments": list(ran),
         "not_run": not_run,
@@ -283,7 +321,7 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
                       "calibration": float(calibration.wall_time),
                       "gravity_particle": None if run is None else (run.static_time
                                                                     + run.dynamic_time),
-                      "gravity_fe": None if run is None else sum(
+                      "gravity_fe": None if gravity is None else sum(
                           fe_t[e] for e in ("gravity_static", "gravity_dynamic") if e in ran)},
         "versions": versions(reference),
         "held_out_global": {e: (_mean(curve_errors(reference, calibration, "global", e)[held])
@@ -301,12 +339,54 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "global_shape": calibration.settings.get("calibration", {}).get("global_shape",
                                                                         "uniform"),
         "warnings": warnings,
+        "failures": failures,
+        "realtime": realtime,
+        # FE test points replaced or dropped, a failed FE gravity test (forcecal.fe_failures)
+        "fe_failures": fe_failures.to_json(),
+        # the mesh as the FE stage saw it (forcecal.preflight; null for an older reference)
+        "mesh_preflight": reference.mesh_preflight,
+        "strain_ranges": strain_ranges(calibration),
     }
+    # judged from what the report measured, nothing else
+    report["verdict"] = judge(measurements(report), goals)
+    return report
+
+
+def strain_ranges(calibration: CalibrationResult) -> dict[str, Any] | None:
+    """Where the fitted spring laws were evaluated, and where the validation took them:
+    experiment -> model (``global``, ``calibrated``) -> ``{"calibration": [lo, hi],
+    "held_out": {"<vertex>": [lo, hi] or null}}``, the smallest and largest connector strain
+    over the calibration points' curves (the range the fit saw) and over each held-out
+    point's (null: the model failed it). None for a ``params.h5`` written before it stored
+    the strains."""
+    out: dict[str, Any] = {}
+    points = calibration.problem.test_points
+    cal = calibration.is_calibration
+    for model in ("global", "calibrated"):
+        strains = calibration.variants[model].strains
+        if strains is None:
+            return None
+        for e, values in strains.items():
+            done = cal & np.all(np.isfinite(values), axis=1)
+            fitted = ([float(values[done, 0].min()), float(values[done, 1].max())]
+                      if done.any() else None)
+            out.setdefault(e, {})[model] = {
+                "calibration": fitted,
+                "held_out": {str(int(points[k])): (values[k].tolist() if np.all(
+                    np.isfinite(values[k])) else None) for k in np.nonzero(~cal)[0]}}
+    return out
+
+
+def _json_list(values: np.ndarray) -> list[float | None]:
+    """``values`` as a JSON list, NaN (a point a model failed) as null."""
+    return [float(v) if np.isfinite(v) else None for v in values]
 
 
 def check_report(report: dict[str, Any]) -> None:
     """Raise :class:`DataFileError` if a fixed key is missing or a number is not finite (or
-    null without a reason: an experiment in ``not_run``, or no held-out points)."""
+    null without a reason: an experiment in ``not_run``, no held-out points, a model's
+    recorded failure of the experiment, a failed FE gravity test), or the ``verdict`` (when
+    there is one: reports written before it have none) is not the block of every check."""
     if not isinstance(report, dict):
         raise DataFileError(f"report.json is a JSON {type(report).__name__}, not the report's "
                             "object of keys")
@@ -316,6 +396,10 @@ def check_report(report: dict[str, Any]) -> None:
                                 "of keys")
     not_run = report.get("not_run", {})
     no_gravity = {"gravity_static", "gravity_dynamic"} <= set(not_run)
+    # "indentation", "relaxation", "gravity": experiments some model failed (or the FE)
+    failed = {f["experiment"].split("_")[0] for f in report.get("failures") or []}
+    if (report.get("fe_failures") or {}).get("gravity"):
+        failed.add("gravity")
     groups = [("errors", report.get("errors", {}), ERROR_KEYS),
               ("baseline_errors", report.get("baseline_errors", {}), ERROR_KEYS),
               ("timings_s", report.get("timings_s", {}), TIMING_KEYS)]
@@ -330,10 +414,29 @@ def check_report(report: dict[str, Any]) -> None:
                 raise DataFileError(f"report.json: {group}.{k} is missing")
             v = values[k]
             explained = v is None and (k.endswith("held_out") or any(
-                k.startswith(e) for e in not_run) or (no_gravity and k.startswith("gravity")))
+                k.startswith(e) for e in not_run) or (no_gravity and k.startswith("gravity"))
+                or k.split("_")[0] in failed)
             if not explained and not (isinstance(v, (int, float)) and not isinstance(v, bool)
                                       and np.isfinite(v)):
                 raise DataFileError(f"report.json: {group}.{k} = {v!r} is not a finite number")
+    if "verdict" in report:
+        check_verdict(report["verdict"])
+
+
+def check_verdict(verdict: Any) -> None:
+    """Raise :class:`DataFileError` unless ``verdict`` is the block :func:`pipelines.verdict.judge`
+    writes: every check with a known status, ``passed`` iff every check passed."""
+    checks = verdict.get("checks") if isinstance(verdict, dict) else None
+    if not isinstance(checks, dict) or set(CHECKS) - set(checks):
+        raise DataFileError(f"report.json: verdict = {verdict!r:.80} is not the block of the "
+                            f"checks {list(CHECKS)}")
+    for name, c in checks.items():
+        if not isinstance(c, dict) or c.get("status") not in STATUSES:
+            raise DataFileError(f"report.json: verdict.checks.{name} = {c!r:.80} has no status "
+                                f"of {list(STATUSES)}")
+    if verdict.get("passed") is not all(c["status"] == "passed" for c in checks.values()):
+        raise DataFileError("report.json: verdict.passed does not say whether every check "
+                            "passed")
 
 
 def read_report(path: str | Path) -> dict[str, Any]:

@@ -20,7 +20,9 @@ experiment reruns only the stages that use it (the FE stage computes only its
 work items), and a stage with none of its experiments in the list does not
 run. A ``reference.h5`` holding more experiments than the scene asks for is
 kept as it is (:func:`pipelines.runners.reference.adopt_reference`): removing
-an experiment recomputes nothing upstream.
+an experiment recomputes nothing upstream. When the FE gravity test failed, the
+stages after the reference run as for a scene without the gravity experiments
+(:func:`pipelines.runners.reference.scene_after_reference`).
 
 MPI: run as ``mpirun -n K python -m pipelines ...``, rank 0 decides what to run
 and broadcasts it; the FE reference spreads its work items over every rank,
@@ -42,11 +44,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from calibration.reach import check_experiment_depths
 from forcecal.cost import check_cost
 from forcecal.errors import DataFileError, SceneError
 from forcecal.failures import collective, note_stage
 from forcecal.h5io import reference_digest
-from forcecal.problem import load_mesh
+from forcecal.problem import build_problem, load_mesh
 from forcecal.provenance import code_digests, file_digest
 from forcecal.scene import EXPERIMENTS, Scene
 from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
@@ -54,7 +57,7 @@ from pipelines.cache import Cache, StageInputs
 from pipelines.runners.calibrate import run_calibrate
 from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, Context
 from pipelines.runners.gravity import run_gravity_stage
-from pipelines.runners.reference import adopt_reference, run_reference
+from pipelines.runners.reference import adopt_reference, run_reference, scene_after_reference
 from pipelines.runners.report import run_report
 from reference_fe.keys import FE_CODE_IGNORED
 
@@ -120,6 +123,8 @@ class Stage:
         if self.reads_mesh:  # the first stage: absurd work is refused before any is done
             mesh = load_mesh(ctx.scene)
             check_cost(ctx.scene, mesh.n_vertices, len(mesh.edges))
+            # and depths the calibration would refuse after the FE (the linear network's)
+            check_experiment_depths(ctx.scene, build_problem(ctx.scene, mesh))
         return StageInputs(scene=scene,
                            mesh=mesh.fingerprint() if mesh is not None else None,
                            # of reference.h5, only the experiments it uses
@@ -144,8 +149,10 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
           (REFERENCE, PARAMS), run_gravity_stage,
           experiments=("gravity_static", "gravity_dynamic")),
-    Stage("report", ("name", "outputs"), ("pipelines.runners.report",),
-          (REFERENCE, PARAMS, GRAVITY), run_report),
+    # [verdict]: the goals the report judges against (a change reruns this stage alone);
+    # [particle], [material], [indentation]: the real-time check's haptic session and drag
+    Stage("report", ("name", "outputs", "verdict", "particle", "material", "indentation"),
+          ("pipelines.runners.report",), (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)
 
@@ -184,6 +191,8 @@ def run_pipeline(scene: Scene, out: str | Path, *, until: str = "report",
         outcomes = []
         for stage in ORDER[:ORDER.index(until) + 1]:
             outcomes.append(_run_stage(ctx, cache, STAGES[stage], stage in force))
+            if stage == "reference":  # a failed FE gravity test: the later stages skip gravity
+                ctx = dataclasses.replace(ctx, scene=scene_after_reference(ctx))
         return outcomes
     finally:
         if lock is not None:

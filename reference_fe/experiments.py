@@ -13,7 +13,8 @@
 Every experiment clamps the problem's fixed vertices (:meth:`FEModel.clamp_dofs`).
 A step whose Newton solve fails is halved, up to ``fe.max_step_cuts`` times;
 then :class:`~forcecal.errors.ConvergenceError` names the experiment, the
-step and the load or time it failed at.
+step and the load or time it failed at (its ``reached`` attribute: the last converged
+value of the control variable).
 """
 
 from __future__ import annotations
@@ -73,11 +74,12 @@ def march(state: FEState, targets: np.ndarray, step: Step, *, max_cuts: int, wha
             except StepFailed as exc:
                 cuts += 1
                 if cuts > max_cuts:
-                    raise ConvergenceError(
+                    error = ConvergenceError(
                         f"{what}: step {k + 1}/{len(targets)} (to {target:.6g} {unit}) did not "
                         f"converge from {state.progress:.6g} {unit} even after {max_cuts} "
-                        f"halvings of the increment (last try: to {nxt:.6g} {unit}; {exc})"
-                    ) from None
+                        f"halvings of the increment (last try: to {nxt:.6g} {unit}; {exc})")
+                    error.reached = state.progress  # how far the experiment got
+                    raise error from None
                 increment /= 2.0
                 log.info("%s: step to %.6g %s failed, halving the increment (cut %d/%d)",
                          what, nxt, unit, cuts, max_cuts)
@@ -230,7 +232,11 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
         u = model.vertex_values(state.u)
         sag = float(np.linalg.norm(u, axis=1).max())
         first = sag / factor if first is None else first
-        check_sag(sag, factor, first, extent, len(fixed))
+        try:
+            check_sag(sag, factor, first, extent, len(fixed))
+        except StabilityError as error:
+            error.reached = factor  # how far the experiment got
+            raise
     return (u, state) if with_state else u
 
 

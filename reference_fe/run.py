@@ -1,7 +1,7 @@
 """Compute a scene's whole FE reference and write ``reference.h5``: :func:`compute_reference`.
 
 Work items are the indentation curve and the relaxation curve of every test
-point, the static sag and the dynamic gravity run, of the experiments the
+point, the static sag, the dynamic gravity run and the whole-body data, of the experiments the
 scene asks for (``experiments``; the others are not computed). Under ``mpirun -n K`` every
 rank builds one :class:`~reference_fe.model.FEModel` on ``MPI.COMM_SELF``
 (forms compiled once per process) and claims items one at a time, largest
@@ -12,6 +12,19 @@ them. Rank 0 then gathers the parts, writes ``reference.h5`` atomically and
 deletes the folder. Items never depend on the rank that computed them, so the
 result equals the serial one. Ranks share the output folder's filesystem (one
 machine, as ``mpirun`` is used here).
+
+Failures (:mod:`forcecal.fe_failures`): the mesh preflight
+(:func:`forcecal.preflight.run_preflight`) runs first and refuses a support that does not
+hold the body; then the static sag runs before every other item and the dynamic gravity
+run only after it converged. A test point whose indentation or relaxation fails is
+recorded in the folder (``<item>.failed``) and does not stop the others; when every item of
+a round is done, rank 0 replaces each failed point by the next candidate of the scene's
+selection rule (or drops it from an explicit list) and the ranks compute the replacements'
+items in the next round. The decisions are a function of the recorded failures, so a
+resumed run decides the same. More than a quarter of the points failing stops the run
+(every rank, at its next step). A failed gravity test leaves both gravity experiments out;
+``reference.h5`` records all of it (``fe_failures``). The whole-body data (experiment
+``body``, asked for explicitly) failing stops the run, its error naming the item.
 
 Parts and stored results are keyed per experiment (:mod:`reference_fe.keys`:
 the scene sections it reads, the mesh, the FE code), not on the experiments
@@ -45,14 +58,18 @@ from tqdm import tqdm
 
 import dolfinx
 from forcecal import errors
-from forcecal.errors import DataFileError, ForcecalError, SceneError
+from forcecal.errors import (ConvergenceError, DataFileError, ForcecalError, SceneError,
+                             StabilityError)
 from forcecal.cost import check_cost
 from forcecal.failures import collective
+from forcecal.fe_failures import (FEFailures, PointFailure, common_features, replay,
+                                  too_many_failures, with_point)
+from forcecal.preflight import run_preflight, tet_quality
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            atomic_path, read_reference, write_reference)
 from forcecal.indenter import indenter_footprints, punch_footprint
-from forcecal.problem import Problem, build_problem
-from forcecal.scene import EXPERIMENTS, Scene
+from forcecal.problem import Problem, build_problem, replacement_point
+from forcecal.scene import EXPERIMENTS, GRAVITY_EXPERIMENTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from forcecal.sections import REFERENCE_SECTIONS
 from reference_fe import body, experiments
@@ -73,22 +90,37 @@ class WorkItem:
 
     Attributes:
         kind: one of :data:`KINDS`.
-        point: index into ``problem.test_points`` (-1 for the gravity runs).
+        point: index into ``problem.test_points`` (-1 for the gravity runs): the slot.
         cost: estimated Newton solves (orders the items, largest first).
+        replacement: 0 for the scene's own test point, k for the k-th vertex that replaced
+            it after a failure (:mod:`forcecal.fe_failures`).
+        vertex: the test vertex of a replacement (its part is keyed on it); -1 otherwise.
     """
     kind: str
     point: int
     cost: float
+    replacement: int = 0
+    vertex: int = -1
 
     @property
     def name(self) -> str:
-        return self.kind if self.point < 0 else f"{self.kind}-{self.point:04d}"
+        if self.point < 0:
+            return self.kind
+        name = f"{self.kind}-{self.point:04d}"
+        return f"{name}-r{self.replacement}" if self.replacement else name
+
+
+#: the items that can fail for the whole scene run first, cheapest first (fail fast)
+FIRST = ("gravity_static",)
+#: item -> the item that must have converged before it starts (the release needs a sag)
+AFTER = {"gravity_dynamic": "gravity_static"}
 
 
 def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
                ) -> list[WorkItem]:
-    """The items of the experiments ``kinds`` (default: the scene's ``experiments``),
-    largest estimated cost first (better load balance)."""
+    """The items of the experiments ``kinds`` (default: the scene's ``experiments``):
+    the static sag first (:data:`FIRST`), then largest estimated cost first (better load
+    balance)."""
     kinds = scene.experiments if kinds is None else kinds
     g = scene.gravity
     # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
@@ -96,11 +128,18 @@ def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
              WorkItem("gravity_static", -1, 5.0 * g.static_load_steps),
              # two static loads and two eigen-solves (each about a factorisation's cost)
              WorkItem("body", -1, 2 * 5.0 * scene.body.load_steps + 2.0)]
-    n_rel = scene.relaxation.ramp_steps + scene.relaxation.hold_steps
     for p in range(n_points):
-        items.append(WorkItem("relaxation", p, 2.0 * n_rel))
-        items.append(WorkItem("indentation", p, 2.0 * scene.indentation.steps))
-    return sorted((it for it in items if it.kind in kinds), key=lambda it: -it.cost)
+        items.extend(point_items(scene, p))
+    return sorted((it for it in items if it.kind in kinds),
+                  key=lambda it: (it.kind not in FIRST, -it.cost))
+
+
+def point_items(scene: Scene, point: int, replacement: int = 0, vertex: int = -1
+                ) -> list[WorkItem]:
+    """The relaxation and indentation items of test point ``point`` (slot)."""
+    n_rel = scene.relaxation.ramp_steps + scene.relaxation.hold_steps
+    return [WorkItem("relaxation", point, 2.0 * n_rel, replacement, vertex),
+            WorkItem("indentation", point, 2.0 * scene.indentation.steps, replacement, vertex)]
 
 
 def run_keys(scene: Scene, problem: Problem) -> dict[str, str]:
@@ -220,7 +259,9 @@ class _Parts:
         self.key = key  # one key, or one per experiment (:func:`run_keys`)
 
     def key_of(self, item: WorkItem) -> str:
-        return self.key[item.kind] if isinstance(self.key, dict) else self.key
+        key = self.key[item.kind] if isinstance(self.key, dict) else self.key
+        # a replacement's part is valid for its vertex only
+        return f"{key} vertex {item.vertex}" if item.replacement else key
 
     def _path(self, item: WorkItem, suffix: str) -> Path:
         return self.folder / f"{item.name}.{suffix}"
@@ -248,6 +289,71 @@ class _Parts:
     def save(self, item: WorkItem, arrays: dict) -> None:
         with atomic_path(self.path(item)) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, run_key=self.key_of(item), **arrays)
+
+    def done(self, item: WorkItem) -> bool:
+        """Whether ``item`` has a finished part of this run key (reads only the key)."""
+        try:
+            with np.load(self.path(item)) as data:
+                return str(data["run_key"]) == self.key_of(item)
+        except Exception:  # noqa: BLE001 - absent, truncated, damaged: not done (load says)
+            return False
+
+    def failure_path(self, item: WorkItem) -> Path:
+        """The failure record of ``item`` (present once it failed: written atomically)."""
+        return self._path(item, "failed")
+
+    def save_failure(self, item: WorkItem, error: Exception, seconds: float,
+                     vertex: int) -> None:
+        """Record that ``item`` (of test vertex ``vertex``, -1 for gravity) failed: its error
+        class, message and how far it got (the error's ``reached`` attribute, if any)."""
+        record = {"run_key": self.key_of(item), "kind": item.kind, "point": item.point,
+                  "replacement": item.replacement, "vertex": vertex,
+                  "error": type(error).__name__, "reason": str(error),
+                  "reached": getattr(error, "reached", None), "seconds": seconds}
+        with atomic_path(self.failure_path(item)) as tmp:
+            tmp.write_text(json.dumps(record))
+
+    def failure(self, item: WorkItem) -> dict | None:
+        """The failure record of ``item`` for this run key, or None."""
+        try:
+            record = json.loads(self.failure_path(item).read_text())
+        except (OSError, ValueError):
+            return None
+        return record if record.get("run_key") == self.key_of(item) else None
+
+    def point_failures(self) -> list[PointFailure]:
+        """Every test point failure recorded for this run key, in slot order."""
+        out = []
+        for path in sorted(self.folder.glob("*.failed")):
+            try:
+                record = json.loads(path.read_text())
+                item = WorkItem(record["kind"], int(record["point"]), 0.0,
+                                int(record["replacement"]),
+                                int(record["vertex"]) if record["replacement"] else -1)
+            except (OSError, ValueError, KeyError, TypeError):
+                continue
+            if item.point < 0 or record.get("run_key") != self.key_of(item):
+                continue
+            reached = record.get("reached")
+            unit = "depth_m" if item.kind == "indentation" else "time_s"
+            out.append(PointFailure(item.point, int(record["vertex"]), item.kind,
+                                    record["reason"], {} if reached is None else
+                                    {unit: float(reached)}))
+        return sorted(out, key=lambda f: (f.slot, f.vertex, f.experiment))
+
+    def gravity_failure(self, items: list[WorkItem]) -> dict | None:
+        """The ``fe_failures.gravity`` record of the first failed gravity item of ``items``
+        (None: none failed)."""
+        for item in items:
+            if item.kind not in GRAVITY_EXPERIMENTS:
+                continue
+            record = self.failure(item)
+            if record is not None:
+                unit = "load_factor" if item.kind == "gravity_static" else "time_s"
+                reached = record.get("reached")
+                return {"experiment": item.kind, "reason": record["reason"],
+                        "reached": {} if reached is None else {unit: float(reached)}}
+        return None
 
     def claim(self, item: WorkItem) -> bool:
         """True if this process is the first to claim ``item``."""
@@ -308,12 +414,14 @@ def progress_stream(progress: bool, rank: int) -> TextIO | None:
 
 
 class _Progress:
-    """A tqdm bar on ``stream`` that ticks once per finished work item, with its name.
+    """A tqdm bar on ``stream`` that ticks once per finished (or failed) work item, with its
+    name.
 
     It counts the items every rank finishes: a thread polls the checkpoint folder
     (every :attr:`POLL_S` seconds, and after each of this rank's items), so the bar moves
     while rank 0 computes a long item itself. Items already done when it starts are in
-    its initial count. ``stream=None``: no bar, no thread.
+    its initial count; the items of a later round (replacement points) are added with
+    :meth:`extend`. ``stream=None``: no bar, no thread.
     """
 
     POLL_S = 0.5
@@ -322,36 +430,53 @@ class _Progress:
         self._bar = None
         if stream is None:
             return
-        self._paths = {it.name: parts.path(it) for it in items}
-        # an item is pending until its part appears or changes (a stale part is replaced)
-        self._pending = {it.name: self._stamp(it.name) for it in items if parts.load(it) is None}
+        self._parts = parts
+        self._paths: dict[str, tuple[Path, Path]] = {}
+        self._pending: dict[str, tuple] = {}
         self._lock = threading.Lock()
         # every tick is drawn (items take seconds, so this cannot flood the terminal)
-        self._bar = tqdm(total=len(items), initial=len(items) - len(self._pending),
-                         desc="FE reference", unit="item", file=stream, mininterval=0,
-                         miniters=1)
+        self._bar = tqdm(total=0, desc="FE reference", unit="item", file=stream,
+                         mininterval=0, miniters=1)
+        self.extend(items)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fe-progress", daemon=True)
         self._thread.start()
 
-    def _stamp(self, name: str) -> int | None:
-        try:
-            return self._paths[name].stat().st_mtime_ns
-        except OSError:
-            return None
+    def extend(self, items: list[WorkItem]) -> None:
+        """Count ``items`` too (those already finished as done)."""
+        if self._bar is None:
+            return
+        with self._lock:
+            for it in items:
+                self._paths[it.name] = (self._parts.path(it), self._parts.failure_path(it))
+            # an item is pending until its part appears or changes (a stale part is replaced)
+            pending = {it.name: self._stamp(it.name) for it in items
+                       if not self._parts.done(it) and self._parts.failure(it) is None}
+            self._pending.update(pending)
+            self._bar.total += len(items)
+            self._bar.update(len(items) - len(pending))
+
+    def _stamp(self, name: str) -> tuple[int | None, ...]:
+        out = []
+        for path in self._paths[name]:
+            try:
+                out.append(path.stat().st_mtime_ns)
+            except OSError:
+                out.append(None)
+        return tuple(out)
 
     def _run(self) -> None:
         while not self._stop.wait(self.POLL_S):
             self.poll()
 
     def poll(self) -> None:
-        """Tick for every item whose part appeared since the last poll."""
+        """Tick for every item whose part (or failure record) appeared since the last poll."""
         if self._bar is None:
             return
         with self._lock:
             for name, stamp in list(self._pending.items()):
                 now = self._stamp(name)
-                if now is not None and now != stamp:
+                if any(t is not None and t != t0 for t, t0 in zip(now, stamp)):
                     del self._pending[name]
                     self._bar.set_postfix_str(name, refresh=False)
                     self._bar.update(1)
@@ -387,7 +512,9 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     Serial, or under ``mpirun -n K`` (items distributed over the ranks of
     ``MPI.COMM_WORLD``, see the module docstring). Writes ``out_path``
     (``reference.h5``, atomically) on rank 0 and returns the
-    :class:`~forcecal.h5io.Reference` on every rank.
+    :class:`~forcecal.h5io.Reference` on every rank. Failed test points are replaced or
+    dropped and a failed gravity test is left out (module docstring), all recorded in the
+    reference (:attr:`~forcecal.h5io.Reference.fe_failures`).
 
     Args:
         problem: the scene's geometry; built with :func:`forcecal.problem.build_problem`
@@ -396,10 +523,13 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         progress: show a bar of finished items on rank 0 (:func:`progress_stream`).
 
     Raises:
+        StabilityError: the support does not hold the body (mesh preflight, before any FE
+            work).
         DataFileError: another live process is computing the same ``out_path``.
-        ConvergenceError: an experiment failed even with step cutting; raised on every
-            rank (other failures keep their ForcecalError class, anything else is a
-            RuntimeError), with the messages of all failed items.
+        ConvergenceError: more than a quarter of the test points failed (the message says
+            what they share); raised on every rank. An error that is not a convergence
+            failure of an experiment (a bug, memory) stops the run too, keeping its
+            ForcecalError class (anything else is a RuntimeError).
     """
     comm = MPI.COMM_WORLD
     start = time.perf_counter()
@@ -413,47 +543,162 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         raise collective(exc) from None
     check_indenter(scene, problem)
     check_memory(problem.mesh, scene.fe, comm.size)  # a refinement that cannot fit: refused
+    preflight = _on_root(comm, lambda: run_preflight(scene, problem.mesh, problem.fixed))
     keys = run_keys(scene, problem)
     parts = _Parts(out_path, keys)
     previous: dict[str, dict] = {}
 
-    def take_previous() -> list[str]:
+    def take_previous() -> tuple[list[str], dict | None]:
         previous.update(previous_results(out_path, keys, problem))
-        return sorted(previous)
-    reused = _on_root(comm, take_previous)  # the arrays stay on rank 0, which assembles
+        return sorted(previous), previous_gravity_failure(out_path, keys)
+    reused, gravity_failure = _on_root(comm, take_previous)  # arrays stay on rank 0
+    skip = set(reused) | (set(GRAVITY_EXPERIMENTS) if gravity_failure else set())
     items = work_items(scene, len(problem.test_points),
-                       tuple(e for e in scene.experiments if e not in reused))
-    if reused:
+                       tuple(e for e in scene.experiments if e not in skip))
+    if reused or gravity_failure:
         log.info("reusing %s from %s (same keys); computing %d work item(s)",
-                 ", ".join(reused), out_path, len(items))
+                 ", ".join(reused + (["the gravity failure"] if gravity_failure else [])),
+                 out_path, len(items))
     _on_root(comm, parts.start)
     mesh_seconds = time.perf_counter() - start
 
+    points = _Points(scene, problem, parts)
+    scheduled: list[WorkItem] = []
+    computed: list[str] = []
+    build_seconds = 0.0
     bar = _Progress(parts, items, progress_stream(progress, comm.rank))
     try:
-        failure, build_seconds, computed = _work(scene, problem, items, parts, bar)
+        while items:  # a round: the items, then the replacements of the points that failed
+            scheduled += items
+            failure, seconds, done = _work(scene, points, items, parts, bar)
+            build_seconds += seconds
+            computed += [name for names in comm.allgather(done) for name in names]
+            _raise_failures([f for f in comm.allgather(failure) if f is not None], parts)
+            items = points.update(_on_root(comm, parts.point_failures))
+            bar.extend(items)
     finally:
         bar.close()
-    computed = [name for names in comm.allgather(computed) for name in names]
-    failures = [f for f in comm.allgather(failure) if f is not None]
-    if failures:
-        kind = getattr(errors, failures[0][0], None)
-        kind = kind if isinstance(kind, type) and issubclass(kind, ForcecalError) else RuntimeError
-        kept = (f" (finished items are kept in {parts.folder}/ and reused by a rerun)"
-                if parts.folder.is_dir() and any(parts.folder.glob("*.npz")) else "")
-        raise collective(kind("FE reference failed: " + "; ".join(m for _, m in failures)
-                              + kept))
 
     def finish() -> Reference:
-        reference = _assemble(scene, problem, items, parts, previous, computed, keys, comm.size,
-                              mesh_seconds + build_seconds, time.perf_counter() - start)
+        failures = points.records(gravity_failure or parts.gravity_failure(scheduled))
+        if failures.gravity is not None:
+            log.warning("the FE gravity test failed (%s: %s): both gravity experiments are "
+                        "left out of %s, the force curves are kept", failures.gravity[
+                            "experiment"], failures.gravity["reason"], out_path)
+        reference = _assemble(scene, points, scheduled, parts, previous, computed, keys,
+                              comm.size, mesh_seconds + build_seconds,
+                              time.perf_counter() - start, failures, preflight)
         write_reference(out_path, reference)
         shutil.rmtree(parts.folder)
-        log.info("wrote %s (%d test points, %.1f s)", out_path, len(problem.test_points),
+        log.info("wrote %s (%d test points, %.1f s)", out_path, len(points.current.test_points),
                  time.perf_counter() - start)
         return reference
 
     return _on_root(comm, finish)
+
+
+def _raise_failures(failures: list[tuple[str, str]], parts: _Parts) -> None:
+    """Raise, on every rank, the error that stopped the run (``(class name, message)`` of
+    each rank that met one; none: return)."""
+    if not failures:
+        return
+    kind = getattr(errors, failures[0][0], None)
+    kind = kind if isinstance(kind, type) and issubclass(kind, ForcecalError) else RuntimeError
+    kept = (f" (finished items are kept in {parts.folder}/ and reused by a rerun)"
+            if parts.folder.is_dir() and any(parts.folder.glob("*.npz")) else "")
+    messages = list(dict.fromkeys(m for _, m in failures))  # two ranks may say the same
+    raise collective(kind("FE reference failed: " + "; ".join(messages) + kept))
+
+
+class _Points:
+    """The test points of a run: the scene's, with the failed ones replaced or dropped
+    (:func:`forcecal.fe_failures.replay`, the same on every rank).
+
+    Attributes:
+        slots: the problem whose test point ``k`` is slot k's current vertex (replacements
+            applied, dropped points still in place: the items' ``point`` indexes it).
+        current: the problem the reference stores (dropped points removed).
+    """
+
+    def __init__(self, scene: Scene, problem: Problem, parts: _Parts):
+        self.scene, self.original, self.parts = scene, problem, parts
+        self.slots = self.current = problem
+        self._records = FEFailures()
+        self.replacements = [0] * len(problem.test_points)  # per slot
+        self.dropped: set[int] = set()
+        self._quality: np.ndarray | None = None
+        self._logged = 0  # failures already logged (rank 0 logs the decisions)
+
+    def _replacement(self, problem: Problem, index: int, tried: set[int]) -> int | None:
+        return replacement_point(self.scene, problem, index, tried)
+
+    def update(self, failures: list[PointFailure]) -> list[WorkItem]:
+        """Apply every point failure recorded so far; return the items of the replacements
+        not computed yet (none: the run is complete).
+
+        Raises:
+            ConvergenceError: more than a quarter of the test points failed.
+        """
+        error = self.too_many(failures)
+        if error is not None:  # met here by a resumed run whose failures were all recorded
+            raise collective(ConvergenceError(f"FE reference failed: {error}"))
+        self.current, self._records, applied = replay(self.original, failures,
+                                                      self._replacement)
+        slots = self.original
+        self.replacements = [0] * len(slots.test_points)
+        for entry in self._records.replaced:
+            slots = with_point(slots, entry["slot"], entry["by"])
+            self.replacements[entry["slot"]] += 1
+        self.slots = slots
+        self.dropped = {entry["slot"] for entry in self._records.dropped}
+        if MPI.COMM_WORLD.rank == 0:
+            for f in applied[self._logged:]:
+                self._log(f)
+        self._logged = len(applied)
+        items = []
+        for slot, count in enumerate(self.replacements):
+            if count and slot not in self.dropped:
+                items += [it for it in point_items(self.scene, slot, count,
+                                                   int(slots.test_points[slot]))
+                          if it.kind in self.scene.experiments and not self.parts.done(it)
+                          and self.parts.failure(it) is None]
+        return items
+
+    def _log(self, failure: PointFailure) -> None:
+        for entry in self._records.replaced:
+            if entry["slot"] == failure.slot and entry["point"] == failure.vertex:
+                log.warning("test point %d (vertex %d, %s) failed in %s: replaced by vertex %d,"
+                            " the next candidate of its selection rule (%s)", failure.slot,
+                            failure.vertex, entry["role"], failure.experiment, entry["by"],
+                            failure.reason)
+                return
+        log.warning("test point %d (vertex %d) failed in %s: dropped (an explicit list, or no "
+                    "candidate left) (%s)", failure.slot, failure.vertex, failure.experiment,
+                    failure.reason)
+
+    def too_many(self, failures: list[PointFailure]) -> ConvergenceError | None:
+        """The error that ends the run when more than a quarter of the points failed."""
+        n_points = len(self.original.test_points)
+        if too_many_failures(n_points, failures, []) is None:
+            return None
+        mesh = self.original.mesh
+        if self._quality is None:
+            self._quality = tet_quality(mesh)
+        footprints = None
+        if self.scene.indentation.indenter == "punch":
+            vertices = {f.vertex for f in failures} | set(self.slots.test_points.tolist())
+            normals = mesh.inward_normals(np.array(sorted(vertices)))
+            footprints = {v: punch_footprint(mesh, v, n, self.scene.indentation.radius,
+                                             min_nodes=1)
+                          for v, n in zip(sorted(vertices), normals)}
+        tested = np.union1d(self.slots.test_points, [f.vertex for f in failures])
+        features = common_features(mesh, self.original.fixed, tested, failures,
+                                   self._quality, footprints)
+        return too_many_failures(n_points, failures, features)
+
+    def records(self, gravity: dict | None) -> FEFailures:
+        """What failed and what was done, with the gravity failure (None: none)."""
+        return dataclasses.replace(self._records, gravity=gravity)
 
 
 def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
@@ -476,17 +721,17 @@ def _on_root(comm: MPI.Comm, task: Callable[[], T]) -> T:
     return result
 
 
-def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+def _work(scene: Scene, points: _Points, items: list[WorkItem], parts: _Parts,
           bar: _Progress) -> tuple[tuple[str, str] | None, float, list[str]]:
     """Claim and compute items until none is left.
 
     Returns ``(failure, build_seconds, computed)``: ``failure`` is None or (exception
-    class name, message); ``build_seconds`` the time spent building the FE model;
-    ``computed`` the names of the items this rank computed.
+    class name, message) of what stops the run; ``build_seconds`` the time spent building
+    the FE model; ``computed`` the names of the items this rank computed.
     """
     experiments.set_stop_check(lambda: parts.failed)
     try:
-        return _claim_and_compute(scene, problem, items, parts, bar)
+        return _claim_and_compute(scene, points, items, parts, bar)
     except experiments.Stopped:  # another rank failed: its message is reported
         log.info("stopping: another rank's work item failed")
         return None, 0.0, []
@@ -494,26 +739,53 @@ def _work(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
         experiments.set_stop_check(None)
 
 
-def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+#: seconds between two looks at the folder while the only items left wait for another one
+WAIT_POLL_S = 0.2
+#: an experiment that fails with these is recorded and the run goes on (anything else stops it)
+ITEM_FAILURES = (ConvergenceError, StabilityError)
+#: the items whose failure (:data:`ITEM_FAILURES`) is recorded: a test point's curves are
+#: replaced or dropped, a failed gravity test is left out; any other item's failure (the
+#: whole-body data, asked for explicitly) stops the run
+RECORDED_KINDS = ("indentation", "relaxation") + GRAVITY_EXPERIMENTS
+
+
+def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], parts: _Parts,
                        bar: _Progress) -> tuple[tuple[str, str] | None, float, list[str]]:
     model, fe, build_seconds, computed = None, None, 0.0, []
-    for item in items:
+    pending = list(items)
+    while pending:
         if parts.failed:  # another rank failed: stop early, its message is reported
             break
-        if parts.load(item) is not None or not parts.claim(item):
+        item = _next_item(pending, items, parts)
+        if item is None:
+            if pending:  # what is left waits for an item another rank computes
+                time.sleep(WAIT_POLL_S)
             continue
         t0 = time.perf_counter()
         try:
             if model is None:
-                fe = fe_problem(problem, scene.fe)
+                fe = fe_problem(points.slots, scene.fe)
                 model = FEModel(fe.problem.mesh, scene.material, scene.fe)
                 build_seconds = time.perf_counter() - t0
                 t0 = time.perf_counter()
-            arrays = compute_item(model, scene, problem, item, fe)
+            arrays = compute_item(model, scene, points.slots, item, fe)
         except experiments.Stopped:
             raise
-        except Exception as exc:  # reported on every rank, not left to hang the others
-            message = f"{item.name}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - recorded, or reported on every rank
+            if isinstance(exc, ITEM_FAILURES) and item.kind in RECORDED_KINDS:
+                # recorded; the point is replaced or dropped later, or the gravity left out
+                vertex = int(points.slots.test_points[item.point]) if item.point >= 0 else -1
+                parts.save_failure(item, exc, time.perf_counter() - t0, vertex)
+                log.warning("%s%s failed: %s", item.name,
+                            f" (vertex {vertex})" if vertex >= 0 else "", exc)
+                too_many = (points.too_many(parts.point_failures()) if item.point >= 0
+                            else None)
+                if too_many is not None:
+                    parts.fail(str(too_many))
+                    return (type(too_many).__name__, str(too_many)), build_seconds, computed
+                bar.poll()
+                continue
+            message = f"{item.name}: {exc}"  # not left to hang the other ranks
             parts.fail(message)
             log.error("%s", message)
             return (type(exc).__name__, message), build_seconds, computed
@@ -526,25 +798,86 @@ def _claim_and_compute(scene: Scene, problem: Problem, items: list[WorkItem], pa
     return None, build_seconds, computed
 
 
+def _next_item(pending: list[WorkItem], items: list[WorkItem], parts: _Parts
+               ) -> WorkItem | None:
+    """The first item of ``pending`` this rank may compute, claimed (and removed from
+    ``pending``), or None if every item left waits for another one (:data:`AFTER`).
+
+    Dropped from ``pending`` on the way: items finished or failed (by any rank, in this run
+    or an interrupted one), claimed by another rank, or not worth computing any more (the
+    other curve of the same test point failed; the release after a failed sag).
+    """
+    names = {it.name: it for it in items}
+    for item in list(pending):
+        if parts.done(item) or parts.failure(item) is not None:
+            pending.remove(item)
+            continue
+        if item.point >= 0:
+            sibling = [it for it in items if it.point == item.point and it.kind != item.kind
+                       and it.replacement == item.replacement]
+            if any(parts.failure(it) is not None for it in sibling):
+                pending.remove(item)
+                continue
+        before = names.get(AFTER.get(item.kind, ""))
+        if before is not None:
+            if parts.failure(before) is not None:
+                log.info("%s not run: %s failed", item.name, before.name)
+                pending.remove(item)
+                continue
+            if not parts.done(before):
+                continue
+        if not parts.claim(item):
+            pending.remove(item)
+            continue
+        pending.remove(item)
+        return item
+    return None
+
+
 def previous_results(out_path: Path, keys: dict[str, str], problem: Problem
                      ) -> dict[str, dict]:
     """The experiments of an existing ``out_path`` whose stored key equals ``keys``':
     ``{experiment: {"arrays": {...}, "seconds": compute seconds}}``, the arrays as
     :func:`experiment_arrays` gives them (rank 0). Nothing when the file is absent,
-    unreadable, older than per-experiment keys, or on other test points."""
-    if not out_path.is_file():
+    unreadable, older than per-experiment keys, or on other test points (a reference whose
+    points failed holds other points than the scene's: it is recomputed)."""
+    old = _previous_reference(out_path)
+    if old is None:
         return {}
-    try:
-        old = read_reference(out_path)
-        stored = json.loads(old.meta.get("experiment_keys", "{}"))
-        seconds = json.loads(old.meta.get("timings_s", "{}"))
-    except (ForcecalError, TypeError, ValueError) as exc:
-        log.info("not reusing %s: %s", out_path, exc)
-        return {}
+    stored = json.loads(old.meta.get("experiment_keys", "{}"))
+    seconds = json.loads(old.meta.get("timings_s", "{}"))
     if not np.array_equal(old.problem.test_points, problem.test_points):
         return {}
     return {e: {"arrays": experiment_arrays(old, e), "seconds": float(seconds.get(e, 0.0))}
             for e in old.experiments if stored.get(e) == keys[e]}
+
+
+def previous_gravity_failure(out_path: Path, keys: dict[str, str]) -> dict | None:
+    """The gravity failure an existing ``out_path`` records (``fe_failures.gravity``) if it
+    was met with the current keys of both gravity experiments (it would fail again), else
+    None."""
+    old = _previous_reference(out_path)
+    if old is None or old.fe_failures.gravity is None:
+        return None
+    failed = json.loads(old.meta.get("failed_experiment_keys", "{}"))
+    if all(failed.get(e) == keys[e] for e in GRAVITY_EXPERIMENTS):
+        return old.fe_failures.gravity
+    return None
+
+
+def _previous_reference(out_path: Path) -> Reference | None:
+    """``out_path`` read back, or None when absent or unreadable (logged)."""
+    if not out_path.is_file():
+        return None
+    try:
+        old = read_reference(out_path)
+        json.loads(old.meta.get("experiment_keys", "{}"))
+        json.loads(old.meta.get("timings_s", "{}"))
+        json.loads(old.meta.get("failed_experiment_keys", "{}"))
+    except (ForcecalError, TypeError, ValueError) as exc:
+        log.info("not reusing %s: %s", out_path, exc)
+        return None
+    return old
 
 
 def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.ndarray]:
@@ -560,32 +893,51 @@ def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.nda
     return {"force": getattr(reference, experiment).force}
 
 
-def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Parts,
+def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Parts,
               previous: dict[str, dict], computed: list[str], keys: dict[str, str],
-              n_ranks: int, mesh_seconds: float, total_seconds: float) -> Reference:
+              n_ranks: int, mesh_seconds: float, total_seconds: float, failures: FEFailures,
+              preflight: dict) -> Reference:
     """Build the :class:`Reference` from the checkpoint parts and the reused experiments
-    of the previous file (rank 0)."""
-    data = {}
+    of the previous file (rank 0): the curves of the current test points (each slot's last
+    vertex, dropped slots left out), the gravity runs unless the gravity test failed."""
+    data, seconds = {}, {k: 0.0 for k in KINDS}
     for item in items:
+        failed = parts.failure(item)
+        if failed is not None:
+            seconds[item.kind] += float(failed.get("seconds", 0.0))
+            continue
         arrays = parts.load(item)
         if arrays is None:
-            raise DataFileError(f"checkpoint of {item.name} is missing from {parts.folder}")
+            continue  # never run: the other curve of its point, or the sag before it, failed
         data[item.name] = arrays
-    seconds = {k: 0.0 for k in KINDS}
-    for item in items:
-        seconds[item.kind] += float(data[item.name]["seconds"])
+        seconds[item.kind] += float(arrays["seconds"])
     results = {e: p["arrays"] for e, p in previous.items()}
     seconds.update({e: p["seconds"] for e, p in previous.items()})
+    slots = [k for k in range(len(points.original.test_points)) if k not in points.dropped]
     for kind in ("indentation", "relaxation"):
-        of_kind = sorted((it for it in items if it.kind == kind), key=lambda it: it.point)
-        if of_kind:
-            results[kind] = {"force": np.stack([data[it.name]["force"] for it in of_kind])}
-    for kind in ("gravity_static", "gravity_dynamic", "body"):
-        if kind in data:
+        if kind not in scene.experiments:
+            continue
+        reused = results.get(kind, {}).get("force")
+        rows = []
+        for k in slots:  # a reused curve for a scene point, a part for the others
+            name = WorkItem(kind, k, 0.0, points.replacements[k]).name
+            if reused is not None and not points.replacements[k]:
+                rows.append(reused[k])
+            elif name in data:
+                rows.append(data[name]["force"])
+            else:
+                raise DataFileError(f"checkpoint of {name} is missing from {parts.folder}")
+        results[kind] = {"force": np.stack(rows)}
+    for kind in GRAVITY_EXPERIMENTS + ("body",):
+        if kind in GRAVITY_EXPERIMENTS and failures.gravity is not None:
+            results.pop(kind, None)  # the gravity test failed: neither run is kept
+        elif kind in data:
             results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
-    body_result = (body.result_of(results["body"], float(np.linalg.norm(scene.gravity.acceleration)))
+    body_result = (body.result_of(results["body"],
+                                  float(np.linalg.norm(scene.gravity.acceleration)))
                    if "body" in results else None)
     present = [e for e in EXPERIMENTS if e in results]
+    problem = points.current
     normals = problem.normals
 
     def normal(force: np.ndarray) -> np.ndarray:
@@ -606,6 +958,8 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
                                 settings=dataclasses.replace(scene.gravity,
                                                              tracked_node=problem.tracked_node))
     counted = {k: sum(1 for name in computed if name.split("-")[0] == k) for k in KINDS}
+    failed_keys = ({e: keys[e] for e in GRAVITY_EXPERIMENTS if e in scene.experiments}
+                   if failures.gravity is not None else {})
     meta = {
         "dolfinx_version": dolfinx.__version__,
         "scene_fingerprint": scene.fingerprint(*REFERENCE_SECTIONS),
@@ -618,6 +972,9 @@ def _assemble(scene: Scene, problem: Problem, items: list[WorkItem], parts: _Par
         "experiment_keys": json.dumps({e: keys[e] for e in present}),
         "reused": json.dumps([e for e in present if e in previous]),
         "items_computed": json.dumps({k: n for k, n in counted.items() if n}),
+        "fe_failures": json.dumps(failures.to_json()),
+        "failed_experiment_keys": json.dumps(failed_keys),
+        "mesh_preflight": json.dumps(preflight),
     }
     return Reference(
         problem=problem, material=scene.material,

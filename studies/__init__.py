@@ -1,12 +1,8 @@
-"""Studies: measurements that inform a choice of the project, one module per study.
+"""Studies: investigations that answered one question of the project once, one module each.
 
 Each study has one entry point (``python -m studies.<name> ...``), writes its results under
-``runs/studies/`` and says in its docstring what it measures and how to rerun it. Unlike the
-bench (:mod:`pipelines.bench`) they are not rerun by ``make bench``: each answers one
-question once, on the run folders it names.
-
-* :mod:`studies.viscoelastic_volume`: the relaxing (viscoelastic) volume term against the
-  elastic one, calibrated on the committed scenes with the volume term.
-* :mod:`studies.haptic_cost`: the haptic step's time per call with springs only, the elastic
-  and the viscoelastic volume term.
+``runs/studies/`` and says in its docstring what it measures. Unlike the benchmarks
+(:mod:`pipelines.bench`, ``make bench``) they are not rerun routinely. They may import
+forcecal; nothing of forcecal imports them. ``docs/studies.md`` lists them with their
+questions, commands and results (``python -m studies.catalogue``).
 """

@@ -4,7 +4,7 @@ The question: with Maxwell arms on the per-tet volume term (``particle.volume =
 "viscoelastic"``, :mod:`particle.volume`), fitted to the same surface curves, is the
 calibrated model better as a body (static sag, release period, first peak, release RMS)
 without losing the surface (held-out punch or vertex forces)? The committed release-lever
-study (``runs/bench/release_levers.json``) put arms on the volume term of the calibrated
+study (``runs/studies/release_levers.json``) put arms on the volume term of the calibrated
 elastic model *without refitting*; this one refits.
 
 For each scene and each volume term (``true``: elastic, ``"viscoelastic"``; the scene's own

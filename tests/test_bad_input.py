@@ -24,7 +24,7 @@ from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
 from forcecal.scene import load_scene, replace
 from pipelines.cli import main as pipelines_main
-from pipelines.gravity import run_model
+from calibration.gravity_check import gravity_outcome
 from particle.testing import viscoelastic_params
 from tests.conftest import ROOT, SCENES
 
@@ -148,8 +148,8 @@ def test_time_step_above_the_limit_is_refused_by_the_gravity_stage():
     params = viscoelastic_params(len(BOX.edges), 50.0)
     with pytest.raises(StabilityError, match=r"dt = 1 s is above the stability limit .* \(use "
                        r"particle.dt = 'auto'"):
-        run_model(scene, problem, params, np.array([0.0, 0.0, -9.81]), np.array([0.0, 0.01]),
-                  (-0.5, 0.5), "calibrated")
+        gravity_outcome(scene, problem, params, np.array([0.0, 0.01]), (-0.5, 0.5),
+                        "calibrated")
 
 
 def test_real_entry_point_prints_one_error_line_without_traceback(tmp_path):

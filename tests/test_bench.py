@@ -329,3 +329,288 @@ def test_a_partial_run_records_the_default_run_it_brings_up_to_date():
     assert selected_items(names, ("calibration methods",)) == ("default pipeline run",
                                                                "calibration methods")
     assert selected_items(names, ("scale",)) == ("scale",)
+
+
+def test_make_bench_runs_the_headline_items_and_bench_full_every_item():
+    """``make bench`` (headline) runs the speed and error axes in the bench's order, leaving
+    the long items to ``make bench-full``; every item in a module of its own names a function
+    of the same signature in both selections."""
+    import inspect
+
+    from forcecal.errors import ForcecalError
+    from pipelines.bench.driver import ITEMS, ModuleItem, item_run, items_of
+
+    assert [i.name for i in items_of(True)] == [i.name for i in ITEMS]
+    assert [i.name for i in items_of(False)] == [
+        "default pipeline run", "run time vs error", "reference timings", "particle engine",
+        "stability limits", "haptic scale", "fe_convergence", "scale", "volume term"]
+    assert {i.name for i in ITEMS} - {i.name for i in items_of(False)} == {
+        "experiments", "calibration methods"}
+    reduced = {i.name for i in ITEMS if i.headline not in (None, i.full)}
+    assert reduced == {"run time vs error", "reference timings", "haptic scale",
+                       "fe_convergence", "scale"}
+    for item in ITEMS:  # function(scene, cache folder, quick)
+        for run in (item.full, item.headline):
+            if isinstance(run, ModuleItem):
+                params = list(inspect.signature(run.function()).parameters)
+                assert params[0] == "scene" and params[2] == "quick", run.target
+    experiments = next(i for i in ITEMS if i.name == "experiments")
+    with pytest.raises(ForcecalError, match="'experiments' is an item of make bench-full only"):
+        item_run(experiments, full=False)
+    assert item_run(experiments, full=True) == experiments.full
+
+
+def test_an_items_rows_of_a_shared_list_replace_only_its_own():
+    """``skip`` holds the particle engine's rows (not labelled) and the experiments item's
+    (labelled): a rerun of either replaces its own rows and keeps the other's."""
+    from pipelines.bench.driver import ITEMS, merge_keys
+
+    items = {i.name: i for i in ITEMS}
+    bench = {"skip": [{"scene": "elastic"}, {"scene": "reference", "study": "experiments"}]}
+    merge_keys(bench, {"skip": [{"scene": "free"}], "haptic": {"a": 1}},
+               items["particle engine"])
+    assert bench == {"skip": [{"scene": "reference", "study": "experiments"},
+                              {"scene": "free"}], "haptic": {"a": 1}}
+    merge_keys(bench, {"skip": [{"scene": "calibration"}], "experiments": [1]},
+               items["experiments"])
+    assert bench["skip"] == [{"scene": "free"},
+                             {"scene": "calibration", "study": "experiments"}]
+    assert bench["experiments"] == [1]
+
+
+# the committed bench.json's keys by the item that writes them (a stand-in run returns them)
+ITEM_KEYS = {"default pipeline run": ("calibration",), "run time vs error": ("pareto",),
+             "reference timings": ("reference",),
+             "particle engine": ("kernel", "gravity_dynamic", "skip", "haptic", "evaluators"),
+             "stability limits": ("stability",), "experiments": ("skip", "experiments"),
+             "haptic scale": ("haptic_scale",), "fe_convergence": ("fe_convergence",),
+             "scale": ("scale", "scale_study"), "calibration methods": ("calibration_methods",),
+             "volume term": ("volume_haptic",)}
+
+
+def _stand_in_items(monkeypatch, calls, reusing=()):
+    """The bench's items with runs that return the committed bench.json's keys (each its own,
+    :data:`ITEM_KEYS`) and record (name, selection) in ``calls``; the items named in
+    ``reusing`` log a cache hit."""
+    import logging
+
+    from pipelines.bench import driver
+
+    committed = json.loads((ROOT / "runs" / "bench" / "bench.json").read_text())
+
+    def stand_in(name, selection):
+        def run(bench_run):
+            calls.append((name, selection))
+            if name in reusing:
+                logging.getLogger("pipelines.bench").warning("bench: reusing %s", name)
+            keys = {k: committed[k] for k in ITEM_KEYS[name]}
+            if "skip" in keys:
+                own = (lambda r: "study" not in r) if name == "particle engine" else (
+                    lambda r: r.get("study") == name)
+                keys["skip"] = [{k: v for k, v in r.items() if k != "study"}
+                                for r in keys["skip"] if own(r)]
+            if name == "reference timings" and selection == "headline":
+                keys["reference"] = {**keys["reference"], "wall_s_1rank": None}
+            return keys
+        return run
+
+    monkeypatch.setattr(driver, "ITEMS", tuple(
+        driver.Item(i.name, stand_in(i.name, "full"),
+                    stand_in(i.name, "headline") if i.headline else None, i.needs_default,
+                    i.labels_rows) for i in driver.ITEMS))
+
+
+def test_a_headline_run_runs_its_items_in_order_and_records_their_cold_times(monkeypatch,
+                                                                            tmp_path):
+    """With every item's run stood in for: ``make bench`` runs the headline items (their
+    headline versions) in the bench's order and sums their cold times into ``wall_s_cold``;
+    an item that reuses earlier work keeps the earlier run's cold time; ``--only`` runs the
+    item and the default run it needs, keeping the others' keys and cold times."""
+    from pipelines.bench.driver import items_of, run_bench
+
+    calls = []
+    _stand_in_items(monkeypatch, calls)
+    out = tmp_path / "bench-headline"
+    first = run_bench(out, progress=False)
+    headline = [i.name for i in items_of(False)]
+    assert calls == [(name, "headline") for name in headline]
+    assert first["selection"] == "headline" and first["reference"]["wall_s_1rank"] is None
+    assert list(first["item_s"]) == headline and first["item_s_cold"] == first["item_s"]
+    assert first["wall_s_cold"] == pytest.approx(sum(first["item_s"].values()))
+    assert "experiments" not in first and "calibration_methods" not in first
+    assert [r["scene"] for r in first["skip"]] == ["viscoelastic", "elastic", "free"]
+    assert "Produced by `make bench`" in (out / "BENCH.md").read_text()
+    assert json.loads((out / "bench.json").read_text()) == json.loads(json.dumps(first))
+
+    calls.clear()
+    _stand_in_items(monkeypatch, calls, reusing=("scale",))
+    second = run_bench(out, progress=False)
+    assert second["item_s_cold"]["scale"] == first["item_s_cold"]["scale"]
+    assert second["item_s_cold"]["volume term"] == second["item_s"]["volume term"]
+
+    calls.clear()
+    third = run_bench(out, progress=False, only=("particle engine",))
+    assert calls == [("default pipeline run", "headline"), ("particle engine", "headline")]
+    assert third["wall_s"] == second["wall_s"]
+    assert third["item_s_cold"]["scale"] == first["item_s_cold"]["scale"]
+    assert third["reruns"][-1]["items"] == ["default pipeline run", "particle engine"]
+
+
+def test_a_full_run_runs_every_item(monkeypatch, tmp_path):
+    from pipelines.bench.driver import ITEMS, read_bench, run_bench
+
+    calls = []
+    _stand_in_items(monkeypatch, calls)
+    bench = run_bench(tmp_path / "bench", full=True, progress=False)
+    assert calls == [(i.name, "full") for i in ITEMS]
+    assert bench["selection"] == "full" and bench["reference"]["wall_s_1rank"] is not None
+    assert [r.get("study") for r in bench["skip"]] == [None] * 3 + ["experiments"] * 4
+    read_bench(tmp_path / "bench" / "bench.json")
+    assert "Produced by `make bench-full`" in (tmp_path / "bench" / "BENCH.md").read_text()
+
+
+def test_the_headline_pareto_runs_the_first_settings_of_each_axis():
+    from pipelines.bench.configs import HEADLINE_SETTINGS, configs
+
+    scene = load_scene(SCENES / "tiny.toml")
+    full, headline = configs(scene, True, full=True), configs(scene, True, full=False)
+
+    def by_axis(rows):
+        out = {}
+        for c in rows:
+            out.setdefault(c.axis, []).append(c.label)
+        return out
+
+    full, headline = by_axis(full), by_axis(headline)
+    assert set(full) == set(headline) == {"mesh", "calibration points", "Nelder-Mead budget",
+                                          "local tuning"}
+    for axis, labels in headline.items():
+        assert labels == full[axis][:HEADLINE_SETTINGS.get(axis, len(full[axis]))], axis
+    assert len(headline["mesh"]) == 2 and len(full["mesh"]) == 3  # the coarse and the default
+
+
+def test_the_headline_scale_study_keeps_a_wide_range_of_sizes_without_the_rank_timing(
+        monkeypatch, tmp_path):
+    from pipelines.bench import scale
+
+    calls = []
+
+    def child(args, cwd, mpi_ranks=0):
+        calls.append((float(args[args.index("--length") + 1]), mpi_ranks))
+        n = int(1e-3 / calls[-1][0] ** 3)  # vertices ~ length^-3
+        return ({"ranks": mpi_ranks, "wall_s": 1.0} if mpi_ranks else
+                {"vertices": n, "step_us": 0.1 * n, "calibration_s": 1e-4 * n ** 1.5})
+
+    monkeypatch.setattr(scale, "_child", child)
+    scene = load_scene(SCENES / "liver.toml")
+    headline = scale.headline_study(scene, tmp_path, False)
+    assert calls == [(length, 0) for length in scale.HEADLINE_LENGTHS[False]]
+    assert headline["scale_study"]["ranks"]["runs"] == []
+    assert headline["scale_study"]["exponents"]["calibration_s"] == pytest.approx(1.5, abs=0.02)
+    calls.clear()
+    scale.study(scene, tmp_path, False)
+    assert [c for c, _ in calls] == list(scale.LENGTHS[False]) + [scale.LENGTHS[False][1]] * 2
+    assert [r for _, r in calls][-2:] == [1, 2]
+    vertices = sorted(int(1e-3 / length ** 3) for length in scale.HEADLINE_LENGTHS[False])
+    assert vertices[-1] / vertices[0] > 5  # exponents over at least a 5x range of sizes
+
+
+def test_the_headline_haptic_scale_leaves_out_the_largest_mesh(monkeypatch):
+    """The 12k-connector liver (the goal's mesh) stays; the 54k one is the full bench's."""
+    from particle.testing import box_model
+    from pipelines.bench import haptic
+
+    lengths = []
+
+    def mesh_model(scene, length):
+        lengths.append(length)
+        return box_model((2, 2, 2), K0=100.0), None, None
+
+    monkeypatch.setattr(haptic, "_mesh_model", mesh_model)
+    monkeypatch.setattr(haptic, "tracked_node_by_rule", lambda mesh, fixed, rule: 0)
+    monkeypatch.setattr(haptic, "mesh_rows", lambda *args: [])
+    monkeypatch.setattr(haptic, "volume_rows", lambda *args: [])
+    scene = load_scene(SCENES / "liver.toml")
+    haptic.headline_study(scene, None, False)
+    assert lengths == [None, 0.008]  # the scene's own mesh, then the 12k liver
+    lengths.clear()
+    haptic.study(scene, None, False)
+    assert lengths == [length for _, length in haptic.MESHES[False]] == [None, 0.008, 0.0045]
+
+
+def test_the_headline_fe_convergence_leaves_out_the_finest_sag_level(monkeypatch, tmp_path):
+    from pipelines.bench import fe_convergence
+
+    seen = []
+    monkeypatch.setattr(fe_convergence, "convergence",
+                        lambda scene, levels, **kw: seen.append((levels, kw["sag_levels"])))
+    monkeypatch.setattr(fe_convergence, "load_scene", lambda path: None)
+    fe_convergence.headline_study(None, tmp_path, False)
+    fe_convergence.study(None, tmp_path, False)
+    assert seen == [(fe_convergence.LEVELS, fe_convergence.HEADLINE_SAG_LEVELS),
+                    (fe_convergence.LEVELS, fe_convergence.SAG_LEVELS)]
+    assert fe_convergence.HEADLINE_SAG_LEVELS == fe_convergence.SAG_LEVELS[:-1]
+
+
+def test_an_only_run_of_a_full_item_or_into_another_selection_is_refused(tmp_path):
+    from forcecal.errors import ForcecalError
+    from pipelines.bench.driver import default_out, run_bench
+
+    out = tmp_path / "bench"
+    with pytest.raises(ForcecalError, match=r"\['experiments'\] run in make bench-full only"):
+        run_bench(out, only=("experiments",))
+    out.mkdir()
+    shutil.copy(ROOT / "runs" / "bench" / "bench.json", out / "bench.json")  # a full run
+    with pytest.raises(ForcecalError, match="is a full run, this one a headline run: pass --full"):
+        run_bench(out, only=("stability limits",))
+    assert sorted(p.name for p in out.iterdir()) == ["bench.json"]  # nothing ran
+    assert default_out(False, False).as_posix() == "runs/bench-headline"
+    assert default_out(True, False).as_posix() == "runs/bench"
+
+
+def test_a_headline_bench_may_leave_the_1rank_reference_untimed(tmp_path):
+    """The headline times the reference on 2 ranks only: its bench.json and BENCH.md say so;
+    a full run must have both."""
+    from forcecal.errors import DataFileError
+    from pipelines.bench.driver import check_bench, read_bench
+    from pipelines.bench.report import write_markdown
+
+    bench = read_bench(ROOT / "runs" / "bench" / "bench.json")
+    bench["reference"]["wall_s_1rank"] = None
+    bench["reference"]["runs"].pop("1")
+    with pytest.raises(DataFileError, match="reference.wall_s_1rank = None"):
+        check_bench(bench)
+    bench["selection"] = "headline"
+    check_bench(bench)
+    write_markdown(tmp_path / "BENCH.md", bench)
+    text = (tmp_path / "BENCH.md").read_text()
+    assert "Produced by `make bench` (`python -m pipelines bench`: the headline items" in text
+    assert "not timed on 1 rank (`make bench-full` does)" in text
+
+
+def test_the_make_targets_run_the_bench_command_with_their_selection(monkeypatch):
+    """``make bench`` runs the headline into runs/bench-headline, ``make bench-full`` every
+    item into runs/bench (the committed folder), ``make bench-quick`` the headline on the
+    tiny scene: each target's command line, parsed by the ``bench`` command."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    from pipelines import cli
+    from pipelines.bench import driver
+
+    recipes = dict(re.findall(r"^(bench[\w-]*): setup\n\t\$\(PY\) -m pipelines (.+)$",
+                              (ROOT / "Makefile").read_text(), re.M))
+    assert set(recipes) == {"bench", "bench-full", "bench-quick"}
+    calls = []
+    monkeypatch.setattr(driver, "run_bench", lambda out, **kw: calls.append((out, kw)))
+    for target in ("bench", "bench-full", "bench-quick"):
+        assert cli.main(shlex.split(recipes[target])) == 0
+    assert [(out, kw["full"], kw["quick"], kw["only"], kw["cold"]) for out, kw in calls] == [
+        (Path("runs/bench-headline"), False, False, (), False),
+        (Path("runs/bench"), True, False, (), False),
+        (Path("runs/bench-quick"), False, True, (), False)]
+    calls.clear()
+    assert cli.main(["bench", "--cold", "--only", " scale,volume term "]) == 0
+    assert calls[0][0] == driver.default_out(False, False)
+    assert calls[0][1]["only"] == ("scale", "volume term") and calls[0][1]["cold"]

@@ -12,7 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from calibration.core import calibrate, checkpoint_path, strain_range
+from calibration.core import calibrate, checkpoint_path
+from calibration.reach import strain_range
 from calibration.local import PHASE_KIND, LocalParametrisation, run_local_phase
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings, global_shape
 from calibration.metrics import relative_rms_error
@@ -417,13 +418,20 @@ def test_local_tuning_is_independent_of_point_order_and_workers(box, box_problem
     permuted_run, _, _ = _local_phases(permuted, scene, true, 1, (phase,))
     parallel_run, _, _ = _local_phases(p, scene, true, 2, (phase,))
     assert len(sweeps) == 2 and all(s.accepted and s.end_cost < s.start_cost for s in sweeps)
-    # the Jacobi update sees the same per-point problems in any order, on any worker; only the
-    # summation order of the total cost differs (round-off)
+    # the Jacobi update sees the same per-point problems in any order, on any worker (a
+    # connector's mean over its rings is summed in vertex order; only the total cost's sum
+    # differs, which decides nothing here). Identical arithmetic gives identical results; a
+    # round-off difference anywhere (a BLAS reduction of another memory alignment in a fresh
+    # worker process) can move a Newton iteration across its stopping test, a curve by up to
+    # its tolerance (1e-8 of the force), and the fits with it: measured, the reference
+    # curves' K0 times 1 + 1e-15 moved these parameters by 6.6e-10 (static) and 1.6e-9
+    # (relaxation; a run under load once differed by 1.7e-9). Hence 1e-8, the curves' own
+    # tolerance.
     for name in PARAM_NAMES:
         np.testing.assert_allclose(getattr(permuted_run, name), getattr(sorted_run, name),
-                                   rtol=1e-9)
+                                   rtol=1e-8)
         np.testing.assert_allclose(getattr(parallel_run, name), getattr(sorted_run, name),
-                                   rtol=1e-9)
+                                   rtol=1e-8)
 
 
 def test_command_line(nonuniform, tmp_path):

@@ -78,4 +78,4 @@ def test_when_even_the_global_fit_fails_the_fit_is_kept_and_says_so(column):
         scene, problem, p, None, (-0.1, 0.1)))
     assert params is fit and check.scale is None
     assert [f for f, _ in check.failures] == [1.0, *PULL_BACK]
-    assert "neither does the global fit; the gravity stage will fail" in check.warning()
+    assert "neither does the global fit; the gravity stage records the failure" in check.warning()

@@ -204,3 +204,37 @@ def test_a_checkpoint_of_other_code_is_discarded(case, tmp_path, monkeypatch, ca
             in caplog.text)
     # nothing was loaded: the global static fit was computed again
     assert result.evaluations == fresh.evaluations
+
+
+def test_a_depth_that_collapses_connectors_is_refused_before_any_fe_naming_the_key(tmp_path):
+    """The calibration's limit on the depths (the linear network's largest compression x
+    calibration.strain_margin below 100 %) needs the mesh only: the pipeline refuses such a
+    scene before the FE reference starts, naming the keys over the limit and the limit. On the
+    box with margin 3 the limit is 5.35 mm (1.5: 10.7 mm, beyond half its mean edge)."""
+    from calibration.reach import check_experiment_depths
+    from forcecal.errors import SceneError
+    from pipelines.stages import run_pipeline
+
+    deep = box_scene(tmp_path, test_points={"n_calibration": 4, "n_held_out": 8},
+                     indentation={"depth": 0.006}, relaxation={"depth": 0.004},
+                     calibration={"strain_margin": 3.0})
+    with pytest.raises(SceneError, match=r"^indentation\.depth = 0\.006 m: indenting 0\.006 m "
+                       r"compresses connectors by 1\.12 \(linear estimate of the connector "
+                       r"network x calibration\.strain_margin 3; connector .*\): they would "
+                       r"collapse\. Set indentation\.depth below 0\.00535 m, the largest depth "
+                       r"this mesh accepts$"):
+        check_experiment_depths(deep)
+    both = replace(deep, relaxation={"depth": 0.006})
+    with pytest.raises(SceneError, match="Set indentation.depth and relaxation.depth below"):
+        check_experiment_depths(both)
+    no_relaxation = replace(both, experiments=["indentation"])
+    with pytest.raises(SceneError, match="Set indentation.depth below"):
+        check_experiment_depths(no_relaxation)
+    # just below the limit the strain range is the calibration's: 99.x % compression
+    fine = replace(deep, indentation={"depth": 0.0053})
+    assert -1.0 < check_experiment_depths(fine).strain.low < -0.99
+    # the pipeline stops at its first stage, before any FE work item
+    with pytest.raises(SceneError, match="indentation.depth = 0.006 m"):
+        run_pipeline(deep, tmp_path / "run", until="reference", progress=False)
+    assert not (tmp_path / "run" / "reference.h5").exists()
+    assert not (tmp_path / "run" / "reference.h5.parts").exists()

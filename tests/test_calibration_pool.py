@@ -108,3 +108,44 @@ def test_newton_tolerance_reaches_every_worker_for_the_block_only(tmp_path):
         with pytest.raises(KeyError), pool.newton_tolerance(1e-5):
             raise KeyError("a fit failed")
         np.testing.assert_array_equal(pool.curves("indentation", params, points), 1e-8)
+
+
+class _LateTransport:
+    """Runs each call at once but delivers the replies of worker 0 after those of worker 1
+    (the other worker answering first, as a loaded machine may order them)."""
+
+    def __init__(self):
+        self.pending = []
+
+    def send(self, w, message):
+        fn, args = message
+        try:
+            reply = ("ok", fn(None, *args))
+        except Exception as exc:  # noqa: BLE001 - returned as a worker returns it
+            reply = ("error", exc)
+        self.pending.append((w, reply))
+
+    def receive(self):
+        self.pending.sort(key=lambda item: item[0] == 0)  # worker 1's replies first
+        return self.pending.pop(0)
+
+
+def _fails(_worker, name):
+    if name.startswith("fail"):
+        raise ValueError(name)
+    return name
+
+
+def test_a_worker_error_raised_is_the_first_items_whatever_the_reply_order():
+    """The error a map raises is the first failing item's in the items' order, not the first
+    to arrive (which varies from run to run): items before it still run, items after it are
+    not started."""
+    pool = Pool.__new__(Pool)  # the map only: a fake transport, two workers
+    pool.owner = np.array([0, 0, 1, 0])
+    pool.transport = _LateTransport()
+    items = [(0, ("ok 0",)), (1, ("fail 1",)), (2, ("fail 2",)), (3, ("fail 3",))]
+    with pytest.raises(ValueError, match="fail 1"):  # worker 1's "fail 2" arrives first
+        list(pool.map(_fails, items))
+    pool.transport = _LateTransport()
+    assert sorted(pool.map(_fails, [(0, ("ok 0",)), (2, ("ok 2",))])) == [(0, "ok 0"),
+                                                                         (1, "ok 2")]

@@ -263,9 +263,11 @@ def test_local_tuning_keeps_springs_stiff_on_the_gravity_range():
     deep = rings.members[0][:2]  # two connectors of point 0's ring reach -0.5 under gravity
     low[deep] = -0.5
     validity = local_validity(Validity(low, high, 5.0, glob.K0, strain.scale),
-                              glob.connector_params(n))
+                              glob.connector_params(n), 10.0)
     np.testing.assert_allclose(validity[2][deep], 2.5)  # the global spring's 0.25 K0 < floor
     np.testing.assert_allclose(np.delete(validity[2], deep), 5.0)
+    # the ceiling: 10 x the global spring's largest tangent on each range, K0 at eps = 0
+    np.testing.assert_allclose(validity[3], 100.0)
     local = LocalParametrisation(glob, rings, strain, 1.0, np.zeros((2, 3)), np.zeros((2, 4)),
                                  validity)
     local.check(local.params())  # the start is feasible by construction
@@ -275,9 +277,39 @@ def test_local_tuning_keeps_springs_stiff_on_the_gravity_range():
     softer = local.with_offsets("static", [[np.log(0.9), 0.0, 0.0], [0.0, 0.0, 0.0]])
     check_feasible(softer.params(), strain, 1.0)  # fine on the experiments' strains
     with pytest.raises(ParameterError, match=rf"connector {deep[0]}: spring tangent stiffness "
-                       r"K0 \+ 2 a eps \+ 3 b eps\^2 reaches 2\.25 N/m < the floor 2\.5 N/m on its gravity release "
-                       r"range \[-0\.5, 0\.2\]"):
+                       r"K0 \+ 2 a eps \+ 3 b eps\^2 reaches 2\.25 N/m < the floor 2\.5 N/m on its "
+                       r"validity range \[-0\.5, 0\.2\]"):
         softer.check(softer.params())
+
+
+def test_local_tuning_keeps_springs_below_a_ceiling_over_the_global_spring():
+    """A ring may stiffen up to calibration.stiffness_ceiling times the global spring's largest
+    tangent on each connector's range, not beyond: with K(eps)/K0 = 1 + 5 eps^2 on [-0.2, 0.2]
+    the global tangent peaks at 1.6 K0 = 16 N/m, so the ceiling 10 is 160 N/m; a K0 factor of 9
+    on a ring stays below it (144 N/m), a steep quadratic offset s^2 dbeta = 2 (b/K0 = 55, the
+    tangent 1 + 3 x 55 x 0.04 = 7.6 K0, 76 N/m at the global K0) times a K0 factor 2.5 (190
+    N/m) does not."""
+    from calibration.core import local_validity
+    from calibration.gradient import Validity
+    from calibration.local import LocalParametrisation
+    mesh = box_mesh((2, 2, 2), (0.02, 0.02, 0.02))
+    rings = build_rings(mesh, np.array([13, 4]))
+    glob = GlobalParams(K0=10.0, alpha=0.0, beta=5.0, k1=5.0, tau1=0.5, k2=3.0, tau2=10.0)
+    strain = StrainRange(-0.2, 0.2)
+    n = len(mesh.edges)
+    validity = local_validity(Validity(np.full(n, -0.2), np.full(n, 0.2), 1.0, glob.K0,
+                                       strain.scale), glob.connector_params(n), 10.0)
+    np.testing.assert_allclose(validity[3], 160.0)
+    local = LocalParametrisation(glob, rings, strain, 1.0, np.zeros((2, 3)), np.zeros((2, 4)),
+                                 validity)
+    stiffer = local.with_offsets("static", [[np.log(9.0), 0.0, 0.0], [0.0, 0.0, 0.0]])
+    stiffer.check(stiffer.params())
+    steep = local.with_offsets("static", [[np.log(2.5), 0.0, 2.0], [0.0, 0.0, 0.0]])
+    ring = rings.members[0][0]
+    with pytest.raises(ParameterError, match=rf"connector {ring}: spring tangent stiffness K0 "
+                       r"\+ 2 a eps \+ 3 b eps\^2 reaches 190 N/m > the ceiling 160 N/m on its "
+                       r"validity range \[-0\.2, 0\.2\]"):
+        steep.check(steep.params())
 
 
 def test_nelder_mead_records_history_and_converges():
@@ -313,9 +345,21 @@ def test_nelder_mead_infeasible_points_cost_inf():
                       fatol=1e-12, max_evaluations=200)
     assert np.isinf(fit.history.evaluation_cost).any()
     assert fit.x[0] == pytest.approx(0.2, abs=1e-4)  # the feasible optimum is the bound
-    with pytest.raises(ConvergenceError, match="starting point .* infeasible: x below 0.2"):
-        nelder_mead(cost, np.array([0.0]), np.array([0.5]), name="bad start", xatol=1e-3,
-                    fatol=1e-6, max_evaluations=10)
+    # an infeasible start moves to the feasible point of the initial simplex, and says so
+    moved = nelder_mead(cost, np.array([0.0]), np.array([0.5]), name="bad start", xatol=1e-6,
+                        fatol=1e-12, max_evaluations=200)
+    assert moved.x[0] == pytest.approx(0.2, abs=1e-4)
+    assert moved.initial_cost == pytest.approx(0.16)  # at 0.5, the first feasible candidate
+    assert any("starting point [0.0] is infeasible (x below 0.2); started from the feasible "
+               "point [0.5]" in w for w in moved.warnings)
+    # further out only where no nearer candidate is feasible: -0.5, 0.5 fail, 1.0 does not
+    far = nelder_mead(lambda x: cost(x - 0.6), np.array([0.0]), np.array([0.5]), name="far",
+                      xatol=1e-3, fatol=1e-6, max_evaluations=50)
+    assert "feasible point [1.0]" in far.warnings[0]
+    with pytest.raises(ConvergenceError, match="starting point .* infeasible: x below 0.2 .and "
+                       "so is every point up to 4 initial steps"):
+        nelder_mead(lambda x: cost(x - 10.0), np.array([0.0]), np.array([0.5]),
+                    name="bad start", xatol=1e-3, fatol=1e-6, max_evaluations=10)
 
 
 def test_gauss_newton_fits_a_relaxation_curve_to_round_off():

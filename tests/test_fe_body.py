@@ -176,3 +176,24 @@ def test_the_reference_stage_computes_stores_and_reuses_the_body_experiment(tmp_
     assert json.loads(again.meta["reused"]) == ["indentation", "body"]
     assert json.loads(again.meta["items_computed"]) == {}
     np.testing.assert_array_equal(again.body.loaded_shapes, back.body.loaded_shapes)
+
+
+def test_a_failed_body_experiment_stops_the_reference_naming_it(tmp_path, monkeypatch):
+    """Unlike a test point's curve (replaced or dropped) or the gravity test (left out), the
+    whole-body data failing stops the run: the scene asked for them explicitly and a
+    reference without them would only fail the calibration later. The error names the item
+    and no reference is written."""
+    from forcecal.errors import ConvergenceError
+    from forcecal.scene import load_scene, replace
+    from reference_fe.run import compute_reference
+    from tests import fe_fail_hook
+    from tests.conftest import SCENES
+
+    scene = replace(load_scene(SCENES / "tiny.toml"), experiments=["indentation", "body"],
+                    body={"modes": 2, "load_steps": 2})
+    monkeypatch.setattr("reference_fe.run.compute_item", fe_fail_hook.failing("body:"))
+    out = tmp_path / "reference.h5"
+    with pytest.raises(ConvergenceError, match="FE reference failed: body: test hook: the "
+                                               "body of vertex -1 diverges"):
+        compute_reference(scene, out_path=out, progress=False)
+    assert not out.exists()

@@ -469,6 +469,31 @@ def test_a_kept_factorisation_and_chord_steps_change_nothing_but_the_cost(monkey
     np.testing.assert_allclose(kept, fresh, rtol=0, atol=1e-9 * np.abs(fresh).max())
 
 
+def test_a_chord_step_that_raises_the_residual_is_taken_back(monkeypatch):
+    """A large step after a small one starts with a chord step on the small step's
+    factorisation (nearly the rest tangent): its residual grows, it is taken back and the
+    solve goes on with Newton steps, ending where exact Newton ends (Newton tolerance)."""
+    import reference_fe.model as fe_model
+
+    mesh = mirrored_block(L, L)
+    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
+    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
+    depths = np.array([0.05, 0.45]) * L
+
+    def run() -> tuple[np.ndarray, int]:
+        model = FEModel(mesh, MATERIAL, FESection(element="P2"))
+        curve = ex.indentation_curve(model, fixed, top, normal, depths)
+        return curve, model._problem.taken_back
+
+    kept, taken_back = run()
+    assert taken_back == 1
+    monkeypatch.setattr(fe_model, "KRYLOV_REFRESH_IT", -1)
+    monkeypatch.setattr(fe_model, "CHORD_CONTRACTION", 0.0)
+    exact, none_taken = run()
+    assert none_taken == 0
+    np.testing.assert_allclose(kept, exact, rtol=0, atol=1e-7 * np.abs(exact).max())
+
+
 def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypatch):
     """solve_step's first residual applies dolfinx's lifting only when the guess misses a
     prescribed value: on a punch-like ramp-and-hold the first step from rest (its guess is

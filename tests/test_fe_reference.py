@@ -123,13 +123,20 @@ def test_mpirun_two_ranks_equals_serial(serial, tmp_path):
     np.testing.assert_allclose(par.gravity.displacement, ser.gravity.displacement, **close)
 
 
-def test_failed_item_names_itself_and_keeps_the_checkpoints(tiny_scene, tmp_path):
+def test_failing_everywhere_names_the_first_failure_and_keeps_the_checkpoints(tiny_scene,
+                                                                               tmp_path):
+    """Every step fails: the static sag (run first) is recorded, the release never starts,
+    and the run stops once more than a quarter of the points failed (5 of 17)."""
     scene = replace(tiny_scene, fe={"newton_max_it": 1, "max_step_cuts": 0})
     out = tmp_path / "reference.h5"
-    with pytest.raises(ConvergenceError, match=r"gravity_dynamic: gravity dynamic: step 1/60"):
+    with pytest.raises(ConvergenceError, match=r"FE reference failed: 5 FE test point runs "
+                       r"failed, more than a quarter of the 17 test points: .* first failure: "
+                       r"vertex \d+ \(relaxation\): .* step 1/12 .* did not converge"):
         compute_reference(scene, out_path=out, progress=False)
     assert not out.exists()
-    assert (tmp_path / "reference.h5.parts" / "FAILED").is_file()
+    parts = tmp_path / "reference.h5.parts"
+    assert (parts / "FAILED").is_file() and (parts / "gravity_static.failed").is_file()
+    assert not (parts / "gravity_dynamic.failed").exists()
 
 
 def test_refuses_a_folder_another_live_process_is_filling(tiny_scene, tmp_path):

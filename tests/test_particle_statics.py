@@ -333,3 +333,104 @@ def test_evaluators_refuse_no_test_points_and_depths_beyond_the_model_size():
                            r"\(5 mm is 0\.005\); a value in mm\?"):
             make(depths * 1000)
         make(depths)  # metres: accepted
+
+
+# ------------------------------------------------------------------ a fold of the loading path
+
+ARCH_HEIGHT, LEG_K0, PUSH_K0 = 0.2, 100.0, 1.0  # [m], [N/m], [N/m]
+
+
+def _snap_arch(push_k0: float = PUSH_K0):
+    """A shallow three-legged arch (apex 0.2 m above a fixed unit triangle, legs K0 = 100 N/m)
+    pushed down through a soft spring (K0 ``push_k0``, 1 m long) by a prescribed particle: the
+    apex's equilibrium path has a fold (it snaps through its base), as a weakly held particle
+    of a coarse mesh does. Returns (model, params, the prescribed particle)."""
+    from particle.model import ModelBuilder
+    from particle.params import ConnectorParams
+
+    b = ModelBuilder()
+    base = [b.add_particle([np.cos(a), np.sin(a), 0.0], 1.0, fixed=True)
+            for a in (0.0, 2 * np.pi / 3, 4 * np.pi / 3)]
+    apex = b.add_particle([0.0, 0.0, ARCH_HEIGHT], 1.0)
+    push = b.add_particle([0.0, 0.0, ARCH_HEIGHT + 1.0], 1.0)
+    b.add_connectors(np.array([[i, apex] for i in base] + [[apex, push]]))
+    params = ConnectorParams(K0=np.array([LEG_K0] * 3 + [push_k0]), a=np.zeros(4),
+                             b=np.zeros(4), k1=np.ones(4), b1=np.ones(4), k2=np.ones(4),
+                             b2=np.full(4, 10.0))
+    return b.finalize(params), params, push
+
+
+def _arch_forces(depth: float, push_k0: float = PUSH_K0) -> list[float]:
+    """The push force [N] of every equilibrium of the apex on the axis at ``depth`` [m] (closed
+    form: the soft spring's force against the three legs' vertical force), apex highest first."""
+    from scipy.optimize import brentq
+    rest = np.sqrt(1.0 + ARCH_HEIGHT ** 2)
+
+    def net(z):  # upward force on the apex at height z [N]
+        legs = np.sqrt(1.0 + z * z)
+        return push_k0 * (ARCH_HEIGHT - depth - z) - 3 * LEG_K0 * (legs - rest) * z / legs
+
+    z = np.linspace(-0.5, 0.5, 20001)
+    f = net(z)
+    roots = [brentq(net, z[i], z[i + 1]) for i in np.nonzero(np.sign(f[:-1]) != np.sign(f[1:]))[0]]
+    return [push_k0 * (depth - ARCH_HEIGHT + r) for r in sorted(roots, reverse=True)]
+
+
+DEPTHS = np.linspace(0.05, 0.6, 12)  # the fold lies between 0.50 and 0.55 m
+
+
+def test_an_indentation_past_a_fold_follows_the_model_to_the_state_it_snaps_to():
+    """Up to the fold the curve is the upper (first) equilibrium; beyond it, where Newton and
+    any shorter step find no nearby state, the only equilibrium left, the snapped one: the push
+    force drops from 0.434 to 0.139 N, as the closed form says (to the Newton tolerance)."""
+    from particle.statics import continuation
+    from forcecal.errors import ConvergenceError
+
+    model, params, push = _snap_arch()
+    ev = IndentationEvaluator(model, np.array([push]), DOWN[None], DEPTHS,
+                              strain_range=(-0.9, 0.9))
+    got = ev(params)[0]
+    want = [_arch_forces(d)[0] for d in DEPTHS[:10]] + [_arch_forces(d)[-1] for d in DEPTHS[10:]]
+    assert len(_arch_forces(DEPTHS[10])) == 1  # past the fold: one equilibrium
+    np.testing.assert_allclose(got, want, rtol=1e-7)
+    assert got[9] == pytest.approx(0.4337, abs=1e-4) and got[10] == pytest.approx(0.1389, abs=1e-4)
+    # without settling, the same path stops at the fold
+    solver = EquilibriumSolver(model, np.array([push]), TangentPattern.of(model))
+
+    def step(x, _, depth):
+        x = x.copy()
+        x[push] = model.rest_positions[push] + depth * DOWN
+        return solver.solve(x, params).x
+
+    with pytest.raises(ConvergenceError, match="failed after repeated halving"):
+        continuation(step, model.rest_positions, 0.0, DEPTHS[10])
+    # the relaxation path snaps too (its arm steps on the same fold), then relaxes towards
+    # the snapped state: after 30 times the longest relaxation time, its static force
+    times = np.r_[np.linspace(0.1, 1.2, 12), np.geomspace(1.5, 300.0, 20)]
+    relax = RelaxationEvaluator(model, np.array([push]), DOWN[None], times,
+                                np.minimum(times / 1.2, 1.0) * 0.6, strain_range=(-0.9, 0.9))
+    curve = relax(params)[0]
+    jump = int(np.argmin(np.diff(curve)))  # the arms stiffen the ramp: it snaps earlier
+    assert np.all(np.diff(curve[:jump + 1]) > 0) and curve[jump + 1] < 0.0 < curve[jump]
+    assert curve[-1] == pytest.approx(_arch_forces(0.6)[-1], rel=1e-3)
+
+
+def test_warm_starts_never_cross_a_fold_the_cold_path_does_not():
+    """Near a fold the model has two equilibria: a curve warm-started from a call whose path
+    snapped (or that snaps itself) must still be the path's from rest, what a fresh evaluator
+    gives, in either order of two parameter sets whose folds lie at different depths."""
+    model, params, push = _snap_arch()
+    later = dataclasses.replace(params, K0=params.K0 * np.array([1.0, 1.0, 1.0, 0.8]))
+    fresh = {}
+    for name, p in (("params", params), ("later", later)):
+        ev = IndentationEvaluator(model, np.array([push]), DOWN[None], DEPTHS,
+                                  strain_range=(-0.9, 0.9))
+        fresh[name] = ev(p)[0]
+    # the softer push spring snaps one sample later: the two paths differ at sample 10
+    assert fresh["later"][10] > 2 * fresh["params"][10]
+    for order in (("params", "later"), ("later", "params")):
+        ev = IndentationEvaluator(model, np.array([push]), DOWN[None], DEPTHS,
+                                  strain_range=(-0.9, 0.9))
+        for name in order + order:
+            p = params if name == "params" else later
+            np.testing.assert_allclose(ev(p)[0], fresh[name], rtol=1e-7)

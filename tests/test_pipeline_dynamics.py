@@ -74,26 +74,27 @@ def test_the_fe_p2_consistent_mass_condensed_onto_the_vertices_is_the_lumped_mas
 
 
 def test_the_gravity_stage_runs_a_model_with_the_volume_term(tmp_path):
-    """pipelines.gravity.run_model with kv: the static sag and the release complete (the step
-    chosen and verified for the release's strain and volume ranges), the volume term
-    stiffens the sag, and the metrics of the release are finite."""
+    """The gravity stage's run of a model with kv: the static sag and the release complete
+    (the step chosen and verified for the release's strain and volume ranges), the volume
+    term stiffens the sag, and the metrics of the release are finite."""
     import dataclasses
 
     from calibration.synthetic import box_scene
     from forcecal.problem import build_problem
-    from pipelines.gravity import run_model
+    from calibration.gravity_check import gravity_outcome
     from tests.test_calibration_fit import TRUE_GLOBAL
 
     scene = box_scene(tmp_path, particle={"volume": True},
                       test_points={"n_calibration": 4, "n_held_out": 8})
     problem = build_problem(scene)
-    g = np.array([0.0, 0.0, -9.81])
     times = np.arange(0.0, 1.0 + 1e-9, 0.01)
     n = len(problem.mesh.edges)
     runs = {}
     for kv in (0.0, 20000.0):
         params = dataclasses.replace(TRUE_GLOBAL, kv=kv).connector_params(n)
-        runs[kv] = run_model(scene, problem, params, g, times, (-0.3, 0.3), f"kv={kv:g}")
+        runs[kv], failure = gravity_outcome(scene, problem, params, times, (-0.3, 0.3),
+                                            "calibrated")
+        assert failure is None
     sag = {kv: np.abs(r.static_displacement).max() for kv, r in runs.items()}
     assert 0 < sag[20000.0] < sag[0.0]
     assert runs[20000.0].dt < runs[0.0].dt  # a stiffer model takes a smaller stable step

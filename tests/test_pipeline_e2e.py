@@ -119,6 +119,17 @@ def test_report_has_every_key_finite_and_calibration_beats_the_baseline(first_ru
     # the baseline is one model: its "global" and "calibrated" errors are the same points
     assert report["baseline_errors"]["indentation_global"] == report["baseline_errors"][
         "indentation_calibrated"]
+    # every model completed its validation; the verdict judges what the report measured
+    assert report["failures"] == []
+    checks = report["verdict"]["checks"]
+    assert checks["static_sag"]["calibrated"] == report["errors"]["gravity_static"]
+    assert checks["held_out_relaxation"]["baseline"] == report["baseline_errors"][
+        "relaxation_held_out"]
+    assert checks["release_period"]["calibrated"] == abs(
+        report["gravity"]["dynamic_metrics"]["calibrated"]["period_error"])
+    assert report["verdict"]["passed"] == all(c["status"] == "passed" for c in checks.values())
+    assert report["realtime"]["status"] == "measured"
+    assert report["realtime"]["substeps_per_ms"] >= 1
 
 
 def test_a_params_file_without_force_vectors_reports_them_as_null(first_run):
@@ -145,6 +156,9 @@ def test_second_run_skips_every_stage_and_says_why(first_run, tmp_path):
     for stage in ORDER:
         assert f"{stage:<10} skipped" in r.stdout
         assert f"{stage:<9} up to date, skipped" in r.stderr
+    # the command ends with the verdict table of the report kept
+    assert r.stdout.splitlines()[-2].startswith("verdict: ")
+    assert r.stdout.splitlines()[-1].startswith("real time (1 kHz): ")
 
 
 def test_deleted_output_reruns_only_its_stage(first_run, tmp_path):
@@ -203,3 +217,36 @@ def test_material_change_reruns_everything(first_run, tmp_path):
     assert outcomes[0].reasons == ("scene [material] changed",)
     assert "reference.h5 changed" in outcomes[1].reasons
     assert read_reference(out / "reference.h5").material.C10 == 2200.0
+
+
+def test_a_failed_fe_gravity_test_reports_the_force_checks_and_why_gravity_did_not_run(
+        first_run, tmp_path):
+    """The FE reference recorded that its gravity test failed (reference.h5 as
+    reference_fe.run writes it then: no gravity experiments, fe_failures.gravity and the
+    keys it failed with): the pipeline adopts it, calibrates without the gravity check,
+    skips the gravity stage and reports the force errors with the FE failure as the reason
+    the gravity parts did not run."""
+    from forcecal.h5io import write_reference
+
+    scene_path, out = copy_run(first_run, tmp_path)
+    ref = read_reference(out / "reference.h5")
+    keys = json.loads(ref.meta["experiment_keys"])
+    gravity = ("gravity_static", "gravity_dynamic")
+    failure = {"experiment": "gravity_static", "reason": "gravity static: step 1/4 did not "
+               "converge", "reached": {"load_factor": 0.0039}}
+    meta = {**ref.meta, "experiment_keys": json.dumps({e: k for e, k in keys.items()
+                                                       if e not in gravity}),
+            "failed_experiment_keys": json.dumps({e: keys[e] for e in gravity}),
+            "fe_failures": json.dumps({"replaced": [], "dropped": [], "gravity": failure})}
+    write_reference(out / "reference.h5", dataclasses.replace(ref, gravity=None, meta=meta))
+    outcomes = run_pipeline(load_scene(scene_path), out, progress=False)
+    assert ran(outcomes) == ["calibrate", "report"]  # the reference is adopted as it is
+    assert outcomes[2].reasons == ("none of its experiments in the scene's list",)
+    report = json.loads((out / "report.json").read_text())
+    assert report["experiments"] == ["indentation", "relaxation"]
+    assert report["fe_failures"]["gravity"] == failure
+    for e in gravity:
+        assert report["not_run"][e].startswith("the FE gravity test failed (gravity_static: "
+                                               "gravity static: step 1/4 did not converge)")
+    assert math.isfinite(report["errors"]["indentation_held_out"])
+    assert report["mesh_preflight"]["vertices"] == 78  # what the FE stage saw

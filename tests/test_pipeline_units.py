@@ -18,7 +18,8 @@ from particle.params import ConnectorParams
 from particle.stability import connector_strains
 from forcecal.provenance import code_digest, code_digests, file_digest, import_closure
 from pipelines.cache import Cache, StageInputs
-from pipelines.gravity import GravityRuns, GravityTest, read_gravity, run_model, write_gravity
+from calibration.gravity_check import gravity_outcome
+from pipelines.gravity import GravityRuns, GravityTest, read_gravity, write_gravity
 from pipelines.report import (CURVE_KEYS, ERROR_KEYS, TIMING_KEYS, check_report,
                               gravity_dynamic_error, gravity_static_error)
 from pipelines.stages import STAGES
@@ -121,7 +122,7 @@ def test_the_fe_code_key_leaves_out_the_sections_the_fe_does_not_read():
     # a new [calibration] key must not make an FE reference stale; a new [fe] key must
     from reference_fe.keys import FE_CODE_IGNORED, unread_section_classes
     assert unread_section_classes() == {"ParticleSection", "CalibrationSection",
-                                        "OutputsSection"}
+                                        "OutputsSection", "VerdictSection"}
     assert STAGES["reference"].code_ignored is FE_CODE_IGNORED
     assert FE_CODE_IGNORED == {"forcecal.scene": unread_section_classes()}
     # no module of the FE reads those sections' values (but forcecal.scene, which defines
@@ -129,7 +130,7 @@ def test_the_fe_code_key_leaves_out_the_sections_the_fe_does_not_read():
     # side's estimate before any FE work)
     for name, path in import_closure(("reference_fe.run", "reference_fe.__main__")).items():
         if name not in ("forcecal.scene", "forcecal.cost"):
-            assert not re.search(r"\bscene\.(particle|calibration|outputs)\b",
+            assert not re.search(r"\bscene\.(particle|calibration|outputs|verdict)\b",
                                  path.read_text()), name
 
 
@@ -268,8 +269,9 @@ def test_gravity_runs_of_one_free_particle_match_the_closed_form(corner):
     # arms 1e-6 x the springs: their stiffness and damping change the answer by ~1e-6
     params = ConnectorParams.uniform(n, K0=K0, k1=1e-6 * K0, b1=1e-6 * K0, k2=1e-6 * K0,
                                      b2=1e-5 * K0)
-    scene = scene_from_dict({"particle": {"dt_safety": 0.05}})
     g = np.array([0.0, 0.0, -0.01])  # sag ~1e-8 m on 10 mm springs: geometric terms ~1e-6
+    scene = scene_from_dict({"particle": {"dt_safety": 0.05},
+                             "gravity": {"acceleration": g.tolist()}})
     node = corner.tracked_node
     mass = corner.mesh.lumped_masses(scene.material.density)[node]
     ends = corner.mesh.edges[np.any(corner.mesh.edges == node, axis=1)]
@@ -282,7 +284,8 @@ def test_gravity_runs_of_one_free_particle_match_the_closed_form(corner):
     times = np.linspace(0.0, 2 * period, 81)
     modal = vec.T @ u_static
     u_exact = np.stack([vec @ ((1 - np.cos(np.sqrt(lam) * t)) * modal) for t in times])
-    run = run_model(scene, corner, params, g, times, (-0.5, 0.5), "test")
+    run, failure = gravity_outcome(scene, corner, params, times, (-0.5, 0.5), "calibrated")
+    assert failure is None
     scale = np.abs(u_static).max()
     assert np.allclose(run.static_displacement[node], u_static, rtol=0, atol=1e-4 * scale)
     assert np.abs(np.delete(run.static_displacement, node, axis=0)).max() == 0.0
@@ -293,7 +296,7 @@ def test_gravity_runs_of_one_free_particle_match_the_closed_form(corner):
     assert abs(run.strain_max) < 1e-4 and abs(run.strain_min) < 1e-4
 
 
-def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
+def test_gravity_runs_record_springs_invalid_on_the_calibrated_range(corner):
     n = len(corner.mesh.edges)
     # K(eps) = 100 (1 - 5 eps): positive on [-0.1, 0.1], zero at eps = 0.2, inside the release's
     # range (the tiny sag's strains +- particle.strain_margin = 0.2): the release is verified
@@ -301,13 +304,16 @@ def test_gravity_runs_refuse_springs_invalid_on_the_calibrated_range(corner):
     soft = ConnectorParams(K0=np.full(n, 100.0), a=np.full(n, -500.0), b=np.zeros(n),
                            k1=np.full(n, 50.0), b1=np.full(n, 5.0), k2=np.full(n, 20.0),
                            b2=np.full(n, 40.0))
-    scene = scene_from_dict({})
-    g = np.array([0.0, 0.0, -1.0])
+    scene = scene_from_dict({"gravity": {"acceleration": [0.0, 0.0, -1.0]}})
     times = np.linspace(0.0, 0.01, 3)
-    run = run_model(scene, corner, soft, g, times, (-0.1, 0.1), "soft")
-    assert np.all(np.isfinite(run.displacement))
-    with pytest.raises(ParameterError, match=r"K\(eps\).*<= 0 in the strain range"):
-        run_model(scene, corner, soft, g, times, (-0.5, 0.5), "soft")
+    run, failure = gravity_outcome(scene, corner, soft, times, (-0.1, 0.1), "baseline")
+    assert failure is None and np.all(np.isfinite(run.displacement))
+    # refused before any load: a failure of the model (a result), not of the run
+    run, failure = gravity_outcome(scene, corner, soft, times, (-0.5, 0.5), "baseline")
+    assert run is None
+    assert (failure.model, failure.experiment, failure.point, failure.reached) == (
+        "baseline", "gravity_static", None, 0.0)
+    assert re.search(r"ParameterError: .*K\(eps\).*<= 0 in the strain range", failure.reason)
 
 
 @pytest.mark.parametrize("K0, a, b, lo, hi", [

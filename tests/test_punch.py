@@ -232,33 +232,6 @@ def test_convergence_levels_are_assembled_from_items_finished_in_any_order():
     assert items == [Item(2), Item(4, 3), Item(3, 3), Item(0, 3)]
 
 
-def test_indenter_radius_study_points_are_valid_at_every_radius():
-    """The contact-size study compares every radius on the same points: the scene's own where
-    their footprints are valid at 1, 1.5 and 2 edge lengths, topped up to 8 held-out points by
-    free surface vertices (never a calibration point)."""
-    from forcecal.mesh import free_surface_vertices
-    from forcecal.problem import build_problem
-    from forcecal.scene import MIN_HELD_OUT, load_scene
-    from forcecal.indenter import mean_surface_edge
-    from pipelines.bench.indenter_radius import RADII_EDGES, common_points
-
-    from tests.conftest import SCENES
-
-    problem = build_problem(load_scene(SCENES / "liver_punch.toml"))
-    h = mean_surface_edge(problem.mesh)
-    assert h == pytest.approx(0.0161, rel=0.01)  # the README's mean surface edge length
-    radii = [e * h for e in RADII_EDGES if e > 0]
-    calibration, held_out = common_points(problem, radii)
-    assert set(calibration) <= set(problem.calibration.tolist()) and len(calibration) >= 3
-    assert len(held_out) == MIN_HELD_OUT and not set(held_out) & set(calibration)
-    assert set(held_out) <= set(free_surface_vertices(problem.mesh, problem.fixed).tolist())
-    for vertex in calibration + held_out:
-        normal = problem.mesh.inward_normals(np.array([vertex]))[0]
-        for radius in radii:
-            assert len(punch_footprint(problem.mesh, vertex, normal, radius,
-                                       fixed=problem.fixed)) >= 3
-
-
 def test_punch_candidates_keep_the_footprint_off_the_clamp():
     # the 4 x 4 x 4 block of the refusal test: spacing 0.25, base clamped
     tall = box_mesh((4, 4, 4), (1.0, 1.0, 1.0))

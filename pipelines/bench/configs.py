@@ -54,6 +54,13 @@ log = logging.getLogger(__name__)
 # the gravity errors of a pipeline run (dimensionless, see pipelines.report)
 GRAVITY_ERRORS = ("gravity_static", "gravity_dynamic")
 REDUCED_POINTS = (8, 8)  # calibration, held-out points of the mesh study
+# the settings of each pipeline axis besides the default's ({quick: ...}); ``make bench`` runs
+# the first :data:`HEADLINE_SETTINGS` of each (the coarse mesh level, the fewest points, the
+# smallest budget), ``make bench-full`` all of them
+MESH_FACTORS = {False: (1.375, 1.0, 0.77), True: (1.25, 1.0, 0.8)}  # 0.025 / 0.0182 / 0.014 m
+POINT_COUNTS = {False: (8, 16), True: (3,)}
+BUDGET_SCALES = {False: (0.1, 0.25), True: (0.25,)}
+HEADLINE_SETTINGS = {"mesh": 2, "calibration points": 1, "Nelder-Mead budget": 1}
 MESH_GRAVITY_DURATION = 1.0  # s of gravity dynamics in the mesh study
 BUDGET_KEYS = ("static_max_evaluations", "relaxation_max_evaluations", "local_max_evaluations")
 
@@ -235,11 +242,15 @@ def reduced_points(scene: Scene, characteristic_length: float) -> list[int]:
     return [int(p) for p in picked]
 
 
-def configs(scene: Scene, quick: bool) -> list[Config]:
-    """The pipeline configurations of the study (the particle dt and FE axes are not pipelines)."""
+def configs(scene: Scene, quick: bool, full: bool = True) -> list[Config]:
+    """The pipeline configurations of the study (the particle dt and FE axes are not
+    pipelines); ``full`` False: the headline's (:data:`HEADLINE_SETTINGS`)."""
+    def settings(axis: str, values: tuple) -> tuple:
+        return values if full else values[:HEADLINE_SETTINGS[axis]]
+
     out = []
     h0 = scene.mesh.characteristic_length
-    factors = (1.25, 1.0, 0.8) if quick else (1.375, 1.0, 0.77)  # 0.025 / 0.0182 / 0.014 m
+    factors = settings("mesh", MESH_FACTORS[quick])
     if scene.mesh.source == "generate":
         n_cal, n_held = (4, REDUCED_POINTS[1]) if quick else REDUCED_POINTS
         duration = min(scene.gravity.duration, MESH_GRAVITY_DURATION)
@@ -254,14 +265,14 @@ def configs(scene: Scene, quick: bool) -> list[Config]:
                                "gravity": {"duration": duration}},
                               reference="compute", default=f == 1.0))
     cal, held = _default_test_points(scene)
-    for n in ((3,) if quick else (8, 16)):
+    for n in settings("calibration points", POINT_COUNTS[quick]):
         picked = [cal[i] for i in np.linspace(0, len(cal) - 1, n).round().astype(int)]
         # the held-out points stay the default's ('auto' would pick others for fewer points)
         out.append(Config("calibration points", f"{n} points", {"calibration_points": n},
                           {"test_points": {"calibration": picked, "held_out": held}},
                           reference="slice"))
     c = scene.calibration
-    for scale in ((0.25,) if quick else (0.1, 0.25)):
+    for scale in settings("Nelder-Mead budget", BUDGET_SCALES[quick]):
         budgets = {k: max(1, round(scale * getattr(c, k))) for k in BUDGET_KEYS}
         out.append(Config("Nelder-Mead budget", f"x{scale:g}", {"budget_scale": scale, **budgets},
                           {"calibration": budgets}))

@@ -14,7 +14,8 @@ compute seconds per experiment. The times are the stages' recorded wall times
 (``cache/<stage>.json``), so a rerun with nothing changed reports the runs it
 reuses.
 
-Run: ``python -m pipelines bench --only experiments`` (``--quick``: the tiny scene).
+Run: ``python -m pipelines bench --full --only experiments`` (``--quick``: the tiny scene;
+an item of ``make bench-full`` only).
 """
 
 from __future__ import annotations

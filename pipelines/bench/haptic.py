@@ -1,6 +1,10 @@
 """``haptic scale`` benchmark: the haptic step at 1.4k, 12k and >= 50k connectors, per variant.
 
-``python -m pipelines bench --only "haptic scale"`` runs it alone (it does not need
+``make bench`` measures the first two meshes (:func:`headline_study`: the 12k liver is the
+goal's mesh; the 54k one takes about four fifths of the item's time), ``make bench-full``
+all three.
+
+``python -m pipelines bench [--full] --only "haptic scale"`` runs it alone (it does not need
 the default pipeline run) and writes ``haptic_scale`` into ``bench.json``: one row
 per mesh and variant with the latency of :meth:`particle.haptics.HapticSession.step`
 (1 ms of simulated time per call) and the variant's error against the float64
@@ -63,6 +67,7 @@ log = logging.getLogger(__name__)
 # (name, characteristic length [m] of generate_liver; None = the scene's mesh)
 MESHES = {False: (("liver", None), ("liver 12k", 0.008), ("liver 54k", 0.0045)),
           True: (("scene mesh", None), ("liver 4k", 0.012))}
+HEADLINE_MESHES = 2  # ``make bench``'s: the first of each size's MESHES
 CALLS = 1000  # 1 s of device time: the drag whose force history is compared
 DOWN = np.array([0.0, 0.0, -1.0])
 GOAL_US = 100.0
@@ -214,15 +219,17 @@ def volume_cost(rows: list[dict]) -> list[dict]:
     return out
 
 
-def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
-    """The ``haptic_scale`` key of bench.json (rows: see the module docstring)."""
+def study(scene: Scene, cache_folder: Path, quick: bool,
+          meshes: int | None = None) -> dict[str, Any]:
+    """The ``haptic_scale`` key of bench.json (rows: see the module docstring) on the first
+    ``meshes`` of :data:`MESHES` (None: all)."""
     import numba
 
     numba.set_num_threads(1)
     load_start = list(os.getloadavg())
     gravity = np.asarray(scene.gravity.acceleration, dtype=float)
     rows = []
-    for name, length in MESHES[quick]:
+    for name, length in MESHES[quick][:meshes]:
         model, mesh, fixed = _mesh_model(scene, length)
         tool = int(np.argmax(np.where(model.fixed, -np.inf, model.rest_positions[:, 2])))
         tracked = tracked_node_by_rule(mesh, fixed, "farthest_from_support")
@@ -233,6 +240,11 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
                              "load_average_start": load_start,
                              "load_average_end": list(os.getloadavg()),
                              "goal_us": GOAL_US}}
+
+
+def headline_study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
+    """``make bench``'s item: :func:`study` on the first :data:`HEADLINE_MESHES` meshes."""
+    return study(scene, cache_folder, quick, HEADLINE_MESHES)
 
 
 def goal_rows(b: dict[str, Any]) -> list[list[str]]:
@@ -276,7 +288,8 @@ def markdown(b: dict[str, Any]) -> list[str]:
         return []
     lines = ["", "## Haptic variants", "",
              "`HapticSession.step` (1 ms simulated per call, one thread) per mesh and variant "
-             "(`pipelines/bench/haptic.py`, `python -m pipelines bench --only \"haptic scale\"`): "
+             "(`pipelines/bench/haptic.py`, `python -m pipelines bench [--full] --only \"haptic "
+             "scale\"`): "
              f"a {h['calls']}-call drag of the top vertex 5 mm down, then held. Errors against "
              "the float64 default of the same mesh: `drag`, the tool force over the drag; "
              "`release`, the tracked vertex over 3 s of gravity release (relative RMS). "

@@ -10,7 +10,7 @@ import numpy as np
 
 from forcecal.h5io import atomic_path
 from pipelines.bench import haptic as bench_haptic
-from pipelines.bench import calibration_methods, indenter_radius
+from pipelines.bench import calibration_methods
 from pipelines.bench.tables import cell, table
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,12 @@ WHY_DEFAULT = {
                          "to end, with its 15 % stiffness in sag stated; the refined mesh is "
                          "too slow for routine use",
 }
+
+
+def selection(bench: dict[str, Any]) -> str:
+    """"headline" (``make bench``) or "full" (``make bench-full``; runs written before the
+    headline existed ran every item)."""
+    return bench.get("selection", "full")
 
 
 def _rows(bench: dict, axis: str) -> list[dict]:
@@ -199,7 +205,7 @@ def _duration(b: dict) -> str:
         return ""
     items = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in b["item_s"].items())
     # ``--only`` runs update their items' times but not ``wall_s`` (the last full run's)
-    text = (f"The last full run took {b['wall_s'] / 60:.1f} min; each item's time in the run "
+    text = (f"The last whole run took {b['wall_s'] / 60:.1f} min; each item's time in the run "
             f"that last ran it: {items} min.")
     if b.get("wall_s_cold") is not None:  # runs written before it was recorded have none
         text += (f" With nothing cached (each item's time when it last reused nothing) it "
@@ -266,20 +272,25 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
     m, k, g = b["machine"], b["kernel"], b["gravity_dynamic"]
     c, r = b["calibration"], b["reference"]
     particle_skip = [s for s in b["skip"] if "study" not in s]  # the studies' rows follow
-    cmd = "make bench-quick" if b["quick"] else "make bench"
+    full = selection(b) == "full"
+    flags = " --full" * full + " --quick" * b["quick"]
+    cmd = {(False, False): "make bench", (True, False): "make bench-full",
+           (False, True): "make bench-quick"}.get((full, b["quick"]),
+                                                  f"python -m pipelines bench{flags}")
     lines = [
         "# forcecal benchmarks", "",
-        f"Produced by `{cmd}` (`python -m pipelines bench{' --quick' if b['quick'] else ''}`) "
+        f"Produced by `{cmd}` (`python -m pipelines bench{flags}`: "
+        + ("every item at full size" if full else "the headline items, some reduced; "
+           "`make bench-full` runs every item at full size") + ") "
         f"on {m['date']}, commit `{m['git_commit']}`, {m['cpu_count']} CPUs, {m['platform']}. "
         f"Load average at start {m['load_average_start'][0]:.2f}, at the end "
         f"{m['load_average_end'][0]:.2f}: benchmarks are only meaningful on an otherwise idle "
         "machine; on this shared 2-core machine every time is indicative. Every number comes "
-        "from a run of this code (`bench.json`); long results (pipeline runs, FE study, "
+        "from a run of this code (`bench.json`); long results (pipeline runs, FE studies, "
         "reference timings) are cached in `cache/` under the same code and scene "
-        "fingerprints, so a `make bench` after a code change recomputes them (three reduced "
-        "FE references, the FE discretisation study, eight calibrations and one extra full "
-        "reference; the default pipeline run is `make demo`'s) and one without change "
-        "takes about a minute. " + _duration(b), "",
+        "fingerprints, so a rerun after a code change recomputes what the change touches "
+        "(the default pipeline run is `make demo`'s when that one is current) and one "
+        "without change takes about a minute. " + _duration(b), "",
         "## Goals", "",
     ]
     lines += _goals_section(b)
@@ -376,8 +387,10 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
               + ", ".join(f"{n} {v:.0f}" for n, v in c["stage_times_s"].items()) + ".", "",
               "## FE reference", "",
               f"Full default reference ({r['test_points']} test points x 2 curves + static "
-              f"sag + 3 s dynamic run): **{r['wall_s_1rank'] / 60:.1f} min on 1 rank, "
-              f"{r['wall_s_2ranks'] / 60:.1f} min on 2 ranks** (wall time recorded in "
+              f"sag + 3 s dynamic run): **" + (
+                  "not timed on 1 rank (`make bench-full` does), " if r["wall_s_1rank"] is None
+                  else f"{r['wall_s_1rank'] / 60:.1f} min on 1 rank, ")
+              + f"{r['wall_s_2ranks'] / 60:.1f} min on 2 ranks** (wall time recorded in "
               "`reference.h5` by the run; sources: "
               + "; ".join(f"{n} rank(s): {v['source']}, {v['measured'][:16]}"
                           + (f", load {v['load_average']:.1f}" if "load_average" in v else "")
@@ -397,7 +410,6 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
     if "scale" in b:  # the scale study
         from pipelines.bench.scale import scale_section
         lines += scale_section(b)
-    lines += indenter_radius.markdown(b)
     lines += calibration_methods.markdown(b)
     lines += ["", "## Reproduce", "", "```bash", f"{cmd}   # -> {path.parent}/", "```", ""]
     with atomic_path(path) as tmp:

@@ -1,9 +1,12 @@
 """Runner of the ``reference`` stage: the FE reference (``reference.h5``), in-process or
-spawned as ``mpirun -n <ranks> python -m reference_fe``, and the adoption of a
-``reference.h5`` that already holds what the scene asks for."""
+spawned as ``mpirun -n <ranks> python -m reference_fe``, the adoption of a
+``reference.h5`` that already holds what the scene asks for, and the scene the later
+stages run (:func:`scene_after_reference`: without the gravity experiments when the FE
+gravity test failed)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -18,6 +21,7 @@ import h5py
 
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.failures import INTERRUPTED, die_with_parent, note_stage
+from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
 from pipelines.runners.common import REFERENCE, Context
 
 log = logging.getLogger(__name__)
@@ -143,7 +147,8 @@ def adopt_reference(ctx: Context, mesh_fingerprint: str) -> bool:
 
     It is adopted when it holds every experiment the scene asks for with the
     current key (:func:`reference_fe.keys.experiment_keys`: scene sections, mesh
-    and FE code fingerprints) and its content reads back valid, whatever else
+    and FE code fingerprints), or records its failure with that key (a failed FE gravity
+    test, ``failed_experiment_keys``), and its content reads back valid, whatever else
     it holds: a superset is kept as it is, so removing an experiment from the
     list recomputes nothing. A file without keys does not record the FE code
     that computed it, so it is never adopted (it is recomputed).
@@ -164,7 +169,9 @@ def adopt_reference(ctx: Context, mesh_fingerprint: str) -> bool:
                  "unknown): recomputed", path)
         return False
     keys = experiment_keys(ctx.scene, mesh_fingerprint)
-    if any(stored.get(e) != keys[e] for e in ctx.scene.experiments):
+    with h5py.File(path, "r") as fh:  # a failed gravity test counts as computed with its key
+        failed = json.loads(fh.attrs.get("failed_experiment_keys", "{}"))
+    if any(keys[e] not in (stored.get(e), failed.get(e)) for e in ctx.scene.experiments):
         return False
     try:  # the content too: a NaN-filled or damaged file would fail every later stage
         read_reference(path, expect_mesh=mesh_fingerprint)
@@ -178,3 +185,26 @@ def adopt_reference(ctx: Context, mesh_fingerprint: str) -> bool:
              path, ", ".join(ctx.scene.experiments),
              f" (and {', '.join(extra)}, which the scene does not ask for)" if extra else "")
     return True
+
+
+def scene_after_reference(ctx: Context) -> Scene:
+    """The scene the stages after the reference run: the scene's, less the gravity
+    experiments when the FE gravity test failed (``reference.h5`` records it in
+    ``fe_failures.gravity``): the calibration, the gravity stage and the report then skip the
+    gravity parts as for a scene without them, and the report says why they were not run.
+    The scene itself when ``reference.h5`` is absent or records no gravity failure."""
+    from forcecal.fe_failures import FEFailures
+    path = ctx.out / REFERENCE
+    try:
+        with h5py.File(path, "r") as fh:
+            failures = FEFailures.from_json(fh.attrs.get("fe_failures"), str(path))
+    except (OSError, DataFileError):  # absent (a later stage says so) or damaged
+        return ctx.scene
+    if failures.gravity is None or not any(e in GRAVITY_EXPERIMENTS
+                                           for e in ctx.scene.experiments):
+        return ctx.scene
+    kept = tuple(e for e in ctx.scene.experiments if e not in GRAVITY_EXPERIMENTS)
+    log.warning("the FE gravity test failed (%s: %s): the gravity experiments are not run; "
+                "the force experiments are", failures.gravity["experiment"],
+                failures.gravity["reason"])
+    return dataclasses.replace(ctx.scene, experiments=kept)

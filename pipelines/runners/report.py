@@ -12,12 +12,16 @@ log = logging.getLogger(__name__)
 
 
 def run_report(ctx: Context) -> list[str]:
-    """``report.json``, figures and XDMF fields from the three upstream files."""
+    """``report.json`` (with the verdict and the real-time check), figures and XDMF fields
+    from the three upstream files (on rank 0 under MPI)."""
+    if ctx.rank != 0:
+        return []
     from calibration import read_params
     from forcecal.h5io import read_reference
     from pipelines.fields import write_time_series
     from pipelines.figures import write_figures
     from pipelines.gravity import read_gravity
+    from pipelines.realtime import realtime_block
     from pipelines.report import build_report, write_report
     reference = read_reference(ctx.out / REFERENCE)
     params = read_params(ctx.out / PARAMS)
@@ -30,8 +34,10 @@ def run_report(ctx: Context) -> list[str]:
             raise DataFileError(f"{ctx.out / GRAVITY} was computed from another {PARAMS}; "
                                 "rerun the gravity stage")
     outputs = [REPORT]
+    realtime = realtime_block(ctx.scene, reference.problem, params.connectors["calibrated"])
     write_report(ctx.out / REPORT, build_report(ctx.scene.name, reference, params, gravity,
-                                                ctx.scene.experiments))
+                                                ctx.scene.experiments, goals=ctx.scene.verdict,
+                                                realtime=realtime))
     if ctx.scene.outputs.figures:
         written = write_figures(ctx.out / "figures", reference, params, gravity)
         outputs += [str(p.relative_to(ctx.out)) for p in written]
@@ -41,11 +47,15 @@ def run_report(ctx: Context) -> list[str]:
     elif ctx.scene.outputs.fields and gravity is not None:
         mesh = reference.problem.mesh
         fe = reference.gravity
-        particle = gravity.models["calibrated"]
-        for name, times, u, static in (
-                ("gravity_fe.xdmf", fe.time, fe.displacement, fe.static_displacement),
-                ("gravity_particle.xdmf", gravity.time, particle.displacement,
-                 particle.static_displacement)):
+        series = [("gravity_fe.xdmf", fe.time, fe.displacement, fe.static_displacement)]
+        particle = gravity.models.get("calibrated")
+        if particle is not None and particle.displacement is not None:
+            series.append(("gravity_particle.xdmf", gravity.time, particle.displacement,
+                           particle.static_displacement))
+        else:  # what exists is written: the FE's
+            log.info("report: no particle field: the calibrated model's release did not "
+                     "complete (report.json failures)")
+        for name, times, u, static in series:
             written = write_time_series(ctx.out / name, mesh, times, u, static)
             outputs += [str(p.relative_to(ctx.out)) for p in written]
     for name in REPORT_FILES:  # left by a run with other experiments: not this scene's

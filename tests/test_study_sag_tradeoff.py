@@ -1,4 +1,4 @@
-"""The sag trade-off diagnostic (pipelines/bench/sag_tradeoff.py): its regions, its scalings,
+"""The sag trade-off diagnostic (studies/sag_tradeoff.py): its regions, its scalings,
 its constrained Gauss-Newton step, and the sag studies' refusal of a run without gravity."""
 import dataclasses
 
@@ -8,8 +8,8 @@ import pytest
 from calibration.synthetic import box_scene, synthetic_reference
 from forcecal.errors import DataFileError, ParameterError
 from particle.testing import box_model
-from pipelines.bench.finished_run import FinishedRun
-from pipelines.bench.sag_tradeoff import constrained_step, regions, scaled
+from studies._finished_run import FinishedRun
+from studies.sag_tradeoff import constrained_step, regions, scaled
 
 
 def volume_box():

@@ -1,9 +1,9 @@
-"""The cross-validation of whole calibrations (pipelines/bench/fold_cv.py) on a synthetic box."""
+"""The cross-validation of whole calibrations (studies/fold_cv.py) on a synthetic box."""
 import numpy as np
 
 from calibration.synthetic import box_scene, synthetic_reference
 from forcecal.problem import build_problem
-from pipelines.bench.fold_cv import EXPERIMENTS, study
+from studies.fold_cv import EXPERIMENTS, study
 from tests.test_calibration_fit import SETTINGS, TRUE_GLOBAL
 
 

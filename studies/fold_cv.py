@@ -19,12 +19,11 @@ averaged; the lowest wins. ``score_vector`` (and ``mean_vector``, ``per_point_ve
 the same of the whole force vector's error (:func:`calibration.metrics.force_vector_errors`,
 what ``report.json`` quotes as ``force_vector_errors``), reported beside it, not chosen by.
 
-Not a bench item (5 x 2 calibrations, 4.5 min on the punch scene): ``python -m
-pipelines.bench.fold_cv --scene scenes/liver_punch.toml [--run DIR] [--variants JSON]
-[--work DIR] [--out FILE]``; ``--variants`` maps a label to ``[calibration]`` changes, by
-default ``{"kv per tet": {}, "kv global": {"kv_per_tet": false}}``. The committed result:
-``runs/bench/fold_cv.json`` (punch scene, 2026-12-04: fold error 4.96 / 5.23 % with per-tet
-``kv`` against 5.32 / 5.79 % with one ``kv``, so per-tet ``kv`` stays the default).
+``python -m studies.fold_cv --scene scenes/liver_punch.toml [--run DIR] [--variants JSON]
+[--work DIR] [--out FILE]`` (5 x 2 calibrations, minutes on the punch scene); ``--variants``
+maps a label to ``[calibration]`` changes, by default ``{"kv per tet": {}, "kv global":
+{"kv_per_tet": false}}``. The committed results are ``runs/studies/fold_cv*.json``
+(``docs/studies.md`` lists each with its command and its choice).
 """
 
 from __future__ import annotations
@@ -40,7 +39,7 @@ import numpy as np
 from calibration.metrics import force_vector_errors
 from forcecal.h5io import read_reference, write_reference
 from forcecal.scene import load_scene
-from pipelines.bench.finished_run import parse_study, run_folder, study_parser
+from studies._finished_run import parse_study, run_folder, study_parser, write_result
 from pipelines.runners.common import PARAMS, REFERENCE
 
 log = logging.getLogger(__name__)
@@ -109,11 +108,10 @@ def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, di
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = study_parser("pipelines.bench.fold_cv", __doc__)
+    parser = study_parser("studies.fold_cv", __doc__)
     parser.add_argument("--variants", type=json.loads, default=DEFAULT_VARIANTS,
                         help="JSON: label -> [calibration] changes")
     parser.add_argument("--work", help="folder of the fold calibrations")
-    parser.add_argument("--out", help="write the result to this JSON file")
     args = parse_study(parser, argv)
     result = study(args.scene, args.run, args.variants, args.work)
     print(f"{'variant':16s} {'indentation %':>14s} {'relaxation %':>13s} {'score %':>8s} "
@@ -123,8 +121,7 @@ def main(argv: list[str] | None = None) -> None:
               f"{100 * v['mean']['relaxation']:13.2f} {100 * v['score']:8.2f} "
               f"{100 * v['global_fit_score']:13.2f} {100 * v['score_vector']:15.2f}")
     print(f"chosen: {result['chosen']}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
 
 
 if __name__ == "__main__":

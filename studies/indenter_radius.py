@@ -1,23 +1,26 @@
-"""Bench study "indenter radius": the calibrated model's error against the contact size.
+"""The calibrated model's error against the contact size: fit at one, used at another.
 
-The punch scene (``scenes/liver_punch.toml``; ``--quick``: the bench scene with a punch) is
-calibrated once per contact size, in a folder of its own, on indentation curves only: the
-vertex indenter (the paper's) and flat punches of 1, 1.5 and 2 mean surface edge lengths
-``h`` (each with the scene's FE settings but at most :data:`RIM_LEVELS` rim refinements; the
-vertex has no rim to refine). Every size
-uses the same test points (those whose footprint is valid at every punch radius: >= 3
-particles, off the clamp), split into calibration and held-out points as the scene splits
-them. Each fitted model (its ``calibrated`` connectors) is then evaluated at every size's
-held-out footprints against that size's FE curves: the diagonal is the model used at the
-contact size it was fitted at, the rest the cross terms. Held-out points are never fitted.
+The punch scene (``scenes/liver_punch.toml``; a scene without a punch is given one of 1.5
+mean surface edge lengths) is calibrated once per contact size, in a folder of its own, on
+indentation curves only: the vertex indenter (the paper's) and flat punches of 1, 1.5 and 2
+mean surface edge lengths ``h`` (each with the scene's FE settings but at most
+:data:`RIM_LEVELS` rim refinements; the vertex has no rim to refine). Every size uses the
+same test points (those whose footprint is valid at every punch radius: >= 3 particles, off
+the clamp), split into calibration and held-out points as the scene splits them. Each
+fitted model (its ``calibrated`` connectors) is then evaluated at every size's held-out
+footprints against that size's FE curves: the diagonal is the model used at the contact
+size it was fitted at, the rest the cross terms. Held-out points are never fitted.
 
-``bench.json`` key ``indenter_radius``: rows ``{radius_m, radius_edges, fitted_radius_m,
+The result (JSON): ``rows`` ``{radius_m, radius_edges, fitted_radius_m,
 fitted_radius_edges, held_out_error, calibration_error}`` (``radius_m`` = 0 is the vertex;
 errors are mean relative RMS errors of the normal-force curves, as in ``report.json``;
-``calibration_error`` is null for a cross term), plus ``indenter_radius_study`` with the
-points, ``h``, and each fit's wall times.
+``calibration_error`` is null for a cross term), with the scene, ``h``, the points and each
+fit's wall times.
 
-Run: ``python -m pipelines bench --only "indenter radius"``.
+``python -m studies.indenter_radius [--scene scenes/liver_punch.toml] [--work
+runs/studies/indenter_radius] [--out runs/studies/indenter_radius.json]`` (four FE
+references and calibrations: minutes on the punch scene; a stage whose inputs did not change
+is not recomputed).
 """
 
 from __future__ import annotations
@@ -43,6 +46,8 @@ RADII_EDGES = (0.0, 1.0, 1.5, 2.0)
 #: around a bonded punch's edge), at 2 every size reaches 5 mm; level 2's force is 1-3 %
 #: above level 4's (fe_convergence), far below the errors this study compares
 RIM_LEVELS = 2
+WORK = Path("runs/studies/indenter_radius")
+OUT = Path("runs/studies/indenter_radius.json")
 
 
 def common_points(problem: Problem, radii: list[float]) -> tuple[list[int], list[int]]:
@@ -120,17 +125,16 @@ def cross_curves(fitted: Any, scene: Scene, reference: Any,
     return np.asarray(evaluator(fitted, list(range(len(problem.test_points)))))
 
 
-def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
-    """``indenter_radius`` rows and their details (module docstring)."""
+def study(base: Scene, work: Path) -> dict[str, Any]:
+    """The rows and their details (module docstring) of the punch scene ``base``; each size's
+    pipeline runs in ``work/r<edges>h/``."""
     from calibration import read_params
     from calibration.metrics import relative_rms_error
     from forcecal.h5io import read_reference
-    from pipelines.bench.fe_convergence import PUNCH_SCENE, _with_punch
     from pipelines.cache import Cache
     from pipelines.runners.common import PARAMS, REFERENCE
     from pipelines.stages import run_pipeline
 
-    base = _with_punch(scene) if quick else load_scene(PUNCH_SCENE)
     problem = build_problem(base)
     h = mean_surface_edge(problem.mesh)
     radii = [e * h for e in RADII_EDGES]
@@ -139,7 +143,7 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
              len(points[0]), len(points[1]))
     fits, details = [], []
     for edges, radius in zip(RADII_EDGES, radii):
-        folder = Path(cache) / "indenter_radius" / f"r{edges:g}h"
+        folder = Path(work) / f"r{edges:g}h"
         sized = size_scene(base, radius, points, folder)
         detail = {"radius_edges": edges, "radius_m": radius, "failed": None}
         try:
@@ -180,21 +184,16 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
                          "calibration_error": calibration_error})
             log.info("indenter radius: fitted at %g h, used at %g h: held-out %s", f_edges,
                      e_edges, "failed" if held_out_error is None else f"{held_out_error:.3%}")
-    return {"indenter_radius": rows,
-            "indenter_radius_study": {"scene": base.name, "mean_surface_edge_m": h,
-                                      "calibration_points": points[0],
-                                      "held_out_points": points[1], "fits": details}}
+    return {"rows": rows, "scene": base.name, "mean_surface_edge_m": h,
+            "calibration_points": points[0], "held_out_points": points[1], "fits": details}
 
 
-def markdown(b: dict[str, Any]) -> list[str]:
-    """The "Error against the contact size" section of BENCH.md (empty without rows): the
-    held-out error of each fitted size (rows) used at each size (columns); on the diagonal,
-    held-out / calibration error."""
+def markdown(result: dict[str, Any]) -> list[str]:
+    """The held-out error of each fitted size (rows) used at each size (columns) as Markdown
+    table lines; on the diagonal, held-out / calibration error."""
     from pipelines.bench.tables import table
 
-    rows = b.get("indenter_radius")
-    if not rows:
-        return []
+    rows = result["rows"]
     sizes = sorted({r["radius_edges"] for r in rows})
 
     def label(edges: float) -> str:
@@ -210,15 +209,31 @@ def markdown(b: dict[str, Any]) -> list[str]:
             text = f"**{text}** / {100 * row['calibration_error']:.1f} %"
         return text
 
-    study = b.get("indenter_radius_study", {})
-    h = study.get("mean_surface_edge_m")
-    return ["", "## Error against the contact size", "",
-            "Held-out indentation error (mean relative RMS of the normal-force curves) of the "
-            "model calibrated at one contact size (rows) used at another (columns); diagonal: "
-            "held-out / calibration error. Vertex indenter and flat punches of 1, 1.5, 2 mean "
-            "surface edge lengths h" + (f" = {1e3 * h:.1f} mm" if h else "") + ", indentation "
-            f"only, {len(study.get('calibration_points', []))} calibration + "
-            f"{len(study.get('held_out_points', []))} held-out points common to every size "
-            "(`pipelines/bench/indenter_radius.py`).", ""] + table(
-        ["fitted at \\ used at"] + [label(e) for e in sizes],
-        [[label(f)] + [entry(f, e) for e in sizes] for f in sizes])
+    return table(["fitted at \\ used at"] + [label(e) for e in sizes],
+                 [[label(f)] + [entry(f, e) for e in sizes] for f in sizes])
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+    import json
+
+    from forcecal.h5io import atomic_path
+    from pipelines.bench.fe_convergence import PUNCH_SCENE, with_punch
+
+    parser = argparse.ArgumentParser(prog="python -m studies.indenter_radius",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", type=Path, default=PUNCH_SCENE,
+                        help="the scene (given a punch of 1.5 h if it has none)")
+    parser.add_argument("--work", type=Path, default=WORK, help="the sizes' run folders")
+    parser.add_argument("--out", type=Path, default=OUT, help="the result as JSON")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    result = study(with_punch(load_scene(args.scene)), args.work)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(args.out) as tmp:
+        tmp.write_text(json.dumps(result, indent=1) + "\n")
+    print("\n".join(markdown(result)))
+
+
+if __name__ == "__main__":
+    main()

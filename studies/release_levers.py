@@ -24,10 +24,10 @@ for the committed model with each lever and both, **nothing refitted**:
   by the FE shear modulus' ratio at high rate, roughly what a relaxation refit
   with a relaxing volume term would settle on.
 
-Not a bench item (4 min on a finished run folder of the punch scene): ``python -m
-pipelines.bench.release_levers --scene scenes/liver_punch.toml [--run DIR]
-[--out levers.json] [--figure levers.png]`` (the committed ones:
-``runs/bench/release_levers.json``, ``runs/bench/release_levers.png``). The first row
+``python -m studies.release_levers --scene scenes/liver_punch.toml [--run DIR]
+[--out levers.json] [--figure levers.png]`` (minutes on a finished run folder of the punch
+scene; the committed ones: ``runs/studies/release_levers.json``,
+``runs/studies/release_levers.png``). The first row
 (lumped, elastic) repeats the gravity stage's own release (checked against ``gravity.h5``
 to 1e-9 of its largest displacement).
 """
@@ -35,7 +35,6 @@ to 1e-9 of its largest displacement).
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,7 +48,7 @@ from particle.experiments import sample_steps
 from particle.model import Model, build_model
 from particle.reference_numpy import forces_numpy
 from particle.volume import signed_volumes, volume_gradients_numpy
-from pipelines.bench.finished_run import finished_run, parse_study, study_parser
+from studies._finished_run import finished_run, parse_study, study_parser, write_result
 from pipelines.dynamics import release_modes
 from pipelines.report import gravity_dynamic_error
 
@@ -224,8 +223,7 @@ def levers_figure(path: str | Path, result: dict) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = study_parser("pipelines.bench.release_levers", __doc__)
-    parser.add_argument("--out", help="write the rows to this JSON file")
+    parser = study_parser("studies.release_levers", __doc__)
     parser.add_argument("--figure", help="draw the releases into this PNG")
     args = parse_study(parser, argv)
     result = study(args.scene, args.run)
@@ -235,8 +233,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'lever':52s} {'RMS %':>6s}  modes (FE: {modes(result['fe_modes'])})")
     for row in result["rows"]:
         print(f"{row['lever']['label']:52s} {100 * row['rms_error']:6.2f}  {modes(row['modes'])}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
     if args.figure:
         levers_figure(args.figure, result)
 

@@ -26,15 +26,13 @@ indentation curves at the calibration points (the report's ``indentation_calibra
 what putting those values back costs against the data the fit saw; the result also has the
 geometric means over connectors and tets of ``K0`` and ``kv`` calibrated / global. The
 ``calibrated`` row repeats the gravity stage's static sag (checked against ``gravity.h5`` to
-1e-9 of its largest displacement). Not a bench item (seconds on a finished run folder):
-``python -m pipelines.bench.sag_split --scene scenes/liver_punch.toml [--run DIR]
-[--out sag.json]``.
+1e-9 of its largest displacement). ``python -m studies.sag_split --scene
+scenes/liver_punch.toml [--run DIR] [--out sag.json]`` (seconds on a finished run folder).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from pathlib import Path
 
@@ -47,7 +45,7 @@ from particle.evaluators import IndentationEvaluator
 from particle.model import Model, build_model, params_for
 from particle.params import PARAM_NAMES, ConnectorParams
 from particle.statics import gravity_static
-from pipelines.bench.finished_run import finished_run, parse_study, study_parser
+from studies._finished_run import finished_run, parse_study, study_parser, write_result
 from pipelines.report import gravity_static_error
 
 log = logging.getLogger(__name__)
@@ -231,8 +229,7 @@ def study(scene_path: str | Path, run: str | Path | None = None,
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = study_parser("pipelines.bench.sag_split", __doc__)
-    parser.add_argument("--out", help="write the result to this JSON file")
+    parser = study_parser("studies.sag_split", __doc__)
     args = parse_study(parser, argv)
     result = study(args.scene, args.run)
     split = result["split"]
@@ -244,8 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     for r in result["rows"]:
         print(f"{r['label']:52s} {1e3 * r['max_sag_m']:10.2f} {100 * r['error']:8.2f} "
               f"{r['mean_sag_ratio']:15.3f} {100 * r['calibration_indentation_error']:26.2f}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
 
 
 if __name__ == "__main__":

@@ -1,11 +1,11 @@
-"""The release study (pipelines/bench/release_levers.py): its integrator and its consistent mass."""
+"""The release study (studies/release_levers.py): its integrator and its consistent mass."""
 import dataclasses
 
 import numpy as np
 
 from particle.experiments import gravity_dynamic
 from particle.testing import box_model
-from pipelines.bench.release_levers import Lever, consistent_mass, release
+from studies.release_levers import Lever, consistent_mass, release
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 DENSITY = 1000.0

@@ -1,6 +1,6 @@
 """Could the calibrated model fit its punch curves and hang like the FE at once? A diagnostic.
 
-The sag study (:mod:`pipelines.bench.sag_split`) puts parts of the calibrated model back to
+The sag study (:mod:`studies.sag_split`) puts parts of the calibrated model back to
 the global set and finds that every mix which hangs like the FE fits the calibration curves
 worse. That does not tell whether *other* values would fit them as well and hang like the
 FE. This study looks for such values in a small family: the calibrated model with each of
@@ -10,14 +10,14 @@ centre) scaled by two factors, one on its springs (``K0``, ``a``, ``b``) and one
 Gauss-Newton step on the calibration points' indentation residuals (the report's relative
 RMS errors: ``(F - F_FE) / (max|F_FE| sqrt(S))``, so the squared norm is the sum of the
 points' squared errors) subject to the linearised mean sag ratio reaching 1 (the FE's; see
-:func:`pipelines.bench.sag_split.mean_sag_ratio`), the Jacobian by forward differences,
+:func:`studies.sag_split.mean_sag_ratio`), the Jacobian by forward differences,
 within a trust radius (:func:`constrained_step`).
 
 **The FE's sag is a constraint here.** This is a measurement of what the model could do,
 never a calibration: nothing in forcecal reads its result, and the held-out points and the
 sag error it reports are only read. Each iteration's row: the indentation error at the
 calibration and the held-out points, the mean sag ratio and the report's sag error.
-``python -m pipelines.bench.sag_tradeoff --scene scenes/liver_punch.toml [--run DIR]
+``python -m studies.sag_tradeoff --scene scenes/liver_punch.toml [--run DIR]
 [--regions 12] [--iterations 20] [--out tradeoff.json]`` (measured on a slow machine:
 ``liver_punch`` with 24 regions 7 min for 20 iterations, ``user_organ_punch`` with 12
 regions 6 min for 10).
@@ -26,7 +26,6 @@ regions 6 min for 10).
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from pathlib import Path
 
@@ -39,8 +38,8 @@ from forcecal.indenter import indenter_footprints
 from particle.evaluators import IndentationEvaluator
 from particle.model import build_model, params_for
 from particle.params import ConnectorParams
-from pipelines.bench.finished_run import finished_run, parse_study, study_parser
-from pipelines.bench.sag_split import sag_rows
+from studies._finished_run import finished_run, parse_study, study_parser, write_result
+from studies.sag_split import sag_rows
 
 log = logging.getLogger(__name__)
 
@@ -158,13 +157,12 @@ def study(scene_path: str | Path, run: str | Path | None = None, n_regions: int 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = study_parser("pipelines.bench.sag_tradeoff", __doc__)
+    parser = study_parser("studies.sag_tradeoff", __doc__)
     parser.add_argument("--regions", type=int, default=12, help="k-means regions (default 12)")
     parser.add_argument("--iterations", type=int, default=20, help="default 20")
-    parser.add_argument("--out", help="write the result to this JSON file")
     args = parse_study(parser, argv)
     # the sag study logs every set it measures: here that is every finite difference
-    logging.getLogger("pipelines.bench.sag_split").setLevel(logging.WARNING)
+    logging.getLogger("studies.sag_split").setLevel(logging.WARNING)
     result = study(args.scene, args.run, args.regions, args.iterations)
     print(f"{'iteration':>9s} {'calibration %':>13s} {'held-out %':>10s} {'hangs':>6s} "
           f"{'sag error %':>11s}")
@@ -172,8 +170,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{r['iteration']:9d} {100 * r['indentation_calibrated']:13.2f} "
               f"{100 * r['indentation_held_out']:10.2f} {r['mean_sag_ratio']:6.3f} "
               f"{100 * r['gravity_static']:11.2f}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    write_result(parser, args.out, result)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""The sag study (pipelines/bench/sag_split.py): its split ratios, its sag ratio and its rows."""
+"""The sag study (studies/sag_split.py): its split ratios, its sag ratio and its rows."""
 import dataclasses
 
 import numpy as np
@@ -12,7 +12,7 @@ from forcecal.problem import build_problem
 from forcecal.schedules import indentation_depths
 from particle.evaluators import IndentationEvaluator
 from particle.model import build_model
-from pipelines.bench.sag_split import (DISTANCES, calibration_errors, footprint_distance,
+from studies.sag_split import (DISTANCES, calibration_errors, footprint_distance,
                                        heights, mean_sag_ratio, sag_rows, split_ratios,
                                        variants)
 from pipelines.report import gravity_static_error

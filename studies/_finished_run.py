@@ -1,10 +1,12 @@
 """A finished run folder, as the studies that read one take it (release levers, sag split, sag
 trade-off, fold cross-validation): the scene's TOML and its folder (``runs/<scene name>``
-unless given), the same two command-line arguments, the same files read back."""
+unless given), the same command-line arguments (``--scene``, ``--run``, ``--out``), the same
+files read back, the result written under ``runs/studies/`` unless told otherwise."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,19 +15,39 @@ from typing import Any
 import numpy as np
 
 from forcecal.errors import DataFileError
-from forcecal.h5io import Reference, read_reference
+from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.scene import Scene, load_scene
 from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE
 
 
+RESULTS = Path("runs") / "studies"  # where the studies' results go unless told otherwise
+
+
 def study_parser(module: str, doc: str) -> argparse.ArgumentParser:
-    """The parser of ``python -m <module>`` with ``--scene`` (required) and ``--run``; the
-    description is the first line of ``doc``."""
+    """The parser of ``python -m <module>`` with ``--scene`` (required), ``--run`` and
+    ``--out`` (:func:`write_result`); the description is the first line of ``doc``."""
     parser = argparse.ArgumentParser(prog=f"python -m {module}",
                                      description=doc.splitlines()[0])
     parser.add_argument("--scene", required=True, help="scene TOML of a finished run")
     parser.add_argument("--run", help="its run folder (default runs/<scene name>)")
+    name = module.rsplit(".", 1)[-1]
+    parser.add_argument("--out", type=Path, help=f"the result as JSON (default "
+                        f"{RESULTS.as_posix()}/{name}_<scene name>.json)")
     return parser
+
+
+def write_result(parser: argparse.ArgumentParser, out: Path | None, result: dict[str, Any]
+                 ) -> Path:
+    """Write a study's ``result`` (which names its ``scene``) as JSON to ``out``, by default
+    ``runs/studies/<study>_<scene name>.json`` (the study named by its parser's ``prog``);
+    the path written."""
+    name = parser.prog.rsplit(".", 1)[-1]
+    path = out if out is not None else RESULTS / f"{name}_{result['scene']}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {path}")
+    return path
 
 
 def parse_study(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:

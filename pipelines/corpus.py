@@ -1,0 +1,453 @@
+"""The corpus run (``make corpus``): every ``scenes/corpus/*.toml`` through the whole pipeline.
+
+Each scene runs as its own ``python -m pipelines demo --scene S --out runs/corpus/<stem>``
+process, so a scene that crashes (or is refused) cannot stop the others; its output and
+log lines go to ``runs/corpus/logs/<stem>.log``, its stage transitions and its
+``error:`` line to the terminal. Resuming is the pipeline's own: every stage is
+cached by content (``pipelines.stages``), so a scene whose report is up to date
+runs none of its stages again (its process only checks the caches: seconds), and
+an interrupted one resumes from its finished FE work items and calibration checkpoint.
+
+Scenes run one after the other, smallest mesh first: each already uses both cores
+for its expensive stages (the FE reference on 2 MPI ranks, the calibration on 2
+workers), so two scenes side by side would only share the same two cores, double
+the peak memory (the FE of one scene takes 1-9 GB) and make every timing in the
+table depend on its neighbour.
+
+``runs/corpus/corpus.json`` (rewritten atomically after every scene, so an
+interrupted corpus keeps what it finished) holds per scene the mesh (vertices, tets,
+min/mean edge), the exit status and ``error:`` line, the verdict of each check, the
+stage times and the haptic p99; for the corpus its wall time, date, git commit and
+the machine load at start and end. ``docs/corpus.md`` is its table
+(:func:`corpus_markdown`; ``python -m pipelines corpus --table`` rewrites it from
+``corpus.json`` alone).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable
+
+from forcecal.errors import DataFileError, ForcecalError
+from forcecal.failures import EXIT_ERROR, describe, die_with_parent
+from forcecal.h5io import atomic_path
+from forcecal.provenance import git_commit
+
+KIND = "forcecal.corpus"
+VERSION = 1
+SCENES = Path("scenes/corpus")
+OUT = Path("runs/corpus")
+DOCS = Path("docs/corpus.md")
+STAGE_NAMES = ("reference", "calibrate", "gravity", "report")
+#: the verdict's checks in table order (CONTRACT.md); checks a report adds are appended
+CHECKS = ("held_out_indentation", "held_out_relaxation", "static_sag", "release_period",
+          "release_first_peak", "release_rms", "carries_its_weight")
+#: exit statuses of ``python -m pipelines demo`` that end with a written report
+#: (0: written; 3: written, verdict failed, with ``--require-pass``)
+REPORT_WRITTEN = (0, 3)
+#: exit statuses of a pipeline process stopped by Ctrl-C or SIGTERM: the corpus stops too
+INTERRUPTED = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+
+# the pipeline's log lines this runner follows (pipelines.stages)
+_STAGE_LINE = re.compile(r"^INFO pipelines\.stages: (?P<stage>\w+)\s+(?P<what>running: .*|"
+                         r"done in (?P<seconds>[0-9.]+) s.*|up to date, skipped.*)$")
+_ERROR_LINE = re.compile(r"^(\[rank \d+\] )?error: ")
+
+Command = Callable[[Path, Path], list[str]]
+
+
+def demo_command(scene: Path, out: Path) -> list[str]:
+    """The pipeline command run for one scene."""
+    return [sys.executable, "-m", "pipelines", "demo", "--scene", str(scene), "--out",
+            str(out), "--no-progress"]
+
+
+def mesh_summary(scene_path: Path) -> dict[str, Any]:
+    """Name, mesh file and mesh statistics of one scene, read in-process (fast, no FE);
+    ``{"error": ...}`` with the refusal when the scene or its mesh cannot be loaded."""
+    from forcecal.problem import load_mesh
+    from forcecal.scene import load_scene
+    try:
+        scene = load_scene(scene_path)
+        mesh = load_mesh(scene)
+    except ForcecalError as exc:
+        return {"name": scene_path.stem, "error": describe(exc)}
+    edges = mesh.edge_lengths
+    return {"name": scene.name, "mesh": scene.mesh.source, "vertices": mesh.n_vertices,
+            "tets": mesh.n_tets, "edge_min_m": float(edges.min()),
+            "edge_mean_m": float(edges.mean())}
+
+
+#: seconds between the lines saying a long stage is still running
+HEARTBEAT_S = 300.0
+
+
+def run_scene(command: list[str], log_path: Path, echo: Callable[[str], None],
+              status: Callable[[], str] = lambda: "",
+              heartbeat_s: float = HEARTBEAT_S) -> dict[str, Any]:
+    """Run one scene's pipeline process to its end, its output into ``log_path``.
+
+    Echoes each stage's start and end and its ``error:`` line, and every ``heartbeat_s``
+    of silence which stage is running, for how long, and ``status()`` (e.g. the FE work
+    items finished so far).
+
+    Returns ``{"exit_status", "error", "stages", "wall_time_s"}``: ``stages`` maps each
+    stage to ``{"status": "ran" | "up_to_date" | "failed", "seconds"}`` as its log said
+    (a stage that never started is absent), ``error`` is its last ``error:`` line."""
+    stages: dict[str, dict[str, Any]] = {}
+    error = None
+    t0 = time.perf_counter()
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "w") as fh:
+        fh.write(f"$ {' '.join(command)}\n")
+        child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 text=True, bufsize=1, preexec_fn=die_with_parent)
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=_read_lines, args=(child.stdout, lines), daemon=True).start()
+        try:
+            while (line := _next_line(lines, heartbeat_s)) is not None:
+                if line == "":  # silence: say what is running
+                    running = [s for s, e in stages.items() if e["status"] == "running"]
+                    echo(f"{running[-1] + ' running' if running else 'starting'}, "
+                         f"{(time.perf_counter() - t0) / 60:.0f} min so far{status()}")
+                    continue
+                fh.write(line)
+                fh.flush()
+                error = _follow(line.rstrip("\n"), stages, echo) or error
+            exit_status = child.wait()
+        finally:
+            if child.poll() is None:  # the runner itself is interrupted: stop the scene too
+                child.terminate()
+                try:
+                    child.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    child.kill()
+    for entry in stages.values():
+        if entry["status"] == "running":
+            entry["status"] = "failed"
+    return {"exit_status": exit_status, "error": error, "stages": stages,
+            "wall_time_s": time.perf_counter() - t0}
+
+
+def _read_lines(stream, lines: queue.Queue) -> None:
+    """Put every line of ``stream`` into ``lines``, then None."""
+    for line in stream:
+        lines.put(line)
+    lines.put(None)
+
+
+def _next_line(lines: queue.Queue, timeout: float) -> str | None:
+    """The next line, None at the end, "" after ``timeout`` s without one."""
+    try:
+        return lines.get(timeout=timeout)
+    except queue.Empty:
+        return ""
+
+
+def _follow(line: str, stages: dict[str, dict[str, Any]],
+            echo: Callable[[str], None]) -> str | None:
+    """Record (and echo) what one output line of the pipeline says; returns the error of an
+    ``error:`` line."""
+    if _ERROR_LINE.match(line):
+        error = line.split("error: ", 1)[1]
+        echo(f"error: {error}")
+        return error
+    m = _STAGE_LINE.match(line)
+    if m is None:
+        return None
+    stage, what = m["stage"], m["what"]
+    if what.startswith("running"):
+        stages[stage] = {"status": "running", "seconds": None}
+        echo(f"{stage} {what}")
+    elif m["seconds"] is not None:
+        stages[stage] = {"status": "ran", "seconds": float(m["seconds"])}
+        echo(f"{stage} done in {float(m['seconds']) / 60:.1f} min")
+    else:
+        stages[stage] = {"status": "up_to_date", "seconds": None}
+    return None
+
+
+def fe_items_done(out: Path) -> str:
+    """``", N FE work items finished"`` while the FE reference of ``out`` runs (its finished
+    items are kept in ``reference.h5.parts/``), else ""."""
+    parts = out / "reference.h5.parts"
+    n = len(list(parts.glob("*.npz"))) if parts.is_dir() else 0
+    return f", {n} FE work items finished" if n else ""
+
+
+def _recorded_seconds(out: Path, stage: str) -> float | None:
+    """Wall time of the stage run whose outputs are in ``out`` (its cache record)."""
+    from pipelines.cache import Cache
+    return Cache(out).elapsed(stage)
+
+
+def verdict_summary(report: dict[str, Any]) -> dict[str, Any] | None:
+    """``{"passed", "checks": {name: {status, calibrated, baseline, goal, reason}}}`` of a
+    report, or None when it has no verdict."""
+    verdict = report.get("verdict")
+    if not isinstance(verdict, dict):
+        return None
+    checks = {name: {key: check.get(key) for key in
+                     ("status", "calibrated", "baseline", "goal", "reason")}
+              for name, check in (verdict.get("checks") or {}).items()}
+    return {"passed": verdict.get("passed"), "checks": checks}
+
+
+def scene_entry(scene_path: Path, out: Path, mesh: dict[str, Any],
+                run: dict[str, Any]) -> dict[str, Any]:
+    """The ``corpus.json`` entry of one scene after its run.
+
+    Stage times: a stage that ran now, its time now; one that was up to date, the time
+    recorded with its outputs (:func:`_total` for the scene's). The verdict and haptic p99
+    are read from the report only when this run wrote it or found it up to date (exit
+    status 0 or 3): a report left by an earlier run of other inputs is not this scene's
+    result."""
+    stages = run["stages"]
+    for stage, entry in stages.items():
+        if entry["status"] == "up_to_date":
+            entry["seconds"] = _recorded_seconds(out, stage)
+    entry: dict[str, Any] = {"scene": str(scene_path), **mesh,
+                             "exit_status": run["exit_status"],
+                             "error": run["error"] or mesh.get("error"),
+                             "stages": stages,
+                             "fe_time_s": stages.get("reference", {}).get("seconds"),
+                             "calibration_time_s": stages.get("calibrate", {}).get("seconds"),
+                             "total_time_s": _total(stages, run),
+                             "run_wall_time_s": run["wall_time_s"],
+                             "report": None, "verdict": None, "passed": None,
+                             "haptic_p99_us": None, "missing": []}
+    report_path = out / "report.json"
+    if run["exit_status"] in REPORT_WRITTEN and report_path.is_file():
+        report = json.loads(report_path.read_text())
+        entry["report"] = str(report_path)
+        entry["verdict"] = verdict_summary(report)
+        if entry["verdict"] is not None:
+            entry["passed"] = entry["verdict"]["passed"]
+        realtime = report.get("realtime")
+        if isinstance(realtime, dict):
+            entry["haptic_p99_us"] = realtime.get("step_p99_us")
+        entry["missing"] = [key for key in ("verdict", "realtime")
+                            if not isinstance(report.get(key), dict)]
+    return entry
+
+
+def _total(stages: dict[str, dict[str, Any]], run: dict[str, Any]) -> float:
+    """The scene's pipeline time: this run's wall time plus the recorded times of the stages
+    it found up to date (for a scene run from scratch, its wall time; for one that failed,
+    the time its stages took to reach the failure)."""
+    return run["wall_time_s"] + sum(e["seconds"] or 0.0 for e in stages.values()
+                                    if e["status"] == "up_to_date")
+
+
+def read_corpus(path: str | Path) -> dict[str, Any]:
+    """A ``corpus.json`` (checked for its kind)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataFileError(f"cannot read {path}: {exc}") from None
+    if data.get("kind") != KIND:
+        raise DataFileError(f"{path} is not a corpus result (kind {data.get('kind')!r}, "
+                            f"expected {KIND!r})")
+    return data
+
+
+def write_corpus(path: Path, data: dict[str, Any]) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] = (),
+               command: Command = demo_command, docs: Path | None = DOCS,
+               echo: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run every scene of ``scenes`` (or the stems in ``only``); see the module docstring.
+
+    Returns the corpus result, also written to ``out/corpus.json`` (and its table to
+    ``docs`` unless None). With ``only``, the entries of the other scenes of ``scenes`` are
+    kept from an earlier ``corpus.json`` (each entry has its own date and commit).
+    """
+    paths = sorted(scenes.glob("*.toml"))
+    if only:
+        unknown = sorted(set(only) - {p.stem for p in paths})
+        if unknown:
+            raise DataFileError(f"no scene {', '.join(unknown)} in {scenes}/ (scenes: "
+                                f"{', '.join(p.stem for p in paths)})")
+        paths = [p for p in paths if p.stem in only]
+    if not paths:
+        raise DataFileError(f"no scene files (*.toml) in {scenes}/")
+    corpus_path = out / "corpus.json"
+    earlier = {e["scene"]: e for e in (read_corpus(corpus_path)["scenes"]
+                                       if corpus_path.is_file() else [])}
+    meshes = {p: mesh_summary(p) for p in paths}
+    # smallest first (a scene refused at load first of all): results come in soonest
+    paths.sort(key=lambda p: (meshes[p].get("vertices", -1), p.stem))
+    started = datetime.now(timezone.utc)
+    data = {"kind": KIND, "version": VERSION, "date": started.isoformat(timespec="seconds"),
+            "git_commit": git_commit(), "cpus": os.cpu_count(),
+            "loadavg_start": list(os.getloadavg()), "loadavg_end": None,
+            "wall_time_s": None, "scenes_time_s": None, "passed": None, "scenes": []}
+    kept = {str(p) for p in scenes.glob("*.toml")} - {str(p) for p in paths}
+    entries = {k: v for k, v in earlier.items() if k in kept}
+    t0 = time.perf_counter()
+    try:
+        for i, path in enumerate(paths, 1):
+            mesh = meshes[path]
+            size = (f"{mesh['vertices']} vertices" if "vertices" in mesh
+                    else "its mesh is refused")
+            echo(f"[{i}/{len(paths)}] {path.stem} ({size})")
+            scene_out = out / path.stem
+            when = datetime.now(timezone.utc).isoformat(timespec="seconds")
+            run = run_scene(command(path, scene_out), out / "logs" / f"{path.stem}.log",
+                            lambda text, name=path.stem: echo(f"  {name}: {text}"),
+                            lambda where=scene_out: fe_items_done(where))
+            entries[str(path)] = {**scene_entry(path, scene_out, mesh, run), "date": when,
+                                  "git_commit": data["git_commit"]}
+            echo(f"  {path.stem}: {_outcome(entries[str(path)])}")
+            _finish(data, entries, t0, corpus_path, docs)  # kept if the corpus stops later
+            if run["exit_status"] in INTERRUPTED:
+                raise KeyboardInterrupt
+    except BaseException:
+        _finish(data, entries, t0, corpus_path, docs)
+        raise
+    return data
+
+
+def _finish(data: dict[str, Any], entries: dict[str, dict[str, Any]], t0: float,
+            corpus_path: Path, docs: Path | None) -> None:
+    """Bring the corpus totals up to date and write ``corpus.json`` (and the docs table)."""
+    data["scenes"] = sorted(entries.values(), key=lambda e: (e.get("vertices", -1), e["scene"]))
+    data["loadavg_end"] = list(os.getloadavg())
+    data["wall_time_s"] = time.perf_counter() - t0
+    data["scenes_time_s"] = float(sum(e["total_time_s"] for e in data["scenes"]))
+    data["passed"] = all(e["passed"] is True for e in data["scenes"])
+    write_corpus(corpus_path, data)
+    if docs is not None:
+        with atomic_path(docs) as tmp:
+            tmp.write_text(corpus_markdown(data))
+
+
+def _outcome(entry: dict[str, Any]) -> str:
+    """One line on how a scene ended."""
+    minutes = f"{entry['run_wall_time_s'] / 60:.1f} min"
+    if entry["exit_status"] not in REPORT_WRITTEN:
+        return f"ended with exit status {entry['exit_status']} after {minutes}"
+    if entry["verdict"] is None:
+        return f"report written in {minutes}; it has no verdict"
+    checks = entry["verdict"]["checks"].values()
+    passed = sum(c["status"] == "passed" for c in checks)
+    return (f"report written in {minutes}: verdict "
+            f"{'PASS' if entry['passed'] else 'FAIL'} ({passed}/{len(checks)} checks passed)")
+
+
+# ------------------------------------------------------------------------------ the table
+
+def _minutes(seconds: float | None) -> str:
+    return "" if seconds is None else f"{seconds / 60:.1f}"
+
+
+def _percent(value: float | None) -> str:
+    return "–" if value is None else f"{100 * value:.1f}"
+
+
+def _check_cell(check: dict[str, Any] | None) -> str:
+    """``pass 3.4 / 5.2 (≤ 10) %``: status, calibrated / baseline value, goal."""
+    if check is None:
+        return "missing"
+    status = {"passed": "pass", "failed": "**fail**", "not_run": "not run"}.get(
+        check["status"], str(check["status"]))
+    if check["calibrated"] is None and check["baseline"] is None:
+        return status
+    return (f"{status} {_percent(check['calibrated'])} / {_percent(check['baseline'])} "
+            f"(≤ {_percent(check['goal'])}) %")
+
+
+def _cell(text: Any) -> str:
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def corpus_markdown(data: dict[str, Any]) -> str:
+    """The Markdown page of a corpus result (``docs/corpus.md``)."""
+    names = list(CHECKS) + sorted({n for e in data["scenes"] if e.get("verdict")
+                                   for n in e["verdict"]["checks"]} - set(CHECKS))
+    load = " / ".join(" ".join(f"{x:.2f}" for x in data[k]) if data[k] else "?"
+                      for k in ("loadavg_start", "loadavg_end"))
+    lines = [
+        "# The corpus: third-party meshes through the whole pipeline",
+        "",
+        "Generated by `make corpus` (`python -m pipelines corpus`) from "
+        "`runs/corpus/corpus.json`; `python -m pipelines corpus --table` rewrites this page "
+        "from it. The meshes, their sources and licences: "
+        "[`scenes/corpus/SOURCES.md`](../scenes/corpus/SOURCES.md).",
+        "",
+        f"Run of {data['date']} at commit `{data['git_commit']}` on {data['cpus']} cores, "
+        f"load average (1/5/15 min) at start / end {load}; corpus wall time "
+        f"{_minutes(data['wall_time_s'])} min (the scenes' pipeline times add up to "
+        f"{_minutes(data['scenes_time_s'])} min). Overall verdict (every scene's "
+        f"verdict passed): {'PASS' if data['passed'] else 'FAIL'}.",
+        "",
+        "A check's cell: its status, the calibrated model's and the closed-form baseline's "
+        "relative error, and the goal, in %. Times in minutes; haptic p99 of one 1 ms step "
+        "of the calibrated model in µs.",
+        "",
+        "| scene | vertices | tets | edge min / mean (mm) | exit | verdict | "
+        + " | ".join(f"`{n}`" for n in names)
+        + " | FE | calibration | total | haptic p99 (µs) | error |",
+        "|---|---:|---:|---|---:|---|" + "---|" * len(names) + "---:|---:|---:|---:|---|",
+    ]
+    for e in data["scenes"]:
+        verdict = e.get("verdict")
+        checks = verdict["checks"] if verdict else {}
+        edges = (f"{1000 * e['edge_min_m']:.2f} / {1000 * e['edge_mean_m']:.2f}"
+                 if "edge_min_m" in e else "")
+        passed = {True: "PASS", False: "**FAIL**", None: "none"}[e.get("passed")]
+        cells = [e["name"], e.get("vertices", ""), e.get("tets", ""), edges, e["exit_status"],
+                 passed] + [_check_cell(checks.get(n)) if verdict else "" for n in names]
+        p99 = e.get("haptic_p99_us")
+        cells += [_minutes(e.get("fe_time_s")), _minutes(e.get("calibration_time_s")),
+                  _minutes(e.get("total_time_s")), "" if p99 is None else f"{p99:.0f}",
+                  e.get("error") or ("" if not e.get("missing") else
+                                     "report without " + ", ".join(e["missing"]))]
+        lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``corpus`` subcommand's options (used by :mod:`pipelines.cli`)."""
+    parser.add_argument("--scenes", type=Path, default=SCENES,
+                        help=f"folder of the corpus's scene files (default {SCENES})")
+    parser.add_argument("--out", type=Path, default=OUT,
+                        help=f"output folder: <out>/<scene>/, <out>/corpus.json (default {OUT})")
+    parser.add_argument("--only", nargs="+", default=(), metavar="SCENE",
+                        help="run only these scenes (file stems); corpus.json keeps the others")
+    parser.add_argument("--docs", type=Path, default=DOCS,
+                        help=f"the Markdown table written from corpus.json (default {DOCS})")
+    parser.add_argument("--table", action="store_true",
+                        help="only rewrite --docs from <out>/corpus.json (no run)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """``python -m pipelines corpus``: run the corpus (exit 0 when every scene wrote its
+    report, 2 when one did not), or with ``--table`` only rewrite the docs table from
+    ``corpus.json``."""
+    if args.table:
+        data = read_corpus(args.out / "corpus.json")
+        with atomic_path(args.docs) as tmp:
+            tmp.write_text(corpus_markdown(data))
+        print(f"wrote {args.docs} from {args.out / 'corpus.json'}")
+        return 0
+    data = run_corpus(args.scenes, args.out, only=tuple(args.only), docs=args.docs)
+    ended = [e for e in data["scenes"] if e["exit_status"] not in REPORT_WRITTEN]
+    print(f"corpus: {len(data['scenes']) - len(ended)}/{len(data['scenes'])} scenes wrote "
+          f"their report in {data['wall_time_s'] / 60:.1f} min; verdict "
+          f"{'PASS' if data['passed'] else 'FAIL'}; {args.out / 'corpus.json'}, {args.docs}")
+    return EXIT_ERROR if ended else 0

@@ -1,0 +1,266 @@
+"""``docs/studies.md``: every study with its question, and per committed result its command
+and its answer, generated from the result files themselves.
+
+``python -m studies.catalogue [--check]`` writes the page (``--check``: exits 1 if the
+committed page differs from what it would write). Each entry of :data:`STUDIES` names its
+module, the question it answered, the glob of its committed result files under
+``runs/studies/`` and two functions of a result file: the command that writes it (rebuilt
+from what the file records: scene, variants, regions, ...) and a one-line answer (its
+numbers). A study added to the package needs an entry here (a test checks that every module
+has one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGE = ROOT / "docs" / "studies.md"
+
+Result = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Study:
+    """One study of the page.
+
+    Attributes:
+        module: its module in ``studies`` (``python -m studies.<module>``).
+        question: what it answered, one sentence.
+        results: glob of its committed result files (JSON), relative to the repository.
+        command: (result path relative to the repository, its content) -> the command that
+            writes it.
+        answer: the content of a result file -> its answer in one line of Markdown.
+    """
+    module: str
+    question: str
+    results: str
+    command: Callable[[str, Result], str]
+    answer: Callable[[Result], str]
+
+
+def pct(value: float | None, digits: int = 1) -> str:
+    """A fraction as a percentage (``-`` for None)."""
+    return "-" if value is None else f"{100 * value:.{digits}f} %"
+
+
+def scene_file(name: str) -> str:
+    """The scene file of a scene name (the committed scenes are named after their file)."""
+    return f"scenes/{name}.toml"
+
+
+# ---------------------------------------------------------------------------- per study
+
+def fold_cv_command(path: str, r: Result) -> str:
+    from studies.fold_cv import DEFAULT_VARIANTS
+
+    variants = {label: v["changes"] for label, v in r["variants"].items()}
+    given = "" if variants == DEFAULT_VARIANTS else f" --variants '{json.dumps(variants)}'"
+    return f"python -m studies.fold_cv --scene {scene_file(r['scene'])}{given} --out {path}"
+
+
+def fold_cv_answer(r: Result) -> str:
+    scores = ", ".join(f"{label} {pct(v['score'], 2)}" for label, v in r["variants"].items())
+    return f"fold error {scores}: **{r['chosen']}**"
+
+
+def finished_run_command(module: str) -> Callable[[str, Result], str]:
+    """The command of a study of a finished run (``--scene`` and ``--out`` only)."""
+    return lambda path, r: (f"python -m studies.{module} --scene {scene_file(r['scene'])} "
+                            f"--out {path}")
+
+
+def sag_split_answer(r: Result) -> str:
+    rows = {row["label"]: row for row in r["rows"]}
+    mixes = [row for label, row in rows.items() if label not in ("global", "calibrated")]
+    closest = min(mixes, key=lambda row: abs(row["mean_sag_ratio"] - 1.0))
+    return (f"hangs {rows['calibrated']['mean_sag_ratio']:.3f}x the FE (global set "
+            f"{rows['global']['mean_sag_ratio']:.3f}x); closest mix: {closest['label']}, "
+            f"{closest['mean_sag_ratio']:.3f}x")
+
+
+def sag_tradeoff_command(path: str, r: Result) -> str:
+    return (f"python -m studies.sag_tradeoff --scene {scene_file(r['scene'])} --regions "
+            f"{r['regions']} --iterations {r['rows'][-1]['iteration']} --out {path}")
+
+
+def sag_tradeoff_answer(r: Result) -> str:
+    first, last = r["rows"][0], r["rows"][-1]
+    return (f"{r['regions']} regions, iteration 0 -> {last['iteration']}: hangs "
+            f"{first['mean_sag_ratio']:.3f}x -> {last['mean_sag_ratio']:.3f}x the FE, "
+            f"calibration error {pct(first['indentation_calibrated'])} -> "
+            f"{pct(last['indentation_calibrated'])}, held-out "
+            f"{pct(first['indentation_held_out'])} -> {pct(last['indentation_held_out'])}")
+
+
+def release_levers_command(path: str, r: Result) -> str:
+    figure = Path(path).with_suffix(".png")
+    drawn = f" --figure {figure.as_posix()}" if (ROOT / figure).is_file() else ""
+    return finished_run_command("release_levers")(path, r) + drawn
+
+
+def release_levers_answer(r: Result) -> str:
+    return "release RMS error: " + ", ".join(f"{row['lever']['label']} {pct(row['rms_error'])}"
+                                             for row in r["rows"])
+
+
+def indenter_radius_command(path: str, r: Result) -> str:
+    return (f"python -m studies.indenter_radius --scene {scene_file(r['scene'])} "
+            f"--out {path}")
+
+
+def indenter_radius_answer(r: Result) -> str:
+    def spread(rows: list[Result]) -> str:
+        errors = [row["held_out_error"] for row in rows if row["held_out_error"] is not None]
+        return f"{100 * min(errors):.1f}-{pct(max(errors))}"
+
+    own = [row for row in r["rows"] if row["radius_edges"] == row["fitted_radius_edges"]]
+    other = [row for row in r["rows"] if row["radius_edges"] != row["fitted_radius_edges"]]
+    return (f"held-out error at the contact size fitted at {spread(own)}, at another size "
+            f"{spread(other)}")
+
+
+def viscoelastic_volume_command(path: str, r: Result) -> str:
+    from forcecal.scene import load_scene
+
+    scenes = list(dict.fromkeys(row["scene"] for row in r["rows"]))
+    methods = list(dict.fromkeys(row["method"] for row in r["rows"]))
+    own = {load_scene(ROOT / scene_file(s)).calibration.method for s in scenes}
+    given = "" if set(methods) == own and len(own) == 1 else "".join(
+        f" --method {m}" for m in methods)
+    return ("python -m studies.viscoelastic_volume"
+            + "".join(f" --scene {scene_file(s)}" for s in scenes) + given + f" --out {path}")
+
+
+def viscoelastic_volume_answer(r: Result) -> str:
+    by = {(row["scene"], row["method"], row["volume"]): row["calibrated"] for row in r["rows"]}
+    parts = []
+    for scene, method in dict.fromkeys((s, m) for s, m, _ in by):
+        elastic, relaxing = by[(scene, method, "elastic")], by[(scene, method, "viscoelastic")]
+        parts.append(f"{scene} ({method}): release RMS {pct(elastic['rms_error'])} -> "
+                     f"{pct(relaxing['rms_error'])}, held-out indentation "
+                     f"{pct(elastic['indentation_held_out'])} -> "
+                     f"{pct(relaxing['indentation_held_out'])}")
+    return "elastic -> viscoelastic volume term: " + "; ".join(parts)
+
+
+def haptic_cost_answer(r: Result) -> str:
+    rows = r["summary"]["branch"]
+    return "median time per 1 ms call: " + ", ".join(
+        f"{name} {row['median_us']:.0f} us ({row['substeps']} substep(s))"
+        for name, row in rows.items())
+
+
+def body_data_command(path: str, r: Result) -> str:
+    from studies.body_data import VARIANTS
+
+    scenes = "".join(f" --scene {scene_file(s)}" for s in r["scenes"])
+    given = "" if tuple(r["variants"]) == VARIANTS else f" --variants {','.join(r['variants'])}"
+    volumes = {row.rpartition(" (")[2].rstrip(")") for e in r["scenes"].values()
+               for row in e["rows"] if row.endswith(")")}
+    volume = "".join(f" --volume {v}" for v in sorted(volumes))
+    return f"python -m studies.body_data{scenes}{given}{volume} --out {path}"
+
+
+def body_data_answer(r: Result) -> str:
+    parts = []
+    for scene, entry in r["scenes"].items():
+        said = []
+        cost = entry.get("fe_cost")
+        if cost:
+            said.append(f"FE experiment body {cost['body_s']:.0f} s ({pct(cost['share'])} of "
+                        "the reference's)")
+        if entry["rows"]:
+            said.append("held-out indentation / release RMS: " + ", ".join(
+                f"{name} {pct(row['calibrated']['indentation_held_out'])} / "
+                f"{pct(row['calibrated']['rms_error'])}" for name, row in entry["rows"].items()))
+        parts.append(f"{scene}: " + "; ".join(said))
+    chosen = (r.get("choice") or {}).get("chosen")
+    return "; ".join(parts) + (f"; chosen: **{chosen}**" if chosen else "")
+
+
+STUDIES = (
+    Study("fold_cv", "Which calibration setting predicts calibration points it was not "
+          "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
+          "fold error of the indentation and relaxation curves)",
+          "runs/studies/fold_cv*.json", fold_cv_command, fold_cv_answer),
+    Study("sag_split", "Where does the calibrated model's static sag error come from: which "
+          "of its fitted changes (springs, kv), and where? (the mean sag ratio: 1 = hangs as "
+          "far as the FE)",
+          "runs/studies/sag_split*.json", finished_run_command("sag_split"), sag_split_answer),
+    Study("sag_tradeoff", "Could region-wise scalings of the calibrated model fit its punch "
+          "curves and hang like the FE at once? (the FE sag as a constraint: a diagnostic, "
+          "never a calibration)",
+          "runs/studies/sag_tradeoff*.json", sag_tradeoff_command, sag_tradeoff_answer),
+    Study("release_levers", "Would a consistent mass or a relaxing volume term, nothing "
+          "refitted, bring the calibrated model's gravity release to the FE's?",
+          "runs/studies/release_levers*.json", release_levers_command, release_levers_answer),
+    Study("indenter_radius", "Does a model calibrated at one contact size (vertex, punches of "
+          "1, 1.5, 2 edge lengths) hold at another?",
+          "runs/studies/indenter_radius*.json", indenter_radius_command,
+          indenter_radius_answer),
+    Study("viscoelastic_volume", "Is the calibrated model, refitted with a relaxing "
+          "(viscoelastic) volume term, better as a body without losing the surface?",
+          "runs/studies/viscoelastic_volume*.json", viscoelastic_volume_command,
+          viscoelastic_volume_answer),
+    Study("haptic_cost", "What does the volume term, elastic or viscoelastic, cost the haptic "
+          "step on the default liver?",
+          "runs/studies/haptic_cost*.json", lambda path, r: r["command"], haptic_cost_answer),
+    Study("body_data", "Which whole-body data (natural modes, the weight along the axes "
+          "perpendicular to gravity, the modes about those loads), fitted with the surface "
+          "curves, to choose on calibration data only, and what do they cost the FE?",
+          "runs/studies/body_data*.json", body_data_command, body_data_answer),
+)
+
+
+def page() -> str:
+    """The Markdown of ``docs/studies.md`` from the committed result files."""
+    lines = ["# Studies", "",
+             "Investigations that answered one question once, unlike the benchmarks "
+             "(`make bench`, `make bench-full`), which a user reruns to check speed and error. "
+             "Each study is a module of `studies/` with one command; it may use forcecal, "
+             "forcecal never uses it. A study of a finished run reads `runs/<scene>/` "
+             "(`make demo`'s) unless told `--run DIR`; the numbers below are the committed "
+             "result files', made by the code of their day (a rerun on today's code and runs "
+             "may differ).", "",
+             "Generated by `python -m studies.catalogue` from the files under "
+             "`runs/studies/`; a test checks that this page is what it writes.", ""]
+    for study in STUDIES:
+        paths = sorted(p.relative_to(ROOT).as_posix() for p in ROOT.glob(study.results))
+        lines += [f"## {study.module}", "", study.question, "",
+                  f"`studies/{study.module}.py`", "",
+                  "| result | command | answer |", "|---|---|---|"]
+        for path in paths:
+            result = json.loads((ROOT / path).read_text())
+            lines.append(f"| `{path}` | `{study.command(path, result)}` | "
+                         f"{study.answer(result)} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.catalogue",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true",
+                        help=f"exit 1 if {PAGE.relative_to(ROOT)} is not what it would write")
+    args = parser.parse_args(argv)
+    text = page()
+    if args.check:
+        if not PAGE.is_file() or PAGE.read_text() != text:
+            print(f"error: {PAGE.relative_to(ROOT)} is out of date: run python -m "
+                  "studies.catalogue", file=sys.stderr)
+            return 1
+        return 0
+    PAGE.parent.mkdir(parents=True, exist_ok=True)
+    PAGE.write_text(text)
+    print(f"wrote {PAGE.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

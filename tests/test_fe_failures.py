@@ -1,0 +1,124 @@
+"""What is done about FE test points that fail (replaced under a rule, dropped from an explicit
+list), the quarter that stops the run, and the message saying what failures share. Pure
+numpy: the FE side is in tests/test_fe_point_failures.py."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from forcecal.errors import DataFileError
+from forcecal.fe_failures import (FEFailures, PointFailure, apply_fe_failures,
+                                  common_features, replay, too_many_failures)
+from forcecal.mesh import select_calibration_points, select_held_out_points
+from forcecal.preflight import tet_quality
+from forcecal.problem import build_problem, replacement_point
+from forcecal.scene import load_scene, replace
+
+from tests.conftest import SCENES
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    scene = load_scene(SCENES / "tiny.toml")
+    return scene, build_problem(scene)
+
+
+def _replacement(scene):
+    return lambda problem, index, tried: replacement_point(scene, problem, index, tried)
+
+
+def test_the_replacement_is_the_next_point_the_selection_rule_would_pick(tiny):
+    """Held-out points: farthest-point sampling from the calibration points; the next
+    candidate after the 8 is the 9th point of the same rule. Calibration points by 'auto'
+    on a mesh whose cover exceeds n: the same, along the surface from the clamp."""
+    scene, problem = tiny
+    mesh, fixed = problem.mesh, problem.fixed
+    nine = select_held_out_points(mesh, fixed, problem.calibration, 9)
+    ninth = np.setdiff1d(nine, problem.held_out)
+    assert len(ninth) == 1
+    slot = len(problem.calibration) + 3
+    assert replacement_point(scene, problem, slot, set()) == ninth[0]
+
+    auto = replace(scene, test_points={"calibration": "auto", "n_calibration": 4})
+    four = select_calibration_points(mesh, fixed, 4, "auto")
+    five = select_calibration_points(mesh, fixed, 5, "auto")
+    assert len(np.setdiff1d(five, four)) == 1  # the cover does not fit: sampling
+    problem4 = dataclasses.replace(problem, calibration=four,
+                                   held_out=select_held_out_points(mesh, fixed, four, 8))
+    assert replacement_point(auto, problem4, 1, set()) == np.setdiff1d(five, four)[0]
+    # never a current test point, nor one already tried
+    tried = {int(np.setdiff1d(five, four)[0])}
+    again = replacement_point(auto, problem4, 1, tried)
+    assert again not in tried and again not in problem4.test_points
+
+
+def test_failed_points_are_replaced_under_a_rule_and_dropped_from_a_list(tiny):
+    scene, problem = tiny
+    cal, held = problem.calibration, problem.held_out
+    fails = [PointFailure(2, int(cal[2]), "relaxation", "diverged", {"time_s": 0.2}),
+             PointFailure(9 + 1, int(held[1]), "indentation", "diverged", {"depth_m": 0.004})]
+    current, records, applied = replay(problem, fails, _replacement(scene))
+    assert [r["slot"] for r in records.replaced] == [2, 10] and not records.dropped
+    assert records.replaced[0]["point"] == cal[2] and records.replaced[0]["role"] == "calibration"
+    assert records.replaced[1]["role"] == "held_out"
+    assert records.replaced[0]["reached"] == {"time_s": 0.2}
+    assert current.test_points[2] == records.replaced[0]["by"]
+    assert len(current.test_points) == len(problem.test_points) and len(applied) == 2
+    # the replacement fails too: replaced again, in the next pass
+    by = records.replaced[0]["by"]
+    current2, records2, _ = replay(problem, fails + [PointFailure(2, by, "indentation", "x")],
+                                   _replacement(scene))
+    assert [r["point"] for r in records2.replaced if r["slot"] == 2] == [cal[2], by]
+    assert current2.test_points[2] not in (cal[2], by)
+    # decided from the set of failures only: any order gives the same
+    assert replay(problem, fails[::-1], _replacement(scene))[1] == records
+    # explicit lists: dropped
+    listed = replace(scene, test_points={"calibration": cal.tolist(),
+                                         "held_out": held.tolist()})
+    current, records, _ = replay(problem, fails, _replacement(listed))
+    assert not records.replaced and [d["point"] for d in records.dropped] == [cal[2], held[1]]
+    assert len(current.calibration) == len(cal) - 1 and len(current.held_out) == len(held) - 1
+    # what the calibration stage checks a reference against: the scene's points + the record
+    again = apply_fe_failures(problem, records)
+    np.testing.assert_array_equal(again.test_points, current.test_points)
+
+
+def test_fe_failures_round_trip_and_refuse_a_damaged_attribute():
+    f = FEFailures(({"point": 3, "by": 7, "experiment": "relaxation", "reason": "r"},), (),
+                   {"experiment": "gravity_static", "reason": "no equilibrium"})
+    import json
+    assert FEFailures.from_json(json.dumps(f.to_json()), "x") == f
+    assert FEFailures.from_json(None, "x") == FEFailures() and not FEFailures().any
+    with pytest.raises(DataFileError, match="fe_failures"):
+        FEFailures.from_json('{"replaced": [{"by": 3}]}', "x")
+    problem = build_problem(load_scene(SCENES / "tiny.toml"))
+    with pytest.raises(DataFileError, match="vertex 100000, which is not a test point"):
+        apply_fe_failures(problem, FEFailures(({"point": 100000, "by": 1},)))
+
+
+def test_more_than_a_quarter_stops_with_what_the_failures_share(tiny):
+    """17 points: 4 failures are within a quarter, 5 are not. Failures at the 5 test points
+    nearest the clamp are named as near it (the quarter of the free surface nearest the
+    clamp holds at most 2 of the others)."""
+    scene, problem = tiny
+    mesh, fixed = problem.mesh, problem.fixed
+    x = mesh.vertices
+
+    def to_clamp(v):
+        return np.min(np.linalg.norm(x[v][:, None] - x[fixed][None], axis=2), axis=1)
+
+    order = np.argsort(to_clamp(problem.test_points))
+    fails = [PointFailure(int(k), int(problem.test_points[k]), "relaxation", "diverging",
+                          {"time_s": 0.2}) for k in order[:5]]
+    assert too_many_failures(17, fails[:4], []) is None
+    near = np.quantile(to_clamp(np.setdiff1d(mesh.surface_vertices, fixed)), 0.25)
+    others = int(np.sum(to_clamp(problem.test_points[order[5:]]) <= near))
+    assert np.all(to_clamp(problem.test_points[order[:5]]) <= near) and others <= 2
+    features = common_features(mesh, fixed, problem.test_points, fails, tet_quality(mesh))
+    message = str(too_many_failures(17, fails, features))
+    assert message.startswith("5 FE test point runs failed, more than a quarter of the 17")
+    assert "5 in relaxation" in message and "time reached 0.2-0.2 s" in message
+    assert (f"5 of 5 near the clamp (within {near * 1e3:.3g} mm, as the nearest quarter of "
+            f"the free surface; of the others: {others} of 12)") in message
+    assert "first failure: vertex" in message and "diverging" in message
