@@ -33,6 +33,7 @@ from calibration.synthetic import box_scene, synthetic_reference
 from calibration.validation import ValidationFailure
 from forcecal.problem import build_problem
 from forcecal.scene import load_scene
+from particle.model import build_model
 from particle.params import ConnectorParams
 from pipelines.cache import Cache
 from pipelines.cli import main as pipelines_main
@@ -378,7 +379,9 @@ def test_a_haptic_session_that_cannot_run_is_a_failed_real_time_check(tmp_path):
     from pipelines.realtime import realtime_block
     scene = _scene(tmp_path, particle={"dt": 0.01})  # 10 ms: above the box's stable step
     problem = build_problem(scene)
-    block = realtime_block(scene, problem, TRUTH.connector_params(len(problem.mesh.edges)))
+    model = build_model(problem, scene.material.density,
+                        TRUTH.connector_params(len(problem.mesh.edges)))
+    block = realtime_block(scene, problem, model)
     assert block["status"] == "failed"
     assert block["reason"].startswith("TimeStepError: time step dt = 0.01 s")
     assert block["step_p99_us"] is None and block["substeps_per_ms"] is None
