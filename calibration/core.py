@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.baseline import van_gelder_params
+from calibration.body import BodyData, body_kinds, body_record
 from calibration.checkpoint import Checkpoint
 from calibration.gradient import Validity, fit_gradient, gradient_backend
 from calibration.gravity_check import carry_gravity, gravity_failure
@@ -179,6 +180,9 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     gradient = settings.method == "gradient"
     # both methods keep springs stiff on the gravity release range: it reads the margin
     inputs["particle.strain_margin"] = repr(scene.particle.strain_margin)
+    whole_body = scene.runs("body") and ref.body is not None
+    if whole_body:
+        inputs["body.load_steps"] = repr(scene.body.load_steps)
     if gradient and backend is particle_backend:
         backend = gradient_backend
     checkpoint = Checkpoint(checkpoint_path(out_path), inputs)
@@ -235,6 +239,21 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                      shape)
         local_sweeps: dict[str, list[Sweep]] = {"static": [], "relaxation": []}
         gradient_summary: dict = {}
+        kinds = body_kinds(settings.body_data) if whole_body and gradient else ()
+        body_all, body, body_failure = None, None, None
+        if whole_body:
+            body_all = BodyData.of(ref, kinds, glob.connector_params(n_conn, shape),
+                                   scene.body.load_steps)
+        if kinds:  # the fit starts from the global set: the kinds it has a response to
+            missing = {k: why for k, why in body_all.carried(
+                glob.connector_params(n_conn, shape)).items() if why is not None}
+            if missing:
+                body_failure = ("the global fit has no response to the whole-body data "
+                                + "; ".join(f"{k} ({why})" for k, why in missing.items())
+                                + "; they join the fit once it carries them")
+                log.warning("%s", body_failure)
+            carried = tuple(k for k in kinds if k not in missing)
+            body = body_all.with_kinds(carried) if carried else None
         if gradient:
             t = time.perf_counter()
             vectors = ({e: getattr(ref, e).force[:n_cal] for e in fitted}
@@ -250,6 +269,10 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
                                split_prior=settings.split_prior,
                                force_vectors=vectors,
                                max_iterations=settings.gradient_max_iterations,
+                               body=body, body_upgrade=body_all if body is not None else None,
+                               body_weight=(None if settings.body_weight == "cv"
+                                                       else float(settings.body_weight)),
+                               body_candidates_report=settings.body_candidates,
                                checkpoint_get=checkpoint.get, checkpoint_put=checkpoint.put)
             gradient_summary = gfit.summary()
             evaluations["gradient_jacobians"] = gfit.jacobians
@@ -283,6 +306,15 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
             stage_times["gravity_check"] = time.perf_counter() - t
         connectors = {"baseline": van_gelder_params(mesh, material),
                       "global": glob.connector_params(n_conn, shape), "calibrated": calibrated}
+        body_summary = {}
+        if whole_body:  # every variant against every whole-body item, fitted or not
+            t = time.perf_counter()
+            fitted_data = body_all if body is None else gfit.body_data
+            body_summary = body_record(
+                fitted_data, gfit.body_weight if body is not None else None, connectors,
+                body_failure if fitted_data.kinds != kinds else None,
+                gfit.body_candidates if body is not None else None)
+            stage_times["body"] = time.perf_counter() - t
         t = time.perf_counter()
         pool.forget_warm_starts()  # the phases before may have been loaded (identical resumes)
         variants, failures = {}, []
@@ -305,11 +337,13 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     if not relax:
         warnings.append(ARMS_NOT_CALIBRATED)
     warnings += _local_warnings(local_sweeps, settings.local_max_evaluations)
-    for unused in unused_settings(settings, glob.has_volume):
+    for unused in unused_settings(settings, glob.has_volume, whole_body):
         log.warning(unused)
         warnings.append(unused)
     if gravity_check is not None and gravity_check.warning() is not None:
         warnings.append(gravity_check.warning())
+    if body_summary.get("status") == "failed" or body_failure is not None:
+        warnings.append(f"whole-body data: {body_summary['failure']}")
     result = CalibrationResult(
         problem=problem, initial=initial, global_params=glob, connectors=connectors,
         variants=variants, z_static=local.z_static, z_relaxation=local.z_relaxation,
@@ -318,7 +352,7 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
         reference_fingerprint=reference_digest(reference_path, fitted), experiments=fitted,
         reference_path=str(reference_path), evaluations=evaluations, stage_times=stage_times,
         wall_time=time.perf_counter() - t0, warnings=tuple(warnings), versions=versions(),
-        gradient=gradient_summary, failures=tuple(failures))
+        gradient=gradient_summary, body=body_summary, failures=tuple(failures))
     write_params(out_path, result)
     checkpoint.remove()
     for w in warnings:
@@ -327,11 +361,17 @@ def calibrate(scene: Scene | str | Path, reference_path: str | Path, out_path: s
     return result
 
 
-def unused_settings(settings: CalibrationSection, volume: bool) -> list[str]:
+def unused_settings(settings: CalibrationSection, volume: bool, body: bool = False
+                    ) -> list[str]:
     """A warning for each gradient-method setting that acts on nothing: a
     ``calibration.split_prior`` > 0 (it needs the gradient method with the volume term and
-    per-tet kv), ``calibration.force_components = "vector"`` (the gradient method's cost)."""
+    per-tet kv), ``calibration.force_components = "vector"`` (the gradient method's cost),
+    whole-body data (``body``: the scene runs the experiment) with the paper's method."""
     out = []
+    if body and settings.body_data != "none" and settings.method != "gradient":
+        out.append(f"calibration.body_data = \"{settings.body_data}\" has no effect: the "
+                   "whole-body data are fitted by calibration.method = \"gradient\" (the "
+                   "paper's method fits the surface curves only; their errors are reported)")
     if settings.split_prior > 0 and not (settings.method == "gradient" and volume
                                          and settings.kv_per_tet):
         out.append(f"calibration.split_prior = {settings.split_prior:g} has no effect: it "

@@ -64,16 +64,19 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.gradient_solver import (N_COORDS, PRIOR_RATIO, ROWS_KEPT, SHAPE_SMOOTHNESS,
-                                         WEIGHT_GRID, Linearisation, LMState, Regulariser,
-                                         compress, cross_validate, folds_of,
+from calibration.body import BodyData
+from forcecal.scene import BODY_DATA_CHOICES
+from calibration.gradient_solver import (BODY_WEIGHT_GRID, N_COORDS, PRIOR_RATIO, ROWS_KEPT,
+                                         SHAPE_SMOOTHNESS, WEIGHT_GRID, Linearisation, LMState,
+                                         Regulariser, compress, cross_validate, folds_of,
                                          levenberg_marquardt, linearise)
 from calibration.parametrisation import GlobalParams, StrainRange, check_spring_range
 from calibration.pool import Experiments, Pool, PointWorker, in_point_order
 from forcecal.errors import ParameterError
 from particle.evaluators import force_components
 from particle.model import params_for
-from particle.params import VOLUME_ARM_NAMES, ConnectorParams
+from particle.body import parameter_layout
+from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams
 from particle.volume import tet_edge_connectors
 
 log = logging.getLogger(__name__)
@@ -242,6 +245,39 @@ class Coordinates:
                                  axis=-1)
         return out
 
+    def chain_matrix(self, params: ConnectorParams, n_tets: int) -> sp.csr_matrix:
+        """(P, size) :meth:`chain` as a sparse matrix, from the parameter layout of
+        :func:`particle.body.parameter_layout` (``n_tets`` the model's tets, for the layout
+        of a volume term whose kv is not a coordinate: its rows are zero)."""
+        e = self.n_connectors
+        t = n_tets if params.kv is not None else 0
+        layout = parameter_layout(e, t, params.has_volume_arms)
+        n_t = self.n_tets
+        connector_blocks = [(q * e, e) for q in range(N_COORDS)]
+        tet_blocks = [(N_COORDS * e + q * n_t, n_t) for q in range(self.tet_blocks)]
+        rows, cols, vals = [], [], []
+        for name, where in layout.items():
+            jac, jac_kv = np.zeros((1, N_COORDS, e)), np.zeros((1, n_t))
+            jac_arms = np.zeros((1, 4, n_t))
+            if name in PARAM_NAMES:
+                jac[0, PARAM_NAMES.index(name)] = 1.0
+            elif not n_t:
+                continue  # a volume term that is not fitted
+            elif name == "kv":
+                jac_kv[0] = 1.0
+            else:
+                jac_arms[0, VOLUME_ARM_NAMES.index(name)] = 1.0
+            out = self.chain(jac, jac_kv, params, jac_arms)[0]
+            for start, width in connector_blocks if name in PARAM_NAMES else tet_blocks:
+                coefficient = out[start:start + width]
+                nonzero = np.flatnonzero(coefficient)
+                rows.append(where.start + nonzero)
+                cols.append(start + nonzero)
+                vals.append(coefficient[nonzero])
+        size = max(s.stop for s in layout.values())
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(size, self.size))
+
 
 def shared_laplacian(members: np.ndarray, n_particles: int, shared: int) -> sp.csc_matrix:
     """(M, M) Laplacian of "shares at least ``shared`` particles" between members (M, k)
@@ -375,30 +411,88 @@ class Data:
 
 
 class Evaluator:
-    """Residuals and Jacobians of the calibration points through the pool."""
+    """Residuals and Jacobians of the calibration points through the pool, and of the
+    whole-body data (``body``, evaluated here) weighted by ``sqrt(body_weight)``."""
 
-    def __init__(self, pool: Pool, data: Data, coords: Coordinates):
+    def __init__(self, pool: Pool, data: Data, coords: Coordinates,
+                 body: BodyData | None = None, body_weight: float = 0.0):
         self.pool, self.data, self.coords = pool, data, coords
+        self.body, self.body_weight = body, body_weight
         self.jacobians = 0
 
+    @property
+    def fits_body(self) -> bool:
+        """Whether the whole-body data enter the objective (present, weight > 0)."""
+        return self.body is not None and self.body_weight > 0
+
     def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """(rows,) residuals at ``theta`` (:func:`point_residuals` on each worker)."""
-        out, positions = self.pool.by_owner(point_residuals, points, self.coords.params(theta),
-                                            self.data)
-        return in_point_order(out, positions, (self.data.rows(points[:1]),)).ravel()
+        """(rows,) residuals at ``theta`` (:func:`point_residuals` on each worker), then the
+        weighted whole-body residuals."""
+        params = self.coords.params(theta)
+        out, positions = self.pool.by_owner(point_residuals, points, params, self.data)
+        surface = in_point_order(out, positions, (self.data.rows(points[:1]),)).ravel()
+        if not self.fits_body:
+            return surface
+        return np.concatenate([surface, np.sqrt(self.body_weight) * self.body.residuals(params)])
 
     def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
                   ) -> tuple[np.ndarray, np.ndarray, float]:
-        """Compressed rows at ``theta`` (:func:`point_rows` on each worker): residuals
-        (P k,), Jacobian (P k, size), point-major in the order of ``points``, and the
-        squared residual left out [1]."""
-        out, positions = self.pool.by_owner(point_rows, points, self.coords.params(theta),
-                                            self.coords, self.data, keep)
+        """Compressed rows at ``theta``: residuals, Jacobian (rows, size) and the squared
+        residual left out [1] of the points (:func:`point_rows` on each worker, point-major
+        in the order of ``points``), then the weighted whole-body rows."""
+        return self.linearise_groups(theta, points, keep).weighted(self.body_weight)
+
+    def linearise_groups(self, theta: np.ndarray, points: np.ndarray, keep: int
+                         ) -> "GroupedRows":
+        """:meth:`linearise` with the whole-body rows unweighted (whatever the weight), and
+        each row's group."""
+        params = self.coords.params(theta)
+        out, positions = self.pool.by_owner(point_rows, points, params, self.coords, self.data,
+                                            keep)
         kept = min(keep, self.data.rows(points[:1]))
-        rows = in_point_order([o[0] for o in out], positions, (kept,))
+        rows = in_point_order([o[0] for o in out], positions, (kept,)).ravel()
         jac = in_point_order([o[1] for o in out], positions, (kept, self.coords.size))
+        jac = jac.reshape(len(points) * kept, -1)
+        left = float(sum(o[2] for o in out))
+        groups = np.repeat(np.asarray(points), kept)
         self.jacobians += 1
-        return rows.ravel(), jac.reshape(len(points) * kept, -1), float(sum(o[2] for o in out))
+        if self.body is None:
+            return GroupedRows(rows, jac, left, 0.0, groups, np.ones(len(rows), bool))
+        body = self.body.rows(params, self.coords.chain_matrix(params, self.body.model.n_tets),
+                              keep)
+        return GroupedRows(np.concatenate([rows, body.residual]), np.vstack([jac, body.jacobian]),
+                           left, body.left_out, np.concatenate([groups, -1 - body.item]),
+                           np.concatenate([np.ones(len(rows), bool), body.fitted]))
+
+
+@dataclass(frozen=True, eq=False)
+class GroupedRows:
+    """Compressed data rows of the points and the whole-body items, the latter unweighted.
+
+    Attributes:
+        r: (rows,) residuals; J: (rows, size) their Jacobian.
+        left: squared residual the points' compression left out [1].
+        body_left: the same of the whole-body items (unweighted) [1].
+        groups: (rows,) each row's calibration point (>= 0), or ``-1 - item`` for a
+            whole-body item's (:func:`calibration.gradient_solver.cross_validate`).
+        fitted: (rows,) False for the rows of whole-body items of kinds the fit does not use
+            (computed for the cross-validation's report only).
+    """
+    r: np.ndarray
+    J: np.ndarray
+    left: float
+    body_left: float
+    groups: np.ndarray
+    fitted: np.ndarray
+
+    def weighted(self, weight: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """(r, J, left) as the objective weighs them: the fitted whole-body rows times
+        ``sqrt(weight)`` (none at weight 0), the others left out."""
+        body = self.groups < 0
+        keep = ~body | (self.fitted & (weight > 0))
+        scale = np.where(body, np.sqrt(max(weight, 0.0)), 1.0)[keep]
+        left = self.left + (weight * self.body_left if weight > 0 else 0.0)
+        return self.r[keep] * scale, self.J[keep] * scale[:, None], left
 
 
 @dataclass(frozen=True, eq=False)
@@ -414,6 +508,12 @@ class GradientResult:
         jacobians: Jacobian evaluations (all calibration points each).
         coords: the fit's coordinates; theta_start: (coords.size,) where the fit started (the
             global fit).
+        body_weight: the whole-body data's weight of the final fit (0: not fitted);
+            body_weights: chosen in each round; body_grid: the body weights tried;
+            body_cv: per round, the cross-validation's scores (len(body_grid), len(grid));
+            body_choice: per round, :func:`body_candidates` (which kinds of whole-body data
+            predict the calibration data best); body_data: the whole-body data of the final
+            fit (more kinds than at the start when the fit came to carry them).
     """
     params: ConnectorParams
     weight: float
@@ -424,6 +524,17 @@ class GradientResult:
     weights: tuple[float, ...]
     coords: Coordinates
     theta_start: np.ndarray
+    body_weight: float = 0.0
+    body_weights: tuple[float, ...] = ()
+    body_grid: tuple[float, ...] = ()
+    body_cv: list[np.ndarray] = dataclasses.field(default_factory=list)
+    body_choice: list[dict] = dataclasses.field(default_factory=list)
+    body_data: BodyData | None = None
+
+    @property
+    def body_candidates(self) -> dict:
+        """Each round's :func:`body_candidates` (for ``params.h5``)."""
+        return {f"round_{k + 1}": c for k, c in enumerate(self.body_choice) if c}
 
     def pulled_back(self, fraction: float) -> ConnectorParams:
         """The parameters a ``fraction`` of the way from the global fit to this fit, in the
@@ -434,9 +545,44 @@ class GradientResult:
                                   + fraction * (self.state.theta - self.theta_start))
 
     def summary(self) -> dict:
-        return {"weight": self.weight, "weights": list(self.weights), "grid": list(self.grid),
-                "cv_costs": self.cv_costs.tolist(), "objective": self.state.history,
-                "iterations": self.state.iteration, "jacobians": self.jacobians}
+        out = {"weight": self.weight, "weights": list(self.weights), "grid": list(self.grid),
+               "cv_costs": self.cv_costs.tolist(), "objective": self.state.history,
+               "iterations": self.state.iteration, "jacobians": self.jacobians}
+        if self.body_grid:
+            out.update({"body_weight": self.body_weight, "body_weights": list(self.body_weights),
+                        "body_grid": list(self.body_grid),
+                        "body_cv": [np.asarray(t).tolist() for t in self.body_cv]})
+        return out
+
+
+#: the whole-body data sets whose cross-validation scores a fit reports: every value of
+#: ``calibration.body_data``
+BODY_CANDIDATES = {name: () if name == "none" else tuple(name.split("+"))
+                   for name in BODY_DATA_CHOICES}
+
+
+def body_candidates(lin: Linearisation, grouped: GroupedRows, reg: Regulariser,
+                    folds: list[np.ndarray], grid: Sequence[float],
+                    body_grid: Sequence[float], item_kinds: list[str]) -> dict:
+    """For each set of whole-body kinds (:data:`BODY_CANDIDATES`), the cross-validation's best
+    score when the fit uses that set: every group left out in turn (the point folds, each
+    whole-body item of every kind) and predicted by the fit to the rest of the set
+    (:func:`calibration.gradient_solver.cross_validate` with ``trained``), so an unused kind
+    is predicted by fits that never saw it. The same groups for every set: the scores
+    compare which data predict the calibration data best. ``{set: {"score", "weight",
+    "body_weight"}}``."""
+    body = grouped.groups < 0
+    kind_of_row = np.full(len(body), "", dtype=object)
+    kind_of_row[body] = np.array(item_kinds, dtype=object)[-1 - grouped.groups[body]]
+    out = {}
+    for name, kinds in BODY_CANDIDATES.items():
+        trained = ~body | np.isin(kind_of_row, kinds)
+        weight, bw, table = cross_validate(lin, grouped.groups, reg, folds, grid,
+                                           body_grid if kinds else (0.0,), trained)
+        out[name] = {"score": float(table.min()), "weight": weight, "body_weight": bw}
+    log.info("whole-body data, cross-validation scores: %s", ", ".join(
+        f"{k} {v['score']:.4g}" for k, v in out.items()))
+    return out
 
 
 def shape_smoothness_factors(shape_smoothness: float) -> np.ndarray:
@@ -457,9 +603,13 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  split_prior: float = 0.0,
                  force_vectors: dict[str, np.ndarray] | None = None,
                  global_shape: np.ndarray | None = None,
+                 body: BodyData | None = None, body_upgrade: BodyData | None = None,
+                 body_weight: float | None = None,
+                 body_candidates_report: bool = False,
                  checkpoint_get: Callable[[str], object],
                  checkpoint_put: Callable[[str, object], None],
-                 grid: Sequence[float] = WEIGHT_GRID) -> GradientResult:
+                 grid: Sequence[float] = WEIGHT_GRID,
+                 body_grid: Sequence[float] = BODY_WEIGHT_GRID) -> GradientResult:
     """CV for lambda, then the regularised LM fit (module docstring); checkpointed.
 
     ``reference``: experiment -> (Pc, S) curves of the calibration points (test points
@@ -477,6 +627,14 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     ``global_shape``: the global fit's (E,) per-connector factors
     (:func:`calibration.parametrisation.global_shape`), None if uniform; the fit starts from
     that and the regulariser measures every connector's departure from it.
+    ``body``: whole-body data fitted jointly with the curves (:class:`BodyData`; the model
+    must have an equilibrium under its loads at the global fit), each item's squared
+    residual times ``body_weight``, or, when that is None, the weight of ``body_grid`` chosen
+    with the smoothness weight by the cross-validation (:func:`cross_validate`);
+    ``body_upgrade``: the whole-body data of more kinds than ``body`` (those the global fit
+    has no response to), fitted from the first round whose start has a response to all;
+    ``body_candidates_report``: also score every set of whole-body kinds
+    (:func:`body_candidates`, in :attr:`GradientResult.body_choice`).
     """
     start_params = glob.connector_params(len(edges), global_shape)
     if tets is not None and start_params.kv is None:
@@ -495,7 +653,9 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
         coords = Coordinates(strain.scale, len(edges))
     theta0 = coords.theta_of(start_params)
     data = Data.of(reference, force_vectors)
-    ev = Evaluator(pool, data, coords)
+    ev = Evaluator(pool, data, coords, body)
+    body_grid = (() if body is None else tuple(body_grid) if body_weight is None
+                 else (float(body_weight),))
     points = np.arange(len(next(iter(reference.values()))))
     reg = Regulariser(neighbour_laplacian(edges, n_particles), theta0,
                       None if tets is None else shared_laplacian(tets, n_particles, 3),
@@ -504,34 +664,60 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                       else tet_edge_connectors(tets, edges), split_prior,
                       max(coords.tet_blocks, 1))
     theta, state, weights, cv_costs = theta0, None, [], []
+    body_weights, body_cv, body_choice = [], [], []
     for k in range(CV_ROUNDS):
         saved_cv, saved = checkpoint_get(f"gradient_cv_{k}"), checkpoint_get(f"gradient_fit_{k}")
-        start = None
+        start, upgraded = None, False
+        if (k > 0 and body_upgrade is not None and ev.body is not body_upgrade
+                and not any(body_upgrade.carried(coords.params(theta)).values())):
+            log.info("gradient fit, round %d: the fit now has a response to every kind of "
+                     "whole-body data: %s fitted", k + 1, "+".join(body_upgrade.kinds))
+            ev.body, upgraded = body_upgrade, True
         if saved_cv is None:
             t = time.perf_counter()
-            rows = ev.linearise(theta, points, ROWS_KEPT)
-            lin = Linearisation.of(theta, rows[0], rows[1], reg, rows[2])
+            grouped = ev.linearise_groups(theta, points, ROWS_KEPT)
+            lin = Linearisation.of(theta, grouped.r, grouped.J, reg, grouped.left)
             used = folds_of(len(points), folds)  # at most one fold per point
-            weight, costs = cross_validate(lin, min(ROWS_KEPT, data.rows(points[:1])), reg,
-                                           used, grid)
-            checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist()})
-            log.info("gradient fit, round %d: smoothness weight %g by %d-fold cross-validation "
-                     "(%.1f s)", k + 1, weight, len(used), time.perf_counter() - t)
+            weight, bw, table = cross_validate(lin, grouped.groups, reg, used, grid,
+                                               body_grid or (0.0,), grouped.fitted)
+            costs = table[list(body_grid).index(bw) if len(table) > 1 else 0]
+            candidates = ({} if body is None or not body_candidates_report else
+                          body_candidates(lin, grouped, reg, used, grid, body_grid,
+                                          body.item_kinds))
+            checkpoint_put(f"gradient_cv_{k}", {"weight": weight, "costs": costs.tolist(),
+                                                "body_weight": bw, "table": table.tolist(),
+                                                "candidates": candidates})
+            log.info("gradient fit, round %d: smoothness weight %g%s by %d-fold "
+                     "cross-validation (%.1f s)", k + 1, weight,
+                     f", body weight {bw:g}" if body is not None else "", len(used),
+                     time.perf_counter() - t)
+            ev.body_weight = bw
+            if body is not None:  # the rows as the objective weighs them
+                r, J, left = grouped.weighted(bw)
+                lin = Linearisation.of(theta, r, J, reg, left)
             start = linearise(ev, theta, points, reg, validity, lin)
         else:
             weight, costs = float(saved_cv["weight"]), np.asarray(saved_cv["costs"], dtype=float)
+            bw, table = float(saved_cv["body_weight"]), np.asarray(saved_cv["table"], float)
+            candidates = saved_cv["candidates"]
+            ev.body_weight = bw
         weights.append(weight)
         cv_costs.append(costs)
-        if k > 0 and weight == weights[-2] and state.done:
-            break  # the same weight again, and the last round's fit had converged for it
+        body_weights.append(bw)
+        body_cv.append(table)
+        body_choice.append(candidates)
+        same = k > 0 and not upgraded and (weight, bw) == (weights[-2], body_weights[-2])
+        if same and state.done:
+            break  # the same weights again, and the last round's fit had converged for them
         state = levenberg_marquardt(
             ev, points, reg, weight, validity,
             None if saved is None else LMState.from_dict(saved), theta_start=theta,
             max_iterations=max_iterations, start=start,
             save=lambda s, k=k: checkpoint_put(f"gradient_fit_{k}", s.as_dict()))
-        if k > 0 and weight == weights[-2]:
-            break  # the same weight again: this round continued the last one's fit
+        if same:
+            break  # the same weights again: this round continued the last one's fit
         theta = state.theta
     return GradientResult(coords.params(state.theta), weights[-1], tuple(grid),
                           np.array(cv_costs), state, ev.jacobians, tuple(weights), coords,
-                          theta0)
+                          theta0, body_weights[-1], tuple(body_weights), body_grid,
+                          body_cv, body_choice, ev.body)

@@ -332,41 +332,84 @@ def folds_of(n_points: int, k: int) -> list[np.ndarray]:
     return [np.sort(order[f::k]) for f in range(min(k, n_points))]
 
 
-@blas_threads()
-def cross_validate(lin: Linearisation, rows_per_point: int, reg: Regulariser,
-                   folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID
-                   ) -> tuple[float, np.ndarray]:
-    """Smoothness weight by k-fold CV on the linearisation ``lin`` at the start.
+#: body weights w tried by cross-validation (:func:`cross_validate`): each whole-body item's
+#: squared relative error counts w times a calibration point's in the fit
+BODY_WEIGHT_GRID = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 
-    ``lin`` holds the data rows of every calibration point (point-major,
-    ``rows_per_point`` each). For each weight and fold, the Gauss-Newton step
-    fitted to the other folds' rows predicts the fold's residuals ``r_f + J_f
-    delta``; returns the weight with the smallest total predicted squared fold
-    residual and the (len(grid),) CV costs.
+
+@blas_threads()
+def cross_validate(lin: Linearisation, groups: np.ndarray, reg: Regulariser,
+                   folds: list[np.ndarray], grid: Sequence[float] = WEIGHT_GRID,
+                   body_grid: Sequence[float] = (0.0,), trained: np.ndarray | None = None
+                   ) -> tuple[float, float, np.ndarray]:
+    """Smoothness weight (and body weight) by cross-validation on the linearisation ``lin``.
+
+    ``groups`` (rows,) names the data each row of ``lin`` belongs to: a calibration point
+    (>= 0, its index) or a whole-body item (``-1 - item``), the body rows unweighted. The
+    groups left out in turn are the point ``folds`` and each whole-body item on its own. For
+    each body weight ``w`` of ``body_grid`` and smoothness weight of ``grid``, the
+    Gauss-Newton step fitted to every other row (the body rows weighted by ``w``) predicts
+    the left-out rows ``r + J delta`` (unweighted). The score adds the points' predicted
+    squared errors and the body items', the latter scaled by (points / items) so that the
+    body data as a whole weigh as much as the surface points (without body rows: the points'
+    predicted squared fold residual, as the smoothness weight was always chosen).
+    ``trained`` (rows,) False for whole-body rows that are predicted but never fitted (the
+    kinds a fit does not use: how well a fit predicts data it did not see); None: all.
+
+    One eigen-decomposition per body weight: each group's fit comes from the whole fit by the
+    block-inverse identity (the comment below; tested against refits by brute force).
+
+    Returns (smoothness weight, body weight, scores (len(body_grid), len(grid))).
     """
-    point_of_row = np.repeat(np.arange(len(lin.r) // rows_per_point), rows_per_point)
-    d0 = lin.theta - reg.theta0
-    Jd0 = lin.J @ d0
-    costs = np.zeros(len(grid))
-    for fold in folds:
-        test = np.isin(point_of_row, fold)
-        train = ~test
-        # everything in the rows' space: with C_TT = U diag(e) U^T, (alpha I + C_TT)^-1 costs
-        # nothing per weight, and the fold's prediction r_F + J_F d needs only C_FT
-        e, U = np.linalg.eigh(lin.C[np.ix_(train, train)])
-        C_FT = lin.C[np.ix_(test, train)]
-        r_T, r_F = lin.r[train], lin.r[test]
-        for g, weight in enumerate(grid):
-            alpha = weight  # no damping
-            rhs = lin.C[np.ix_(train, train)] @ r_T + weight * Jd0[train]
-            X = U @ ((U.T @ rhs) / (alpha + e))
-            Jd = -(C_FT @ (r_T - X) + weight * Jd0[test]) / alpha
-            costs[g] += float(np.sum((r_F + Jd) ** 2))
-    best = int(np.argmin(costs))
+    groups = np.asarray(groups)
+    body = groups < 0
+    trained = np.ones(len(groups), bool) if trained is None else np.asarray(trained, bool)
+    items = [np.flatnonzero(groups == g) for g in np.unique(groups[body])]
+    n_points = len(np.unique(groups[~body]))
+    if not (items and trained[body].any()):
+        body_grid = (0.0,)
+    left_out = [(np.isin(groups, fold) & ~body, 1.0) for fold in folds]
+    left_out += [(np.isin(np.arange(len(groups)), rows), n_points / len(items))
+                 for rows in items]
+    # the fits are ridge regressions in delta = theta + d - theta0 (the prior's centre):
+    # minimise |S (y0 + J delta)|^2_T + alpha delta^T A1 delta, y0 = r - J (theta - theta0),
+    # S the rows' weights; solved in the rows' space with K = S C S = U diag(e) U^T over the
+    # rows that train at this body weight, and each left-out group's fit from the whole fit's
+    # G = (alpha I + K)^-1 by the block-inverse identity (no refit per group):
+    # z = (G y)_T' - G_T'F G_FF^-1 (G y)_F solves the system without F, and the group's rows
+    # are predicted unweighted, y0_F - C_FT' S z (also rows that never train)
+    y0 = lin.r - lin.J @ (lin.theta - reg.theta0)
+    costs = np.zeros((len(body_grid), len(grid)))
+    for b, body_weight in enumerate(body_grid):
+        scale = np.where(body, np.sqrt(body_weight), 1.0) * trained
+        live = np.flatnonzero(scale > 0)
+        s = scale[live]
+        e, U = np.linalg.eigh(s[:, None] * lin.C[np.ix_(live, live)] * s[None, :])
+        C_S = lin.C[:, live] * s[None, :]  # C_{all, T} S
+        y = s * y0[live]
+        position = np.full(len(groups), -1)
+        position[live] = np.arange(len(live))
+        held = [(test, share, position[test & (scale > 0)]) for test, share in left_out]
+        for g, alpha in enumerate(grid):  # alpha: the smoothness weight (no damping)
+            inverse = 1.0 / (alpha + e)
+            Gy = U @ (inverse * (U.T @ y))
+            for test, share, f in held:
+                z = Gy
+                if len(f):  # G_FF and G_T'F v from U's rows: no (n, n) product per group
+                    U_f = U[f]
+                    v = cho_solve(cho_factor((U_f * inverse[None, :]) @ U_f.T), Gy[f])
+                    z = Gy - U @ (inverse * (U_f.T @ v))
+                    z[f] = 0.0
+                predicted = y0[test] - C_S[test] @ z
+                costs[b, g] += share * float(predicted @ predicted)
+    b, best = np.unravel_index(int(np.argmin(costs)), costs.shape)
     if best in (0, len(grid) - 1):
         log.warning("cross-validation picked the smoothness weight %g at the end of the grid "
                     "[%g, %g]", grid[best], grid[0], grid[-1])
-    return float(grid[best]), costs
+    if len(body_grid) > 1 and b == len(body_grid) - 1:
+        log.warning("cross-validation picked the body weight %g at the end of the grid %s",
+                    body_grid[b], list(body_grid))
+    return float(grid[best]), float(body_grid[b]), costs
 
 
 @dataclass
@@ -423,10 +466,7 @@ def levenberg_marquardt(ev: LeastSquares, points: np.ndarray, reg: Regulariser, 
     if state is None:
         theta = reg.theta0 if theta_start is None else theta_start
         lin = start if start is not None else linearise(ev, theta, points, reg, validity)
-        n_data = ROWS_KEPT * len(points) if ROWS_KEPT < ev.data.rows(points[:1]) else \
-            ev.data.rows(points)
-        data = lin.r[:n_data]
-        cost = objective(theta, data) + lin.offset
+        cost = objective(theta, lin.r[:len(lin.J)]) + lin.offset
         state = LMState(theta.copy(), weight, cost, [cost])
     elif not state.done:
         lin = linearise(ev, state.theta, points, reg, validity)

@@ -5,7 +5,7 @@ points then the held-out ones, E connectors in ``mesh/edges`` order):
 
 | path | shape | unit | content |
 |---|---|---|---|
-| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``; and ``model``: ``{"particle.volume": bool}``, the model fitted), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``gradient`` (JSON: the gradient method's smoothness weight, CV costs and objective history; ``{}`` for the paper's method), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both) |
+| ``/`` attrs | | | ``kind``, ``schema_version``, ``forcecal_version``, ``created``, ``reference_fingerprint`` (SHA-256 of the reference's content the fit read, :func:`forcecal.h5io.reference_digest`), ``reference_path``, ``wall_time`` [s], ``settings`` (JSON: section -> table, the scene sections the fit read: ``mesh``, ``material``, ``fixed``, ``test_points``, ``indentation``, ``relaxation``, ``calibration``; and ``model``: ``{"particle.volume": bool}``, the model fitted), ``versions`` (JSON: python, numpy, scipy, numba, h5py, mpi4py (null if not installed), forcecal, git_commit (``git rev-parse HEAD``, ``+dirty`` if tracked files differ; null outside a git checkout)), ``gradient`` (JSON: the gradient method's smoothness weight, CV costs and objective history; ``{}`` for the paper's method), ``experiments`` (JSON list: ``indentation`` and, if fitted, ``relaxation``; absent = both), ``body`` (JSON, with the experiment ``body``: ``status`` = ``"fitted"``, ``"failed"`` (the calibrated model does not carry a whole-body load it was fitted to, or has no modes: a failed calibration; ``failure`` says why) or ``"not fitted"``; ``kinds`` fitted, ``weight``, ``failure``, and ``variants``: each variant's whole-body errors (``items``, ``item_errors``, ``load_errors``, per modulus ``frequency_errors``, ``shape_errors``, ``mac``, ``partner``) or ``{"failure": reason}``, :func:`calibration.body.body_record`; ``{}`` or absent: no whole-body data) |
 | ``/mesh``, ``/test_points`` | | | as in ``reference.h5`` (:func:`forcecal.h5io.write_problem`) |
 | ``/connectors/<variant>/<name>`` | (E,) | N/m, N s/m | ``K0, a, b, k1, b1, k2, b2`` per connector; variants ``baseline`` (Van Gelder), ``global`` (uniform), ``calibrated`` (global + local, or the gradient fit) |
 | ``/connectors/<variant>/kv`` | (T,) or (1,) | Pa | volume stiffness per tet ((1,): the same for every tet); only when the volume term is on (``particle.volume``) |
@@ -106,6 +106,8 @@ class CalibrationResult:
             and errors only); without ``relaxation`` the arms are not calibrated.
         gradient: the gradient method's summary (smoothness weight, CV costs, objective
             history; empty for the paper's method).
+        body: the whole-body record (:func:`calibration.body.body_record`; empty without
+            the experiment ``body``).
         failures: the validation failures: a variant that did not complete an experiment at
             a test point (its rows of ``variants`` are NaN there).
     """
@@ -131,6 +133,7 @@ class CalibrationResult:
     versions: dict[str, str | None] = field(default_factory=dict)
     experiments: tuple[str, ...] = EXPERIMENTS
     gradient: dict = field(default_factory=dict)
+    body: dict = field(default_factory=dict)
     failures: tuple[ValidationFailure, ...] = ()
 
     @property
@@ -271,6 +274,7 @@ def write_params(path: str | Path, result: CalibrationResult) -> None:
         fh.attrs["versions"] = json.dumps(result.versions)
         fh.attrs["experiments"] = json.dumps(list(result.experiments))
         fh.attrs["gradient"] = json.dumps(result.gradient)
+        fh.attrs["body"] = json.dumps(result.body)
         fh.attrs["failures"] = failures_json(result.failures)
         write_problem(fh, result.problem)
         for variant, params in result.connectors.items():
@@ -361,7 +365,8 @@ def read_params(path: str | Path) -> CalibrationResult:
             warnings=tuple(s.decode() if isinstance(s, bytes) else str(s)
                            for s in fh["warnings"][()]),
             versions=json_attr(fh, "versions"), experiments=fitted,
-            gradient=json_attr(fh, "gradient", {}), failures=failures)
+            gradient=json_attr(fh, "gradient", {}), body=json_attr(fh, "body", {}),
+            failures=failures)
 
 
 def _read_variant(fh: h5py.File, variant: str, fitted: tuple[str, ...], points: np.ndarray,

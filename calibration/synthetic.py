@@ -23,16 +23,18 @@ import numpy as np
 
 from calibration.parametrisation import GlobalParams, StrainRange, build_rings, local_params
 from forcecal.errors import ParameterError
-from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
-                           SecondSupportResult, write_reference)
+from forcecal.h5io import (BODY_MODULI, BodyResult, GravityResult, IndentationCurves, Reference,
+                           RelaxationCurves, SecondSupportResult, write_reference)
 from forcecal.indenter import indenter_footprints
 from forcecal.mesh import box_mesh
-from forcecal.problem import Problem, build_problem, second_support
+from forcecal.problem import Problem, body_load_directions, build_problem, second_support
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, record_times, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
-from particle.model import build_model
+from particle.body import RestOperators, incremental_tangent, model_modes
+from particle.model import Model, build_model
 from particle.params import ConnectorParams
+from particle.statics import weight_equilibrium
 
 
 def box_scene(directory: str | Path, *, cells: tuple[int, int, int] = (3, 3, 2),
@@ -61,6 +63,31 @@ def box_scene(directory: str | Path, *, cells: tuple[int, int, int] = (3, 3, 2),
     return load_scene(toml)
 
 
+def synthetic_body(model: Model, acceleration: np.ndarray, modes: int, load_steps: int
+                   ) -> BodyResult:
+    """The experiment ``body`` of ``model`` itself (what :mod:`reference_fe.body` computes
+    for the FE): its ``modes`` lowest modes at both moduli (shapes mass-normalised with its
+    lumped masses), its static equilibria under the weight along the two directions
+    perpendicular to ``acceleration`` and the modes about each of them."""
+    ops = RestOperators.of(model)
+
+    def lowest(modulus: str, stiffness=None) -> tuple[np.ndarray, np.ndarray]:
+        values, vectors, _ = model_modes(model, ops, modulus, modes, stiffness)
+        full = np.zeros((modes, model.n_particles, 3))
+        full[:, model.free_nodes] = vectors.T.reshape(modes, -1, 3)
+        return np.sqrt(values) / (2.0 * np.pi), full
+
+    frequencies, shapes = zip(*(lowest(modulus) for modulus in BODY_MODULI))
+    directions = body_load_directions(acceleration)
+    magnitude = float(np.linalg.norm(acceleration))
+    positions = [weight_equilibrium(model, magnitude * d, load_steps) for d in directions]
+    loaded_f, loaded_phi = zip(*(lowest("loaded", incremental_tangent(model, ops.pattern, x))
+                                 for x in positions))
+    return BodyResult(np.stack(frequencies), np.stack(shapes), directions, magnitude,
+                      np.stack([x - model.rest_positions for x in positions]),
+                      np.stack(loaded_f), np.stack(loaded_phi))
+
+
 def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path, *,
                         gravity: bool = False) -> Reference:
     """Write (and return) a ``reference.h5`` whose curves are the particle model's with ``params``.
@@ -69,7 +96,8 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path,
     gravity test too: the static sag and the release at the FE's record times, run as the
     gravity stage runs a particle model (:func:`calibration.gravity_check.gravity_outcome`,
     ``params`` positive on +-0.5), and the second support's when the scene's experiments
-    include ``second_support``; otherwise gravity is not computed. The stage timings
+    include ``second_support``; otherwise gravity is not computed. The whole-body data
+    (:func:`synthetic_body`) when the scene runs the experiment ``body``. The stage timings
     (``timings_s``) of a reference the FE did not compute are zero.
     """
     problem = build_problem(scene)
@@ -95,7 +123,10 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path,
                     meta={"source": "particle model (synthetic reference)",
                           "timings_s": json.dumps(dict.fromkeys(
                               ("mesh", "total", "gravity_static", "gravity_dynamic",
-                               "second_support"), 0.0))})
+                               "second_support"), 0.0))},
+                    body=synthetic_body(model, np.asarray(scene.gravity.acceleration, float),
+                                        scene.body.modes, scene.body.load_steps)
+                    if scene.runs("body") else None)
     write_reference(path, ref)
     return ref
 

@@ -14,14 +14,14 @@ against their scene with :func:`check_reference_settings`.
 
 A reference holds the experiments its scene asked for (``experiments``): the
 ``/indentation`` group always, ``/relaxation``, the datasets of ``/gravity`` and the
-``/second_support`` group only when computed; the root attribute ``experiments`` (JSON
-list) names those present, ``experiment_keys`` (JSON) their keys (:mod:`reference_fe.keys`).
-A file without the attribute (written before experiments were optional) holds
-the first four. ``/second_support`` (:class:`SecondSupportResult`) holds the gravity test
-with the ``[second_support]`` vertices clamped: its keys as attributes, the subgroup
-``gravity`` (the ``[gravity]`` keys, ``tracked_node`` resolved for this support), the
-datasets ``fixed`` (F2,), ``static_displacement`` (N, 3) m, ``time`` (S,) s and
-``displacement`` (S, N, 3) m.
+``/body`` and the ``/second_support`` groups only when computed; the root attribute
+``experiments`` (JSON list) names those present, ``experiment_keys`` (JSON) their keys
+(:mod:`reference_fe.keys`). A file without the attribute (written before experiments were
+optional) holds the four of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS`.
+``/second_support`` (:class:`SecondSupportResult`) holds the gravity test with the
+``[second_support]`` vertices clamped: its keys as attributes, the subgroup ``gravity`` (the
+``[gravity]`` keys, ``tracked_node`` resolved for this support), the datasets ``fixed``
+(F2,), ``static_displacement`` (N, 3) m, ``time`` (S,) s and ``displacement`` (S, N, 3) m.
 
 What failed in the FE stage is recorded too: ``fe_failures`` (JSON,
 :class:`forcecal.fe_failures.FEFailures`: test points replaced or dropped, the gravity
@@ -52,8 +52,9 @@ from forcecal.errors import DataFileError, MeshError, SceneError
 from forcecal.mesh import TetMesh, check_mesh
 from forcecal.problem import Problem, tracked_node_by_rule
 from forcecal.fe_failures import FEFailures
-from forcecal.scene import (EXPERIMENTS, GRAVITY_EXPERIMENTS, SECTIONS, FESection, GravitySection,
-                            MaterialSection, Scene, SecondSupportSection, section_from_values)
+from forcecal.scene import (DEFAULT_EXPERIMENTS, EXPERIMENTS, GRAVITY_EXPERIMENTS, SECTIONS,
+                            FESection, GravitySection, MaterialSection, Scene,
+                            SecondSupportSection, section_from_values)
 from forcecal.schedules import record_times
 
 REFERENCE_KIND = "forcecal.reference"
@@ -339,6 +340,43 @@ class GravityResult:
         return int(self.settings.tracked_node)
 
 
+#: the moduli of the body modes, in the order of :attr:`BodyResult.frequencies`' rows
+BODY_MODULI = ("instantaneous", "long_term")
+
+
+@dataclass(frozen=True, eq=False)
+class BodyResult:
+    """Whole-body data (experiment ``body``, computed by :mod:`reference_fe.body`): natural
+    modes about the rest state and static body loads, both with the scene's support.
+
+    Attributes:
+        frequencies: (2, M) float64, the M lowest natural frequencies [Hz], ascending, at the
+            instantaneous (row 0) and the long-term (row 1) moduli (:data:`BODY_MODULI`).
+        shapes: (2, M, N, 3) float64, their mode shapes at the particle vertices,
+            mass-normalised with the FE's consistent mass [1/sqrt(kg)].
+        load_directions: (L, 3) float64, unit directions of the static body loads (the two
+            perpendicular to the scene's gravity).
+        load_acceleration: magnitude of the loads' acceleration [m/s^2] (the scene's |g|).
+        load_displacement: (L, N, 3) float64, static displacement of every vertex under each
+            load [m] (long-term material, nonlinear).
+        loaded_frequencies: (L, M) float64, the M lowest frequencies [Hz] of small motions
+            about each load's equilibrium (instantaneous incremental moduli), ascending.
+        loaded_shapes: (L, M, N, 3) float64, their shapes, normalised as ``shapes``.
+    """
+    frequencies: np.ndarray
+    shapes: np.ndarray
+    load_directions: np.ndarray
+    load_acceleration: float
+    load_displacement: np.ndarray
+    loaded_frequencies: np.ndarray
+    loaded_shapes: np.ndarray
+
+    @property
+    def load_accelerations(self) -> np.ndarray:
+        """(L, 3) the loads' accelerations [m/s^2]."""
+        return self.load_acceleration * self.load_directions
+
+
 @dataclass(frozen=True, eq=False)
 class SecondSupportResult:
     """The gravity test with the second support (experiment ``second_support``): the organ
@@ -372,6 +410,7 @@ class Reference:
     gravity: GravityResult | None
     meta: dict[str, Any] = field(default_factory=dict)
     fe: FESection | None = None
+    body: BodyResult | None = None
     second_support: SecondSupportResult | None = None
 
     @property
@@ -381,6 +420,7 @@ class Reference:
         present = {"indentation": True, "relaxation": self.relaxation is not None,
                    "gravity_static": g is not None and g.static_displacement is not None,
                    "gravity_dynamic": g is not None and g.time is not None,
+                   "body": self.body is not None,
                    "second_support": self.second_support is not None}
         return tuple(e for e in EXPERIMENTS if present[e])
 
@@ -569,8 +609,67 @@ def write_reference(path: str | Path, ref: Reference) -> None:
                 put(g, "time", gr.time, "s", "dynamic run sample times, from rest at 0 (S,)")
                 put(g, "displacement", gr.displacement, "m",
                     "dynamic vertex displacements (S, N, 3)")
+        if ref.body is not None:
+            write_body(fh.create_group("body"), ref.body, n_v)
         if ref.second_support is not None:
             _write_second_support(fh, ref.second_support, n_v)
+
+
+def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:
+    """The ``/body`` group of ``reference.h5`` (:class:`BodyResult`)."""
+    n_modes = body.frequencies.shape[1] if np.ndim(body.frequencies) == 2 else -1
+    _check_shape("body.frequencies", body.frequencies, (len(BODY_MODULI), n_modes))
+    _check_shape("body.shapes", body.shapes, (len(BODY_MODULI), n_modes, n_vertices, 3))
+    n_loads = len(body.load_directions)
+    _check_shape("body.load_directions", body.load_directions, (n_loads, 3))
+    _check_shape("body.load_displacement", body.load_displacement, (n_loads, n_vertices, 3))
+    g.attrs["moduli"] = json.dumps(list(BODY_MODULI))
+    g.attrs["load_acceleration"] = float(body.load_acceleration)
+    put(g, "frequencies", body.frequencies, "Hz", "lowest natural frequencies, ascending, at "
+        "the instantaneous (row 0) and long-term (row 1) moduli (2, M)")
+    put(g, "shapes", body.shapes, "1/sqrt(kg)", "their mode shapes at the vertices, "
+        "mass-normalised with the FE's consistent mass (2, M, N, 3)")
+    put(g, "load_directions", body.load_directions, "1", "unit directions of the static "
+        "body loads, perpendicular to the scene's gravity (L, 3)")
+    put(g, "load_displacement", body.load_displacement, "m", "static displacement under "
+        "each body load (weight along that direction), long-term material (L, N, 3)")
+    _check_shape("body.loaded_frequencies", body.loaded_frequencies, (n_loads, n_modes))
+    _check_shape("body.loaded_shapes", body.loaded_shapes, (n_loads, n_modes, n_vertices, 3))
+    put(g, "loaded_frequencies", body.loaded_frequencies, "Hz", "lowest frequencies of small "
+        "motions about each load's equilibrium, instantaneous incremental moduli (L, M)")
+    put(g, "loaded_shapes", body.loaded_shapes, "1/sqrt(kg)", "their mode shapes at the "
+        "vertices, normalised as shapes (L, M, N, 3)")
+
+
+def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
+    """The ``/body`` group of an open ``reference.h5``, checked (:func:`write_body`)."""
+    moduli = json_attr(group(fh, "body"), "moduli")
+    if moduli != list(BODY_MODULI):
+        raise DataFileError(f"{fh.filename}:/body attribute moduli = {moduli!r}, expected "
+                            f"{list(BODY_MODULI)}")
+    frequencies = get(fh, "body/frequencies", (len(BODY_MODULI), None), dtype="float")
+    n_modes = frequencies.shape[1]
+    directions = get(fh, "body/load_directions", (None, 3), dtype="float")
+    loaded = get(fh, "body/loaded_frequencies", (len(directions), n_modes), dtype="float")
+    for name, values in (("frequencies", frequencies), ("loaded_frequencies", loaded)):
+        if np.any(values <= 0) or np.any(np.diff(values, axis=1) < 0):
+            raise DataFileError(f"{fh.filename}:/body/{name} must be positive and ascending")
+    if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):
+        raise DataFileError(f"{fh.filename}:/body/load_directions must be unit vectors")
+    acceleration = float(attr(group(fh, "body"), "load_acceleration"))
+    if not acceleration > 0:
+        raise DataFileError(f"{fh.filename}:/body attribute load_acceleration = "
+                            f"{acceleration!r} must be > 0")
+    return BodyResult(
+        frequencies=frequencies,
+        shapes=get(fh, "body/shapes", (len(BODY_MODULI), n_modes, n_vertices, 3), dtype="float"),
+        load_directions=directions, load_acceleration=acceleration,
+        load_displacement=get(fh, "body/load_displacement", (len(directions), n_vertices, 3),
+                              dtype="float"),
+        loaded_frequencies=loaded,
+        loaded_shapes=get(fh, "body/loaded_shapes", (len(directions), n_modes, n_vertices, 3),
+                          dtype="float"))
+
 
 
 def _write_second_support(fh: h5py.File, second: SecondSupportResult, n_v: int) -> None:
@@ -670,6 +769,7 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                 gu = get(fh, "gravity/displacement", (len(gt), n_v, 3), dtype="float")
             gravity = GravityResult(static_displacement=static, time=gt, displacement=gu,
                                     settings=settings)
+        body = read_body(fh, problem.mesh.n_vertices) if "body" in stored else None
         second = (_read_second_support(fh, path, problem.mesh.n_vertices)
                   if "second_support" in stored else None)
         meta = {k: attr(fh, k) for k in fh.attrs}
@@ -680,15 +780,15 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                 raise DataFileError(f"{path}: attribute {name} is not JSON") from None
         FEFailures.from_json(meta.get("fe_failures"), str(path))
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
-                     gravity=gravity, meta=meta, fe=fe, second_support=second)
+                     gravity=gravity, meta=meta, fe=fe, body=body, second_support=second)
 
 
 def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
-    """The experiments an open ``reference.h5`` holds: its ``experiments`` attribute (all four
-    in a file written before the attribute existed); DataFileError if it names an unknown
-    experiment or a group it lists is missing."""
+    """The experiments an open ``reference.h5`` holds: its ``experiments`` attribute (the four
+    of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS` in a file written before the attribute
+    existed); DataFileError if it names an unknown experiment or a group it lists is missing."""
     if "experiments" not in fh.attrs:
-        return EXPERIMENTS
+        return DEFAULT_EXPERIMENTS
     raw = attr(fh, "experiments")
     try:
         listed = json.loads(raw)
@@ -699,7 +799,8 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
                             f"of some of {list(EXPERIMENTS)}")
     for e, where in (("indentation", "indentation"), ("relaxation", "relaxation"),
                      ("gravity_static", "gravity/static_displacement"),
-                     ("gravity_dynamic", "gravity/time"), ("second_support", "second_support")):
+                     ("gravity_dynamic", "gravity/time"), ("body", "body"),
+                     ("second_support", "second_support")):
         if e in listed and where not in fh:
             raise DataFileError(f"{fh.filename}:/{where} is missing (the file lists {e!r} in "
                                 "its experiments)")
@@ -710,7 +811,7 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
 EXPERIMENT_PATHS = {"indentation": ("indentation",), "relaxation": ("relaxation",),
                     "gravity_static": ("gravity/static_displacement",),
                     "gravity_dynamic": ("gravity/time", "gravity/displacement"),
-                    "second_support": ("second_support",)}
+                    "body": ("body",), "second_support": ("second_support",)}
 #: what every experiment's results depend on (hashed by :func:`reference_digest` too)
 SHARED_PATHS = ("mesh", "test_points", "material", "fe")
 

@@ -328,3 +328,20 @@ def build_problem(scene: Scene, mesh: TetMesh | None = None) -> Problem:
              tp.calibration if isinstance(tp.calibration, str) else "listed",
              100 * covered["held_out"])
     return problem
+
+
+def body_load_directions(acceleration: np.ndarray) -> np.ndarray:
+    """(2, 3) unit vectors perpendicular to ``acceleration`` and to each other: the directions
+    of the whole-body loads (experiment ``body``), which the gravity test does not use. The
+    coordinate axis least aligned with gravity, gravity projected out, then gravity's
+    direction crossed with it (for gravity along a coordinate axis: the other two axes,
+    pointing the positive way)."""
+    g = np.asarray(acceleration, dtype=np.float64)
+    g = g / np.linalg.norm(g)
+    first = np.eye(3)[int(np.argmin(np.abs(g)))]
+    first = first - (first @ g) * g
+    first /= np.linalg.norm(first)
+    second = np.cross(g, first)
+    if np.count_nonzero(np.abs(second) > 1e-12) == 1:  # an axis: point it the positive way
+        second = np.abs(second)
+    return np.stack([first, second / np.linalg.norm(second)])

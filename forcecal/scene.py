@@ -203,6 +203,16 @@ class GravitySection:
 
 
 @dataclass(frozen=True)
+class BodySection:
+    modes: int = key(6, "experiment 'body': natural modes computed about the rest state with "
+                     "the scene's support, the lowest this many at the instantaneous and at the "
+                     "long-term moduli (frequencies and shapes at the vertices)", minimum=1)
+    load_steps: int = key(4, "experiment 'body': load steps of each static body load (the "
+                          "organ's weight along each of the two directions perpendicular to "
+                          "gravity.acceleration)", minimum=1)
+
+
+@dataclass(frozen=True)
 class FESection:
     element: str = key("P2", "element: 'P2' (quadratic displacement; sag ~15 % below the "
                        "refined mesh's on the default liver), 'TH' (Taylor-Hood P2-P1 u-p, "
@@ -259,6 +269,14 @@ class ParticleSection:
     def volume_arms(self) -> bool:
         """True when the volume term relaxes (``volume = "viscoelastic"``)."""
         return self.volume == "viscoelastic"
+
+
+#: the kinds of whole-body data a calibration can fit (experiment "body")
+BODY_KINDS = ("loads", "modes", "loaded_modes")
+#: ``calibration.body_data``: "none" or kinds joined by "+", in :data:`BODY_KINDS` order
+BODY_DATA_CHOICES = ("none",) + tuple(
+    "+".join(k for b, k in enumerate(BODY_KINDS) if mask >> b & 1)
+    for mask in range(1, 2 ** len(BODY_KINDS)))
 
 
 @dataclass(frozen=True)
@@ -331,6 +349,22 @@ class CalibrationSection:
     kv_per_tet: bool = key(True, "gradient method with the volume term: fit each tet's kv (and, "
                            "when it relaxes, its arms' kv1, kv2) with the connectors (false: "
                            "they keep the global fit's one value)")
+    body_data: str = key("loads+modes", "gradient method, with the experiment 'body' in the "
+                         "scene's experiments: the whole-body data fitted jointly with the "
+                         "surface curves, \"none\" or kinds joined by '+': \"loads\" (the "
+                         "weight along the two directions perpendicular to gravity, static), "
+                         "\"modes\" (natural frequencies and shapes at the instantaneous and "
+                         "long-term moduli), \"loaded_modes\" (those of quick motions about "
+                         "each load's equilibrium) (README Calibration)",
+                         choices=BODY_DATA_CHOICES)
+    body_weight: Union[str, float] = key("cv", "gradient method: weight of each whole-body "
+                                         "item's squared relative error against a calibration "
+                                         "point's; \"cv\": chosen with the smoothness weight "
+                                         "by cross-validation on calibration data only")
+    body_candidates: bool = key(False, "gradient method with whole-body data: also report how "
+                                "well every set of whole-body kinds predicts the calibration "
+                                "data (each set's cross-validation score, in params.h5; costs "
+                                "about 8x the body weight's cross-validation)")
     workers: int = key(2, "worker processes evaluating test points in parallel (1 = in-process; "
                        "under mpirun the ranks other than 0 are the workers)", minimum=1)
 
@@ -411,6 +445,7 @@ SECTIONS: dict[str, type] = {
     "indentation": IndentationSection,
     "relaxation": RelaxationSection,
     "gravity": GravitySection,
+    "body": BodySection,
     "fe": FESection,
     "particle": ParticleSection,
     "calibration": CalibrationSection,
@@ -430,15 +465,16 @@ TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
                   "description": "free text"}
 
 #: the experiments a scene can ask for (top-level key ``experiments``), in pipeline order
-EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic",
+EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "body",
                "second_support")
-#: the experiments of a scene that does not list them (``second_support`` is asked for: it
-#: costs one more FE static sag and release)
-DEFAULT_EXPERIMENTS = EXPERIMENTS[:4]
+#: the experiments of a scene that does not list them (the whole-body data and the second
+#: support are asked for: the second support costs one more FE static sag and release)
+DEFAULT_EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
 #: the gravity test's experiments (the FE sag and release, the particle runs against them)
 GRAVITY_EXPERIMENTS = ("gravity_static", "gravity_dynamic")
-#: the body tests' experiments: the gravity stage runs the particle models through them
-BODY_EXPERIMENTS = GRAVITY_EXPERIMENTS + ("second_support",)
+#: the held-out body tests' experiments: the gravity stage runs the particle models
+#: through them
+HELD_OUT_EXPERIMENTS = GRAVITY_EXPERIMENTS + ("second_support",)
 #: the parts of the second support's test (``second_support``), named in the particle models'
 #: failures: its static sag and its release, as the gravity test's
 SECOND_SUPPORT_PARTS = ("second_support_static", "second_support_dynamic")
@@ -454,6 +490,8 @@ EXPERIMENT_NEEDS = {
                          "indentation curves"),
                         ("relaxation", "the release is damped only by the Maxwell arms, which "
                          "are calibrated on the relaxation curves")),
+    "body": (("indentation", "the whole-body data are fitted jointly with the indentation "
+              "curves"),),
     "second_support": (("gravity_static", "it is the gravity test with another support, "
                         "judged next to it"),
                        ("gravity_dynamic", "it is the gravity test with another support, "
@@ -462,10 +500,12 @@ EXPERIMENT_NEEDS = {
 EXPERIMENTS_DOC = ("experiments the scene computes, stores and reports, in any order: "
                    "'indentation' (required: it calibrates the springs), 'relaxation' (the "
                    "Maxwell arms; needs indentation), 'gravity_static', 'gravity_dynamic' "
-                   "(needs relaxation), 'second_support' (the gravity test's sag and release "
-                   "with the [second_support] vertices clamped instead: a second held-out body "
-                   "test, never fitted; needs both gravity experiments; not in the default "
-                   "list); the others are skipped by every stage")
+                   "(needs relaxation), 'body' (whole-body data for the calibration: natural "
+                   "modes and static body loads, [body]; asked for explicitly, not in the "
+                   "default list), 'second_support' (the gravity test's sag and release with "
+                   "the [second_support] vertices clamped instead: a second held-out body test, "
+                   "never fitted; needs both gravity experiments; not in the default list); the "
+                   "others are skipped by every stage")
 
 
 @dataclass(frozen=True)
@@ -481,6 +521,7 @@ class Scene:
     indentation: IndentationSection
     relaxation: RelaxationSection
     gravity: GravitySection
+    body: BodySection
     fe: FESection
     particle: ParticleSection
     calibration: CalibrationSection
@@ -674,6 +715,10 @@ def _cross_checks(scene: Scene, origin: str) -> None:
             raise SceneError(f"{origin}: test_points.{which} must be "
                              + " or ".join(repr(r) for r in rules)
                              + f" or a list of vertex ids, got {v!r}")
+    bw = scene.calibration.body_weight
+    if (isinstance(bw, str) and bw != "cv") or (isinstance(bw, float) and not bw >= 0):
+        raise SceneError(f"{origin}: calibration.body_weight = {bw!r}: must be \"cv\" or a "
+                         "number >= 0")
     if scene.verdict.carries_its_weight > 1.0:
         raise SceneError(f"{origin}: verdict.carries_its_weight = "
                          f"{scene.verdict.carries_its_weight}: the fraction of the gravity "

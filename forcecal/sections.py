@@ -14,10 +14,13 @@ EXPERIMENT_SECTIONS = {"indentation": ("indentation",),
                        "relaxation": ("indentation", "relaxation"),  # the indenter
                        "gravity_static": ("gravity",),
                        "gravity_dynamic": ("gravity",),
-                       "second_support": ("gravity", "second_support")}
+                       "second_support": ("gravity", "second_support"),
+                       # the loads are the scene's weight along the axes perpendicular to its
+                       # gravity: the acceleration is read
+                       "body": ("gravity", "body")}
 #: sections the whole FE reference reads (every experiment's)
 REFERENCE_SECTIONS = ("mesh", "material", "fixed", "second_support", "test_points",
-                      "indentation", "relaxation", "gravity", "fe")
+                      "indentation", "relaxation", "gravity", "body", "fe")
 #: sections that set a calibration's fit (of ``[particle]`` only ``volume``, the model it fits,
 #: which the calibration records separately); with gravity experiments it also reads
 #: ``[gravity]`` and the rest of ``[particle]`` for its gravity check, which the pipeline's

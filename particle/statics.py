@@ -617,22 +617,46 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
     """(N, 3) static sag under gravity [m] (long-term springs only, arms relaxed).
 
     Newton equilibrium with ``gravity`` [m/s^2] applied in ``load_steps`` equal
-    increments (each halved on failure). The parameters are validated on
-    ``strain_range`` and the springs' K(eps) checked at the strains reached. An error
-    of the model (parameters, Newton, the final check) records in ``reached`` the
+    increments (each halved on failure, :func:`weight_equilibrium`). The parameters are
+    validated on ``strain_range`` and the springs' K(eps) checked at the strains reached. An
+    error of the model (parameters, Newton, the final check) records in ``reached`` the
     fraction of the load it had carried.
+    """
+    x = weight_equilibrium(model, gravity, load_steps, rtol=rtol, strain_range=strain_range)
+    with reaching(lambda: 1.0):
+        d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+        check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0,
+                        "gravity_static")
+        if model.has_volume:
+            check_volumes(model, x, "gravity_static")
+    return x - model.rest_positions
+
+
+def weight_equilibrium(model: Model, gravity: np.ndarray, load_steps: int, *,
+                       rtol: float = 1e-10,
+                       strain_range: tuple[float, float] | None = None) -> np.ndarray:
+    """(N, 3) positions [m] of the static equilibrium under the weight ``m gravity``
+    [m/s^2] (long-term model, arms relaxed), the load applied in ``load_steps`` equal
+    increments, each halved on failure (:func:`continuation`). With ``strain_range`` the
+    parameters are validated on it first. An error of the model records in ``reached`` the
+    fraction of the load it had carried.
+
+    Raises:
+        ParameterError: no gravity vector, no load step or no fixed particle.
+        ConvergenceError: no equilibrium is found (the model does not carry the load).
     """
     g = check_gravity(gravity)
     if g is None:
-        raise ParameterError("gravity_static needs a gravity vector (3 components in m/s^2)")
+        raise ParameterError("a static weight needs a gravity vector (3 components in m/s^2)")
     if load_steps < 1:
         raise ParameterError(f"load_steps = {load_steps} must be >= 1")
     if not len(model.free_nodes) < model.n_particles:
-        raise ParameterError("gravity_static needs fixed particles: a free body under gravity "
-                             "has no static equilibrium")
+        raise ParameterError("a static weight needs fixed particles: a free body under "
+                             "gravity has no static equilibrium")
     carried = 0.0
     with reaching(lambda: carried):
-        model.params.validate(strain_range, model.edges, model.tets)
+        if strain_range is not None:
+            model.params.validate(strain_range, model.edges, model.tets)
         solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model),
                                    rtol=rtol, refactor_ratio=0.1)
 
@@ -643,12 +667,7 @@ def gravity_static(model: Model, gravity: np.ndarray, *, load_steps: int = 4,
         for k in range(load_steps):
             x = continuation(step, x, k / load_steps, (k + 1) / load_steps, what="gravity load")
             carried = (k + 1) / load_steps
-        d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-        check_stiffness(model, np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0,
-                        "gravity_static")
-        if model.has_volume:
-            check_volumes(model, x, "gravity_static")
-    return x - model.rest_positions
+    return x
 
 
 def check_stiffness(model: Model, strain: np.ndarray, what: str) -> None:

@@ -4,6 +4,8 @@
 with stages ``reference``, ``calibrate``, ``gravity``, ``report`` (each brings the
 stages before it up to date first, like make) and ``demo`` (all of them).
 ``python -m pipelines scene-keys`` prints the README's table of scene keys.
+``python -m pipelines export --params runs/<scene>/params.h5 --out DIR`` writes the
+calibrated model as VTU and JSON (:mod:`pipelines.export`, ``docs/export.md``).
 ``report`` and ``demo`` end with the verdict table (``report.json`` ``verdict``); with
 ``--require-pass`` they exit with :data:`EXIT_VERDICT_FAILED` (3) when the verdict failed
 and 0 when it passed (a CI job gates on it; under MPI rank 0 reads the verdict and every
@@ -51,6 +53,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("report", help="report.json")
     p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
     p.add_argument("bench", help="bench.json")
+    p = sub.add_parser("export", help="write a calibrated model (params.h5) as VTU for "
+                       "ParaView and JSON for another engine (docs/export.md)")
+    p.add_argument("--params", required=True, help="params.h5 of a calibration")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--variant", default="calibrated",
+                   help="parameter set: calibrated (default), global or baseline")
     from pipelines.bench.driver import add_arguments as bench_arguments
     bench_arguments(sub.add_parser("bench", help="speed and error benchmarks (make bench; "
                                    "--full: make bench-full)"))
@@ -112,6 +120,13 @@ def _run(args: argparse.Namespace) -> int:
         from pipelines.bench.driver import read_bench
         from pipelines.bench.report import goals_markdown
         print(goals_markdown(read_bench(args.bench)))
+        return 0
+    if args.stage == "export":
+        from calibration.loading import load_calibrated
+        from pipelines.export import export_model
+        calibrated = load_calibrated(args.params, args.variant)
+        for path in export_model(calibrated, args.out):
+            print(f"wrote {path}")
         return 0
     if args.stage == "bench":
         from pipelines.bench.driver import main as bench_main

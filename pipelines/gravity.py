@@ -52,7 +52,8 @@ from forcecal.errors import DataFileError
 from forcecal.h5io import (Reference, atomic_h5, attr, get, group, json_attr, open_h5, put,
                            read_problem, write_problem)
 from forcecal.problem import Problem
-from forcecal.scene import BODY_EXPERIMENTS, GRAVITY_EXPERIMENTS, SECOND_SUPPORT_PARTS, Scene
+from forcecal.scene import (GRAVITY_EXPERIMENTS, HELD_OUT_EXPERIMENTS, SECOND_SUPPORT_PARTS,
+                            Scene)
 from particle.experiments import GravityTest
 from particle.params import ConnectorParams
 
@@ -119,7 +120,7 @@ def run_gravity(scene: Scene, reference: Reference, connectors: dict[str, Connec
     ``strain_range`` is the calibration's: where the calibrated springs are valid. A model
     that fails is recorded in ``failures`` and the others run on.
     """
-    experiments = tuple(e for e in BODY_EXPERIMENTS if scene.runs(e))
+    experiments = tuple(e for e in HELD_OUT_EXPERIMENTS if scene.runs(e))
     for e in experiments:
         reference.require(e)
     g = np.asarray(scene.gravity.acceleration, dtype=np.float64)

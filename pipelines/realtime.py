@@ -46,7 +46,7 @@ from scipy.sparse.linalg import eigsh
 from forcecal.errors import ParameterError, StabilityError
 from forcecal.problem import Problem
 from forcecal.scene import Scene
-from particle.model import Model, build_model
+from particle.model import Model
 from particle.params import ConnectorParams
 from particle.stability import (DEFAULT_STRAIN_RANGE, DENSE_EIGEN_LIMIT, SOFT_SPRING_CLEARANCE,
                                 connector_stiffness_bound, critical_time_step,
@@ -116,13 +116,12 @@ def _top_eigenvector(matrix: sp.csr_matrix) -> np.ndarray:
     return eigsh(matrix, k=1, which="LA", tol=1e-8, v0=start)[1][:, 0]
 
 
-def realtime_block(scene: Scene, problem: Problem, params: ConnectorParams) -> dict[str, Any]:
-    """``report.json``'s ``realtime`` block for the calibrated ``params`` on ``problem``'s mesh
-    (module docstring)."""
+def realtime_block(scene: Scene, problem: Problem, model: Model) -> dict[str, Any]:
+    """``report.json``'s ``realtime`` block for the calibrated ``model`` of ``problem``'s mesh
+    (module docstring; :func:`calibration.loading.calibrated_model` builds it)."""
     from pipelines.bench.particle_engine import haptic_drag
 
-    model = build_model(problem, scene.material.density, params)
-    strain_range = session_strain_range(params)
+    strain_range = session_strain_range(model.params)
     # the tool: the first held-out point (never fitted), else the first test point
     k = len(problem.calibration) if len(problem.held_out) else 0
     tool, depth = int(problem.test_points[k]), float(scene.indentation.depth)

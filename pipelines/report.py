@@ -222,6 +222,8 @@ def experiments_run(experiments: tuple[str, ...], calibration: CalibrationResult
                     gravity: GravityRuns | None) -> tuple[tuple[str, ...], dict[str, str]]:
     """(the experiments compared in the report, {experiment not compared: why})."""
     done = set(calibration.experiments) | set(() if gravity is None else gravity.experiments)
+    if calibration.body:  # the whole-body record (its errors, fitted or not)
+        done.add("body")
     ran = tuple(e for e in ALL_EXPERIMENTS if e in done and e in experiments)
     why = {}
     for e in ALL_EXPERIMENTS:
@@ -339,6 +341,9 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "per_point_errors": {"test_points": p.test_points.tolist(),
                              "is_calibration": calibration.is_calibration.tolist(), **per_point},
         "gravity": gravity_block,
+        # the whole-body data (experiment "body"): whether they were fitted, and every
+        # variant's errors against them (calibration.body.body_record); null without them
+        "body": calibration.body or None,
         "second_support": (second_support_block(reference, gravity.second_support)
                            if "second_support" in ran else None),
         "global_parameters": calibration.global_params.as_dict(),

@@ -51,7 +51,7 @@ from forcecal.failures import collective, note_stage
 from forcecal.h5io import reference_digest
 from forcecal.problem import build_problem, check_second_support, load_mesh
 from forcecal.provenance import code_digests, file_digest
-from forcecal.scene import BODY_EXPERIMENTS, EXPERIMENTS, Scene
+from forcecal.scene import EXPERIMENTS, HELD_OUT_EXPERIMENTS, Scene
 from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
 from pipelines.cache import Cache, StageInputs
 from pipelines.runners.calibrate import run_calibrate
@@ -100,7 +100,8 @@ class Stage:
     def upstream_files(self, scene: Scene) -> tuple[str, ...]:
         """The upstream files it reads for ``scene`` (no ``gravity.h5`` without gravity)."""
         return tuple(n for n in self.upstream
-                     if n != GRAVITY or any(e in BODY_EXPERIMENTS for e in scene.experiments))
+                     if n != GRAVITY or any(e in HELD_OUT_EXPERIMENTS
+                                            for e in scene.experiments))
 
     def inputs(self, ctx: Context) -> StageInputs:
         """Fingerprints of everything this stage reads, now."""
@@ -111,7 +112,8 @@ class Stage:
                                     "exist")
         # an experiment's own section is read only when the experiment runs
         skipped = {"relaxation": "relaxation" not in used,
-                   "gravity": not any(e in BODY_EXPERIMENTS for e in used),
+                   "gravity": not any(e in HELD_OUT_EXPERIMENTS or e == "body" for e in used),
+                   "body": "body" not in used,
                    "second_support": "second_support" not in used}
         # "name" stands for the scene's top-level name (written into the report)
         scene = {s: (hashlib.sha256(ctx.scene.name.encode()).hexdigest() if s == "name"
@@ -145,12 +147,14 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
     # [particle]: the model fitted (volume) and the explicit gravity run of its gravity check
     # (dt, dt_safety, strain_margin, damping); [gravity] and the FE sag and release times of
     # reference.h5: that check and the release strain range the springs are kept stiff on
-    Stage("calibrate", FIT_SECTIONS + ("gravity", "particle"),
+    # [body]: the load steps of the whole-body loads it fits (the experiment "body")
+    Stage("calibrate", FIT_SECTIONS + ("gravity", "particle", "body"),
           ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
-          experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic")),
+          experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic",
+                       "body")),
     # the gravity test and the second support's (its clamp is read from reference.h5)
     Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
-          (REFERENCE, PARAMS), run_gravity_stage, experiments=BODY_EXPERIMENTS),
+          (REFERENCE, PARAMS), run_gravity_stage, experiments=HELD_OUT_EXPERIMENTS),
     # [verdict]: the goals the report judges against (a change reruns this stage alone);
     # [particle], [material], [indentation]: the real-time check's haptic session and drag
     Stage("report", ("name", "outputs", "verdict", "particle", "material", "indentation"),

@@ -213,8 +213,10 @@ TEST_NAMES = {"fixed": "gravity", "second_support": "second support"}
 
 
 def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
-                   load_steps: int, section: str = "fixed") -> np.ndarray:
-    """(N, 3) static displacement of every vertex under gravity [m] (long-term material).
+                   load_steps: int, *, section: str = "fixed", with_state: bool = False
+                   ) -> np.ndarray | tuple[np.ndarray, FEState]:
+    """(N, 3) static displacement of every vertex under gravity [m] (long-term material), and
+    with ``with_state`` the converged :class:`FEState` too.
 
     Gravity is applied in ``load_steps`` equal increments (a single P2 step diverges).
     ``section`` is the scene section of the clamp ``fixed`` (named in the messages).
@@ -241,7 +243,7 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
         except StabilityError as error:
             error.reached = factor  # how far the experiment got
             raise
-    return u
+    return (u, state) if with_state else u
 
 
 #: the static sag per unit load may grow this much over the load steps before the support is

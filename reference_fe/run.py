@@ -1,8 +1,8 @@
 """Compute a scene's whole FE reference and write ``reference.h5``: :func:`compute_reference`.
 
 Work items are the indentation curve and the relaxation curve of every test
-point, the static sag and the dynamic gravity run, and the second support's static sag and
-release (one item, ``second_support``), of the experiments the
+point, the static sag, the dynamic gravity run, the whole-body data, and the second support's
+static sag and release (one item, ``second_support``), of the experiments the
 scene asks for (``experiments``; the others are not computed). Under ``mpirun -n K`` every
 rank builds one :class:`~reference_fe.model.FEModel` on ``MPI.COMM_SELF``
 (forms compiled once per process) and claims items one at a time, largest
@@ -26,7 +26,8 @@ resumed run decides the same. More than a quarter of the points failing stops th
 (every rank, at its next step). A failed gravity test leaves both gravity experiments out,
 a failed second-support test ``second_support`` (a second support that does not hold the
 body is refused before any FE work, :func:`forcecal.problem.check_second_support`);
-``reference.h5`` records all of it (``fe_failures``).
+``reference.h5`` records all of it (``fe_failures``). The whole-body data (experiment
+``body``, asked for explicitly) failing stops the run, its error naming the item.
 
 Parts and stored results are keyed per experiment (:mod:`reference_fe.keys`:
 the scene sections it reads, the mesh, the FE code), not on the experiments
@@ -75,7 +76,7 @@ from forcecal.problem import (Problem, build_problem, check_second_support, repl
 from forcecal.scene import EXPERIMENTS, GRAVITY_EXPERIMENTS, SECOND_SUPPORT_PARTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from forcecal.sections import REFERENCE_SECTIONS
-from reference_fe import experiments
+from reference_fe import body, experiments
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
 from reference_fe.refine import (FEProblem, check_memory, fe_clamp, fe_problem, patch_on_fe_mesh,
@@ -83,7 +84,8 @@ from reference_fe.refine import (FEProblem, check_memory, fe_clamp, fe_problem, 
 
 log = logging.getLogger(__name__)
 
-KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "second_support")
+KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "body",
+         "second_support")
 T = TypeVar("T")
 
 
@@ -129,6 +131,8 @@ def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
     # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
     items = [WorkItem("gravity_dynamic", -1, 3.0 * g.duration / g.fe_dt),
              WorkItem("gravity_static", -1, 5.0 * g.static_load_steps),
+             # two static loads and two eigen-solves (each about a factorisation's cost)
+             WorkItem("body", -1, 2 * 5.0 * scene.body.load_steps + 2.0),
              # the second support's sag and release, one item
              WorkItem("second_support", -1, 3.0 * g.duration / g.fe_dt
                       + 5.0 * g.static_load_steps)]
@@ -233,6 +237,10 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
         times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
                                                   g.duration, g.fe_dt, g.record_interval)
         return {"time": times, "displacement": disp[:, at_particles]}
+    if item.kind == "body":
+        return body.at_vertices(body.body_data(model, fixed, np.asarray(g.acceleration, float),
+                                               scene.body.modes, scene.body.load_steps),
+                                at_particles)
     if scene.indentation.indenter == "punch" and scene.fe.local_refine:
         fe, model = punch_model(scene, problem, fe, item.point)
         fixed = fe.problem.fixed
@@ -588,7 +596,7 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         previous.update(previous_results(out_path, keys, problem))
         return sorted(previous), previous_failures(out_path, keys)
     reused, failed_before = _on_root(comm, take_previous)  # arrays stay on rank 0
-    skip = set(reused) | {e for test in failed_before for e in BODY_TESTS[test]}
+    skip = set(reused) | {e for test in failed_before for e in HELD_OUT_TESTS[test]}
     items = work_items(scene, len(problem.test_points),
                        tuple(e for e in scene.experiments if e not in skip))
     if reused or failed_before:
@@ -617,7 +625,7 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
 
     def finish() -> Reference:
         failures = points.records({test: failed_before.get(test) or parts.test_failure(
-            scheduled, kinds) for test, kinds in BODY_TESTS.items()})
+            scheduled, kinds) for test, kinds in HELD_OUT_TESTS.items()})
         if failures.gravity is not None:
             log.warning("the FE gravity test failed (%s: %s): both gravity experiments are "
                         "left out of %s, the force curves are kept", failures.gravity[
@@ -738,7 +746,7 @@ class _Points:
         return too_many_failures(n_points, failures, features)
 
     def records(self, tests: dict[str, dict | None]) -> FEFailures:
-        """What failed and what was done, with the body tests' failures (``{"gravity": ..,
+        """What failed and what was done, with the held-out body tests' failures (``{"gravity": ..,
         "second_support": ..}``, None: none)."""
         return dataclasses.replace(self._records, **tests)
 
@@ -785,6 +793,10 @@ def _work(scene: Scene, points: _Points, items: list[WorkItem], parts: _Parts,
 WAIT_POLL_S = 0.2
 #: an experiment that fails with these is recorded and the run goes on (anything else stops it)
 ITEM_FAILURES = (ConvergenceError, StabilityError)
+#: the items whose failure (:data:`ITEM_FAILURES`) is recorded: a test point's curves are
+#: replaced or dropped, a failed gravity or second-support test is left out; any other item's
+#: failure (the whole-body data, asked for explicitly) stops the run
+RECORDED_KINDS = ("indentation", "relaxation") + GRAVITY_EXPERIMENTS + ("second_support",)
 
 
 def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], parts: _Parts,
@@ -809,19 +821,21 @@ def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], par
             arrays = compute_item(model, scene, points.slots, item, fe)
         except experiments.Stopped:
             raise
-        except ITEM_FAILURES as exc:  # recorded; the point is replaced or dropped later
-            vertex = int(points.slots.test_points[item.point]) if item.point >= 0 else -1
-            parts.save_failure(item, exc, time.perf_counter() - t0, vertex)
-            log.warning("%s%s failed: %s", item.name,
-                        f" (vertex {vertex})" if vertex >= 0 else "", exc)
-            too_many = points.too_many(parts.point_failures()) if item.point >= 0 else None
-            if too_many is not None:
-                parts.fail(str(too_many))
-                return (type(too_many).__name__, str(too_many)), build_seconds, computed
-            bar.poll()
-            continue
-        except Exception as exc:  # reported on every rank, not left to hang the others
-            message = f"{item.name}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - recorded, or reported on every rank
+            if isinstance(exc, ITEM_FAILURES) and item.kind in RECORDED_KINDS:
+                # recorded; the point is replaced or dropped later, or the held-out test left out
+                vertex = int(points.slots.test_points[item.point]) if item.point >= 0 else -1
+                parts.save_failure(item, exc, time.perf_counter() - t0, vertex)
+                log.warning("%s%s failed: %s", item.name,
+                            f" (vertex {vertex})" if vertex >= 0 else "", exc)
+                too_many = (points.too_many(parts.point_failures()) if item.point >= 0
+                            else None)
+                if too_many is not None:
+                    parts.fail(str(too_many))
+                    return (type(too_many).__name__, str(too_many)), build_seconds, computed
+                bar.poll()
+                continue
+            message = f"{item.name}: {exc}"  # not left to hang the other ranks
             parts.fail(message)
             log.error("%s", message)
             return (type(exc).__name__, message), build_seconds, computed
@@ -888,21 +902,21 @@ def previous_results(out_path: Path, keys: dict[str, str], problem: Problem
             for e in old.experiments if stored.get(e) == keys[e]}
 
 
-#: the body tests whose FE failure leaves their experiments out of the reference (the
+#: the held-out body tests whose FE failure leaves their experiments out of the reference (the
 #: ``fe_failures`` key of each -> its experiments)
-BODY_TESTS = {"gravity": GRAVITY_EXPERIMENTS, "second_support": ("second_support",)}
+HELD_OUT_TESTS = {"gravity": GRAVITY_EXPERIMENTS, "second_support": ("second_support",)}
 
 
 def previous_failures(out_path: Path, keys: dict[str, str]) -> dict[str, dict]:
-    """The body test failures an existing ``out_path`` records (``fe_failures.gravity``,
-    ``.second_support``: :data:`BODY_TESTS`) that were met with the current keys of all the
+    """The held-out body test failures an existing ``out_path`` records (``fe_failures.gravity``,
+    ``.second_support``: :data:`HELD_OUT_TESTS`) that were met with the current keys of all the
     test's experiments (they would fail again)."""
     old = _previous_reference(out_path)
     if old is None:
         return {}
     failed = json.loads(old.meta.get("failed_experiment_keys", "{}"))
     recorded = old.fe_failures.to_json()
-    return {test: recorded[test] for test, kinds in BODY_TESTS.items()
+    return {test: recorded[test] for test, kinds in HELD_OUT_TESTS.items()
             if recorded[test] is not None and all(failed.get(e) == keys[e] for e in kinds)}
 
 
@@ -929,6 +943,8 @@ def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.nda
         return {"displacement": g.static_displacement}
     if experiment == "gravity_dynamic":
         return {"time": g.time, "displacement": g.displacement}
+    if experiment == "body":
+        return body.arrays_of(reference.body)
     if experiment == "second_support":
         runs = reference.second_support.runs
         return {"static_displacement": runs.static_displacement, "time": runs.time,
@@ -972,12 +988,17 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
                 raise DataFileError(f"checkpoint of {name} is missing from {parts.folder}")
         results[kind] = {"force": np.stack(rows)}
     recorded = failures.to_json()
-    for test, kinds in BODY_TESTS.items():
+    for test, kinds in HELD_OUT_TESTS.items():
         for kind in kinds:
             if recorded[test] is not None:
                 results.pop(kind, None)  # the test failed: none of its runs is kept
             elif kind in data:
                 results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
+    if "body" in data:
+        results["body"] = {k: v for k, v in data["body"].items() if k != "seconds"}
+    body_result = (body.result_of(results["body"],
+                                  float(np.linalg.norm(scene.gravity.acceleration)))
+                   if "body" in results else None)
     present = [e for e in EXPERIMENTS if e in results]
     problem = points.current
     normals = problem.normals
@@ -1009,7 +1030,7 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
                           dataclasses.replace(scene.gravity,
                                               tracked_node=support.tracked_node)))
     counted = {k: sum(1 for name in computed if name.split("-")[0] == k) for k in KINDS}
-    failed_keys = {e: keys[e] for test, kinds in BODY_TESTS.items() if recorded[test] is not None
+    failed_keys = {e: keys[e] for test, kinds in HELD_OUT_TESTS.items() if recorded[test] is not None
                    for e in kinds if e in scene.experiments}
     meta = {
         "dolfinx_version": dolfinx.__version__,
@@ -1032,4 +1053,5 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
         indentation=IndentationCurves(indentation_depths(scene.indentation), f_ind,
                                       normal(f_ind), indenter=scene.indentation.indenter,
                                       radius=scene.indentation.radius),
-        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe, second_support=second)
+        relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe, body=body_result,
+        second_support=second)

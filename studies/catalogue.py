@@ -156,6 +156,34 @@ def haptic_cost_answer(r: Result) -> str:
         for name, row in rows.items())
 
 
+def body_data_command(path: str, r: Result) -> str:
+    from studies.body_data import VARIANTS
+
+    scenes = "".join(f" --scene {scene_file(s)}" for s in r["scenes"])
+    given = "" if tuple(r["variants"]) == VARIANTS else f" --variants {','.join(r['variants'])}"
+    volumes = {row.rpartition(" (")[2].rstrip(")") for e in r["scenes"].values()
+               for row in e["rows"] if row.endswith(")")}
+    volume = "".join(f" --volume {v}" for v in sorted(volumes))
+    return f"python -m studies.body_data{scenes}{given}{volume} --out {path}"
+
+
+def body_data_answer(r: Result) -> str:
+    parts = []
+    for scene, entry in r["scenes"].items():
+        said = []
+        cost = entry.get("fe_cost")
+        if cost:
+            said.append(f"FE experiment body {cost['body_s']:.0f} s ({pct(cost['share'])} of "
+                        "the reference's)")
+        if entry["rows"]:
+            said.append("held-out indentation / release RMS: " + ", ".join(
+                f"{name} {pct(row['calibrated']['indentation_held_out'])} / "
+                f"{pct(row['calibrated']['rms_error'])}" for name, row in entry["rows"].items()))
+        parts.append(f"{scene}: " + "; ".join(said))
+    chosen = (r.get("choice") or {}).get("chosen")
+    return "; ".join(parts) + (f"; chosen: **{chosen}**" if chosen else "")
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -183,6 +211,10 @@ STUDIES = (
     Study("haptic_cost", "What does the volume term, elastic or viscoelastic, cost the haptic "
           "step on the default liver?",
           "runs/studies/haptic_cost*.json", lambda path, r: r["command"], haptic_cost_answer),
+    Study("body_data", "Which whole-body data (natural modes, the weight along the axes "
+          "perpendicular to gravity, the modes about those loads), fitted with the surface "
+          "curves, to choose on calibration data only, and what do they cost the FE?",
+          "runs/studies/body_data*.json", body_data_command, body_data_answer),
 )
 
 

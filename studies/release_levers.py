@@ -43,9 +43,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from calibration.loading import calibrated_model
 from forcecal.errors import DataFileError
 from particle.experiments import sample_steps
-from particle.model import Model, build_model
+from particle.model import Model
 from particle.reference_numpy import forces_numpy
 from particle.volume import signed_volumes, volume_gradients_numpy
 from studies._finished_run import finished_run, parse_study, study_parser, write_result
@@ -161,7 +162,7 @@ def study(scene_path: str | Path, run: str | Path | None = None) -> dict:
     if ref.gravity is None or stage.time is None:
         raise DataFileError(f"{done.folder}: no gravity release to compare with")
     g = params.global_params
-    model = build_model(ref.problem, scene.material.density, params.connectors["calibrated"])
+    model = calibrated_model(params, "calibrated", done.folder).model
     node = ref.problem.tracked_node
     times, fe = ref.gravity.time, ref.gravity.displacement
     sag = ref.gravity.static_displacement[node]

@@ -24,9 +24,10 @@ from tests.conftest import SCENES
 from tests.test_pipeline_e2e import ran, write_scene
 
 
-def test_default_is_every_experiment_but_the_second_support_and_the_order_does_not_matter():
-    assert scene_from_dict({}).experiments == DEFAULT_EXPERIMENTS == EXPERIMENTS[:4]
-    assert "second_support" in EXPERIMENTS  # asked for: one more FE sag and release
+def test_default_is_every_experiment_but_body_and_second_support_and_the_order_does_not_matter():
+    assert scene_from_dict({}).experiments == DEFAULT_EXPERIMENTS
+    # asked for explicitly (the second support: one more FE sag and release)
+    assert set(EXPERIMENTS) - set(DEFAULT_EXPERIMENTS) == {"body", "second_support"}
     scene = scene_from_dict({"experiments": ["gravity_static", "indentation"]})
     assert scene.experiments == ("indentation", "gravity_static")
     assert replace(scene, experiments=["indentation"]).experiments == ("indentation",)
@@ -41,6 +42,7 @@ def test_default_is_every_experiment_but_the_second_support_and_the_order_does_n
     (["gravity_static"], "'gravity_static' needs 'indentation'"),
     (["indentation", "gravity_dynamic"],
      r"'gravity_dynamic' needs 'relaxation' \(the release is damped only by the Maxwell arms"),
+    (["body"], "'body' needs 'indentation'"),
     (["indentation", "relaxation", "gravity_static", "second_support"],
      r"'second_support' needs 'gravity_dynamic' \(it is the gravity test with another support"),
 ])
@@ -90,8 +92,9 @@ def test_fe_keys_follow_each_experiments_own_sections(liver_scene):
     def changed(**sections):
         keys = experiment_keys(replace(liver_scene, **sections), "mesh")
         return sorted(e for e in EXPERIMENTS if keys[e] != base[e])
-    assert changed(gravity={"duration": 1.0}) == ["gravity_dynamic", "gravity_static",
+    assert changed(gravity={"duration": 1.0}) == ["body", "gravity_dynamic", "gravity_static",
                                                   "second_support"]
+    assert changed(body={"modes": 4}) == ["body"]
     assert changed(second_support={"tolerance": 0.02}) == ["second_support"]
     assert changed(relaxation={"hold_steps": 20}) == ["relaxation"]
     assert changed(indentation={"steps": 12}) == ["indentation", "relaxation"]
@@ -130,7 +133,7 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert not (out / "gravity.h5").exists()
     report = read_report(out / "report.json")
     assert report["experiments"] == ["indentation"]
-    assert set(report["not_run"]) == {"relaxation", "gravity_static", "gravity_dynamic",
+    assert set(report["not_run"]) == {"relaxation", "gravity_static", "gravity_dynamic", "body",
                                       "second_support"}
     assert all("not in the scene's experiments" in why for why in report["not_run"].values())
     for key in ERROR_KEYS:
@@ -161,7 +164,7 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert np.linalg.norm(ref.gravity.static_displacement, axis=1).max() > 1e-4  # it sags
     report = read_report(out / "report.json")
     assert report["experiments"] == ["indentation", "gravity_static"]
-    assert set(report["not_run"]) == {"relaxation", "gravity_dynamic", "second_support"}
+    assert set(report["not_run"]) == {"relaxation", "gravity_dynamic", "body", "second_support"}
     assert 0.0 < report["errors"]["gravity_static"] < 1.0
     assert report["errors"]["gravity_dynamic"] is None
     assert report["errors"]["relaxation_calibrated"] is None
@@ -182,5 +185,5 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert not (out / "figures" / "gravity_static.png").exists()
 
 
-def test_tiny_scene_lists_the_default_experiments():
+def test_tiny_scene_lists_every_default_experiment():
     assert load_scene(SCENES / "tiny.toml").experiments == DEFAULT_EXPERIMENTS

@@ -37,7 +37,8 @@ from calibration.synthetic import box_scene, synthetic_reference, synthetic_seco
 from calibration.validation import ValidationFailure
 from forcecal.h5io import read_reference, write_reference
 from forcecal.problem import build_problem
-from forcecal.scene import BODY_EXPERIMENTS, load_scene, replace
+from forcecal.scene import HELD_OUT_EXPERIMENTS, load_scene, replace
+from particle.model import build_model
 from particle.params import ConnectorParams
 from pipelines.cache import Cache
 from pipelines.cli import main as pipelines_main
@@ -110,7 +111,7 @@ def _gravity_and_report(folder, scene) -> dict:
                   experiments=scene.experiments, upstream=("reference.h5", "params.h5",
                                                            "gravity.h5"))
     run_gravity_stage(dataclasses.replace(ctx, experiments=tuple(
-        e for e in scene.experiments if e in BODY_EXPERIMENTS)))
+        e for e in scene.experiments if e in HELD_OUT_EXPERIMENTS)))
     outputs = run_report(ctx)
     assert "report.json" in outputs
     return read_report(folder / "report.json")
@@ -476,7 +477,9 @@ def test_a_haptic_session_that_cannot_run_is_a_failed_real_time_check(tmp_path):
     from pipelines.realtime import realtime_block
     scene = _scene(tmp_path, particle={"dt": 0.01})  # 10 ms: above the box's stable step
     problem = build_problem(scene)
-    block = realtime_block(scene, problem, TRUTH.connector_params(len(problem.mesh.edges)))
+    model = build_model(problem, scene.material.density,
+                        TRUTH.connector_params(len(problem.mesh.edges)))
+    block = realtime_block(scene, problem, model)
     assert block["status"] == "failed"
     assert block["reason"].startswith("TimeStepError: time step dt = 0.01 s")
     assert block["step_p99_us"] is None and block["substeps_per_ms"] is None

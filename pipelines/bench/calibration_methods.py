@@ -86,17 +86,14 @@ def mark_front(rows: list[dict[str, Any]]) -> None:
             row["front"] = on
 
 
-def haptic_row(folder: Path, scene: Scene) -> dict[str, Any]:
+def haptic_row(folder: Path) -> dict[str, Any]:
     """Haptic latency of the calibrated model of the run in ``folder``."""
-    from calibration import read_params
-    from forcecal.h5io import read_reference
-    from particle.model import build_model
+    from calibration.loading import load_calibrated
     from pipelines.bench.particle_engine import haptic_latency
-    from pipelines.runners.common import PARAMS, REFERENCE
+    from pipelines.runners.common import PARAMS
 
-    problem = read_reference(folder / REFERENCE).problem
-    model = build_model(problem, scene.material.density,
-                        read_params(folder / PARAMS).connectors["calibrated"])
+    calibrated = load_calibrated(folder / PARAMS)
+    model, problem = calibrated.model, calibrated.problem
     # at the first calibration point (test_points lists them first)
     latency = haptic_latency(model, int(problem.test_points[0]), problem.normals[0],
                              calls=HAPTIC_CALLS)
@@ -131,7 +128,7 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
         report = json.loads((folder / "report.json").read_text())
         row["calibration_s"] = report["timings_s"]["calibration"]
         row["errors"] = {k: report["errors"].get(k) for k in ERROR_KEYS}
-        row["haptic"] = haptic_row(folder, variant)
+        row["haptic"] = haptic_row(folder)
     except ForcecalError as exc:
         log.warning("calibration methods: %s / %s / %s failed: %s", scene.name, model,
                     method, exc)

@@ -27,7 +27,7 @@ from typing import Any
 
 from forcecal.errors import ForcecalError
 from forcecal.h5io import read_reference
-from forcecal.scene import DEFAULT_EXPERIMENTS, Scene
+from forcecal.scene import DEFAULT_EXPERIMENTS as EXPERIMENTS, Scene
 from pipelines.bench.configs import derived_scene
 from pipelines.bench.items import default_folder
 from pipelines.cache import Cache
@@ -56,32 +56,32 @@ def run_list(base: Scene, experiments: tuple[str, ...], folder: Path, ranks: int
     timings = json.loads(read_reference(folder / REFERENCE).meta["timings_s"])
     return {"experiments": list(experiments), "reference_s": cache.elapsed("reference"),
             "calibration_s": cache.elapsed("calibrate"),
-            "fe_compute_s": {e: timings[e] for e in DEFAULT_EXPERIMENTS}}
+            "fe_compute_s": {e: timings[e] for e in EXPERIMENTS}}
 
 
 def full_list(scene: Scene, folder: Path) -> dict[str, Any]:
     """:func:`run_list`'s record of the default pipeline run in ``folder`` (the full list),
     from its stage records; its stages must have run (the driver's default item)."""
     cache = Cache(folder)
-    record = {"experiments": list(DEFAULT_EXPERIMENTS), "reference_s": cache.elapsed("reference"),
+    record = {"experiments": list(EXPERIMENTS), "reference_s": cache.elapsed("reference"),
               "calibration_s": cache.elapsed("calibrate")}
     if None in record.values() or not (folder / REFERENCE).is_file():
         raise ForcecalError(f"bench experiments: {folder} holds no finished default run of "
                             f"{scene.name} (run the 'default pipeline run' item first)")
     timings = json.loads(read_reference(folder / REFERENCE).meta["timings_s"])
-    return {**record, "fe_compute_s": {e: timings[e] for e in DEFAULT_EXPERIMENTS}}
+    return {**record, "fe_compute_s": {e: timings[e] for e in EXPERIMENTS}}
 
 
 def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     """The ``skip`` rows and the ``experiments`` details (module docstring)."""
     root = cache / "experiments"
-    runs = {DEFAULT_EXPERIMENTS: full_list(scene, default_folder(cache))}
+    runs = {EXPERIMENTS: full_list(scene, default_folder(cache))}
     runs.update({experiments: run_list(scene, experiments, root / "-".join(experiments))
                  for experiments in REDUCED})
-    full = runs[DEFAULT_EXPERIMENTS]
+    full = runs[EXPERIMENTS]
     rows = []
     for experiments in REDUCED:
-        skipped = ", ".join(e for e in DEFAULT_EXPERIMENTS if e not in experiments)
+        skipped = ", ".join(e for e in EXPERIMENTS if e not in experiments)
         for stage, key in (("reference", "reference_s"), ("calibration", "calibration_s")):
             row = {"scene": f"{scene.name}: {stage}, {' + '.join(experiments)}",
                    "full_s": full[key], "skipped_s": runs[experiments][key],
@@ -90,4 +90,4 @@ def study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
             rows.append(row)
             log.info("experiments: %s without %s: %.1f s instead of %.1f s", stage, skipped,
                      row["skipped_s"], row["full_s"])
-    return {"skip": rows, "experiments": [runs[e] for e in (DEFAULT_EXPERIMENTS, *REDUCED)]}
+    return {"skip": rows, "experiments": [runs[e] for e in (EXPERIMENTS, *REDUCED)]}

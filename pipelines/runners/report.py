@@ -17,6 +17,7 @@ def run_report(ctx: Context) -> list[str]:
     if ctx.rank != 0:
         return []
     from calibration import read_params
+    from calibration.loading import calibrated_model
     from forcecal.h5io import read_reference
     from pipelines.fields import write_time_series
     from pipelines.figures import write_figures
@@ -34,7 +35,8 @@ def run_report(ctx: Context) -> list[str]:
             raise DataFileError(f"{ctx.out / GRAVITY} was computed from another {PARAMS}; "
                                 "rerun the gravity stage")
     outputs = [REPORT]
-    realtime = realtime_block(ctx.scene, reference.problem, params.connectors["calibrated"])
+    calibrated = calibrated_model(params, "calibrated", ctx.out / PARAMS)
+    realtime = realtime_block(ctx.scene, calibrated.problem, calibrated.model)
     write_report(ctx.out / REPORT, build_report(ctx.scene.name, reference, params, gravity,
                                                 ctx.scene.experiments, goals=ctx.scene.verdict,
                                                 realtime=realtime))
