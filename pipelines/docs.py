@@ -326,7 +326,8 @@ def regenerate(text: str, src: Sources) -> str:
 
 def pages(root: Path) -> list[Path]:
     """The Markdown pages that hold generated blocks: ``README.md`` and ``docs/*.md``."""
-    return [root / "README.md"] + sorted((root / "docs").glob("*.md"))
+    readme = root / "README.md"
+    return [readme] * readme.is_file() + sorted((root / "docs").glob("*.md"))
 
 
 def generated(root: Path) -> dict[Path, str]:

@@ -91,3 +91,14 @@ def test_the_docs_command_rewrites_stale_blocks_and_check_says_so(tmp_path, caps
     assert main(["docs", "--root", str(tmp_path)]) == 0
     assert "STALE" not in readme.read_text() and "`calibration.method`" in readme.read_text()
     assert main(["docs", "--root", str(tmp_path), "--check"]) == 0
+
+
+def test_the_corpus_page_is_written_from_corpus_json_when_there_is_one(tmp_path):
+    from pipelines import corpus
+    from pipelines.docs import generated
+    assert tmp_path / corpus.DOCS not in generated(tmp_path)  # no corpus run: no page
+    data = {"kind": corpus.KIND, "version": corpus.VERSION, "scenes": [], "date": "d",
+            "git_commit": "c", "cpus": 2, "loadavg_start": [0.1, 0.1, 0.1], "loadavg_end": [],
+            "wall_time_s": 60.0, "scenes_time_s": 0.0, "passed": False}
+    corpus.write_corpus(tmp_path / "runs" / "corpus" / "corpus.json", data)
+    assert generated(tmp_path)[tmp_path / corpus.DOCS] == corpus.corpus_markdown(data)
