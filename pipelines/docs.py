@@ -15,7 +15,8 @@ documentation is typed in by hand (``--check`` only lists what is stale). Block 
   errors, static sag, release period, first peak and RMS, and the verdict
   (``report.json``'s ``verdict`` block; a report written before the verdict existed says so);
 * ``details SCENE``: the scene's full error and timing tables
-  (:func:`pipelines.report.results_markdown`) and its release against the FE's;
+  (:func:`pipelines.report.results_markdown`), its release against the FE's and, when the
+  report has them, the force vector's errors;
 * ``verdicts``: every shipped scene's verdict table (:func:`pipelines.verdict.verdict_markdown`;
   a report without a verdict is judged from its measurements against the default goals,
   as ``python -m pipelines verdict-table`` does, and labelled so);
@@ -186,6 +187,30 @@ def release_table(report: dict[str, Any]) -> str:
     return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
 
 
+def force_vector_table(report: dict[str, Any]) -> str | None:
+    """The whole indenter force's errors (``force_vector_errors``: the vector and its
+    tangential part, on the normal curve's scale), calibrated and baseline; None for a
+    report without them."""
+    vector = report.get("force_vector_errors")
+    if not vector:
+        return None
+
+    def pair(errors: dict[str, Any], points: str) -> str:
+        return " / ".join(_percent(errors.get(f"{e}_{points}")).removesuffix(" %")
+                          for e in ("indentation", "relaxation")) + " %"
+
+    rows = ["| force vector error (indentation / relaxation) | calibration points | "
+            "held-out points |", "|---|---|---|"]
+    for key, label in (("calibrated", "calibrated, whole vector"),
+                       ("calibrated_tangential", "calibrated, tangential part"),
+                       ("baseline", "baseline, whole vector"),
+                       ("baseline_tangential", "baseline, tangential part")):
+        if key in vector:
+            rows.append(f"| {label} | {pair(vector[key], 'calibrated')} | "
+                        f"{pair(vector[key], 'held_out')} |")
+    return "\n".join(rows)
+
+
 def report_verdict(report: dict[str, Any]) -> tuple[dict[str, Any], bool]:
     """The report's verdict block, or (for a report written before it existed) its
     measurements judged now against the default ``[verdict]`` goals; and whether it was
@@ -208,7 +233,9 @@ def _results(src: Sources) -> str:
 def _details(src: Sources, scene: str) -> str:
     from pipelines.report import results_markdown
     report = src.report(scene)
-    return "\n".join([results_markdown(report), "", release_table(report)])
+    parts = [results_markdown(report), "", release_table(report)]
+    vector = force_vector_table(report)
+    return "\n".join(parts + ([] if vector is None else ["", vector]))
 
 
 def _verdicts(src: Sources) -> str:
