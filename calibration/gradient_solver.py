@@ -81,7 +81,7 @@ class Regulariser:
     a split prior, ``sigma S^T S / P``: one row ``e_{log K0 of c} - e_{log kv of t}`` per
     pair (connector c, tet t having c as an edge), P = 6 T pairs. That term penalises moving
     stiffness between a spring and its tets' kv (which surface curves pin only as a sum:
-    README, parameter recovery), not raising both together. It couples the K0 and kv
+    docs/calibration.md, parameter recovery), not raising both together. It couples the K0 and kv
     blocks, so A1 is then inverted as one matrix.
 
     Attributes:

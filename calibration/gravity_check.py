@@ -1,5 +1,5 @@
-"""The calibrated model must complete the scene's gravity test (issue 11, "valid where it will
-be used").
+"""The calibrated model must complete the scene's gravity test: it must be valid where it will
+be used.
 
 The gravity test (static sag, dynamic release from rest) is the honest measure of a
 calibration: no fit sees its FE results. But a model whose fitted springs cannot carry the

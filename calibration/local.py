@@ -34,10 +34,10 @@ Each point's fit is Levenberg-Marquardt with forward-difference Jacobians
 every offset coordinate at first (a trust radius that doubles while the steps it cuts
 predict the cost well: with a fixed cut, two points of the coarse h = 0.025 m liver crawled
 towards a far optimum and stopped at their budget, 3.2 % at the calibration points against
-Nelder-Mead's 0.53 %; now 0.55 %). Until 2026-12-04 it was Nelder-Mead, as the paper's global fits
-are: on the default liver both reach the same offsets (calibration-point errors 0.069 /
-0.792 % against 0.071 / 0.793 %, held-out errors equal to 0.01 points) in a tenth of the
-evaluations (~20 per fit and sweep against ~100-300). Without the step cut, the first
+Nelder-Mead's 0.53 %; with the trust radius 0.55 %). Why not Nelder-Mead, the paper's
+global fits' optimiser: on the default liver both reach the same offsets (calibration-point
+errors 0.069 / 0.792 % against 0.071 / 0.793 %, held-out errors equal to 0.01 points), and
+Gauss-Newton in a tenth of the evaluations (~20 per fit and sweep against ~100-300). Without the step cut, the first
 full Gauss-Newton step of one point (vertex 232) jumped into another basin of its
 non-convex static cost (4.3 % against 0.3 %). A fit whose trial step left the feasible
 region (a spring tangent below its floor, an offset beyond its factor) ends with a

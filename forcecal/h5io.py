@@ -1,7 +1,7 @@
 """HDF5 files exchanged between the stages, written atomically and read with checks.
 
 ``reference.h5`` (written by ``reference_fe``, read by ``particle`` and
-``calibration``) is described here once; the README's "HDF5 schemas" section
+``calibration``) is described here once; ``docs/data-files.md``
 is the prose version of :func:`write_reference`. Every dataset carries a
 ``unit`` attribute. Files are written to ``<name>.tmp-<pid>`` and renamed into
 place, so a reader never sees a half-written file; a truncated, corrupt, wrong
@@ -558,7 +558,7 @@ def read_problem(fh: h5py.File) -> Problem:
 
 
 def write_reference(path: str | Path, ref: Reference) -> None:
-    """Write ``reference.h5`` atomically (schema: see module docstring and README)."""
+    """Write ``reference.h5`` atomically (schema: see module docstring and docs/data-files.md)."""
     p = ref.problem
     n_pts, n_v = len(p.test_points), p.mesh.n_vertices
     ind, rel = ref.indentation, ref.relaxation

@@ -4,7 +4,7 @@ A scene file has a top-level ``name`` and one table per section below. Every
 key is declared here, once, as a dataclass field with a default, a unit and a
 one-line doc; unknown keys, wrong types and out-of-range values are refused
 with a :class:`~forcecal.errors.SceneError` naming the key. ``python -m
-pipelines scene-keys`` prints the table the README shows (generated from these
+pipelines scene-keys`` prints the table ``docs/scenes.md`` shows (generated from these
 declarations, so documentation cannot drift from the code).
 
 All values are SI (m, s, kg, Pa, N).
@@ -381,7 +381,7 @@ class VerdictSection:
     which the FE reference's code key leaves out (``reference_fe.keys``), so editing them
     does not make an FE reference stale."""
     #: the FE reference's own stiffness error in the static sag on the default liver (its P2
-    #: sag against the once-refined mesh's, README "The FE reference"): the accuracy below
+    #: sag against the once-refined mesh's, docs/fe-reference.md): the accuracy below
     #: which a particle model's match to it says nothing more about tissue
     FE_STIFFNESS_ERROR = "15-18 %"
 

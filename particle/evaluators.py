@@ -3,7 +3,7 @@
 An evaluator is built once per model and set of test points and then called
 with many parameter sets (one per call, or a sequence of them in one call,
 :meth:`~_PointEvaluator.evaluate_many`); it returns the force curves on
-exactly the samples the FE reference uses (sign conventions as in the README:
+exactly the samples the FE reference uses (sign conventions as in docs/data-files.md:
 the test vertex is pushed along its inward normal by depth d >= 0, the
 reported force is the force the indenter applies to it, ``force_normal =
 force . inward_normal``; no gravity). A flat punch holds several particles (its

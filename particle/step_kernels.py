@@ -5,48 +5,29 @@ one kernel dispatch per device period); each step is :func:`explicit_step`:
 :func:`particle.kernels.net_forces` then :func:`advance_positions`, with the
 divergence, strain-range and volume-range checks riding on those passes.
 
-The step is serial by default (the reference); an
-opt-in multi-threaded step (``blocks``, :func:`explicit_step`) splits the connector
-pass into contiguous blocks, one per thread, each scattering into its own force
-buffer (no race, no node -> connector gather pass), then sums the buffers and
-advances the positions in blocks of nodes: two numba parallel regions per step.
-Measured on the 12k-connector liver (2 cores, numba's omp layer, other core idle):
-the connector pass over unchanged positions takes 58 us on one thread, 32 us on
-two, but a whole step 56-60 us serial, 56 us on two threads in gmsh's particle
-numbering and 43-45 us with the particles renumbered along the longest axis
-(:meth:`particle.model.Model.renumbered`): each step the threads exchange the
-positions and force-buffer rows of the particles both blocks touch (634 of 2033
-particles in gmsh's order, 116 renumbered), and those cache-line transfers, not
-the arithmetic, are the cost. A step's two regions cost 4.6 us together on a
-tiny model (an empty region 1.2 us with both threads ready, 0.4 us on one); with
-the other core busy, a region waits for it, up to a scheduler time slice
-(milliseconds). :meth:`particle.haptics.HapticSession.step` (2 substeps per ms),
-median (p99) over 5 x 1000 calls (liver 2000), load 0.36: 128-130 (182-250) us
-serial, 121-122 (155-178) us on two threads, 99 (135-143) us on two threads
-renumbered (125 us serial); on the 1400-connector liver 13.6 (17-19) us serial,
-20 (26-34) us on two threads, so the serial loop stays the choice there. An
-earlier two-pass version (a scatter-free gather over a node -> connector
-incidence) took 106 us per force evaluation on one thread against 74 us serial.
+The step is serial by default (the reference). An opt-in multi-threaded step
+(``blocks``, :func:`explicit_step`) splits the connector pass into contiguous blocks, one
+per thread, each scattering into its own force buffer (no race, no node -> connector
+gather pass), then sums the buffers and advances the positions in blocks of nodes: two
+numba parallel regions per step. What it costs is the particles both blocks touch, whose
+positions and force-buffer rows the threads exchange every step (cache-line transfers, not
+arithmetic): renumbering the particles along the longest axis
+(:meth:`particle.model.Model.renumbered`) cuts them about 5-fold on the 12k-connector liver,
+where two threads then save about a quarter of a step. A parallel region also waits for a
+busy core, up to a scheduler time slice, and costs microseconds even when idle, so on small
+meshes (the 1400-connector liver) the serial loop is faster and stays the default. A
+scatter-free gather over a node -> connector incidence was slower than the serial scatter.
 
-Haptic rate at scale (issue 14). The connector pass is bound by issue slots, not
-memory: per connector 2 index + 6 position loads, 9 stores (6 force read-modify-
-writes, 2 arm forces, 1 elongation), one sqrt and one division. Measured with
-the machine shared (load 4-8, so indicative only; 12k-connector liver, one core,
-minimum over 300-1000 repetitions), each variant bitwise or round-off equal:
-connector data in float32 (parameters, rest lengths, arm state; the same kernels
-compiled for those dtypes, positions and forces float64) 350 vs 303 us per two
-steps (slower: conversions, no fewer instructions on the critical path); a
-blocked pass with the sqrt and the division in separate vectorised loops
-(``vsqrtpd``/``vdivpd``, bitwise equal) 140 vs 142 us per force evaluation
-(the scalar sqrt/div overlap the loads and stores anyway); keeping the running
-sum of particle i in registers while consecutive connectors share it (bitwise
-equal, ~2.5 fewer stores per connector) 188 vs 186 us; float32 state (positions, and
-optionally the arm state, through the same loop, forces accumulated in float64), over the
-1 s haptic drag: minimum per call 310 (329 with float32 arms) vs 304 us, drag force within
-5.2e-5 of float64 (load 8-9). None is kept. What halves
-the cost of a device period is one substep instead of two: mass scaling
-(:mod:`particle.mass_scaling`, the inertia enters only through ``inv_masses``,
-so no kernel changes), measured with its error in ``runs/bench/BENCH.md``.
+The connector pass is bound by issue slots, not memory: per connector 2 index + 6 position
+loads, 9 stores (6 force read-modify-writes, 2 arm forces, 1 elongation), one sqrt and one
+division. None of these made it faster (each bitwise or round-off equal, measured on the
+12k-connector liver): connector data in float32 (conversions, no fewer instructions on the
+critical path); the sqrt and the division in separate vectorised loops (the scalar ones
+overlap the loads and stores anyway); keeping particle i's running sum in registers while
+consecutive connectors share it; float32 positions and arm state. What halves the cost of
+a device period is one substep instead of two: mass scaling (:mod:`particle.mass_scaling`;
+the inertia enters only through ``inv_masses``, so no kernel changes), measured with its
+error in ``runs/bench/BENCH.md``.
 """
 
 from __future__ import annotations

@@ -3,7 +3,9 @@
 ``python -m pipelines <stage> --scene FILE [--out DIR] [--force] [--no-progress] [--ranks K]``
 with stages ``reference``, ``calibrate``, ``gravity``, ``report`` (each brings the
 stages before it up to date first, like make) and ``demo`` (all of them).
-``python -m pipelines scene-keys`` prints the README's table of scene keys.
+``python -m pipelines scene-keys`` prints the table of scene keys (``docs/scenes.md``);
+``python -m pipelines docs`` rewrites every generated table of ``README.md`` and ``docs/``
+from the committed results (:mod:`pipelines.docs`).
 ``python -m pipelines export --params runs/<scene>/params.h5 --out DIR`` writes the
 calibrated model as VTU and JSON (:mod:`pipelines.export`, ``docs/export.md``).
 ``report`` and ``demo`` end with the verdict table (``report.json`` ``verdict``); with
@@ -47,11 +49,11 @@ def _parser() -> argparse.ArgumentParser:
                                      "calibration -> gravity comparison -> report")
     sub = parser.add_subparsers(dest="stage", required=True)
     sub.add_parser("scene-keys", help="print the Markdown table of every scene key")
-    p = sub.add_parser("results-table", help="print the README's results tables from a report")
+    p = sub.add_parser("results-table", help="print a report's results tables (docs/results.md)")
     p.add_argument("report", help="report.json")
-    p = sub.add_parser("verdict-table", help="print the README's verdict table from a report")
+    p = sub.add_parser("verdict-table", help="print a report's verdict table (docs/verdict.md)")
     p.add_argument("report", help="report.json")
-    p = sub.add_parser("bench-table", help="print the README's benchmark goals table")
+    p = sub.add_parser("bench-table", help="print the benchmark goals table (docs/benchmarks.md)")
     p.add_argument("bench", help="bench.json")
     p = sub.add_parser("export", help="write a calibrated model (params.h5) as VTU for "
                        "ParaView and JSON for another engine (docs/export.md)")
@@ -59,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--variant", default="calibrated",
                    help="parameter set: calibrated (default), global or baseline")
+    from pipelines.docs import add_arguments as docs_arguments
+    docs_arguments(sub.add_parser("docs", help="rewrite every generated table of README.md and "
+                                  "docs/ from runs/ (--check: only list the stale pages)"))
     from pipelines.bench.driver import add_arguments as bench_arguments
     bench_arguments(sub.add_parser("bench", help="speed and error benchmarks (make bench; "
                                    "--full: make bench-full)"))
@@ -106,15 +111,14 @@ def _run(args: argparse.Namespace) -> int:
         print(results_markdown(read_report(args.report)))
         return 0
     if args.stage == "verdict-table":
-        from forcecal.scene import VerdictSection
+        from pipelines.docs import report_verdict
         from pipelines.report import read_report
-        from pipelines.verdict import judge, measurements, verdict_markdown
-        report = read_report(args.report)
-        if "verdict" not in report:  # written before it: its measurements, the default goals
+        from pipelines.verdict import verdict_markdown
+        verdict, judged_now = report_verdict(read_report(args.report))
+        if judged_now:  # written before it: its measurements, the default goals
             print(f"(judged now from the measurements of {args.report}, which has no verdict, "
                   "against the default [verdict] goals)\n")
-            report["verdict"] = judge(measurements(report), VerdictSection())
-        print(verdict_markdown(report["verdict"]))
+        print(verdict_markdown(verdict))
         return 0
     if args.stage == "bench-table":
         from pipelines.bench.driver import read_bench
@@ -128,6 +132,9 @@ def _run(args: argparse.Namespace) -> int:
         for path in export_model(calibrated, args.out):
             print(f"wrote {path}")
         return 0
+    if args.stage == "docs":
+        from pipelines.docs import main as docs_main
+        return docs_main(args)
     if args.stage == "bench":
         from pipelines.bench.driver import main as bench_main
         configure_logging(logging.INFO)

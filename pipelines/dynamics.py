@@ -36,7 +36,7 @@ import math
 
 import numpy as np
 
-WINDOW_S = 1.5  # the period is measured on the first 1.5 s (issue 11)
+WINDOW_S = 1.5  # the period is measured on the first 1.5 s, before the two modes' beat blurs it
 PAD = 16  # zero padding factor of the FFT (finer bins for the parabolic interpolation)
 NOISE = 1e-3  # extrema closer to the equilibrium than this fraction of the first swing are dropped
 N_MODES = 2  # modes reported per history: the ones with the largest amplitude at the tracked vertex

@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 CALLS = 2000
 #: the device period [s]: 1 kHz
 PERIOD = 1e-3
-#: the project's goal for the p99 of one call [us] (README, "Benchmarks and stress tests")
+#: the project's goal for the p99 of one call [us] (docs/benchmarks.md)
 GOAL_US = 100.0
 #: connectors and tets listed as setting the step
 LIMITERS = 5

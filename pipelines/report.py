@@ -240,7 +240,7 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
                  experiments: tuple[str, ...] = ALL_EXPERIMENTS, *,
                  goals: VerdictSection = VerdictSection(),
                  realtime: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The report dictionary (fixed keys of the README plus documented extras) of the scene's
+    """The report dictionary (the keys docs/data-files.md lists) of the scene's
     ``experiments``; ``gravity`` is None when they include no gravity experiment. ``goals``
     are the scene's ``[verdict]``, ``realtime`` the :func:`pipelines.realtime.realtime_block`
     (None: not measured)."""
@@ -558,7 +558,7 @@ def _percent(value: float | None) -> str:
 
 
 def results_markdown(report: dict[str, Any]) -> str:
-    """The README's results tables (errors and timings) generated from a report."""
+    """A report's results tables (errors and timings), as docs/results.md shows them."""
     rows = ["| error vs FE (relative, see definitions) | particle, tuned | particle, baseline |",
             "|---|---|---|"]
     rows += [f"| {label} | {_percent(report['errors'][k])} | "

@@ -299,7 +299,7 @@ def verdict_line(verdict: dict[str, Any]) -> str:
 
 
 def verdict_markdown(verdict: dict[str, Any]) -> str:
-    """The README's verdict table of one report."""
+    """The Markdown verdict table of one report (docs/verdict.md)."""
     rows = verdict_rows(verdict)
     lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
     lines += ["| " + " | ".join(f"`{r[0]}`" if i == 0 else (f"**{c}**" if i == 4 else c)

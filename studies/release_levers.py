@@ -1,7 +1,7 @@
 """What would bring the particle model's gravity release to the FE's: two levers, measured.
 
 The calibrated punch model's release is 27 % (RMS) from the FE's against the
-goal of 10 % (README, "Why the release misses its goal"): its two dominant
+goal of 10 % (docs/results.md, "Why the release misses"): its two dominant
 modes are 7-9 % too low. A linear analysis (modes about the static sag) named
 two levers, each worth about 3 %: a *relaxing volume term* (the FE's shear
 stiffness at 5 Hz is its instantaneous one, the model's ``kv`` stays long-term)

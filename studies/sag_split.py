@@ -2,7 +2,7 @@
 
 The gradient fit of the punch scene moves every connector and every tet away from the
 global fit, and the punch curves it is fitted to pin the *sum* of a spring's and its tets'
-``kv`` stiffness better than either (README, parameter recovery). The static sag, which no
+``kv`` stiffness better than either (docs/calibration.md, parameter recovery). The static sag, which no
 fit sees, hangs on whatever the curves leave open. This study puts parts of the calibrated
 model back to the global fit's values, nothing refitted, and measures the static sag (the
 gravity stage's own Newton equilibrium on the calibrated strain range) of each mix:

@@ -141,11 +141,11 @@ def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message
         check_bench(bench)
 
 
-def test_the_committed_bench_has_every_fixed_key_and_the_readme_shows_its_goals():
+def test_the_committed_bench_has_every_fixed_key_and_the_docs_show_its_goals():
     from pipelines.bench.driver import read_bench
     from pipelines.bench.report import goals_markdown
     bench = read_bench(ROOT / "runs" / "bench" / "bench.json")
-    assert goals_markdown(bench) in (ROOT / "README.md").read_text()
+    assert goals_markdown(bench) in (ROOT / "docs" / "benchmarks.md").read_text()
 
 
 def test_read_bench_refuses_a_damaged_file(tmp_path):

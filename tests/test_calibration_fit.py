@@ -247,7 +247,7 @@ def test_params_file_round_trip(nonuniform):
 
 
 def _assert_same_fit(result, reference_run) -> None:
-    """The same fits as ``reference_run`` to round-off (issue 12: 1e-10 relative): the
+    """The same fits as ``reference_run`` to round-off (1e-10 relative): the
     evaluators forget their warm starts wherever calibration checkpoints, so a resumed run
     makes the same evaluations as an uninterrupted one."""
     for variant in ("global", "calibrated"):

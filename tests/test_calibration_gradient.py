@@ -429,7 +429,7 @@ def test_gradient_recovers_smooth_truth(recovered):
     to 0.08 % / 0.09 % (max), held-out to 2.5 % / 1.6 % where the global fit has 10.8 % / 4.8 %;
     K(eps) over each connector's strains reached (linear network at full depth) within 4.5 %
     (median) and 11.9 % (max) of the truth, K0 within 2.7 % (median), the arms' k_i, tau_i within
-    0.6-2.7 % (median). The issue's 2 % on every connector's K(eps) is not reached: 20 surface
+    0.6-2.7 % (median). A goal of 2 % on every connector's K(eps) is not reached: 20 surface
     curves (1000 samples, far fewer independent ones) do not determine 1148 per-connector
     parameters; the smoothness prior fills in what they leave open (asserted with ~1.5x margins)."""
     scene, problem, truth, result = recovered
@@ -455,13 +455,13 @@ def recovered_volume(tmp_path_factory):
 
 
 def test_gradient_recovers_smooth_truth_with_the_volume_term(recovered_volume):
-    """The issue's per-connector + kv truth. Measured (box, 20 calibration points, 197
+    """A smooth per-connector + kv truth. Measured (box, 20 calibration points, 197
     connectors x 7 + 108 tets = 1487 parameters): calibration curves to 0.13 % / 0.09 %
     (max), held-out to 1.8 % / 1.2 % where the global fit has 3.9 % / 4.0 %; kv within
     1.8 % (median) and 10 % (max) of the truth, the arms' k_i, tau_i within 0.8-3.3 %
     (median), but K(eps) only within 8.7 % (median) and 33 % (max): a connector's spring and
     its tets' kv both stiffen the same surface curves, which pin their sum better than
-    either (springs alone: 4.5 % / 11.9 %, the test above). The issue's 2 % on K(eps) is
+    either (springs alone: 4.5 % / 11.9 %, the test above). A goal of 2 % on K(eps) is
     missed; asserted at the measured levels with ~1.3-1.5x margins."""
     scene, problem, truth, result = recovered_volume
     _assert_recovered_with_kv(problem, truth, result, held_out=0.6, kv=(0.025, 0.15),
@@ -527,7 +527,7 @@ def test_one_spring_shape_recovers_the_truth_whose_shape_is_one(tmp_path, volume
     ``calibration.shape_smoothness = 100`` (smoothness of alpha, beta 100x the others',
     their common value free) lets the fit move every shape together. Measured:
 
-    * springs: K(eps) within 1.73 % (median, the issue's 2 %) and 7.0 % (max, a connector
+    * springs: K(eps) within 1.73 % (median, within a goal of 2 %) and 7.0 % (max, a connector
       strained 16x less than the most strained: the least strained fifth 4.1 % median) of
       the truth, against 4.5 % / 11.9 % by default; the median shape alpha 0.996, beta 9.87;
       calibration curves 0.002 % (max), held-out 0.21x / 0.30x the global fit's; the fit
@@ -538,7 +538,7 @@ def test_one_spring_shape_recovers_the_truth_whose_shape_is_one(tmp_path, volume
       by default; held-out 0.48x / 0.30x the global fit's (0.47x / 0.29x by default).
 
     Asserted with ~1.3-1.5x margins. Not the scenes' default: on the punch scene the fold
-    cross-validation of whole calibrations finds no difference (README Calibration)."""
+    cross-validation of whole calibrations finds no difference (docs/calibration.md)."""
     settings = {"shape_smoothness": 100.0}
     if volume:
         settings["gradient_max_iterations"] = 30

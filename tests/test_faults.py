@@ -1,4 +1,4 @@
-"""Fault suite (issue 12): hostile input and injected faults, each through a user-facing path.
+"""Fault suite: hostile input and injected faults, each through a user-facing path.
 
 Every case asserts what a user must see: exit code 2 (130/143 for Ctrl-C/SIGTERM),
 exactly one ``error:`` line naming the cause (or the ``interrupted`` line), no
@@ -9,8 +9,8 @@ injected fault, so the suite stays fast; two cases run real processes under mpir
 on the tiny scene. Groups:
 
 * table of bad scenes: every scene key with a wrong type, every bound and choice
-  violated (generated from the key declarations), plus the hand-written classes of
-  issue 12 (names leaving runs/, Prony terms, zero gravity, too few records,
+  violated (generated from the key declarations), plus the hand-written classes
+  (names leaving runs/, Prony terms, zero gravity, too few records,
   encodings, absurd cost);
 * bad mesh files (plain text, garbage, other units);
 * fault injection: unexpected exceptions, disk full in every writer, Ctrl-C and

@@ -152,9 +152,9 @@ def test_material_differences_name_the_keys():
     assert differ == ["material.C10 = 2500.0 (scene: 2000.0)"]
 
 
-def test_scene_keys_table_in_readme_is_current():
+def test_scene_keys_table_on_the_scenes_page_is_current():
     from forcecal.scene import keys_table
-    assert keys_table() in (ROOT / "README.md").read_text()
+    assert keys_table() in (ROOT / "docs" / "scenes.md").read_text()
 
 
 def test_more_folds_than_calibration_points_give_one_fold_per_point():

@@ -19,7 +19,7 @@ def test_indenter_radius_study_points_are_valid_at_every_radius():
     free surface vertices (never a calibration point)."""
     problem = build_problem(load_scene(SCENES / "liver_punch.toml"))
     h = mean_surface_edge(problem.mesh)
-    assert h == pytest.approx(0.0161, rel=0.01)  # the README's mean surface edge length
+    assert h == pytest.approx(0.0161, rel=0.01)  # the punch scene's mean surface edge length (docs/punch.md)
     radii = [e * h for e in RADII_EDGES if e > 0]
     calibration, held_out = common_points(problem, radii)
     assert set(calibration) <= set(problem.calibration.tolist()) and len(calibration) >= 3

@@ -5,8 +5,8 @@ millimetres, y up (``mesh.scale = 0.001``, ``fixed.axis = "y"``, gravity along
 -y). Its solid is the tiny scene's coarse liver (78 vertices, resting on its
 flat base) rotated, so the physics is the tiny end-to-end test's and this test
 is about the file, the axes and the 'auto' points. (A user's organ hung from its
-top, ``scenes/user_organ.toml``, stops in the gravity stage until the calibrated
-springs are kept valid in tension: issue 11, see the README.)
+top is ``scenes/user_organ.toml``: its gravity stage needs the calibrated springs kept
+valid in tension, docs/calibration.md.)
 """
 import json
 import math

@@ -198,7 +198,7 @@ def markdown(b: dict[str, Any]) -> list[str]:
     return ["", "## Model and calibration method", "",
             "Each scene with each particle model and calibration method, the whole pipeline "
             "per row on the scene's one FE reference (`calibration methods`, "
-            "`pipelines/bench/calibration_methods.py`). Errors in % (relative RMS, README "
+            "`pipelines/bench/calibration_methods.py`). Errors in % (relative RMS, docs/results.md "
             "'Error definitions'): calibration / held-out curves, gravity sag and release, "
             "none of which the held-out points or the gravity test were fitted to. Haptic: "
             "p99 latency of one 1 ms haptic step of the calibrated model, one thread "

@@ -245,7 +245,7 @@ def fe_rows(scene: Scene, cache: Path, ranks: int = 1) -> list[dict[str, Any]]:
                      "stage": "FE model build + indentation of the study's points + static sag",
                      "wall_s": t["build"] + t["indentation_per_point"] * len(result["points"])
                      + t["gravity_static"],
-                     # the vertex force has no mesh-converged value (README, Limitations): the
+                     # the vertex force has no mesh-converged value (docs/limitations.md): the
                      # sag is the quantity the refined mesh can say something about
                      "errors": {"force_change_vs_finest": force, "overall": sag},
                      "default": label == own})

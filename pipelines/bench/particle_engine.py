@@ -227,7 +227,7 @@ def release_history(model: Model, gravity: np.ndarray, dt: float, node: int, *,
 
 def relative_history_error(history: np.ndarray, reference: np.ndarray) -> float:
     """RMS over samples of ``|history - reference|`` over ``max |reference|`` [1]; inputs (S, 3)
-    (the README's dynamic-error definition, applied to a variant against the float64 run)."""
+    (the dynamic-error definition of docs/results.md, applied to a variant against the float64 run)."""
     scale = float(np.max(np.linalg.norm(reference, axis=1)))
     if not scale > 0.0:
         raise ParameterError("the reference history is identically zero: no scale to compare "

@@ -47,7 +47,7 @@ WHY_DEFAULT = {
                     "to points it was not fitted to, and it does not",
     "FE discretisation": "the particle model fitted to the Taylor-Hood reference's (softer) "
                          "indentation curves cannot carry the organ's weight: its static sag "
-                         "has no equilibrium beyond about 0.85 g (README, 'Limitations'), so "
+                         "has no equilibrium beyond about 0.85 g (docs/limitations.md), so "
                          "the default is the P2 reference a particle model can be fitted to end "
                          "to end, with its 15 % stiffness in sag stated; the refined mesh is "
                          "too slow for routine use",
@@ -217,7 +217,7 @@ def _duration(b: dict) -> str:
 
 
 def goals_markdown(b: dict[str, Any]) -> str:
-    """The goals table of ``BENCH.md`` (the README shows it: ``python -m pipelines
+    """The goals table of ``BENCH.md`` (docs/benchmarks.md shows it: ``python -m pipelines
     bench-table runs/bench/bench.json``)."""
     return "\n".join(_goals_section(b))
 
@@ -310,7 +310,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         "green points are Pareto-optimal (no other setting of the panel is both faster and "
         "more accurate), the red star is the default scene. The calibration and mesh panels' "
         "error is the mean of the held-out indentation and relaxation errors of the "
-        "calibrated model (relative RMS, README 'Error definitions'); their tables also give "
+        "calibrated model (relative RMS, docs/results.md 'Error definitions'); their tables also give "
         "the static and dynamic gravity errors ('-' where the gravity stage failed, the "
         "reason below the table). " + _mesh_protocol(b) + " "
         "The calibration panels reuse the default FE reference (a slice of its points for "
@@ -321,7 +321,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         "study; its Pareto error is the change of the maximum static sag against P2 on the "
         "uniformly refined mesh (the table also gives the change of the full-depth "
         "indentation forces, which do not converge under refinement: a vertex force, see "
-        "the README's Limitations).",
+        "docs/limitations.md).",
     ]
     lines += _pareto_section(b)
     lines += ["", "## Kernel throughput", "",

@@ -215,7 +215,7 @@ def growth_exponent(vertices: list[int], values: list[float | None]) -> float | 
 
 
 def scale_table(bench: dict[str, Any]) -> str:
-    """The README's Markdown table of ``bench["scale"]`` with the growth exponents."""
+    """The Markdown table of ``bench["scale"]`` (docs/benchmarks.md) with the growth exponents."""
     def cell(value: Any, fmt: str) -> str:
         return "n/a" if value is None else format(value, fmt)
 
