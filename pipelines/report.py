@@ -80,7 +80,7 @@ from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
 from pipelines.dynamics import dynamic_metrics, release_modes
 from pipelines.gravity import GravityRuns, GravityTest, SupportRuns
-from pipelines.verdict import CHECKS, STATUSES, judge, measurements
+from pipelines.verdict import CHECKS, NOT_ASKED, OPT_IN, STATUSES, judge, measurements
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ def experiments_run(experiments: tuple[str, ...], calibration: CalibrationResult
     why = {}
     for e in ALL_EXPERIMENTS:
         if e not in experiments:
-            why[e] = (f"not in the scene's experiments {list(experiments)}: not computed "
+            why[e] = (f"{NOT_ASKED} {list(experiments)}: not computed "
                       "(FE or particle), not compared")
         elif e not in done:  # a stage that did not produce what the scene asks for
             why[e] = "in the scene's experiments but its stage produced no results"
@@ -507,9 +507,10 @@ def _finite(v: Any) -> bool:
 
 def check_verdict(verdict: Any) -> None:
     """Raise :class:`DataFileError` unless ``verdict`` is the block :func:`pipelines.verdict.judge`
-    writes: every check with a known status, ``passed`` iff every check passed."""
+    writes: every check with a known status (an opt-in experiment's only when asked for),
+    ``passed`` iff every check passed."""
     checks = verdict.get("checks") if isinstance(verdict, dict) else None
-    if not isinstance(checks, dict) or set(CHECKS) - set(checks):
+    if not isinstance(checks, dict) or set(CHECKS) - set(OPT_IN) - set(checks):
         raise DataFileError(f"report.json: verdict = {verdict!r:.80} is not the block of the "
                             f"checks {list(CHECKS)}")
     for name, c in checks.items():

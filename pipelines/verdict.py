@@ -31,7 +31,10 @@ the gravity ones), when its value misses the goal, or when (required) it is wors
 baseline's; ``not_run`` (null values) when nothing was measured (the experiment is not in the
 scene, the scene has no held-out points, the FE gravity test failed); ``passed`` otherwise.
 A baseline that failed the experiment has a null value and no comparison is made. The
-verdict passes only when every check passed: a check that was not run has not passed.
+verdict passes only when every check passed: a check that was not run has not passed. The
+checks of an opt-in experiment (:data:`OPT_IN`: the second support) that the scene does not
+ask for are left out of the verdict (a scene is judged on the tests it asks for; its
+``not_run`` says why they are absent).
 
 A held-out check whose points drive the calibrated model's connectors beyond the strains
 the calibration points reached (``report.json``'s ``strain_ranges``) says so in its reason,
@@ -69,6 +72,11 @@ CHECKS = {
     "second_support_release_rms": CheckSpec("second_support_dynamic"),
 }
 STATUSES = ("passed", "failed", "not_run")
+#: opt-in experiments (not in the default list): their checks are judged only when asked for
+OPT_IN = {"second_support_static_sag": "second_support",
+          "second_support_release_rms": "second_support"}
+#: the start of ``not_run``'s reason for an experiment the scene's list does not hold
+NOT_ASKED = "not in the scene's experiments"
 
 
 @dataclass(frozen=True)
@@ -116,10 +124,11 @@ def judge_check(m: Measured, goal: float, spec: CheckSpec, no_worse: bool
 
 
 def judge(measured: dict[str, Measured], goals: VerdictSection) -> dict[str, Any]:
-    """The ``verdict`` block of every check of :data:`CHECKS` in ``measured``."""
+    """The ``verdict`` block of every check of :data:`CHECKS` in ``measured`` (those of an
+    opt-in experiment the scene does not ask for are absent from it)."""
     checks = {name: judge_check(measured[name], getattr(goals, name), spec,
                                 goals.no_worse_than_baseline)
-              for name, spec in CHECKS.items()}
+              for name, spec in CHECKS.items() if name in measured}
     return {"passed": all(c["status"] == "passed" for c in checks.values()),
             "require_no_worse_than_baseline": goals.no_worse_than_baseline,
             "checks": checks}
@@ -183,6 +192,8 @@ def measurements(report: dict[str, Any]) -> dict[str, Measured]:
             values[1] = None  # a baseline that failed is no comparison
         if why_not is not None:
             values = [None, None]
+        if name in OPT_IN and (why_not or "").startswith(NOT_ASKED):
+            continue  # an opt-in test the scene does not ask for: not judged
         note = _extrapolated(report, spec.experiment) if role == "held_out" else None
         out[name] = Measured(values[0], values[1], failure, why_not, note)
     return out

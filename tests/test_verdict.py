@@ -10,8 +10,8 @@ import pytest
 
 from forcecal.errors import SceneError
 from forcecal.scene import VerdictSection, keys_table, scene_from_dict
-from pipelines.verdict import (AT_LEAST, CHECKS, CheckSpec, Measured, judge, judge_check,
-                               measurements, verdict_markdown, verdict_text)
+from pipelines.verdict import (AT_LEAST, CHECKS, NOT_ASKED, OPT_IN, CheckSpec, Measured,
+                               judge, judge_check, measurements, verdict_markdown, verdict_text)
 
 ERROR = CheckSpec("indentation")
 WEIGHT = CheckSpec("gravity_static", AT_LEAST, "g")
@@ -229,6 +229,31 @@ def test_checks_not_measured_are_not_run_with_the_reason():
         assert checks[name]["calibrated"] is None and checks[name]["baseline"] is None
 
 
+def test_a_scene_that_does_not_ask_for_the_second_support_is_judged_without_it():
+    """The opt-in second support's checks are left out of the verdict when the scene's
+    experiments do not hold it (a scene is judged on the tests it asks for), and judged
+    (not run, so not passed) when it asks for them and its stage gave nothing."""
+    from pipelines.report import check_verdict
+    asked = judge(measurements(_report()), VerdictSection())
+    report = _report()
+    report.pop("second_support")
+    report["not_run"] = {"second_support": f"{NOT_ASKED} ['indentation']: not computed"}
+    verdict = judge(measurements(report), VerdictSection())
+    assert set(verdict["checks"]) == set(CHECKS) - set(OPT_IN)
+    assert verdict["checks"] == {n: c for n, c in asked["checks"].items() if n not in OPT_IN}
+    # the same report with every other check passed passes
+    passing = judge({n: Measured(1.0 if CHECKS[n].direction == AT_LEAST else 0.01, None)
+                     for n in verdict["checks"]}, VerdictSection())
+    assert passing["passed"] is True and set(passing["checks"]) == set(verdict["checks"])
+    check_verdict(verdict)
+    check_verdict(passing)
+    report["not_run"] = {"second_support": "in the scene's experiments but its stage "
+                                           "produced no results"}
+    verdict = judge(measurements(report), VerdictSection())
+    assert verdict["checks"]["second_support_static_sag"]["status"] == "not_run"
+    assert verdict["passed"] is False
+
+
 def test_the_second_support_checks_judge_its_block_and_its_failures():
     """The second held-out body test's checks read ``second_support``'s errors against their
     goals (and the baseline's); a scene without it has them not run, the others unchanged; a
@@ -246,9 +271,7 @@ def test_the_second_support_checks_judge_its_block_and_its_failures():
     report = _report()
     report["second_support"], report["not_run"] = None, {"second_support": why}
     checks = judge(measurements(report), VerdictSection())["checks"]
-    for name in ("second_support_static_sag", "second_support_release_rms"):
-        assert (checks[name]["status"], checks[name]["reason"], checks[name]["calibrated"],
-                checks[name]["passed"]) == ("not_run", why, None, None)
+    assert not set(OPT_IN) & set(checks)  # not asked for: not judged
     assert checks["static_sag"]["status"] == "passed"  # the gravity test's checks as before
     fe = copy.deepcopy(report)
     fe["not_run"] = {}
