@@ -880,7 +880,7 @@ def test_fuzzed_meshes_are_accepted_or_refused_cleanly(n, tets, coords, scale, t
 
 def test_a_fixed_rule_selecting_every_vertex_is_refused():
     """Every vertex fixed: refused naming fixed.tolerance (a scipy ValueError before)."""
-    from forcecal.mesh import fixed_nodes
+    from forcecal.point_selection import fixed_nodes
     CASES["table"] += 1
     with pytest.raises(MeshError, match=r"selects all 27 vertices: nothing is left free.*"
                        r"lower fixed.tolerance"):

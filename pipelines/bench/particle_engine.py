@@ -24,7 +24,8 @@ from typing import Callable
 import numpy as np
 
 from forcecal.errors import ParameterError
-from forcecal.mesh import TetMesh, fixed_nodes
+from forcecal.mesh import TetMesh
+from forcecal.point_selection import fixed_nodes
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import ParticleSection, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule

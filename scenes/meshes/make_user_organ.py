@@ -19,7 +19,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from forcecal.mesh import gmsh_session
+from forcecal.liver_mesh import gmsh_session
 
 OUT = Path(__file__).with_name("user_organ.vtu")
 MESH_SIZE_MM = 13.0  # gives ~520 vertices, mean edge ~ 15 mm (the indentation depth is 5 mm)
