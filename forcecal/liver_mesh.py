@@ -1,7 +1,7 @@
 """The generated liver: a deterministic gmsh model of a liver-like organ (two fused
 ellipsoidal lobes on a flat base), its size and the checks of its mesh length made
-before gmsh runs; :func:`gmsh_session` is the reproducible gmsh setup every generated
-mesh uses."""
+before gmsh runs. :func:`gmsh_session` (the reproducible gmsh setup) and :func:`mesh_volume`
+(its tets as arrays) serve every mesh the project generates."""
 
 from __future__ import annotations
 
@@ -33,6 +33,28 @@ def gmsh_session(name: str) -> Iterator:
         yield gmsh
     finally:
         gmsh.finalize()
+
+
+def mesh_volume(gmsh, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Tet-mesh the synchronised geometry of a :func:`gmsh_session` at edge length ``length``
+    (the geometry's units) in one physical volume: (V, 3) float64 vertices (those the tets
+    use, in the order of gmsh's node tags) and (T, 4) int64 tets indexing them, as gmsh
+    orients them."""
+    gmsh.model.addPhysicalGroup(3, [tag for _, tag in gmsh.model.getEntities(3)], 1)
+    gmsh.option.setNumber("Mesh.CharacteristicLengthMin", length)
+    gmsh.option.setNumber("Mesh.CharacteristicLengthMax", length)
+    gmsh.option.setNumber("Mesh.CharacteristicLengthFromCurvature", 0)
+    gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+    gmsh.model.mesh.generate(3)
+    gmsh.model.mesh.optimize("")
+    node_tags, coords, _ = gmsh.model.mesh.getNodes()
+    _, _, elem_nodes = gmsh.model.mesh.getElements(3)
+    node_tags = np.asarray(node_tags, dtype=np.int64)
+    coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
+    tet_tags = np.concatenate([np.asarray(e, dtype=np.int64) for e in elem_nodes]).reshape(-1, 4)
+    used = np.unique(tet_tags)
+    order = np.argsort(node_tags)
+    return coords[order[np.searchsorted(node_tags[order], used)]], np.searchsorted(used, tet_tags)
 
 
 #: bounding box of the generated liver [m] (x, y, z extents) and its volume [m^3] and surface
@@ -87,25 +109,7 @@ def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
         below = occ.addBox(-0.2, -0.2, -0.2, 0.4, 0.4, 0.2 - 0.025)
         occ.cut(fused, [(3, below)])
         occ.synchronize()
-        vols = [tag for _, tag in gmsh.model.getEntities(3)]
-        gmsh.model.addPhysicalGroup(3, vols, 1)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", characteristic_length)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", characteristic_length)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthFromCurvature", 0)
-        gmsh.option.setNumber("Mesh.Algorithm3D", 1)
-        gmsh.model.mesh.generate(3)
-        gmsh.model.mesh.optimize("")
-        node_tags, coords, _ = gmsh.model.mesh.getNodes()
-        _, _, elem_nodes = gmsh.model.mesh.getElements(3)
+        vertices, tets = mesh_volume(gmsh, characteristic_length)
         gmsh.model.remove()
-    node_tags = np.asarray(node_tags, dtype=np.int64)
-    coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    tet_tags = np.concatenate([np.asarray(e, dtype=np.int64) for e in elem_nodes]).reshape(-1, 4)
-    # renumber: keep the vertices tets use, in the order of gmsh's node tags
-    used = np.unique(tet_tags)
-    order = np.argsort(node_tags)
-    pos = order[np.searchsorted(node_tags[order], used)]
-    vertices = coords[pos]
-    tets = np.searchsorted(used, tet_tags)
     tets = orient_tets(vertices, tets, "generated liver")
     return check_mesh(TetMesh(vertices, tets))
