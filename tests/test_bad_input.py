@@ -25,7 +25,7 @@ from forcecal.problem import Problem
 from forcecal.scene import load_scene, replace
 from pipelines.cli import main as pipelines_main
 from calibration.gravity_check import gravity_outcome
-from particle.testing import viscoelastic_params
+from particle.params import viscoelastic_params
 from tests.conftest import ROOT, SCENES
 
 BOX = box_mesh((2, 2, 2), (0.03, 0.03, 0.03))
