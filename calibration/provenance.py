@@ -3,7 +3,8 @@
 * :func:`fit_inputs`: the fingerprints a calibration's result is a function of
   (the reference file, the scene sections the fit reads, the forcecal version
   and the fit's code); the checkpoint is keyed on them, so a changed input never
-  resumes a stale fit (:class:`calibration.checkpoint.Checkpoint`).
+  resumes a stale fit (:class:`calibration.checkpoint.Checkpoint`);
+  :func:`checkpoint_inputs` is that key, assembled in one place.
 * :func:`versions`: the software that produced a ``params.h5``, with the git
   commit of the checkout (or None outside one).
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import platform
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -54,6 +56,19 @@ def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:
         inputs[f"scene [{section}]"] = json_digest(table)
     inputs["forcecal"] = forcecal.__version__
     inputs["code"] = code_fingerprint()
+    return inputs
+
+
+def checkpoint_inputs(scene: Scene, reference_path: str | Path, experiments: Sequence[str],
+                      whole_body: bool) -> dict[str, str]:
+    """The key of a calibration's checkpoint: :func:`fit_inputs`, the ``experiments`` it fits,
+    ``particle.strain_margin`` (both methods keep the springs stiff on the gravity release
+    range that margin widens) and, when the fit reads the whole-body data (``whole_body``),
+    ``body.load_steps``. A checkpoint whose key differs is discarded."""
+    inputs = {**fit_inputs(scene, reference_path), "experiments": ",".join(experiments)}
+    inputs["particle.strain_margin"] = repr(scene.particle.strain_margin)
+    if whole_body:
+        inputs["body.load_steps"] = repr(scene.body.load_steps)
     return inputs
 
 

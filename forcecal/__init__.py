@@ -1,11 +1,11 @@
 """forcecal: calibrate real-time particle models of soft tissue against an FE reference.
 
 This package holds the data contracts shared by every part of the project:
-scenes (:mod:`forcecal.scene`), tetrahedral meshes (:mod:`forcecal.mesh`) and
-the HDF5 files exchanged between the FE side and the particle side
-(:mod:`forcecal.h5io`). It depends on numpy/scipy/h5py/meshio only (gmsh is
-imported lazily to generate the default organ); dolfinx lives in
-``reference_fe`` alone.
+scenes (:mod:`forcecal.scene`), tetrahedral meshes (:mod:`forcecal.mesh`; the generated
+liver in :mod:`forcecal.liver_mesh`, the fixed nodes and test points in
+:mod:`forcecal.point_selection`) and the HDF5 files exchanged between the FE side and the
+particle side (:mod:`forcecal.h5io`). It depends on numpy/scipy/h5py/meshio only (gmsh is
+imported lazily to generate the default organ); dolfinx lives in ``reference_fe`` alone.
 
 ``forcecal.load_model(path)`` loads a calibrated particle model from its ``params.h5``
 (:func:`calibration.loading.load_model`; ``load_calibrated`` returns it with its mesh, test

@@ -152,13 +152,13 @@ def check_generated_cost(scene: Scene) -> None:
     """Before meshing: refuse a generated liver (``mesh.source = "generate"``) whose
     ``mesh.characteristic_length`` gives, by the vertex count estimated from the organ's
     volume and area
-    (:func:`forcecal.mesh.estimated_liver_vertices`), work above the limits of
+    (:func:`forcecal.liver_mesh.estimated_liver_vertices`), work above the limits of
     :func:`check_cost` (gmsh alone would run for minutes or hours on it).
 
     Raises:
         SceneError: naming ``mesh.characteristic_length`` (or the key that causes most work).
     """
-    from forcecal.mesh import estimated_liver_vertices
+    from forcecal.liver_mesh import estimated_liver_vertices
     if scene.mesh.source != "generate":
         return
     # a length not small against the organ never gets here: the scene refused it at load

@@ -35,7 +35,8 @@ from typing import Any, Callable
 import numpy as np
 
 from forcecal.errors import ConvergenceError, DataFileError
-from forcecal.mesh import TetMesh, free_surface_vertices
+from forcecal.mesh import TetMesh
+from forcecal.point_selection import free_surface_vertices
 from forcecal.problem import Problem
 
 #: the reference stops when more than this fraction of the test points fail

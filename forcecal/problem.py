@@ -16,9 +16,12 @@ import numpy as np
 
 from forcecal.errors import MeshError, SceneError
 from forcecal.indenter import punch_candidates
-from forcecal.mesh import (TetMesh, coverage, euclidean_distance, farthest_points, fixed_nodes,
-                           free_surface_vertices, generate_liver, geodesic_distance, read_mesh,
-                           select_calibration_points, select_held_out_points, validate_test_points)
+from forcecal.liver_mesh import generate_liver
+from forcecal.mesh import TetMesh, read_mesh
+from forcecal.point_selection import (coverage, euclidean_distance, farthest_points, fixed_nodes,
+                                      free_surface_vertices, geodesic_distance,
+                                      select_calibration_points, select_held_out_points,
+                                      validate_test_points)
 from forcecal.scene import MIN_HELD_OUT, Scene
 
 log = logging.getLogger(__name__)
@@ -61,7 +64,7 @@ class Problem:
     @property
     def coverage(self) -> dict[str, float]:
         """Fraction of the free surface vertices that are a calibration (held-out) point or
-        share a mesh edge with one (:func:`forcecal.mesh.coverage`), by point set."""
+        share a mesh edge with one (:func:`forcecal.point_selection.coverage`), by point set."""
         return {"calibration": coverage(self.mesh, self.fixed, self.calibration),
                 "held_out": coverage(self.mesh, self.fixed, self.held_out)}
 
@@ -167,8 +170,8 @@ def replacement_point(scene: Scene, problem: Problem, index: int, avoid: set[int
     the points are an explicit list (the point is dropped) or no candidate is left.
 
     The rules pick points one at a time, each the farthest from those picked before
-    (:func:`forcecal.mesh.select_calibration_points`,
-    :func:`~forcecal.mesh.select_held_out_points`);
+    (:func:`forcecal.point_selection.select_calibration_points`,
+    :func:`~forcecal.point_selection.select_held_out_points`);
     the next candidate continues that sequence: the free surface vertex (one the punch can
     indent, for a punch) farthest from every point picked so far (the failed one and
     ``avoid``, earlier failures, included), along the surface from the clamp and the

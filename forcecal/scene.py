@@ -647,7 +647,7 @@ def section_from_values(name: str, values: dict[str, Any], origin: str) -> Any:
 
 def _cross_checks(scene: Scene, origin: str) -> None:
     if scene.mesh.source == "generate":
-        from forcecal.mesh import liver_length_error
+        from forcecal.liver_mesh import liver_length_error
         problem = liver_length_error(scene.mesh.characteristic_length)
         if problem:
             raise SceneError(f"{origin}: {problem}")

@@ -8,7 +8,7 @@ range of a release from a static sag (:func:`strain_range_for_release`,
 :func:`release_strain_range` for the gravity stage), the interval where a
 nonlinear spring stays positive (:func:`positive_spring_range`). The empirical
 limit the bound is checked against by the tests and ``make bench`` is in
-:mod:`particle.empirical_limit` (a bisection over real runs of the integrator).
+:mod:`pipelines.bench.empirical_limit` (a bisection over real runs of the integrator).
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ import numpy as np
 
 from forcecal.errors import ForcecalError, SceneError
 from forcecal.indenter import mean_surface_edge, punch_footprint
-from forcecal.mesh import free_surface_vertices
+from forcecal.point_selection import free_surface_vertices
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene
 

@@ -25,7 +25,7 @@ from forcecal.problem import Problem
 from forcecal.scene import load_scene, replace
 from pipelines.cli import main as pipelines_main
 from calibration.gravity_check import gravity_outcome
-from particle.testing import viscoelastic_params
+from particle.params import viscoelastic_params
 from tests.conftest import ROOT, SCENES
 
 BOX = box_mesh((2, 2, 2), (0.03, 0.03, 0.03))
@@ -104,7 +104,7 @@ def test_bad_scenes_are_refused_by_the_pipeline(text, message, tmp_path, capsys)
 
 def test_interior_test_point_is_refused(tmp_path, capsys):
     """A vertex inside the organ has no surface normal to indent along."""
-    from forcecal.mesh import generate_liver
+    from forcecal.liver_mesh import generate_liver
     mesh = generate_liver(0.04)
     inside = int(np.setdiff1d(np.arange(mesh.n_vertices), mesh.surface_vertices)[0])
     err = run_cli(capsys, tmp_path, f"[mesh]\ncharacteristic_length = 0.04\n[test_points]\n"

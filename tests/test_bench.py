@@ -164,7 +164,7 @@ def test_haptic_scale_rows_state_each_variants_substeps_and_error():
     renumbered variant differs by round-off only, the mass-scaled ones take fewer substeps
     with their added mass and error stated."""
     from pipelines.bench.haptic import mesh_rows
-    from particle.testing import box_model, top_centre
+    from tests.particle_models import box_model, top_centre
 
     model = box_model((3, 3, 2), K0=200.0)
     rows = {r["variant"]: r for r in mesh_rows("box", model, top_centre(model),
@@ -517,7 +517,7 @@ def test_the_headline_scale_study_keeps_a_wide_range_of_sizes_without_the_rank_t
 
 def test_the_headline_haptic_scale_leaves_out_the_largest_mesh(monkeypatch):
     """The 12k-connector liver (the goal's mesh) stays; the 54k one is the full bench's."""
-    from particle.testing import box_model
+    from tests.particle_models import box_model
     from pipelines.bench import haptic
 
     lengths = []

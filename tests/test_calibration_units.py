@@ -15,7 +15,8 @@ from calibration.parametrisation import (MAX_LOCAL_FACTOR, GlobalParams, StrainR
                                          build_rings, check_feasible, check_offsets,
                                          global_shape, local_params)
 from forcecal.errors import ConvergenceError, ParameterError
-from forcecal.mesh import TetMesh, box_mesh, check_mesh, fixed_nodes
+from forcecal.mesh import TetMesh, box_mesh, check_mesh
+from forcecal.point_selection import fixed_nodes
 from forcecal.scene import MaterialSection
 from particle.evaluators import normal_force
 from particle.model import build_model

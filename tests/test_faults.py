@@ -648,7 +648,7 @@ def test_a_failed_item_stops_the_other_ranks_at_their_next_step():
 def test_stability_limit_of_a_model_with_negative_k0_is_refused():
     from particle.stability import critical_time_step
     from particle.model import build_model
-    from particle.testing import viscoelastic_params
+    from particle.params import viscoelastic_params
     from forcecal.problem import Problem
     fixed = np.nonzero(np.isclose(BOX.vertices[:, 2], 0.0))[0]
     problem = Problem(BOX, fixed, np.zeros(0, np.int64), np.zeros(0, np.int64), 26)
@@ -880,7 +880,7 @@ def test_fuzzed_meshes_are_accepted_or_refused_cleanly(n, tets, coords, scale, t
 
 def test_a_fixed_rule_selecting_every_vertex_is_refused():
     """Every vertex fixed: refused naming fixed.tolerance (a scipy ValueError before)."""
-    from forcecal.mesh import fixed_nodes
+    from forcecal.point_selection import fixed_nodes
     CASES["table"] += 1
     with pytest.raises(MeshError, match=r"selects all 27 vertices: nothing is left free.*"
                        r"lower fixed.tolerance"):

@@ -10,7 +10,7 @@ import pytest
 from forcecal.errors import DataFileError
 from forcecal.fe_failures import (FEFailures, PointFailure, apply_fe_failures,
                                   common_features, replay, too_many_failures)
-from forcecal.mesh import select_calibration_points, select_held_out_points
+from forcecal.point_selection import select_calibration_points, select_held_out_points
 from forcecal.preflight import tet_quality
 from forcecal.problem import build_problem, replacement_point
 from forcecal.scene import load_scene, replace

@@ -6,7 +6,8 @@ import pytest
 pytest.importorskip("dolfinx")
 
 from forcecal.errors import SceneError  # noqa: E402
-from forcecal.mesh import TetMesh, box_mesh, check_mesh, gmsh_session  # noqa: E402
+from forcecal.liver_mesh import gmsh_session  # noqa: E402
+from forcecal.mesh import TetMesh, box_mesh, check_mesh  # noqa: E402
 from forcecal.problem import Problem  # noqa: E402
 from forcecal.scene import FESection, MaterialSection  # noqa: E402
 from reference_fe import experiments as ex  # noqa: E402

@@ -18,7 +18,8 @@ pytest.importorskip("dolfinx")
 
 from forcecal.errors import ConvergenceError, DataFileError  # noqa: E402
 from forcecal.h5io import read_reference  # noqa: E402
-from forcecal.mesh import box_mesh, fixed_nodes  # noqa: E402
+from forcecal.mesh import box_mesh  # noqa: E402
+from forcecal.point_selection import fixed_nodes  # noqa: E402
 from forcecal.problem import Problem, second_support, tracked_node_by_rule  # noqa: E402
 from forcecal.scene import scene_from_dict  # noqa: E402
 from pipelines.runners.common import Context  # noqa: E402

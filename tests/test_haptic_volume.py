@@ -12,8 +12,8 @@ from particle.stability import (EIGENVALUE_MARGIN, connector_stiffness_bound, cr
                                 largest_eigenvalue, mass_scaled_laplacian)
 from particle.mass_scaling import scaled_inertia, stiffness_weights
 from particle.model import ModelBuilder
-from particle.params import connector_strain_bounds
-from particle.testing import box_model, top_centre, viscoelastic_params
+from particle.params import connector_strain_bounds, viscoelastic_params
+from tests.particle_models import box_model, top_centre
 from particle.volume import signed_volumes, volume_hessian_numpy
 from particle.volume_bounds import (_irons_bound, _tet_bounds, node_volume_stiffness_bound,
                                     volume_edge_stiffness_bound, volume_frequency_bound)

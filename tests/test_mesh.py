@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 
 from forcecal.errors import MeshError
-from forcecal.mesh import (TetMesh, box_mesh, check_mesh, check_mesh_arrays, coverage, fixed_nodes,
-                           free_surface_vertices, generate_liver, read_mesh,
-                           select_calibration_points, select_held_out_points,
-                           validate_test_points)
+from forcecal.liver_mesh import generate_liver
+from forcecal.mesh import TetMesh, box_mesh, check_mesh, check_mesh_arrays, read_mesh
+from forcecal.point_selection import (coverage, fixed_nodes, free_surface_vertices,
+                                      select_calibration_points, select_held_out_points,
+                                      validate_test_points)
 from forcecal.scene import FixedSection
 
 

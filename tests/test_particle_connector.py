@@ -13,7 +13,8 @@ from particle.integrator import VerletIntegrator
 from particle.model import Prescribed
 from particle.stability import critical_time_step
 from particle.statics import gravity_static
-from particle.testing import two_particle_model, viscoelastic_params
+from particle.params import viscoelastic_params
+from tests.particle_models import two_particle_model
 
 L0 = 0.02
 K0, A, B = 50.0, -30.0, 400.0

@@ -13,7 +13,7 @@ from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step, resolve_time_step
 from particle.model import Model, Prescribed, State
 from particle.reference_numpy import step_numpy
-from particle.testing import box_model, deformed_start_and_push, mechanical_energy, top_centre
+from tests.particle_models import box_model, deformed_start_and_push, mechanical_energy, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 

@@ -7,7 +7,7 @@ from particle import haptics
 from particle.evaluators import IndentationEvaluator
 from particle.haptics import HapticSession
 from particle.stability import critical_time_step
-from particle.testing import box_model, top_centre
+from tests.particle_models import box_model, top_centre
 
 DOWN = np.array([0.0, 0.0, -1.0])  # inward normal of the top face
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ParameterError, StabilityError
-from particle.empirical_limit import empirical_critical_step
+from pipelines.bench.empirical_limit import empirical_critical_step
 from particle.evaluators import IndentationEvaluator
 from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
@@ -14,7 +14,7 @@ from particle.mass_scaling import (ALPHA_TOLERANCE, added_mass_fraction, scaled_
                                    stiffness_weights)
 from particle.reference_numpy import step_numpy
 from particle.statics import gravity_static
-from particle.testing import box_model, deformed_start_and_push, top_centre
+from tests.particle_models import box_model, deformed_start_and_push, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 DOWN = np.array([0.0, 0.0, -1.0])

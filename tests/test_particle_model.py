@@ -10,8 +10,8 @@ from forcecal.mesh import TetMesh, box_mesh
 from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
 from particle.model import ModelBuilder, build_model, spatial_order
-from particle.params import ConnectorParams
-from particle.testing import box_model, viscoelastic_params
+from particle.params import ConnectorParams, viscoelastic_params
+from tests.particle_models import box_model
 
 
 def test_uniform_params_shapes_and_relaxation_times():

@@ -11,7 +11,7 @@ from forcecal.errors import ConvergenceError
 from particle import sparse_ldl
 from particle.statics import (EquilibriumSolver, TangentPattern, factorize, ldl_factor, superlu,
                               tangent_data)
-from particle.testing import box_model, top_centre
+from tests.particle_models import box_model, top_centre
 
 DOWN = np.array([0.0, 0.0, -1.0])
 

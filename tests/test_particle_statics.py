@@ -16,7 +16,8 @@ from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
 from particle.model import Prescribed, build_model
 from particle.statics import ArmStep, EquilibriumSolver, TangentPattern, gravity_static
-from particle.testing import box_model, top_centre, two_particle_model, viscoelastic_params
+from particle.params import viscoelastic_params
+from tests.particle_models import box_model, top_centre, two_particle_model
 
 DOWN = np.array([0.0, 0.0, -1.0])  # inward normal of the top face
 

@@ -9,7 +9,7 @@ from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.model import Prescribed
 from particle.stability import critical_time_step
-from particle.testing import box_model, top_centre
+from tests.particle_models import box_model, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 DOWN = np.array([0.0, 0.0, -1.0])

@@ -14,10 +14,10 @@ from particle.integrator import VerletIntegrator
 from particle.stability import (DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN, critical_time_step,
                                 strain_range_for_release)
 from particle.model import Model, ModelBuilder
-from particle.params import ConnectorParams
+from particle.params import ConnectorParams, viscoelastic_params
 from particle.statics import gravity_static
-from particle.testing import box_model, two_particle_model, viscoelastic_params
-from particle.empirical_limit import blows_up
+from tests.particle_models import box_model, two_particle_model
+from pipelines.bench.empirical_limit import blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # Maxwell arms of negligible stiffness: a purely elastic model

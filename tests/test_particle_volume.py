@@ -14,13 +14,13 @@ from particle.stability import critical_time_step
 from particle.model import ModelBuilder, Prescribed
 from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static, tangent_data
-from particle.testing import (box_model, deformed_start_and_push, spring_energy, top_centre,
-                              viscoelastic_params)
+from particle.params import viscoelastic_params
+from tests.particle_models import box_model, deformed_start_and_push, spring_energy, top_centre
 from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
                              network_bulk_modulus, signed_volumes, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_hessian_numpy,
                              volume_kv_sensitivity_numpy, volume_strains)
-from particle.empirical_limit import bisect, blows_up
+from pipelines.bench.empirical_limit import bisect, blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ELASTIC = dict(g=(1e-12, 1e-12))  # arms of negligible stiffness: a purely elastic model

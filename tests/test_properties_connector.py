@@ -16,7 +16,7 @@ from particle.evaluators import RelaxationEvaluator
 from particle.experiments import relaxation_dynamic
 from particle.stability import critical_time_step
 from particle.params import ConnectorParams
-from particle.testing import two_particle_model
+from tests.particle_models import two_particle_model
 
 L0 = 0.02  # m
 SETTINGS = settings(deadline=None, max_examples=40, derandomize=True)

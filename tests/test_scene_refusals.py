@@ -11,7 +11,7 @@ import pytest
 from forcecal.cost import check_cost, check_generated_cost
 from forcecal.errors import DataFileError, MeshError, SceneError
 from forcecal.h5io import check_output_file, section_differences
-from forcecal.mesh import estimated_liver_vertices
+from forcecal.liver_mesh import estimated_liver_vertices
 from forcecal.problem import load_mesh
 from forcecal.scene import (MaterialSection, load_scene, replace, scene_from_dict)
 from tests.conftest import ROOT, SCENES
@@ -97,7 +97,7 @@ def test_generated_liver_is_priced_before_meshing(monkeypatch):
 
 
 def test_vertex_estimate_is_close_to_gmsh():
-    from forcecal.mesh import generate_liver
+    from forcecal.liver_mesh import generate_liver
     for length in (0.0182, 0.01):
         actual = generate_liver(length).n_vertices
         assert abs(estimated_liver_vertices(length) - actual) <= 0.1 * actual

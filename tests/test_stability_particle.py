@@ -11,9 +11,6 @@ import numpy as np
 import pytest
 
 from forcecal.errors import ConvergenceError, StabilityError
-from particle.empirical_limit import bisect, blows_up, empirical_critical_step
-from particle.stability_cases import (PARAMETER_SETS, PRESTRAINS, case_model, clamped_cube,
-                                      sliver_mesh, stability_meshes)
 from particle import kernels
 from particle.evaluators import IndentationEvaluator
 from particle.integrator import VerletIntegrator, connector_strain_bounds
@@ -22,7 +19,10 @@ from particle.stability import (DEFAULT_STRAIN_RANGE, connector_stiffness_bound,
                                 strain_range_for_release)
 from particle.model import Model
 from particle.statics import EquilibriumSolver, TangentPattern, continuation, gravity_static
-from particle.testing import box_model, mechanical_energy, spring_energy, top_centre
+from pipelines.bench.empirical_limit import bisect, blows_up, empirical_critical_step
+from pipelines.bench.stability_cases import (PARAMETER_SETS, PRESTRAINS, case_model,
+                                             clamped_cube, sliver_mesh, stability_meshes)
+from tests.particle_models import box_model, mechanical_energy, spring_energy, top_centre
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 

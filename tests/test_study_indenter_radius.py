@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from forcecal.indenter import mean_surface_edge, punch_footprint
-from forcecal.mesh import free_surface_vertices
+from forcecal.point_selection import free_surface_vertices
 from forcecal.problem import build_problem
 from forcecal.scene import MIN_HELD_OUT, load_scene
 from studies.indenter_radius import RADII_EDGES, common_points, main, markdown

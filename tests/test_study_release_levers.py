@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 
 from particle.experiments import gravity_dynamic
-from particle.testing import box_model
+from tests.particle_models import box_model
 from studies.release_levers import Lever, consistent_mass, release
 
 GRAVITY = np.array([0.0, 0.0, -9.81])

@@ -6,7 +6,7 @@ import pytest
 
 from forcecal.errors import ParameterError
 from particle.statics import gravity_static
-from particle.testing import box_model
+from tests.particle_models import box_model
 from calibration.synthetic import box_scene
 from forcecal.problem import build_problem
 from forcecal.schedules import indentation_depths

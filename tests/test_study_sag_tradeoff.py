@@ -7,7 +7,7 @@ import pytest
 
 from calibration.synthetic import box_scene, synthetic_reference
 from forcecal.errors import DataFileError, ParameterError
-from particle.testing import box_model
+from tests.particle_models import box_model
 from studies._finished_run import FinishedRun
 from studies.sag_tradeoff import constrained_step, regions, scaled
 

@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 
 from forcecal.h5io import read_reference
-from forcecal.mesh import coverage, generate_liver, read_mesh
+from forcecal.liver_mesh import generate_liver
+from forcecal.mesh import read_mesh
+from forcecal.point_selection import coverage
 from forcecal.scene import load_scene
 from pipelines.report import ERROR_KEYS, TIMING_KEYS
 from pipelines.stages import ORDER, run_pipeline

@@ -46,7 +46,7 @@ def particle_digests(volume: bool) -> dict[str, str]:
     from particle.sensitivity import sensitivity_evaluators
     from particle.stability import critical_time_step
     from particle.statics import gravity_static
-    from particle.testing import box_model, deformed_start_and_push, top_centre
+    from tests.particle_models import box_model, deformed_start_and_push, top_centre
 
     model = box_model((3, 3, 2), a=-20.0, b=300.0)
     if volume:

@@ -11,11 +11,11 @@ from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.guard import energy_bound
 from particle.integrator import VerletIntegrator
 from particle.model import ModelBuilder, Prescribed
-from particle.params import maxwell_recursions
+from particle.params import maxwell_recursions, viscoelastic_params
 from particle.stability import critical_time_step
 from particle.statics import (ArmStep, EquilibriumSolver, TangentPattern, VolumeArmStep,
                               gravity_static)
-from particle.testing import box_model, spring_energy, top_centre, viscoelastic_params
+from tests.particle_models import box_model, spring_energy, top_centre
 from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
                              signed_volumes, volume_arm_energy, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_gradients_numpy,

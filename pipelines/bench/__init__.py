@@ -7,7 +7,9 @@
 - :mod:`pipelines.bench.configs`: the run time vs error configurations (cached pipelines);
 - :mod:`pipelines.bench.particle_engine`: kernel throughput, real-time gravity, term skipping,
   haptic latency, evaluator times;
-- :mod:`pipelines.bench.stability`: estimated vs empirical stability limits;
+- :mod:`pipelines.bench.stability`: estimated vs empirical stability limits, on the cases
+  of :mod:`~pipelines.bench.stability_cases` with the bisection of
+  :mod:`~pipelines.bench.empirical_limit` (the tests check the same);
 - the other items: :mod:`~pipelines.bench.experiments`, :mod:`~pipelines.bench.haptic`,
   :mod:`~pipelines.bench.fe_convergence`, :mod:`~pipelines.bench.scale`,
   :mod:`~pipelines.bench.calibration_methods`, :mod:`~pipelines.bench.volume`;

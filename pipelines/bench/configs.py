@@ -40,7 +40,7 @@ import numpy as np
 
 from forcecal.errors import ForcecalError
 from forcecal.h5io import Reference, read_reference, write_reference
-from forcecal.mesh import fixed_nodes, select_held_out_points
+from forcecal.point_selection import fixed_nodes, select_held_out_points
 from forcecal.problem import load_mesh
 from forcecal.provenance import file_digest
 from forcecal.scene import Scene, load_scene, scene_from_dict

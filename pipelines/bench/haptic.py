@@ -57,7 +57,8 @@ from typing import Any
 
 import numpy as np
 
-from forcecal.mesh import fixed_nodes, generate_liver
+from forcecal.liver_mesh import generate_liver
+from forcecal.point_selection import fixed_nodes
 from forcecal.problem import load_mesh, tracked_node_by_rule
 from forcecal.scene import Scene
 from pipelines.bench.tables import table

@@ -337,7 +337,7 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
     """Kernel throughput, gravity dynamics vs FE, term skipping, haptics, evaluators."""
     import numba
 
-    from forcecal.mesh import generate_liver
+    from forcecal.liver_mesh import generate_liver
     from pipelines.bench import particle_engine as pb
 
     numba.set_num_threads(1)

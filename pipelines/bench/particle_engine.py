@@ -24,7 +24,8 @@ from typing import Callable
 import numpy as np
 
 from forcecal.errors import ParameterError
-from forcecal.mesh import TetMesh, fixed_nodes
+from forcecal.mesh import TetMesh
+from forcecal.point_selection import fixed_nodes
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import ParticleSection, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
@@ -34,9 +35,8 @@ from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.stability import DEFAULT_STRAIN_RANGE, critical_time_step
 from particle.model import Model, build_model, spatial_order
-from particle.params import PARAM_NAMES, ConnectorParams, StrainBounds
+from particle.params import PARAM_NAMES, ConnectorParams, StrainBounds, viscoelastic_params
 from particle.reference_numpy import step_numpy
-from particle.testing import viscoelastic_params
 
 log = logging.getLogger(__name__)
 

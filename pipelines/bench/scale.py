@@ -98,7 +98,7 @@ def measure_size(scene: Scene, length: float, quick: bool, folder: Path) -> dict
 
     from calibration import calibrate
     from calibration.synthetic import synthetic_reference
-    from forcecal.mesh import generate_liver
+    from forcecal.liver_mesh import generate_liver
     from forcecal.problem import build_problem
     from pipelines.bench import particle_engine as pb
 
@@ -190,7 +190,7 @@ def rank_timing(scene: Scene, length: float) -> dict[str, Any]:
     """One indentation item per rank, all ranks at once (run under mpirun: see :func:`study`)."""
     from mpi4py import MPI
 
-    from forcecal.mesh import generate_liver
+    from forcecal.liver_mesh import generate_liver
     from forcecal.problem import build_problem
 
     comm = MPI.COMM_WORLD

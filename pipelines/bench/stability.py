@@ -2,8 +2,8 @@
 
 :func:`~particle.stability.critical_time_step` (the eigenvalue bound) must never
 exceed the step at which the explicit run really blows up,
-:func:`~particle.empirical_limit.empirical_critical_step` (a bisection over real runs).
-:func:`stability_table` reports both on every case of :mod:`particle.stability_cases`,
+:func:`~pipelines.bench.empirical_limit.empirical_critical_step` (a bisection over real runs).
+:func:`stability_table` reports both on every case of :mod:`pipelines.bench.stability_cases`,
 the ones the test suite checks.
 """
 
@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import logging
 
-from particle.empirical_limit import empirical_critical_step
 from particle.model import Model
 from particle.stability import critical_time_step
-from particle.stability_cases import PARAMETER_SETS, PRESTRAINS, clamped_cube, stability_cases
+from pipelines.bench.empirical_limit import empirical_critical_step
+from pipelines.bench.stability_cases import (PARAMETER_SETS, PRESTRAINS, clamped_cube,
+                                             stability_cases)
 
 log = logging.getLogger(__name__)
 

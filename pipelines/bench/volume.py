@@ -61,7 +61,7 @@ def cpu_per_call(model, node: int, normal: np.ndarray, calls: int) -> dict[str, 
 def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
     import numba
 
-    from forcecal.mesh import generate_liver
+    from forcecal.liver_mesh import generate_liver
     from forcecal.problem import build_problem
     from pipelines.bench import particle_engine as pb
 

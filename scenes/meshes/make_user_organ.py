@@ -19,7 +19,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from forcecal.mesh import gmsh_session
+from forcecal.liver_mesh import gmsh_session, mesh_volume
 
 OUT = Path(__file__).with_name("user_organ.vtu")
 MESH_SIZE_MM = 13.0  # gives ~520 vertices, mean edge ~ 15 mm (the indentation depth is 5 mm)
@@ -39,22 +39,8 @@ def make(mesh_size_mm: float = MESH_SIZE_MM) -> meshio.Mesh:
         top = occ.addBox(-100.0, 42.0, -100.0, 200.0, 100.0, 200.0)
         cut, _ = occ.cut(cut, [(3, top)])
         occ.synchronize()
-        gmsh.model.addPhysicalGroup(3, [tag for _, tag in gmsh.model.getEntities(3)], 1)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMin", mesh_size_mm)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthMax", mesh_size_mm)
-        gmsh.option.setNumber("Mesh.CharacteristicLengthFromCurvature", 0)
-        gmsh.option.setNumber("Mesh.Algorithm3D", 1)
-        gmsh.model.mesh.generate(3)
-        gmsh.model.mesh.optimize("")
-        tags, coords, _ = gmsh.model.mesh.getNodes()
-        _, _, elem_nodes = gmsh.model.mesh.getElements(3)
-    tags = np.asarray(tags, dtype=np.int64)
-    coords = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    tets = np.concatenate([np.asarray(e, dtype=np.int64) for e in elem_nodes]).reshape(-1, 4)
-    used = np.unique(tets)  # keep the vertices tets use, numbered in gmsh's tag order
-    order = np.argsort(tags)
-    points = coords[order[np.searchsorted(tags[order], used)]]
-    return meshio.Mesh(np.round(points, 6), [("tetra", np.searchsorted(used, tets))])
+        points, tets = mesh_volume(gmsh, mesh_size_mm)
+    return meshio.Mesh(np.round(points, 6), [("tetra", tets)])
 
 
 if __name__ == "__main__":

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from forcecal.mesh import TetMesh, box_mesh, fixed_nodes, generate_liver
+from forcecal.liver_mesh import generate_liver
+from forcecal.mesh import TetMesh, box_mesh
+from forcecal.point_selection import fixed_nodes
 from particle.model import Model, build_model
 from particle.params import viscoelastic_params
 
