@@ -18,12 +18,10 @@ from typing import Sequence
 import numpy as np
 
 import forcecal
-from forcecal.provenance import code_digest, file_digest, git_commit, json_digest
+from forcecal.provenance import FIT, CodeDependencies, file_digest, git_commit, json_digest
 from forcecal.scene import Scene
 from forcecal.sections import FIT_SECTIONS
 
-#: the modules a calibration runs (in-process, and as its worker processes' entry point)
-FIT_ENTRIES = ("calibration.core", "calibration.worker")
 #: settings that change how fast a fit runs, not its result
 NOT_RESULT_SETTINGS = ("workers",)
 
@@ -36,10 +34,10 @@ def fit_settings(scene: Scene) -> dict[str, dict]:
     return settings
 
 
-def code_fingerprint(entries: tuple[str, ...] = FIT_ENTRIES) -> str:
-    """Code fingerprint of ``entries`` (:func:`forcecal.provenance.code_digest`): every module
-    they import, without comments, formatting or docstrings, which cannot change a fit."""
-    return code_digest(*entries)
+def code_fingerprint(code: CodeDependencies = FIT) -> str:
+    """Code fingerprint of a fit (:data:`forcecal.provenance.FIT`: the code it declares,
+    without comments, formatting or docstrings, which cannot change a fit)."""
+    return code.digest()
 
 
 def fit_inputs(scene: Scene, reference_path: str | Path) -> dict[str, str]:

@@ -7,11 +7,14 @@ items and stored experiments, the benchmarks):
 * **file fingerprint** (:func:`file_digest`): SHA-256 of a file's bytes;
 * **section fingerprint** (:func:`section_fingerprint`): SHA-256 of scene
   sections as sorted JSON (:func:`json_digest` of any JSON-able value);
-* **code fingerprint** (:func:`code_digests`, :func:`code_digest`): the syntax
-  tree, without docstrings, of every project module some entry modules import,
-  transitively (:func:`import_closure`). Editing a module they do not import,
-  or a comment, the formatting or a docstring, leaves it unchanged: those
-  cannot change a result.
+* **code fingerprint** (:class:`CodeDependencies`): the syntax tree, without
+  docstrings, of the modules a computation declares it depends on; every
+  cached computation's declaration is here (:data:`FE`, :data:`FIT`,
+  :data:`STAGE_CODE`, :data:`FE_BENCH`). Editing a module outside them, or a
+  comment, the formatting or a docstring, leaves it unchanged: those cannot
+  change a result. What the computation imports (:func:`import_closure`) is
+  checked against the declaration by a test, so a new dependency cannot escape
+  its key.
 
 Plus :func:`git_commit`, the commit recorded in every result. Nothing here
 imports the packages it fingerprints (sources are read with :mod:`ast`), so
@@ -20,17 +23,20 @@ the pipeline can fingerprint the FE code without importing dolfinx.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import functools
 import hashlib
 import importlib.util
 import json
 import os
 import subprocess
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from forcecal import PROJECT_PACKAGES
 from forcecal.errors import DataFileError
+from forcecal.sections import REFERENCE_SECTIONS
 
 #: the checkout (or site-packages folder) holding the project's packages
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,6 +108,29 @@ def _names_imported_by(source: str, filename: str) -> frozenset[str]:
     return frozenset(names)
 
 
+def _roots(entries: tuple[str, ...]) -> dict[str, Path]:
+    """``{top-level package: its folder}`` of the entries' packages and the project's."""
+    roots = {p: package_root(p) for p in {e.split(".")[0] for e in entries}}
+    roots.update({p: package_root(p) for p in PROJECT_PACKAGES
+                  if p not in roots and importlib.util.find_spec(p) is not None})
+    return roots
+
+
+def _entry_modules(entry: str, roots: dict[str, Path], subpackages: bool) -> list[str]:
+    """The module ``entry`` names, or a package's modules (its ``__init__`` first; those of
+    its sub-packages too when ``subpackages``)."""
+    path = module_file(entry, roots)
+    if path is None:
+        raise DataFileError(f"cannot fingerprint the code of {entry!r}: no source file")
+    if path.name != "__init__.py":
+        return [entry]
+    return [entry] + [".".join((entry, *f.relative_to(path.parent).with_suffix("").parts[
+                          :-1 if f.name == "__init__.py" else None]))
+                      for f in sorted(path.parent.rglob("*.py"))
+                      if "__pycache__" not in f.parts and f != path
+                      and (subpackages or f.name != "__init__.py")]
+
+
 def import_closure(entries: tuple[str, ...]) -> dict[str, Path]:
     """Every project module the ``entries`` import, transitively: ``{module name: file}``.
 
@@ -112,19 +141,8 @@ def import_closure(entries: tuple[str, ...]) -> dict[str, Path]:
     module brings the ``__init__`` of its parent packages, which Python runs
     on import.
     """
-    roots = {p: package_root(p) for p in {e.split(".")[0] for e in entries}}
-    roots.update({p: package_root(p) for p in PROJECT_PACKAGES
-                  if p not in roots and importlib.util.find_spec(p) is not None})
-    pending = []
-    for entry in entries:
-        path = module_file(entry, roots)
-        if path is None:
-            raise DataFileError(f"cannot fingerprint the code of {entry!r}: no source file")
-        pending.append(entry)
-        if path.name == "__init__.py":  # a package entry: all of its modules
-            pending += [".".join((entry, *f.relative_to(path.parent).with_suffix("").parts))
-                        for f in sorted(path.parent.rglob("*.py"))
-                        if f.name != "__init__.py" and "__pycache__" not in f.parts]
+    roots = _roots(entries)
+    pending = [m for entry in entries for m in _entry_modules(entry, roots, subpackages=False)]
     found: dict[str, Path] = {}
     while pending:
         name = pending.pop()
@@ -138,6 +156,15 @@ def import_closure(entries: tuple[str, ...]) -> dict[str, Path]:
     return found
 
 
+def declared_modules(entries: tuple[str, ...]) -> dict[str, Path]:
+    """The modules ``entries`` name, ``{module name: file}``: each a module, or a package
+    standing for every module in it (sub-packages included). Nothing else: not the parent
+    packages' ``__init__``, not what they import."""
+    roots = _roots(entries)
+    return {m: module_file(m, roots) for entry in entries
+            for m in _entry_modules(entry, roots, subpackages=True)}
+
+
 def source_digest(path: Path, ignored_classes: frozenset[str] = frozenset()) -> str:
     """SHA-256 of a module's syntax tree without docstrings.
 
@@ -145,14 +172,13 @@ def source_digest(path: Path, ignored_classes: frozenset[str] = frozenset()) -> 
     so editing them must not discard a result; every other change (code,
     string constants such as messages) does. ``ignored_classes``: names of
     top-level classes left out as well (the scene sections a computation does
-    not read, :func:`code_digests`).
+    not read, :attr:`CodeDependencies.sections`).
     """
     return _tree_digest(path.read_text(), str(path), ignored_classes)
 
 
-@functools.lru_cache(maxsize=1024)  # keyed on the text: the stages share most of their modules
-def _tree_digest(source: str, filename: str, ignored_classes: frozenset[str] = frozenset()
-                 ) -> str:
+def _without_docstrings(source: str, filename: str,
+                        ignored_classes: frozenset[str] = frozenset()) -> ast.Module:
     tree = ast.parse(source, filename)
     if ignored_classes:
         tree.body = [node for node in tree.body
@@ -164,34 +190,130 @@ def _tree_digest(source: str, filename: str, ignored_classes: frozenset[str] = f
                 and isinstance(body[0].value, ast.Constant)
                 and isinstance(body[0].value.value, str)):
             node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+@functools.lru_cache(maxsize=1024)  # keyed on the text: the stages share most of their modules
+def _tree_digest(source: str, filename: str, ignored_classes: frozenset[str] = frozenset()
+                 ) -> str:
+    tree = _without_docstrings(source, filename, ignored_classes)
     return hashlib.sha256(ast.dump(tree).encode()).hexdigest()
 
 
-def code_digests(entries: tuple[str, ...],
-                 ignored: dict[str, frozenset[str]] | None = None) -> dict[str, str]:
-    """``{file path relative to its package root: source_digest}`` of the import closure of
-    ``entries`` (per file, so a cache can say which files changed).
+def holds_no_code(path: Path) -> bool:
+    """The module is its docstring (and comments) alone: running it computes nothing."""
+    body = _without_docstrings(path.read_text(), str(path)).body
+    return all(isinstance(node, ast.Pass) for node in body)
 
-    ``ignored``: ``{module name: top-level class names}`` left out of those modules' digests,
-    e.g. the FE reference's ``{"forcecal.scene": {"CalibrationSection", ...}}``: the sections
-    a computation does not read are defined in the module that loads every scene, but neither
-    their code nor their values (left out of the section fingerprint too) change its result,
-    so a new calibration key does not make an FE reference stale.
+
+#: project modules a computation imports whose change cannot change its result, and why
+#: (besides modules holding no code, :func:`holds_no_code`); every other module of a
+#: computation's import closure must be one it declares (:meth:`CodeDependencies.undeclared`)
+NOT_RESULT = {
+    "forcecal": "the package's version string, its package list and the numba cache set-up",
+    "forcecal.caches": "where numba keeps its compiled kernels (the same machine code)",
+    "forcecal.logs": "which log records are shown, and how",
+    "forcecal.failures": "how a failure is reported: its error line and exit status",
+    "forcecal.provenance": "the keys themselves and the git commit recorded beside a result",
+    "calibration.progress": "the progress bar and cost ticker on the terminal",
+}
+
+
+@dataclass(frozen=True)
+class CodeDependencies:
+    """The code one computation's result depends on: the code part of its cache key.
+
+    Attributes:
+        runs: the modules it executes (entry points, and those it starts as child
+            processes); their import closure (:func:`import_closure`) must lie in ``reads``
+            but for :data:`NOT_RESULT` and modules holding no code (a test checks it).
+        reads: the packages and modules whose change can change its result
+            (:func:`declared_modules`); their code alone is its key, so editing a module
+            outside them (a helper of another stage, ``forcecal/__init__.py``) leaves it.
+        sections: the scene sections it reads, or None for all: the classes of the others
+            in ``forcecal.scene`` are left out of that module's digest (their keys cannot
+            change its result, e.g. a new ``[calibration]`` key and the FE reference).
     """
-    closure = import_closure(entries)
-    ignored = ignored or {}
-    out = {}
-    for name, path in closure.items():
-        rel = path.relative_to(package_root(name.split(".")[0]))
-        out[str(rel)] = source_digest(path, frozenset(ignored.get(name, ())))
-    return dict(sorted(out.items()))
+    runs: tuple[str, ...]
+    reads: tuple[str, ...]
+    sections: tuple[str, ...] | None = None
+
+    def ignored_classes(self) -> dict[str, frozenset[str]]:
+        """``{module: top-level class names}`` left out of its digest."""
+        if self.sections is None:
+            return {}
+        from forcecal.scene import SECTIONS
+        return {"forcecal.scene": frozenset(cls.__name__ for name, cls in SECTIONS.items()
+                                            if name not in self.sections)}
+
+    def digests(self) -> dict[str, str]:
+        """``{file path relative to its package root: source_digest}`` of every module of
+        ``reads`` (per file, so a cache can say which files changed)."""
+        ignored = self.ignored_classes()
+        out = {}
+        for name, path in declared_modules(self.reads).items():
+            rel = path.relative_to(package_root(name.split(".")[0]))
+            out[str(rel)] = source_digest(path, ignored.get(name, frozenset()))
+        return dict(sorted(out.items()))
+
+    def digest(self) -> str:
+        """:meth:`digests` in one SHA-256."""
+        return hashlib.sha256(json.dumps(self.digests(), sort_keys=True).encode()).hexdigest()
+
+    def undeclared(self) -> list[str]:
+        """Modules ``runs`` imports that are neither in ``reads`` nor known to leave its
+        result alone: a dependency its key would miss (must be empty)."""
+        declared = declared_modules(self.reads)
+        return sorted(name for name, path in import_closure(self.runs).items()
+                      if name not in declared and name not in NOT_RESULT
+                      and not holds_no_code(path))
+
+    def with_(self, runs: tuple[str, ...] = (), reads: tuple[str, ...] = ()
+              ) -> CodeDependencies:
+        """These dependencies and more: a computation that runs this one and more code."""
+        return dataclasses.replace(self, runs=self.runs + runs, reads=self.reads + reads)
 
 
-def code_digest(*entries: str, ignored: dict[str, frozenset[str]] | None = None) -> str:
-    """The code fingerprint of ``entries`` in one SHA-256 (over :func:`code_digests`), e.g.
-    ``code_digest("reference_fe.run")``."""
-    return hashlib.sha256(json.dumps(code_digests(entries, ignored),
-                                     sort_keys=True).encode()).hexdigest()
+# The code each cached computation depends on, all in one place. A computation's key holds
+# the code of what it declares, nothing else; tests/test_pipeline_units.py fails when one
+# imports a module it does not declare.
+
+#: the shared modules the FE reads: the scene and its sections, the mesh (and the generated
+#: liver), the support and test-point rules, the schedules and indenter, the HDF5 files; the
+#: preflight and failure records it writes into reference.h5 and the cost estimate they hold; the errors that decide a failure
+SHARED_FE = ("forcecal.scene", "forcecal.sections", "forcecal.mesh", "forcecal.liver_mesh",
+             "forcecal.point_selection", "forcecal.problem",
+             "forcecal.h5io", "forcecal.indenter", "forcecal.schedules", "forcecal.errors",
+             "forcecal.preflight", "forcecal.fe_failures", "forcecal.cost")
+#: and those the particle side reads besides: the BLAS thread count (the order of its sums)
+SHARED_PARTICLE = SHARED_FE + ("forcecal.blas",)
+
+
+def _runner(stage: str) -> tuple[str, ...]:
+    """The pipeline modules that run ``stage`` and write its outputs."""
+    return ("pipelines.runners.common", f"pipelines.runners.{stage}")
+
+
+#: the FE experiments (per-experiment keys in reference.h5, :mod:`reference_fe.keys`)
+FE = CodeDependencies(runs=("reference_fe.run", "reference_fe.__main__"),
+                      reads=("reference_fe",) + SHARED_FE, sections=REFERENCE_SECTIONS)
+#: a calibration's fit (its checkpoint key, :mod:`calibration.provenance`)
+FIT = CodeDependencies(runs=("calibration.core", "calibration.worker"),
+                       reads=("calibration", "particle") + SHARED_PARTICLE)
+#: the pipeline's stages (:mod:`pipelines.stages`), each with its runner
+STAGE_CODE = {
+    "reference": FE.with_(runs=("pipelines.runners.reference",), reads=_runner("reference")),
+    "calibrate": FIT.with_(runs=("pipelines.runners.calibrate",), reads=_runner("calibrate")),
+    "gravity": FIT.with_(runs=("pipelines.runners.gravity",),
+                         reads=("pipelines.gravity",) + _runner("gravity")),
+    "report": FIT.with_(runs=("pipelines.runners.report",),
+                        reads=("pipelines.report", "pipelines.gravity", "pipelines.dynamics",
+                               "pipelines.fields", "pipelines.figures", "pipelines.realtime",
+                               "pipelines.verdict", "pipelines.bench.particle_engine")
+                        + _runner("report")),
+}
+#: the benchmark's FE computations: the reference and the discretisation study
+FE_BENCH = FE.with_(runs=("reference_fe.sensitivity",))
 
 
 # ---------------------------------------------------------------------------- checkout

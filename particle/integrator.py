@@ -275,15 +275,18 @@ class Run:
         self.inv_masses = 1.0 / self.stability_model.masses
         self._forces = np.empty((model.n_particles, 3))
         t = self.terms
-        self._springs = (p.K0, p.a if t.nonlinear else None, p.b if t.nonlinear else None,
-                         self.arm_r if t.arms else None, self.arm_c if t.arms else None)
-        self._loads = ((np.zeros(3) if g is None else g) if t.gravity else None,
-                       integrator.damping / dt if t.damping else None)
+        self._edges = kernels.index_view(model.edges)
+        self._springs = step_kernels.spring_group(
+            edges=self._edges, rest_lengths=model.rest_lengths, K0=p.K0,
+            a=p.a if t.nonlinear else None, b=p.b if t.nonlinear else None,
+            arm_r=self.arm_r if t.arms else None, arm_c=self.arm_c if t.arms else None)
+        self._loads = step_kernels.load_group(
+            gravity=(np.zeros(3) if g is None else g) if t.gravity else None,
+            damping_rate=integrator.damping / dt if t.damping else None)
         self.monitored = monitored
         # compared with the elongations the force kernel stores anyway: no extra sqrt
         self._elongation_limits = ((None, None) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
-        self._edges = kernels.index_view(model.edges)
         self._volume = None
         if p.kv is not None:
             self.volume_ratio_range, self._volume = volume_limits(model, monitored)
@@ -293,11 +296,14 @@ class Run:
         if p.has_volume_arms and arms:
             self.volume_arm_r, self.volume_arm_c = p.volume_arm_recursion(dt)
         self._active = kernels.index_view(self.active)
+        self._particles = step_kernels.particle_group(
+            masses=model.masses, inv_masses=self.inv_masses, active=self._active)
         self._prescribed = kernels.index_view(self.prescribed)
         self._no_keyframes = (np.zeros(1), np.zeros((1, 0, 3)))
         self.threads = threads  # checked by VerletIntegrator.prepare, which builds every Run
         self._blocks = None if self.threads == 1 else thread_blocks(model, self.active,
                                                                      self.threads)
+        self._scratch = (self._forces, self._blocks)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
@@ -310,7 +316,7 @@ class Run:
         without ``probe``. Raises :class:`StabilityError` if the run diverges or
         leaves the monitored strain range (the state is then invalid).
         """
-        model, dt = self.model, self.dt
+        dt = self.dt
         keyframes = start_call(self, state, n_steps, keyframes)
         out = node_edges = node_tets = None
         if probe is not None:
@@ -319,14 +325,15 @@ class Run:
         if pool is not None:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
         try:
+            # run_verlet's argument groups (its docstring), in its order
             status = step_kernels.run_verlet(
-                state.x, state.x_prev, state.arm_force, state.dx_prev, self._edges,
-                model.rest_lengths, *self._springs, model.masses, self.inv_masses, self._active,
-                *self._loads, dt, int(n_steps), state.dt is None, self._prescribed, *keyframes,
-                float(state.t), *record, self.integrator.check_every, float(energy_bound),
-                *self._elongation_limits, self._forces, probe, node_edges, out, self._blocks,
-                self._volume, None if self.volume_arm_r is None else self.volume_arms(state),
-                node_tets)
+                (state.x, state.x_prev, state.arm_force, state.dx_prev),
+                self._springs, self._particles, self._loads,
+                (dt, int(n_steps), state.dt is None, float(state.t)),
+                (self._prescribed, *keyframes), record,
+                (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
+                (probe, node_edges, out, node_tets), self._scratch,
+                self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
         finally:
             if pool is not None:
                 numba.set_num_threads(pool)
@@ -364,8 +371,8 @@ class Run:
         """
         out = np.empty(3)
         edges, tets = self._incident(node)
-        kernels.node_force(state.x, node, edges, self._edges, self.model.rest_lengths,
-                           *self._springs, state.arm_force, state.dx_prev, out)
+        kernels.node_force(state.x, node, edges, *self._springs, state.arm_force,
+                           state.dx_prev, out)
         if self._volume is not None:
             node_volume_force(state.x, node, tets, *self._volume[:3], self.volume_arms(state),
                               out)

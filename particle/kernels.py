@@ -27,8 +27,8 @@ forces)`` that adds into ``forces`` (N, 3) [N], called in :func:`net_forces`
 after :func:`internal_forces` (the serial path, which every haptic and dynamic
 run uses by default) and, for the threaded path, in
 :func:`particle.step_kernels.explicit_step` (as the volume term is); its term
-selector joins :class:`particle.integrator.Terms`, its arrays the ``Run``'s
-``_springs``-like tuples. Mass scaling needs its stiffness in
+selector joins :class:`particle.integrator.Terms`, its arrays one of the argument groups
+of :func:`particle.step_kernels.run_verlet` (as ``springs`` and ``loads`` are). Mass scaling needs its stiffness in
 :func:`particle.integrator.critical_time_step` and, to put the added mass where
 the term stiffens the model, a per-particle bound in
 :func:`particle.mass_scaling.stiffness_weights` (as the volume term has).
@@ -193,28 +193,39 @@ def add_damping(forces, masses, x, x_prev, rate, nodes):
 
 
 @njit(**JIT)
-def net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-               masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, volume,
-               volume_arms):
+def add_loads(forces, masses, x, x_prev, gravity, damping_rate, nodes):
+    """The node loads of one explicit step for ``nodes``: :func:`add_gravity` (``gravity``
+    None: none) then :func:`add_damping` (``damping_rate`` None: none)."""
+    if gravity is not None:
+        add_gravity(forces, masses, gravity, nodes)
+    if damping_rate is not None:
+        add_damping(forces, masses, x, x_prev, damping_rate, nodes)
+
+
+@njit(**JIT)
+def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, volume_arms):
     """All force terms of one explicit step, composed; commits the arm recursions in place.
 
-    ``volume`` = (tets (T, 4), rest_volumes (T,), kv (T,), v_lo (T,), v_hi (T,))
-    adds the volume term (:func:`particle.volume.add_volume_forces`), None
-    compiles it out; ``volume_arms`` its arms (the kernels' tuple, outputs aliasing the
-    state: :mod:`particle.volume`), None: elastic. Returns (the first connector outside
-    ``[dx_lo, dx_hi]`` (see :func:`internal_forces`), the first tet whose volume is
-    outside ``(v_lo, v_hi]``), -1 for none.
+    ``state``, ``springs``, ``particles``, ``loads``: the explicit loop's argument groups
+    (:func:`particle.step_kernels.run_verlet`). ``volume`` = (tets (T, 4), rest_volumes
+    (T,), kv (T,), v_lo (T,), v_hi (T,)) adds the volume term
+    (:func:`particle.volume.add_volume_forces`), None compiles it out; ``volume_arms`` its
+    arms (the kernels' tuple, outputs aliasing the state: :mod:`particle.volume`), None:
+    elastic. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
+    :func:`internal_forces`), the first tet whose volume is outside ``(v_lo, v_hi]``), -1
+    for none.
     """
+    x, x_prev, arm_force, dx_prev = state
+    edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
+    masses, _, active = particles
+    gravity, damping_rate = loads
     outside = internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force,
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)
     bad = -1
     if volume is not None:
         bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
                                    forces, volume_arms)
-    if gravity is not None:
-        add_gravity(forces, masses, gravity, active)
-    if damping_rate is not None:
-        add_damping(forces, masses, x, x_prev, damping_rate, active)
+    add_loads(forces, masses, x, x_prev, gravity, damping_rate, active)
     return outside, bad
 
 @njit(**JIT)

@@ -37,8 +37,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from particle.kernels import (JIT, add_connector_forces, add_damping, add_gravity, net_forces,
-                              node_force)
+from particle.kernels import JIT, add_connector_forces, add_loads, net_forces, node_force
 from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
 
 # status codes of run_verlet
@@ -78,11 +77,11 @@ def advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses
 
 
 @njit(**JIT)
-def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-                  masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
-                  check, dt, energy_bound, status, blocks, volume, volume_arms):
+def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi, scale, check,
+                  dt, energy_bound, status, volume, volume_arms):
     """One explicit step in place: :func:`net_forces` at ``x``, then :func:`advance_positions`.
 
+    ``state``, ``springs``, ``particles``, ``loads``: :func:`run_verlet`'s argument groups.
     If ``check``, the divergence check of the new positions: the kinetic
     energy ``sum m |x^{n+1} - x^n|^2 / (2 dt^2)`` [J] must not exceed
     ``energy_bound``, else ``status`` is set (:func:`divergent_node`, the only
@@ -93,12 +92,15 @@ def explicit_step(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, 
     (:func:`parallel_forces`, :func:`parallel_advance`). ``volume_arms``: the volume
     term's arms (:func:`net_forces`), None: elastic.
     """
+    x, x_prev, arm_force, dx_prev = state
+    masses, inv_masses, active = particles
     if blocks is None:
-        outside, bad = net_forces(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0,
-                                  a, b, arm_r, arm_c, masses, active, gravity, damping_rate,
-                                  forces, dx_lo, dx_hi, volume, volume_arms)
+        outside, bad = net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi,
+                                  volume, volume_arms)
         energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
     else:
+        edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
+        gravity, damping_rate = loads
         outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
                                   arm_c, dx_lo, dx_hi, blocks)
         bad = -1
@@ -166,16 +168,13 @@ def parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity, dam
     ``forces[n] = sum_t thread_forces[t, n]`` (in thread order, a fixed
     summation order: the result does not depend on the scheduling), then
     :func:`add_gravity`, :func:`add_damping` and :func:`advance_positions` of
-    those nodes. Returns the summed energy of :func:`advance_positions`.
+    those nodes (:func:`add_loads`). Returns the summed energy of :func:`advance_positions`.
     """
     thread_forces, _, node_starts, _, energy = blocks
     for t in prange(thread_forces.shape[0]):
         nodes = active[node_starts[t]:node_starts[t + 1]]
         sum_thread_forces(thread_forces, forces, nodes)
-        if gravity is not None:
-            add_gravity(forces, masses, gravity, nodes)
-        if damping_rate is not None:
-            add_damping(forces, masses, x, x_prev, damping_rate, nodes)
+        add_loads(forces, masses, x, x_prev, gravity, damping_rate, nodes)
         energy[t] = advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses)
     total = 0.0
     for t in range(energy.shape[0]):
@@ -273,13 +272,87 @@ def prescribe(x, x_prev, nodes, times, positions, t):
             x[n, c] = target
 
 
+def spring_group(*, edges, rest_lengths, K0, a, b, arm_r, arm_c) -> tuple:
+    """:func:`run_verlet`'s ``springs``: the connector ends (E, 2) (an index view), rest
+    lengths (E,) [m], spring coefficients K0, a, b (E,) [N/m] (``a``, ``b`` None: linear),
+    the arms' recursion coefficients r, c (E, 2) (None: no arms)."""
+    return (edges, rest_lengths, K0, a, b, arm_r, arm_c)
+
+
+def particle_group(*, masses, inv_masses, active) -> tuple:
+    """:func:`run_verlet`'s ``particles``: masses (N,) [kg] (gravity, damping, the energy
+    check), the inverse inertia (N,) [1/kg] of the position update, the nodes it moves."""
+    return (masses, inv_masses, active)
+
+
+def load_group(*, gravity, damping_rate) -> tuple:
+    """:func:`run_verlet`'s ``loads``: gravity (3,) [m/s^2], the damping rate gamma/dt
+    [1/s^2]; each None: none."""
+    return (gravity, damping_rate)
+
+
 @njit(**JIT)
-def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-               masses, inv_masses, active, gravity, damping_rate, dt, n_steps, startup,
-               presc_nodes, presc_times, presc_pos, t0, rec_nodes, rec_steps, rec_out,
-               check_every, energy_bound, dx_lo, dx_hi, forces, probe_node, probe_edges,
-               probe_out, blocks, volume, volume_arms, probe_tets):
+def record_positions(x, rec_nodes, rec_steps, rec_out, slot, step):
+    """Store the positions of ``rec_nodes`` in ``rec_out[slot]`` for every slot from ``slot``
+    whose ``rec_steps`` is ``step``; returns the next slot (``rec_nodes`` None: none)."""
+    if rec_nodes is None:
+        return slot
+    while slot < rec_steps.shape[0] and rec_steps[slot] == step:
+        for r in range(rec_nodes.shape[0]):
+            rec_out[slot, r] = x[rec_nodes[r]]
+        slot += 1
+    return slot
+
+
+@njit(**JIT)
+def final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi, volume):
+    """(code, id) of a run's final state: (VOLUME_END, the first tet outside ``(v_lo,
+    v_hi]``), else (STRAIN_END, the first connector outside ``[dx_lo, dx_hi]``), id -1 when
+    none is (``volume``, ``dx_lo`` None: that check is not made)."""
+    code, bad = OK, np.int64(-1)
+    if volume is not None:
+        code, bad = VOLUME_END, first_volume_outside(x, volume[0], volume[3], volume[4])
+    if bad < 0 and dx_lo is not None:
+        code, bad = STRAIN_END, final_strain_check(x, x_prev, edges, rest_lengths, dx_prev,
+                                                   dx_lo, dx_hi)
+    return code, bad
+
+
+@njit(**JIT)
+def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, volume,
+                volume_arms):
+    """The force on ``probe_node`` at the final state into ``probe_out`` (None: nothing):
+    its connectors (:func:`node_force`) and, with the volume term, its tets ``probe_tets``."""
+    if probe_out is None:
+        return
+    x, _, arm_force, dx_prev = state
+    edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
+    node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
+               arm_force, dx_prev, probe_out)
+    if volume is not None:
+        node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
+                          volume_arms, probe_out)
+
+
+@njit(**JIT)
+def run_verlet(state, springs, particles, loads, stepping, prescribed, recording, checks, probe,
+               scratch, volume, volume_arms):
     """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
+
+    The arguments come in groups (tuples, in this order; a group in the wrong place does
+    not compile), built by :class:`particle.integrator.Run`:
+
+    * ``state`` = (x, x_prev (N, 3) [m], arm_force (E, 2) [N], dx_prev (E,) [m]), updated
+      in place;
+    * ``springs`` (:func:`spring_group`), ``particles`` (:func:`particle_group`), ``loads``
+      (:func:`load_group`);
+    * ``stepping`` = (dt [s], n_steps, startup, t0 [s]);
+    * ``prescribed`` = (nodes (k,), keyframe times (K,) [s], positions (K, k, 3) [m]);
+    * ``recording`` = (rec_nodes, rec_steps, rec_out), each None: no recording;
+    * ``checks`` = (check_every, energy_bound [J], dx_lo, dx_hi (E,) [m] or None);
+    * ``probe`` = (probe_node, probe_edges, probe_out (3,), probe_tets), probe_out None:
+      no probe;
+    * ``scratch`` = (forces (N, 3), blocks: None or the multi-threaded step's work split).
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
     and not prescribed); if ``startup``, the first step uses half the
@@ -311,38 +384,35 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
     a connector outside ``[dx_lo, dx_hi]`` with STRAIN_END (step = ``n_steps``, id =
     the tet or connector), before the probe force is computed.
     """
+    x, x_prev, _, dx_prev = state
+    edges, rest_lengths = springs[0], springs[1]
+    dt, n_steps, startup, t0 = stepping
+    presc_nodes, presc_times, presc_pos = prescribed
+    rec_nodes, rec_steps, rec_out = recording
+    check_every, energy_bound, dx_lo, dx_hi = checks
+    probe_node, probe_edges, probe_out, probe_tets = probe
+    forces, blocks = scratch
     status = np.zeros(3, dtype=np.int64)
-    slot = 0
-    if rec_nodes is not None:
-        while slot < rec_steps.shape[0] and rec_steps[slot] == 0:
-            for r in range(rec_nodes.shape[0]):
-                rec_out[slot, r] = x[rec_nodes[r]]
-            slot += 1
+    slot = record_positions(x, rec_nodes, rec_steps, rec_out, 0, 0)
     h2 = dt * dt
     for step in range(n_steps):
         check = (step + 1) % check_every == 0 or step + 1 == n_steps
         scale = 0.5 * h2 if (startup and step == 0) else h2
         if check:
             outside, inverted = explicit_step(
-                x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-                masses, inv_masses, active, gravity, damping_rate, forces, dx_lo, dx_hi, scale,
-                True, dt, energy_bound, status, blocks, volume, volume_arms)
+                state, springs, particles, loads, forces, blocks, dx_lo, dx_hi, scale, True,
+                dt, energy_bound, status, volume, volume_arms)
         else:
             outside, inverted = explicit_step(
-                x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-                masses, inv_masses, active, gravity, damping_rate, forces, None, None, scale,
-                False, dt, energy_bound, status, blocks, volume, volume_arms)
+                state, springs, particles, loads, forces, blocks, None, None, scale, False,
+                dt, energy_bound, status, volume, volume_arms)
         if volume is not None and inverted >= 0:
             status[0] = VOLUME
             status[1] = step  # the tet was inverted at the positions the step started from
             status[2] = inverted
             return status
         prescribe(x, x_prev, presc_nodes, presc_times, presc_pos, t0 + (step + 1) * dt)
-        if rec_nodes is not None:
-            while slot < rec_steps.shape[0] and rec_steps[slot] == step + 1:
-                for r in range(rec_nodes.shape[0]):
-                    rec_out[slot, r] = x[rec_nodes[r]]
-                slot += 1
+        slot = record_positions(x, rec_nodes, rec_steps, rec_out, slot, step + 1)
         if check:
             if status[0] == OK and outside >= 0:
                 status[0] = STRAIN
@@ -351,21 +421,13 @@ def run_verlet(x, x_prev, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm
                 status[1] = step + 1
                 return status
     if n_steps > 0:  # the final state: the steps above checked the positions they started from
-        code, bad = OK, np.int64(-1)
-        if volume is not None:
-            code, bad = VOLUME_END, first_volume_outside(x, volume[0], volume[3], volume[4])
-        if bad < 0 and dx_lo is not None:
-            code, bad = STRAIN_END, final_strain_check(x, x_prev, edges, rest_lengths, dx_prev,
-                                                       dx_lo, dx_hi)
+        code, bad = final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi,
+                                      volume)
         if bad >= 0:
             status[0] = code
             status[1] = n_steps
             status[2] = bad
             return status
-    if probe_out is not None:
-        node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
-                   arm_force, dx_prev, probe_out)
-        if volume is not None:
-            node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
-                              volume_arms, probe_out)
+    probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, volume,
+                volume_arms)
     return status

@@ -6,10 +6,9 @@ A stage's *inputs* are recorded as fingerprints (:class:`StageInputs`):
 * ``mesh``: the mesh fingerprint (only for the stage that reads the mesh itself,
   the FE reference; later stages read the mesh back from ``reference.h5``);
 * ``upstream``: SHA-256 of the content of every upstream file it reads;
-* ``code``: the code fingerprint of the stage's runner, per file
-  (:func:`forcecal.provenance.code_digests`: every project module it imports,
-  transitively, so editing a module the stage does not use does not
-  invalidate it; comments, formatting and docstrings are left out).
+* ``code``: the code fingerprint of the code the stage declares, per file
+  (:class:`forcecal.provenance.CodeDependencies`: editing a module outside it
+  does not invalidate it; comments, formatting and docstrings are left out).
 
 After a successful run :meth:`Cache.store` writes ``<out>/cache/<stage>.json``
 with those inputs and the content hash of every output file. :meth:`Cache.check`

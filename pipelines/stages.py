@@ -50,7 +50,7 @@ from forcecal.errors import DataFileError, SceneError
 from forcecal.failures import collective, note_stage
 from forcecal.h5io import reference_digest
 from forcecal.problem import build_problem, check_second_support, load_mesh
-from forcecal.provenance import code_digests, file_digest
+from forcecal.provenance import STAGE_CODE, CodeDependencies, file_digest
 from forcecal.scene import EXPERIMENTS, HELD_OUT_EXPERIMENTS, Scene
 from forcecal.sections import FIT_SECTIONS, REFERENCE_SECTIONS
 from pipelines.cache import Cache, StageInputs
@@ -59,7 +59,6 @@ from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE, Context
 from pipelines.runners.gravity import run_gravity_stage
 from pipelines.runners.reference import adopt_reference, run_reference, scene_after_reference
 from pipelines.runners.report import run_report
-from reference_fe.keys import FE_CODE_IGNORED
 
 log = logging.getLogger(__name__)
 
@@ -71,27 +70,23 @@ class Stage:
     Attributes:
         name: CLI name.
         sections: scene sections it reads ("name": the scene's name).
-        code: its runner module (and any module it starts as a child process); every
-            project module they import is part of its cache key
-            (:func:`forcecal.provenance.code_digests`), nothing else: not this module.
+        code: the code its outputs depend on, declared in
+            :data:`forcecal.provenance.STAGE_CODE` (its runner and what it runs); that code
+            is part of its cache key, nothing else: not this module.
         upstream: files of the output folder it reads.
         run: ``run(ctx) -> output file names`` (relative to ``ctx.out``); called on every
             rank under MPI, returns the outputs on rank 0.
         reads_mesh: the stage builds the mesh itself (its fingerprint is an input).
         experiments: the experiments it uses when the scene lists them; it does not run
             when the scene lists none of them.
-        code_ignored: ``{module: top-level class names}`` left out of its code digest (the
-            reference: the scene sections the FE does not read,
-            :func:`reference_fe.keys.unread_section_classes`).
     """
     name: str
     sections: tuple[str, ...]
-    code: tuple[str, ...]
+    code: CodeDependencies
     upstream: tuple[str, ...]
     run: Callable[[Context], list[str]]
     reads_mesh: bool = False
     experiments: tuple[str, ...] = EXPERIMENTS
-    code_ignored: dict[str, frozenset[str]] = dataclasses.field(default_factory=dict)
 
     def used(self, scene: Scene) -> tuple[str, ...]:
         """The experiments of ``scene`` this stage uses."""
@@ -120,7 +115,7 @@ class Stage:
                      else ctx.scene.fingerprint(s)) for s in self.sections
                  if not skipped.get(s, False)}
         scene["experiments"] = hashlib.sha256(json.dumps(used).encode()).hexdigest()
-        code = code_digests(self.code, self.code_ignored)
+        code = self.code.digests()
         mesh = None
         if self.reads_mesh:  # the first stage: absurd work is refused before any is done
             mesh = load_mesh(ctx.scene)
@@ -142,23 +137,22 @@ class Stage:
 
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("reference", REFERENCE_SECTIONS,
-          ("pipelines.runners.reference", "reference_fe.__main__"), (), run_reference,
-          reads_mesh=True, code_ignored=FE_CODE_IGNORED),
+          STAGE_CODE["reference"], (), run_reference, reads_mesh=True),
     # [particle]: the model fitted (volume) and the explicit gravity run of its gravity check
     # (dt, dt_safety, strain_margin, damping); [gravity] and the FE sag and release times of
     # reference.h5: that check and the release strain range the springs are kept stiff on
     # [body]: the load steps of the whole-body loads it fits (the experiment "body")
     Stage("calibrate", FIT_SECTIONS + ("gravity", "particle", "body"),
-          ("pipelines.runners.calibrate", "calibration.worker"), (REFERENCE,), run_calibrate,
+          STAGE_CODE["calibrate"], (REFERENCE,), run_calibrate,
           experiments=("indentation", "relaxation", "gravity_static", "gravity_dynamic",
                        "body")),
     # the gravity test and the second support's (its clamp is read from reference.h5)
-    Stage("gravity", ("material", "gravity", "particle"), ("pipelines.runners.gravity",),
+    Stage("gravity", ("material", "gravity", "particle"), STAGE_CODE["gravity"],
           (REFERENCE, PARAMS), run_gravity_stage, experiments=HELD_OUT_EXPERIMENTS),
     # [verdict]: the goals the report judges against (a change reruns this stage alone);
     # [particle], [material], [indentation]: the real-time check's haptic session and drag
     Stage("report", ("name", "outputs", "verdict", "particle", "material", "indentation"),
-          ("pipelines.runners.report",), (REFERENCE, PARAMS, GRAVITY), run_report),
+          STAGE_CODE["report"], (REFERENCE, PARAMS, GRAVITY), run_report),
 )}
 ORDER = tuple(STAGES)
 

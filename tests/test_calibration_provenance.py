@@ -6,6 +6,7 @@ import pytest
 
 from calibration.checkpoint import Checkpoint
 from calibration.provenance import code_fingerprint, fit_inputs, git_commit, versions
+from forcecal.provenance import CodeDependencies
 from calibration.synthetic import box_scene
 from forcecal.scene import replace
 from tests.conftest import ROOT
@@ -50,13 +51,14 @@ def test_code_fingerprint_follows_the_code_not_its_comments(tmp_path, monkeypatc
     (package / "__init__.py").write_text("")
     (package / "sub" / "mod.py").write_text("X = 1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    before = code_fingerprint(("fakepkg",))
-    assert code_fingerprint(("fakepkg",)) == before
+    fake = CodeDependencies(runs=("fakepkg",), reads=("fakepkg",))
+    before = code_fingerprint(fake)
+    assert code_fingerprint(fake) == before
     # a comment edit keeps a checkpoint, as it keeps a stage cache record
     (package / "sub" / "mod.py").write_text('"""A module."""\n# why X is 1\nX = (1)\n')
-    assert code_fingerprint(("fakepkg",)) == before
+    assert code_fingerprint(fake) == before
     (package / "sub" / "mod.py").write_text("X = 2\n")
-    assert code_fingerprint(("fakepkg",)) != before
+    assert code_fingerprint(fake) != before
     assert re.fullmatch(r"[0-9a-f]{64}", code_fingerprint())
 
 

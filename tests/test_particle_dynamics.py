@@ -125,6 +125,23 @@ def test_compiled_step_matches_the_numpy_step(terms):
     assert compiled.arm_force.any() == terms["arms"]
 
 
+def test_the_compiled_loop_refuses_its_argument_groups_out_of_order():
+    """Two groups swapped (the springs where the particles go) do not compile: a call in
+    the wrong order fails loudly instead of running with K0 read as masses."""
+    from numba.core.errors import TypingError
+
+    from particle import step_kernels
+    model = box_model()
+    run = VerletIntegrator().prepare(model, 0.5 * critical_time_step(model))
+    state = model.state()
+    groups = [(state.x, state.x_prev, state.arm_force, state.dx_prev), run._particles,
+              run._springs, run._loads, (run.dt, 1, True, 0.0),
+              (run._prescribed, *run._no_keyframes), (None, None, None), (1, 1.0, None, None),
+              (None, None, None, None), run._scratch, None, None]
+    with pytest.raises(TypingError):
+        step_kernels.run_verlet(*groups)
+
+
 def test_skipping_terms_gives_identical_results_when_they_are_zero():
     """Compiled-out terms (linear springs, no gravity, no damping, no arms) vs all terms at 0."""
     model = box_model()  # a = b = 0

@@ -1,4 +1,5 @@
 """Pipeline parts: stage cache, particle gravity runs and gravity.h5, report errors, XDMF fields."""
+import dataclasses
 import os
 import re
 import subprocess
@@ -16,7 +17,8 @@ from forcecal.scene import scene_from_dict
 from particle.model import build_model
 from particle.params import ConnectorParams
 from particle.stability import connector_strains
-from forcecal.provenance import code_digest, code_digests, file_digest, import_closure
+from forcecal.provenance import (FE, FE_BENCH, FIT, NOT_RESULT, STAGE_CODE, CodeDependencies,
+                                 file_digest, import_closure, source_digest)
 from pipelines.cache import Cache, StageInputs
 from calibration.gravity_check import gravity_outcome
 from pipelines.gravity import GravityRuns, GravityTest, read_gravity, write_gravity
@@ -69,7 +71,7 @@ def test_unreadable_cache_record_means_rerun(tmp_path):
     assert cache.check("stage", StageInputs()) == ["no cache record"]
 
 
-def test_code_digests_follow_the_import_closure_only(tmp_path, monkeypatch):
+def test_import_closure_follows_the_imports_only(tmp_path, monkeypatch):
     pkg = tmp_path / "fc_demo_pkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
@@ -78,72 +80,103 @@ def test_code_digests_follow_the_import_closure_only(tmp_path, monkeypatch):
     for name in ("used", "lazy", "unrelated"):
         (pkg / f"{name}.py").write_text("X = 1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    before = code_digests(("fc_demo_pkg.entry",))
-    assert set(before) == {"fc_demo_pkg/__init__.py", "fc_demo_pkg/entry.py",
-                           "fc_demo_pkg/used.py", "fc_demo_pkg/lazy.py"}
-    (pkg / "unrelated.py").write_text("X = 2\n")
-    assert code_digests(("fc_demo_pkg.entry",)) == before
+    assert set(import_closure(("fc_demo_pkg.entry",))) == {
+        "fc_demo_pkg", "fc_demo_pkg.entry", "fc_demo_pkg.used", "fc_demo_pkg.lazy"}
+    # a package entry stands for all of its modules
+    assert "fc_demo_pkg.unrelated" in import_closure(("fc_demo_pkg",))
+    with pytest.raises(DataFileError, match="fc_demo_pkg.missing"):
+        import_closure(("fc_demo_pkg.missing",))
+    with pytest.raises(DataFileError, match="not an importable package"):
+        import_closure(("fc_no_such_package.mod",))
+
+
+def test_code_digests_hold_the_declared_code_only(tmp_path, monkeypatch):
+    pkg = tmp_path / "fc_decl_pkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("VERSION = 1\n")
+    (pkg / "entry.py").write_text("from fc_decl_pkg import used\n\ndef f():\n"
+                                  "    import fc_decl_pkg.sub.lazy\n")
+    (pkg / "sub" / "__init__.py").write_text('"""Docstring only."""\n')
+    for name in ("used", "sub/lazy", "unrelated"):
+        (pkg / f"{name}.py").write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code = CodeDependencies(runs=("fc_decl_pkg.entry",),
+                            reads=("fc_decl_pkg.entry", "fc_decl_pkg.used", "fc_decl_pkg.sub"))
+    before = code.digests()
+    assert set(before) == {"fc_decl_pkg/entry.py", "fc_decl_pkg/used.py",
+                           "fc_decl_pkg/sub/__init__.py", "fc_decl_pkg/sub/lazy.py"}
+    # the package's __init__ runs but is not declared: a dependency the key would miss
+    assert code.undeclared() == ["fc_decl_pkg"]
+    assert dataclasses.replace(code, reads=code.reads + ("fc_decl_pkg",)).undeclared() == []
+    for edited in ("unrelated.py", "__init__.py"):  # outside the declared code
+        (pkg / edited).write_text("X = 2\n")
+        assert code.digests() == before
     # comments, layout and docstrings do not count; code does
     (pkg / "used.py").write_text('"""A module."""\n# why X is 1\nX  =  1\n')
-    assert code_digests(("fc_demo_pkg.entry",)) == before
-    for name in ("used", "lazy"):
+    assert code.digests() == before
+    for name in ("used", "sub/lazy"):
         (pkg / f"{name}.py").write_text("X = 3\n")
-        after = code_digests(("fc_demo_pkg.entry",))
-        assert after[f"fc_demo_pkg/{name}.py"] != before[f"fc_demo_pkg/{name}.py"]
+        after = code.digests()
+        assert after[f"fc_decl_pkg/{name}.py"] != before[f"fc_decl_pkg/{name}.py"]
     assert StageInputs(code=after).changes_from({"code": before}) == [
-        "code changed: fc_demo_pkg/lazy.py, fc_demo_pkg/used.py"]
-    # a package entry stands for all of its modules
-    assert "fc_demo_pkg/unrelated.py" in code_digests(("fc_demo_pkg",))
-    assert code_digest("fc_demo_pkg") != code_digest("fc_demo_pkg.entry")
-    with pytest.raises(DataFileError, match="fc_demo_pkg.missing"):
-        code_digests(("fc_demo_pkg.missing",))
-    with pytest.raises(DataFileError, match="not an importable package"):
-        code_digests(("fc_no_such_package.mod",))
+        "code changed: fc_decl_pkg/sub/lazy.py, fc_decl_pkg/used.py"]
+    # a module the entry starts importing, with code in it, is undeclared until declared
+    (pkg / "sub" / "__init__.py").write_text("from fc_decl_pkg import unrelated\n")
+    assert "fc_decl_pkg.unrelated" in code.undeclared()
 
 
-def test_code_digests_leave_out_the_ignored_classes_only(tmp_path, monkeypatch):
-    pkg = tmp_path / "fc_ignore_pkg"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text("")
+def test_source_digest_leaves_out_the_ignored_classes_only(tmp_path):
+    module = tmp_path / "sections.py"
     source = "class Read:\n    x: int = {}\n\n\nclass Unread:\n    y: int = {}\n"
-    (pkg / "sections.py").write_text(source.format(1, 1))
-    monkeypatch.syspath_prepend(str(tmp_path))
-    ignored = {"fc_ignore_pkg.sections": frozenset({"Unread"})}
-    before = code_digest("fc_ignore_pkg.sections", ignored=ignored)
-    whole = code_digest("fc_ignore_pkg.sections")
-    (pkg / "sections.py").write_text(source.format(1, 2))  # a new default in an unread class
-    assert code_digest("fc_ignore_pkg.sections", ignored=ignored) == before
-    assert code_digest("fc_ignore_pkg.sections") != whole
-    (pkg / "sections.py").write_text(source.format(2, 2))  # one in a class that is read
-    assert code_digest("fc_ignore_pkg.sections", ignored=ignored) != before
+    module.write_text(source.format(1, 1))
+    ignored = frozenset({"Unread"})
+    before, whole = source_digest(module, ignored), source_digest(module)
+    module.write_text(source.format(1, 2))  # a new default in an unread class
+    assert source_digest(module, ignored) == before
+    assert source_digest(module) != whole
+    module.write_text(source.format(2, 2))  # one in a class that is read
+    assert source_digest(module, ignored) != before
+
+
+def test_every_cached_computation_declares_the_code_it_imports():
+    # a module a computation imports at run time is in its key, or known not to change
+    # its result (NOT_RESULT, each with its reason), or holds no code
+    for code in (FE, FIT, FE_BENCH, *STAGE_CODE.values()):
+        assert code.undeclared() == [], code.runs
+    assert set(STAGE_CODE) == set(STAGES)
+    assert all(STAGES[name].code is code for name, code in STAGE_CODE.items())
+    for name, reason in NOT_RESULT.items():
+        assert import_closure((name,)) and reason
+    assert not any(n.startswith(("reference_fe", "particle", "calibration.core"))
+                   for n in NOT_RESULT)
 
 
 def test_the_fe_code_key_leaves_out_the_sections_the_fe_does_not_read():
     # a new [calibration] key must not make an FE reference stale; a new [fe] key must
-    from reference_fe.keys import FE_CODE_IGNORED, unread_section_classes
-    assert unread_section_classes() == {"ParticleSection", "CalibrationSection",
-                                        "OutputsSection", "VerdictSection"}
-    assert STAGES["reference"].code_ignored is FE_CODE_IGNORED
-    assert FE_CODE_IGNORED == {"forcecal.scene": unread_section_classes()}
+    assert FE.ignored_classes() == {"forcecal.scene": {
+        "ParticleSection", "CalibrationSection", "OutputsSection", "VerdictSection"}}
+    assert STAGE_CODE["reference"].ignored_classes() == FE.ignored_classes()
+    assert FIT.ignored_classes() == {}
     # no module of the FE reads those sections' values (but forcecal.scene, which defines
     # and validates them, and the cost check, which reads particle.dt for the particle
     # side's estimate before any FE work)
-    for name, path in import_closure(("reference_fe.run", "reference_fe.__main__")).items():
+    for name, path in import_closure(FE.runs).items():
         if name not in ("forcecal.scene", "forcecal.cost"):
             assert not re.search(r"\bscene\.(particle|calibration|outputs|verdict)\b",
                                  path.read_text()), name
 
 
 def test_fe_stage_code_is_the_fe_and_shared_packages():
-    from reference_fe.keys import FE_ENTRIES
-    closure = import_closure(STAGES["reference"].code)
+    closure = import_closure(STAGES["reference"].code.runs)
     assert {"reference_fe.run", "reference_fe.model", "forcecal.h5io"} <= set(closure)
     assert not any(n.split(".")[0] in ("particle", "calibration") for n in closure)
     assert {n for n in closure if n.startswith("pipelines")} == {
         "pipelines", "pipelines.runners", "pipelines.runners.common", "pipelines.runners.reference"}
+    declared = {f.split("/")[0] for f in STAGES["reference"].code.digests()}
+    assert declared == {"reference_fe", "forcecal", "pipelines"}
     # the FE experiments' keys: the same FE code, without the pipeline's runner
-    assert set(import_closure(FE_ENTRIES)) == {n for n in closure
-                                               if not n.startswith("pipelines")}
+    assert {f for f in STAGES["reference"].code.digests()
+            if not f.startswith("pipelines")} == set(FE.digests())
 
 
 def test_each_stage_key_holds_its_own_runner_only_and_the_report_the_scene_name(
@@ -163,8 +196,7 @@ def test_each_stage_key_holds_its_own_runner_only_and_the_report_the_scene_name(
     keys = {name: stage.inputs(ctx) for name, stage in STAGES.items()}
     for name, key in keys.items():
         runners = {f for f in key.code if f.startswith("pipelines/runners/")}
-        assert runners == {"pipelines/runners/__init__.py", "pipelines/runners/common.py",
-                           f"pipelines/runners/{name}.py"}
+        assert runners == {"pipelines/runners/common.py", f"pipelines/runners/{name}.py"}
         assert "pipelines/stages.py" not in key.code
     renamed = STAGES["report"].inputs(Context(scene_from_dict({"name": "other"}), tmp_path,
                                               progress=False, ranks=1))
@@ -188,13 +220,13 @@ def project_copy(tmp_path, monkeypatch):
 def _stages_whose_code_changes(root, edits: dict[str, Callable[[str], str]]) -> list[str]:
     """The stages whose code fingerprint changes when the project copy in ``root`` is edited
     (``edits``: {file: function from its old to its new text})."""
-    before = {name: code_digests(stage.code) for name, stage in STAGES.items()}
+    before = {name: stage.code.digests() for name, stage in STAGES.items()}
     for path, edit in edits.items():
         old = (root / path).read_text()
         (root / path).write_text(edit(old))
         assert (root / path).read_text() != old
     return [name for name, stage in STAGES.items()
-            if StageInputs(code=code_digests(stage.code)).changes_from({"code": before[name]})]
+            if StageInputs(code=stage.code.digests()).changes_from({"code": before[name]})]
 
 
 def _comments_docstrings_layout(text: str) -> str:
@@ -230,6 +262,23 @@ def test_editing_a_runner_reruns_its_stage_only(project_copy):
         project_copy, {"reference_fe/model.py": _code_edit}) == ["reference"]
     assert _stages_whose_code_changes(
         project_copy, {"pipelines/report.py": _code_edit}) == ["report"]
+
+
+def test_editing_code_outside_a_stage_declaration_reruns_no_stage(project_copy):
+    # the package __init__ every module runs, the docs command, the cache, the CLI: none
+    # can change a stage's outputs
+    assert _stages_whose_code_changes(project_copy, {
+        path: _code_edit for path in ("forcecal/__init__.py", "pipelines/__init__.py",
+                                      "pipelines/docs.py", "pipelines/cache.py",
+                                      "pipelines/cli.py", "pipelines/stages.py")}) == []
+    # the FE code and the shared modules it reads rerun the reference; the particle model
+    # every stage after it
+    assert _stages_whose_code_changes(project_copy, {"reference_fe/run.py": _code_edit}) == [
+        "reference"]
+    assert _stages_whose_code_changes(project_copy, {"forcecal/mesh.py": _code_edit}) == list(
+        STAGES)
+    assert _stages_whose_code_changes(project_copy, {"particle/model.py": _code_edit}) == [
+        "calibrate", "gravity", "report"]
 
 
 def test_verbose_reaches_the_calibration(tmp_path, monkeypatch):

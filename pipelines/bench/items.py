@@ -21,14 +21,13 @@ import numpy as np
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.h5io import Reference, atomic_path, read_reference
 from forcecal.problem import build_problem, load_mesh
-from forcecal.provenance import code_digest, json_digest, section_fingerprint
+from forcecal.provenance import FE_BENCH, json_digest, section_fingerprint
 from forcecal.scene import Scene
 from forcecal.sections import REFERENCE_SECTIONS
 from pipelines.bench import configs as bc
 from pipelines.report import gravity_dynamic_error, read_report
 from pipelines.runners.reference import mpirun_environment
 from pipelines.runners.common import GRAVITY, PARAMS, REFERENCE
-from reference_fe.keys import FE_CODE_IGNORED
 
 log = logging.getLogger(__name__)
 
@@ -165,10 +164,9 @@ def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[d
 
 def fe_key(scene: Scene) -> str:
     """Identity of an FE computation: the code of the FE runs the bench starts (the reference
-    and the discretisation study, with everything they import), the scene's reference
+    and the discretisation study, :data:`forcecal.provenance.FE_BENCH`), the scene's reference
     sections, the mesh."""
-    return json_digest({"code": code_digest("reference_fe.__main__", "reference_fe.run",
-                                            "reference_fe.sensitivity", ignored=FE_CODE_IGNORED),
+    return json_digest({"code": FE_BENCH.digest(),
                         "scene": section_fingerprint(scene, *REFERENCE_SECTIONS),
                         "mesh": load_mesh(scene).fingerprint()})
 
