@@ -238,6 +238,9 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
     crawl along it, while the simplex slides along the boundary (a local fit on the
     h = 0.0182 m bench mesh stopped at cost 0.102 N^2 this way).
 
+    A coordinate along which both difference steps are infeasible (``x`` on the region's
+    boundary both ways) is held for that iteration.
+
     Raises:
         ConvergenceError: the starting point itself is infeasible.
     """
@@ -279,8 +282,14 @@ def gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
                     jac[:, i] = (rz - r) / (sign * h)
                     break
             else:
-                raise ConvergenceError(f"{name}: infeasible on both sides of {x.tolist()} "
-                                       f"in coordinate {i}")
+                # x lies on the feasible region's boundary both ways along this coordinate
+                # (e.g. a spring's tangent at its ceiling at one end of its strain range and
+                # at the ceiling or floor at the other): hold it this iteration (a zero
+                # column gives it a zero step) and let the boundary finish slide along it
+                log.log(level, "%s: coordinate %d held: infeasible on both sides of %s", name,
+                        i, np.round(x, 6).tolist())
+                jac[:, i] = 0.0
+                left_region = True
         jtj, grad = jac.T @ jac, jac.T @ r
         if not np.any(grad):  # a cost flat to round-off: no direction gains (converged)
             converged = True

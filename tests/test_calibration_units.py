@@ -405,6 +405,20 @@ def test_gauss_newton_rejects_infeasible_trials_and_warns_on_budget():
                      xatol=1e-3, fatol=1e-6, max_evaluations=10)
 
 
+def test_gauss_newton_holds_a_coordinate_infeasible_on_both_sides():
+    # the start lies on the feasible region's boundary both ways along x[1] (as a ring's
+    # spring tangent at its ceiling at both ends of its strain range): the fit holds x[1]
+    # and minimises along x[0], instead of stopping the calibration
+    def residuals(x):
+        if x[1] != 0.5:
+            raise ParameterError("x[1] must stay 0.5")
+        return np.array([x[0] - 0.3, x[1] - 1.0])
+    fit = gauss_newton(residuals, np.array([1.0, 0.5]), np.array([0.5, 0.5]), name="corner",
+                       xatol=1e-9, fatol=1e-14, max_evaluations=100)
+    assert fit.x[1] == 0.5 and fit.x[0] == pytest.approx(0.3, abs=1e-8)
+    assert fit.cost == pytest.approx(0.25, rel=1e-12)
+
+
 def test_gauss_newton_finishes_on_a_boundary_with_nelder_mead():
     # minimise |x - (2, 2)|^2 on the unit disc: the optimum is on the boundary at (1, 1)/sqrt 2.
     # Every Gauss-Newton step points at (2, 2), out of the disc; damping only shortens it,

@@ -154,6 +154,10 @@ def test_each_stage_key_holds_its_own_runner_only_and_the_report_the_scene_name(
     for name in ("reference.h5", "params.h5", "gravity.h5"):
         (tmp_path / name).write_bytes(b"stand-in")
     monkeypatch.setattr("pipelines.stages.load_mesh", lambda scene: box_mesh((1, 1, 1), (1, 1, 1)))
+    # the one-cell stand-in has no room for the scene's test points: the depth check that
+    # builds them is stood in for (tested on real meshes in test_calibration_inputs)
+    monkeypatch.setattr("pipelines.stages.build_problem", lambda scene, mesh: None)
+    monkeypatch.setattr("pipelines.stages.check_experiment_depths", lambda scene, problem: None)
     # the stand-in is no HDF5 file: its experiments' content digest is stood in for too
     monkeypatch.setattr("pipelines.stages.reference_digest", lambda path, experiments: "ref")
     keys = {name: stage.inputs(ctx) for name, stage in STAGES.items()}
