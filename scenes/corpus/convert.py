@@ -74,10 +74,6 @@ SOURCES = (
     Source("armadillo", "InteractiveComputerGraphics/PositionBasedDynamics",
            "d0894bdb0190c5f273c0500ecad0e8c2bf21fc5f",
            "data/models/armadillo_4k.node", "tetgen", "MIT"),
-    Source("cow_head", "ipc-sim/IPC", "573d2c7e04104d3f9baf526bdaee7745891a571a",
-           "input/tetMeshes/cow_head.msh", "meshio", "MIT"),
-    Source("ball", "ipc-sim/IPC", "573d2c7e04104d3f9baf526bdaee7745891a571a",
-           "input/tetMeshes/sphere1K.msh", "meshio", "MIT"),
 )
 
 
