@@ -42,6 +42,7 @@ from forcecal.errors import DataFileError, ForcecalError
 from forcecal.failures import EXIT_ERROR, describe, die_with_parent
 from forcecal.h5io import atomic_path
 from forcecal.provenance import git_commit
+from pipelines.verdict import AT_LEAST, CHECKS as VERDICT_CHECKS
 
 KIND = "forcecal.corpus"
 VERSION = 1
@@ -359,20 +360,40 @@ def _percent(value: float | None) -> str:
     return "–" if value is None else f"{100 * value:.1f}"
 
 
-def _check_cell(check: dict[str, Any] | None) -> str:
-    """``pass 3.4 / 5.2 (≤ 10) %``: status, calibrated / baseline value, goal."""
+def _check_cell(check: dict[str, Any] | None, name: str = "") -> str:
+    """``pass 3.4 / 5.2 (≤ 10) %``: status, calibrated / baseline value, goal (a check of
+    at least so many g, ``carries_its_weight``: ``pass 1.00 / 1.00 (≥ 1.00) g``)."""
     if check is None:
         return "missing"
     status = {"passed": "pass", "failed": "**fail**", "not_run": "not run"}.get(
         check["status"], str(check["status"]))
     if check["calibrated"] is None and check["baseline"] is None:
         return status
+    spec = VERDICT_CHECKS.get(name)
+    if spec is not None and spec.direction == AT_LEAST:
+        def value(v: float | None) -> str:
+            return "–" if v is None else f"{v:.2f}"
+        return (f"{status} {value(check['calibrated'])} / {value(check['baseline'])} "
+                f"(≥ {value(check['goal'])}) {spec.unit}")
     return (f"{status} {_percent(check['calibrated'])} / {_percent(check['baseline'])} "
             f"(≤ {_percent(check['goal'])}) %")
 
 
 def _cell(text: Any) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def _wall_time(data: dict[str, Any]) -> str:
+    """The run's wall time, saying which scenes it ran when it ran only some (``--only``:
+    the others' entries are kept from earlier runs, each with its own date and commit)."""
+    ran = [e["scene"] for e in data["scenes"] if e.get("date", "") >= data["date"]]
+    total = f"the scenes' pipeline times add up to {_minutes(data['scenes_time_s'])} min"
+    if len(ran) == len(data["scenes"]):
+        return f"corpus wall time {_minutes(data['wall_time_s'])} min ({total})"
+    names = ", ".join(Path(r).stem for r in ran) or "no scene"
+    return (f"this run ran {names} in {_minutes(data['wall_time_s'])} min, the other "
+            f"scenes' entries are kept from earlier runs (each entry's date and commit in "
+            f"corpus.json); {total}")
 
 
 def corpus_markdown(data: dict[str, Any]) -> str:
@@ -390,10 +411,8 @@ def corpus_markdown(data: dict[str, Any]) -> str:
         "[`scenes/corpus/SOURCES.md`](../scenes/corpus/SOURCES.md).",
         "",
         f"Run of {data['date']} at commit `{data['git_commit']}` on {data['cpus']} cores, "
-        f"load average (1/5/15 min) at start / end {load}; corpus wall time "
-        f"{_minutes(data['wall_time_s'])} min (the scenes' pipeline times add up to "
-        f"{_minutes(data['scenes_time_s'])} min). Overall verdict (every scene's "
-        f"verdict passed): {'PASS' if data['passed'] else 'FAIL'}.",
+        f"load average (1/5/15 min) at start / end {load}; {_wall_time(data)}. Overall "
+        f"verdict (every scene's verdict passed): {'PASS' if data['passed'] else 'FAIL'}.",
         "",
         "A check's cell: its status, the calibrated model's and the closed-form baseline's "
         "relative error, and the goal, in %. Times in minutes; haptic p99 of one 1 ms step "
@@ -411,7 +430,7 @@ def corpus_markdown(data: dict[str, Any]) -> str:
                  if "edge_min_m" in e else "")
         passed = {True: "PASS", False: "**FAIL**", None: "none"}[e.get("passed")]
         cells = [e["name"], e.get("vertices", ""), e.get("tets", ""), edges, e["exit_status"],
-                 passed] + [_check_cell(checks.get(n)) if verdict else "" for n in names]
+                 passed] + [_check_cell(checks.get(n), n) if verdict else "" for n in names]
         p99 = e.get("haptic_p99_us")
         cells += [_minutes(e.get("fe_time_s")), _minutes(e.get("calibration_time_s")),
                   _minutes(e.get("total_time_s")), "" if p99 is None else f"{p99:.0f}",

@@ -228,6 +228,20 @@ def test_a_long_quiet_stage_is_reported_with_the_fe_items_it_finished(fake_corpu
     assert "reference running: no cache record" in (out / "g_slow.log").read_text()
 
 
+def test_the_table_shows_each_check_in_its_own_unit_and_which_scenes_a_run_ran():
+    weight = {"calibrated": 0.62, "baseline": 1.0, "goal": 1.0, "status": "failed"}
+    assert corpus._check_cell(weight, "carries_its_weight") == "**fail** 0.62 / 1.00 (≥ 1.00) g"
+    sag = {"calibrated": 0.034, "baseline": 0.052, "goal": 0.15, "status": "passed"}
+    assert corpus._check_cell(sag, "static_sag") == "pass 3.4 / 5.2 (≤ 15.0) %"
+    data = {"date": "2026-01-02T00:00:00+00:00", "wall_time_s": 120.0, "scenes_time_s": 600.0,
+            "scenes": [{"scene": "scenes/corpus/a.toml", "date": "2026-01-02T00:00:05+00:00"},
+                       {"scene": "scenes/corpus/b.toml", "date": "2026-01-01T00:00:00+00:00"}]}
+    assert corpus._wall_time(data).startswith("this run ran a in 2.0 min, the other scenes'")
+    data["scenes"][1]["date"] = "2026-01-02T00:10:00+00:00"
+    assert corpus._wall_time(data) == ("corpus wall time 2.0 min (the scenes' pipeline times "
+                                       "add up to 10.0 min)")
+
+
 def test_the_docs_table_is_generated_from_corpus_json_alone(fake_corpus, tmp_path):
     scenes, out, command, calls = fake_corpus
     data, _ = run(scenes, out, command)
