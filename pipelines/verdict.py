@@ -19,7 +19,9 @@ Checks (:data:`CHECKS`), each the calibrated model's value against its goal and,
 * ``carries_its_weight``: the fraction of the scene's gravity the model's static sag carried
   (1 when it completed, else the load its Newton solve reached: the smallest load factor of
   the model's ``gravity_static`` records in ``failures``, the gravity stage's or a
-  calibration's that fitted a load its model could not carry); at least;
+  calibration's that fitted a load its model could not carry); at least; failed also when
+  the calibration failed its whole-body data (``body.status == "failed"``: no equilibrium
+  under a body load it was fitted to, or no modes);
 * ``second_support_static_sag``, ``second_support_release_rms``: the second held-out body
   test's ``second_support.errors.static_sag`` and ``.release_rms`` (the gravity test with the
   ``[second_support]`` clamp); at most; ``not_run`` when the scene's experiments do not
@@ -185,6 +187,8 @@ def measurements(report: dict[str, Any]) -> dict[str, Measured]:
                 values = [_magnitude((metrics.get(m) or {}).get(metric))
                           for m in ("calibrated", "baseline")]
         failure = _failed(failures, "calibrated", experiments, role)
+        if name == "carries_its_weight" and failure is None:
+            failure = _failed_body_fit(report)
         if name in ("release_period", "release_first_peak") and values[0] is None and not (
                 failure or why_not) and metrics.get("calibrated"):
             failure = f"no {name.split('_', 1)[1].replace('_', ' ')} in the calibrated release"
@@ -197,6 +201,16 @@ def measurements(report: dict[str, Any]) -> dict[str, Measured]:
         note = _extrapolated(report, spec.experiment) if role == "held_out" else None
         out[name] = Measured(values[0], values[1], failure, why_not, note)
     return out
+
+
+def _failed_body_fit(report: dict[str, Any]) -> str | None:
+    """Why the calibration failed its whole-body data (``body.status == "failed"``: the
+    calibrated model has no equilibrium under a body load it was fitted to, or no modes),
+    None if it did not."""
+    body = report.get("body") or {}
+    if body.get("status") != "failed":
+        return None
+    return f"failed calibration: {body.get('failure')}"
 
 
 def _extrapolated(report: dict[str, Any], experiment: str) -> str | None:

@@ -229,6 +229,22 @@ def test_checks_not_measured_are_not_run_with_the_reason():
         assert checks[name]["calibrated"] is None and checks[name]["baseline"] is None
 
 
+def test_a_failed_whole_body_fit_fails_carries_its_weight_with_the_reason():
+    """A calibration whose model has no equilibrium under a body load it was fitted to is a
+    failed calibration: the verdict's weight check fails with its reason."""
+    report = _report()
+    assert judge(measurements(report), VerdictSection())["checks"]["carries_its_weight"][
+        "status"] == "passed"
+    report["body"] = {"status": "failed", "failure": "the calibrated model does not carry "
+                      "the whole-body data it was fitted to: ConvergenceError: load 0 at 0.8"}
+    check = judge(measurements(report), VerdictSection())["checks"]["carries_its_weight"]
+    assert check["status"] == "failed"
+    assert check["reason"] == f"failed calibration: {report['body']['failure']}"
+    report["body"]["status"] = "not fitted"  # not asked for, or not usable: no failure
+    assert judge(measurements(report), VerdictSection())["checks"]["carries_its_weight"][
+        "status"] == "passed"
+
+
 def test_a_scene_that_does_not_ask_for_the_second_support_is_judged_without_it():
     """The opt-in second support's checks are left out of the verdict when the scene's
     experiments do not hold it (a scene is judged on the tests it asks for), and judged
