@@ -35,7 +35,7 @@ help:
 	@echo "make validate    # demo, exit code 3 when the verdict fails (CI gate; SCENE=...)"
 	@echo "make test        # install what is missing, then run the test suite"
 	@echo "make reference | calibrate | gravity | report   # single stages (SCENE=... OUT=...)"
-	@echo "make bench       # headline benchmarks, about 11 min cold (estimated) -> runs/bench-headline/ (bench-quick: a few minutes)"
+	@echo "make bench       # headline benchmarks, 8.5 min cold (measured, idle 2 cores) -> runs/bench-headline/ (bench-quick: a few minutes)"
 	@echo "make bench-full  # every benchmark at full size, 1.5-2 h cold -> runs/bench/ (the committed bench.json)"
 	@echo "make corpus      # every scenes/corpus/*.toml through the pipeline -> runs/corpus/corpus.json, docs/corpus.md"
 
