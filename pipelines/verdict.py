@@ -74,9 +74,10 @@ CHECKS = {
     "second_support_release_rms": CheckSpec("second_support_dynamic"),
 }
 STATUSES = ("passed", "failed", "not_run")
-#: opt-in experiments (not in the default list): their checks are judged only when asked for
-OPT_IN = {"second_support_static_sag": "second_support",
-          "second_support_release_rms": "second_support"}
+#: the checks of the opt-in second support (not in the default experiments): judged only when
+#: the scene asks for it
+OPT_IN = frozenset(name for name, spec in CHECKS.items()
+                   if spec.experiment in SECOND_SUPPORT_PARTS)
 #: the start of ``not_run``'s reason for an experiment the scene's list does not hold
 NOT_ASKED = "not in the scene's experiments"
 
