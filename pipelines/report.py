@@ -81,7 +81,8 @@ from calibration.metrics import force_vector_errors, relative_rms_error
 from calibration.results import CalibrationResult
 from calibration.validation import per_completed_point
 from forcecal.errors import DataFileError
-from forcecal.h5io import FLOOR_ELEMENTS, Reference, atomic_path
+from forcecal.h5io import FLOOR_ELEMENTS, FloorResult, GravityResult, Reference, atomic_path
+from forcecal.problem import Problem
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
 from pipelines.dynamics import dynamic_metrics, release_modes
@@ -357,7 +358,8 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "body": calibration.body or None,
         "second_support": (second_support_block(reference, gravity.second_support)
                            if "second_support" in ran else None),
-        "discretisation_floor": (floor_block(reference, calibrated, baseline,
+        "discretisation_floor": (floor_block(p, reference.gravity, reference.floor,
+                                             calibrated, baseline,
                                              None if gravity_block is None
                                              else gravity_block["dynamic_metrics"])
                                  if "floor" in ran and gravity_ran else None),
@@ -428,9 +430,9 @@ def second_support_block(reference: Reference, runs: SupportRuns) -> dict[str, A
 FLOOR_METRICS = ("static_sag", "release_rms", "period_error", "first_peak_error")
 
 
-def floor_block(reference: Reference, calibrated: dict[str, float | None],
-                baseline: dict[str, float | None], dynamic: dict[str, Any] | None
-                ) -> dict[str, Any]:
+def floor_block(problem: Problem, g: GravityResult, floor: FloorResult,
+                calibrated: dict[str, float | None], baseline: dict[str, float | None],
+                dynamic: dict[str, Any] | None) -> dict[str, Any]:
     """``report.json``'s ``discretisation_floor``: for each floor element
     (:class:`~forcecal.h5io.FloorResult`) the gravity test's errors against the reference,
     measured as the calibrated model's (``static_sag``: :func:`gravity_static_error` over the
@@ -438,10 +440,10 @@ def floor_block(reference: Reference, calibrated: dict[str, float | None],
     ``period_error``, ``first_peak_error``: :func:`pipelines.dynamics.dynamic_metrics`),
     its largest static sag and compute time; null errors and the reason for an element whose
     run failed. ``calibrated`` and ``baseline`` repeat the models' values of the same metrics
-    next to it (from ``errors``, ``baseline_errors`` and the gravity block's ``dynamic``
-    metrics), and ``floor_element`` names the locking-free element, the floor itself."""
-    floor, g = reference.floor, reference.gravity
-    problem = reference.problem
+    next to it (their ``gravity_static`` and ``gravity_dynamic`` errors; ``dynamic``: the
+    gravity block's ``dynamic_metrics``, None without it), and ``floor_element`` names the
+    locking-free element, the floor itself. ``g`` is the reference's gravity test (both runs)
+    on ``problem``."""
     node = problem.tracked_node
     metrics = None
     if floor.runs and g.displacement is not None and g.static_displacement is not None:
