@@ -22,6 +22,13 @@ optional) holds the four of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS`.
 ``[second_support]`` vertices clamped: its keys as attributes, the subgroup ``gravity`` (the
 ``[gravity]`` keys, ``tracked_node`` resolved for this support), the datasets ``fixed``
 (F2,), ``static_displacement`` (N, 3) m, ``time`` (S,) s and ``displacement`` (S, N, 3) m.
+``/floor`` (:class:`FloorResult`, experiment ``floor``) holds the discretisation floor: the
+gravity test computed by vertex-dof FE elements on the particle mesh
+(:mod:`reference_fe.floor`); attributes ``elements`` (JSON list) and ``quadrature_degree``,
+the subgroup ``gravity`` (the ``[gravity]`` keys it ran with) and one subgroup per element
+with the attribute ``seconds`` and either the datasets ``static_displacement`` (N, 3) m,
+``time`` (S,) s and ``displacement`` (S, N, 3) m or the attribute ``failed`` (why its run
+failed).
 
 What failed in the FE stage is recorded too: ``fe_failures`` (JSON,
 :class:`forcecal.fe_failures.FEFailures`: test points replaced or dropped, the gravity
@@ -394,6 +401,35 @@ class SecondSupportResult:
     runs: GravityResult
 
 
+#: the discretisation floor's elements (:mod:`reference_fe.floor`): the locking-free vertex-dof
+#: element, the floor itself, first; plain P1 next to it, so its locking is visible
+FLOOR_ELEMENTS = ("ANP", "P1")
+
+
+@dataclass(frozen=True, eq=False)
+class FloorResult:
+    """The discretisation floor (experiment ``floor``, :mod:`reference_fe.floor`): the
+    gravity test computed on the particle mesh by FE elements whose only displacement dofs
+    are the vertices'.
+
+    Attributes:
+        runs: element -> its static sag and release (both present; ``settings`` the scene's
+            ``[gravity]`` with the reference's tracked node), for the elements that ran.
+        failed: element -> why its run failed (Newton, an unstable support).
+        seconds: element -> compute time of its runs [s] (model build included).
+        quadrature_degree: of the elements' residual.
+    """
+    runs: dict[str, GravityResult]
+    failed: dict[str, str]
+    seconds: dict[str, float]
+    quadrature_degree: int
+
+    @property
+    def elements(self) -> tuple[str, ...]:
+        """Every element of the floor, those that ran first."""
+        return tuple(self.runs) + tuple(e for e in self.failed if e not in self.runs)
+
+
 @dataclass(frozen=True, eq=False)
 class Reference:
     """Everything in ``reference.h5``.
@@ -412,6 +448,7 @@ class Reference:
     fe: FESection | None = None
     body: BodyResult | None = None
     second_support: SecondSupportResult | None = None
+    floor: FloorResult | None = None
 
     @property
     def experiments(self) -> tuple[str, ...]:
@@ -421,7 +458,8 @@ class Reference:
                    "gravity_static": g is not None and g.static_displacement is not None,
                    "gravity_dynamic": g is not None and g.time is not None,
                    "body": self.body is not None,
-                   "second_support": self.second_support is not None}
+                   "second_support": self.second_support is not None,
+                   "floor": self.floor is not None}
         return tuple(e for e in EXPERIMENTS if present[e])
 
     @property
@@ -613,6 +651,59 @@ def write_reference(path: str | Path, ref: Reference) -> None:
             write_body(fh.create_group("body"), ref.body, n_v)
         if ref.second_support is not None:
             _write_second_support(fh, ref.second_support, n_v)
+        if ref.floor is not None:
+            _write_floor(fh, ref.floor, n_v)
+
+
+def _write_floor(fh: h5py.File, floor: FloorResult, n_v: int) -> None:
+    """The ``/floor`` group (:class:`FloorResult`; module docstring)."""
+    g = fh.create_group("floor")
+    g.attrs["elements"] = json.dumps(list(floor.elements))
+    g.attrs["quadrature_degree"] = int(floor.quadrature_degree)
+    settings = next(iter(floor.runs.values())).settings if floor.runs else None
+    if settings is not None:
+        write_section(g.create_group("gravity"), settings)
+    for element in floor.elements:
+        e = g.create_group(element)
+        e.attrs["seconds"] = float(floor.seconds.get(element, 0.0))
+        if element in floor.failed:
+            e.attrs["failed"] = floor.failed[element]
+            continue
+        runs = floor.runs[element]
+        _check_shape(f"floor.{element}.static_displacement", runs.static_displacement, (n_v, 3))
+        _check_shape(f"floor.{element}.displacement", runs.displacement,
+                     (len(runs.time), n_v, 3))
+        put(e, "static_displacement", runs.static_displacement, "m",
+            f"static sag of every vertex, {element} on the particle mesh (N, 3)")
+        put(e, "time", runs.time, "s", "release sample times, from rest at 0 (S,)")
+        put(e, "displacement", runs.displacement, "m",
+            f"release vertex displacements, {element} on the particle mesh (S, N, 3)")
+
+
+def _read_floor(fh: h5py.File, path: str | Path, n_v: int) -> FloorResult:
+    """The ``/floor`` group back, checked (:func:`_write_floor`)."""
+    g = group(fh, "floor")
+    elements = json_attr(g, "elements")
+    if not isinstance(elements, list) or not elements:
+        raise DataFileError(f"{path}:/floor attribute elements = {elements!r} is not a "
+                            "non-empty JSON list")
+    runs, failed, seconds = {}, {}, {}
+    settings = read_section(group(fh, "floor/gravity"), "gravity") if "gravity" in g else None
+    for element in elements:
+        e = group(fh, f"floor/{element}")
+        seconds[element] = float(attr(e, "seconds"))
+        if "failed" in e.attrs:
+            failed[element] = str(attr(e, "failed"))
+            continue
+        if settings is None:
+            raise DataFileError(f"{path}:/floor/gravity is missing")
+        times = get(fh, f"floor/{element}/time", (None,), dtype="float")
+        _check_record_times(times, settings, f"{path}:/floor/{element}/time")
+        runs[element] = GravityResult(
+            get(fh, f"floor/{element}/static_displacement", (n_v, 3), dtype="float"), times,
+            get(fh, f"floor/{element}/displacement", (len(times), n_v, 3), dtype="float"),
+            settings)
+    return FloorResult(runs, failed, seconds, int(attr(g, "quadrature_degree")))
 
 
 def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:
@@ -772,6 +863,7 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
         body = read_body(fh, problem.mesh.n_vertices) if "body" in stored else None
         second = (_read_second_support(fh, path, problem.mesh.n_vertices)
                   if "second_support" in stored else None)
+        floor = _read_floor(fh, path, problem.mesh.n_vertices) if "floor" in stored else None
         meta = {k: attr(fh, k) for k in fh.attrs}
         for name in ("fe_failures", "mesh_preflight"):  # JSON written by the FE stage
             try:
@@ -780,7 +872,8 @@ def read_reference(path: str | Path, *, expect_mesh: str | None = None) -> Refer
                 raise DataFileError(f"{path}: attribute {name} is not JSON") from None
         FEFailures.from_json(meta.get("fe_failures"), str(path))
     return Reference(problem=problem, material=material, indentation=ind, relaxation=rel,
-                     gravity=gravity, meta=meta, fe=fe, body=body, second_support=second)
+                     gravity=gravity, meta=meta, fe=fe, body=body, second_support=second,
+                     floor=floor)
 
 
 def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
@@ -800,7 +893,7 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
     for e, where in (("indentation", "indentation"), ("relaxation", "relaxation"),
                      ("gravity_static", "gravity/static_displacement"),
                      ("gravity_dynamic", "gravity/time"), ("body", "body"),
-                     ("second_support", "second_support")):
+                     ("second_support", "second_support"), ("floor", "floor")):
         if e in listed and where not in fh:
             raise DataFileError(f"{fh.filename}:/{where} is missing (the file lists {e!r} in "
                                 "its experiments)")
@@ -811,7 +904,8 @@ def stored_experiments(fh: h5py.File) -> tuple[str, ...]:
 EXPERIMENT_PATHS = {"indentation": ("indentation",), "relaxation": ("relaxation",),
                     "gravity_static": ("gravity/static_displacement",),
                     "gravity_dynamic": ("gravity/time", "gravity/displacement"),
-                    "body": ("body",), "second_support": ("second_support",)}
+                    "body": ("body",), "second_support": ("second_support",),
+                    "floor": ("floor",)}
 #: what every experiment's results depend on (hashed by :func:`reference_digest` too)
 SHARED_PATHS = ("mesh", "test_points", "material", "fe")
 

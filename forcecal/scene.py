@@ -217,9 +217,11 @@ class FESection:
     element: str = key("P2", "element: 'P2' (quadratic displacement; sag ~15 % below the "
                        "refined mesh's on the default liver), 'TH' (Taylor-Hood P2-P1 u-p, "
                        "locking-free; a particle model fitted to its indentation curves is too "
-                       "soft to carry the organ's weight, see README) or 'P1' (locks; only for "
-                       "the sensitivity study)",
-                       choices=("P1", "P2", "TH"))
+                       "soft to carry the organ's weight, see README), 'P1' (locks; only for "
+                       "the sensitivity study) or 'ANP' (P1 with average nodal pressure: "
+                       "vertex dofs only, locking-free; the discretisation floor's element, "
+                       "docs/fe-reference.md)",
+                       choices=("P1", "P2", "TH", "ANP"))
     quadrature_degree: int = key(4, "quadrature degree of the residual and of the Prony "
                                  "internal variables", minimum=1)
     refine: int = key(0, "uniform refinements of the particle mesh the FE reference runs on "
@@ -466,7 +468,7 @@ TOP_LEVEL_KEYS = {"name": "scene name; default output folder is runs/<name>/",
 
 #: the experiments a scene can ask for (top-level key ``experiments``), in pipeline order
 EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "body",
-               "second_support")
+               "second_support", "floor")
 #: the experiments of a scene that does not list them (the whole-body data and the second
 #: support are asked for: the second support costs one more FE static sag and release)
 DEFAULT_EXPERIMENTS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic")
@@ -496,6 +498,10 @@ EXPERIMENT_NEEDS = {
                         "judged next to it"),
                        ("gravity_dynamic", "it is the gravity test with another support, "
                         "judged next to it")),
+    "floor": (("gravity_static", "the floor is the gravity test's error of a vertex-only FE "
+               "model, measured against the reference's sag"),
+              ("gravity_dynamic", "the floor is the gravity test's error of a vertex-only FE "
+               "model, measured against the reference's release")),
 }
 EXPERIMENTS_DOC = ("experiments the scene computes, stores and reports, in any order: "
                    "'indentation' (required: it calibrates the springs), 'relaxation' (the "
@@ -504,8 +510,12 @@ EXPERIMENTS_DOC = ("experiments the scene computes, stores and reports, in any o
                    "modes and static body loads, [body]; asked for explicitly, not in the "
                    "default list), 'second_support' (the gravity test's sag and release with "
                    "the [second_support] vertices clamped instead: a second held-out body test, "
-                   "never fitted; needs both gravity experiments; not in the default list); the "
-                   "others are skipped by every stage")
+                   "never fitted; needs both gravity experiments; not in the default list), "
+                   "'floor' (the discretisation floor: the gravity test computed by a P1 FE "
+                   "with the true material on the particle mesh, locking-free 'ANP' and plain "
+                   "'P1', reported as report.json's discretisation_floor, never judged; needs "
+                   "both gravity experiments; not in the default list); the others are skipped "
+                   "by every stage")
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,10 @@ EXPERIMENT_SECTIONS = {"indentation": ("indentation",),
                        "second_support": ("gravity", "second_support"),
                        # the loads are the scene's weight along the axes perpendicular to its
                        # gravity: the acceleration is read
-                       "body": ("gravity", "body")}
+                       "body": ("gravity", "body"),
+                       # the gravity test on the particle mesh with the floor's own elements
+                       # (fe.element and fe.refine are not used, the Newton settings are)
+                       "floor": ("gravity",)}
 #: sections the whole FE reference reads (every experiment's)
 REFERENCE_SECTIONS = ("mesh", "material", "fixed", "second_support", "test_points",
                       "indentation", "relaxation", "gravity", "body", "fe")

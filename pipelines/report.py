@@ -54,6 +54,12 @@ instead of ``[fixed]``'s, the FE against the calibrated and the baseline model
 ``failures`` (``second_support_static``, ``second_support_dynamic``), a failed FE test in
 ``fe_failures.second_support`` and ``not_run``.
 
+``discretisation_floor`` (null unless the scene's experiments include ``floor``) is the
+discretisation floor (:func:`floor_block`): the gravity test computed by FE elements whose only
+displacement dofs are the particle mesh's vertices, with the true material (locking-free ANP
+and plain P1, :mod:`reference_fe.floor`), measured against the reference with the calibrated
+model's gravity metrics. It is information, not a check: the verdict does not read it.
+
 ``strain_ranges`` says where the fitted spring laws hold (:func:`strain_ranges`): the
 connector strains the calibration points' curves reached, against those of each held-out
 point; a held-out point beyond them is judged on an extrapolated spring law, and the
@@ -75,7 +81,8 @@ from calibration.metrics import force_vector_errors, relative_rms_error
 from calibration.results import CalibrationResult
 from calibration.validation import per_completed_point
 from forcecal.errors import DataFileError
-from forcecal.h5io import Reference, atomic_path
+from forcecal.h5io import FLOOR_ELEMENTS, FloorResult, GravityResult, Reference, atomic_path
+from forcecal.problem import Problem
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
 from pipelines.dynamics import dynamic_metrics, release_modes
@@ -219,9 +226,13 @@ def versions(reference: Reference) -> dict[str, str | None]:
 
 
 def experiments_run(experiments: tuple[str, ...], calibration: CalibrationResult,
-                    gravity: GravityRuns | None) -> tuple[tuple[str, ...], dict[str, str]]:
-    """(the experiments compared in the report, {experiment not compared: why})."""
-    done = set(calibration.experiments) | set(() if gravity is None else gravity.experiments)
+                    gravity: GravityRuns | None, reference_only: tuple[str, ...] = ()
+                    ) -> tuple[tuple[str, ...], dict[str, str]]:
+    """(the experiments compared in the report, {experiment not compared: why});
+    ``reference_only``: the experiments of the reference that no particle stage runs
+    (``floor``)."""
+    done = (set(calibration.experiments) | set(() if gravity is None else gravity.experiments)
+            | set(reference_only))
     if calibration.body:  # the whole-body record (its errors, fitted or not)
         done.add("body")
     ran = tuple(e for e in ALL_EXPERIMENTS if e in done and e in experiments)
@@ -246,7 +257,8 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
     (None: not measured)."""
     p = reference.problem
     fe_t = fe_timings(reference)
-    ran, not_run = experiments_run(experiments, calibration, gravity)
+    ran, not_run = experiments_run(experiments, calibration, gravity,
+                                   ("floor",) if reference.floor is not None else ())
     fe_failures = reference.fe_failures
     for failed, kinds, test in ((fe_failures.gravity, GRAVITY_EXPERIMENTS, "gravity"),
                                 (fe_failures.second_support, ("second_support",),
@@ -346,6 +358,11 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         "body": calibration.body or None,
         "second_support": (second_support_block(reference, gravity.second_support)
                            if "second_support" in ran else None),
+        "discretisation_floor": (floor_block(p, reference.gravity, reference.floor,
+                                             calibrated, baseline,
+                                             None if gravity_block is None
+                                             else gravity_block["dynamic_metrics"])
+                                 if "floor" in ran and gravity_ran else None),
         "global_parameters": calibration.global_params.as_dict(),
         # how those values spread over the connectors (calibration.global_shape); files written
         # before the key had the paper's uniform set
@@ -407,6 +424,61 @@ def second_support_block(reference: Reference, runs: SupportRuns) -> dict[str, A
             {"fe": release_modes(fe.time, fe.displacement, node),
              **{m: release_modes(fe.time, r.displacement, node) for m, r in released.items()}}),
     }
+
+
+#: the gravity metrics of the discretisation floor, as report.json names them elsewhere
+FLOOR_METRICS = ("static_sag", "release_rms", "period_error", "first_peak_error")
+
+
+def floor_block(problem: Problem, g: GravityResult, floor: FloorResult,
+                calibrated: dict[str, float | None], baseline: dict[str, float | None],
+                dynamic: dict[str, Any] | None) -> dict[str, Any]:
+    """``report.json``'s ``discretisation_floor``: for each floor element
+    (:class:`~forcecal.h5io.FloorResult`) the gravity test's errors against the reference,
+    measured as the calibrated model's (``static_sag``: :func:`gravity_static_error` over the
+    free vertices; ``release_rms``: :func:`gravity_dynamic_error` of the tracked vertex;
+    ``period_error``, ``first_peak_error``: :func:`pipelines.dynamics.dynamic_metrics`),
+    its largest static sag and compute time; null errors and the reason for an element whose
+    run failed. ``calibrated`` and ``baseline`` repeat the models' values of the same metrics
+    next to it (their ``gravity_static`` and ``gravity_dynamic`` errors; ``dynamic``: the
+    gravity block's ``dynamic_metrics``, None without it), and ``floor_element`` names the
+    locking-free element, the floor itself. ``g`` is the reference's gravity test (both runs)
+    on ``problem``."""
+    node = problem.tracked_node
+    metrics = None
+    if floor.runs and g.displacement is not None and g.static_displacement is not None:
+        metrics = dynamic_metrics(
+            g.time, g.displacement[:, node], g.static_displacement[node],
+            {e: (r.displacement[:, node], r.static_displacement[node])
+             for e, r in floor.runs.items()})
+    elements = {}
+    for element in floor.elements:
+        run = floor.runs.get(element)
+        row: dict[str, Any] = dict.fromkeys(FLOOR_METRICS)
+        row.update(max_static_sag_m=None, fe_seconds=floor.seconds.get(element),
+                   failed=floor.failed.get(element))
+        if run is not None:
+            row.update(static_sag=gravity_static_error(g.static_displacement,
+                                                       run.static_displacement, problem.free),
+                       release_rms=gravity_dynamic_error(g.displacement[:, node],
+                                                         run.displacement[:, node]),
+                       period_error=metrics[element]["period_error"],
+                       first_peak_error=metrics[element]["first_peak_error"],
+                       max_static_sag_m=float(np.linalg.norm(run.static_displacement,
+                                                             axis=1).max()))
+        elements[element] = row
+
+    def model_row(errors: dict[str, float | None], name: str) -> dict[str, float | None]:
+        m = (dynamic or {}).get(name) or {}
+        return {"static_sag": errors["gravity_static"], "release_rms": errors["gravity_dynamic"],
+                "period_error": m.get("period_error"),
+                "first_peak_error": m.get("first_peak_error")}
+
+    return {"floor_element": FLOOR_ELEMENTS[0], "mesh": "particle mesh",
+            "quadrature_degree": floor.quadrature_degree, "tracked_node": int(node),
+            "fe_max_static_sag_m": float(np.linalg.norm(g.static_displacement, axis=1).max()),
+            "elements": elements, "calibrated": model_row(calibrated, "calibrated"),
+            "baseline": model_row(baseline, "baseline")}
 
 
 def strain_ranges(calibration: CalibrationResult) -> dict[str, Any] | None:

@@ -10,7 +10,7 @@ the coefficient arrays change between steps, so forms are compiled once.
 One residual form serves every experiment (total Lagrangian, test function v)::
 
     R(w; v) = int F S(u) : grad v  -  int rho g . v  +  int rho c_m (u - u_pred) . v
-              [ + int (J - 1 - p/kappa) q   for the Taylor-Hood u-p element ]
+              [ + int (J - 1 - p/kappa) q   for the u-p elements TH and ANP ]
     S(u)    = S_vol(u) + gamma S_iso0(u; C10, C01) + H
 
 (see :mod:`reference_fe.material` for ``gamma`` and ``H``). Quasi-static steps
@@ -44,7 +44,11 @@ from reference_fe.material import (check_material, isochoric_stress, long_term, 
 
 log = logging.getLogger(__name__)
 
-ELEMENTS = ("P1", "P2", "TH")
+ELEMENTS = ("P1", "P2", "TH", "ANP")
+#: the u-p elements (a pressure field next to the displacement)
+MIXED_ELEMENTS = ("TH", "ANP")
+#: the elements whose displacement dofs are the mesh vertices' alone (no mid-edge nodes)
+VERTEX_ELEMENTS = ("P1", "ANP")
 
 
 class StepFailed(Exception):
@@ -299,10 +303,11 @@ class FEModel:
         material: instantaneous material (the model applies :func:`long_term` itself).
         fe: element, quadrature degree and Newton settings.
         domain: the dolfinx mesh.
-        space: the solution space (vector P1/P2, or mixed P2-P1 for TH).
+        space: the solution space (vector P1/P2, or mixed P2-P1 for TH, P1-P1 for ANP).
         vertex_dofs: (N, 3) int32, solution-vector index of each mesh vertex's x, y, z
             displacement (P2: the vertex dofs).
-        pressure_dofs: (Np,) int32, solution-vector indices of the pressure (TH only, else empty).
+        pressure_dofs: (Np,) int32, solution-vector indices of the pressure (TH and ANP, else
+            empty).
         n_cells, n_qp: cells and quadrature points per cell of the internal variables.
     """
 
@@ -319,7 +324,7 @@ class FEModel:
         q = fe.quadrature_degree
         tet = self.domain.ufl_cell()
         self.space = fem.FunctionSpace(self.domain, _element(fe.element, tet))
-        self._is_mixed = fe.element == "TH"
+        self._is_mixed = fe.element in MIXED_ELEMENTS
         self._disp = self.space.sub(0) if self._is_mixed else self.space
         self.vertex_dofs = self._component_dofs(0, self._vertex_entity)
         self.pressure_dofs = (np.unique(self.space.sub(1).dofmap.list.array).astype(np.int32)
@@ -383,7 +388,7 @@ class FEModel:
         mid-edge dofs of ``edges`` (E', 2) vertex pairs (a punch face: every FE node on it)."""
         dofs = self.vertex_dofs[np.asarray(vertices, dtype=np.int64)]
         edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-        if self.fe.element == "P1" or len(edges) == 0:
+        if self.fe.element in VERTEX_ELEMENTS or len(edges) == 0:
             return dofs
         edge_ids = _edge_entities(self.domain, self._vertex_entity[edges])
         return np.concatenate([dofs, self._component_dofs(1, edge_ids)])
@@ -402,11 +407,40 @@ class FEModel:
 
 
 def _element(name: str, tet: ufl.Cell) -> ufl.FiniteElementBase:
-    """The UFL element of ``fe.element``: vector P1 or P2, or Taylor-Hood (P2 displacement,
-    P1 pressure)."""
+    """The UFL element of ``fe.element``: vector P1 or P2, Taylor-Hood (P2 displacement, P1
+    pressure) or ANP (P1 displacement, P1 pressure with a lumped pressure mass:
+    :func:`pressure_compliance`)."""
+    p1 = ufl.VectorElement("Lagrange", tet, 1)
     p2 = ufl.VectorElement("Lagrange", tet, 2)
-    return {"P1": ufl.VectorElement("Lagrange", tet, 1), "P2": p2,
-            "TH": ufl.MixedElement([p2, ufl.FiniteElement("Lagrange", tet, 1)])}[name]
+    pressure = ufl.FiniteElement("Lagrange", tet, 1)
+    return {"P1": p1, "P2": p2, "TH": ufl.MixedElement([p2, pressure]),
+            "ANP": ufl.MixedElement([p1, pressure])}[name]
+
+
+def pressure_compliance(element: str, p: ufl.core.expr.Expr, q: ufl.core.expr.Expr,
+                        kappa: fem.Constant, dx: ufl.Measure, domain: dmesh.Mesh
+                        ) -> ufl.Form:
+    """The term ``int p q / kappa`` of a u-p element's pressure equation.
+
+    Taylor-Hood integrates it with the residual's rule ``dx``. ANP (average nodal pressure,
+    Bonet and Burton 1998) lumps it: ``sum_a V_a p_a q_a / kappa`` with ``V_a`` the vertex's
+    share of its tets' volume (a quarter of each). With ``J`` constant in a P1 tet the pressure
+    equation then reads ``p_a = kappa (v_a / V_a - 1)``, ``v_a`` the same share of the deformed
+    volume: one pressure per vertex, a function of the vertex displacements alone (the
+    pressure dofs are eliminated exactly; the element has the vertex displacements as its
+    only degrees of freedom, as the particle model). One volume constraint per vertex instead
+    of one per tet (about 3 tets per vertex) is what frees P1 from volumetric locking.
+
+    On a straight tet the lumped product is ``5 int p q (exact) - 4 int p q (centroid rule)``
+    for P1 ``p, q`` (consistent mass ``V/20 (1 + delta_ab)``, centroid value the vertices'
+    mean), so both terms are standard quadrature degrees 2 and 1: the lumped mass is the
+    consistent one plus four times the Dohrmann-Bochev pressure-projection stabilisation.
+    """
+    if element != "ANP":
+        return p * q / kappa * dx
+    exact = ufl.dx(domain=domain, metadata={"quadrature_degree": 2})
+    centroid = ufl.dx(domain=domain, metadata={"quadrature_degree": 1})
+    return 5.0 * p * q / kappa * exact - 4.0 * p * q / kappa * centroid
 
 
 def balance_of_momentum(model: FEModel, *, rho: fem.Constant, kappa: fem.Constant
@@ -417,7 +451,7 @@ def balance_of_momentum(model: FEModel, *, rho: fem.Constant, kappa: fem.Constan
 
     Args:
         rho: density [kg/m^3].
-        kappa: bulk modulus [Pa] (penalty for P1/P2, the pressure's compliance for TH).
+        kappa: bulk modulus [Pa] (penalty for P1/P2, the pressure's compliance for TH/ANP).
     """
     if model._is_mixed:
         u, p = ufl.split(model.w)
@@ -436,7 +470,8 @@ def balance_of_momentum(model: FEModel, *, rho: fem.Constant, kappa: fem.Constan
     residual = (ufl.inner(F * S, ufl.grad(v)) - rho * ufl.dot(model._gravity, v)
                 + rho * model._c_m * ufl.dot(u - u_pred, v)) * dx
     if model._is_mixed:
-        residual += (J - 1.0 - p / kappa) * p_test * dx
+        residual += ((J - 1.0) * p_test * dx
+                     - pressure_compliance(model.fe.element, p, p_test, kappa, dx, model.domain))
     return residual, s_iso
 
 

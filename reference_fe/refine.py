@@ -140,7 +140,7 @@ def refined_counts(mesh: TetMesh, levels: int) -> tuple[int, int]:
 def estimated_dofs(mesh: TetMesh, element: str, levels: int) -> int:
     """Length of the FE solution vector on ``mesh`` refined ``levels`` times."""
     v, e = refined_counts(mesh, levels)
-    return {"P1": 3 * v, "P2": 3 * (v + e), "TH": 3 * (v + e) + v}[element]
+    return {"P1": 3 * v, "P2": 3 * (v + e), "TH": 3 * (v + e) + v, "ANP": 4 * v}[element]
 
 
 # bytes of one rank's FE model per dof^(4/3) (sparse 3-D LU fill grows like n^(4/3) with

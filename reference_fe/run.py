@@ -27,7 +27,9 @@ resumed run decides the same. More than a quarter of the points failing stops th
 a failed second-support test ``second_support`` (a second support that does not hold the
 body is refused before any FE work, :func:`forcecal.problem.check_second_support`);
 ``reference.h5`` records all of it (``fe_failures``). The whole-body data (experiment
-``body``, asked for explicitly) failing stops the run, its error naming the item.
+``body``, asked for explicitly) failing stops the run, its error naming the item. The
+discretisation floor (experiment ``floor``, :mod:`reference_fe.floor`) builds its own
+vertex-dof models on the particle mesh and records a failed run in its arrays.
 
 Parts and stored results are keyed per experiment (:mod:`reference_fe.keys`:
 the scene sections it reads, the mesh, the FE code), not on the experiments
@@ -76,7 +78,7 @@ from forcecal.problem import (Problem, build_problem, check_second_support, repl
 from forcecal.scene import EXPERIMENTS, GRAVITY_EXPERIMENTS, SECOND_SUPPORT_PARTS, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
 from forcecal.sections import REFERENCE_SECTIONS
-from reference_fe import body, experiments
+from reference_fe import body, experiments, floor
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
 from reference_fe.refine import (FEProblem, check_memory, fe_clamp, fe_problem, patch_on_fe_mesh,
@@ -85,7 +87,9 @@ from reference_fe.refine import (FEProblem, check_memory, fe_clamp, fe_problem, 
 log = logging.getLogger(__name__)
 
 KINDS = ("indentation", "relaxation", "gravity_static", "gravity_dynamic", "body",
-         "second_support")
+         "second_support", "floor")
+#: the items that build their own FE models (not the reference's: :mod:`reference_fe.floor`)
+OWN_MODEL_KINDS = ("floor",)
 T = TypeVar("T")
 
 
@@ -135,7 +139,11 @@ def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
              WorkItem("body", -1, 2 * 5.0 * scene.body.load_steps + 2.0),
              # the second support's sag and release, one item
              WorkItem("second_support", -1, 3.0 * g.duration / g.fe_dt
-                      + 5.0 * g.static_load_steps)]
+                      + 5.0 * g.static_load_steps),
+             # the gravity test with each floor element, on the particle mesh's P1 dofs (a
+             # Newton solve a small fraction of the reference's)
+             WorkItem("floor", -1, 0.2 * len(floor.ELEMENTS)
+                      * (3.0 * g.duration / g.fe_dt + 5.0 * g.static_load_steps))]
     for p in range(n_points):
         items.extend(point_items(scene, p))
     return sorted((it for it in items if it.kind in kinds),
@@ -230,6 +238,8 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
     g = scene.gravity
     if item.kind == "second_support":
         return second_support_runs(model, scene, problem, fe)
+    if item.kind == "floor":
+        return floor.floor_arrays(scene, problem)
     if item.kind == "gravity_static":
         disp = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps)
         return {"displacement": disp[at_particles]}
@@ -813,7 +823,7 @@ def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], par
             continue
         t0 = time.perf_counter()
         try:
-            if model is None:
+            if model is None and item.kind not in OWN_MODEL_KINDS:
                 fe = fe_problem(points.slots, scene.fe)
                 model = FEModel(fe.problem.mesh, scene.material, scene.fe)
                 build_seconds = time.perf_counter() - t0
@@ -843,7 +853,7 @@ def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], par
         parts.save(item, arrays)
         computed.append(item.name)
         log.debug("%s done in %.2f s (%d Newton iterations so far on this rank)", item.name,
-                  float(arrays["seconds"]), model.newton_iterations)
+                  float(arrays["seconds"]), 0 if model is None else model.newton_iterations)
         bar.poll()
     return None, build_seconds, computed
 
@@ -949,6 +959,8 @@ def experiment_arrays(reference: Reference, experiment: str) -> dict[str, np.nda
         runs = reference.second_support.runs
         return {"static_displacement": runs.static_displacement, "time": runs.time,
                 "displacement": runs.displacement}
+    if experiment == "floor":
+        return floor.arrays_of(reference.floor)
     return {"force": getattr(reference, experiment).force}
 
 
@@ -994,8 +1006,9 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
                 results.pop(kind, None)  # the test failed: none of its runs is kept
             elif kind in data:
                 results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
-    if "body" in data:
-        results["body"] = {k: v for k, v in data["body"].items() if k != "seconds"}
+    for kind in ("body", "floor"):
+        if kind in data:
+            results[kind] = {k: v for k, v in data[kind].items() if k != "seconds"}
     body_result = (body.result_of(results["body"],
                                   float(np.linalg.norm(scene.gravity.acceleration)))
                    if "body" in results else None)
@@ -1029,6 +1042,8 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
             GravityResult(runs["static_displacement"], runs["time"], runs["displacement"],
                           dataclasses.replace(scene.gravity,
                                               tracked_node=support.tracked_node)))
+    floor_result = (floor.result_of(results["floor"], dataclasses.replace(
+        scene.gravity, tracked_node=problem.tracked_node)) if "floor" in results else None)
     counted = {k: sum(1 for name in computed if name.split("-")[0] == k) for k in KINDS}
     failed_keys = {e: keys[e] for test, kinds in HELD_OUT_TESTS.items() if recorded[test] is not None
                    for e in kinds if e in scene.experiments}
@@ -1054,4 +1069,4 @@ def _assemble(scene: Scene, points: _Points, items: list[WorkItem], parts: _Part
                                       normal(f_ind), indenter=scene.indentation.indenter,
                                       radius=scene.indentation.radius),
         relaxation=relaxation, gravity=gravity, meta=meta, fe=scene.fe, body=body_result,
-        second_support=second)
+        second_support=second, floor=floor_result)

@@ -345,7 +345,7 @@ def test_make_bench_runs_the_headline_items_and_bench_full_every_item():
         "default pipeline run", "run time vs error", "reference timings", "particle engine",
         "stability limits", "haptic scale", "fe_convergence", "scale", "volume term"]
     assert {i.name for i in ITEMS} - {i.name for i in items_of(False)} == {
-        "experiments", "calibration methods"}
+        "experiments", "calibration methods", "discretisation floor"}
     reduced = {i.name for i in ITEMS if i.headline not in (None, i.full)}
     assert reduced == {"run time vs error", "reference timings", "haptic scale",
                        "fe_convergence", "scale"}
@@ -385,7 +385,11 @@ ITEM_KEYS = {"default pipeline run": ("calibration",), "run time vs error": ("pa
              "stability limits": ("stability",), "experiments": ("skip", "experiments"),
              "haptic scale": ("haptic_scale",), "fe_convergence": ("fe_convergence",),
              "scale": ("scale", "scale_study"), "calibration methods": ("calibration_methods",),
-             "volume term": ("volume_haptic",)}
+             "volume term": ("volume_haptic",),
+             "discretisation floor": ("discretisation_floor",)}
+#: keys of items whose first measured run is not in the committed bench.json yet: their
+#: stand-ins return an empty study (drop a key here once its run is committed)
+NOT_YET_COMMITTED = {"discretisation_floor": {"rows": [], "scenes": {}}}
 
 
 def _stand_in_items(monkeypatch, calls, reusing=()):
@@ -403,7 +407,8 @@ def _stand_in_items(monkeypatch, calls, reusing=()):
             calls.append((name, selection))
             if name in reusing:
                 logging.getLogger("pipelines.bench").warning("bench: reusing %s", name)
-            keys = {k: committed[k] for k in ITEM_KEYS[name]}
+            keys = {k: committed[k] if k in committed else NOT_YET_COMMITTED[k]
+                    for k in ITEM_KEYS[name]}
             if "skip" in keys:
                 own = (lambda r: "study" not in r) if name == "particle engine" else (
                     lambda r: r.get("study") == name)

@@ -24,10 +24,11 @@ from tests.conftest import SCENES
 from tests.test_pipeline_e2e import ran, write_scene
 
 
-def test_default_is_every_experiment_but_body_and_second_support_and_the_order_does_not_matter():
+def test_default_is_every_experiment_but_the_opt_in_ones_and_the_order_does_not_matter():
     assert scene_from_dict({}).experiments == DEFAULT_EXPERIMENTS
-    # asked for explicitly (the second support: one more FE sag and release)
-    assert set(EXPERIMENTS) - set(DEFAULT_EXPERIMENTS) == {"body", "second_support"}
+    # asked for explicitly (the second support: one more FE sag and release; the floor: the
+    # gravity test with two more elements)
+    assert set(EXPERIMENTS) - set(DEFAULT_EXPERIMENTS) == {"body", "second_support", "floor"}
     scene = scene_from_dict({"experiments": ["gravity_static", "indentation"]})
     assert scene.experiments == ("indentation", "gravity_static")
     assert replace(scene, experiments=["indentation"]).experiments == ("indentation",)
@@ -92,8 +93,8 @@ def test_fe_keys_follow_each_experiments_own_sections(liver_scene):
     def changed(**sections):
         keys = experiment_keys(replace(liver_scene, **sections), "mesh")
         return sorted(e for e in EXPERIMENTS if keys[e] != base[e])
-    assert changed(gravity={"duration": 1.0}) == ["body", "gravity_dynamic", "gravity_static",
-                                                  "second_support"]
+    assert changed(gravity={"duration": 1.0}) == ["body", "floor", "gravity_dynamic",
+                                                  "gravity_static", "second_support"]
     assert changed(body={"modes": 4}) == ["body"]
     assert changed(second_support={"tolerance": 0.02}) == ["second_support"]
     assert changed(relaxation={"hold_steps": 20}) == ["relaxation"]
@@ -134,7 +135,7 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     report = read_report(out / "report.json")
     assert report["experiments"] == ["indentation"]
     assert set(report["not_run"]) == {"relaxation", "gravity_static", "gravity_dynamic", "body",
-                                      "second_support"}
+                                      "second_support", "floor"}
     assert all("not in the scene's experiments" in why for why in report["not_run"].values())
     for key in ERROR_KEYS:
         assert (report["errors"][key] is None) == (not key.startswith("indentation")), key
@@ -164,7 +165,8 @@ def test_an_indentation_only_scene_computes_only_what_it_needs(tmp_path):
     assert np.linalg.norm(ref.gravity.static_displacement, axis=1).max() > 1e-4  # it sags
     report = read_report(out / "report.json")
     assert report["experiments"] == ["indentation", "gravity_static"]
-    assert set(report["not_run"]) == {"relaxation", "gravity_dynamic", "body", "second_support"}
+    assert set(report["not_run"]) == {"relaxation", "gravity_dynamic", "body", "second_support",
+                                      "floor"}
     assert 0.0 < report["errors"]["gravity_static"] < 1.0
     assert report["errors"]["gravity_dynamic"] is None
     assert report["errors"]["relaxation_calibrated"] is None

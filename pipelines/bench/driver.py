@@ -31,7 +31,8 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
    (:mod:`pipelines.bench.stability`);
 6. the items in modules of their own (:class:`ModuleItem`): ``experiments`` (full bench
    only), ``haptic scale``, ``fe_convergence``, ``scale``, ``calibration methods`` (full bench
-   only), ``volume term``.
+   only), ``volume term``, ``discretisation floor`` (full bench only: the gravity test of a
+   vertex-dof FE model on the particle mesh, :mod:`pipelines.bench.floor`).
 
 Investigations that answered one question once (cross-validation of calibration settings,
 the sag and release studies, the contact size) are no items: they live in the top-level
@@ -198,8 +199,8 @@ def _same(function: ItemRun) -> tuple[ItemRun, ItemRun]:
 #: (:data:`pipelines.bench.configs.HEADLINE_SETTINGS`), the reference on 2 ranks only, the
 #: haptic meshes up to 12k connectors, the FE sag without its finest level, three scale sizes
 #: without the rank timing. Left to ``make bench-full``: ``experiments`` (a reference and a
-#: calibration per experiment list) and ``calibration methods`` (eight pipelines on two
-#: scenes).
+#: calibration per experiment list), ``calibration methods`` (eight pipelines on two
+#: scenes) and ``discretisation floor`` (two FE gravity tests per scene).
 ITEMS: tuple[Item, ...] = (
     Item("default pipeline run", *_same(default_pipeline_run), labels_rows=False),
     Item("run time vs error", partial(run_time_vs_error, full=True),
@@ -219,6 +220,7 @@ ITEMS: tuple[Item, ...] = (
     Item("calibration methods", ModuleItem("pipelines.bench.calibration_methods:study"), None,
          needs_default=True),
     Item("volume term", *_same(ModuleItem("pipelines.bench.volume:study"))),
+    Item("discretisation floor", ModuleItem("pipelines.bench.floor:study"), None),
 )
 # log messages (regular expressions) by which a cache hit announces itself: an item that logs
 # one reused earlier work, so its time is not a cold time
