@@ -298,6 +298,35 @@ def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
     assert cost[0]["ratio_median"] > 0.0
 
 
+def test_the_relaxing_volume_rows_take_the_connectors_prony_split_and_the_volume_goal():
+    """``volume_model`` with a Prony split puts ``g_i/(1 - g_1 - g_2) kv`` in each arm
+    (``bv_i = tau_i kv_i``), so the instantaneous stiffness is ``kv/(1 - g_1 - g_2)`` and the
+    stable step shorter than the elastic term's; the goals table reads a relaxing row against
+    the volume goal (200 us), a springs row against 100 us."""
+    from pipelines.bench.haptic import (GOAL_US, RELAXING, SPRINGS, VOLUME_GOAL_US, goal_rows,
+                                        volume_model)
+
+    model = box_model((3, 3, 2), K0=200.0)
+    elastic = volume_model(model, 3e4)
+    relaxing = volume_model(model, 3e4, ((0.35, 0.25), (0.5, 10.0)))
+    p = relaxing.params
+    np.testing.assert_allclose(p.kv1, 0.35 / 0.4 * 3e4, rtol=1e-15)
+    np.testing.assert_allclose(p.kv2, 0.25 / 0.4 * 3e4, rtol=1e-15)
+    np.testing.assert_allclose(p.volume_arm_tau, np.tile([0.5, 10.0], (model.n_tets, 1)),
+                               rtol=1e-15)
+    np.testing.assert_allclose(p.volume_instantaneous, 3e4 / 0.4, rtol=1e-15)
+    assert elastic.params.kv1 is None
+    assert critical_time_step(relaxing) < critical_time_step(elastic)
+    row = {"mesh": "m", "connectors": 12_062, "variant": "float64", "substeps": 4,
+           "median_us": 150.0, "p99_us": 180.0, "error_drag": 0.0, "error_release": 0.0}
+    rows = [dict(row, terms=SPRINGS, goal_us=GOAL_US), dict(row, terms=RELAXING,
+                                                             goal_us=VOLUME_GOAL_US)]
+    goals = goal_rows({"haptic_scale": {"rows": rows}})
+    assert [g[1] for g in goals] == ["<= 100 us", "<= 200 us"]
+    assert [g[3] for g in goals] == ["**missed**", "**met**"]
+    assert "relaxing volume term" in goals[1][0]
+
+
 @pytest.mark.parametrize("jump", [3.0, 30.0])  # x the mean connector length
 def test_a_step_ending_with_a_tet_outside_its_volume_range_is_refused_by_that_call(jump):
     """The volume range is checked on each substep's start positions, and on the state a
