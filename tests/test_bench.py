@@ -534,7 +534,7 @@ def test_the_headline_haptic_scale_leaves_out_the_largest_mesh(monkeypatch):
     monkeypatch.setattr(haptic, "_mesh_model", mesh_model)
     monkeypatch.setattr(haptic, "tracked_node_by_rule", lambda mesh, fixed, rule: 0)
     monkeypatch.setattr(haptic, "mesh_rows", lambda *args: [])
-    monkeypatch.setattr(haptic, "volume_rows", lambda *args: [])
+    monkeypatch.setattr(haptic, "volume_rows", lambda *args, **kwargs: [])
     scene = load_scene(SCENES / "liver.toml")
     haptic.headline_study(scene, None, False)
     assert lengths == [None, 0.008]  # the scene's own mesh, then the 12k liver
