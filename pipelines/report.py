@@ -590,7 +590,8 @@ def reference_mesh(reference: Reference) -> str | None:
         return None
     rim = (f", each punch's mesh refined {fe.local_refine} x near its rim"
            if reference.indentation.indenter == "punch" and fe.local_refine else "")
-    return f"{fe.element} on the particle mesh refined {fe.refine} x{rim}"
+    refined = f" refined {fe.refine} x" if fe.refine else ""
+    return f"{fe.element} on the particle mesh{refined}{rim}"
 
 
 def strain_ranges(calibration: CalibrationResult) -> dict[str, Any] | None:

@@ -41,9 +41,10 @@ import time
 import numpy as np
 
 from forcecal.errors import ConvergenceError, SceneError, StabilityError
-from forcecal.h5io import (FLOOR_ELEMENTS, FloorResult, GravityResult, HeldOutCurves)
+from forcecal.h5io import FLOOR_ELEMENTS, FloorResult, GravityResult, HeldOutCurves
 from forcecal.problem import Problem
 from forcecal.scene import FESection, GravitySection, Scene
+from forcecal.schedules import indentation_depths, relaxation_schedule
 from reference_fe import experiments
 from reference_fe.model import FEModel
 
@@ -128,13 +129,12 @@ def held_out_forces(model: FEModel, scene: Scene, problem: Problem) -> dict[str,
                     log.warning("discretisation floor, %s, held-out vertex %d: %s",
                                 scene.fe.element, vertex, exc)
             rows[kind].append(force)
+    samples = {"indentation": len(indentation_depths(scene.indentation)),
+               "relaxation": len(relaxation_schedule(scene.relaxation)[0])}
     out = {"vertices": problem.held_out.astype(np.int64), "failed": np.asarray(json.dumps(failed))}
     for kind, forces in rows.items():
-        shape = next((f.shape for f in forces if f is not None), None)
-        if shape is None:  # every point failed: one NaN sample keeps the array's rank
-            shape = (1, 3)
         out[f"{kind}_force"] = np.stack([
-            np.full(shape, np.nan) if f is None or str(v) in failed else f
+            np.full((samples[kind], 3), np.nan) if f is None or str(v) in failed else f
             for v, f in zip(problem.held_out.tolist(), forces)])
     return out
 
