@@ -280,7 +280,7 @@ def test_a_failed_floor_run_is_recorded_not_raised(tmp_path, beam_reference, mon
     # fails: both recorded (NaN rows and the reason, the reason), stored, and the block
     # measures the other points and leaves the failed test null with its reason
     from reference_fe import experiments as ex
-    from reference_fe.floor import floor_arrays, result_of
+    from reference_fe.floor import arrays_of, floor_arrays, result_of
 
     scene, problem, reference = beam_reference
     relax, release = ex.held_relaxation_curve, ex.gravity_dynamic
@@ -311,6 +311,13 @@ def test_a_failed_floor_run_is_recorded_not_raised(tmp_path, beam_reference, mon
     assert back.held_out["ANP"].failed == anp.failed
     np.testing.assert_array_equal(back.held_out["ANP"].relaxation, anp.relaxation)
     assert back.second_support_failed == floor.second_support_failed
+    # a reused /floor (reference_fe.run.experiment_arrays) gives the same result back
+    again = result_of(arrays_of(back), reference.gravity.settings)
+    assert again.second_support_failed == back.second_support_failed
+    assert again.held_out["ANP"].failed == anp.failed and again.part_seconds == back.part_seconds
+    np.testing.assert_array_equal(again.second_support["ANP"].displacement,
+                                  back.second_support["ANP"].displacement)
+    assert again.second_support["ANP"].tracked_node == reference.second_support.runs.tracked_node
     block = _block(problem, reference, back)
     assert block["elements"]["ANP"]["held_out_points"] == 7
     assert np.isfinite(block["elements"]["ANP"]["relaxation_held_out"])
