@@ -56,10 +56,10 @@ ELEMENTS = FLOOR_ELEMENTS
 QUADRATURE_DEGREE = 2
 #: a floor run fails with these and is recorded (anything else stops the reference)
 RUN_FAILURES = (ConvergenceError, StabilityError)
-#: a vertex-dof element's Newton solve on the particle mesh, against one of the reference's
-#: (the work items' cost unit): a fraction, measured ~13 ms (P1, 843 dofs) against ~0.2 s
-#: (P2, 5064 dofs) per iteration
-SOLVE_FRACTION = 0.2
+#: a vertex-dof element's Newton step on the particle mesh, against one of the reference's
+#: (the work items' cost unit): measured on the default liver, ANP's gravity test took 8.1 s
+#: against P2's 78 s and its held-out curves 3.5 s against 29 s (0.10 and 0.12)
+SOLVE_FRACTION = 0.12
 #: the held-out curves' experiments, in the order they run at each point
 CURVES = ("indentation", "relaxation")
 
