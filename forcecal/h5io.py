@@ -26,9 +26,14 @@ optional) holds the four of :data:`~forcecal.scene.DEFAULT_EXPERIMENTS`.
 gravity test computed by vertex-dof FE elements on the particle mesh
 (:mod:`reference_fe.floor`); attributes ``elements`` (JSON list) and ``quadrature_degree``,
 the subgroup ``gravity`` (the ``[gravity]`` keys it ran with) and one subgroup per element
-with the attribute ``seconds`` and either the datasets ``static_displacement`` (N, 3) m,
-``time`` (S,) s and ``displacement`` (S, N, 3) m or the attribute ``failed`` (why its run
-failed).
+with the attributes ``seconds`` and ``part_seconds`` (JSON) and either the datasets
+``static_displacement`` (N, 3) m, ``time`` (S,) s and ``displacement`` (S, N, 3) m or the
+attribute ``failed`` (why its run failed). With the second support, the attribute
+``second_support_tracked_node`` and per element the subgroup ``second_support`` (the same three
+datasets, or ``failed``); with the held-out curves, the dataset ``held_out_vertices`` (H,) and
+per element the subgroup ``held_out`` (``indentation_force`` (H, D, 3) N,
+``relaxation_force`` (H, T, 3) N, NaN rows at the points whose attribute ``failed``, JSON
+{vertex: reason}, names).
 
 What failed in the FE stage is recorded too: ``fe_failures`` (JSON,
 :class:`forcecal.fe_failures.FEFailures`: test points replaced or dropped, the gravity
@@ -406,28 +411,65 @@ class SecondSupportResult:
 FLOOR_ELEMENTS = ("ANP", "P1")
 
 
+#: the parts of a floor element's compute time (:attr:`FloorResult.part_seconds`)
+FLOOR_PARTS = ("build", "gravity", "second_support", "held_out")
+
+
+@dataclass(frozen=True, eq=False)
+class HeldOutCurves:
+    """Force curves of the held-out test points (the discretisation floor's, or the reference's
+    to measure them against).
+
+    Attributes:
+        vertices: (H,) int64, the test vertices.
+        indentation: (H, D, 3) float64, indenter force at the indentation depths [N].
+        relaxation: (H, T, 3) float64, indenter force at the relaxation times [N]; None
+            without the relaxation experiment.
+        failed: vertex -> why its curves failed (their rows are NaN).
+    """
+    vertices: np.ndarray
+    indentation: np.ndarray
+    relaxation: np.ndarray | None
+    failed: dict[int, str] = field(default_factory=dict)
+
+
 @dataclass(frozen=True, eq=False)
 class FloorResult:
     """The discretisation floor (experiment ``floor``, :mod:`reference_fe.floor`): the
-    gravity test computed on the particle mesh by FE elements whose only displacement dofs
-    are the vertices'.
+    gravity test, with the second support the second-support test and the held-out test
+    points' force curves, computed on the particle mesh by FE elements whose only
+    displacement dofs are the vertices'.
 
     Attributes:
         runs: element -> its static sag and release (both present; ``settings`` the scene's
             ``[gravity]`` with the reference's tracked node), for the elements that ran.
-        failed: element -> why its run failed (Newton, an unstable support).
-        seconds: element -> compute time of its runs [s] (model build included).
+        failed: element -> why its gravity test failed (Newton, an unstable support).
+        seconds: element -> compute time of all its runs [s] (model build included).
         quadrature_degree: of the elements' residual.
+        second_support: element -> its second-support sag and release (``settings`` with the
+            second support's tracked node); empty when the scene does not run that test.
+        second_support_failed: element -> why its second-support test failed.
+        held_out: element -> its held-out curves; empty when not computed.
+        part_seconds: element -> {part of :data:`FLOOR_PARTS`: compute time [s]}.
     """
     runs: dict[str, GravityResult]
     failed: dict[str, str]
     seconds: dict[str, float]
     quadrature_degree: int
+    second_support: dict[str, GravityResult] = field(default_factory=dict)
+    second_support_failed: dict[str, str] = field(default_factory=dict)
+    held_out: dict[str, HeldOutCurves] = field(default_factory=dict)
+    part_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def elements(self) -> tuple[str, ...]:
         """Every element of the floor, those that ran first."""
         return tuple(self.runs) + tuple(e for e in self.failed if e not in self.runs)
+
+    @property
+    def has_second_support(self) -> bool:
+        """Whether the floor ran the second-support test."""
+        return bool(self.second_support or self.second_support_failed)
 
 
 @dataclass(frozen=True, eq=False)
@@ -663,21 +705,51 @@ def _write_floor(fh: h5py.File, floor: FloorResult, n_v: int) -> None:
     settings = next(iter(floor.runs.values())).settings if floor.runs else None
     if settings is not None:
         write_section(g.create_group("gravity"), settings)
+    if floor.has_second_support:
+        g.attrs["second_support_tracked_node"] = int(next(iter(
+            floor.second_support.values())).tracked_node) if floor.second_support else -1
+    vertices = next((c.vertices for c in floor.held_out.values()), None)
+    if vertices is not None:
+        put(g, "held_out_vertices", vertices, "1", "the held-out test vertices (H,)")
     for element in floor.elements:
         e = g.create_group(element)
         e.attrs["seconds"] = float(floor.seconds.get(element, 0.0))
+        e.attrs["part_seconds"] = json.dumps(floor.part_seconds.get(element, {}))
         if element in floor.failed:
             e.attrs["failed"] = floor.failed[element]
-            continue
-        runs = floor.runs[element]
-        _check_shape(f"floor.{element}.static_displacement", runs.static_displacement, (n_v, 3))
-        _check_shape(f"floor.{element}.displacement", runs.displacement,
-                     (len(runs.time), n_v, 3))
-        put(e, "static_displacement", runs.static_displacement, "m",
-            f"static sag of every vertex, {element} on the particle mesh (N, 3)")
-        put(e, "time", runs.time, "s", "release sample times, from rest at 0 (S,)")
-        put(e, "displacement", runs.displacement, "m",
-            f"release vertex displacements, {element} on the particle mesh (S, N, 3)")
+        else:
+            _write_floor_runs(e, floor.runs[element], n_v, element)
+        if element in floor.second_support_failed:
+            e.create_group("second_support").attrs["failed"] = \
+                floor.second_support_failed[element]
+        elif element in floor.second_support:
+            _write_floor_runs(e.create_group("second_support"), floor.second_support[element],
+                              n_v, f"{element}, second support")
+        if element in floor.held_out:
+            curves = floor.held_out[element]
+            if not np.array_equal(curves.vertices, vertices):
+                raise DataFileError(f"floor.{element}.held_out is on vertices "
+                                    f"{curves.vertices.tolist()}, the others' on "
+                                    f"{vertices.tolist()}")
+            h = e.create_group("held_out")
+            h.attrs["failed"] = json.dumps({str(v): r for v, r in curves.failed.items()})
+            put(h, "indentation_force", curves.indentation, "N",
+                f"indenter force at the indentation depths, {element} (H, D, 3); NaN: failed")
+            if curves.relaxation is not None:
+                put(h, "relaxation_force", curves.relaxation, "N",
+                    f"indenter force at the relaxation times, {element} (H, T, 3); NaN: failed")
+
+
+def _write_floor_runs(g: h5py.Group, runs: GravityResult, n_v: int, what: str) -> None:
+    """A floor element's static sag and release (``/floor/<element>`` or its
+    ``second_support``)."""
+    _check_shape(f"floor {what} static_displacement", runs.static_displacement, (n_v, 3))
+    _check_shape(f"floor {what} displacement", runs.displacement, (len(runs.time), n_v, 3))
+    put(g, "static_displacement", runs.static_displacement, "m",
+        f"static sag of every vertex, {what} on the particle mesh (N, 3)")
+    put(g, "time", runs.time, "s", "release sample times, from rest at 0 (S,)")
+    put(g, "displacement", runs.displacement, "m",
+        f"release vertex displacements, {what} on the particle mesh (S, N, 3)")
 
 
 def _read_floor(fh: h5py.File, path: str | Path, n_v: int) -> FloorResult:
@@ -687,23 +759,64 @@ def _read_floor(fh: h5py.File, path: str | Path, n_v: int) -> FloorResult:
     if not isinstance(elements, list) or not elements:
         raise DataFileError(f"{path}:/floor attribute elements = {elements!r} is not a "
                             "non-empty JSON list")
-    runs, failed, seconds = {}, {}, {}
+    runs, failed, seconds, parts = {}, {}, {}, {}
+    support, support_failed, held_out = {}, {}, {}
     settings = read_section(group(fh, "floor/gravity"), "gravity") if "gravity" in g else None
+    support_settings = None
+    if "second_support_tracked_node" in g.attrs and settings is not None:
+        support_settings = dataclasses.replace(
+            settings, tracked_node=int(attr(g, "second_support_tracked_node")))
+    vertices = (get(fh, "floor/held_out_vertices", (None,), dtype="int")
+                if "held_out_vertices" in g else None)
+
+    def read_runs(name: str, runs_settings: GravitySection | None) -> GravityResult:
+        if runs_settings is None:
+            raise DataFileError(f"{path}:/floor/gravity or its attribute "
+                                "second_support_tracked_node is missing")
+        times = get(fh, f"{name}/time", (None,), dtype="float")
+        _check_record_times(times, runs_settings, f"{path}:/{name}/time")
+        return GravityResult(
+            get(fh, f"{name}/static_displacement", (n_v, 3), dtype="float"), times,
+            get(fh, f"{name}/displacement", (len(times), n_v, 3), dtype="float"),
+            runs_settings)
+
     for element in elements:
-        e = group(fh, f"floor/{element}")
+        name = f"floor/{element}"
+        e = group(fh, name)
         seconds[element] = float(attr(e, "seconds"))
+        parts[element] = json_attr(e, "part_seconds", {})
         if "failed" in e.attrs:
             failed[element] = str(attr(e, "failed"))
+        else:
+            runs[element] = read_runs(name, settings)
+        if "second_support" in e:
+            if "failed" in e["second_support"].attrs:
+                support_failed[element] = str(attr(e["second_support"], "failed"))
+            else:
+                support[element] = read_runs(f"{name}/second_support", support_settings)
+        if "held_out" in e:
+            if vertices is None:
+                raise DataFileError(f"{path}:/floor/held_out_vertices is missing")
+            held_out[element] = _read_held_out(fh, f"{name}/held_out", vertices)
+    return FloorResult(runs, failed, seconds, int(attr(g, "quadrature_degree")), support,
+                       support_failed, held_out, parts)
+
+
+def _read_held_out(fh: h5py.File, name: str, vertices: np.ndarray) -> HeldOutCurves:
+    """A floor element's held-out curves back, checked: NaN rows exactly at the failed points."""
+    failed = {int(v): str(r) for v, r in json_attr(group(fh, name), "failed").items()}
+    curves = {k: get(fh, f"{name}/{k}_force", (len(vertices), None, 3), finite=False,
+                     dtype="float") if f"{k}_force" in fh[name] else None
+              for k in ("indentation", "relaxation")}
+    for k, force in curves.items():
+        if force is None:
             continue
-        if settings is None:
-            raise DataFileError(f"{path}:/floor/gravity is missing")
-        times = get(fh, f"floor/{element}/time", (None,), dtype="float")
-        _check_record_times(times, settings, f"{path}:/floor/{element}/time")
-        runs[element] = GravityResult(
-            get(fh, f"floor/{element}/static_displacement", (n_v, 3), dtype="float"), times,
-            get(fh, f"floor/{element}/displacement", (len(times), n_v, 3), dtype="float"),
-            settings)
-    return FloorResult(runs, failed, seconds, int(attr(g, "quadrature_degree")))
+        bad = ~np.isfinite(force).all(axis=(1, 2))
+        if set(vertices[bad].tolist()) != set(failed) or not np.isfinite(force[~bad]).all():
+            raise DataFileError(f"{fh.filename}:/{name}/{k}_force has non-finite values at "
+                                f"vertices {vertices[bad].tolist()}, its failed points are "
+                                f"{sorted(failed)}")
+    return HeldOutCurves(vertices, curves["indentation"], curves["relaxation"], failed)
 
 
 def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:

@@ -18,9 +18,13 @@ EXPERIMENT_SECTIONS = {"indentation": ("indentation",),
                        # the loads are the scene's weight along the axes perpendicular to its
                        # gravity: the acceleration is read
                        "body": ("gravity", "body"),
-                       # the gravity test on the particle mesh with the floor's own elements
-                       # (fe.element and fe.refine are not used, the Newton settings are)
-                       "floor": ("gravity",)}
+                       # the gravity test, the second support's and the held-out points'
+                       # curves on the particle mesh with the floor's own elements (fe.element
+                       # and fe.refine are not used, the Newton settings are)
+                       "floor": ("gravity", "second_support", "indentation", "relaxation")}
+#: experiment -> the other experiments whose being asked for changes what it computes (part of
+#: its key: the floor runs the second support's test only when the scene runs that test)
+EXPERIMENT_OPTIONS = {"floor": ("second_support",)}
 #: sections the whole FE reference reads (every experiment's)
 REFERENCE_SECTIONS = ("mesh", "material", "fixed", "second_support", "test_points",
                       "indentation", "relaxation", "gravity", "body", "fe")

@@ -55,10 +55,12 @@ instead of ``[fixed]``'s, the FE against the calibrated and the baseline model
 ``fe_failures.second_support`` and ``not_run``.
 
 ``discretisation_floor`` (null unless the scene's experiments include ``floor``) is the
-discretisation floor (:func:`floor_block`): the gravity test computed by FE elements whose only
+discretisation floor (:func:`floor_block`): the gravity test, the second-support test (when the
+scene runs it) and the held-out points' force curves computed by FE elements whose only
 displacement dofs are the particle mesh's vertices, with the true material (locking-free ANP
 and plain P1, :mod:`reference_fe.floor`), measured against the reference with the calibrated
-model's gravity metrics. It is information, not a check: the verdict does not read it.
+model's metrics, next to the calibrated and the baseline model's. It is information, not a
+check: the verdict does not read it.
 
 ``strain_ranges`` says where the fitted spring laws hold (:func:`strain_ranges`): the
 connector strains the calibration points' curves reached, against those of each held-out
@@ -81,10 +83,12 @@ from calibration.metrics import force_vector_errors, relative_rms_error
 from calibration.results import CalibrationResult
 from calibration.validation import per_completed_point
 from forcecal.errors import DataFileError
-from forcecal.h5io import FLOOR_ELEMENTS, FloorResult, GravityResult, Reference, atomic_path
+from forcecal.h5io import (FLOOR_ELEMENTS, FloorResult, GravityResult, HeldOutCurves, Reference,
+                           SecondSupportResult, atomic_path)
 from forcecal.problem import Problem
 from forcecal.provenance import git_commit
 from forcecal.scene import EXPERIMENTS as ALL_EXPERIMENTS, GRAVITY_EXPERIMENTS, VerdictSection
+from particle.evaluators import normal_force
 from pipelines.dynamics import dynamic_metrics, release_modes
 from pipelines.gravity import GravityRuns, GravityTest, SupportRuns
 from pipelines.verdict import CHECKS, NOT_ASKED, OPT_IN, STATUSES, judge, measurements
@@ -329,6 +333,8 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
              **{m: release_modes(gravity.time, r.displacement, node)
                 for m, r in released.items()}})
         if {"gravity_dynamic", "gravity_static"} <= set(ran) else None}
+    support_block = (second_support_block(reference, gravity.second_support)
+                     if "second_support" in ran else None)
     report = {
         "scene": scene_name,
         "experiments": list(ran),
@@ -356,13 +362,14 @@ def build_report(scene_name: str, reference: Reference, calibration: Calibration
         # the whole-body data (experiment "body"): whether they were fitted, and every
         # variant's errors against them (calibration.body.body_record); null without them
         "body": calibration.body or None,
-        "second_support": (second_support_block(reference, gravity.second_support)
-                           if "second_support" in ran else None),
-        "discretisation_floor": (floor_block(p, reference.gravity, reference.floor,
-                                             calibrated, baseline,
-                                             None if gravity_block is None
-                                             else gravity_block["dynamic_metrics"])
-                                 if "floor" in ran and gravity_ran else None),
+        "second_support": support_block,
+        "discretisation_floor": (floor_block(
+            p, reference.gravity, reference.floor, calibrated, baseline,
+            None if gravity_block is None else gravity_block["dynamic_metrics"],
+            held_out=held_out_curves(reference) if held.any() else None,
+            second_support=reference.second_support if "second_support" in ran else None,
+            support_block=support_block, reference_mesh=reference_mesh(reference))
+            if "floor" in ran and gravity_ran else None),
         "global_parameters": calibration.global_params.as_dict(),
         # how those values spread over the connectors (calibration.global_shape); files written
         # before the key had the paper's uniform set
@@ -392,15 +399,10 @@ def second_support_block(reference: Reference, runs: SupportRuns) -> dict[str, A
     and ``fe_seconds``, the FE's compute time of the test."""
     ref = reference.second_support
     fe, node = ref.runs, runs.tracked_node
-    free = np.ones(reference.problem.mesh.n_vertices, dtype=bool)
-    free[ref.fixed] = False
+    free = support_free(reference.problem, ref)
     errors = {m: {"static_sag": None, "release_rms": None} for m in ("calibrated", "baseline")}
     for m, r in runs.models.items():
-        errors[m]["static_sag"] = gravity_static_error(fe.static_displacement,
-                                                       r.static_displacement, free)
-        if r.displacement is not None:
-            errors[m]["release_rms"] = gravity_dynamic_error(fe.displacement[:, node],
-                                                             r.displacement[:, node])
+        errors[m] = body_test_errors(fe, r, free, node)
     released = {m: r for m, r in runs.models.items() if r.displacement is not None}
     timings = json.loads(reference.meta.get("timings_s", "{}"))
 
@@ -426,59 +428,170 @@ def second_support_block(reference: Reference, runs: SupportRuns) -> dict[str, A
     }
 
 
+def support_free(problem: Problem, second: SecondSupportResult) -> np.ndarray:
+    """(N,) bool: the vertices the second support leaves free."""
+    free = np.ones(problem.mesh.n_vertices, dtype=bool)
+    free[second.fixed] = False
+    return free
+
+
+def body_test_errors(fe: GravityResult, run: Any, free: np.ndarray, node: int
+                     ) -> dict[str, float | None]:
+    """A held-out body test's errors of one model's ``run`` (its ``static_displacement`` and
+    ``displacement``, None if its release did not run) against the FE's ``fe``:
+    ``static_sag`` (:func:`gravity_static_error` over the ``free`` vertices) and
+    ``release_rms`` (:func:`gravity_dynamic_error` of vertex ``node``; None without a
+    release)."""
+    return {"static_sag": gravity_static_error(fe.static_displacement, run.static_displacement,
+                                               free),
+            "release_rms": None if run.displacement is None else gravity_dynamic_error(
+                fe.displacement[:, node], run.displacement[:, node])}
+
+
 #: the gravity metrics of the discretisation floor, as report.json names them elsewhere
 FLOOR_METRICS = ("static_sag", "release_rms", "period_error", "first_peak_error")
+#: the second-support test's metrics of the floor (the second_support block's, prefixed)
+FLOOR_SUPPORT_METRICS = tuple(f"second_support_{m}" for m in FLOOR_METRICS)
+#: the held-out forces' metrics of the floor (the errors' keys)
+FLOOR_HELD_OUT_METRICS = ("indentation_held_out", "relaxation_held_out")
+
+
+def floor_test_metrics(fe: GravityResult, runs: dict[str, GravityResult], free: np.ndarray,
+                       node: int) -> dict[str, dict[str, float]]:
+    """Each run's :data:`FLOOR_METRICS` in a body test (both runs present) against the FE's
+    ``fe``: :func:`body_test_errors` and the release's ``period_error`` and
+    ``first_peak_error`` (:func:`pipelines.dynamics.dynamic_metrics`), and
+    ``max_static_sag_m``."""
+    if not runs:
+        return {}
+    metrics = dynamic_metrics(fe.time, fe.displacement[:, node], fe.static_displacement[node],
+                              {e: (r.displacement[:, node], r.static_displacement[node])
+                               for e, r in runs.items()})
+    return {e: {**body_test_errors(fe, r, free, node),
+                "period_error": metrics[e]["period_error"],
+                "first_peak_error": metrics[e]["first_peak_error"],
+                "max_static_sag_m": float(np.linalg.norm(r.static_displacement, axis=1).max())}
+            for e, r in runs.items()}
+
+
+def held_out_curves(reference: Reference) -> HeldOutCurves:
+    """The reference's held-out test points' curves (the rows after the calibration points)."""
+    first = len(reference.problem.calibration)
+    return HeldOutCurves(reference.problem.held_out, reference.indentation.force[first:],
+                         None if reference.relaxation is None
+                         else reference.relaxation.force[first:])
+
+
+def held_out_force_errors(problem: Problem, reference: HeldOutCurves, floor: HeldOutCurves
+                          ) -> dict[str, Any]:
+    """The floor's :data:`FLOOR_HELD_OUT_METRICS` against the ``reference``'s curves: the mean
+    over the held-out points of the relative RMS error of the normal force
+    (:func:`calibration.metrics.relative_rms_error`, the report's held-out metric; normals of
+    ``problem``'s test points), over the points both computed (``held_out_points``; a floor
+    point the reference does not hold, one it replaced, in ``held_out_not_in_reference``)."""
+    index = {int(v): k for k, v in enumerate(reference.vertices.tolist())}
+    rows = [(k, index[v]) for k, v in enumerate(floor.vertices.tolist())
+            if v in index and v not in floor.failed]
+    points = {int(v): k for k, v in enumerate(problem.test_points.tolist())}
+    normals = problem.normals[[points[int(floor.vertices[k])] for k, _ in rows]]
+    out: dict[str, Any] = dict.fromkeys(FLOOR_HELD_OUT_METRICS)
+    for key, sim, ref in (("indentation_held_out", floor.indentation, reference.indentation),
+                          ("relaxation_held_out", floor.relaxation, reference.relaxation)):
+        if rows and sim is not None and ref is not None:
+            out[key] = _mean(per_completed_point(
+                relative_rms_error, normal_force(sim[[k for k, _ in rows]], normals),
+                normal_force(ref[[r for _, r in rows]], normals)))
+    out["held_out_points"] = len(rows)
+    out["held_out_not_in_reference"] = [int(v) for v in floor.vertices.tolist()
+                                        if int(v) not in index]
+    return out
 
 
 def floor_block(problem: Problem, g: GravityResult, floor: FloorResult,
                 calibrated: dict[str, float | None], baseline: dict[str, float | None],
-                dynamic: dict[str, Any] | None) -> dict[str, Any]:
+                dynamic: dict[str, Any] | None, *, held_out: HeldOutCurves | None = None,
+                second_support: SecondSupportResult | None = None,
+                support_block: dict[str, Any] | None = None,
+                reference_mesh: str | None = None) -> dict[str, Any]:
     """``report.json``'s ``discretisation_floor``: for each floor element
-    (:class:`~forcecal.h5io.FloorResult`) the gravity test's errors against the reference,
-    measured as the calibrated model's (``static_sag``: :func:`gravity_static_error` over the
-    free vertices; ``release_rms``: :func:`gravity_dynamic_error` of the tracked vertex;
-    ``period_error``, ``first_peak_error``: :func:`pipelines.dynamics.dynamic_metrics`),
-    its largest static sag and compute time; null errors and the reason for an element whose
-    run failed. ``calibrated`` and ``baseline`` repeat the models' values of the same metrics
-    next to it (their ``gravity_static`` and ``gravity_dynamic`` errors; ``dynamic``: the
-    gravity block's ``dynamic_metrics``, None without it), and ``floor_element`` names the
+    (:class:`~forcecal.h5io.FloorResult`) its errors against the reference, measured as the
+    calibrated model's: the gravity test's :data:`FLOOR_METRICS` (:func:`floor_test_metrics`
+    over the free vertices and of the tracked vertex), the second-support test's
+    :data:`FLOOR_SUPPORT_METRICS` (the same, as :func:`second_support_block` measures it,
+    against ``second_support``, the reference's test) and the held-out forces'
+    :data:`FLOOR_HELD_OUT_METRICS` (:func:`held_out_force_errors` against ``held_out``, the
+    reference's curves); its largest static sag and compute times; null errors and the
+    reason for a run that failed (or that the floor or the reference did not compute).
+    ``calibrated`` and ``baseline`` repeat the models' values of the same metrics next to it
+    (their ``errors``; ``dynamic``: the gravity block's ``dynamic_metrics``, None without it;
+    ``support_block``: the report's ``second_support`` block), and ``floor_element`` names the
     locking-free element, the floor itself. ``g`` is the reference's gravity test (both runs)
-    on ``problem``."""
+    on ``problem``; ``reference_mesh`` says what mesh the reference's curves ran on."""
     node = problem.tracked_node
-    metrics = None
-    if floor.runs and g.displacement is not None and g.static_displacement is not None:
-        metrics = dynamic_metrics(
-            g.time, g.displacement[:, node], g.static_displacement[node],
-            {e: (r.displacement[:, node], r.static_displacement[node])
-             for e, r in floor.runs.items()})
+    gravity = (floor_test_metrics(g, floor.runs, problem.free, node)
+               if g.displacement is not None and g.static_displacement is not None else {})
+    support = {}
+    if second_support is not None:
+        support = floor_test_metrics(second_support.runs, floor.second_support,
+                                     support_free(problem, second_support),
+                                     second_support.runs.tracked_node)
     elements = {}
     for element in floor.elements:
-        run = floor.runs.get(element)
-        row: dict[str, Any] = dict.fromkeys(FLOOR_METRICS)
+        row: dict[str, Any] = dict.fromkeys(FLOOR_METRICS + FLOOR_SUPPORT_METRICS
+                                            + FLOOR_HELD_OUT_METRICS)
         row.update(max_static_sag_m=None, fe_seconds=floor.seconds.get(element),
-                   failed=floor.failed.get(element))
-        if run is not None:
-            row.update(static_sag=gravity_static_error(g.static_displacement,
-                                                       run.static_displacement, problem.free),
-                       release_rms=gravity_dynamic_error(g.displacement[:, node],
-                                                         run.displacement[:, node]),
-                       period_error=metrics[element]["period_error"],
-                       first_peak_error=metrics[element]["first_peak_error"],
-                       max_static_sag_m=float(np.linalg.norm(run.static_displacement,
-                                                             axis=1).max()))
+                   part_seconds=floor.part_seconds.get(element, {}),
+                   failed=floor.failed.get(element),
+                   second_support_failed=floor.second_support_failed.get(element),
+                   held_out_points=0, held_out_failed=None)
+        row.update(gravity.get(element, {}))
+        if element in support:
+            metrics = support[element]
+            row.update({f"second_support_{m}": metrics[m] for m in FLOOR_METRICS})
+        elif element in floor.second_support and second_support is None:
+            row["second_support_failed"] = "the reference has no second-support test"
+        curves = floor.held_out.get(element)
+        if curves is not None:
+            row["held_out_failed"] = {str(v): r for v, r in curves.failed.items()}
+            if held_out is not None:
+                row.update(held_out_force_errors(problem, held_out, curves))
         elements[element] = row
 
     def model_row(errors: dict[str, float | None], name: str) -> dict[str, float | None]:
         m = (dynamic or {}).get(name) or {}
+        b = support_block or {}
+        s_errors = b.get("errors" if name == "calibrated" else "baseline_errors") or {}
+        s_dynamic = (b.get("dynamic_metrics") or {}).get(name) or {}
         return {"static_sag": errors["gravity_static"], "release_rms": errors["gravity_dynamic"],
                 "period_error": m.get("period_error"),
-                "first_peak_error": m.get("first_peak_error")}
+                "first_peak_error": m.get("first_peak_error"),
+                "second_support_static_sag": s_errors.get("static_sag"),
+                "second_support_release_rms": s_errors.get("release_rms"),
+                "second_support_period_error": s_dynamic.get("period_error"),
+                "second_support_first_peak_error": s_dynamic.get("first_peak_error"),
+                **{k: errors.get(k) for k in FLOOR_HELD_OUT_METRICS}}
 
     return {"floor_element": FLOOR_ELEMENTS[0], "mesh": "particle mesh",
+            "held_out_mesh": "particle mesh, unrefined",
+            "reference_mesh": reference_mesh,
             "quadrature_degree": floor.quadrature_degree, "tracked_node": int(node),
             "fe_max_static_sag_m": float(np.linalg.norm(g.static_displacement, axis=1).max()),
+            "second_support_fe_max_static_sag_m": None if second_support is None else float(
+                np.linalg.norm(second_support.runs.static_displacement, axis=1).max()),
             "elements": elements, "calibrated": model_row(calibrated, "calibrated"),
             "baseline": model_row(baseline, "baseline")}
+
+
+def reference_mesh(reference: Reference) -> str | None:
+    """What mesh the reference's test point curves ran on (the floor's run on the particle
+    mesh, unrefined): its element, uniform refinements and a punch's rim refinements."""
+    fe = reference.fe
+    if fe is None:
+        return None
+    rim = (f", each punch's mesh refined {fe.local_refine} x near its rim"
+           if reference.indentation.indenter == "punch" and fe.local_refine else "")
+    refined = f" refined {fe.refine} x" if fe.refine else ""
+    return f"{fe.element} on the particle mesh{refined}{rim}"
 
 
 def strain_ranges(calibration: CalibrationResult) -> dict[str, Any] | None:

@@ -133,17 +133,17 @@ def work_items(scene: Scene, n_points: int, kinds: tuple[str, ...] | None = None
     kinds = scene.experiments if kinds is None else kinds
     g = scene.gravity
     # observed Newton iterations per step: ~2 quasi-static, ~3 dynamic, ~5 for the sag
+    gravity_test = 3.0 * g.duration / g.fe_dt + 5.0 * g.static_load_steps
     items = [WorkItem("gravity_dynamic", -1, 3.0 * g.duration / g.fe_dt),
              WorkItem("gravity_static", -1, 5.0 * g.static_load_steps),
              # two static loads and two eigen-solves (each about a factorisation's cost)
              WorkItem("body", -1, 2 * 5.0 * scene.body.load_steps + 2.0),
              # the second support's sag and release, one item
-             WorkItem("second_support", -1, 3.0 * g.duration / g.fe_dt
-                      + 5.0 * g.static_load_steps),
-             # the gravity test with each floor element, on the particle mesh's P1 dofs (a
-             # Newton solve a small fraction of the reference's)
-             WorkItem("floor", -1, 0.2 * len(floor.ELEMENTS)
-                      * (3.0 * g.duration / g.fe_dt + 5.0 * g.static_load_steps))]
+             WorkItem("second_support", -1, gravity_test),
+             # each floor element's gravity test, second-support test and held-out curves on
+             # the particle mesh's vertex dofs (a Newton solve a fraction of the reference's)
+             WorkItem("floor", -1, floor.item_cost(
+                 scene, gravity_test, sum(it.cost for it in point_items(scene, 0))))]
     for p in range(n_points):
         items.extend(point_items(scene, p))
     return sorted((it for it in items if it.kind in kinds),

@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from forcecal.errors import ConvergenceError
 from forcecal.h5io import FloorResult, GravityResult, read_reference, write_reference
 from forcecal.mesh import TetMesh
 from forcecal.scene import FESection, GravitySection, MaterialSection, load_scene, replace
@@ -118,6 +119,19 @@ def test_floor_runs_both_elements_and_plain_p1_is_stiffer(tiny_floor):
         assert run.displacement.shape == (len(run.time), problem.mesh.n_vertices, 3)
         np.testing.assert_array_equal(run.displacement[:, problem.fixed], 0.0)
         assert np.isfinite(run.displacement).all() and run.displacement[-1].any()
+    # the held-out points' curves (the scene does not run the second support): pushing in
+    # takes force along the inward normal, less with ANP than with the locking P1 at the
+    # full depth
+    assert not floor.has_second_support
+    normals = problem.normals[len(problem.calibration):]
+    push = {e: np.einsum("psk,pk->ps", c.indentation, normals) for e, c in floor.held_out.items()}
+    for e, curves in floor.held_out.items():
+        np.testing.assert_array_equal(curves.vertices, problem.held_out)
+        assert not curves.failed and curves.indentation.shape == (8, scene.indentation.steps, 3)
+        assert curves.relaxation.shape == (8, scene.relaxation.ramp_steps
+                                           + scene.relaxation.hold_steps, 3)
+        assert np.all(push[e][:, -1] > 0.0)
+    assert np.all(push["ANP"][:, -1] < push["P1"][:, -1])
 
 
 def _reference_with_floor(problem, material, scale: float):
@@ -137,7 +151,7 @@ def _reference_with_floor(problem, material, scale: float):
 
 
 def test_floor_group_round_trip_and_report_block(tmp_path, liver_problem, liver_scene):
-    from pipelines.report import floor_block
+    from pipelines.report import FLOOR_HELD_OUT_METRICS, FLOOR_SUPPORT_METRICS, floor_block
     from tests.test_h5io import _fake_reference
 
     gravity, floor = _reference_with_floor(liver_problem, liver_scene.material, 0.9)
@@ -168,5 +182,144 @@ def test_floor_group_round_trip_and_report_block(tmp_path, liver_problem, liver_
     assert block["elements"]["P1"]["failed"].startswith("ConvergenceError")
     assert block["floor_element"] == "ANP"
     assert block["calibrated"] == {"static_sag": 0.05, "release_rms": 0.2, "period_error": 0.01,
-                                   "first_peak_error": 0.02}
+                                   "first_peak_error": 0.02, **dict.fromkeys(
+                                       FLOOR_SUPPORT_METRICS + FLOOR_HELD_OUT_METRICS)}
     assert block["baseline"]["period_error"] is None
+    # no second support and no held-out curves in this floor: their metrics are null
+    assert all(anp[k] is None for k in FLOOR_SUPPORT_METRICS + FLOOR_HELD_OUT_METRICS)
+
+
+# --- the floor runs the reference's own experiments: a cantilever beam, every test -----------
+
+
+@pytest.fixture(scope="module")
+def beam_reference(tmp_path_factory):
+    """The beam of tests/test_fe_second_support.py (20 vertices, P2, 1 calibration + 8 held-out
+    points) with every experiment but the whole-body data, the floor included, through
+    :func:`reference_fe.run.compute_reference`."""
+    from reference_fe.run import compute_reference
+    from tests.test_fe_second_support import END, ROOT, _problem, _scene
+
+    scene = dataclasses.replace(_scene(ROOT, END), experiments=(
+        "indentation", "relaxation", "gravity_static", "gravity_dynamic", "second_support",
+        "floor"))
+    problem = _problem(scene)
+    out = tmp_path_factory.mktemp("beam") / "reference.h5"
+    compute_reference(scene, problem, out_path=out, progress=False)
+    return scene, problem, read_reference(out)
+
+
+def _block(problem, reference, floor):
+    from pipelines.report import floor_block, held_out_curves
+
+    errors = {"gravity_static": 0.05, "gravity_dynamic": 0.2, "indentation_held_out": 0.03,
+              "relaxation_held_out": 0.04}
+    support = {"errors": {"static_sag": 0.06, "release_rms": 0.3},
+               "baseline_errors": {"static_sag": 0.07, "release_rms": 0.35},
+               "dynamic_metrics": {"calibrated": {"period_error": 0.01, "first_peak_error": 0.02}}}
+    return floor_block(problem, reference.gravity, floor, errors, errors, None,
+                       held_out=held_out_curves(reference),
+                       second_support=reference.second_support, support_block=support)
+
+
+def test_the_floor_with_the_references_element_is_the_reference(beam_reference):
+    # the floor's runs with the reference's own [fe] (P2, degree 4) are the reference's
+    # gravity test, second-support test and held-out curves bit for bit, so the floor runs
+    # the same experiments; measured by the report's floor block, every error is zero
+    from pipelines.report import FLOOR_HELD_OUT_METRICS, FLOOR_METRICS, FLOOR_SUPPORT_METRICS
+    from reference_fe.floor import element_arrays, result_of
+
+    scene, problem, reference = beam_reference
+    first = len(problem.calibration)
+    own = element_arrays(scene, problem, scene.fe)
+    np.testing.assert_array_equal(own["held_out_vertices"], problem.held_out)
+    np.testing.assert_array_equal(own["held_out_indentation_force"],
+                                  reference.indentation.force[first:])
+    np.testing.assert_array_equal(own["held_out_relaxation_force"],
+                                  reference.relaxation.force[first:])
+    np.testing.assert_array_equal(own["second_support_displacement"],
+                                  reference.second_support.runs.displacement)
+    np.testing.assert_array_equal(own["static_displacement"],
+                                  reference.gravity.static_displacement)
+    arrays = {f"ANP_{k}": v for k, v in own.items()}
+    arrays["second_support_tracked_node"] = np.asarray(reference.second_support.runs.tracked_node)
+    floor = result_of(arrays, reference.gravity.settings)
+    row = _block(problem, reference, floor)["elements"]["ANP"]
+    for key in ("static_sag", "release_rms") + FLOOR_SUPPORT_METRICS[:2] + FLOOR_HELD_OUT_METRICS:
+        assert row[key] == 0.0, key
+    for key in FLOOR_METRICS[2:] + FLOOR_SUPPORT_METRICS[2:]:  # a release's own period, peak
+        assert row[key] == pytest.approx(0.0, abs=1e-12), key
+    assert row["held_out_points"] == 8 and set(row["part_seconds"]) == {
+        "build", "gravity", "second_support", "held_out"}
+
+
+def test_the_floor_of_a_reference_has_every_metric(beam_reference):
+    # reference.h5 /floor holds both elements' three tests; the block reports each metric,
+    # finite, next to the particle models' values of the same metrics
+    from pipelines.report import FLOOR_HELD_OUT_METRICS, FLOOR_METRICS, FLOOR_SUPPORT_METRICS
+
+    scene, problem, reference = beam_reference
+    floor = reference.floor
+    assert floor.elements == ("ANP", "P1") and set(floor.second_support) == {"ANP", "P1"}
+    block = _block(problem, reference, floor)
+    metrics = FLOOR_METRICS + FLOOR_SUPPORT_METRICS + FLOOR_HELD_OUT_METRICS
+    for element, row in block["elements"].items():
+        assert all(np.isfinite(row[k]) for k in metrics), (element, row)
+        assert row["held_out_points"] == 8 and row["held_out_not_in_reference"] == []
+        # a vertex-dof model pushed at one vertex is stiffer than P2: its error is real
+        assert row["indentation_held_out"] > 0.05
+    assert block["calibrated"]["second_support_static_sag"] == 0.06
+    assert block["baseline"]["second_support_release_rms"] == 0.35
+    assert block["calibrated"]["second_support_period_error"] == 0.01
+    assert block["baseline"]["indentation_held_out"] == 0.03
+    assert block["second_support_fe_max_static_sag_m"] > 0.0
+
+
+def test_a_failed_floor_run_is_recorded_not_raised(tmp_path, beam_reference, monkeypatch):
+    # ANP's relaxation fails at the second held-out point and P1's second-support release
+    # fails: both recorded (NaN rows and the reason, the reason), stored, and the block
+    # measures the other points and leaves the failed test null with its reason
+    from reference_fe import experiments as ex
+    from reference_fe.floor import arrays_of, floor_arrays, result_of
+
+    scene, problem, reference = beam_reference
+    relax, release = ex.held_relaxation_curve, ex.gravity_dynamic
+    bad_vertex = int(problem.held_out[1])
+
+    def relaxation(model, fixed, dofs, normal, times, depths, what):
+        if model.fe.element == "ANP" and what.endswith(f"vertex {bad_vertex}"):
+            raise ConvergenceError("relaxation: step 3 did not converge")
+        return relax(model, fixed, dofs, normal, times, depths, what)
+
+    def dynamic(model, *args, section="fixed", **kwargs):
+        if model.fe.element == "P1" and section == "second_support":
+            raise ConvergenceError("second support dynamic: step 2 did not converge")
+        return release(model, *args, section=section, **kwargs)
+
+    monkeypatch.setattr(ex, "held_relaxation_curve", relaxation)
+    monkeypatch.setattr(ex, "gravity_dynamic", dynamic)
+    floor = result_of(floor_arrays(scene, problem), reference.gravity.settings)
+    anp = floor.held_out["ANP"]
+    assert set(anp.failed) == {bad_vertex} and "step 3" in anp.failed[bad_vertex]
+    assert np.isnan(anp.relaxation[1]).all() and np.isnan(anp.indentation[1]).all()
+    assert np.isfinite(np.delete(anp.relaxation, 1, axis=0)).all()
+    assert floor.second_support_failed["P1"].startswith("ConvergenceError: second support")
+    assert set(floor.second_support) == {"ANP"} and set(floor.runs) == {"ANP", "P1"}
+
+    write_reference(tmp_path / "reference.h5", dataclasses.replace(reference, floor=floor))
+    back = read_reference(tmp_path / "reference.h5").floor
+    assert back.held_out["ANP"].failed == anp.failed
+    np.testing.assert_array_equal(back.held_out["ANP"].relaxation, anp.relaxation)
+    assert back.second_support_failed == floor.second_support_failed
+    # a reused /floor (reference_fe.run.experiment_arrays) gives the same result back
+    again = result_of(arrays_of(back), reference.gravity.settings)
+    assert again.second_support_failed == back.second_support_failed
+    assert again.held_out["ANP"].failed == anp.failed and again.part_seconds == back.part_seconds
+    np.testing.assert_array_equal(again.second_support["ANP"].displacement,
+                                  back.second_support["ANP"].displacement)
+    assert again.second_support["ANP"].tracked_node == reference.second_support.runs.tracked_node
+    block = _block(problem, reference, back)
+    assert block["elements"]["ANP"]["held_out_points"] == 7
+    assert np.isfinite(block["elements"]["ANP"]["relaxation_held_out"])
+    assert block["elements"]["P1"]["second_support_static_sag"] is None
+    assert block["elements"]["P1"]["second_support_failed"].startswith("ConvergenceError")

@@ -65,10 +65,10 @@ def test_reference_file_contents_and_checkpoint_reuse(serial, tiny_scene):
     assert back.meta["mesh_fingerprint"] == ref.problem.mesh.fingerprint()
     timings = json.loads(back.meta["timings_s"])
     assert set(timings) == {"mesh", "indentation", "relaxation", "gravity_static",
-                            "gravity_dynamic", "body", "second_support", "total"}
+                            "gravity_dynamic", "body", "second_support", "floor", "total"}
     # not asked for: not computed
-    assert timings["body"] == timings["second_support"] == 0.0
-    assert back.body is None and back.second_support is None
+    assert timings["body"] == timings["second_support"] == timings["floor"] == 0.0
+    assert back.body is None and back.second_support is None and back.floor is None
     np.testing.assert_array_equal(back.indentation.force, ref.indentation.force)
     # the matching part was reused, the stale one (other run key) and the stale claim were not
     assert np.all(ref.indentation.force[0] == FAKE)

@@ -35,7 +35,7 @@ def test_liver_scene_material_is_consistent(liver_scene):
     ({"material": {"prony_g": [0.6, 0.5]}}, r"must be < 1"),
     ({"material": {"prony_g": [0.3]}}, r"differ in length"),
     ({"relaxation": {"hold_time": 10.0}}, r"shorter than 5 x tau_max"),
-    ({"fe": {"element": "Q2"}}, r"must be one of \['P1', 'P2', 'TH'\]"),
+    ({"fe": {"element": "Q2"}}, r"must be one of \['P1', 'P2', 'TH', 'ANP'\]"),
     ({"indentation": {"steps": 3}}, r"indentation.steps = 3: must be >= 10"),
     ({"particle": {"dt": "fast"}}, r"particle.dt must be 'auto'"),
     ({"gravity": {"acceleration": [0, -9.81]}}, r"gravity.acceleration .*expected list of 3"),

@@ -1,16 +1,20 @@
-"""Bench study "discretisation floor": how much of the gravity test's error is the mesh's.
+"""Bench study "discretisation floor": how much of the reference tests' error is the mesh's.
 
 ``study(scene, cache_folder, quick)`` returns the bench.json key ``discretisation_floor``:
-for the default liver and the liver punch scene (:data:`SCENES`), the gravity test of the
-scene's FE reference (its ``[fe]`` element on the particle mesh, as the reference computes
-it: both scenes run their gravity test at ``fe.refine = 0``) and of the discretisation floor's
-vertex-dof elements (:mod:`reference_fe.floor`: ANP, locking-free, and plain P1), one row
-per scene and element: ``{scene, element, static_sag_error, release_period_error,
-first_peak_error, release_rms, wall_s}`` measured as ``report.json`` measures the calibrated
-model (:func:`pipelines.report.floor_block`), next to the rows of the calibrated and the
-baseline particle models read from the scene's committed ``runs/<scene>/report.json``
-(``wall_s`` null: their runs are the report's). Each scene's FE work is kept in the bench
-cache under the FE code and scene key (:func:`pipelines.bench.items.fe_key`).
+for the default liver and the liver punch scene (:data:`SCENES`), the scene's FE reference
+(its ``[fe]``, as the reference computes it: both scenes run at ``fe.refine = 0``, a punch on
+its rim-refined mesh) and the discretisation floor's vertex-dof elements
+(:mod:`reference_fe.floor`: ANP, locking-free, and plain P1, on the particle mesh) run the
+gravity test, the second-support test when the scene runs it, and the held-out points'
+indentation and relaxation curves; one row per scene and element: ``{scene, element,
+static_sag_error, release_period_error, first_peak_error, release_rms,
+second_support_static_sag_error, second_support_release_rms,
+second_support_period_error, second_support_first_peak_error, indentation_held_out,
+relaxation_held_out, wall_s}`` measured as ``report.json`` measures the calibrated model
+(:func:`pipelines.report.floor_block`), next to the rows of the calibrated and the baseline
+particle models read from the scene's committed ``runs/<scene>/report.json`` (``wall_s``
+null: their runs are the report's). Each scene's FE work is kept in the bench cache under the
+FE code and scene key (:func:`pipelines.bench.items.fe_key`).
 """
 
 from __future__ import annotations
@@ -24,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from forcecal.h5io import GravityResult
-from forcecal.problem import build_problem
+from forcecal.h5io import GravityResult, SecondSupportResult
+from forcecal.problem import build_problem, second_support
 from forcecal.scene import Scene, load_scene
 
 log = logging.getLogger(__name__)
@@ -35,41 +39,69 @@ ROOT = Path(__file__).resolve().parents[2]
 SCENES = ("scenes/liver.toml", "scenes/liver_punch.toml")
 #: a row's metrics, in report.json's floor block names -> the row's names
 ROW_METRICS = {"static_sag": "static_sag_error", "period_error": "release_period_error",
-               "first_peak_error": "first_peak_error", "release_rms": "release_rms"}
+               "first_peak_error": "first_peak_error", "release_rms": "release_rms",
+               "second_support_static_sag": "second_support_static_sag_error",
+               "second_support_release_rms": "second_support_release_rms",
+               "second_support_period_error": "second_support_period_error",
+               "second_support_first_peak_error": "second_support_first_peak_error",
+               "indentation_held_out": "indentation_held_out",
+               "relaxation_held_out": "relaxation_held_out"}
 
 
 def scene_floor(scene: Scene) -> dict[str, Any]:
-    """The scene's reference gravity test and floor, measured: report.json's floor block
+    """The scene's reference tests and floor, measured: report.json's floor block
     (:func:`pipelines.report.floor_block`, the particle models' values from the scene's
-    committed report when it has them) plus ``reference_element`` and ``reference_wall_s``."""
+    committed report when it has them) plus ``reference_element``, ``reference_wall_s`` and
+    ``reference_part_seconds`` (the reference's gravity test, second-support test and
+    held-out curves)."""
     from pipelines.report import floor_block, read_report
-    from reference_fe.experiments import gravity_dynamic, gravity_static
-    from reference_fe.floor import floor_arrays, result_of
+    from reference_fe.floor import curves_of, floor_arrays, gravity_runs, held_out_forces, result_of
     from reference_fe.model import FEModel
+    from reference_fe.refine import FEProblem
+    from reference_fe.run import second_support_runs
 
     problem = build_problem(scene)
     g = scene.gravity
     start = time.perf_counter()
-    fe = dataclasses.replace(scene.fe, refine=0, local_refine=0)
+    fe = dataclasses.replace(scene.fe, refine=0)
+    reference_scene = dataclasses.replace(scene, fe=fe)
     model = FEModel(problem.mesh, scene.material, fe)
-    static = gravity_static(model, problem.fixed, g.acceleration, g.static_load_steps)
-    times, displacement = gravity_dynamic(model, problem.fixed, g.acceleration, g.duration,
-                                          g.fe_dt, g.record_interval)
-    reference_s = time.perf_counter() - start
+    parts = {"build": time.perf_counter() - start}
     settings = dataclasses.replace(g, tracked_node=problem.tracked_node)
-    gravity = GravityResult(static, times, displacement, settings)
+    t0 = time.perf_counter()
+    gravity = GravityResult(**gravity_runs(model, scene, problem), settings=settings)
+    parts["gravity"] = time.perf_counter() - t0
+    second = None
+    if "second_support" in scene.experiments:
+        t0 = time.perf_counter()
+        support = second_support(scene, problem)
+        runs = second_support_runs(model, reference_scene, problem,
+                                   FEProblem(problem, np.arange(problem.mesh.n_vertices), 0))
+        second = SecondSupportResult(scene.second_support, support.fixed, GravityResult(
+            **runs, settings=dataclasses.replace(g, tracked_node=support.tracked_node)))
+        parts["second_support"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    held_out = curves_of(held_out_forces(model, reference_scene, problem))
+    parts["held_out"] = time.perf_counter() - t0
+    reference_s = time.perf_counter() - start
     floor = result_of(floor_arrays(scene, problem), settings)
     report_path = ROOT / "runs" / scene.name / "report.json"
     models: dict[str, dict | None] = {"calibrated": None, "baseline": None}
-    dynamic = None
+    dynamic, support_block = None, None
     if report_path.is_file():
         report = read_report(report_path)
         models = {"calibrated": report["errors"], "baseline": report["baseline_errors"]}
         dynamic = (report.get("gravity") or {}).get("dynamic_metrics")
+        support_block = report.get("second_support")
     empty = {"gravity_static": None, "gravity_dynamic": None}
+    rim = (f", each punch's mesh refined {fe.local_refine} x near its rim"
+           if scene.indentation.indenter == "punch" and fe.local_refine else "")
     block = floor_block(problem, gravity, floor, models["calibrated"] or empty,
-                        models["baseline"] or empty, dynamic)
+                        models["baseline"] or empty, dynamic, held_out=held_out,
+                        second_support=second, support_block=support_block,
+                        reference_mesh=f"{fe.element} on the particle mesh{rim}")
     return {**block, "reference_element": scene.fe.element, "reference_wall_s": reference_s,
+            "reference_part_seconds": parts,
             "report": str(report_path.relative_to(ROOT)) if report_path.is_file() else None}
 
 
@@ -78,10 +110,11 @@ def rows_of(name: str, block: dict[str, Any]) -> list[dict[str, Any]]:
     calibrated and the baseline model."""
     rows = [{"scene": name, "element": element, "wall_s": row["fe_seconds"],
              **{out: row[key] for key, out in ROW_METRICS.items()},
-             **({"failed": row["failed"]} if row["failed"] else {})}
+             **{k: row[k] for k in ("failed", "second_support_failed", "held_out_failed")
+                if row.get(k)}}
             for element, row in block["elements"].items()]
     rows += [{"scene": name, "element": f"particle ({model})", "wall_s": None,
-              **{out: block[model][key] for key, out in ROW_METRICS.items()}}
+              **{out: block[model].get(key) for key, out in ROW_METRICS.items()}}
              for model in ("calibrated", "baseline")]
     return rows
 
