@@ -23,6 +23,7 @@ vertex it is the force the indenter applies to it.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 
 import basix
@@ -133,6 +134,8 @@ DIVERGENCE_FACTOR = 1e3
 # a Newton guess whose constrained dofs lie this close to their values [m] gets them exactly
 # (round-off of an extrapolation) and no lifting in its first residual (solve_step)
 SNAP_DISTANCE = 1e-12
+#: the parts of a Newton solve's time that _ResidualProblem.seconds accumulates
+PROFILE_PARTS = ("residual", "tangent", "factorise", "solve")
 # significant digits of the constants that decide whether a kept tangent may be kept (solve_step)
 TANGENT_KEY_DIGITS = 9
 # dolfinx Dirichlet conditions kept per model (solve_step's _dirichlet)
@@ -215,6 +218,11 @@ class _ResidualProblem(NonlinearProblem):
         self.taken_back = 0  # chord steps taken back (performance reports)
         self.factorisations = 0  # over the model's life (performance reports)
         self.assemblies = 0  # tangent assemblies, likewise
+        # where the time goes [s], over the model's life (performance reports): residual and
+        # tangent assembly, linear solves that factorised afresh, the other linear solves
+        self.seconds = dict.fromkeys(PROFILE_PARTS, 0.0)
+        self._solve_start = 0.0  # end of the last J (the linear solve follows it)
+        self._refreshed = False  # the last J asked for a fresh factorisation
 
     def chord(self) -> bool:
         """Whether the next iteration is a chord step (class docstring)."""
@@ -231,10 +239,13 @@ class _ResidualProblem(NonlinearProblem):
         chord = self.chord()
         # a chord step is one back-solve with the kept factorisation, whatever tangent it has
         ksp.setType("preonly" if chord else "gmres")
+        self._refreshed = False
         if chord:
             ksp.getPC().setReusePreconditioner(True)
             self.after_chord = True
+            self._solve_start = time.perf_counter()
             return
+        start = time.perf_counter()
         super().J(x, A)
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)  # LDL^T reads half of it
         self.assemblies += 1
@@ -245,10 +256,15 @@ class _ResidualProblem(NonlinearProblem):
         ksp.getPC().setReusePreconditioner(not refresh)
         self.factorisations += refresh
         self.refactor = self.after_chord = False
+        self._refreshed = refresh
+        self._solve_start = time.perf_counter()
+        self.seconds["tangent"] += self._solve_start - start
 
     def update(self, solver: NewtonSolver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
         """Newton's update ``x <- x - dx``; a chord step's is Anderson-mixed (type II, the
         last ``ANDERSON_DEPTH`` chord steps of this solve with the same factorisation)."""
+        self.seconds["factorise" if self._refreshed else "solve"] += (time.perf_counter()
+                                                                      - self._solve_start)
         if not (self.after_chord and self.plain_residual) or ANDERSON_DEPTH == 0:
             self.mixing.clear()  # a Newton step, or the lifted first residual
             x.axpy(-1.0, dx)
@@ -272,6 +288,14 @@ class _ResidualProblem(NonlinearProblem):
             raise StepFailed("non-finite Newton iterate")
 
     def F(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        start = time.perf_counter()
+        try:
+            self._checked_residual(x, b)
+        finally:
+            self.seconds["residual"] += time.perf_counter() - start
+
+    def _checked_residual(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        """F's work: the residual, the taking back of a chord step, the divergence guard."""
         first = not self.residual_norms
         if first:
             self.mixing.clear()
@@ -377,9 +401,19 @@ class FEModel:
         self._solver = _newton_solver(self._problem, fe.newton_max_it)
         self._dirichlet_cache: dict = {}  # see _dirichlet
         self.newton_iterations = 0  # total over the model's life (performance reports)
+        self.newton_solves = 0  # likewise (failed ones included)
         self.n_prony = len(material.prony_g)
         log.debug("FE model: %s, %d dofs, %d cells x %d quadrature points",
                   fe.element, self.n_dofs, self.n_cells, self.n_qp)
+
+    def newton_profile(self) -> dict[str, float]:
+        """The Newton work of this model so far (performance reports): solves, iterations,
+        tangent assemblies, factorisations and the seconds of each part of
+        :data:`PROFILE_PARTS` (``<part>_s``; a factorisation's back-solve counts with it)."""
+        p = self._problem
+        return {"solves": self.newton_solves, "iterations": self.newton_iterations,
+                "tangents": p.assemblies, "factorisations": p.factorisations,
+                **{f"{part}_s": seconds for part, seconds in p.seconds.items()}}
 
     def forget_tangent(self) -> None:
         """Start the next solve from a fresh tangent and factorisation, as a new model would:
@@ -609,6 +643,7 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
     else:
         reason = f"no convergence in {iterations} iterations"
     model.newton_iterations += iterations
+    model.newton_solves += 1
     if not converged:
         log.debug("Newton failed at progress %.6g: %s", progress, reason)
         # a factorisation that failed (NaN or singular matrix) stays failed in PETSc and
