@@ -345,7 +345,7 @@ def test_make_bench_runs_the_headline_items_and_bench_full_every_item():
         "default pipeline run", "run time vs error", "reference timings", "particle engine",
         "stability limits", "haptic scale", "fe_convergence", "scale", "volume term"]
     assert {i.name for i in ITEMS} - {i.name for i in items_of(False)} == {
-        "experiments", "calibration methods"}
+        "experiments", "scale reference", "calibration methods"}
     reduced = {i.name for i in ITEMS if i.headline not in (None, i.full)}
     assert reduced == {"run time vs error", "reference timings", "haptic scale",
                        "fe_convergence", "scale"}
@@ -385,6 +385,8 @@ ITEM_KEYS = {"default pipeline run": ("calibration",), "run time vs error": ("pa
              "stability limits": ("stability",), "experiments": ("skip", "experiments"),
              "haptic scale": ("haptic_scale",), "fe_convergence": ("fe_convergence",),
              "scale": ("scale", "scale_study"), "calibration methods": ("calibration_methods",),
+             # not in the committed bench.json until a full bench has run it
+             "scale reference": (),
              "volume term": ("volume_haptic",)}
 
 

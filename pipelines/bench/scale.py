@@ -337,6 +337,33 @@ def study(scene: Scene, cache: Path, quick: bool, lengths: tuple[float, ...] | N
                 "method": __doc__.split("\n\n", 1)[1].strip()}}
 
 
+def whole_reference(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
+    """The ``scale_reference`` key of bench.json: the FE reference of the scene's test points
+    on the largest size of :data:`LENGTHS` (2,936 vertices; ``quick``: 866), computed as a
+    whole run on 2 MPI ranks and timed (the study's other FE numbers are single items), with
+    the date and the load averages before and after."""
+    from forcecal.liver_mesh import generate_liver
+    from pipelines.bench.configs import derived_scene
+    from pipelines.bench.items import measure_reference, now_utc
+
+    length = LENGTHS[quick][-1]
+    mesh = generate_liver(length)
+    sized = sized_scene(scene, length, float(mesh.edge_lengths.mean()))
+    changes = {"mesh": {"source": "generate", "characteristic_length": length},
+               "test_points": {"calibration": "auto", "held_out": "auto"},
+               "indentation": {"depth": sized.indentation.depth},
+               "relaxation": {"depth": sized.relaxation.depth}}
+    folder = cache / "scale-reference"
+    derived = derived_scene(scene, f"scale{mesh.n_vertices}", changes, folder)
+    load = [list(os.getloadavg())]
+    started = now_utc()
+    wall = measure_reference(derived, 2, folder, progress=False)
+    load.append(list(os.getloadavg()))
+    return {"scale_reference": {"vertices": mesh.n_vertices, "ranks": 2, "wall_s": wall,
+                                "measured": started, "load_average": load,
+                                "depth_m": sized.indentation.depth}}
+
+
 def headline_study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
     """``make bench``'s scale study: the sizes of :data:`HEADLINE_LENGTHS`, no rank timing."""
     return study(scene, cache, quick, HEADLINE_LENGTHS[quick], rank_timing=False)
