@@ -362,8 +362,9 @@ def test_gravity_reactions_carry_the_weight(p2_block):
     support = state.force[model.clamp_dofs(base)].sum(axis=0)  # force applied by the support
     weight = MATERIAL.density * L ** 3 * g
     # balanced to Newton's tolerance: it stops once the residual of the free dofs is below
-    # 1e-8 of the force scale (chord steps stop just below it; observed 6e-9 of the weight)
-    np.testing.assert_allclose(support, -weight, rtol=1e-7, atol=1e-12)
+    # 1e-8 of the force scale (chord steps stop just below it; observed 6e-9 of the weight,
+    # and 2e-10 of it in the horizontal components, which the weight does not load)
+    np.testing.assert_allclose(support, -weight, rtol=1e-7, atol=1e-8 * np.abs(weight).max())
 
 
 def test_newmark_conserves_energy_without_viscosity():
@@ -460,6 +461,7 @@ def test_a_kept_factorisation_and_chord_steps_change_nothing_but_the_cost(monkey
     kept, iterations, assemblies, factorisations = run()
     monkeypatch.setattr(fe_model, "KRYLOV_REFRESH_IT", -1)  # refresh before every solve
     monkeypatch.setattr(fe_model, "CHORD_CONTRACTION", 0.0)  # no chord steps
+    monkeypatch.setattr(fe_model, "CHORD_REFRESH_COST", 0.0)
     fresh, fresh_iterations, fresh_assemblies, fresh_factorisations = run()
     assert fresh_factorisations == fresh_assemblies == fresh_iterations  # exact Newton
     assert assemblies < fresh_iterations / 2
@@ -489,6 +491,7 @@ def test_a_chord_step_that_raises_the_residual_is_taken_back(monkeypatch):
     assert taken_back == 1
     monkeypatch.setattr(fe_model, "KRYLOV_REFRESH_IT", -1)
     monkeypatch.setattr(fe_model, "CHORD_CONTRACTION", 0.0)
+    monkeypatch.setattr(fe_model, "CHORD_REFRESH_COST", 0.0)
     exact, none_taken = run()
     assert none_taken == 0
     np.testing.assert_allclose(kept, exact, rtol=0, atol=1e-7 * np.abs(exact).max())
