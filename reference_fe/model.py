@@ -23,7 +23,6 @@ vertex it is the force the indenter applies to it.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -123,15 +122,6 @@ CHORD_MAX_ITERATIONS = 12
 # A chord step is Anderson-mixed with up to this many chord steps before it in the same solve
 # (0: plain chord steps; see _ResidualProblem.update)
 ANDERSON_DEPTH = 4
-# A chord step that fell slower than CHORD_CONTRACTION (but fell) is followed by another
-# while the chord steps still needed at its rate cost less than a fresh tangent and
-# factorisation, CHORD_REFRESH_COST chord steps (a residual and a back-solve each) at
-# CHORD_REFRESH_DOFS dofs, growing as (dofs / CHORD_REFRESH_DOFS)^CHORD_REFRESH_GROWTH:
-# measured on the generated liver (P2), 13 chord steps at 5k dofs, 23 at 35k, 31 at 62k.
-# A count of dofs, not a clock, so the iterates do not depend on the machine's load
-CHORD_REFRESH_COST = 13.0
-CHORD_REFRESH_DOFS = 5046
-CHORD_REFRESH_GROWTH = 0.35
 # A Newton solve whose residual norm [N] grows past this factor times the largest of its first
 # two residuals and the last converged state's force norm is given up at once (StepFailed: the
 # step is cut) instead of iterating on to newton_max_it or to a NaN. The first Newton update
@@ -186,13 +176,9 @@ class _ResidualProblem(NonlinearProblem):
     24k Taylor-Hood dofs and quadrature degree 4, then GMRES on the kept factorisation, ~10
     back-solves) costs ten times a residual plus one back-solve with the kept factorisation,
     and the tangent hardly changes. So an iteration is such a chord step while the residual
-    fell by ``CHORD_CONTRACTION`` or more over the previous iteration, or fell more slowly
-    but the chord steps still needed at that rate cost less than a fresh tangent and
-    factorisation (``refresh_cost`` chord steps, more on bigger meshes: 2,936-vertex liver,
-    62k dofs, relaxation 246 -> 216 iterations and 4 -> 3 factorisations, about 16 % less
-    time), and the first iteration of a step is one when the previous step ended so. Any
-    other slower fall after a chord step assembles the tangent and factorises it afresh (the
-    next chord steps then use it);
+    fell by ``CHORD_CONTRACTION`` or more over the previous iteration, and the first
+    iteration of a step is one when the previous step ended so. A slower fall after a chord
+    step assembles the tangent and factorises it afresh (the next chord steps then use it);
     Newton iterations otherwise keep the factorisation while GMRES converges fast. Measured
     on the liver punch (vertex 138, 24k dofs, 40-step ramp-and-hold): 301 iterations with 4
     tangents and 4 factorisations in 22.6 s, against 81 iterations with 81 tangents and 2
@@ -224,8 +210,6 @@ class _ResidualProblem(NonlinearProblem):
         self.tangent_key: tuple | None = None  # what the kept tangent was assembled for
         self.after_chord = False  # the last iteration was a chord step
         self.norm_floor = 0.0  # force norm of the state the solve starts from [N]
-        self.atol = 0.0  # the solve's residual tolerance [N] (solve_step)
-        self.refresh_cost = 0.0  # a fresh tangent's cost in chord steps (FEModel)
         self.chords_off = False  # a chord step of this solve raised the residual
         self.previous: np.ndarray | None = None  # the last accepted iterate of this solve
         self.previous_residual: np.ndarray | None = None  # and its residual vector
@@ -247,15 +231,8 @@ class _ResidualProblem(NonlinearProblem):
             return False
         if len(norms) < 2:
             return self.chord_first
-        if len(norms) > CHORD_MAX_ITERATIONS:
-            return False
-        rate = norms[-1] / norms[-2] if norms[-2] > 0 else 0.0
-        if rate <= CHORD_CONTRACTION:
-            return True
-        if not rate < 1.0:
-            return False
-        # chord steps still needed at this rate, against a fresh tangent's cost in chord steps
-        return math.log(self.atol / norms[-1]) / math.log(rate) <= self.refresh_cost
+        return (len(norms) <= CHORD_MAX_ITERATIONS
+                and norms[-1] <= CHORD_CONTRACTION * norms[-2])
 
     def J(self, x: PETSc.Vec, A: PETSc.Mat) -> None:
         ksp = self.krylov
@@ -422,8 +399,6 @@ class FEModel:
         self._residual_vec = fem.petsc.create_vector(self._problem.L)
         self._offset = fem.petsc.create_vector(self._problem.L)
         self._solver = _newton_solver(self._problem, fe.newton_max_it)
-        self._problem.refresh_cost = (CHORD_REFRESH_COST * (self.n_dofs / CHORD_REFRESH_DOFS)
-                                      ** CHORD_REFRESH_GROWTH)
         self._dirichlet_cache: dict = {}  # see _dirichlet
         self.newton_iterations = 0  # total over the model's life (performance reports)
         self.newton_solves = 0  # likewise (failed ones included)
@@ -660,7 +635,7 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
     # norm (metres), so it is switched off; the force scale enters through atol instead.
     force_scale = 0.0 if state.force is None else float(np.linalg.norm(state.force))
     model._solver.atol = model.fe.newton_atol + model.fe.newton_rtol * force_scale
-    problem.atol, problem.norm_floor = model._solver.atol, force_scale
+    problem.norm_floor = force_scale
     try:
         iterations, converged = model._solver.solve(model.w)
     except (StepFailed, RuntimeError) as exc:  # RuntimeError: e.g. MUMPS on a singular matrix

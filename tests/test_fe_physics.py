@@ -461,7 +461,6 @@ def test_a_kept_factorisation_and_chord_steps_change_nothing_but_the_cost(monkey
     kept, iterations, assemblies, factorisations = run()
     monkeypatch.setattr(fe_model, "KRYLOV_REFRESH_IT", -1)  # refresh before every solve
     monkeypatch.setattr(fe_model, "CHORD_CONTRACTION", 0.0)  # no chord steps
-    monkeypatch.setattr(fe_model, "CHORD_REFRESH_COST", 0.0)
     fresh, fresh_iterations, fresh_assemblies, fresh_factorisations = run()
     assert fresh_factorisations == fresh_assemblies == fresh_iterations  # exact Newton
     assert assemblies < fresh_iterations / 2
@@ -491,7 +490,6 @@ def test_a_chord_step_that_raises_the_residual_is_taken_back(monkeypatch):
     assert taken_back == 1
     monkeypatch.setattr(fe_model, "KRYLOV_REFRESH_IT", -1)
     monkeypatch.setattr(fe_model, "CHORD_CONTRACTION", 0.0)
-    monkeypatch.setattr(fe_model, "CHORD_REFRESH_COST", 0.0)
     exact, none_taken = run()
     assert none_taken == 0
     np.testing.assert_allclose(kept, exact, rtol=0, atol=1e-7 * np.abs(exact).max())
