@@ -3,12 +3,12 @@
 The unit of the FE side is a *vertex-step* (one load or time step of one
 experiment, times the mesh's vertices: a Newton solve costs about that much);
 the particle side's is a *connector-step* (one explicit step of one connector).
-The default liver's whole reference is about 7e5 vertex-steps (5 min on 2
-cores); its gravity release with ``particle.dt = "auto"`` about 1e8
-connector-steps. The limits below are some thousand times that: a scene above
-them would run for days, which is a typo (``indentation.steps = 10000000``,
-``particle.dt = 1e-9``) far more often than an intention. The message gives
-the estimate and the key to change.
+The default liver's whole reference is about 7e5 vertex-steps (about 2 core-minutes;
+a vertex-step costs more on bigger meshes: :func:`fe_core_seconds`); its gravity
+release with ``particle.dt = "auto"`` about 1e8 connector-steps. The limits below are
+some thousand times that: a scene above them would run for days, which is a typo
+(``indentation.steps = 10000000``, ``particle.dt = 1e-9``) far more often than an
+intention. The message gives the estimate and the key to change.
 """
 from __future__ import annotations
 
@@ -17,12 +17,20 @@ import math
 from forcecal.errors import SceneError
 from forcecal.scene import Scene
 
-#: largest FE reference accepted [vertex-steps] (~ a day on one core at the measured rate)
+#: largest FE reference accepted [vertex-steps] (~ 10 core-hours at the default liver's rate,
+#: a day on one core on a 1,000-vertex mesh: :func:`fe_core_seconds`)
 FE_LIMIT = 2e8
 #: largest particle gravity release accepted [connector-steps] (both models together)
 PARTICLE_LIMIT = 1e11
-#: core-seconds per FE vertex-step measured on the default liver (P2, 2 cores: 5 min)
-FE_SECONDS_PER_VERTEX_STEP = 8e-4
+#: core-seconds per FE vertex-step on the default liver (282 vertices, P2): its reference,
+#: 7.2e5 vertex-steps, took 75 s on 2 idle cores (1.65 x the throughput of one) before the
+#: Anderson-mixed chord steps made it cheaper, an upper bound
+FE_SECONDS_PER_VERTEX_STEP = 1.7e-4
+#: the cost of a vertex-step grows as (FE vertices / 282)^FE_RATE_GROWTH: every item's cost
+#: per step grew 3.7-4.1 x from 282 to 2,936 vertices (P2, measured in one session, so at one
+#: load; ``fe_<kind>_profile`` of the scale study): factorisations and back-solves grow
+#: faster than the vertices
+FE_RATE_GROWTH = 0.6
 
 
 def n_test_points(scene: Scene) -> int:
@@ -77,6 +85,17 @@ def fe_work(scene: Scene, n_vertices: int, n_edges: int | None = None) -> dict[s
             for experiment, (key, steps) in work.items() if experiment in scene.experiments}
 
 
+def fe_core_seconds(scene: Scene, work: float, n_vertices: int,
+                    n_edges: int | None = None) -> float:
+    """Estimated core-seconds of ``work`` FE vertex-steps of ``scene`` on the particle mesh of
+    ``n_vertices`` (``n_edges`` as :func:`fe_work`): :data:`FE_SECONDS_PER_VERTEX_STEP` at the
+    default liver's size, growing as :data:`FE_RATE_GROWTH` with the FE mesh's vertices."""
+    n_edges = EDGES_PER_VERTEX * n_vertices if n_edges is None else n_edges
+    fe_vertices = refined_vertices(n_vertices, n_edges, scene.fe.refine)
+    return (work * FE_SECONDS_PER_VERTEX_STEP
+            * (fe_vertices / DEFAULT_LIVER_VERTICES) ** FE_RATE_GROWTH)
+
+
 def particle_work(scene: Scene, n_connectors: int) -> dict[str, float]:
     """Connector-steps of the particle gravity release (calibrated + baseline models) when
     ``particle.dt`` is a number (``"auto"`` is the stability limit: bounded by construction)."""
@@ -111,8 +130,8 @@ def check_cost(scene: Scene, n_vertices: int, n_connectors: int, *,
         cause = f"{key} = {_value(scene, key)}: change {key}"
         if side == "FE reference":
             cause = _mesh_cause(scene, n_vertices, n_connectors, total, limit, estimated) or cause
-        hours = (f" (about {total * FE_SECONDS_PER_VERTEX_STEP / 3600:.3g} core-hours)"
-                 if side == "FE reference" else "")
+        hours = (f" (about {fe_core_seconds(scene, total, n_vertices, n_connectors) / 3600:.3g}"
+                 " core-hours)" if side == "FE reference" else "")
         raise SceneError(f"{scene.path or 'scene'}: the {side} would take about {total:.3g} "
                          f"{unit}{hours}, above the limit of {limit:.3g}; most of it comes "
                          f"from {cause}")

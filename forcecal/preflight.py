@@ -247,10 +247,11 @@ def mesh_preflight(scene: Scene, mesh: TetMesh, fixed: np.ndarray, *,
     (``[{"tet", "quality", "vertices"}]``, worst first), ``parts`` (face-connected),
     ``support`` (the :class:`SupportCheck` numbers), ``particle_dt_s`` and
     ``particle_dt_edge`` (:func:`particle_step_estimate`), ``fe_cost``
-    (``vertex_steps``, ``core_seconds``: :func:`forcecal.cost.fe_work`), ``implications``
+    (``vertex_steps``, ``core_seconds``: :func:`forcecal.cost.fe_work`,
+    :func:`forcecal.cost.fe_core_seconds`), ``implications``
     (one sentence per finding), ``warnings`` (those of them that are), ``seconds``.
     """
-    from forcecal.cost import FE_SECONDS_PER_VERTEX_STEP, fe_work
+    from forcecal.cost import fe_core_seconds, fe_work
 
     start = time.perf_counter()
     fixed = np.asarray(fixed, dtype=np.int64)
@@ -282,7 +283,8 @@ def mesh_preflight(scene: Scene, mesh: TetMesh, fixed: np.ndarray, *,
                     "seconds": support.seconds},
         "particle_dt_s": dt, "particle_dt_edge": mesh.edges[dt_edge].tolist(),
         "fe_cost": {"vertex_steps": float(work),
-                    "core_seconds": float(work * FE_SECONDS_PER_VERTEX_STEP)},
+                    "core_seconds": float(fe_core_seconds(scene, work, mesh.n_vertices,
+                                                          len(mesh.edges)))},
     }
     said = _implications(out, mesh, labels, quality, lengths[dt_edge])
     out["implications"] = [sentence for _, sentence in said]
@@ -329,7 +331,7 @@ def _implications(pf: dict, mesh: TetMesh, labels: np.ndarray, quality: np.ndarr
                  f"mm): at least {math.ceil(1e-3 / dt)} substeps per 1 ms haptic step"))
     cost = pf["fe_cost"]
     said.append((False, f"FE reference: about {cost['vertex_steps']:.3g} vertex-steps, "
-                 f"{cost['core_seconds'] / 60:.3g} core-minutes at the default liver's rate"))
+                 f"about {cost['core_seconds'] / 60:.3g} core-minutes"))
     return said
 
 

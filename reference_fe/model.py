@@ -23,6 +23,7 @@ vertex it is the force the indenter applies to it.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 
 import basix
@@ -122,6 +123,9 @@ KRYLOV_REFRESH_IT = 20
 # CHORD_MAX_ITERATIONS iterations of a solve (see _ResidualProblem)
 CHORD_CONTRACTION = 0.5
 CHORD_MAX_ITERATIONS = 12
+# A chord step is Anderson-mixed with up to this many chord steps before it in the same solve
+# (0: plain chord steps; see _ResidualProblem.update)
+ANDERSON_DEPTH = 4
 # A Newton solve whose residual norm [N] grows past this factor times the largest of its first
 # two residuals and the last converged state's force norm is given up at once (StepFailed: the
 # step is cut) instead of iterating on to newton_max_it or to a NaN. The first Newton update
@@ -134,6 +138,10 @@ DIVERGENCE_FACTOR = 1e3
 # a Newton guess whose constrained dofs lie this close to their values [m] gets them exactly
 # (round-off of an extrapolation) and no lifting in its first residual (solve_step)
 SNAP_DISTANCE = 1e-12
+#: the parts of a Newton solve's time that _ResidualProblem.seconds accumulates
+PROFILE_PARTS = ("residual", "tangent", "factorise", "solve")
+# significant digits of the constants that decide whether a kept tangent may be kept (solve_step)
+TANGENT_KEY_DIGITS = 9
 # dolfinx Dirichlet conditions kept per model (solve_step's _dirichlet)
 DIRICHLET_CACHE_SIZE = 64
 
@@ -209,9 +217,16 @@ class _ResidualProblem(NonlinearProblem):
         self.chords_off = False  # a chord step of this solve raised the residual
         self.previous: np.ndarray | None = None  # the last accepted iterate of this solve
         self.previous_residual: np.ndarray | None = None  # and its residual vector
+        self.plain_residual = False  # the last residual had no lifting (F)
+        self.mixing: list[tuple[np.ndarray, np.ndarray]] = []  # (x, -dx) of the chord steps
         self.taken_back = 0  # chord steps taken back (performance reports)
         self.factorisations = 0  # over the model's life (performance reports)
         self.assemblies = 0  # tangent assemblies, likewise
+        # where the time goes [s], over the model's life (performance reports): residual and
+        # tangent assembly, linear solves that factorised afresh, the other linear solves
+        self.seconds = dict.fromkeys(PROFILE_PARTS, 0.0)
+        self._solve_start = 0.0  # end of the last J (the linear solve follows it)
+        self._refreshed = False  # the last J asked for a fresh factorisation
 
     def chord(self) -> bool:
         """Whether the next iteration is a chord step (class docstring)."""
@@ -228,10 +243,13 @@ class _ResidualProblem(NonlinearProblem):
         chord = self.chord()
         # a chord step is one back-solve with the kept factorisation, whatever tangent it has
         ksp.setType("preonly" if chord else "gmres")
+        self._refreshed = False
         if chord:
             ksp.getPC().setReusePreconditioner(True)
             self.after_chord = True
+            self._solve_start = time.perf_counter()
             return
+        start = time.perf_counter()
         super().J(x, A)
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)  # LDL^T reads half of it
         self.assemblies += 1
@@ -242,6 +260,30 @@ class _ResidualProblem(NonlinearProblem):
         ksp.getPC().setReusePreconditioner(not refresh)
         self.factorisations += refresh
         self.refactor = self.after_chord = False
+        self._refreshed = refresh
+        self._solve_start = time.perf_counter()
+        self.seconds["tangent"] += self._solve_start - start
+
+    def update(self, solver: NewtonSolver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
+        """Newton's update ``x <- x - dx``; a chord step's is Anderson-mixed (type II, the
+        last ``ANDERSON_DEPTH`` chord steps of this solve with the same factorisation)."""
+        self.seconds["factorise" if self._refreshed else "solve"] += (time.perf_counter()
+                                                                      - self._solve_start)
+        if not (self.after_chord and self.plain_residual) or ANDERSON_DEPTH == 0:
+            self.mixing.clear()  # a Newton step, or the lifted first residual
+            x.axpy(-1.0, dx)
+            return
+        x_k, f_k = x.array_r.copy(), -dx.array_r
+        self.mixing.append((x_k, f_k.copy()))
+        del self.mixing[:-(ANDERSON_DEPTH + 1)]
+        if len(self.mixing) < 2:
+            x.axpy(-1.0, dx)
+            return
+        xs = np.array([m[0] for m in self.mixing])
+        fs = np.array([m[1] for m in self.mixing])
+        d_f, d_g = np.diff(fs, axis=0), np.diff(xs + fs, axis=0)
+        gamma = np.linalg.lstsq(d_f.T, f_k, rcond=None)[0]
+        x.array[:] = x_k + f_k - gamma @ d_g
 
     def form(self, x: PETSc.Vec) -> None:
         super().form(x)
@@ -250,8 +292,19 @@ class _ResidualProblem(NonlinearProblem):
             raise StepFailed("non-finite Newton iterate")
 
     def F(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        start = time.perf_counter()
+        try:
+            self._checked_residual(x, b)
+        finally:
+            self.seconds["residual"] += time.perf_counter() - start
+
+    def _checked_residual(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        """F's work: the residual, the taking back of a chord step, the divergence guard."""
         first = not self.residual_norms
-        norm = self._residual(x, b, lift=first and self.lift_first)
+        if first:
+            self.mixing.clear()
+        self.plain_residual = not (first and self.lift_first)
+        norm = self._residual(x, b, lift=not self.plain_residual)
         norms = self.residual_norms
         if first:
             self.residual_norms.append(norm)
@@ -353,9 +406,26 @@ class FEModel:
         self._solver = _newton_solver(self._problem, fe.newton_max_it)
         self._dirichlet_cache: dict = {}  # see _dirichlet
         self.newton_iterations = 0  # total over the model's life (performance reports)
+        self.newton_solves = 0  # likewise (failed ones included)
         self.n_prony = len(material.prony_g)
         log.debug("FE model: %s, %d dofs, %d cells x %d quadrature points",
                   fe.element, self.n_dofs, self.n_cells, self.n_qp)
+
+    def newton_profile(self) -> dict[str, float]:
+        """The Newton work of this model so far (performance reports): solves, iterations,
+        tangent assemblies, factorisations and the seconds of each part of
+        :data:`PROFILE_PARTS` (``<part>_s``; a factorisation's back-solve counts with it)."""
+        p = self._problem
+        return {"solves": self.newton_solves, "iterations": self.newton_iterations,
+                "tangents": p.assemblies, "factorisations": p.factorisations,
+                **{f"{part}_s": seconds for part, seconds in p.seconds.items()}}
+
+    def forget_tangent(self) -> None:
+        """Start the next solve from a fresh tangent and factorisation, as a new model would:
+        a work item's Newton iterates then never depend on the items computed before it on
+        this process, so any distribution of items over ranks gives bit-identical results."""
+        problem = self._problem
+        problem.refactor, problem.tangent_key, problem.chord_first = True, None, False
 
     @property
     def n_dofs(self) -> int:
@@ -482,6 +552,7 @@ def _newton_solver(problem: _ResidualProblem, max_it: int) -> NewtonSolver:
     solver = NewtonSolver(MPI.COMM_SELF, problem)
     configure_linear_solver(solver.krylov_solver)
     problem.krylov = solver.krylov_solver
+    solver.set_update(problem.update)
     solver.convergence_criterion = "residual"
     solver.rtol = 0.0  # see solve_step
     solver.max_it = max_it
@@ -575,9 +646,13 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
         problem.offset.array[:] = offset
         model._u_pred.x.array[:] = state.u + dt * state.velocity
         model._c_m.value = 4.0 / dt ** 2
-    # what the tangent's structure depends on besides w: a kept tangent is kept for these only
+    # what the tangent's structure depends on besides w: a kept tangent is kept for these only.
+    # The constants to TANGENT_KEY_DIGITS significant digits: equal dynamic steps differ in
+    # the last bits of dt (t_{k+1} - t_k of a linspace), and a key that saw them refactorised
+    # at nearly every step (0.75 factorisations per step of the liver's release)
     key = (tuple((c.component, hash(c.dofs.tobytes())) for c in load.constraints),
-           float(model._c_m.value), float(model._C10.value), float(model._C01.value))
+           *(float(f"{float(v.value):.{TANGENT_KEY_DIGITS}g}")
+             for v in (model._c_m, model._C10, model._C01)))
     if key != problem.tangent_key:
         problem.refactor, problem.tangent_key = True, key
     problem.residual_norms, problem.after_chord, problem.chords_off = [], False, False
@@ -603,6 +678,7 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
     else:
         reason = f"no convergence in {iterations} iterations"
     model.newton_iterations += iterations
+    model.newton_solves += 1
     if not converged:
         log.debug("Newton failed at progress %.6g: %s", progress, reason)
         # a factorisation that failed (NaN or singular matrix) stays failed in PETSc and

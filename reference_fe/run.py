@@ -235,6 +235,9 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
     itself, ``fe.refine = 0``)."""
     fe = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0) if fe is None else fe
     fixed, at_particles = fe.problem.fixed, fe.vertex_map
+    if item.kind in ("indentation", "relaxation"):
+        indenter_experiments(scene)  # an indenter without FE experiment: refused before a solve
+    model.forget_tangent()  # the item's result does not depend on the rank's earlier items
     g = scene.gravity
     if item.kind == "second_support":
         return second_support_runs(model, scene, problem, fe)

@@ -345,7 +345,7 @@ def test_make_bench_runs_the_headline_items_and_bench_full_every_item():
         "default pipeline run", "run time vs error", "reference timings", "particle engine",
         "stability limits", "haptic scale", "fe_convergence", "scale", "volume term"]
     assert {i.name for i in ITEMS} - {i.name for i in items_of(False)} == {
-        "experiments", "calibration methods", "discretisation floor"}
+        "experiments", "scale reference", "calibration methods", "discretisation floor"}
     reduced = {i.name for i in ITEMS if i.headline not in (None, i.full)}
     assert reduced == {"run time vs error", "reference timings", "haptic scale",
                        "fe_convergence", "scale"}
@@ -386,7 +386,9 @@ ITEM_KEYS = {"default pipeline run": ("calibration",), "run time vs error": ("pa
              "haptic scale": ("haptic_scale",), "fe_convergence": ("fe_convergence",),
              "scale": ("scale", "scale_study"), "calibration methods": ("calibration_methods",),
              "volume term": ("volume_haptic",),
-             "discretisation floor": ("discretisation_floor",)}
+             "discretisation floor": ("discretisation_floor",),
+             # not in the committed bench.json until a full bench has run it
+             "scale reference": ()}
 #: keys of items whose first measured run is not in the committed bench.json yet: their
 #: stand-ins return an empty study (drop a key here once its run is committed)
 NOT_YET_COMMITTED = {"discretisation_floor": {"rows": [], "scenes": {}}}

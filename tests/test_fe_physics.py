@@ -362,8 +362,9 @@ def test_gravity_reactions_carry_the_weight(p2_block):
     support = state.force[model.clamp_dofs(base)].sum(axis=0)  # force applied by the support
     weight = MATERIAL.density * L ** 3 * g
     # balanced to Newton's tolerance: it stops once the residual of the free dofs is below
-    # 1e-8 of the force scale (chord steps stop just below it; observed 6e-9 of the weight)
-    np.testing.assert_allclose(support, -weight, rtol=1e-7, atol=1e-12)
+    # 1e-8 of the force scale (chord steps stop just below it; observed 6e-9 of the weight,
+    # and 2e-10 of it in the horizontal components, which the weight does not load)
+    np.testing.assert_allclose(support, -weight, rtol=1e-7, atol=1e-8 * np.abs(weight).max())
 
 
 def test_newmark_conserves_energy_without_viscosity():
@@ -515,6 +516,9 @@ def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypat
         lifting_residual(self, x, b)
 
     monkeypatch.setattr(NonlinearProblem, "F", counted)
+    # Anderson mixing starts at a solve's first residual without lifting, so with it the
+    # two paths would differ at the Newton tolerance, not in round-off
+    monkeypatch.setattr(fe_model, "ANDERSON_DEPTH", 0)
 
     def run() -> tuple[np.ndarray, int]:
         lifted.clear()

@@ -30,9 +30,10 @@ Items, in order (each logs ``bench [k/N] <item>`` and its time):
 5. ``stability limits``: estimated vs empirical stability limits
    (:mod:`pipelines.bench.stability`);
 6. the items in modules of their own (:class:`ModuleItem`): ``experiments`` (full bench
-   only), ``haptic scale``, ``fe_convergence``, ``scale``, ``calibration methods`` (full bench
-   only), ``volume term``, ``discretisation floor`` (full bench only: the gravity test of a
-   vertex-dof FE model on the particle mesh, :mod:`pipelines.bench.floor`).
+   only), ``haptic scale``, ``fe_convergence``, ``scale``, ``scale reference`` (full bench
+   only: the whole FE reference on the study's largest mesh, 2 ranks), ``calibration
+   methods`` (full bench only), ``volume term``, ``discretisation floor`` (full bench only:
+   the gravity test of a vertex-dof FE model on the particle mesh, :mod:`pipelines.bench.floor`).
 
 Investigations that answered one question once (cross-validation of calibration settings,
 the sag and release studies, the contact size) are no items: they live in the top-level
@@ -199,8 +200,9 @@ def _same(function: ItemRun) -> tuple[ItemRun, ItemRun]:
 #: (:data:`pipelines.bench.configs.HEADLINE_SETTINGS`), the reference on 2 ranks only, the
 #: haptic meshes up to 12k connectors, the FE sag without its finest level, three scale sizes
 #: without the rank timing. Left to ``make bench-full``: ``experiments`` (a reference and a
-#: calibration per experiment list), ``calibration methods`` (eight pipelines on two
-#: scenes) and ``discretisation floor`` (two FE gravity tests per scene).
+#: calibration per experiment list), ``scale reference`` (the whole FE reference on 2,936
+#: vertices), ``calibration methods`` (eight pipelines on two scenes) and ``discretisation
+#: floor`` (the floor's FE tests per scene).
 ITEMS: tuple[Item, ...] = (
     Item("default pipeline run", *_same(default_pipeline_run), labels_rows=False),
     Item("run time vs error", partial(run_time_vs_error, full=True),
@@ -217,6 +219,7 @@ ITEMS: tuple[Item, ...] = (
          ModuleItem("pipelines.bench.fe_convergence:headline_study")),
     Item("scale", ModuleItem("pipelines.bench.scale:study"),
          ModuleItem("pipelines.bench.scale:headline_study")),
+    Item("scale reference", ModuleItem("pipelines.bench.scale:whole_reference"), None),
     Item("calibration methods", ModuleItem("pipelines.bench.calibration_methods:study"), None,
          needs_default=True),
     Item("volume term", *_same(ModuleItem("pipelines.bench.volume:study"))),

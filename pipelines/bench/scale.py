@@ -14,7 +14,10 @@ its own so its peak memory is its own:
   it measures the fit's machinery at that size, not the FE;
 * FE (P2, one process): the model build and one work item of each kind
   (``indentation`` and ``relaxation`` of one test point, ``gravity_static``, and
-  ``gravity_dynamic`` over :data:`DYNAMIC_STEPS` time steps, per step);
+  ``gravity_dynamic`` over :data:`DYNAMIC_STEPS` time steps, per step), each with its
+  Newton profile (``fe_<kind>_profile``: solves, iterations, tangent assemblies,
+  factorisations and the seconds of residual assembly, tangent assembly, factorisations
+  with their first back-solve, and the other linear solves; ``FEModel.newton_profile``);
   ``fe_reference_s`` is the *estimated* serial reference of the default scene's
   39 points from them: ``build + 39 (indentation + relaxation) + static +
   (duration / fe_dt) x dynamic step``. Sizes above :data:`FE_MAX_VERTICES` run only
@@ -59,7 +62,7 @@ LENGTHS = {False: (0.0182, 0.0142, 0.011, 0.0083, 0.0068), True: (0.04, 0.025, 0
 HEADLINE_LENGTHS = {False: (0.0182, 0.0142, 0.0083), True: (0.04, 0.025, 0.0182)}
 DEPTH_PER_EDGE = 0.25  # indentation depth / mean edge length (the default liver: 5 / 20.5 mm)
 DYNAMIC_STEPS = 4  # FE dynamic time steps timed (per-step time x the scene's steps)
-FE_MAX_VERTICES = 1000  # above: only the indentation item is run (the others estimated)
+FE_MAX_VERTICES = 3000  # above: only the indentation item is run (the others estimated)
 SIZE_TIMEOUT_S = 720.0  # a size whose child runs longer is recorded as where the machine runs out
 CALIBRATION = {"static_max_evaluations": 5, "relaxation_max_evaluations": 6, "local": False,
                "workers": 1}
@@ -156,9 +159,11 @@ def fe_timings(scene: Scene, problem, *, full: bool, items: tuple[str, ...] = ()
                       if full else ("indentation",))
     for kind in kinds:
         point = 0 if kind in ("indentation", "relaxation") else -1
+        before = model.newton_profile()
         t0 = time.perf_counter()
         compute_item(model, short, problem, WorkItem(kind, point, 0.0))
         out[f"fe_{kind}_s"] = time.perf_counter() - t0
+        out[f"fe_{kind}_profile"] = {k: v - before[k] for k, v in model.newton_profile().items()}
         log.info("scale: FE %s item on %d vertices: %.1f s", kind, problem.mesh.n_vertices,
                  out[f"fe_{kind}_s"])
     if items:
@@ -330,6 +335,33 @@ def study(scene: Scene, cache: Path, quick: bool, lengths: tuple[float, ...] | N
                     2 * ranks[0]["wall_s"] / ranks[1]["wall_s"] if len(ranks) == 2 else None)},
                 "load_average": load,
                 "method": __doc__.split("\n\n", 1)[1].strip()}}
+
+
+def whole_reference(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
+    """The ``scale_reference`` key of bench.json: the FE reference of the scene's test points
+    on the largest size of :data:`LENGTHS` (2,936 vertices; ``quick``: 866), computed as a
+    whole run on 2 MPI ranks and timed (the study's other FE numbers are single items), with
+    the date and the load averages before and after."""
+    from forcecal.liver_mesh import generate_liver
+    from pipelines.bench.configs import derived_scene
+    from pipelines.bench.items import measure_reference, now_utc
+
+    length = LENGTHS[quick][-1]
+    mesh = generate_liver(length)
+    sized = sized_scene(scene, length, float(mesh.edge_lengths.mean()))
+    changes = {"mesh": {"source": "generate", "characteristic_length": length},
+               "test_points": {"calibration": "auto", "held_out": "auto"},
+               "indentation": {"depth": sized.indentation.depth},
+               "relaxation": {"depth": sized.relaxation.depth}}
+    folder = cache / "scale-reference"
+    derived = derived_scene(scene, f"scale{mesh.n_vertices}", changes, folder)
+    load = [list(os.getloadavg())]
+    started = now_utc()
+    wall = measure_reference(derived, 2, folder, progress=False)
+    load.append(list(os.getloadavg()))
+    return {"scale_reference": {"vertices": mesh.n_vertices, "ranks": 2, "wall_s": wall,
+                                "measured": started, "load_average": load,
+                                "depth_m": sized.indentation.depth}}
 
 
 def headline_study(scene: Scene, cache: Path, quick: bool) -> dict[str, Any]:
