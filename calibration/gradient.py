@@ -439,13 +439,16 @@ class Evaluator:
                   ) -> tuple[np.ndarray, np.ndarray, float]:
         """Compressed rows at ``theta``: residuals, Jacobian (rows, size) and the squared
         residual left out [1] of the points (:func:`point_rows` on each worker, point-major
-        in the order of ``points``), then the weighted whole-body rows."""
-        return self.linearise_groups(theta, points, keep).weighted(self.body_weight)
+        in the order of ``points``), then the weighted whole-body rows (those of the fitted
+        kinds: the others are only predicted by the cross-validation; none at weight 0)."""
+        return self.linearise_groups(theta, points, keep, every=False).weighted(
+            self.body_weight)
 
-    def linearise_groups(self, theta: np.ndarray, points: np.ndarray, keep: int
-                         ) -> "GroupedRows":
+    def linearise_groups(self, theta: np.ndarray, points: np.ndarray, keep: int, *,
+                         every: bool = True) -> "GroupedRows":
         """:meth:`linearise` with the whole-body rows unweighted (whatever the weight), and
-        each row's group."""
+        each row's group: of every kind the model has a response to (what the
+        cross-validation predicts), or (``every`` False) only what :meth:`linearise` keeps."""
         params = self.coords.params(theta)
         out, positions = self.pool.by_owner(point_rows, points, params, self.coords, self.data,
                                             keep)
@@ -456,10 +459,10 @@ class Evaluator:
         left = float(sum(o[2] for o in out))
         groups = np.repeat(np.asarray(points), kept)
         self.jacobians += 1
-        if self.body is None:
+        if self.body is None or not (every or self.fits_body):
             return GroupedRows(rows, jac, left, 0.0, groups, np.ones(len(rows), bool))
         body = self.body.rows(params, self.coords.chain_matrix(params, self.body.model.n_tets),
-                              keep)
+                              keep, every=every)
         return GroupedRows(np.concatenate([rows, body.residual]), np.vstack([jac, body.jacobian]),
                            left, body.left_out, np.concatenate([groups, -1 - body.item]),
                            np.concatenate([np.ones(len(rows), bool), body.fitted]))
