@@ -199,7 +199,7 @@ def _same(function: ItemRun) -> tuple[ItemRun, ItemRun]:
 #: (:data:`pipelines.bench.configs.HEADLINE_SETTINGS`), the reference on 2 ranks only, the
 #: haptic meshes up to 12k connectors, the FE sag without its finest level, three scale sizes
 #: without the rank timing. Left to ``make bench-full``: ``experiments`` (a reference and a
-#: calibration per experiment list), ``calibration methods`` (eight pipelines on two
+#: calibration per experiment list), ``calibration methods`` (nine pipelines on two
 #: scenes) and ``discretisation floor`` (two FE gravity tests per scene).
 ITEMS: tuple[Item, ...] = (
     Item("default pipeline run", *_same(default_pipeline_run), labels_rows=False),
