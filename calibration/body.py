@@ -106,7 +106,7 @@ class BodyData:
         out = {}
         for kind in self.kinds:
             try:
-                self.with_kinds((kind,)).response(params, fitted=True)
+                self.with_kinds((kind,)).response(params, fitted=True, jacobian=False)
                 out[kind] = None
             except INFEASIBLE as exc:
                 out[kind] = f"{type(exc).__name__}: {exc}"
@@ -122,41 +122,48 @@ class BodyData:
         """The kind of each of :attr:`items`."""
         return self.target.item_kinds
 
-    def response(self, params: ConnectorParams, *, fitted: bool = False) -> BodyResponse:
+    def response(self, params: ConnectorParams, *, fitted: bool = False,
+                 jacobian: bool = True) -> BodyResponse:
         """The model's whole-body response at ``params`` against every item, or the fitted
-        ones only (raises what :func:`particle.body.body_response` raises)."""
+        ones only, with its Jacobian or (``jacobian`` False) its residuals alone (raises what
+        :func:`particle.body.body_response` raises)."""
         return body_response(self.model.with_params(params),
-                             self.fitted if fitted else self.target, self.load_steps, self.ops)
+                             self.fitted if fitted else self.target, self.load_steps, self.ops,
+                             jacobian=jacobian)
 
     def residuals(self, params: ConnectorParams) -> np.ndarray:
         """(R,) the fitted items' unweighted residuals at ``params`` (rows uncompressed)."""
-        return self.response(params, fitted=True).residual
+        return self.response(params, fitted=True, jacobian=False).residual
 
-    def responses(self, params: ConnectorParams) -> tuple[dict[str, BodyResponse],
-                                                          dict[str, str]]:
+    def responses(self, params: ConnectorParams, *, every: bool = True,
+                  jacobian: bool = True) -> tuple[dict[str, BodyResponse], dict[str, str]]:
         """Kind by kind, the model's response at ``params`` to every item of each kind that
-        has one, and why the others have none ({kind: reason})."""
+        has one (``every`` False: of the fitted kinds only), and why the others have none
+        ({kind: reason}); with the Jacobians, or (``jacobian`` False) the residuals alone."""
         model = self.model.with_params(params)
         out, failures = {}, {}
         for kind in dict.fromkeys(self.item_kinds):
+            if not every and kind not in self.kinds:
+                continue
             try:
                 out[kind] = body_response(model, self.target.subset((kind,)), self.load_steps,
-                                          self.ops)
+                                          self.ops, jacobian=jacobian)
             except INFEASIBLE as exc:
                 failures[kind] = f"{type(exc).__name__}: {exc}"
         return out, failures
 
-    def rows(self, params: ConnectorParams, chain: sp.csr_matrix, keep: int) -> BodyRows:
+    def rows(self, params: ConnectorParams, chain: sp.csr_matrix, keep: int, *,
+             every: bool = True) -> BodyRows:
         """The compressed coordinate rows at ``params`` of every item of the fitted kinds and
-        of the other kinds the model has a response to (those it has none to give no rows:
-        the cross-validation cannot predict them); ``chain`` (P, size) the fit's chain matrix
-        from the parameter layout to its coordinates
-        (:meth:`calibration.gradient.Coordinates.chain_matrix`).
+        (``every``: what the cross-validation predicts) of the other kinds the model has a
+        response to (those it has none to give no rows: the cross-validation cannot predict
+        them); ``chain`` (P, size) the fit's chain matrix from the parameter layout to its
+        coordinates (:meth:`calibration.gradient.Coordinates.chain_matrix`).
 
         Raises:
             ConvergenceError: no response to a fitted kind.
         """
-        responses, failures = self.responses(params)
+        responses, failures = self.responses(params, every=every)
         for kind in self.kinds:
             if kind in failures:
                 raise ConvergenceError(f"whole-body data {kind}: {failures[kind]}")
@@ -206,7 +213,7 @@ def variant_summary(data: BodyData, params: ConnectorParams) -> dict:
     every item it has a response to, ``item_errors`` in :attr:`BodyData.items` order (NaN
     where it has none), and ``failures`` {kind: reason} with ``failure`` (the first reason)
     for the kinds it has none to."""
-    responses, failures = data.responses(params)
+    responses, failures = data.responses(params, jacobian=False)
     errors = np.full(len(data.items), np.nan)
     kinds = data.item_kinds
     out: dict = {}
@@ -242,7 +249,7 @@ def body_record(data: BodyData, weight: float | None, connectors: dict[str, Conn
     status = "fitted" if data.kinds and weight else "not fitted"
     if status == "fitted":
         try:
-            data.response(connectors["calibrated"], fitted=True)
+            data.response(connectors["calibrated"], fitted=True, jacobian=False)
         except INFEASIBLE as exc:
             status = "failed"
             failure = ("the calibrated model does not carry the whole-body data it was fitted "

@@ -64,7 +64,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.body import BodyData
+from calibration.body import BodyData, BodyRows
 from forcecal.scene import BODY_DATA_CHOICES
 from calibration.gradient_solver import (BODY_WEIGHT_GRID, N_COORDS, PRIOR_RATIO, ROWS_KEPT,
                                          SHAPE_SMOOTHNESS, WEIGHT_GRID, Linearisation, LMState,
@@ -427,28 +427,40 @@ class Evaluator:
 
     def residuals(self, theta: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(rows,) residuals at ``theta`` (:func:`point_residuals` on each worker), then the
-        weighted whole-body residuals."""
+        weighted whole-body residuals (computed here while the workers compute theirs)."""
         params = self.coords.params(theta)
-        out, positions = self.pool.by_owner(point_residuals, points, params, self.data)
+        body: list[np.ndarray] = []
+        out, positions = self.pool.by_owner(
+            point_residuals, points, params, self.data,
+            meanwhile=(lambda: body.append(self.body.residuals(params))) if self.fits_body
+            else None)
         surface = in_point_order(out, positions, (self.data.rows(points[:1]),)).ravel()
         if not self.fits_body:
             return surface
-        return np.concatenate([surface, np.sqrt(self.body_weight) * self.body.residuals(params)])
+        return np.concatenate([surface, np.sqrt(self.body_weight) * body[0]])
 
     def linearise(self, theta: np.ndarray, points: np.ndarray, keep: int
                   ) -> tuple[np.ndarray, np.ndarray, float]:
         """Compressed rows at ``theta``: residuals, Jacobian (rows, size) and the squared
         residual left out [1] of the points (:func:`point_rows` on each worker, point-major
-        in the order of ``points``), then the weighted whole-body rows."""
-        return self.linearise_groups(theta, points, keep).weighted(self.body_weight)
+        in the order of ``points``), then the weighted whole-body rows (those of the fitted
+        kinds: the others are only predicted by the cross-validation; none at weight 0)."""
+        return self.linearise_groups(theta, points, keep, every=False).weighted(
+            self.body_weight)
 
-    def linearise_groups(self, theta: np.ndarray, points: np.ndarray, keep: int
-                         ) -> "GroupedRows":
+    def linearise_groups(self, theta: np.ndarray, points: np.ndarray, keep: int, *,
+                         every: bool = True) -> "GroupedRows":
         """:meth:`linearise` with the whole-body rows unweighted (whatever the weight), and
-        each row's group."""
+        each row's group: of every kind the model has a response to (what the
+        cross-validation predicts), or (``every`` False) only what :meth:`linearise` keeps."""
         params = self.coords.params(theta)
-        out, positions = self.pool.by_owner(point_rows, points, params, self.coords, self.data,
-                                            keep)
+        with_body = self.body is not None and (every or self.fits_body)
+        body: list[BodyRows] = []
+        out, positions = self.pool.by_owner(
+            point_rows, points, params, self.coords, self.data, keep,
+            meanwhile=(lambda: body.append(self.body.rows(
+                params, self.coords.chain_matrix(params, self.body.model.n_tets), keep,
+                every=every))) if with_body else None)  # while the workers compute theirs
         kept = min(keep, self.data.rows(points[:1]))
         rows = in_point_order([o[0] for o in out], positions, (kept,)).ravel()
         jac = in_point_order([o[1] for o in out], positions, (kept, self.coords.size))
@@ -456,13 +468,12 @@ class Evaluator:
         left = float(sum(o[2] for o in out))
         groups = np.repeat(np.asarray(points), kept)
         self.jacobians += 1
-        if self.body is None:
+        if not with_body:
             return GroupedRows(rows, jac, left, 0.0, groups, np.ones(len(rows), bool))
-        body = self.body.rows(params, self.coords.chain_matrix(params, self.body.model.n_tets),
-                              keep)
-        return GroupedRows(np.concatenate([rows, body.residual]), np.vstack([jac, body.jacobian]),
-                           left, body.left_out, np.concatenate([groups, -1 - body.item]),
-                           np.concatenate([np.ones(len(rows), bool), body.fitted]))
+        b = body[0]
+        return GroupedRows(np.concatenate([rows, b.residual]), np.vstack([jac, b.jacobian]),
+                           left, b.left_out, np.concatenate([groups, -1 - b.item]),
+                           np.concatenate([np.ones(len(rows), bool), b.fitted]))
 
 
 @dataclass(frozen=True, eq=False)

@@ -389,18 +389,21 @@ def cross_validate(lin: Linearisation, groups: np.ndarray, reg: Regulariser,
         y = s * y0[live]
         position = np.full(len(groups), -1)
         position[live] = np.arange(len(live))
-        held = [(test, share, position[test & (scale > 0)]) for test, share in left_out]
+        # each group's rows of U, C_S and y0, gathered once for the whole grid
+        held = []
+        for test, share in left_out:
+            f = position[test & (scale > 0)]
+            held.append((share, f, U[f], C_S[test], y0[test]))
         for g, alpha in enumerate(grid):  # alpha: the smoothness weight (no damping)
             inverse = 1.0 / (alpha + e)
             Gy = U @ (inverse * (U.T @ y))
-            for test, share, f in held:
+            for share, f, U_f, C_test, y0_test in held:
                 z = Gy
                 if len(f):  # G_FF and G_T'F v from U's rows: no (n, n) product per group
-                    U_f = U[f]
                     v = cho_solve(cho_factor((U_f * inverse[None, :]) @ U_f.T), Gy[f])
                     z = Gy - U @ (inverse * (U_f.T @ v))
                     z[f] = 0.0
-                predicted = y0[test] - C_S[test] @ z
+                predicted = y0_test - C_test @ z
                 costs[b, g] += share * float(predicted @ predicted)
     b, best = np.unravel_index(int(np.argmin(costs)), costs.shape)
     if best in (0, len(grid) - 1):

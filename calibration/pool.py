@@ -421,7 +421,8 @@ class Pool:
     def __exit__(self, *exc) -> None:
         self.transport.close()
 
-    def map(self, fn: Callable, items: Iterable[tuple[int, tuple]]) -> Iterator[tuple[int, Any]]:
+    def map(self, fn: Callable, items: Iterable[tuple[int, tuple]], *,
+            meanwhile: Callable[[], None] | None = None) -> Iterator[tuple[int, Any]]:
         """Run ``fn(worker, *args)`` for each ``(point, args)`` on the point's owner.
 
         Yields ``(item index, result)`` as calls complete; each worker runs its
@@ -429,6 +430,11 @@ class Pool:
         already running finish, the items before the failed one still run, and the error of
         the first item (in ``items``' order) that failed is raised: which one that is does
         not depend on which worker answered first.
+
+        ``meanwhile``: work of the calling process run while the workers run their first
+        calls (the whole-body data next to the points' curves: the master would otherwise
+        wait idle). Its error is raised after every call has answered, unless a worker's
+        error comes first (as if it had run after the calls).
         """
         queues: dict[int, collections.deque] = collections.defaultdict(collections.deque)
         for i, (point, args) in enumerate(items):
@@ -443,6 +449,12 @@ class Pool:
 
         for w in list(queues):
             start(w)
+        own_error = None
+        if meanwhile is not None:
+            try:
+                meanwhile()
+            except BaseException as exc:  # noqa: BLE001 - raised once the workers answered
+                own_error = exc
         errors: dict[int, BaseException] = {}
         while running:
             w, (status, value) = self.transport.receive()
@@ -456,16 +468,21 @@ class Pool:
                 start(w)  # an earlier item might fail too: its error is the one raised
         if errors:
             raise errors[min(errors)]
+        if own_error is not None:
+            raise own_error
 
-    def by_owner(self, fn: Callable, points: Sequence[int], *args) -> tuple[list, np.ndarray]:
+    def by_owner(self, fn: Callable, points: Sequence[int], *args,
+                 meanwhile: Callable[[], None] | None = None) -> tuple[list, np.ndarray]:
         """``fn(worker, *args, owned)`` on every worker owning some of ``points``, ``owned``
         its share of them (in their order). Returns the results, one per such worker, and
-        where each entry of their concatenated shares sits in ``points``."""
+        where each entry of their concatenated shares sits in ``points``. ``meanwhile``: as
+        :meth:`map`'s."""
         points = np.asarray(points, dtype=np.int64)
         groups = [g for g in (points[self.owner[points] == w] for w in range(self.n_workers))
                   if len(g)]
         out: list[Any] = [None] * len(groups)
-        for i, value in self.map(fn, [(int(g[0]), args + (g,)) for g in groups]):
+        for i, value in self.map(fn, [(int(g[0]), args + (g,)) for g in groups],
+                                 meanwhile=meanwhile):
             out[i] = value
         return out, _positions(np.concatenate(groups), points)
 

@@ -90,13 +90,15 @@ class Rows:
 
     Attributes:
         residual: (R,) residuals [1].
-        fields: (R, n) virtual fields ``L`` on the free dofs.
-        forces: (n, P) sparse parameter-force matrix ``D`` (:func:`parameter_layout`).
+        fields: (R, n) virtual fields ``L`` on the free dofs; None for residuals alone
+            (:func:`body_response` with ``jacobian=False``).
+        forces: (n, P) sparse parameter-force matrix ``D`` (:func:`parameter_layout`); None
+            for residuals alone.
         explicit: (R, P) a part of the Jacobian given as it is (added to ``L D``), or None.
     """
     residual: np.ndarray
-    fields: np.ndarray
-    forces: sp.csr_matrix
+    fields: np.ndarray | None = None
+    forces: sp.csr_matrix | None = None
     explicit: np.ndarray | None = None
 
     def jacobian(self) -> np.ndarray:
@@ -270,8 +272,9 @@ def free_dofs_values(model: Model, field: np.ndarray) -> np.ndarray:
 
 
 def load_rows(model: Model, acceleration: np.ndarray, target: np.ndarray, load_steps: int,
-              pat: TangentPattern | None = None) -> Rows:
-    """The residual rows of one static body load (module docstring) and their Jacobian.
+              pat: TangentPattern | None = None, *, jacobian: bool = True) -> Rows:
+    """The residual rows of one static body load (module docstring) and their Jacobian
+    (``jacobian`` False: the residuals alone, without the tangent's factorisation).
 
     Raises:
         ConvergenceError: the model has no static equilibrium under the load (a model that
@@ -285,6 +288,8 @@ def load_rows(model: Model, acceleration: np.ndarray, target: np.ndarray, load_s
     scale = float(np.linalg.norm(target, axis=1).max()) * np.sqrt(len(free))
     if not scale > 0:
         raise ParameterError("a body load whose FE displacement is zero everywhere")
+    if not jacobian:
+        return Rows((u - u_fe) / scale)
     forces, tension, *_ = net_forces(model, x, model.params, not model.params.is_linear, None,
                                      None, (np.zeros(model.n_tets),
                                             np.full(model.n_tets, np.inf)))
@@ -359,11 +364,13 @@ class ModeMatch:
 
 
 def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.ndarray,
-              shapes: np.ndarray, stiffness: sp.csc_matrix | None = None) -> ModeMatch:
+              shapes: np.ndarray, stiffness: sp.csc_matrix | None = None, *,
+              jacobian: bool = True) -> ModeMatch:
     """Residual rows of the FE modes ``frequencies`` (M,) [Hz], ``shapes`` (M, N, 3) at
-    ``modulus`` against the model's (module docstring), with their Jacobian; with a given
-    ``stiffness`` (a loaded state's, :func:`loaded_mode_rows`) its modes, the rows' forces
-    left for the caller (None)."""
+    ``modulus`` against the model's (module docstring), with their Jacobian (``jacobian``
+    False: the residuals alone, without the bordered solves); with a given ``stiffness`` (a
+    loaded state's, :func:`loaded_mode_rows`) its modes, the rows' forces left for the
+    caller (None)."""
     n_fe = len(frequencies)
     values, vectors, K = model_modes(model, ops, modulus, n_fe + EXTRA_MODES, stiffness)
     mass = ops.mass
@@ -381,6 +388,10 @@ def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.nd
         ratio = np.sqrt(lam) / (2.0 * np.pi) / frequencies[k]
         shape = basis.T @ (mass * (phi - psi[:, k]))
         f_err[k], s_err[k] = ratio - 1.0, np.linalg.norm(shape)
+        modes.append(phi)
+        if not jacobian:
+            parts.append(Rows(np.r_[ratio - 1.0, shape]))
+            continue
         # S M Q: the bordered system's solution for each basis vector (module docstring)
         mphi = mass * phi
         bordered = sp.bmat([[K - lam * M, sp.csc_matrix(mphi[:, None])],
@@ -392,7 +403,6 @@ def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.nd
                           np.vstack([ratio / (2.0 * lam) * phi, -solved.T]),
                           None if stiffness is not None
                           else ops.mode_forces(model, phi, modulus)))
-        modes.append(phi)
     return ModeMatch(f_err, s_err, mac, partner, parts, modes)
 
 
@@ -495,8 +505,8 @@ def incremental_tangent(model: Model, pat: TangentPattern, x: np.ndarray) -> sp.
 
 
 def loaded_mode_rows(model: Model, ops: RestOperators, acceleration: np.ndarray,
-                     load_steps: int, frequencies: np.ndarray, shapes: np.ndarray
-                     ) -> ModeMatch:
+                     load_steps: int, frequencies: np.ndarray, shapes: np.ndarray, *,
+                     jacobian: bool = True) -> ModeMatch:
     """Residual rows of the FE modes ``frequencies`` (M,) [Hz], ``shapes`` (M, N, 3) about
     the equilibrium under the weight ``acceleration`` against the model's modes about its
     own (:func:`incremental_form`), as :func:`mode_rows` for the rest state, with their
@@ -507,11 +517,16 @@ def loaded_mode_rows(model: Model, ops: RestOperators, acceleration: np.ndarray,
     ``z^T df/dp`` with ``K_s z = d(v^T K_t phi)/dx`` (``K_s`` the static tangent, the
     gradient by polarisation of :func:`incremental_form`): an adjoint solve per row.
 
+    ``jacobian`` False: the residuals alone (no adjoint solves).
+
     Raises:
         ConvergenceError: no equilibrium under the load, or the eigen-solve failed.
     """
     pat = ops.pattern
     x = weight_equilibrium(model, acceleration, load_steps)
+    if not jacobian:
+        return mode_rows(model, ops, "loaded", frequencies, shapes,
+                         stiffness=incremental_tangent(model, pat, x), jacobian=False)
     forces, tension, *_ = net_forces(model, x, model.params, not model.params.is_linear, None,
                                      None, (np.zeros(model.n_tets),
                                             np.full(model.n_tets, np.inf)))
@@ -578,8 +593,10 @@ class BodyResponse:
 
 
 def body_response(model: Model, target: BodyTarget, load_steps: int,
-                  ops: RestOperators | None = None) -> BodyResponse:
-    """Every whole-body residual of ``model`` against ``target`` with its Jacobian.
+                  ops: RestOperators | None = None, *, jacobian: bool = True) -> BodyResponse:
+    """Every whole-body residual of ``model`` against ``target`` with its Jacobian
+    (``jacobian`` False: the residuals alone, the same numbers at a fraction of the cost:
+    what a trial step's objective and the errors' record need).
 
     Raises:
         ConvergenceError: a load has no static equilibrium, or an eigen-solve failed.
@@ -587,17 +604,17 @@ def body_response(model: Model, target: BodyTarget, load_steps: int,
     ops = RestOperators.of(model) if ops is None else ops
     parts, load_errors, modes = [], [], {}
     for g, u_fe in zip(target.accelerations, target.displacement):
-        rows = load_rows(model, g, u_fe, load_steps, ops.pattern)
+        rows = load_rows(model, g, u_fe, load_steps, ops.pattern, jacobian=jacobian)
         parts.append(rows)
         load_errors.append(float(np.linalg.norm(rows.residual)))
     for i, modulus in enumerate(BODY_MODULI):
         if target.frequencies.shape[1]:
             modes[modulus] = mode_rows(model, ops, modulus, target.frequencies[i],
-                                       target.shapes[i])
+                                       target.shapes[i], jacobian=jacobian)
             parts += modes[modulus].parts
     for k, g in enumerate(target.loaded_accelerations):
         modes[f"load {k}"] = loaded_mode_rows(model, ops, g, load_steps,
                                              target.loaded_frequencies[k],
-                                             target.loaded_shapes[k])
+                                             target.loaded_shapes[k], jacobian=jacobian)
         parts += modes[f"load {k}"].parts
     return BodyResponse(target.items, parts, np.array(load_errors), modes)

@@ -276,6 +276,37 @@ def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
     assert held_out_error({"indentation_held_out": 0.04}) is None
 
 
+def test_calibration_methods_has_the_punch_and_whole_body_row(tmp_path, monkeypatch):
+    """The punch scene gets the punch + whole-body method's row (springs + volume, the
+    gradient fit with the body experiment added and body_data loads+modes) after its four,
+    on the reference of the rows before it; the bench scene keeps its four rows."""
+    from pipelines.bench import calibration_methods as cm
+    from pipelines.bench import items
+    from pipelines.bench.configs import derived_scene
+
+    calls = []
+
+    def fake_row(scene, model, volume, method, folder, reference_from, current):
+        calls.append((scene.name, model, method, folder.name, reference_from))
+        return {"scene": scene.name, "model": model, "method": method, "failed": "not run"}
+
+    monkeypatch.setattr(cm, "run_row", fake_row)
+    monkeypatch.setattr(items, "runs_source", lambda cache, name: None)
+    monkeypatch.setattr(items, "default_folder", lambda cache: cache / "runs" / "default")
+    monkeypatch.setattr(items, "seed_folder", lambda source, folder: None)
+    rows = cm.study(load_scene(SCENES / "tiny.toml"), tmp_path, quick=False)
+    punch = [c for c in calls if c[0] == "liver_punch"]
+    assert len(calls) == 9 and len(punch) == 5 and len(rows["calibration_methods"]) == 9
+    assert punch[-1][1:4] == ("springs + volume", cm.BODY_METHOD, "volume-gradient-body")
+    calibration, added = cm.BODY_CHANGES  # the row's scene, as run_row builds it
+    punch_scene = load_scene(cm.PUNCH_SCENE)
+    body = derived_scene(punch_scene, "x", {"particle": {"volume": True},
+                                            "calibration": calibration},
+                         tmp_path / "x", experiments=punch_scene.experiments + (added,))
+    assert body.runs("body") and body.calibration.body_data == "loads+modes"
+    assert body.calibration.method == "gradient" and body.particle.volume
+
+
 def test_a_partial_run_is_refused_before_it_runs_without_a_whole_run_of_its_kind(tmp_path):
     """``--only`` completes a whole run's bench.json: into a folder without one, or with one
     of another size or scene, or with a corrupt or incomplete one, it is refused up front

@@ -149,3 +149,29 @@ def test_a_worker_error_raised_is_the_first_items_whatever_the_reply_order():
     pool.transport = _LateTransport()
     assert sorted(pool.map(_fails, [(0, ("ok 0",)), (2, ("ok 2",))])) == [(0, "ok 0"),
                                                                          (1, "ok 2")]
+
+
+def test_the_masters_own_work_runs_while_the_workers_run_and_its_error_comes_last():
+    """``meanwhile`` runs after the first calls are sent and before any reply is read; its
+    error is raised once every call has answered (the next map starts clean), and a worker's
+    error takes precedence over it (as if the master's work had run after the calls)."""
+    pool = Pool.__new__(Pool)
+    pool.owner = np.array([0, 1])
+    pool.transport = _LateTransport()
+    seen = []
+
+    def meanwhile():
+        seen.append(len(pool.transport.pending))  # both calls sent, none received
+
+    assert sorted(pool.map(_fails, [(0, ("ok 0",)), (1, ("ok 1",))], meanwhile=meanwhile)) \
+        == [(0, "ok 0"), (1, "ok 1")]
+    assert seen == [2]
+
+    def broken():
+        raise KeyError("master")
+
+    with pytest.raises(KeyError, match="master"):
+        list(pool.map(_fails, [(0, ("ok 0",)), (1, ("ok 1",))], meanwhile=broken))
+    assert not pool.transport.pending  # every reply was read
+    with pytest.raises(ValueError, match="fail 1"):
+        list(pool.map(_fails, [(0, ("ok 0",)), (1, ("fail 1",))], meanwhile=broken))

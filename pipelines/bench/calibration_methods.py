@@ -15,7 +15,11 @@ brought up to date by the driver before this study), the punch scene's is adopte
 first row (:func:`pipelines.bench.items.runs_source`: never in a ``--cold`` bench). The
 bench scene's row with its own model and method is the default pipeline run itself: its
 folder is seeded from that run (:func:`pipelines.bench.items.seed_folder`), so only the
-report (another scene name) is redone, and the row reports that run's calibration.
+report (another scene name) is redone, and the row reports that run's calibration. The punch
+scene has one more row, the punch + whole-body method (:data:`BODY_METHOD`: ``springs +
+volume``, the gradient fit with the FE's whole-body data, experiment ``body`` added to the
+scene's and ``calibration.body_data = "loads+modes"``; its reference is the punch rows' with
+the body experiment computed on top).
 
 Each row: ``scene``, ``model``, ``method``, ``calibration_s`` (``timings_s.calibration``
 of the run's ``report.json``), ``errors`` (the report's calibration and held-out
@@ -51,6 +55,11 @@ ROOT = Path(__file__).resolve().parents[2]
 PUNCH_SCENE = ROOT / "scenes" / "liver_punch.toml"
 MODELS = (("springs", False), ("springs + volume", True))
 METHODS = ("paper", "gradient")
+#: the punch scene's extra row: the gradient method fitting the whole-body data too
+BODY_METHOD = "gradient + body"
+#: what the whole-body row changes in the scene: (its calibration section's changes, the
+#: experiment it adds)
+BODY_CHANGES = ({"method": "gradient", "body_data": "loads+modes"}, "body")
 ERROR_KEYS = ("indentation_calibrated", "relaxation_calibrated", "indentation_held_out",
               "relaxation_held_out", "gravity_static", "gravity_dynamic")
 HAPTIC_CALLS = 2000
@@ -114,9 +123,14 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
     from pipelines.stages import run_pipeline
 
     row: dict[str, Any] = {"scene": scene.name, "model": model, "method": method}
-    variant = derived_scene(scene, f"{scene.name}-{method}-{'volume' if volume else 'springs'}",
-                            {"particle": {"volume": volume}, "calibration": {"method": method}},
-                            folder)
+    calibration, experiments = {"method": method}, None
+    if method == BODY_METHOD:
+        calibration, added = BODY_CHANGES
+        experiments = tuple(scene.experiments) + (added,)
+    variant = derived_scene(scene, f"{scene.name}-{method.replace(' + ', '-')}-"
+                            f"{'volume' if volume else 'springs'}",
+                            {"particle": {"volume": volume}, "calibration": calibration},
+                            folder, experiments=experiments)
     source = None if reference_from is None else reference_from / REFERENCE
     if source is not None and source.is_file() and (
             not (folder / REFERENCE).is_file()
@@ -154,16 +168,18 @@ def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]
             reference_from, reference_is_current = default_folder(cache_folder), True
         else:
             reference_from, reference_is_current = runs_source(cache_folder, sc.name), False
-        for model, volume in MODELS:
-            for method in METHODS:
-                folder = base / f"{'volume' if volume else 'springs'}-{method}"
-                if sc is scene and (volume, method) == (scene.particle.volume,
-                                                        scene.calibration.method):
-                    seed_folder(default_folder(cache_folder), folder)  # the same run
-                rows.append(run_row(sc, model, volume, method, folder, reference_from,
-                                    reference_is_current))
-                if "failed" not in rows[-1]:
-                    reference_from, reference_is_current = folder, True
+        kinds = [(model, volume, method) for model, volume in MODELS for method in METHODS]
+        if sc is not scene:  # the punch scene: the punch + whole-body method too
+            kinds.append((MODELS[1][0], True, BODY_METHOD))
+        for model, volume, method in kinds:
+            folder = base / f"{'volume' if volume else 'springs'}-{method.replace(' + ', '-')}"
+            if sc is scene and (volume, method) == (scene.particle.volume,
+                                                    scene.calibration.method):
+                seed_folder(default_folder(cache_folder), folder)  # the same run
+            rows.append(run_row(sc, model, volume, method, folder, reference_from,
+                                reference_is_current))
+            if "failed" not in rows[-1] and method != BODY_METHOD:
+                reference_from, reference_is_current = folder, True
     mark_front(rows)
     return {"calibration_methods": rows}
 

@@ -201,7 +201,7 @@ def _same(function: ItemRun) -> tuple[ItemRun, ItemRun]:
 #: haptic meshes up to 12k connectors, the FE sag without its finest level, three scale sizes
 #: without the rank timing. Left to ``make bench-full``: ``experiments`` (a reference and a
 #: calibration per experiment list), ``scale reference`` (the whole FE reference on 2,936
-#: vertices), ``calibration methods`` (eight pipelines on two scenes) and ``discretisation
+#: vertices), ``calibration methods`` (nine pipelines on two scenes) and ``discretisation
 #: floor`` (the floor's FE tests per scene).
 ITEMS: tuple[Item, ...] = (
     Item("default pipeline run", *_same(default_pipeline_run), labels_rows=False),
