@@ -305,9 +305,11 @@ class Run:
                                                                      self.threads)
         self._scratch = (self._forces, self._blocks)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        # the kernel's probe group without a probe: empty arrays of a probe's types
+        # the kernel's probe group without a probe: empty arrays of a probe's types (its tets
+        # None without the volume term, which is compiled out then anyway)
         self._no_probe = (-1, kernels.index_view(model.incidence_edge[:0]), np.empty(0),
-                          kernels.index_view(np.zeros(0, np.int64)))
+                          None if self._volume is None
+                          else kernels.index_view(np.zeros(0, np.int64)))
 
     def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
                  record: tuple = (None, None, None), probe: int | None = None
@@ -360,7 +362,7 @@ class Run:
         return (self.volume_arm_r, self.volume_arm_c, state.volume_arm, state.volume_prev,
                 state.volume_arm, state.volume_prev)
 
-    def _incident(self, node: int) -> tuple[np.ndarray, np.ndarray]:
+    def _incident(self, node: int) -> tuple[np.ndarray, np.ndarray | None]:
         """:func:`incident` of ``node`` (cached)."""
         found = self._node_edges.get(node)
         if found is None:
@@ -453,15 +455,14 @@ def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) ->
     return keyframes
 
 
-def incident(model: Model, node: int, tets: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The connectors and (with ``tets``, else none) tets touching particle ``node``, as
+def incident(model: Model, node: int, tets: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The connectors and (with ``tets``, else None) tets touching particle ``node``, as
     index views for the kernels."""
     node = int(model.check_nodes([node], "force_on", movable=False)[0])
     ptr = model.incidence_ptr
     edges = kernels.index_view(model.incidence_edge[ptr[node]:ptr[node + 1]])
-    touching = (np.nonzero(np.any(model.tets == node, axis=1))[0] if tets
-                else np.zeros(0, np.int64))
-    return edges, kernels.index_view(touching)
+    return edges, (kernels.index_view(np.nonzero(np.any(model.tets == node, axis=1))[0])
+                   if tets else None)
 
 
 def exit_error(run: Run, state: State, code: int, step: int, index: int,
