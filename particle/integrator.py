@@ -285,7 +285,7 @@ class Run:
             damping_rate=integrator.damping / dt if t.damping else None)
         self.monitored = monitored
         # compared with the elongations the force kernel stores anyway: no extra sqrt
-        self._elongation_limits = ((None, None) if monitored is None else
+        self._elongation_limits = ((np.zeros(0), np.zeros(0)) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
         self._volume = None
         if p.kv is not None:
@@ -305,6 +305,11 @@ class Run:
                                                                      self.threads)
         self._scratch = (self._forces, self._blocks)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # the kernel's probe group without a probe: empty arrays of a probe's types (its tets
+        # None without the volume term, which is compiled out then anyway)
+        self._no_probe = (-1, kernels.index_view(model.incidence_edge[:0]), np.empty(0),
+                          None if self._volume is None
+                          else kernels.index_view(np.zeros(0, np.int64)))
 
     def __call__(self, state: State, n_steps: int, keyframes: tuple | None, energy_bound: float,
                  record: tuple = (None, None, None), probe: int | None = None
@@ -318,9 +323,11 @@ class Run:
         """
         dt = self.dt
         keyframes = start_call(self, state, n_steps, keyframes)
-        out = node_edges = node_tets = None
-        if probe is not None:
+        if probe is None:
+            probe_group, out = self._no_probe, None
+        else:
             (node_edges, node_tets), out = self._incident(probe), np.empty(3)
+            probe_group = (probe, node_edges, out, node_tets)
         pool = None if self._blocks is None else numba.get_num_threads()
         if pool is not None:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
@@ -332,7 +339,7 @@ class Run:
                 (dt, int(n_steps), state.dt is None, float(state.t)),
                 (self._prescribed, *keyframes), record,
                 (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
-                (probe, node_edges, out, node_tets), self._scratch,
+                probe_group, self._scratch,
                 self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
         finally:
             if pool is not None:

@@ -1,11 +1,13 @@
 """Compiled (numba) force kernels: connector forces, the force terms composed, tangent assembly.
 
-Optional terms are passed either as arrays or as ``None``. Numba compiles one
-specialisation per argument-type combination and prunes ``if arg is None``
-branches at compile time, so a run that has no gravity, no Maxwell arms,
-linear springs (a = b = 0) or no recording executes a loop without those
-terms at all; the choice is made once per run by :class:`particle.integrator.Terms`,
-never inside the inner loop. The static Newton path passes zero arrays instead
+Optional terms of the connector pass are passed either as arrays or as ``None``. Numba
+compiles one specialisation per argument-type combination and prunes ``if arg is None``
+branches at compile time, so a run without Maxwell arms or with linear springs (a = b = 0)
+executes a connector loop without those terms at all; the choice is made once per run by
+:class:`particle.integrator.Terms`, never inside the inner loop. The node loads (gravity,
+damping) are switched by flags instead, tested once per step outside their node loops:
+each specialisation costs seconds of compilation in every fresh process, and a test per
+step costs nothing measurable. The static Newton path passes zero arrays instead
 (:func:`particle.statics.kernel_terms`): there a specialisation per combination costs
 more compilation in every fresh calibration worker than the skipped terms save. The
 explicit step loop that calls these kernels (serial and multi-threaded) is
@@ -193,12 +195,15 @@ def add_damping(forces, masses, x, x_prev, rate, nodes):
 
 
 @njit(**JIT)
-def add_loads(forces, masses, x, x_prev, gravity, damping_rate, nodes):
-    """The node loads of one explicit step for ``nodes``: :func:`add_gravity` (``gravity``
-    None: none) then :func:`add_damping` (``damping_rate`` None: none)."""
-    if gravity is not None:
+def add_loads(forces, masses, x, x_prev, loads, nodes):
+    """The node loads of one explicit step for ``nodes``: ``loads`` = (gravity (3 floats)
+    [m/s^2], damping rate gamma/dt [1/s^2], with gravity, with damping)
+    (:func:`particle.step_kernels.load_group`): :func:`add_gravity` then
+    :func:`add_damping`, each only if its flag is set."""
+    gravity, damping_rate, with_gravity, with_damping = loads
+    if with_gravity:
         add_gravity(forces, masses, gravity, nodes)
-    if damping_rate is not None:
+    if with_damping:
         add_damping(forces, masses, x, x_prev, damping_rate, nodes)
 
 
@@ -218,14 +223,13 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
     x, x_prev, arm_force, dx_prev = state
     edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
     masses, _, active = particles
-    gravity, damping_rate = loads
     outside = internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_force,
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)
     bad = -1
     if volume is not None:
         bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
                                    forces, volume_arms)
-    add_loads(forces, masses, x, x_prev, gravity, damping_rate, active)
+    add_loads(forces, masses, x, x_prev, loads, active)
     return outside, bad
 
 @njit(**JIT)

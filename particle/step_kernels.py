@@ -109,15 +109,14 @@ def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi
         energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
     else:
         edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
-        gravity, damping_rate = loads
         outside = parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
                                   arm_c, dx_lo, dx_hi, blocks)
         bad = -1
         if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
             bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
                                        blocks[0][0], volume_arms)
-        energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity,
-                                  damping_rate, scale, check, blocks)
+        energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, loads, scale,
+                                  check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
         divergent_node(x, x_prev, active, status)
     return outside, bad
@@ -169,8 +168,7 @@ def sum_thread_forces(thread_forces, forces, nodes):
 
 
 @njit(parallel=True, **JIT)
-def parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity, damping_rate, scale,
-                     check, blocks):
+def parallel_advance(x, x_prev, forces, inv_masses, masses, active, loads, scale, check, blocks):
     """Reduction of the thread forces, the node loads and the position update, split over nodes.
 
     Thread t takes the active nodes ``active[node_starts[t] .. node_starts[t+1]-1]``:
@@ -180,10 +178,12 @@ def parallel_advance(x, x_prev, forces, inv_masses, masses, active, gravity, dam
     those nodes (:func:`add_loads`). Returns the summed energy of :func:`advance_positions`.
     """
     thread_forces, _, node_starts, _, energy = blocks
-    for t in prange(thread_forces.shape[0]):
+    (gx, gy, gz), damping_rate, with_gravity, with_damping = loads  # a parallel loop takes
+    for t in prange(thread_forces.shape[0]):  # scalars, not a tuple of tuples
         nodes = active[node_starts[t]:node_starts[t + 1]]
         sum_thread_forces(thread_forces, forces, nodes)
-        add_loads(forces, masses, x, x_prev, gravity, damping_rate, nodes)
+        add_loads(forces, masses, x, x_prev, ((gx, gy, gz), damping_rate, with_gravity,
+                                              with_damping), nodes)
         energy[t] = advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses)
     total = 0.0
     for t in range(energy.shape[0]):
@@ -295,9 +295,14 @@ def particle_group(*, masses, inv_masses, active) -> tuple:
 
 
 def load_group(*, gravity, damping_rate) -> tuple:
-    """:func:`run_verlet`'s ``loads``: gravity (3,) [m/s^2], the damping rate gamma/dt
-    [1/s^2]; each None: none."""
-    return (gravity, damping_rate)
+    """:func:`run_verlet`'s ``loads``: (gravity (3 floats) [m/s^2], the damping rate
+    gamma/dt [1/s^2], with gravity, with damping) from ``gravity`` (3,) and
+    ``damping_rate``, each None: none. Flags, not Nones, so that one compiled loop serves
+    every combination; floats, not an array, because every array argument costs the
+    kernel call an unboxing (about 0.1 us)."""
+    gx, gy, gz = (0.0, 0.0, 0.0) if gravity is None else (float(g) for g in gravity)
+    return ((gx, gy, gz), 0.0 if damping_rate is None else float(damping_rate),
+            gravity is not None, damping_rate is not None)
 
 
 @njit(**JIT)
@@ -317,11 +322,11 @@ def record_positions(x, rec_nodes, rec_steps, rec_out, slot, step):
 def final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi, volume):
     """(code, id) of a run's final state: (VOLUME_END, the first tet outside ``(v_lo,
     v_hi]``), else (STRAIN_END, the first connector outside ``[dx_lo, dx_hi]``), id -1 when
-    none is (``volume``, ``dx_lo`` None: that check is not made)."""
+    none is (``volume`` None, ``dx_lo`` empty: that check is not made)."""
     code, bad = OK, np.int64(-1)
     if volume is not None:
         code, bad = VOLUME_END, first_volume_outside(x, volume[0], volume[3], volume[4])
-    if bad < 0 and dx_lo is not None:
+    if bad < 0 and dx_lo.shape[0] > 0:
         code, bad = STRAIN_END, final_strain_check(x, x_prev, edges, rest_lengths, dx_prev,
                                                    dx_lo, dx_hi)
     return code, bad
@@ -330,9 +335,10 @@ def final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi, vol
 @njit(**JIT)
 def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, volume,
                 volume_arms):
-    """The force on ``probe_node`` at the final state into ``probe_out`` (None: nothing):
-    its connectors (:func:`node_force`) and, with the volume term, its tets ``probe_tets``."""
-    if probe_out is None:
+    """The force on ``probe_node`` at the final state into ``probe_out`` (``probe_node`` < 0:
+    nothing): its connectors (:func:`node_force`) and, with the volume term, its tets
+    ``probe_tets``."""
+    if probe_node < 0:
         return
     x, _, arm_force, dx_prev = state
     edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
@@ -357,9 +363,10 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
       (:func:`load_group`);
     * ``stepping`` = (dt [s], n_steps, startup, t0 [s]);
     * ``prescribed`` = (nodes (k,), keyframe times (K,) [s], positions (K, k, 3) [m]);
-    * ``recording`` = (rec_nodes, rec_steps, rec_out), each None: no recording;
-    * ``checks`` = (check_every, energy_bound [J], dx_lo, dx_hi (E,) [m] or None);
-    * ``probe`` = (probe_node, probe_edges, probe_out (3,), probe_tets), probe_out None:
+    * ``recording`` = (rec_nodes, rec_steps, rec_out), each None: no recording (compiled
+      out: three empty arrays would cost the haptic loop's call their unboxing);
+    * ``checks`` = (check_every, energy_bound [J], dx_lo, dx_hi (E,) [m] or (0,): none);
+    * ``probe`` = (probe_node, probe_edges, probe_out (3,), probe_tets), probe_node < 0:
       no probe;
     * ``scratch`` = (forces (N, 3), blocks: None or the multi-threaded step's work split).
 
@@ -371,9 +378,9 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     ``rec_steps[s]`` (0 = the initial state). Every ``check_every`` steps and
     after the last one the run stops with a non-zero code if positions are
     non-finite or the kinetic energy exceeds ``energy_bound`` (id = the
-    particle), or, unless ``dx_lo`` is None, a connector's elongation at the
+    particle), or, unless ``dx_lo`` is empty, a connector's elongation at the
     step before is outside ``[dx_lo, dx_hi]`` (E,) [m] (id = the connector).
-    Unless ``probe_out`` is None, a run that ends normally writes the
+    Unless ``probe_node`` < 0, a run that ends normally writes the
     connector force on ``probe_node`` at the final state into it (see
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
@@ -399,6 +406,7 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     presc_nodes, presc_times, presc_pos = prescribed
     rec_nodes, rec_steps, rec_out = recording
     check_every, energy_bound, dx_lo, dx_hi = checks
+    monitored = dx_lo.shape[0] > 0
     probe_node, probe_edges, probe_out, probe_tets = probe
     forces, blocks = scratch
     status = np.zeros(3, dtype=np.int64)
@@ -407,13 +415,13 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     for step in range(n_steps):
         check = (step + 1) % check_every == 0 or step + 1 == n_steps
         scale = 0.5 * h2 if (startup and step == 0) else h2
-        if check:
+        if check and monitored:
             outside, inverted = explicit_step(
                 state, springs, particles, loads, forces, blocks, dx_lo, dx_hi, scale, True,
                 dt, energy_bound, status, volume, volume_arms)
-        else:
+        else:  # the strain range compiled out of the connector pass
             outside, inverted = explicit_step(
-                state, springs, particles, loads, forces, blocks, None, None, scale, False,
+                state, springs, particles, loads, forces, blocks, None, None, scale, check,
                 dt, energy_bound, status, volume, volume_arms)
         if volume is not None and inverted >= 0:
             status[0] = VOLUME

@@ -136,10 +136,12 @@ def test_the_compiled_loop_refuses_its_argument_groups_out_of_order():
     state = model.state()
     groups = [(state.x, state.x_prev, state.arm_force, state.dx_prev), run._particles,
               run._springs, run._loads, (run.dt, 1, True, 0.0),
-              (run._prescribed, *run._no_keyframes), (None, None, None), (1, 1.0, None, None),
-              (None, None, None, None), run._scratch, None, None]
+              (run._prescribed, *run._no_keyframes), (None, None, None),
+              (1, 1.0, *run._elongation_limits), run._no_probe, run._scratch, None, None]
     with pytest.raises(TypingError):
         step_kernels.run_verlet(*groups)
+    groups[1:3] = groups[2:0:-1]  # the right order runs
+    assert step_kernels.run_verlet(*groups).tolist() == [step_kernels.OK, 0, 0]
 
 
 def test_skipping_terms_gives_identical_results_when_they_are_zero():
