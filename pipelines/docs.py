@@ -20,8 +20,9 @@ documentation is typed in by hand (``--check`` only lists what is stale). Block 
 * ``verdicts``: every shipped scene's verdict table (:func:`pipelines.verdict.verdict_markdown`;
   a report without a verdict is judged from its measurements against the default goals,
   as ``python -m pipelines verdict-table`` does, and labelled so);
-* ``bench goals``, ``bench scale``, ``bench fe convergence``, ``bench duration``: the
-  goals, scale and FE convergence tables of ``runs/bench/bench.json`` and its cold run time;
+* ``bench goals``, ``bench scale``, ``bench fe convergence``, ``bench duration``,
+  ``bench floor``: the goals, scale, FE convergence and discretisation floor tables of
+  ``runs/bench/bench.json`` and its cold run time;
 * ``scene keys``: the table of every scene key (:func:`forcecal.scene.keys_table`);
 * ``schema MODULE``: a file's schema table from the docstring of the module that writes it
   (:data:`SCHEMA_MODULES`: ``params.h5``, ``gravity.h5``).
@@ -306,6 +307,11 @@ def _bench_fe_convergence(src: Sources) -> str:
     return fe_convergence_table(src.bench()["fe_convergence"])
 
 
+def _bench_floor(src: Sources) -> str:
+    from pipelines.bench.floor import floor_table
+    return "\n".join(floor_table(src.bench()["discretisation_floor"]))
+
+
 #: modules whose docstring holds a file's schema table (``schema MODULE`` blocks)
 SCHEMA_MODULES = ("calibration.results", "pipelines.gravity")
 
@@ -328,7 +334,7 @@ def _scene_keys(src: Sources) -> str:
 RENDERERS: dict[str, Callable[[Sources], str]] = {
     "results": _results, "verdicts": _verdicts, "bench goals": _bench_goals,
     "bench scale": _bench_scale, "bench fe convergence": _bench_fe_convergence,
-    "bench duration": _bench_duration,
+    "bench duration": _bench_duration, "bench floor": _bench_floor,
     "scene keys": _scene_keys}
 
 

@@ -134,3 +134,37 @@ def study(scene: Scene, cache_folder: Path, quick: bool) -> dict[str, Any]:
         out["rows"] += rows_of(floor_scene.name, block)
     out["load_average_end"] = os.getloadavg()[0]
     return {"discretisation_floor": out}
+
+
+def _percent(value: float | None) -> str:
+    return "-" if value is None else f"{100.0 * value:+.1f} %"
+
+
+def floor_table(study: dict[str, Any]) -> list[str]:
+    """The study's rows as a Markdown table (errors in %, signed where the metric has a sign;
+    '-' where a metric was not run: the second support on a scene that does not ask for it)."""
+    from pipelines.bench.tables import table
+
+    columns = ("static_sag_error", "release_period_error", "first_peak_error", "release_rms",
+               "second_support_static_sag_error", "second_support_release_rms",
+               "indentation_held_out", "relaxation_held_out")
+    return table(["scene", "model", "static sag", "release period", "first peak",
+                  "release RMS", "2nd support sag", "2nd support RMS", "held-out indentation",
+                  "held-out relaxation", "FE wall [s]"],
+                 [[row["scene"], row["element"], *(_percent(row.get(c)) for c in columns),
+                   "-" if row.get("wall_s") is None else f"{row['wall_s']:.1f}"]
+                  for row in study["rows"]])
+
+
+def markdown(b: dict[str, Any]) -> list[str]:
+    """BENCH.md's section of the study (nothing when bench.json has no such key)."""
+    study = b.get("discretisation_floor")
+    if not study:
+        return []
+    return ["", "## Discretisation floor", "",
+            "The scene's gravity test, second-support test and held-out curves computed with "
+            "vertex-dof FE elements and the true material on the particle mesh (ANP: "
+            "locking-free average nodal pressure; P1: plain linear tets), against the scene's "
+            "FE reference, next to the calibrated and closed-form baseline particle models "
+            "(from the scene's committed report; docs/fe-reference.md, 'The discretisation "
+            "floor'). Errors relative to the reference.", "", *floor_table(study)]

@@ -10,6 +10,7 @@ import numpy as np
 
 from forcecal.h5io import atomic_path
 from pipelines.bench import haptic as bench_haptic
+from pipelines.bench import floor as bench_floor
 from pipelines.bench import calibration_methods
 from pipelines.bench.tables import cell, table
 
@@ -411,6 +412,7 @@ def write_markdown(path: Path, b: dict[str, Any]) -> None:
         from pipelines.bench.scale import scale_section
         lines += scale_section(b)
     lines += calibration_methods.markdown(b)
+    lines += bench_floor.markdown(b)
     lines += ["", "## Reproduce", "", "```bash", f"{cmd}   # -> {path.parent}/", "```", ""]
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines))
