@@ -420,9 +420,6 @@ ITEM_KEYS = {"default pipeline run": ("calibration",), "run time vs error": ("pa
              "discretisation floor": ("discretisation_floor",),
              # not in the committed bench.json until a full bench has run it
              "scale reference": ()}
-#: keys of items whose first measured run is not in the committed bench.json yet: their
-#: stand-ins return an empty study (drop a key here once its run is committed)
-NOT_YET_COMMITTED = {"discretisation_floor": {"rows": [], "scenes": {}}}
 
 
 def _stand_in_items(monkeypatch, calls, reusing=()):
@@ -440,8 +437,7 @@ def _stand_in_items(monkeypatch, calls, reusing=()):
             calls.append((name, selection))
             if name in reusing:
                 logging.getLogger("pipelines.bench").warning("bench: reusing %s", name)
-            keys = {k: committed[k] if k in committed else NOT_YET_COMMITTED[k]
-                    for k in ITEM_KEYS[name]}
+            keys = {k: committed[k] for k in ITEM_KEYS[name]}
             if "skip" in keys:
                 own = (lambda r: "study" not in r) if name == "particle engine" else (
                     lambda r: r.get("study") == name)
