@@ -44,8 +44,6 @@ from forcecal.h5io import atomic_path
 
 BLOCK = re.compile(r"(<!-- generated: (?P<name>[^>]+?) -->\n)(?P<body>.*?)"
                    r"(<!-- end generated -->)", re.S)
-#: folders of ``runs/`` that are not scene runs
-NOT_SCENES = ("bench", "corpus", "studies")
 NO_VERDICT = "no verdict (report predates it)"
 #: ``gravity.dynamic_metrics`` value -> its signed relative error against the FE's
 ERROR_KEYS = {"period_s": "period_error", "first_peak_m": "first_peak_error",
@@ -62,9 +60,11 @@ class Sources:
         return self.root / "runs"
 
     def scenes(self) -> list[str]:
-        """The shipped scenes: every ``runs/<name>/report.json``, the default liver first."""
+        """The shipped scenes: every ``runs/<name>/report.json`` of a ``scenes/<name>.toml``
+        (a scratch run under ``runs/`` in another folder is no shipped scene), the default
+        liver first."""
         names = sorted(p.parent.name for p in self.runs.glob("*/report.json")
-                       if p.parent.name not in NOT_SCENES)
+                       if (self.root / "scenes" / f"{p.parent.name}.toml").is_file())
         return sorted(names, key=lambda n: n != "liver")
 
     def report(self, scene: str) -> dict[str, Any]:

@@ -26,6 +26,17 @@ def test_the_readme_shows_every_shipped_scene_at_a_glance():
         assert f"**`{name}`**" in readme
 
 
+def test_a_scratch_run_under_runs_is_no_shipped_scene(tmp_path):
+    import shutil
+    (tmp_path / "scenes").mkdir()
+    shutil.copy(ROOT / "scenes" / "liver.toml", tmp_path / "scenes" / "liver.toml")
+    for folder in ("liver", "tmp-liver-check", "bench"):  # the scratch run is of scene liver
+        (tmp_path / "runs" / folder).mkdir(parents=True)
+        shutil.copy(ROOT / "runs" / "liver" / "report.json",
+                    tmp_path / "runs" / folder / "report.json")
+    assert Sources(tmp_path).scenes() == ["liver"]
+
+
 def test_a_block_is_rewritten_and_the_text_around_it_kept():
     text = "before\n<!-- generated: scene keys -->\nstale table\n<!-- end generated -->\nafter\n"
     out = regenerate(text, Sources(ROOT))
