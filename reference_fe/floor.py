@@ -196,7 +196,10 @@ def floor_arrays(scene: Scene, problem: Problem) -> dict[str, np.ndarray]:
     return out
 
 
-def _runs(arrays: dict[str, np.ndarray], prefix: str, settings: GravitySection) -> GravityResult:
+def runs_of(arrays: dict[str, np.ndarray], prefix: str, settings: GravitySection
+            ) -> GravityResult:
+    """The :class:`~forcecal.h5io.GravityResult` of :func:`gravity_runs`' arrays (keys after
+    ``prefix``), ``settings`` the ``[gravity]`` with the run's tracked node."""
     return GravityResult(arrays[f"{prefix}static_displacement"], arrays[f"{prefix}time"],
                          arrays[f"{prefix}displacement"], settings)
 
@@ -229,11 +232,11 @@ def result_of(arrays: dict[str, np.ndarray], settings: GravitySection) -> FloorR
         if f"{e}failed" in arrays:
             failed[element] = str(arrays[f"{e}failed"])
         else:
-            runs[element] = _runs(arrays, e, settings)
+            runs[element] = runs_of(arrays, e, settings)
         if f"{e}second_support_failed" in arrays:
             support_failed[element] = str(arrays[f"{e}second_support_failed"])
         elif f"{e}second_support_time" in arrays:
-            support[element] = _runs(arrays, f"{e}second_support_", support_settings)
+            support[element] = runs_of(arrays, f"{e}second_support_", support_settings)
         if f"{e}held_out_vertices" in arrays:
             held_out[element] = curves_of(arrays, f"{e}held_out_")
     return FloorResult(runs, failed, seconds, QUADRATURE_DEGREE, support, support_failed,

@@ -20,15 +20,14 @@ FE code and scene key (:func:`pipelines.bench.items.fe_key`).
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
-import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from forcecal.h5io import GravityResult, SecondSupportResult
+from forcecal.errors import ConvergenceError
+from forcecal.h5io import SecondSupportResult
 from forcecal.problem import build_problem, second_support
 from forcecal.scene import Scene, load_scene
 
@@ -53,37 +52,35 @@ def scene_floor(scene: Scene) -> dict[str, Any]:
     (:func:`pipelines.report.floor_block`, the particle models' values from the scene's
     committed report when it has them) plus ``reference_element``, ``reference_wall_s`` and
     ``reference_part_seconds`` (the reference's gravity test, second-support test and
-    held-out curves)."""
+    held-out curves, run as the floor runs each of its elements: with the reference's
+    ``[fe]`` in place of a floor element they are the reference's own).
+
+    Raises:
+        ConvergenceError: the reference's gravity or second-support test failed (the study
+            has nothing to measure the floor against).
+    """
     from pipelines.report import floor_block, read_report
-    from reference_fe.floor import curves_of, floor_arrays, gravity_runs, held_out_forces, result_of
-    from reference_fe.model import FEModel
-    from reference_fe.refine import FEProblem
-    from reference_fe.run import second_support_runs
+    from reference_fe.floor import curves_of, element_arrays, floor_arrays, result_of, runs_of
 
     problem = build_problem(scene)
     g = scene.gravity
-    start = time.perf_counter()
     fe = dataclasses.replace(scene.fe, refine=0)
-    reference_scene = dataclasses.replace(scene, fe=fe)
-    model = FEModel(problem.mesh, scene.material, fe)
-    parts = {"build": time.perf_counter() - start}
+    reference = element_arrays(scene, problem, fe)
+    failures = [f"{name}: {reference[key]}" for name, key in
+                (("gravity test", "failed"), ("second-support test", "second_support_failed"))
+                if key in reference]
+    if failures:
+        raise ConvergenceError(f"scene '{scene.name}', the FE reference's "
+                               + "; ".join(failures))
     settings = dataclasses.replace(g, tracked_node=problem.tracked_node)
-    t0 = time.perf_counter()
-    gravity = GravityResult(**gravity_runs(model, scene, problem), settings=settings)
-    parts["gravity"] = time.perf_counter() - t0
+    gravity = runs_of(reference, "", settings)
     second = None
     if "second_support" in scene.experiments:
-        t0 = time.perf_counter()
         support = second_support(scene, problem)
-        runs = second_support_runs(model, reference_scene, problem,
-                                   FEProblem(problem, np.arange(problem.mesh.n_vertices), 0))
-        second = SecondSupportResult(scene.second_support, support.fixed, GravityResult(
-            **runs, settings=dataclasses.replace(g, tracked_node=support.tracked_node)))
-        parts["second_support"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    held_out = curves_of(held_out_forces(model, reference_scene, problem))
-    parts["held_out"] = time.perf_counter() - t0
-    reference_s = time.perf_counter() - start
+        second = SecondSupportResult(scene.second_support, support.fixed, runs_of(
+            reference, "second_support_",
+            dataclasses.replace(g, tracked_node=support.tracked_node)))
+    held_out = curves_of(reference, "held_out_")
     floor = result_of(floor_arrays(scene, problem), settings)
     report_path = ROOT / "runs" / scene.name / "report.json"
     models: dict[str, dict | None] = {"calibrated": None, "baseline": None}
@@ -100,8 +97,9 @@ def scene_floor(scene: Scene) -> dict[str, Any]:
                         models["baseline"] or empty, dynamic, held_out=held_out,
                         second_support=second, support_block=support_block,
                         reference_mesh=f"{fe.element} on the particle mesh{rim}")
-    return {**block, "reference_element": scene.fe.element, "reference_wall_s": reference_s,
-            "reference_part_seconds": parts,
+    return {**block, "reference_element": scene.fe.element,
+            "reference_wall_s": float(reference["seconds"]),
+            "reference_part_seconds": json.loads(str(reference["part_seconds"])),
             "report": str(report_path.relative_to(ROOT)) if report_path.is_file() else None}
 
 
