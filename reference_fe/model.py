@@ -217,6 +217,10 @@ class _ResidualProblem(NonlinearProblem):
         self.chords_off = False  # a chord step of this solve raised the residual
         self.previous: np.ndarray | None = None  # the last accepted iterate of this solve
         self.previous_residual: np.ndarray | None = None  # and its residual vector
+        # R(x) without Dirichlet rows and offset at the last residual's iterate, when that
+        # residual had no lifting (None otherwise), and that of the last accepted iterate
+        self.unconstrained: np.ndarray | None = None
+        self.previous_unconstrained: np.ndarray | None = None
         self.plain_residual = False  # the last residual had no lifting (F)
         self.mixing: list[tuple[np.ndarray, np.ndarray]] = []  # (x, -dx) of the chord steps
         self.taken_back = 0  # chord steps taken back (performance reports)
@@ -311,6 +315,7 @@ class _ResidualProblem(NonlinearProblem):
         elif self.after_chord and not norm <= norms[-1]:  # a chord step that made it worse
             x.array[:] = self.previous
             b.array[:] = self.previous_residual
+            self.unconstrained = self.previous_unconstrained
             norm = norms[-1]
             self.residual_norms.append(norm)
             self.chords_off = self.refactor = True  # Newton steps on a fresh tangent from here
@@ -325,9 +330,11 @@ class _ResidualProblem(NonlinearProblem):
                                  f"{norms[0]:.3g} N)")
         self.previous = x.array.copy()
         self.previous_residual = b.array.copy()
+        self.previous_unconstrained = self.unconstrained
 
     def _residual(self, x: PETSc.Vec, b: PETSc.Vec, *, lift: bool) -> float:
         """Assemble the residual at ``x`` into ``b``; return its norm [N]."""
+        self.unconstrained = None
         if lift:
             # the first iterate (the step's guess) misses the Dirichlet values: dolfinx's
             # lifting b -= A (g - x) makes the first Newton update bring them smoothly
@@ -337,6 +344,8 @@ class _ResidualProblem(NonlinearProblem):
             # solve_step), so the lifting, a tangent of every constrained cell and most of a
             # residual's cost, adds nothing
             assemble_unconstrained(b, self.L)
+            # kept: at the converged iterate of a quasi-static step it is the nodal force
+            self.unconstrained = b.array_r.copy()
             set_bc(b, self.bcs, x, -1.0)  # the rows' constraint equations, x - g
         if self.offset is not None:
             b.axpy(1.0, self.offset)
@@ -700,8 +709,12 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
         new.s_iso = s_new
     if inertia:
         new.velocity = 2.0 * (u - state.u) / dt - state.velocity
+    # the nodal force R(u) (c_m = 0, no Dirichlet rows): a quasi-static solve assembled it
+    # with its last residual, at this u and with these coefficients (the same numbers); a
+    # dynamic one assembled the residual with inertia and offset, so it is assembled again
+    kept = problem.unconstrained
     model._c_m.value = 0.0
-    new.force = _assemble_residual(model)
+    new.force = kept if kept is not None and not inertia else _assemble_residual(model)
     return new
 
 
