@@ -222,7 +222,10 @@ class _ResidualProblem(NonlinearProblem):
         self.unconstrained: np.ndarray | None = None
         self.previous_unconstrained: np.ndarray | None = None
         self.plain_residual = False  # the last residual had no lifting (F)
-        self.mixing: list[tuple[np.ndarray, np.ndarray]] = []  # (x, -dx) of the chord steps
+        # Anderson mixing of this solve's chord steps (update): (x - dx, -dx) of the last one
+        # and the differences of these between consecutive ones, the last ANDERSON_DEPTH
+        self.mixing: list[tuple[np.ndarray, np.ndarray]] = []
+        self.mixing_steps: list[tuple[np.ndarray, np.ndarray]] = []
         self.taken_back = 0  # chord steps taken back (performance reports)
         self.factorisations = 0  # over the model's life (performance reports)
         self.assemblies = 0  # tangent assemblies, likewise
@@ -274,20 +277,28 @@ class _ResidualProblem(NonlinearProblem):
         self.seconds["factorise" if self._refreshed else "solve"] += (time.perf_counter()
                                                                       - self._solve_start)
         if not (self.after_chord and self.plain_residual) or ANDERSON_DEPTH == 0:
-            self.mixing.clear()  # a Newton step, or the lifted first residual
+            self.restart_mixing()  # a Newton step, or the lifted first residual
             x.axpy(-1.0, dx)
             return
         x_k, f_k = x.array_r.copy(), -dx.array_r
-        self.mixing.append((x_k, f_k.copy()))
-        del self.mixing[:-(ANDERSON_DEPTH + 1)]
-        if len(self.mixing) < 2:
+        g_k = x_k + f_k  # the plain chord step's iterate
+        last = self.mixing[-1] if self.mixing else None
+        self.mixing[:] = [(g_k, f_k)]
+        if last is None:
             x.axpy(-1.0, dx)
             return
-        xs = np.array([m[0] for m in self.mixing])
-        fs = np.array([m[1] for m in self.mixing])
-        d_f, d_g = np.diff(fs, axis=0), np.diff(xs + fs, axis=0)
+        # only the newest differences are computed: the older ones are kept from before
+        self.mixing_steps.append((f_k - last[1], g_k - last[0]))
+        del self.mixing_steps[:-ANDERSON_DEPTH]
+        d_f = np.array([d[0] for d in self.mixing_steps])
+        d_g = np.array([d[1] for d in self.mixing_steps])
         gamma = np.linalg.lstsq(d_f.T, f_k, rcond=None)[0]
         x.array[:] = x_k + f_k - gamma @ d_g
+
+    def restart_mixing(self) -> None:
+        """Forget the chord steps mixed so far (the next one starts a new mixing)."""
+        self.mixing.clear()
+        self.mixing_steps.clear()
 
     def form(self, x: PETSc.Vec) -> None:
         super().form(x)
@@ -306,7 +317,7 @@ class _ResidualProblem(NonlinearProblem):
         """F's work: the residual, the taking back of a chord step, the divergence guard."""
         first = not self.residual_norms
         if first:
-            self.mixing.clear()
+            self.restart_mixing()
         self.plain_residual = not (first and self.lift_first)
         norm = self._residual(x, b, lift=not self.plain_residual)
         norms = self.residual_norms
