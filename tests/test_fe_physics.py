@@ -535,6 +535,35 @@ def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypat
     np.testing.assert_allclose(snapped, lifting, rtol=0, atol=1e-10 * np.abs(lifting).max())
 
 
+def test_a_quasi_static_step_s_force_is_its_last_residual(monkeypatch):
+    """solve_step takes a quasi-static step's nodal force from its last Newton residual
+    (assembled without Dirichlet rows, kept before the rows' constraint equations are set)
+    instead of assembling R(u) once more: the same numbers, bit for bit, on a ramp-and-hold
+    (viscoelastic) and an indentation (long-term material)."""
+    import reference_fe.model as fe_model
+
+    mesh = mirrored_block(L, L)
+    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
+    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
+    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
+    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    pairs = []
+    solve = fe_model.solve_step
+
+    def checked(model, state, load, progress, **kwargs):
+        new = solve(model, state, load, progress, **kwargs)
+        pairs.append((new.force, fe_model._assemble_residual(model)))
+        return new
+
+    monkeypatch.setattr(ex, "solve_step", checked)
+    model = FEModel(mesh, MATERIAL, FESection(element="P2"))
+    ex.relaxation_curve(model, fixed, top, normal, times, depths)
+    ex.indentation_curve(model, fixed, top, normal, depths[:4])
+    assert len(pairs) == len(times) + 4
+    for kept, assembled in pairs:
+        assert np.array_equal(kept, assembled)
+
+
 def test_a_held_step_is_guessed_from_the_creep_of_the_step_before(monkeypatch):
     """extrapolate: linear in the drive while it changes; in a hold, the last change
     extrapolated in time and scaled by ``held``, the held dofs unmoved. A relaxation curve
