@@ -495,6 +495,18 @@ def test_a_chord_step_that_raises_the_residual_is_taken_back(monkeypatch):
     np.testing.assert_allclose(kept, exact, rtol=0, atol=1e-7 * np.abs(exact).max())
 
 
+def _block_ramp_and_hold() -> tuple:
+    """A punch-like ramp-and-hold on the mirrored block: (mesh, top vertex, fixed vertices,
+    its inward normal, times [s], depths [m]): a 0.2 s ramp to 0.1 L in 4 steps, then 4 hold
+    steps of 0.3 s."""
+    mesh = mirrored_block(L, L)
+    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
+    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
+    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
+    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    return mesh, top, fixed, normal, times, depths
+
+
 def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypatch):
     """solve_step's first residual applies dolfinx's lifting only when the guess misses a
     prescribed value: on a punch-like ramp-and-hold the first step from rest (its guess is
@@ -503,11 +515,7 @@ def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypat
     import reference_fe.model as fe_model
     from dolfinx.fem.petsc import NonlinearProblem
 
-    mesh = mirrored_block(L, L)
-    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
-    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
-    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
-    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    mesh, top, fixed, normal, times, depths = _block_ramp_and_hold()
     lifted = []
     lifting_residual = NonlinearProblem.F
 
@@ -542,11 +550,7 @@ def test_a_quasi_static_step_s_force_is_its_last_residual(monkeypatch):
     (viscoelastic) and an indentation (long-term material)."""
     import reference_fe.model as fe_model
 
-    mesh = mirrored_block(L, L)
-    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
-    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
-    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
-    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    mesh, top, fixed, normal, times, depths = _block_ramp_and_hold()
     pairs = []
     solve = fe_model.solve_step
 
