@@ -42,7 +42,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from calibration.reach import check_experiment_depths
 from forcecal.cost import check_cost
@@ -98,8 +98,9 @@ class Stage:
                      if n != GRAVITY or any(e in HELD_OUT_EXPERIMENTS
                                             for e in scene.experiments))
 
-    def inputs(self, ctx: Context) -> StageInputs:
-        """Fingerprints of everything this stage reads, now."""
+    def inputs(self, ctx: Context, checked: dict[str, Any] | None = None) -> StageInputs:
+        """Fingerprints of everything this stage reads, now; the problem its checks built (a
+        stage that reads the mesh) goes to ``checked["problem"]``."""
         used = self.used(ctx.scene)
         for name in self.upstream_files(ctx.scene):
             if not (ctx.out / name).is_file():
@@ -126,6 +127,8 @@ class Stage:
             check_experiment_depths(ctx.scene, problem)
             if ctx.scene.runs("second_support"):
                 check_second_support(ctx.scene, problem)
+            if checked is not None:
+                checked["problem"] = problem
         return StageInputs(scene=scene,
                            mesh=mesh.fingerprint() if mesh is not None else None,
                            # of reference.h5, only the experiments it uses
@@ -262,10 +265,10 @@ def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Ou
                  list(ctx.scene.experiments), list(stage.experiments))
         # skipped (ran False); the reason is what the command line prints for it
         return Outcome(stage.name, False, ("none of its experiments in the scene's list",), 0.0)
-    inputs, reasons, error = None, [], None
+    inputs, reasons, error, checked = None, [], None, {}
     if ctx.rank == 0:
         try:
-            inputs = stage.inputs(ctx)
+            inputs = stage.inputs(ctx, checked)
             reasons = ["--force"] if force else cache.check(stage.name, inputs)
             if (reasons and not force and stage.name == "reference"
                     and adopt_reference(ctx, inputs.mesh)):
@@ -284,7 +287,8 @@ def _decide_and_run(ctx: Context, cache: Cache, stage: Stage, force: bool) -> Ou
     log.info("%-9s running: %s", stage.name, "; ".join(reasons))
     t0 = time.perf_counter()
     outputs = stage.run(dataclasses.replace(ctx, experiments=stage.used(ctx.scene),
-                                            upstream=stage.upstream_files(ctx.scene)))
+                                            upstream=stage.upstream_files(ctx.scene),
+                                            problem=checked.get("problem")))
     seconds = time.perf_counter() - t0
     if ctx.rank == 0:
         cache.store(stage.name, inputs, outputs, seconds)

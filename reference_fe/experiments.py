@@ -28,8 +28,8 @@ import numpy as np
 from forcecal.errors import ConvergenceError, SceneError, StabilityError
 from forcecal.schedules import record_times
 from forcecal.indenter import footprint_edges, punch_footprint
-from reference_fe.model import (FEModel, FEState, Load, StepFailed, clamp, initial_state,
-                                prescribe_dofs, solve_step)
+from reference_fe.model import (Constraint, FEModel, FEState, Load, StepFailed, clamp,
+                                initial_state, prescribe_dofs, solve_step)
 
 log = logging.getLogger(__name__)
 
@@ -117,9 +117,10 @@ def extrapolate(state: FEState, previous: FEState | None, drive: Callable[[float
     return state.u + ratio * (state.u - previous.u)
 
 
-def _indent(model: FEModel, fixed: np.ndarray, dofs: np.ndarray, normal: np.ndarray,
+def _indent(held: tuple[Constraint, ...], dofs: np.ndarray, normal: np.ndarray,
             depth: float) -> Load:
-    return Load(clamp(model.clamp_dofs(fixed)) + prescribe_dofs(dofs, depth * normal))
+    """The clamp ``held`` and the nodes ``dofs`` moved by ``depth * normal``."""
+    return Load(held + prescribe_dofs(dofs, depth * normal))
 
 
 def punch_dofs(model: FEModel, fixed: np.ndarray, vertex: int, normal: np.ndarray,
@@ -142,9 +143,11 @@ def held_indentation_curve(model: FEModel, fixed: np.ndarray, dofs: np.ndarray,
         depths: (S,) increasing depths > 0 [m].
         what: names the experiment in a ConvergenceError.
     """
+    held = clamp(model.clamp_dofs(fixed))  # once per curve (its dofs cost ~1 ms to find)
+
     def step(state: FEState, previous: FEState | None, depth: float) -> FEState:
         guess = extrapolate(state, previous, float, depth)
-        return solve_step(model, state, _indent(model, fixed, dofs, normal, depth), depth,
+        return solve_step(model, state, _indent(held, dofs, normal, depth), depth,
                           dt=None, guess=guess)
 
     states = march(initial_state(model), np.asarray(depths, float), step,
@@ -168,9 +171,11 @@ def held_relaxation_curve(model: FEModel, fixed: np.ndarray, dofs: np.ndarray,
     def depth_at(t: float) -> float:
         return float(np.interp(t, t_knots, d_knots))
 
+    held = clamp(model.clamp_dofs(fixed))
+
     def step(state: FEState, previous: FEState | None, t: float) -> FEState:
         guess = extrapolate(state, previous, depth_at, t, held=HELD_EXTRAPOLATION)
-        return solve_step(model, state, _indent(model, fixed, dofs, normal, depth_at(t)), t,
+        return solve_step(model, state, _indent(held, dofs, normal, depth_at(t)), t,
                           dt=t - state.progress, guess=guess)
 
     states = march(initial_state(model), t_knots[1:], step, max_cuts=model.fe.max_step_cuts,

@@ -217,8 +217,15 @@ class _ResidualProblem(NonlinearProblem):
         self.chords_off = False  # a chord step of this solve raised the residual
         self.previous: np.ndarray | None = None  # the last accepted iterate of this solve
         self.previous_residual: np.ndarray | None = None  # and its residual vector
+        # R(x) without Dirichlet rows and offset at the last residual's iterate, when that
+        # residual had no lifting (None otherwise), and that of the last accepted iterate
+        self.unconstrained: np.ndarray | None = None
+        self.previous_unconstrained: np.ndarray | None = None
         self.plain_residual = False  # the last residual had no lifting (F)
-        self.mixing: list[tuple[np.ndarray, np.ndarray]] = []  # (x, -dx) of the chord steps
+        # Anderson mixing of this solve's chord steps (update): (x - dx, -dx) of the last one
+        # and the differences of these between consecutive ones, the last ANDERSON_DEPTH
+        self.mixing: list[tuple[np.ndarray, np.ndarray]] = []
+        self.mixing_steps: list[tuple[np.ndarray, np.ndarray]] = []
         self.taken_back = 0  # chord steps taken back (performance reports)
         self.factorisations = 0  # over the model's life (performance reports)
         self.assemblies = 0  # tangent assemblies, likewise
@@ -270,20 +277,28 @@ class _ResidualProblem(NonlinearProblem):
         self.seconds["factorise" if self._refreshed else "solve"] += (time.perf_counter()
                                                                       - self._solve_start)
         if not (self.after_chord and self.plain_residual) or ANDERSON_DEPTH == 0:
-            self.mixing.clear()  # a Newton step, or the lifted first residual
+            self.restart_mixing()  # a Newton step, or the lifted first residual
             x.axpy(-1.0, dx)
             return
         x_k, f_k = x.array_r.copy(), -dx.array_r
-        self.mixing.append((x_k, f_k.copy()))
-        del self.mixing[:-(ANDERSON_DEPTH + 1)]
-        if len(self.mixing) < 2:
+        g_k = x_k + f_k  # the plain chord step's iterate
+        last = self.mixing[-1] if self.mixing else None
+        self.mixing[:] = [(g_k, f_k)]
+        if last is None:
             x.axpy(-1.0, dx)
             return
-        xs = np.array([m[0] for m in self.mixing])
-        fs = np.array([m[1] for m in self.mixing])
-        d_f, d_g = np.diff(fs, axis=0), np.diff(xs + fs, axis=0)
+        # only the newest differences are computed: the older ones are kept from before
+        self.mixing_steps.append((f_k - last[1], g_k - last[0]))
+        del self.mixing_steps[:-ANDERSON_DEPTH]
+        d_f = np.array([d[0] for d in self.mixing_steps])
+        d_g = np.array([d[1] for d in self.mixing_steps])
         gamma = np.linalg.lstsq(d_f.T, f_k, rcond=None)[0]
         x.array[:] = x_k + f_k - gamma @ d_g
+
+    def restart_mixing(self) -> None:
+        """Forget the chord steps mixed so far (the next one starts a new mixing)."""
+        self.mixing.clear()
+        self.mixing_steps.clear()
 
     def form(self, x: PETSc.Vec) -> None:
         super().form(x)
@@ -302,7 +317,7 @@ class _ResidualProblem(NonlinearProblem):
         """F's work: the residual, the taking back of a chord step, the divergence guard."""
         first = not self.residual_norms
         if first:
-            self.mixing.clear()
+            self.restart_mixing()
         self.plain_residual = not (first and self.lift_first)
         norm = self._residual(x, b, lift=not self.plain_residual)
         norms = self.residual_norms
@@ -311,6 +326,7 @@ class _ResidualProblem(NonlinearProblem):
         elif self.after_chord and not norm <= norms[-1]:  # a chord step that made it worse
             x.array[:] = self.previous
             b.array[:] = self.previous_residual
+            self.unconstrained = self.previous_unconstrained
             norm = norms[-1]
             self.residual_norms.append(norm)
             self.chords_off = self.refactor = True  # Newton steps on a fresh tangent from here
@@ -325,9 +341,11 @@ class _ResidualProblem(NonlinearProblem):
                                  f"{norms[0]:.3g} N)")
         self.previous = x.array.copy()
         self.previous_residual = b.array.copy()
+        self.previous_unconstrained = self.unconstrained
 
     def _residual(self, x: PETSc.Vec, b: PETSc.Vec, *, lift: bool) -> float:
         """Assemble the residual at ``x`` into ``b``; return its norm [N]."""
+        self.unconstrained = None
         if lift:
             # the first iterate (the step's guess) misses the Dirichlet values: dolfinx's
             # lifting b -= A (g - x) makes the first Newton update bring them smoothly
@@ -337,6 +355,8 @@ class _ResidualProblem(NonlinearProblem):
             # solve_step), so the lifting, a tangent of every constrained cell and most of a
             # residual's cost, adds nothing
             assemble_unconstrained(b, self.L)
+            # kept: at the converged iterate of a quasi-static step it is the nodal force
+            self.unconstrained = b.array_r.copy()
             set_bc(b, self.bcs, x, -1.0)  # the rows' constraint equations, x - g
         if self.offset is not None:
             b.axpy(1.0, self.offset)
@@ -700,8 +720,12 @@ def solve_step(model: FEModel, state: FEState, load: Load, progress: float, *,
         new.s_iso = s_new
     if inertia:
         new.velocity = 2.0 * (u - state.u) / dt - state.velocity
+    # the nodal force R(u) (c_m = 0, no Dirichlet rows): a quasi-static solve assembled it
+    # with its last residual, at this u and with these coefficients (the same numbers); a
+    # dynamic one assembled the residual with inertia and offset, so it is assembled again
+    kept = problem.unconstrained
     model._c_m.value = 0.0
-    new.force = _assemble_residual(model)
+    new.force = kept if kept is not None and not inertia else _assemble_residual(model)
     return new
 
 

@@ -495,6 +495,18 @@ def test_a_chord_step_that_raises_the_residual_is_taken_back(monkeypatch):
     np.testing.assert_allclose(kept, exact, rtol=0, atol=1e-7 * np.abs(exact).max())
 
 
+def _block_ramp_and_hold() -> tuple:
+    """A punch-like ramp-and-hold on the mirrored block: (mesh, top vertex, fixed vertices,
+    its inward normal, times [s], depths [m]): a 0.2 s ramp to 0.1 L in 4 steps, then 4 hold
+    steps of 0.3 s."""
+    mesh = mirrored_block(L, L)
+    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
+    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
+    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
+    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    return mesh, top, fixed, normal, times, depths
+
+
 def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypatch):
     """solve_step's first residual applies dolfinx's lifting only when the guess misses a
     prescribed value: on a punch-like ramp-and-hold the first step from rest (its guess is
@@ -503,11 +515,7 @@ def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypat
     import reference_fe.model as fe_model
     from dolfinx.fem.petsc import NonlinearProblem
 
-    mesh = mirrored_block(L, L)
-    top = int(np.argmin(np.linalg.norm(mesh.vertices - [0, 0, L], axis=1)))
-    fixed, normal = face(mesh, 2, 0.0), mesh.inward_normals([top])[0]
-    times = np.r_[np.linspace(0.05, 0.2, 4), 0.2 + 0.3 * np.cumsum(np.ones(4))]
-    depths = 0.1 * L * np.minimum(times / 0.2, 1.0)
+    mesh, top, fixed, normal, times, depths = _block_ramp_and_hold()
     lifted = []
     lifting_residual = NonlinearProblem.F
 
@@ -533,6 +541,31 @@ def test_a_guess_that_holds_the_constraints_starts_without_the_lifting(monkeypat
     # the two paths differ in the first residual's round-off only (the lifting term is
     # A (g - x) = 0 there); the Newton tolerance is 1e-8 of the force scale
     np.testing.assert_allclose(snapped, lifting, rtol=0, atol=1e-10 * np.abs(lifting).max())
+
+
+def test_a_quasi_static_step_s_force_is_its_last_residual(monkeypatch):
+    """solve_step takes a quasi-static step's nodal force from its last Newton residual
+    (assembled without Dirichlet rows, kept before the rows' constraint equations are set)
+    instead of assembling R(u) once more: the same numbers, bit for bit, on a ramp-and-hold
+    (viscoelastic) and an indentation (long-term material)."""
+    import reference_fe.model as fe_model
+
+    mesh, top, fixed, normal, times, depths = _block_ramp_and_hold()
+    pairs = []
+    solve = fe_model.solve_step
+
+    def checked(model, state, load, progress, **kwargs):
+        new = solve(model, state, load, progress, **kwargs)
+        pairs.append((new.force, fe_model._assemble_residual(model)))
+        return new
+
+    monkeypatch.setattr(ex, "solve_step", checked)
+    model = FEModel(mesh, MATERIAL, FESection(element="P2"))
+    ex.relaxation_curve(model, fixed, top, normal, times, depths)
+    ex.indentation_curve(model, fixed, top, normal, depths[:4])
+    assert len(pairs) == len(times) + 4
+    for kept, assembled in pairs:
+        assert np.array_equal(kept, assembled)
 
 
 def test_a_held_step_is_guessed_from_the_creep_of_the_step_before(monkeypatch):

@@ -34,6 +34,10 @@ class Context:
             so not part of any cache key).
         experiments: the scene's experiments the running stage uses.
         upstream: the files of ``out`` the running stage reads.
+        problem: the scene's :class:`~forcecal.problem.Problem` when the running stage's
+            input checks built it (the reference stage's, on rank 0): the FE ranks take it
+            instead of building it again (the "cover" test points are an integer programme
+            of seconds). None otherwise.
     """
     scene: Scene
     out: Path
@@ -43,6 +47,7 @@ class Context:
     verbose: bool = False
     experiments: tuple[str, ...] = ()
     upstream: tuple[str, ...] = ()
+    problem: Any = None
 
     @property
     def rank(self) -> int:

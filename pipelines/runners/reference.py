@@ -21,6 +21,7 @@ import h5py
 
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.failures import INTERRUPTED, die_with_parent, note_stage
+from forcecal.h5io import atomic_path, write_problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, Scene
 from pipelines.runners.common import REFERENCE, Context
 
@@ -39,14 +40,24 @@ def run_reference(ctx: Context) -> list[str]:
         if ctx.ranks > 1 and mpirun is None and not ctx.under_mpi:
             log.warning("mpirun not found: computing the FE reference on one process")
         from reference_fe.run import compute_reference
-        compute_reference(ctx.scene, out_path=path, progress=ctx.progress)
+        # under MPI only rank 0 holds the checked problem: the ranks then build it
+        compute_reference(ctx.scene, None if ctx.under_mpi else ctx.problem, out_path=path,
+                          progress=ctx.progress)
         return [REFERENCE]
     cmd = [mpirun, "-n", str(ctx.ranks), sys.executable, "-m", "reference_fe",
            "--scene", str(ctx.scene.path), "--out", str(path)]
     if not ctx.progress:
         cmd.append("--no-progress")
+    problem_file = path.with_name(path.name + ".problem")
+    if ctx.problem is not None:  # the ranks read the problem the stage's checks built
+        with atomic_path(problem_file) as tmp, h5py.File(tmp, "w") as fh:
+            write_problem(fh, ctx.problem)
+        cmd += ["--problem", str(problem_file)]
     log.info("running %s", " ".join(cmd))
-    rc, error = run_mpirun(cmd)
+    try:
+        rc, error = run_mpirun(cmd)
+    finally:
+        problem_file.unlink(missing_ok=True)
     if rc != 0:
         parts = path.with_name(path.name + ".parts")
         # only when there are finished items: a refusal before any work kept nothing
