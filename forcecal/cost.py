@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 
 from forcecal.errors import SceneError
+from forcecal.h5io import FLOOR_ELEMENTS
 from forcecal.scene import Scene
 
 #: largest FE reference accepted [vertex-steps] (~ 10 core-hours at the default liver's rate,
@@ -31,14 +32,17 @@ FE_SECONDS_PER_VERTEX_STEP = 1.7e-4
 #: load; ``fe_<kind>_profile`` of the scale study): factorisations and back-solves grow
 #: faster than the vertices
 FE_RATE_GROWTH = 0.6
+#: a vertex-dof element's step on the particle mesh (the ``floor`` experiment), against one of
+#: the reference's: measured on the default liver, ANP's gravity test took 8.1 s against P2's
+#: 78 s and its held-out curves 3.5 s against 29 s (0.10 and 0.12)
+FLOOR_SOLVE_FRACTION = 0.12
 
 
 def n_test_points(scene: Scene) -> int:
     """Calibration + held-out points the scene asks for."""
     tp = scene.test_points
     n_cal = tp.n_calibration if isinstance(tp.calibration, str) else len(tp.calibration)
-    n_held = tp.n_held_out if isinstance(tp.held_out, str) else len(tp.held_out)
-    return n_cal + n_held
+    return n_cal + n_held_out(scene)
 
 
 #: connectors (edges) per vertex of a generated liver, for an estimate before meshing
@@ -65,24 +69,59 @@ def local_refine_factor(scene: Scene) -> float:
     return 2.0 ** scene.fe.local_refine if scene.indentation.indenter == "punch" else 1.0
 
 
+def n_held_out(scene: Scene) -> int:
+    """How many held-out test points the scene has."""
+    tp = scene.test_points
+    return tp.n_held_out if isinstance(tp.held_out, str) else len(tp.held_out)
+
+
 def fe_work(scene: Scene, n_vertices: int, n_edges: int | None = None) -> dict[str, float]:
     """Vertex-steps of each FE experiment the scene runs (``experiments``), keyed by the
     scene key that sets its step count, on the FE mesh: ``n_vertices`` refined ``fe.refine``
     times (:func:`refined_vertices`, ``n_edges`` the particle mesh's edges, estimated from
     :data:`EDGES_PER_VERTEX` if None), the indentation and relaxation on each punch's mesh
-    refined ``fe.local_refine`` times near its rim (:func:`local_refine_factor`)."""
+    refined ``fe.local_refine`` times near its rim (:func:`local_refine_factor`).
+
+    The opt-in experiments: ``second_support`` runs the gravity test again (its steps added to
+    the gravity keys'); ``body`` two static loads of ``body.load_steps`` and two eigen-solves
+    (counted a step each); ``floor`` (key ``experiments``) runs, for each of
+    :data:`~forcecal.h5io.FLOOR_ELEMENTS` on the particle mesh's ``n_vertices``, the gravity
+    test, the second support's when asked for and the held-out points' indentation and
+    relaxation curves, each step :data:`FLOOR_SOLVE_FRACTION` of a reference one (its
+    core-seconds at the FE mesh's rate, :func:`fe_core_seconds`: an upper bound with
+    ``fe.refine``)."""
     n_edges = EDGES_PER_VERTEX * n_vertices if n_edges is None else n_edges
     fe_vertices = refined_vertices(n_vertices, n_edges, scene.fe.refine)
     local = local_refine_factor(scene)
     points = n_test_points(scene)
-    r, g = scene.relaxation, scene.gravity
-    work = {"indentation": ("indentation.steps", scene.indentation.steps * points),
-            "relaxation": ("relaxation.hold_steps", (r.ramp_steps + r.hold_steps) * points),
-            "gravity_dynamic": ("gravity.fe_dt", math.ceil(g.duration / g.fe_dt)),
-            "gravity_static": ("gravity.static_load_steps", g.static_load_steps)}
-    return {key: steps * fe_vertices * (local if experiment in ("indentation", "relaxation")
-                                        else 1.0)
-            for experiment, (key, steps) in work.items() if experiment in scene.experiments}
+    ind, r, g = scene.indentation.steps, scene.relaxation, scene.gravity
+    curves = {"indentation": ind, "relaxation": r.ramp_steps + r.hold_steps}
+    gravity = {"gravity_dynamic": ("gravity.fe_dt", math.ceil(g.duration / g.fe_dt)),
+               "gravity_static": ("gravity.static_load_steps", g.static_load_steps)}
+    work: dict[str, float] = {}
+
+    def add(key: str, steps: float, vertices: float) -> None:
+        work[key] = work.get(key, 0.0) + steps * vertices
+
+    for experiment, (key, steps) in (("indentation", ("indentation.steps", ind)),
+                                     ("relaxation", ("relaxation.hold_steps",
+                                                     curves["relaxation"]))):
+        if experiment in scene.experiments:
+            add(key, steps * points, fe_vertices * local)
+    second = "second_support" in scene.experiments  # the gravity test's both parts again
+    for experiment, (key, steps) in gravity.items():
+        runs = (experiment in scene.experiments) + second
+        if runs:
+            add(key, steps * runs, fe_vertices)
+    if "body" in scene.experiments:
+        add("body.load_steps", 2 * scene.body.load_steps + 2, fe_vertices)
+    if "floor" in scene.experiments:
+        test = sum(steps for _, steps in gravity.values())
+        held = n_held_out(scene) * sum(steps for kind, steps in curves.items()
+                                       if kind in scene.experiments)
+        add("experiments", len(FLOOR_ELEMENTS) * FLOOR_SOLVE_FRACTION * ((1 + second) * test + held),
+            n_vertices)
+    return work
 
 
 def fe_core_seconds(scene: Scene, work: float, n_vertices: int,
@@ -187,4 +226,4 @@ def check_generated_cost(scene: Scene) -> None:
 
 def _value(scene: Scene, key: str):
     section, _, name = key.partition(".")
-    return getattr(getattr(scene, section), name)
+    return getattr(getattr(scene, section), name) if name else getattr(scene, section)

@@ -109,6 +109,57 @@ def largest_eigenvalue(matrix: sp.csr_matrix) -> float:
                              f"converge: {exc}") from None
 
 
+@dataclasses.dataclass(frozen=True)
+class StepBound:
+    """The bound ``omega_max^2 <= omega2`` of :func:`critical_time_step` and the matrices it is
+    made of, so that what sets the step is read off the bound the step is taken from
+    (:func:`pipelines.realtime.step_limiters`).
+
+    ``omega2 = laplacian_part + volume_part``: ``laplacian_part`` is
+    :data:`EIGENVALUE_MARGIN` x the largest eigenvalue of ``laplacian`` (the mass-scaled graph
+    Laplacian of the connector weights ``kappa``); ``volume_part`` is the volume term's own
+    bound when it is added separately (then ``volume_matrix`` is
+    :func:`particle.volume_bounds.volume_scalar_matrix`), else 0 and None (no volume term, or
+    the joint bound is the smaller: ``kappa`` then includes the term's edge weights).
+
+    Attributes:
+        omega2: the bound [1/s^2].
+        kappa: (E,) connector weights of ``laplacian`` [N/m].
+        laplacian: (Nf, Nf) ``M^{-1/2} L_kappa M^{-1/2}`` [1/s^2] on the free particles.
+        laplacian_part: its part of ``omega2`` [1/s^2].
+        volume_part: the volume term's own part of ``omega2`` [1/s^2].
+        volume_matrix: (Nf, Nf) the volume term's scalar matrix [1/s^2], or None.
+    """
+
+    omega2: float
+    kappa: np.ndarray
+    laplacian: sp.csr_matrix
+    laplacian_part: float
+    volume_part: float = 0.0
+    volume_matrix: sp.csr_matrix | None = None
+
+
+def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> StepBound:
+    """The ``omega_max^2`` bound of :func:`critical_time_step` for ``model`` (its own parameters,
+    validated on ``strain_range``, and at least one free particle): with the volume term the
+    smaller of the springs' bound plus the term's own and the joint bound (see there)."""
+    p = model.params
+    lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
+    kappa = connector_stiffness_bound(p, lo, hi)
+    laplacian = mass_scaled_laplacian(model, kappa)
+    springs = EIGENVALUE_MARGIN * largest_eigenvalue(laplacian)
+    if p.kv is None:
+        return StepBound(springs, kappa, laplacian, springs)
+    own, edge_weights, scalar = volume_step_bounds(model, lo, hi)
+    own = min(own, EIGENVALUE_MARGIN * largest_eigenvalue(scalar))
+    joint_kappa = kappa + edge_weights
+    joint_laplacian = mass_scaled_laplacian(model, joint_kappa)
+    joint = EIGENVALUE_MARGIN * largest_eigenvalue(joint_laplacian)
+    if joint < springs + own:
+        return StepBound(joint, joint_kappa, joint_laplacian, joint)
+    return StepBound(springs + own, kappa, laplacian, springs, own, scalar)
+
+
 def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
                        strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
                        damping: float = 0.0) -> float:
@@ -160,14 +211,7 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     p.validate(strain_range, model.edges, model.tets)
     if not (~model.fixed).any():
         return math.inf  # nothing moves
-    lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
-    kappa = connector_stiffness_bound(p, lo, hi)
-    omega2 = EIGENVALUE_MARGIN * largest_eigenvalue(mass_scaled_laplacian(model, kappa))
-    if p.kv is not None:  # the smaller of two rigorous bounds (see the docstring)
-        own, edge_weights, scalar = volume_step_bounds(model.with_params(p), lo, hi)
-        own = min(own, EIGENVALUE_MARGIN * largest_eigenvalue(scalar))
-        joint = largest_eigenvalue(mass_scaled_laplacian(model, kappa + edge_weights))
-        omega2 = min(omega2 + own, EIGENVALUE_MARGIN * joint)
+    omega2 = step_bound(model if params is None else model.with_params(p), strain_range).omega2
     if not omega2 > 0.0:
         return math.inf  # no stiffness at all: nothing oscillates
     omega = math.sqrt(omega2)

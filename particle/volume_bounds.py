@@ -229,32 +229,50 @@ def volume_scalar_matrix(model, lo: np.ndarray, hi: np.ndarray) -> sp.csr_matrix
     where the mesh is fine well below: kv 8.9 kPa on strains +-0.5, 12k-connector liver 3.9e7
     against 7.5e7 1/s^2 (the edge bound 5.5e7, the true eigenvalue at rest 3.0e6).
     """
-    return _scalar_matrix(model, *_tet_bounds(model, lo, hi))
+    return _scalar_matrix(model, _tet_bounds(model, lo, hi))
 
 
-def _scalar_matrix(model, grad, lmax, modulus, pressure, free) -> sp.csr_matrix:
+def _scalar_entries(model, grad, lmax, modulus, pressure, free) -> np.ndarray:
+    """(T, 4, 4) the tets' ``S_t[a, b]`` [N/m] of :func:`volume_scalar_matrix` (0 on fixed
+    vertices)."""
     g = np.where(free, grad, 0.0)
-    k = modulus / model.rest_volumes
-    tets = model.tets
-    rows, cols, vals = [], [], []
+    entries = (modulus / model.rest_volumes)[:, None, None] * g[:, :, None] * g[:, None, :]
     for a in range(4):
         for b in range(4):
-            value = k * g[:, a] * g[:, b]
             if a != b:
-                value = value + pressure / 6.0 * np.where(
+                entries[:, a, b] += pressure / 6.0 * np.where(
                     free[:, a] & free[:, b], lmax[:, OPPOSITE_EDGE[a, b]], 0.0)
-            rows.append(tets[:, a])
-            cols.append(tets[:, b])
-            vals.append(value)
+    return entries
+
+
+def _scalar_matrix(model, bounds) -> sp.csr_matrix:
+    entries = _scalar_entries(model, *bounds)
+    tets = model.tets
+    n_tets = len(tets)  # entry (t, a, b) -> (tets[t, a], tets[t, b]), listed by a, b, then t
+    rows = np.broadcast_to(tets.T[:, None, :], (4, 4, n_tets)).ravel()
+    cols = np.broadcast_to(tets.T[None, :, :], (4, 4, n_tets)).ravel()
+    vals = entries.transpose(1, 2, 0).ravel()
     index = np.full(model.n_particles, -1, dtype=np.int64)
     movable = ~model.fixed
     index[movable] = np.arange(int(movable.sum()))
-    rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
     keep = (index[rows] >= 0) & (index[cols] >= 0)
     scale = 1.0 / np.sqrt(model.masses)
     n = int(movable.sum())
     return sp.csr_matrix((vals[keep] * scale[rows[keep]] * scale[cols[keep]],
                           (index[rows[keep]], index[cols[keep]])), shape=(n, n))
+
+
+def volume_tet_energies(model, lo: np.ndarray, hi: np.ndarray, mode: np.ndarray) -> np.ndarray:
+    """(T,) each tet's part ``x_t^T S_t x_t`` [1/s^2] of the Rayleigh quotient of
+    :func:`volume_scalar_matrix` at ``mode`` (Nf,) (free particles, mass-scaled; ``x =
+    M^{-1/2} mode``, 0 on fixed particles): they sum to ``mode^T (M^{-1/2} S M^{-1/2})
+    mode``, so at its top eigenvector each tet's term over the sum is its share of the
+    bound."""
+    free = ~model.fixed
+    x = np.zeros(model.n_particles)
+    x[free] = np.asarray(mode, dtype=np.float64) / np.sqrt(model.masses[free])
+    xt = x[model.tets]
+    return np.einsum("ta,tab,tb->t", xt, _scalar_entries(model, *_tet_bounds(model, lo, hi)), xt)
 
 
 def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray
@@ -264,4 +282,4 @@ def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray
     once (the stable step takes all three)."""
     bounds = _tet_bounds(model, lo, hi)
     return (_frequency_bound(model, bounds), _edge_weights(model, *bounds[:4]),
-            _scalar_matrix(model, *bounds))
+            _scalar_matrix(model, bounds))

@@ -23,14 +23,20 @@ mesh's shortest edge),
 connector left its verified range).
 
 What sets the step: the stability limit is ``2/omega_max`` with ``omega_max^2`` bounded by the
-largest eigenvalue ``lambda`` of the mass-scaled graph Laplacian of the connectors' stiffness
-bounds (:func:`particle.stability.critical_time_step`). Its top eigenvector ``y`` gives
-``lambda = sum_e kappa_e (x_i - x_j)^2`` with ``x = M^{-1/2} y`` (a Rayleigh quotient), so each
-connector's term over ``lambda`` is its exact share of the fastest mode: the connectors with
-the largest shares are those whose stiffness and light end particles (short edges, small
-or flat tets) set the step. ``limiting_edges`` lists them (connector, particles, rest length,
-share), ``limiting_tets`` the tets whose six edges carry the largest shares (with the volume
-term, the edge weights of its bound are part of ``kappa``).
+bound the step is taken from (:func:`particle.stability.step_bound`, as
+:func:`~particle.stability.critical_time_step` and so every session and integrator take it):
+the largest eigenvalue ``lambda`` of the mass-scaled graph Laplacian of the connectors'
+stiffness bounds, with the volume term either its edge weights added to them or its own bound
+(the largest eigenvalue of its nonnegative scalar matrix ``S = sum_t S_t``, or a smaller
+per-particle/element bound) added to ``lambda``, whichever is smaller. The Laplacian's top
+eigenvector ``y`` gives ``lambda = sum_e kappa_e (x_i - x_j)^2`` with ``x = M^{-1/2} y`` (a
+Rayleigh quotient), so each connector's term over ``lambda`` is its exact share of that mode;
+likewise each tet's ``x^T S_t x`` at ``S``'s top eigenvector. A share is that part's fraction
+of the whole bound (the Laplacian's and the volume term's parts weighted by what each adds), so
+the connectors with the largest shares are those whose stiffness and light end particles
+(short edges, small or flat tets) set the step. ``limiting_edges`` lists them (connector,
+particles, rest length, share), ``limiting_tets`` the tets whose six edges carry the largest
+shares plus, when the volume term's own bound is added, the tet's share of it.
 """
 
 from __future__ import annotations
@@ -47,11 +53,11 @@ from forcecal.errors import ParameterError, StabilityError
 from forcecal.problem import Problem
 from forcecal.scene import Scene
 from particle.model import Model
-from particle.params import ConnectorParams
+from particle.params import ConnectorParams, connector_strain_bounds
 from particle.stability import (DEFAULT_STRAIN_RANGE, DENSE_EIGEN_LIMIT, SOFT_SPRING_CLEARANCE,
-                                connector_stiffness_bound, critical_time_step,
-                                mass_scaled_laplacian, positive_spring_range, resolve_time_step)
-from particle.volume_bounds import volume_step_bounds
+                                critical_time_step, positive_spring_range, resolve_time_step,
+                                step_bound)
+from particle.volume_bounds import volume_tet_energies
 
 log = logging.getLogger(__name__)
 
@@ -78,18 +84,15 @@ def step_limiters(model: Model, strain_range: tuple[np.ndarray, np.ndarray],
                   count: int = LIMITERS) -> dict[str, Any]:
     """The connectors and tets that set ``model``'s stable step on ``strain_range`` (module
     docstring): ``limiting_edges`` and ``limiting_tets``, each the ``count`` largest shares
-    of the fastest mode of the step's bound, and ``edge_min_m``."""
-    lo, hi = strain_range
-    kappa = connector_stiffness_bound(model.params, lo, hi)
-    if model.params.kv is not None:  # the volume term's edge weights, as the bound takes them
-        kappa = kappa + volume_step_bounds(model, lo, hi)[1]
+    of the fastest modes of the step's bound (:func:`particle.stability.step_bound`), and
+    ``edge_min_m``."""
+    bound = step_bound(model, strain_range)
     free = np.nonzero(~model.fixed)[0]
-    y = _top_eigenvector(mass_scaled_laplacian(model, kappa))
     x = np.zeros(model.n_particles)
-    x[free] = y / np.sqrt(model.masses[free])
+    x[free] = _top_eigenvector(bound.laplacian) / np.sqrt(model.masses[free])
     i, j = model.edges[:, 0], model.edges[:, 1]
-    energy = kappa * (x[i] - x[j]) ** 2
-    share = energy / energy.sum()
+    energy = bound.kappa * (x[i] - x[j]) ** 2
+    share = energy / energy.sum() * (bound.laplacian_part / bound.omega2)
     edges = np.argsort(-share)[:count]
     out = {"edge_min_m": float(model.rest_lengths.min()),
            "limiting_edges": [{"connector": int(e), "particles": model.edges[e].tolist(),
@@ -98,6 +101,11 @@ def step_limiters(model: Model, strain_range: tuple[np.ndarray, np.ndarray],
            "limiting_tets": []}
     if model.n_tets:
         tet_share = share[model.tet_connectors].sum(axis=1)
+        if bound.volume_matrix is not None:  # the volume term's own bound, added separately
+            lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
+            tet_energy = volume_tet_energies(model, lo, hi,
+                                             np.abs(_top_eigenvector(bound.volume_matrix)))
+            tet_share += tet_energy / tet_energy.sum() * (bound.volume_part / bound.omega2)
         out["limiting_tets"] = [{"tet": int(t), "particles": model.tets[t].tolist(),
                                  "volume_m3": float(model.rest_volumes[t]),
                                  "share": float(tet_share[t])}

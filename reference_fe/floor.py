@@ -40,12 +40,12 @@ import time
 
 import numpy as np
 
+from forcecal.cost import FLOOR_SOLVE_FRACTION, n_held_out
 from forcecal.errors import ConvergenceError, SceneError, StabilityError
 from forcecal.h5io import FLOOR_ELEMENTS, FloorResult, GravityResult, HeldOutCurves
 from forcecal.problem import Problem
 from forcecal.scene import FESection, GravitySection, Scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
-from reference_fe import experiments
 from reference_fe.model import FEModel
 
 log = logging.getLogger(__name__)
@@ -56,10 +56,9 @@ ELEMENTS = FLOOR_ELEMENTS
 QUADRATURE_DEGREE = 2
 #: a floor run fails with these and is recorded (anything else stops the reference)
 RUN_FAILURES = (ConvergenceError, StabilityError)
-#: a vertex-dof element's Newton step on the particle mesh, against one of the reference's
-#: (the work items' cost unit): measured on the default liver, ANP's gravity test took 8.1 s
-#: against P2's 78 s and its held-out curves 3.5 s against 29 s (0.10 and 0.12)
-SOLVE_FRACTION = 0.12
+#: a vertex-dof element's Newton step on the particle mesh, against one of the reference's (the
+#: work items' cost unit; measured: see there)
+SOLVE_FRACTION = FLOOR_SOLVE_FRACTION
 #: the held-out curves' experiments, in the order they run at each point
 CURVES = ("indentation", "relaxation")
 
@@ -79,23 +78,6 @@ def item_cost(scene: Scene, gravity_solves: float, point_solves: float) -> float
     tests = 2.0 if "second_support" in scene.experiments else 1.0
     return SOLVE_FRACTION * len(ELEMENTS) * (tests * gravity_solves
                                              + n_held_out(scene) * point_solves)
-
-
-def n_held_out(scene: Scene) -> int:
-    """How many held-out test points the scene has."""
-    tp = scene.test_points
-    return tp.n_held_out if isinstance(tp.held_out, str) else len(tp.held_out)
-
-
-def gravity_runs(model: FEModel, scene: Scene, problem: Problem) -> dict[str, np.ndarray]:
-    """The scene's gravity test on ``model`` (the particle mesh): ``static_displacement``
-    (N, 3) [m], ``time`` (S,) [s], ``displacement`` (S, N, 3) [m]."""
-    g = scene.gravity
-    static = experiments.gravity_static(model, problem.fixed, g.acceleration,
-                                        g.static_load_steps)
-    times, displacement = experiments.gravity_dynamic(model, problem.fixed, g.acceleration,
-                                                      g.duration, g.fe_dt, g.record_interval)
-    return {"static_displacement": static, "time": times, "displacement": displacement}
 
 
 def held_out_forces(model: FEModel, scene: Scene, problem: Problem) -> dict[str, np.ndarray]:
@@ -141,11 +123,11 @@ def held_out_forces(model: FEModel, scene: Scene, problem: Problem) -> dict[str,
 
 def element_arrays(scene: Scene, problem: Problem, fe: FESection) -> dict[str, np.ndarray]:
     """Every run of one element ``fe`` on the particle mesh (module docstring): the gravity
-    test's arrays (:func:`gravity_runs`) or ``failed`` (the reason), with the second support
+    test's arrays (:func:`reference_fe.run.gravity_test`) or ``failed`` (the reason), with the second support
     ``second_support_`` + the same (or ``second_support_failed``), ``held_out_`` + the
     arrays of :func:`held_out_forces`, and ``seconds`` (compute time, model build included)
     and ``part_seconds`` (JSON, :data:`~forcecal.h5io.FLOOR_PARTS`)."""
-    from reference_fe.run import second_support_runs
+    from reference_fe.run import gravity_test, second_support_runs
     from reference_fe.refine import FEProblem
 
     run_scene = dataclasses.replace(scene, fe=fe)
@@ -164,7 +146,8 @@ def element_arrays(scene: Scene, problem: Problem, fe: FESection) -> dict[str, n
             out[prefix + "failed"] = np.asarray(f"{type(exc).__name__}: {exc}")
         parts[name] = time.perf_counter() - t0
 
-    part("gravity", lambda: gravity_runs(model, scene, problem))
+    part("gravity", lambda: gravity_test(model, scene, problem.fixed,
+                                         np.arange(problem.mesh.n_vertices)))
     if "second_support" in scene.experiments:
         identity = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0)
         part("second_support", lambda: second_support_runs(model, run_scene, problem, identity),
@@ -198,7 +181,7 @@ def floor_arrays(scene: Scene, problem: Problem) -> dict[str, np.ndarray]:
 
 def runs_of(arrays: dict[str, np.ndarray], prefix: str, settings: GravitySection
             ) -> GravityResult:
-    """The :class:`~forcecal.h5io.GravityResult` of :func:`gravity_runs`' arrays (keys after
+    """The :class:`~forcecal.h5io.GravityResult` of :func:`reference_fe.run.gravity_test`'s arrays (keys after
     ``prefix``), ``settings`` the ``[gravity]`` with the run's tracked node."""
     return GravityResult(arrays[f"{prefix}static_displacement"], arrays[f"{prefix}time"],
                          arrays[f"{prefix}displacement"], settings)

@@ -270,32 +270,41 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
     return {"force": force}
 
 
-def second_support_runs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem) -> dict:
-    """The arrays of the ``second_support`` item: the gravity test's static sag and release
-    (:func:`~reference_fe.experiments.gravity_static`,
-    :func:`~reference_fe.experiments.gravity_dynamic`, the scene's ``[gravity]``) with the
-    second support's vertices clamped (:func:`forcecal.problem.second_support`; on a refined FE
-    mesh its P2 clamp, :func:`~reference_fe.refine.fe_clamp`), at the particle vertices.
+def gravity_test(model: FEModel, scene: Scene, fixed: np.ndarray, at_particles: np.ndarray,
+                 section: str = "fixed") -> dict:
+    """The scene's gravity test on ``model`` with the FE vertices ``fixed`` clamped by the rule
+    of scene section ``section`` (``fixed`` or ``second_support``): the static sag and the
+    release (:func:`~reference_fe.experiments.gravity_static`,
+    :func:`~reference_fe.experiments.gravity_dynamic`, the scene's ``[gravity]``) at the
+    particle vertices ``at_particles`` (N,): ``static_displacement`` (N, 3) [m], ``time`` (S,)
+    [s], ``displacement`` (S, N, 3) [m].
 
     A failure keeps its class (:data:`ITEM_FAILURES` are recorded) and says which part failed
-    in its ``experiment`` attribute (``second_support_static`` or ``second_support_dynamic``).
+    in its ``experiment`` attribute (``gravity_static`` / ``gravity_dynamic``, or
+    ``second_support_static`` / ``second_support_dynamic``).
     """
     g = scene.gravity
-    fixed = fe_clamp(problem, second_support(scene, problem).fixed, fe, scene.fe)
-    at_particles = fe.vertex_map
-    part = SECOND_SUPPORT_PARTS[0]
+    parts = SECOND_SUPPORT_PARTS if section == "second_support" else GRAVITY_EXPERIMENTS
+    part = parts[0]
     try:
         static = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps,
-                                            section="second_support")
-        part = SECOND_SUPPORT_PARTS[1]
+                                            section=section)
+        part = parts[1]
         times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration, g.duration,
-                                                  g.fe_dt, g.record_interval,
-                                                  section="second_support")
+                                                  g.fe_dt, g.record_interval, section=section)
     except ITEM_FAILURES as exc:
         exc.experiment = part
         raise
     return {"static_displacement": static[at_particles], "time": times,
             "displacement": disp[:, at_particles]}
+
+
+def second_support_runs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem) -> dict:
+    """The arrays of the ``second_support`` item: :func:`gravity_test` with the second support's
+    vertices clamped (:func:`forcecal.problem.second_support`; on a refined FE mesh its P2
+    clamp, :func:`~reference_fe.refine.fe_clamp`)."""
+    fixed = fe_clamp(problem, second_support(scene, problem).fixed, fe, scene.fe)
+    return gravity_test(model, scene, fixed, fe.vertex_map, "second_support")
 
 
 class _Parts:

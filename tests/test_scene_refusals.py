@@ -161,3 +161,39 @@ def test_more_folds_than_calibration_points_give_one_fold_per_point():
     from calibration.gradient_solver import folds_of
     assert len(folds_of(3, 5)) == 3 and len(folds_of(9, 5)) == 5
 
+
+
+def test_the_fe_estimate_prices_the_opt_in_experiments():
+    """``fe_work`` on the tiny scene (particle mesh 100 vertices, 500 edges, no refinement):
+    the second support adds one gravity test's steps to the gravity keys, the whole-body data
+    two static loads and two eigen-solves, and the floor, for each of its two elements on the
+    particle mesh, the gravity tests and the held-out points' curves at 0.12 of a reference
+    step; the core-seconds grow by the same factor (one rate)."""
+    from forcecal.cost import FLOOR_SOLVE_FRACTION, fe_core_seconds, fe_work
+    scene = load_scene(TINY)
+    base_experiments = list(scene.experiments)
+    g, r, n = scene.gravity, scene.relaxation, 100
+    dynamic, static = round(g.duration / g.fe_dt), g.static_load_steps  # 60 and 4 steps
+    curves = scene.indentation.steps + r.ramp_steps + r.hold_steps  # 22 steps per point
+    held = scene.test_points.n_held_out
+
+    def work(*added):
+        return fe_work(replace(scene, experiments=base_experiments + list(added)), n, 500)
+
+    base = work()
+    assert base == {"indentation.steps": 17 * 10 * n, "relaxation.hold_steps": 17 * 12 * n,
+                    "gravity.fe_dt": dynamic * n, "gravity.static_load_steps": static * n}
+    second = work("second_support")
+    assert second == {**base, "gravity.fe_dt": 2 * dynamic * n,
+                      "gravity.static_load_steps": 2 * static * n}
+    assert work("body") == {**base, "body.load_steps": (2 * scene.body.load_steps + 2) * n}
+    floor = work("floor")
+    assert floor == {**base, "experiments": pytest.approx(
+        2 * FLOOR_SOLVE_FRACTION * (dynamic + static + held * curves) * n, rel=1e-12)}
+    both = work("second_support", "floor")
+    assert both["experiments"] == pytest.approx(
+        2 * FLOOR_SOLVE_FRACTION * (2 * (dynamic + static) + held * curves) * n, rel=1e-12)
+    total = sum(floor.values())
+    assert fe_core_seconds(scene, total, n, 500) == pytest.approx(
+        fe_core_seconds(scene, sum(base.values()), n, 500) * total / sum(base.values()),
+        rel=1e-12)
