@@ -56,9 +56,6 @@ ELEMENTS = FLOOR_ELEMENTS
 QUADRATURE_DEGREE = 2
 #: a floor run fails with these and is recorded (anything else stops the reference)
 RUN_FAILURES = (ConvergenceError, StabilityError)
-#: a vertex-dof element's Newton step on the particle mesh, against one of the reference's (the
-#: work items' cost unit; measured: see there)
-SOLVE_FRACTION = FLOOR_SOLVE_FRACTION
 #: the held-out curves' experiments, in the order they run at each point
 CURVES = ("indentation", "relaxation")
 
@@ -72,11 +69,11 @@ def floor_fe(scene: Scene, element: str) -> FESection:
 
 def item_cost(scene: Scene, gravity_solves: float, point_solves: float) -> float:
     """Estimated Newton solves of the ``floor`` work item, in the reference's units (those of a
-    reference solve: :data:`SOLVE_FRACTION`), for every element: the gravity test
+    reference solve: :data:`forcecal.cost.FLOOR_SOLVE_FRACTION`), for every element: the gravity test
     (``gravity_solves``), the second support's (as many, when asked for) and the held-out
     points' curves (``point_solves`` each)."""
     tests = 2.0 if "second_support" in scene.experiments else 1.0
-    return SOLVE_FRACTION * len(ELEMENTS) * (tests * gravity_solves
+    return FLOOR_SOLVE_FRACTION * len(ELEMENTS) * (tests * gravity_solves
                                              + n_held_out(scene) * point_solves)
 
 
