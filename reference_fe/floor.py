@@ -69,7 +69,7 @@ def floor_fe(scene: Scene, element: str) -> FESection:
 
 def item_cost(scene: Scene, gravity_solves: float, point_solves: float) -> float:
     """Estimated Newton solves of the ``floor`` work item, in the reference's units (those of a
-    reference solve: :data:`forcecal.cost.FLOOR_SOLVE_FRACTION`), for every element: the gravity test
+    reference solve: ``FLOOR_SOLVE_FRACTION``), for every element: the gravity test
     (``gravity_solves``), the second support's (as many, when asked for) and the held-out
     points' curves (``point_solves`` each)."""
     tests = 2.0 if "second_support" in scene.experiments else 1.0
