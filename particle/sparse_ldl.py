@@ -417,6 +417,25 @@ def _solve_one(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, b, out):
         out[perm[k]] = w[k]
 
 
+@njit(**JIT)
+def _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, dofs, values, out):
+    """``out`` (k,) = ``(A^{-1} b)[dofs]`` for ``b`` (n,) zero but at ``dofs`` (k,), where it
+    is ``values`` (k,): :func:`_solve_one` with the scatter and the gather in the same call.
+    Returns False (``out`` untouched) if a dof is outside ``0..n-1``."""
+    n = len(d)
+    for t in range(len(dofs)):
+        if not 0 <= dofs[t] < n:
+            return False
+    b = np.zeros(n)
+    for t in range(len(dofs)):
+        b[dofs[t]] = values[t]
+    full = np.empty(len(d))
+    _solve_one(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, b, full)
+    for t in range(len(dofs)):
+        out[t] = full[dofs[t]]
+    return True
+
+
 @njit(fastmath={"reassoc", "contract"}, **JIT)
 def _below_update(x, xs, nr, nc, own, below):
     """``below = sum_c L[nc:, c] own[c]`` over the ``nc`` columns of the supernode block at
@@ -540,6 +559,10 @@ class Factor:
 
     def __init__(self, symbolic: Symbolic, x: np.ndarray, d: np.ndarray) -> None:
         self.symbolic, self.x, self.d = symbolic, x, d
+        # the solve kernels' leading arguments, gathered once: a Newton iteration solves
+        # with one factor many times, each solve a few microseconds of compiled work
+        self._arrays = (symbolic.sup_ptr, symbolic.row_ptr, symbolic.rows, symbolic.x_ptr,
+                        x, d, symbolic.perm)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -552,13 +575,13 @@ class Factor:
         2-D (a column per right-hand side), so that ``solve(b.T).T`` of a C-ordered
         ``b`` (r, n) is C-ordered again without a copy.
         """
-        s = self.symbolic
+        n = len(self.d)
         b = np.asarray(rhs, dtype=np.float64)
-        if b.ndim not in (1, 2) or b.shape[0] != s.n:
-            raise ValueError(f"right-hand side of shape {b.shape} for a {s.n} x {s.n} matrix")
-        args = (s.sup_ptr, s.row_ptr, s.rows, s.x_ptr, self.x, self.d, s.perm)
+        if b.ndim not in (1, 2) or b.shape[0] != n:
+            raise ValueError(f"right-hand side of shape {b.shape} for a {n} x {n} matrix")
+        args = self._arrays
         if b.ndim == 1:
-            out = np.empty(s.n)
+            out = np.empty(n)
             _solve_one(*args, b, out)
         elif b.shape[1] == 1:
             # one column, (n, 1): both C- and F-contiguous, which numba types as C, the
@@ -568,6 +591,20 @@ class Factor:
         else:
             out = np.empty(b.shape, order="F")
             _solve_many(*args, b, out, -(-b.shape[1] // 16) * 16)
+        return out
+
+    def solve_restricted(self, dofs: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(k,) ``(A^{-1} b)[dofs]`` for the right-hand side ``b`` (n,) that is ``values``
+        (k,) float64 at the distinct ``dofs`` (k,) int64 and zero elsewhere: :meth:`solve`
+        on a problem whose other unknowns are decoupled (a Newton step on the free dofs of
+        a tangent with identity rows at the constraints), in one compiled call."""
+        if not (dofs.dtype == np.int64 and values.dtype == np.float64
+                and dofs.shape == values.shape == (len(dofs),)):
+            raise ValueError(f"dofs {dofs.dtype} {dofs.shape} and values {values.dtype} "
+                             f"{values.shape}: int64 and float64 of one length")
+        out = np.empty(len(dofs))
+        if not _solve_restricted(*self._arrays, dofs, values, out):
+            raise ValueError(f"dofs outside 0..{len(self.d) - 1}")
         return out
 
 

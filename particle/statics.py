@@ -280,9 +280,7 @@ class EquilibriumSolver:
         self.factorizations += 1
 
     def _newton_step(self, res: np.ndarray) -> np.ndarray:
-        rhs = np.zeros(self.pattern.n_dofs)
-        rhs[self._mat] = res
-        return self._lu.solve(rhs)[self._mat]
+        return self._lu.solve_restricted(self._mat, res)
 
     def _moved(self, it: _Iterate, step: np.ndarray, *args) -> _Iterate:
         x = it.x.copy()
@@ -381,9 +379,7 @@ class EquilibriumSolver:
                     downhill = False
                 self.factorizations += 1
                 if downhill:
-                    rhs = np.zeros(self.pattern.n_dofs)
-                    rhs[self._mat] = cur.res
-                    step = lu.solve(rhs)[self._mat]
+                    step = lu.solve_restricted(self._mat, cur.res)
                     moves = np.sqrt(np.sum(step.reshape(-1, 3) ** 2, axis=1))
                     if moves.max() <= step_cap:
                         trial = self._moved(cur, step, *args)
@@ -553,7 +549,7 @@ class _Iterate:
         self.x, self.forces, self.tension = x, forces, tension
         self.arm_force, self.dx, self.res = arm_force, dx, res
         self.volume_arm, self.volume_strain = (None, None) if volume is None else volume
-        self.norm = float(np.sqrt(res @ res))
+        self.norm = math.sqrt(res @ res)
 
     def volume_state(self, model: Model) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(volume arm pressures (T, 2), volume strains (T,)) of an :class:`Equilibrium`: the

@@ -70,6 +70,24 @@ def test_solves_equal_superlu_on_real_tangents(kv):
     np.testing.assert_allclose(dense(pat, data) @ lu.solve(b), b, rtol=0, atol=1e-10)
 
 
+def test_restricted_solve_is_the_full_solve_scattered_and_gathered():
+    """``solve_restricted`` (the Newton step's solve) equals ``solve`` of the right-hand side
+    scattered on the dofs and gathered back, to the last bit (the same sweeps); bad dofs are
+    refused with a clear error, not read out of bounds."""
+    pat, data = real_tangent(3000.0)
+    lu = ldl_factor(pat, data)
+    rng = np.random.default_rng(3)
+    dofs = rng.permutation(pat.n_dofs)[:pat.n_dofs - 7].astype(np.int64)
+    values = rng.standard_normal(len(dofs))
+    full = np.zeros(pat.n_dofs)
+    full[dofs] = values
+    np.testing.assert_array_equal(lu.solve_restricted(dofs, values), lu.solve(full)[dofs])
+    with pytest.raises(ValueError, match="outside"):
+        lu.solve_restricted(np.array([0, pat.n_dofs], dtype=np.int64), np.ones(2))
+    with pytest.raises(ValueError, match="one length"):
+        lu.solve_restricted(dofs, values[:-1])
+
+
 def factor_dense(lu: sparse_ldl.Factor) -> tuple[np.ndarray, np.ndarray]:
     """(L (n, n) unit lower triangular, D (n,)) in the permuted order, from the supernodes."""
     s = lu.symbolic
