@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import operator
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -246,9 +247,10 @@ class ConnectorParams:
         """(E, 2) float64, arm relaxation times (tau1, tau2) [s]."""
         return np.column_stack([self.tau1, self.tau2])
 
-    @property
+    @cached_property
     def is_linear(self) -> bool:
-        """True when a = b = 0 everywhere: K(eps) = K0 and the linear kernels apply."""
+        """True when a = b = 0 everywhere: K(eps) = K0 and the linear kernels apply (kept:
+        the arrays are read-only copies, and every static solve asks)."""
         return not (np.any(self.a) or np.any(self.b))
 
     def stiffness(self, strain: np.ndarray) -> np.ndarray:

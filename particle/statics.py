@@ -44,9 +44,11 @@ from functools import cached_property
 from typing import Callable, Iterator, TypeVar
 
 import numpy as np
+from numba import njit
 
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle import kernels, sparse_ldl
+from particle.kernels import JIT
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
 from particle.volume import (add_volume_forces, add_volume_tangent, signed_volumes, tet_name,
@@ -233,7 +235,8 @@ class EquilibriumSolver:
         self.pattern = pattern
         self.rtol, self.max_iter, self.refactor_ratio = rtol, max_iter, refactor_ratio
         active = np.setdiff1d(model.free_nodes, self.prescribed)
-        self._flat = (3 * active[:, None] + np.arange(3)).ravel()
+        self._flat = flat_dofs(active)
+        self._held_flat = flat_dofs(self.prescribed)
         self._mat = pattern.dofs(active)
         self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
         self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
@@ -283,9 +286,7 @@ class EquilibriumSolver:
         return self._lu.solve_restricted(self._mat, res)
 
     def _moved(self, it: _Iterate, step: np.ndarray, *args) -> _Iterate:
-        x = it.x.copy()
-        x.ravel()[self._flat] += step
-        return self._evaluate(x, *args)
+        return self._evaluate(displaced(it.x, self._flat, step), *args)
 
     def solve(self, x: np.ndarray, params: ConnectorParams, *, arms: ArmStep | None = None,
               gravity: np.ndarray | None = None) -> Equilibrium:
@@ -299,7 +300,7 @@ class EquilibriumSolver:
         """
         args = (params, not params.is_linear, arms, gravity)
         floor = self._force_floor(params, gravity)
-        cur = self._evaluate(np.array(x, dtype=np.float64), *args)
+        cur = self._evaluate(np.array(x, dtype=np.float64, order="C"), *args)
         fresh = False
         for it in range(self.max_iter + 1):
             if self._converged(cur, floor):
@@ -350,7 +351,7 @@ class EquilibriumSolver:
         """
         args = (params, not params.is_linear, arms, gravity)
         floor = self._force_floor(params, gravity)
-        cur = self._evaluate(np.array(x, dtype=np.float64), *args)
+        cur = self._evaluate(np.array(x, dtype=np.float64, order="C"), *args)
         step_cap = 0.25 * self._mean_length
         mu = None
         for it in range(SETTLE_ITERATIONS + 1):
@@ -406,7 +407,7 @@ class EquilibriumSolver:
     def _converged(self, cur: "_Iterate", floor: float) -> bool:
         """The residual within ``rtol`` x the force scale (the constraint reaction, at least
         ``floor``)."""
-        held = cur.forces[self.prescribed].ravel()
+        held = cur.forces.ravel()[self._held_flat]
         scale = max(floor, math.sqrt(held @ held))  # np.linalg.norm's sum, without its overhead
         # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
         # and inf <= rtol x inf must not pass for convergence
@@ -415,6 +416,22 @@ class EquilibriumSolver:
     def _equilibrium(self, cur: "_Iterate", iterations: int) -> Equilibrium:
         return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, iterations,
                            *cur.volume_state(self.model))
+
+
+def flat_dofs(nodes: np.ndarray) -> np.ndarray:
+    """(3k,) int64 indices of particles ``nodes``' (k,) components in a raveled (N, 3) array."""
+    return (3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+
+
+@njit(**JIT)
+def displaced(x, flat, step):
+    """A copy of positions ``x`` (N, 3) [m] with ``step`` (k,) [m] added to its raveled
+    components ``flat`` (k,) (distinct): a Newton trial point in one compiled call."""
+    out = x.copy()
+    moved = out.reshape(-1)
+    for t in range(len(flat)):
+        moved[flat[t]] += step[t]
+    return out
 
 
 def kernel_terms(p: ConnectorParams, nonlinear: bool, arms: ArmStep | None

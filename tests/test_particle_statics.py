@@ -435,3 +435,19 @@ def test_warm_starts_never_cross_a_fold_the_cold_path_does_not():
         for name in order + order:
             p = params if name == "params" else later
             np.testing.assert_allclose(ev(p)[0], fresh[name], rtol=1e-7)
+
+
+def test_displaced_adds_the_step_to_the_raveled_components_of_a_copy():
+    """The Newton trial point (statics.displaced): numpy's ``x.ravel()[flat] += step`` on a
+    copy, to the last bit, the original untouched; flat_dofs are a particle's 3 components."""
+    from particle.statics import displaced, flat_dofs
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((9, 3))
+    flat = flat_dofs(np.array([7, 2, 4]))
+    np.testing.assert_array_equal(flat, [21, 22, 23, 6, 7, 8, 12, 13, 14])
+    step = rng.standard_normal(len(flat)) * 1e-3
+    expected = x.copy()
+    expected.ravel()[flat] += step
+    kept = x.copy()
+    np.testing.assert_array_equal(displaced(x, flat, step), expected)
+    np.testing.assert_array_equal(x, kept)
