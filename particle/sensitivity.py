@@ -350,7 +350,9 @@ class _Adjoint(_Recorded):
             cols = np.flatnonzero(live)
             if not len(cols):
                 continue
-            w = np.isin(cols, ending).astype(np.float64)  # (S',) output weights
+            w = np.zeros(n_out)
+            w[ending] = 1.0
+            w = w[cols]  # (S',) output weights: 1 for the outputs ending here
             data = self._tangent(solver, model, pat, eq, arms)
             for d in range(n_dirs):
                 kern.csc_columns_product(pat.indptr, pat.indices, data, push_cols,
