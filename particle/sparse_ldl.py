@@ -429,7 +429,7 @@ def _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, dofs, values, o
     b = np.zeros(n)
     for t in range(len(dofs)):
         b[dofs[t]] = values[t]
-    full = np.empty(len(d))
+    full = np.empty(n)
     _solve_one(sup_ptr, row_ptr, rows, x_ptr, x, d, perm, b, full)
     for t in range(len(dofs)):
         out[t] = full[dofs[t]]
