@@ -56,7 +56,8 @@ import numpy as np
 
 from forcecal.errors import DataFileError
 from forcecal.h5io import read_reference, write_reference
-from forcecal.scene import BODY_DATA_CHOICES, Scene, load_scene, replace
+from forcecal.scene import (BODY_DATA_CHOICES, HELD_OUT_EXPERIMENTS, Scene, load_scene,
+                            replace)
 from studies.viscoelastic_volume import report_numbers, write_json
 
 log = logging.getLogger(__name__)
@@ -148,7 +149,8 @@ def run_variant(scene: Scene, body_data: str, folder: Path, reference: Path,
         t = time.perf_counter()
         context = Context(variant, folder, progress=False, ranks=1)
         run_calibrate(context)
-        gravity = tuple(e for e in variant.experiments if e.startswith("gravity"))
+        # the gravity stage's experiments (the second support's too): its file's key
+        gravity = tuple(e for e in variant.experiments if e in HELD_OUT_EXPERIMENTS)
         run_gravity_stage(dataclasses.replace(context, experiments=gravity))
         run_report(dataclasses.replace(context, experiments=variant.experiments,
                                        upstream=(REFERENCE, PARAMS, GRAVITY)))
