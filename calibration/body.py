@@ -58,12 +58,14 @@ class BodyRows:
         item: (R,) the data item of each row (index into :attr:`BodyData.items`).
         left_out: squared residual the compression left out of the fitted items' rows [1].
         fitted: (R,) whether each row's item is of a kind the fit uses.
+        left_out_every: the same of every item's rows, fitted or only predicted [1].
     """
     residual: np.ndarray
     jacobian: np.ndarray
     item: np.ndarray
     left_out: float
     fitted: np.ndarray
+    left_out_every: float
 
 
 class BodyData:
@@ -168,7 +170,7 @@ class BodyData:
             if kind in failures:
                 raise ConvergenceError(f"whole-body data {kind}: {failures[kind]}")
         kinds = self.item_kinds
-        residual, jacobian, item, left = [], [], [], 0.0
+        residual, jacobian, item, left, left_every = [], [], [], 0.0, 0.0
         for kind, response in responses.items():
             first = kinds.index(kind)
             for k, part in enumerate(response.parts):
@@ -177,9 +179,10 @@ class BodyData:
                 jacobian.append(J)
                 item.append(np.full(len(r), first + k))
                 left += out if kind in self.kinds else 0.0
+                left_every += out
         item = np.concatenate(item)
         return BodyRows(np.concatenate(residual), np.vstack(jacobian), item, left,
-                        np.isin(np.array(kinds)[item], self.kinds))
+                        np.isin(np.array(kinds)[item], self.kinds), left_every)
 
 
 def compress_rows(part: Rows, chain: sp.csr_matrix, keep: int

@@ -473,7 +473,8 @@ class Evaluator:
         b = body[0]
         return GroupedRows(np.concatenate([rows, b.residual]), np.vstack([jac, b.jacobian]),
                            left, b.left_out, np.concatenate([groups, -1 - b.item]),
-                           np.concatenate([np.ones(len(rows), bool), b.fitted]))
+                           np.concatenate([np.ones(len(rows), bool), b.fitted]),
+                           b.left_out_every)
 
 
 @dataclass(frozen=True, eq=False)
@@ -488,6 +489,7 @@ class GroupedRows:
             whole-body item's (:func:`calibration.gradient_solver.cross_validate`).
         fitted: (rows,) False for the rows of whole-body items of kinds the fit does not use
             (computed for the cross-validation's report only).
+        body_left_every: :attr:`body_left` of every item's rows, fitted or not [1].
     """
     r: np.ndarray
     J: np.ndarray
@@ -495,6 +497,21 @@ class GroupedRows:
     body_left: float
     groups: np.ndarray
     fitted: np.ndarray
+    body_left_every: float = 0.0
+
+    @property
+    def scored_left_out(self) -> float:
+        """The squared residual the rows' compression leaves out of what the
+        cross-validation scores (:func:`calibration.gradient_solver.cross_validate`): every
+        point's once, each whole-body item's times points / items [1]. A step moves none of
+        it (a point's or an item's rows are projected on its Jacobian's leading singular
+        directions), so it is the same for every weight and every set of kinds, and adding
+        it to a score gives the uncompressed rows' score: what compares two models, whose
+        compressions leave out different residuals."""
+        body = self.groups < 0
+        items = len(np.unique(self.groups[body]))
+        points = len(np.unique(self.groups[~body]))
+        return self.left + (points / items * self.body_left_every if items else 0.0)
 
     def weighted(self, weight: float) -> tuple[np.ndarray, np.ndarray, float]:
         """(r, J, left) as the objective weighs them: the fitted whole-body rows times
@@ -581,7 +598,8 @@ def body_candidates(lin: Linearisation, grouped: GroupedRows, reg: Regulariser,
     (:func:`calibration.gradient_solver.cross_validate` with ``trained``), so an unused kind
     is predicted by fits that never saw it. The same groups for every set: the scores
     compare which data predict the calibration data best. ``{set: {"score", "weight",
-    "body_weight"}}``."""
+    "body_weight", "left_out"}}``: ``left_out`` (:attr:`GroupedRows.scored_left_out`, the
+    same for every set) added to a score compares it with another model's."""
     body = grouped.groups < 0
     kind_of_row = np.full(len(body), "", dtype=object)
     kind_of_row[body] = np.array(item_kinds, dtype=object)[-1 - grouped.groups[body]]
@@ -590,7 +608,8 @@ def body_candidates(lin: Linearisation, grouped: GroupedRows, reg: Regulariser,
         trained = ~body | np.isin(kind_of_row, kinds)
         weight, bw, table = cross_validate(lin, grouped.groups, reg, folds, grid,
                                            body_grid if kinds else (0.0,), trained)
-        out[name] = {"score": float(table.min()), "weight": weight, "body_weight": bw}
+        out[name] = {"score": float(table.min()), "weight": weight, "body_weight": bw,
+                     "left_out": grouped.scored_left_out}
     log.info("whole-body data, cross-validation scores: %s", ", ".join(
         f"{k} {v['score']:.4g}" for k, v in out.items()))
     return out

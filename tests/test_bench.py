@@ -6,7 +6,7 @@ import shutil
 import numpy as np
 import pytest
 
-from forcecal.scene import load_scene
+from forcecal.scene import load_scene, replace
 from pipelines.bench.items import _complete_run_seconds
 from pipelines.bench.configs import (Config, derived_scene, pareto_front, scene_toml,
                                      sliced_reference)
@@ -277,9 +277,10 @@ def test_calibration_methods_front_is_per_scene_and_skips_failed_rows():
 
 
 def test_calibration_methods_has_the_punch_and_whole_body_row(tmp_path, monkeypatch):
-    """The punch scene gets the punch + whole-body method's row (springs + volume, the
-    gradient fit with the body experiment added and body_data loads+modes) after its four,
-    on the reference of the rows before it; the bench scene keeps its four rows."""
+    """The punch scene gets the punch + whole-body method's row as it ships it (its volume
+    term, the gradient fit with its body_data and the experiment body) after its four, which
+    fit the surface curves only (body left out), on the reference of the rows before it; the
+    bench scene keeps its four rows."""
     from pipelines.bench import calibration_methods as cm
     from pipelines.bench import items
     from pipelines.bench.configs import derived_scene
@@ -287,7 +288,7 @@ def test_calibration_methods_has_the_punch_and_whole_body_row(tmp_path, monkeypa
     calls = []
 
     def fake_row(scene, model, volume, method, folder, reference_from, current):
-        calls.append((scene.name, model, method, folder.name, reference_from))
+        calls.append((scene.name, model, volume, method, folder.name, reference_from))
         return {"scene": scene.name, "model": model, "method": method, "failed": "not run"}
 
     monkeypatch.setattr(cm, "run_row", fake_row)
@@ -297,14 +298,22 @@ def test_calibration_methods_has_the_punch_and_whole_body_row(tmp_path, monkeypa
     rows = cm.study(load_scene(SCENES / "tiny.toml"), tmp_path, quick=False)
     punch = [c for c in calls if c[0] == "liver_punch"]
     assert len(calls) == 9 and len(punch) == 5 and len(rows["calibration_methods"]) == 9
-    assert punch[-1][1:4] == ("springs + volume", cm.BODY_METHOD, "volume-gradient-body")
-    calibration, added = cm.BODY_CHANGES  # the row's scene, as run_row builds it
     punch_scene = load_scene(cm.PUNCH_SCENE)
-    body = derived_scene(punch_scene, "x", {"particle": {"volume": True},
+    model, volume, calibration, experiments = cm.body_row(punch_scene)
+    assert punch[-1][1:5] == (model, volume, cm.BODY_METHOD, "volume-gradient-body")
+    assert (model, volume) == ("springs + relaxing volume", "viscoelastic")
+    body = derived_scene(punch_scene, "x", {"particle": {"volume": volume},
                                             "calibration": calibration},
-                         tmp_path / "x", experiments=punch_scene.experiments + (added,))
-    assert body.runs("body") and body.calibration.body_data == "loads+modes"
-    assert body.calibration.method == "gradient" and body.particle.volume
+                         tmp_path / "x", experiments=experiments)
+    assert body.runs("body") and body.calibration.body_data == punch_scene.calibration.body_data
+    assert body.calibration.method == "gradient" and body.particle.volume == "viscoelastic"
+    surface = derived_scene(punch_scene, "y", {}, tmp_path / "y",
+                            experiments=cm.surface_only(punch_scene))
+    assert not surface.runs("body") and surface.runs("second_support")
+    assert cm.surface_only(load_scene(SCENES / "tiny.toml")) is None
+    tiny = replace(load_scene(SCENES / "tiny.toml"), calibration={"method": "gradient"})
+    assert cm.body_row(tiny)[1:] == (True, {"method": "gradient", "body_data": "loads+modes"},
+                                     (*tiny.experiments, "body"))
 
 
 def test_a_partial_run_is_refused_before_it_runs_without_a_whole_run_of_its_kind(tmp_path):

@@ -8,10 +8,11 @@ import pytest
 import scipy.sparse as sp
 
 from calibration.core import calibrate
-from calibration.gradient import (Coordinates, GradientResult, Validity, neighbour_laplacian,
+from calibration.gradient import (Coordinates, GradientResult, GroupedRows, Validity,
+                                  body_candidates, neighbour_laplacian,
                                   shape_smoothness_factors, shared_laplacian)
 from calibration.gradient_solver import (BODY_WEIGHT_GRID, WEIGHT_GRID, Linearisation,
-                                         Regulariser, cross_validate, folds_of)
+                                         Regulariser, compress, cross_validate, folds_of)
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
 from calibration.synthetic import box_scene, noisy_params, synthetic_reference
@@ -679,6 +680,44 @@ def test_cross_validation_scores_are_refits_without_each_group(box):
                 predicted = lin.r[test] + lin.J[test] @ d
                 total += share * float(predicted @ predicted)
             assert costs[b, g] == pytest.approx(total, rel=1e-8)
+
+
+def test_left_out_residual_makes_compressed_scores_those_of_the_whole_rows(box):
+    """The candidates' scores on compressed rows plus their ``left_out``
+    (:attr:`GroupedRows.scored_left_out`) equal the scores of the uncompressed rows (to
+    1e-9): each point's and item's Jacobian has rank <= the rows kept, so the compression
+    moves no prediction and leaves out a residual no step changes. Without the constant the
+    two differ (by ~0.4 of the score here): what two models' scores would carry."""
+    _, J, r, rows, reg = _linear_case(build_problem(box))
+    rng = np.random.default_rng(5)
+    n_points, keep, items, per_item = 4, 6, 3, 8
+    low_rank = [rng.standard_normal((rows, 3)) @ J[p * rows:p * rows + 3]
+                for p in range(n_points)]  # rank 3 per point
+    J_points, r_points = np.vstack(low_rank), r[:n_points * rows]
+    J_body = np.vstack([rng.standard_normal((per_item, 2)) @ (0.03 * rng.standard_normal(
+        (2, J.shape[1]))) for _ in range(items)])  # rank 2 per item
+    r_body = 0.05 * rng.standard_normal(items * per_item)
+    groups = np.r_[np.repeat(np.arange(n_points), rows), -1 - np.repeat(np.arange(items),
+                                                                          per_item)]
+    whole = GroupedRows(np.r_[r_points, r_body], np.vstack([J_points, J_body]), 0.0, 0.0,
+                        groups, np.ones(len(groups), bool))
+    r_c, J_c, left = compress(r_points, J_points, rows, keep)
+    rb_c, Jb_c, body_left = compress(r_body, J_body, per_item, keep // 2)
+    compressed = GroupedRows(np.r_[r_c, rb_c], np.vstack([J_c, Jb_c]), left, body_left,
+                             np.r_[np.repeat(np.arange(n_points), keep),
+                                   -1 - np.repeat(np.arange(items), keep // 2)],
+                             np.ones(n_points * keep + items * (keep // 2), bool), body_left)
+    theta = reg.theta0 + 0.01 * rng.standard_normal(len(reg.theta0))
+    kinds = ["loads", "modes", "loaded_modes"]
+    folds, grid, body_grid = folds_of(n_points, 2), (0.1, 3.0), (0.0, 2.0)
+    scores = [body_candidates(Linearisation.of(theta, g.r, g.J, reg, g.left), g, reg, folds,
+                              grid, body_grid, kinds) for g in (whole, compressed)]
+    assert compressed.scored_left_out == pytest.approx(left + n_points / items * body_left)
+    for name, exact in scores[0].items():
+        assert exact["left_out"] == 0.0
+        approx = scores[1][name]
+        assert approx["score"] + approx["left_out"] == pytest.approx(exact["score"], rel=1e-9)
+        assert approx["score"] < 0.9 * exact["score"]
 
 
 @pytest.mark.parametrize("consistent", [True, False], ids=["same truth", "noise"])

@@ -68,3 +68,20 @@ def test_particle_model_example_runs(monkeypatch):
     assert namespace["stiffer"].shape == (2, len(problem.test_points), 10)
     assert (namespace["stiffer"][1] > namespace["stiffer"][0]).all()  # stiffer springs push harder
     assert namespace["force"].shape == (3,)
+
+
+def test_the_own_mesh_recipe_is_a_valid_scene_with_the_whole_body_method(tmp_path):
+    """The README's scene for a user's own mesh loads (on the user organ's mesh) and asks for
+    the whole-body method: the FE's whole-body data fitted by the gradient method, the
+    second held-out body test, the discretisation floor, the relaxing volume term."""
+    from forcecal.scene import load_scene
+
+    section = README.split("## Running your own mesh", 1)[1]
+    recipe = section.split("```toml\n", 1)[1].split("```")[0]
+    mesh = (ROOT / "scenes" / "meshes" / "user_organ.vtu").as_posix()
+    (tmp_path / "my_organ.toml").write_text(recipe.replace('"meshes/my_organ.vtu"',
+                                                           f'"{mesh}"'))
+    scene = load_scene(tmp_path / "my_organ.toml")
+    assert {"body", "second_support", "floor"} <= set(scene.experiments)
+    assert scene.calibration.method == "gradient" and scene.calibration.body_data != "none"
+    assert scene.particle.volume == "viscoelastic"

@@ -16,10 +16,11 @@ first row (:func:`pipelines.bench.items.runs_source`: never in a ``--cold`` benc
 bench scene's row with its own model and method is the default pipeline run itself: its
 folder is seeded from that run (:func:`pipelines.bench.items.seed_folder`), so only the
 report (another scene name) is redone, and the row reports that run's calibration. The punch
-scene has one more row, the punch + whole-body method (:data:`BODY_METHOD`: ``springs +
-volume``, the gradient fit with the FE's whole-body data, experiment ``body`` added to the
-scene's and ``calibration.body_data = "loads+modes"``; its reference is the punch rows' with
-the body experiment computed on top).
+scene's four rows fit its surface curves only (its experiment ``body``, if it has one, left
+out), and it has one more row, the punch + whole-body method as the scene ships it
+(:data:`BODY_METHOD`, :func:`body_row`: its volume term, the gradient fit with its
+``calibration.body_data``, the experiment ``body``, added when the scene has none; its
+reference is the punch rows', with the body experiment computed on top if missing).
 
 Each row: ``scene``, ``model``, ``method``, ``calibration_s`` (``timings_s.calibration``
 of the run's ``report.json``), ``errors`` (the report's calibration and held-out
@@ -57,9 +58,26 @@ MODELS = (("springs", False), ("springs + volume", True))
 METHODS = ("paper", "gradient")
 #: the punch scene's extra row: the gradient method fitting the whole-body data too
 BODY_METHOD = "gradient + body"
-#: what the whole-body row changes in the scene: (its calibration section's changes, the
-#: experiment it adds)
-BODY_CHANGES = ({"method": "gradient", "body_data": "loads+modes"}, "body")
+
+
+def body_row(scene: Scene) -> tuple[str, bool | str, dict[str, Any], tuple[str, ...]]:
+    """The punch + whole-body method's row as ``scene`` ships it: (model label, its
+    ``particle.volume`` (the elastic term if it has none), the calibration section's changes
+    (the gradient fit with the scene's ``body_data``), the experiments (the scene's, with
+    ``body``))."""
+    volume = scene.particle.volume or True
+    model = "springs + relaxing volume" if volume == "viscoelastic" else MODELS[1][0]
+    experiments = tuple(scene.experiments) + (() if scene.runs("body") else ("body",))
+    return (model, volume, {"method": "gradient", "body_data": scene.calibration.body_data},
+            experiments)
+
+
+def surface_only(scene: Scene) -> tuple[str, ...] | None:
+    """The experiments of a row that fits the surface curves only: the scene's without
+    ``body`` (None: the scene's own, it has no ``body``)."""
+    if not scene.runs("body"):
+        return None
+    return tuple(e for e in scene.experiments if e != "body")
 ERROR_KEYS = ("indentation_calibrated", "relaxation_calibrated", "indentation_held_out",
               "relaxation_held_out", "gravity_static", "gravity_dynamic")
 HAPTIC_CALLS = 2000
@@ -123,10 +141,9 @@ def run_row(scene: Scene, model: str, volume: bool, method: str, folder: Path,
     from pipelines.stages import run_pipeline
 
     row: dict[str, Any] = {"scene": scene.name, "model": model, "method": method}
-    calibration, experiments = {"method": method}, None
+    calibration, experiments = {"method": method}, surface_only(scene)
     if method == BODY_METHOD:
-        calibration, added = BODY_CHANGES
-        experiments = tuple(scene.experiments) + (added,)
+        _, _, calibration, experiments = body_row(scene)
     variant = derived_scene(scene, f"{scene.name}-{method.replace(' + ', '-')}-"
                             f"{'volume' if volume else 'springs'}",
                             {"particle": {"volume": volume}, "calibration": calibration},
@@ -170,7 +187,7 @@ def study(scene: Scene, cache_folder: str | Path, quick: bool) -> dict[str, Any]
             reference_from, reference_is_current = runs_source(cache_folder, sc.name), False
         kinds = [(model, volume, method) for model, volume in MODELS for method in METHODS]
         if sc is not scene:  # the punch scene: the punch + whole-body method too
-            kinds.append((MODELS[1][0], True, BODY_METHOD))
+            kinds.append((*body_row(sc)[:2], BODY_METHOD))
         for model, volume, method in kinds:
             folder = base / f"{'volume' if volume else 'springs'}-{method.replace(' + ', '-')}"
             if sc is scene and (volume, method) == (scene.particle.volume,
