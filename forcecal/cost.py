@@ -103,11 +103,10 @@ def fe_work(scene: Scene, n_vertices: int, n_edges: int | None = None) -> dict[s
     def add(key: str, steps: float, vertices: float) -> None:
         work[key] = work.get(key, 0.0) + steps * vertices
 
-    for experiment, (key, steps) in (("indentation", ("indentation.steps", ind)),
-                                     ("relaxation", ("relaxation.hold_steps",
-                                                     curves["relaxation"]))):
+    curve_keys = {"indentation": "indentation.steps", "relaxation": "relaxation.hold_steps"}
+    for experiment, key in curve_keys.items():
         if experiment in scene.experiments:
-            add(key, steps * points, fe_vertices * local)
+            add(key, curves[experiment] * points, fe_vertices * local)
     second = "second_support" in scene.experiments  # the gravity test's both parts again
     for experiment, (key, steps) in gravity.items():
         runs = (experiment in scene.experiments) + second
@@ -119,8 +118,8 @@ def fe_work(scene: Scene, n_vertices: int, n_edges: int | None = None) -> dict[s
         test = sum(steps for _, steps in gravity.values())
         held = n_held_out(scene) * sum(steps for kind, steps in curves.items()
                                        if kind in scene.experiments)
-        add("experiments", len(FLOOR_ELEMENTS) * FLOOR_SOLVE_FRACTION * ((1 + second) * test + held),
-            n_vertices)
+        add("experiments",
+            len(FLOOR_ELEMENTS) * FLOOR_SOLVE_FRACTION * ((1 + second) * test + held), n_vertices)
     return work
 
 

@@ -120,10 +120,10 @@ def held_out_forces(model: FEModel, scene: Scene, problem: Problem) -> dict[str,
 
 def element_arrays(scene: Scene, problem: Problem, fe: FESection) -> dict[str, np.ndarray]:
     """Every run of one element ``fe`` on the particle mesh (module docstring): the gravity
-    test's arrays (:func:`reference_fe.run.gravity_test`) or ``failed`` (the reason), with the second support
-    ``second_support_`` + the same (or ``second_support_failed``), ``held_out_`` + the
-    arrays of :func:`held_out_forces`, and ``seconds`` (compute time, model build included)
-    and ``part_seconds`` (JSON, :data:`~forcecal.h5io.FLOOR_PARTS`)."""
+    test's arrays (:func:`reference_fe.run.gravity_test`) or ``failed`` (the reason), with the
+    second support ``second_support_`` + the same (or ``second_support_failed``),
+    ``held_out_`` + the arrays of :func:`held_out_forces`, and ``seconds`` (compute time, model
+    build included) and ``part_seconds`` (JSON, :data:`~forcecal.h5io.FLOOR_PARTS`)."""
     from reference_fe.run import gravity_test, second_support_runs
     from reference_fe.refine import FEProblem
 
@@ -178,8 +178,9 @@ def floor_arrays(scene: Scene, problem: Problem) -> dict[str, np.ndarray]:
 
 def runs_of(arrays: dict[str, np.ndarray], prefix: str, settings: GravitySection
             ) -> GravityResult:
-    """The :class:`~forcecal.h5io.GravityResult` of :func:`reference_fe.run.gravity_test`'s arrays (keys after
-    ``prefix``), ``settings`` the ``[gravity]`` with the run's tracked node."""
+    """The :class:`~forcecal.h5io.GravityResult` of :func:`reference_fe.run.gravity_test`'s
+    arrays (keys after ``prefix``), ``settings`` the ``[gravity]`` with the run's tracked
+    node."""
     return GravityResult(arrays[f"{prefix}static_displacement"], arrays[f"{prefix}time"],
                          arrays[f"{prefix}displacement"], settings)
 

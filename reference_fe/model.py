@@ -224,7 +224,7 @@ class _ResidualProblem(NonlinearProblem):
         self.plain_residual = False  # the last residual had no lifting (F)
         # Anderson mixing of this solve's chord steps (update): (x - dx, -dx) of the last one
         # and the differences of these between consecutive ones, the last ANDERSON_DEPTH
-        self.mixing: list[tuple[np.ndarray, np.ndarray]] = []
+        self.last_chord: tuple[np.ndarray, np.ndarray] | None = None
         self.mixing_steps: list[tuple[np.ndarray, np.ndarray]] = []
         self.taken_back = 0  # chord steps taken back (performance reports)
         self.factorisations = 0  # over the model's life (performance reports)
@@ -282,8 +282,7 @@ class _ResidualProblem(NonlinearProblem):
             return
         x_k, f_k = x.array_r.copy(), -dx.array_r
         g_k = x_k + f_k  # the plain chord step's iterate
-        last = self.mixing[-1] if self.mixing else None
-        self.mixing[:] = [(g_k, f_k)]
+        last, self.last_chord = self.last_chord, (g_k, f_k)
         if last is None:
             x.axpy(-1.0, dx)
             return
@@ -297,7 +296,7 @@ class _ResidualProblem(NonlinearProblem):
 
     def restart_mixing(self) -> None:
         """Forget the chord steps mixed so far (the next one starts a new mixing)."""
-        self.mixing.clear()
+        self.last_chord = None
         self.mixing_steps.clear()
 
     def form(self, x: PETSc.Vec) -> None:
