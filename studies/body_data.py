@@ -30,8 +30,9 @@ cross-validation) and records, for every fit:
 The FE references of the scenes are computed already (``runs/<scene>/reference.h5``). One
 whose scene asks for ``body`` holds it (the reference stage's, with its time) and is used as
 it is; otherwise the ``body`` experiment is computed into a copy
-(``<folder>/<scene>/reference.h5``) by the FE stage's own code (:func:`reference_fe.run.compute_item`), because the FE code changed with
-the new experiment, so the pipeline's reference stage would recompute everything else too;
+(``<folder>/<scene>/reference.h5``) by the FE stage's own code
+(:func:`reference_fe.run.compute_item`), because the FE code changed with the new
+experiment, so the pipeline's reference stage would recompute everything else too;
 its time is recorded against the reference's (``fe_cost``). The calibrate, gravity and
 report stages then run on that copy (their runners, without the pipeline's cache).
 
@@ -55,7 +56,7 @@ from typing import Any
 import numpy as np
 
 from forcecal.errors import DataFileError
-from forcecal.h5io import read_reference, write_reference
+from forcecal.h5io import Reference, read_reference, write_reference
 from forcecal.scene import (BODY_DATA_CHOICES, HELD_OUT_EXPERIMENTS, Scene, load_scene,
                             replace)
 from studies.viscoelastic_volume import report_numbers, write_json
@@ -103,21 +104,20 @@ def add_body_experiment(scene: Scene, source: Path, out: Path) -> dict[str, floa
             "share": seconds / compute, "load_average": list(os.getloadavg())}
 
 
-def holds_body(scene: Scene, source: Path) -> bool:
-    """Whether the ``reference.h5`` ``source`` holds the experiment ``body`` with the key
-    the FE code would give it now (the scene's ``experiments`` asked for it)."""
+def holds_body(scene: Scene, ref: Reference) -> bool:
+    """Whether the reference ``ref`` holds the experiment ``body`` with the key the FE code
+    would give it now (the scene's ``experiments`` asked for it)."""
     from reference_fe.run import run_keys
 
-    ref = read_reference(source)
     keys = json.loads(ref.meta.get("experiment_keys", "{}"))
     return ref.body is not None and keys.get("body") == run_keys(scene, ref.problem)["body"]
 
 
-def body_cost(source: Path) -> dict[str, Any]:
-    """:func:`add_body_experiment`'s record of a reference that computed ``body`` itself:
-    its seconds and their share of every experiment's compute seconds (``timings_s``, summed
-    over the ranks; not the mesh's, not the wall ``total``)."""
-    timings = json.loads(read_reference(source).meta["timings_s"])
+def body_cost(ref: Reference) -> dict[str, Any]:
+    """:func:`add_body_experiment`'s record of a reference ``ref`` that computed ``body``
+    itself: its seconds and their share of every experiment's compute seconds (``timings_s``,
+    summed over the ranks; not the mesh's, not the wall ``total``)."""
+    timings = json.loads(ref.meta["timings_s"])
     compute = float(sum(v for k, v in timings.items() if k not in ("mesh", "total")))
     return {"body_s": timings["body"], "reference_compute_s": compute,
             "share": timings["body"] / compute, "computed_by": "the reference stage"}
@@ -245,8 +245,9 @@ def study(scene_paths: list[str | Path], variants: tuple[str, ...] = VARIANTS,
         base = folder / scene.name
         reference = base / "reference.h5"
         entry = result["scenes"].setdefault(scene.name, {"rows": {}})
-        if holds_body(scene, source):  # the reference stage computed it: its own time
-            entry["fe_cost"] = body_cost(source)
+        computed = read_reference(source)
+        if holds_body(scene, computed):  # the reference stage computed it: its own time
+            entry["fe_cost"] = body_cost(computed)
             reference = source
         elif not reference.is_file():
             entry["fe_cost"] = add_body_experiment(scene, source, reference)
