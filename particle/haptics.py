@@ -19,10 +19,14 @@ from collections import OrderedDict
 
 import numpy as np
 
+from numba import njit
+
 from forcecal.errors import MeshError, ParameterError, StabilityError
+from forcecal.scene import ParticleSection
 from particle.guard import energy_bound
 from particle.integrator import Run, VerletIntegrator, check_threads
-from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step
+from particle.kernels import JIT
+from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step, connector_strains
 from particle.model import Model, Prescribed, check_gravity
 from particle.params import StrainBounds
 
@@ -31,6 +35,17 @@ log = logging.getLogger(__name__)
 # tool particles whose prepared run is kept (least recently used dropped beyond): a run holds
 # a few (E,) and (N, 3) arrays (~1 MB on a 12k-connector mesh) and takes ~1 ms to prepare
 TOOL_RUN_CACHE = 16
+#: fraction of the stability limit an ``envelope`` session steps at (the scenes' default)
+DT_SAFETY = ParticleSection().dt_safety
+
+
+@njit(**JIT)
+def elongations_within(dx, lo, hi):
+    """True if every ``dx[e]`` (E,) [m] lies in ``[lo[e], hi[e]]``."""
+    for e in range(dx.shape[0]):
+        if not lo[e] <= dx[e] <= hi[e]:
+            return False
+    return True
 
 
 class HapticSession:
@@ -67,10 +82,26 @@ class HapticSession:
             A narrower range is a tighter operating envelope and a larger stable
             step: with the volume term, whose bound grows with the faces' and
             volumes' possible growth ((1 + hi)^2, (1 + hi)^3), much larger.
+        envelope: None (default: the fixed ``strain_range``), or the half-width w [1]
+            of per-connector strain bands that follow the state: each connector is
+            verified on ``[eps - w, eps + w]`` around its strain ``eps`` when the bands
+            were last centred (at rest to start with), and the step is the smaller of
+            ``dt`` and ``dt_safety`` x the stability limit of those bands
+            (:func:`~particle.stability.critical_time_step` with the bands' ``history``,
+            the hull of every band used, for the arms' memory). After each call, a
+            connector whose strain has left the inner half of its band re-centres every
+            band on the state and recomputes the step (``recentred`` counts them; a
+            re-centring costs one stability limit, ~50 ms on a 12k-connector mesh). Most
+            of the mesh stays near rest while the tool drags, and the limit of a narrow
+            band is well below the fixed range's with the volume term (whose bound grows
+            with the faces' and volumes' possible growth). The kernel verifies the bands
+            as it verifies ``strain_range`` (StabilityError if a state leaves them).
+        dt_safety: with ``envelope``, the fraction of the stability limit stepped at.
 
     Attributes:
         state: the model's State (starts undeformed, at rest).
         substeps: explicit steps per call; ``dt`` the step actually used [s].
+        recentred: how often the ``envelope`` bands were re-centred.
 
     Raises :class:`~forcecal.errors.StabilityError` for a ``dt`` that is not a
     finite number > 0 or is above the stability limit,
@@ -81,23 +112,57 @@ class HapticSession:
     def __init__(self, model: Model, dt: float, *, period: float = 1e-3,
                  gravity: np.ndarray | None = None, damping: float = 0.0,
                  threads: int = 1, inertia: np.ndarray | None = None,
-                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> None:
+                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+                 envelope: float | None = None, dt_safety: float = DT_SAFETY) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError(f"haptic period = {period} s must be > 0")
         check_time_step(dt, math.inf)  # a finite step > 0; the limit is checked below
+        if envelope is not None and not (math.isfinite(envelope) and 0.0 < envelope < 1.0):
+            raise ParameterError(f"strain envelope half-width = {envelope} must be in (0, 1)")
+        if not (math.isfinite(dt_safety) and 0.0 < dt_safety <= 1.0):
+            raise ParameterError(f"dt_safety = {dt_safety} must be in (0, 1]")
         self.threads = check_threads(threads)
         self.model = model
         self.period = float(period)
-        self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
-        self.dt = self.period / self.substeps
         self.gravity = check_gravity(gravity)
-        self.integrator = VerletIntegrator(damping, strain_range=strain_range)
+        self.damping = float(damping)
         self.inertia = None if inertia is None else np.asarray(inertia, dtype=np.float64)
         self.state = model.state()
         self._runs: OrderedDict[int, tuple[Run, float]] = OrderedDict()
         self._keyframes = (np.zeros(2), np.zeros((2, 1, 3)))
+        self.envelope, self.dt_safety, self._largest_dt = envelope, float(dt_safety), float(dt)
+        self.recentred = 0
+        self._history: tuple[np.ndarray, np.ndarray] | None = None
+        self._inner: tuple[np.ndarray, np.ndarray] | None = None
+        if envelope is None:
+            self.integrator = VerletIntegrator(damping, strain_range=strain_range)
+            self._set_step(dt)
+        else:
+            self._centre(np.zeros(model.n_connectors))
         # refuse an unstable dt (or a bad inertia) now, not mid-session
         self.integrator.prepare(model, self.dt, inertia=self.inertia)
+
+    def _set_step(self, dt: float) -> None:
+        self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
+        self.dt = self.period / self.substeps
+
+    def _centre(self, strains: np.ndarray) -> None:
+        """Centre the ``envelope`` bands on ``strains`` (E,) [1] and take their step."""
+        w = self.envelope
+        lo = np.maximum(strains - w, 0.5 * (strains - 1.0))  # never below half the length
+        hi = strains + w
+        if self._history is None:
+            self._history = (np.minimum(lo, 0.0), np.maximum(hi, 0.0))
+        else:
+            self._history = (np.minimum(self._history[0], lo), np.maximum(self._history[1], hi))
+        length = self.model.rest_lengths
+        self._inner = (0.5 * (lo + strains) * length, (strains + 0.5 * w) * length)
+        self.integrator = VerletIntegrator(self.damping, strain_range=(lo, hi),
+                                           history=self._history)
+        limit = self.integrator.critical_time_step(
+            self.integrator.stability_model(self.model, self.inertia))
+        self._set_step(min(self._largest_dt, self.dt_safety * limit))
+        self._runs.clear()
 
     def _run(self, node: int) -> tuple[Run, float]:
         """The prepared run and divergence bound of tool particle ``node`` (LRU cached)."""
@@ -150,9 +215,14 @@ class HapticSession:
         positions[0, 0] = state.x[node]
         positions[1, 0] = x, y, z
         try:
-            return run(state, self.substeps, self._keyframes, bound, probe=node)
+            force = run(state, self.substeps, self._keyframes, bound, probe=node)
         except StabilityError as exc:  # the tool's move is the usual cause: say which one
             move = float(np.linalg.norm(positions[1, 0] - positions[0, 0]))
             raise StabilityError(
                 f"haptic step moving tool particle {node} by {move:.4g} m in {self.period:g} s "
                 f"(to [{x:.4g}, {y:.4g}, {z:.4g}] m): {exc}") from None
+        # the elongations the last substep started from, left by the kernel's force pass
+        if self._inner is not None and not elongations_within(state.dx_prev, *self._inner):
+            self.recentred += 1
+            self._centre(connector_strains(self.model, state.x - self.model.rest_positions))
+        return force

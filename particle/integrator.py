@@ -141,10 +141,14 @@ class VerletIntegrator:
         strain_range: connector strains the runs stay in [1]: one (lo, hi) pair or
             per-connector (lo (E,), hi (E,)) arrays; the stability limit is the one of
             this range.
+        history: the strain hull the states' past elongations stayed in, for the arms'
+            forces in the stability limit (None: ``strain_range``; see
+            :func:`critical_time_step`).
     """
 
     def __init__(self, damping: float = 0.0, *, check_every: int = 64,
-                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> None:
+                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+                 history: StrainBounds | None = None) -> None:
         if not (math.isfinite(damping) and damping >= 0.0):
             raise ParameterError(f"damping = {damping} 1/s must be >= 0")
         if check_every < 1:
@@ -152,6 +156,7 @@ class VerletIntegrator:
         self.damping = float(damping)
         self.check_every = int(check_every)
         self.strain_range = strain_range
+        self.history = history
         self._critical: tuple[Model, float] | None = None
         self._inertial: tuple[Model, np.ndarray, Model] | None = None
 
@@ -159,7 +164,7 @@ class VerletIntegrator:
         """:func:`critical_time_step` of ``model`` (cached for the last model seen)."""
         if self._critical is None or self._critical[0] is not model:
             value = critical_time_step(model, strain_range=self.strain_range,
-                                       damping=self.damping)
+                                       damping=self.damping, history=self.history)
             self._critical = (model, value)
         return self._critical[1]
 
