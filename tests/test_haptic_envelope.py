@@ -75,7 +75,8 @@ def test_the_band_bound_is_above_the_tangent_at_states_inside_the_bands(seed):
         x = centre.copy()
         x[free] += amplitude * rng.standard_normal((int(free.sum()), 3))
         strain, ratio = strains_and_ratios(model, x)
-        inside = np.all((lo <= strain) & (strain <= hi)) and np.all((j_lo < ratio) & (ratio <= j_hi))
+        inside = (np.all((lo <= strain) & (strain <= hi))
+                  and np.all((j_lo < ratio) & (ratio <= j_hi)))
         if not inside:
             continue
         samples += 1
