@@ -19,14 +19,12 @@ from collections import OrderedDict
 
 import numpy as np
 
-from numba import njit
-
 from forcecal.errors import MeshError, ParameterError, StabilityError
 from forcecal.scene import ParticleSection
+from particle.envelope import StrainBands
 from particle.guard import energy_bound
 from particle.integrator import Run, VerletIntegrator, check_threads
-from particle.kernels import JIT
-from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step, connector_strains
+from particle.stability import DEFAULT_STRAIN_RANGE, check_time_step, stable_step
 from particle.model import Model, Prescribed, check_gravity
 from particle.params import StrainBounds
 
@@ -37,15 +35,6 @@ log = logging.getLogger(__name__)
 TOOL_RUN_CACHE = 16
 #: fraction of the stability limit an ``envelope`` session steps at (the scenes' default)
 DT_SAFETY = ParticleSection().dt_safety
-
-
-@njit(**JIT)
-def elongations_within(dx, lo, hi):
-    """True if every ``dx[e]`` (E,) [m] lies in ``[lo[e], hi[e]]``."""
-    for e in range(dx.shape[0]):
-        if not lo[e] <= dx[e] <= hi[e]:
-            return False
-    return True
 
 
 class HapticSession:
@@ -83,19 +72,22 @@ class HapticSession:
             step: with the volume term, whose bound grows with the faces' and
             volumes' possible growth ((1 + hi)^2, (1 + hi)^3), much larger.
         envelope: None (default: the fixed ``strain_range``), or the half-width w [1]
-            of per-connector strain bands that follow the state: each connector is
-            verified on ``[eps - w, eps + w]`` around its strain ``eps`` when the bands
-            were last centred (at rest to start with), and the step is the smaller of
-            ``dt`` and ``dt_safety`` x the stability limit of those bands
-            (:func:`~particle.stability.critical_time_step` with the bands' ``history``,
-            the hull of every band used, for the arms' memory). After each call, a
-            connector whose strain has left the inner half of its band re-centres every
-            band on the state and recomputes the step (``recentred`` counts them; a
-            re-centring costs one stability limit, ~50 ms on a 12k-connector mesh). Most
-            of the mesh stays near rest while the tool drags, and the limit of a narrow
-            band is well below the fixed range's with the volume term (whose bound grows
-            with the faces' and volumes' possible growth). The kernel verifies the bands
-            as it verifies ``strain_range`` (StabilityError if a state leaves them).
+            of per-connector strain bands that follow the state
+            (:class:`~particle.envelope.StrainBands`): each connector is verified on
+            ``[eps - w, eps + w]`` around its strain ``eps`` when the bands were last
+            centred (at rest to start with), each tet on a volume ratio range around its
+            ratio then, and the step is the smaller of ``dt`` and ``dt_safety`` x the
+            stability limit of those bands (a rigorous bound, the arms' memory included,
+            within a few percent of the eigensolved one). After each call, a connector
+            whose strain (or a tet whose volume) has left the inner half of its band
+            re-centres the bands that have drifted on the state and refreshes the step
+            without an eigensolve (``recentred`` counts them; ~0.4 ms on a 12k-connector
+            mesh with the volume term; the tool's prepared runs are kept unless the
+            substeps change). Most of the mesh stays near rest while the tool drags, and the limit
+            of a narrow band is well below the fixed range's with the volume term (whose
+            bound grows with the faces' and volumes' possible growth). The kernel
+            verifies the bands and ranges as it verifies ``strain_range``
+            (StabilityError if a state leaves them).
         dt_safety: with ``envelope``, the fraction of the stability limit stepped at.
 
     Attributes:
@@ -132,13 +124,15 @@ class HapticSession:
         self._keyframes = (np.zeros(2), np.zeros((2, 1, 3)))
         self.envelope, self.dt_safety, self._largest_dt = envelope, float(dt_safety), float(dt)
         self.recentred = 0
-        self._history: tuple[np.ndarray, np.ndarray] | None = None
-        self._inner: tuple[np.ndarray, np.ndarray] | None = None
+        self.integrator = VerletIntegrator(damping, strain_range=strain_range)
+        self._bands: StrainBands | None = None
         if envelope is None:
-            self.integrator = VerletIntegrator(damping, strain_range=strain_range)
             self._set_step(dt)
         else:
-            self._centre(np.zeros(model.n_connectors))
+            bands = self._bands = StrainBands(
+                self.integrator.stability_model(model, self.inertia), envelope)
+            self.integrator.strain_range = (bands.lo, bands.hi)
+            self._take_bands_step()
         # refuse an unstable dt (or a bad inertia) now, not mid-session
         self.integrator.prepare(model, self.dt, inertia=self.inertia)
 
@@ -146,23 +140,16 @@ class HapticSession:
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
         self.dt = self.period / self.substeps
 
-    def _centre(self, strains: np.ndarray) -> None:
-        """Centre the ``envelope`` bands on ``strains`` (E,) [1] and take their step."""
-        w = self.envelope
-        lo = np.maximum(strains - w, 0.5 * (strains - 1.0))  # never below half the length
-        hi = strains + w
-        if self._history is None:
-            self._history = (np.minimum(lo, 0.0), np.maximum(hi, 0.0))
-        else:
-            self._history = (np.minimum(self._history[0], lo), np.maximum(self._history[1], hi))
-        length = self.model.rest_lengths
-        self._inner = (0.5 * (lo + strains) * length, (strains + 0.5 * w) * length)
-        self.integrator = VerletIntegrator(self.damping, strain_range=(lo, hi),
-                                           history=self._history)
-        limit = self.integrator.critical_time_step(
-            self.integrator.stability_model(self.model, self.inertia))
+    def _take_bands_step(self) -> None:
+        """Step at ``dt_safety`` x the ``envelope`` bands' limit (at most the largest ``dt``);
+        the prepared runs are kept (verifying the bands as they move) unless the step
+        changes."""
+        limit = stable_step(self._bands.omega2, self.damping)
+        self.integrator.limit = limit
+        substeps = getattr(self, "substeps", None)
         self._set_step(min(self._largest_dt, self.dt_safety * limit))
-        self._runs.clear()
+        if self.substeps != substeps:
+            self._runs.clear()
 
     def _run(self, node: int) -> tuple[Run, float]:
         """The prepared run and divergence bound of tool particle ``node`` (LRU cached)."""
@@ -172,6 +159,11 @@ class HapticSession:
         run = self.integrator.prepare(self.model, self.dt, gravity=self.gravity,
                                       prescribed_nodes=[node], threads=self.threads,
                                       inertia=self.inertia)
+        bands = self._bands
+        if bands is not None:  # the arrays the bands move in place
+            run.retarget((bands.lo, bands.hi), (bands.elongation_lo, bands.elongation_hi),
+                         *((bands.ratio_lo, bands.ratio_hi), (bands.volume_lo, bands.volume_hi))
+                         if bands.volume else ())
         # divergence bound for the worst drag: the tool crossing the whole organ in one period
         x0 = self.model.rest_positions[node]
         size = float(np.linalg.norm(np.ptp(self.model.rest_positions, axis=0)))
@@ -222,7 +214,8 @@ class HapticSession:
                 f"haptic step moving tool particle {node} by {move:.4g} m in {self.period:g} s "
                 f"(to [{x:.4g}, {y:.4g}, {z:.4g}] m): {exc}") from None
         # the elongations the last substep started from, left by the kernel's force pass
-        if self._inner is not None and not elongations_within(state.dx_prev, *self._inner):
+        if self._bands is not None and not self._bands.holds(state):
             self.recentred += 1
-            self._centre(connector_strains(self.model, state.x - self.model.rest_positions))
+            self._bands.centre(state.x)
+            self._take_bands_step()
         return force

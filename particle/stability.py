@@ -187,7 +187,7 @@ def strain_history(history: StrainBounds, lo: np.ndarray, hi: np.ndarray, model:
 
 def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
                        strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
-                       damping: float = 0.0, history: StrainBounds | None = None) -> float:
+                       damping: float = 0.0) -> float:
     """Stability limit [s] of the explicit step: ``2/omega_max`` (less with damping).
 
     ``strain_range`` is where the connectors' strains stay during the run: one
@@ -208,12 +208,6 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     of the same matrix (the largest row sum), usually well below. With
     mass-proportional damping gamma the central-difference limit becomes
     ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = gamma/(2 omega)``.
-
-    ``history``: the strain hull the run's past elongations stayed in (None: the
-    strain range); the arms' forces are bounded over it, the rest over
-    ``strain_range`` (:func:`connector_stiffness_bound`), so that a run whose range
-    follows its state (:class:`particle.haptics.HapticSession` ``envelope``) keeps a
-    narrow range and the memory of where it has been.
 
     With the volume term (``params.kv`` given), ``K_t = K_springs + K_vol``, and the
     smaller of two bounds is taken, each valid while the tets' volume ratios stay in
@@ -242,8 +236,14 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     p.validate(strain_range, model.edges, model.tets)
     if not (~model.fixed).any():
         return math.inf  # nothing moves
-    omega2 = step_bound(model if params is None else model.with_params(p), strain_range,
-                        history).omega2
+    return stable_step(step_bound(model if params is None else model.with_params(p),
+                                  strain_range).omega2, damping)
+
+
+def stable_step(omega2: float, damping: float = 0.0) -> float:
+    """The central-difference limit [s] for the largest frequency ``sqrt(omega2)`` [1/s] and
+    mass-proportional damping [1/s]: ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = damping/(2
+    omega)`` (inf without stiffness)."""
     if not omega2 > 0.0:
         return math.inf  # no stiffness at all: nothing oscillates
     omega = math.sqrt(omega2)

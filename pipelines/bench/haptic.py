@@ -32,7 +32,8 @@ instead of +-0.5: a larger stable step, as the volume term's bound grows with th
 and volumes' possible growth; ``strain_range`` in the row), ``state's strains`` (the
 session's per-connector strain bands of half-width :data:`BAND` that follow the state,
 ``HapticSession(envelope=...)``: ``substeps`` the most of any call, ``recentred`` how often
-the bands moved; its release runs at that step, unmonitored, as the bands verify the drag)
+the bands moved, ``recentre_max_us`` the longest of those calls, which the latencies include;
+its release runs at that step, unmonitored, as the bands verify the drag)
 and ``mass-scaled 1``/``2``.
 ``volume_cost`` gives per mesh the time per call with the volume term over springs-only
 (the goal: at most :data:`VOLUME_COST_GOAL`, the term may cost half the springs' period again).
@@ -225,6 +226,8 @@ def _rows(name: str, terms: str, model, renumbering, tool: int, tracked: int,
             "added_mass": 0.0 if inertia is None else added_mass_fraction(m, inertia),
             "min_us": float(us.min()), "median_us": median,
             "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max()),
+            "recentre_max_us": (float(us[drag["recentring"]].max())
+                                if drag["recentring"].any() else None),
             "cpu_us": drag["cpu_us"],
             "updates_per_s": model.n_connectors * drag["substeps"] / (1e-6 * median),
             "error_drag": pb.relative_history_error(drag["forces"], reference["forces"]),
@@ -347,18 +350,22 @@ def markdown(b: dict[str, Any]) -> list[str]:
              "long-term stiffness, with Maxwell arms of the connectors' Prony split; "
              "`drag's strains`: the session verified on "
              f"+-{ENVELOPE_MARGIN:g} x the largest strain of the float64 drag (rounded up to "
-             "0.05) instead of +-0.5. updates/s counts connectors only."
+             "0.05) instead of +-0.5; `state's strains`: per-connector bands of half-width "
+             f"{BAND:g} that follow the state (`HapticSession(envelope=...)`), re-centred "
+             "(`recentred` times, the longest such call under `re-centre [us]`, included in "
+             "the other times). updates/s counts connectors only."
              " min and CPU time per call are the "
              "measures least affected by other processes. Load average "
              f"{h['load_average_start'][0]:.1f} at the start, {h['load_average_end'][0]:.1f} "
              "at the end.", ""]
     lines += table(["mesh", "connectors", "terms", "variant", "substeps", "added mass",
                     "min [us]", "median [us]", "p99 [us]", "max [us]", "CPU [us/call]",
-                    "updates/s", "error drag", "error release"],
+                    "recentred", "re-centre [us]", "updates/s", "error drag", "error release"],
                    [[r["mesh"], r["connectors"], r.get("terms", SPRINGS), r["variant"],
                      r["substeps"],
                      f"{100 * r['added_mass']:.2g} %",
                      r["min_us"], r["median_us"], r["p99_us"], r["max_us"], r["cpu_us"],
+                     r.get("recentred") or "", r.get("recentre_max_us") or "",
                      r["updates_per_s"], r["error_drag"], r["error_release"]]
                     for r in h["rows"]])
     if h.get("volume_cost"):

@@ -160,7 +160,8 @@ def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls
     the bands were re-centred), ``latencies_us`` (calls,) [us] of wall time per call,
     ``cpu_us`` [us] the process CPU time per call (less sensitive to a busy machine than
     wall time: time spent waiting for a core is not counted), ``forces`` (calls, 3)
-    [N], the force on the tool after each call, and ``max_abs_strain`` [1], the largest
+    [N], the force on the tool after each call, ``recentring`` (calls,) bool, the calls that
+    re-centred the bands (their time included), and ``max_abs_strain`` [1], the largest
     connector |strain| at the end of a call (outside the clock). One call before the
     clock compiles the kernels.
     """
@@ -171,18 +172,21 @@ def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls
     latencies = np.empty(calls)
     forces = np.empty((calls, 3))
     strain = np.empty(calls)
+    recentring = np.zeros(calls, dtype=bool)
     cpu = 0.0
     substeps = session.substeps
     for k in range(calls):
         target = start + depth * min(1.0, k / (calls / 4)) * normal
+        recentred = session.recentred
         c0, t0 = time.process_time(), time.perf_counter()
         forces[k] = session.step(node, target)
         latencies[k] = time.perf_counter() - t0
         cpu += time.process_time() - c0
+        recentring[k] = session.recentred > recentred
         strain[k] = np.max(np.abs(session.state.dx_prev / model.rest_lengths))
         substeps = max(substeps, session.substeps)
     return {"substeps": substeps, "dt_s": session.period / substeps,
-            "latencies_us": 1e6 * latencies,
+            "latencies_us": 1e6 * latencies, "recentring": recentring,
             "recentred": session.recentred,
             "cpu_us": 1e6 * cpu / calls, "forces": forces, "max_abs_strain": float(strain.max())}
 
