@@ -353,7 +353,9 @@ class StrainBands:
             self.volume_lo, self.volume_hi = np.zeros(t), np.zeros(t)
             self._inner_volume = (np.zeros(t), np.zeros(t))  # as volume strains V/V0 - 1
             self._gradients, self._curvatures = np.zeros((t, 4)), np.zeros((t, 6))
-        self.centre(model.rest_positions, iterations=0, every=True)
+        # a writable copy: the compiled loops' signature of a state's positions, not of the
+        # model's read-only ones (a second signature would compile at the first re-centring)
+        self.centre(model.rest_positions.copy(), iterations=0, every=True)
         # Perron vectors of the first bands' matrices (Lanczos), refreshed at each centring
         self._perron = [self._lanczos_perron(product) for product in self._products()]
         self.omega2 = self._bound(STARTING_ITERATIONS)
@@ -409,13 +411,13 @@ class StrainBands:
             total += bound
         return EIGENVALUE_MARGIN * total
 
-    def centre(self, x: np.ndarray, iterations: int = POWER_ITERATIONS, every: bool = False
+    def centre(self, x: np.ndarray, iterations: int | None = None, every: bool = False
                ) -> None:
         """Centre on positions ``x`` (N, 3) [m] the bands of the connectors whose strains (and
         the volume ranges of the tets whose ratios) have left the inner half of their inner
         half, and of ``every`` one if asked, the tets' ranges on their connectors' bands, and
-        refresh ``omega2`` with ``iterations`` power iterations per matrix (0: not at all,
-        before the Perron vectors exist). Raises :class:`ParameterError` naming a connector
+        refresh ``omega2`` with ``iterations`` power iterations per matrix (None:
+        :data:`POWER_ITERATIONS`; 0: not at all, before the Perron vectors exist). Raises :class:`ParameterError` naming a connector
         whose spring stiffness is not > 0 somewhere in its new band, :class:`StabilityError`
         naming a tet that is flat or inverted at ``x``."""
         m, w = self.model, self.half_width
@@ -439,6 +441,7 @@ class StrainBands:
             if flat >= 0:
                 raise StabilityError(f"{tet_name(flat, m.tets)} is flat or inverted: no volume "
                                      "ratio range to verify")
+        iterations = POWER_ITERATIONS if iterations is None else iterations
         if iterations:
             self.omega2 = self._bound(iterations)
 
