@@ -180,12 +180,12 @@ def centre_tets(x, tets, tet_connectors, rest_volumes, rest_lengths, half_width,
     """Centre the volume ratio range of every tet (``every``), of those with a ``moved``
     connector (E,) and of those whose ratio at ``x`` (N, 3) [m] has left the inner half of
     their inner half on ``x`` and the connector bands ``lo``, ``hi`` (E,), in place:
-    ``centre`` the ratio ``J0``, ``[J_lo, J_hi] = ((1 + min lo)^3, (1 + max hi)^3)``, widened to
-    hold ``J0 ((1 - w)^3, (1 + w)^3)`` when the ratio ``J0`` at ``x`` is not in its middle
-    half, the history hull widened
-    to hold it, the range as volumes [m^3], its inner half ``[(J_lo + J0)/2, (J_hi +
-    J0)/2]`` as volume strains ``J - 1``, and the tets' ``S_t`` of :func:`particle.volume_bounds.volume_scalar_matrix` on
-    them (:func:`particle.volume_bounds._tet_bounds`' per-tet bounds: Heron's face areas
+    ``centre`` the ratio ``J0``, ``[J_lo, J_hi] = ((1 + min lo)^3, (1 + max hi)^3)``,
+    widened to hold ``J0 ((1 - w)^3, (1 + w)^3)`` when ``J0`` is not in its middle half,
+    the history hull widened to hold it, the range as volumes [m^3], its inner half ``[(J_lo
+    + J0)/2, (J_hi + J0)/2]`` as volume strains ``J - 1``, and the tets' ``S_t`` of
+    :func:`particle.volume_bounds.volume_scalar_matrix` on them
+    (:func:`particle.volume_bounds._tet_bounds`' per-tet bounds: Heron's face areas
     ``G_a``, the pressure ``|P| <= kv |J - 1|_max + (kv1 + kv2) max(J_hi - Jh_lo, Jh_hi -
     J_lo)``): ``S_t[a, b] = g_a g_b + (a != b) c_k`` with ``gradients`` (T, 4) ``g_a =
     sqrt(k/V0) G_a`` [N^0.5/m^0.5] and ``curvatures`` (T, 6) ``c_k = |P| lmax_k/6`` [N/m],
@@ -417,9 +417,10 @@ class StrainBands:
         the volume ranges of the tets whose ratios) have left the inner half of their inner
         half, and of ``every`` one if asked, the tets' ranges on their connectors' bands, and
         refresh ``omega2`` with ``iterations`` power iterations per matrix (None:
-        :data:`POWER_ITERATIONS`; 0: not at all, before the Perron vectors exist). Raises :class:`ParameterError` naming a connector
-        whose spring stiffness is not > 0 somewhere in its new band, :class:`StabilityError`
-        naming a tet that is flat or inverted at ``x``."""
+        :data:`POWER_ITERATIONS`; 0: not at all, before the Perron vectors exist). Raises
+        :class:`ParameterError` naming a connector whose spring stiffness is not > 0
+        somewhere in its new band, :class:`StabilityError` naming a tet that is flat or
+        inverted at ``x``."""
         m, w = self.model, self.half_width
         centre_connectors(x, m.edges, m.rest_lengths, w, self._centre, self.lo, self.hi,
                           *self._history, *self._inner, self.elongation_lo, self.elongation_hi,

@@ -142,8 +142,9 @@ class VerletIntegrator:
             per-connector (lo (E,), hi (E,)) arrays; the stability limit is the one of
             this range.
         limit: the stability limit [s] of ``strain_range`` when the caller bounds it
-            itself (the haptic session's strain bands, :class:`particle.envelope.StrainBands`;
-            it may set the attribute again as the range moves), None: :func:`critical_time_step`.
+            itself (the haptic session's strain bands,
+            :class:`particle.envelope.StrainBands`; it may set the attribute again as the
+            range moves), None: :func:`critical_time_step`.
     """
 
     def __init__(self, damping: float = 0.0, *, check_every: int = 64,
