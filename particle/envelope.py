@@ -8,9 +8,9 @@ mass-scaled tangent's largest eigenvalue at every state inside them. Centring th
 (:meth:`StrainBands.centre`) moves the bands of the connectors whose strains have drifted
 more than a quarter of w from their centres (and the ranges of those connectors' tets, and
 of the tets whose ratios drifted likewise), then refreshes the bound: a few passes over the
-connectors and tets in compiled loops, no eigensolve (0.13 ms on the 12k-connector liver
-with springs only, 0.38 ms with the volume term, 1.1 and 4 ms on the 54k one, on a loaded
-machine).
+connectors and tets in compiled loops, no eigensolve (the bench's drag on a loaded machine,
+load average 3 on 2 cores: 0.25 ms on the 12k-connector liver with the volume term, 1 ms on
+the 54k one; up to 0.8 and 4 ms when the bound needs all :data:`POWER_ITERATIONS` rounds).
 
 The bound is the one of :func:`particle.stability.step_bound` (springs and volume term
 added): ``K_t <= L_kappa (x) I_3 + K_vol`` and ``v^T K_vol v <= |v|^T S |v|`` with the
@@ -25,18 +25,21 @@ ratio ranges and their history), so ``omega_max^2 <= lambda_max(M^{-1/2} L_kappa
 * for a nonnegative matrix Q and any positive vector x, ``lambda_max(Q) <= max_i (Q x)_i /
   x_i`` (Collatz-Wielandt: Q x <= c x makes the x-weighted max norm of Q at most c).
 
-x is each matrix's Perron vector from the last centring, refreshed by
-:data:`POWER_ITERATIONS` (over-relaxed) power iterations, one pass over the connectors or
-tets each, whose every iterate gives a bound; the smallest is taken, times
+x is each matrix's Perron vector, kept with its product ``Q x`` (updated for the bands
+that move, so the bound at x costs one scan of the particles), and refreshed by up to
+:data:`POWER_ITERATIONS` rounds of (over-relaxed) power iterations, one pass over the
+connectors or tets each, only while the bound would need more substeps than the session
+takes; every iterate gives a bound and the smallest is taken, times
 :data:`particle.stability.EIGENVALUE_MARGIN` for rounding. The Perron vectors of the first
 bands come from Lanczos (:func:`scipy.sparse.linalg.eigsh`, when the session starts).
 Measured on the bench's livers with bands of half-width 0.05: the signless Laplacian's
 eigenvalue is 5.5 % (12k connectors) and 1.2 % (54k) above the Laplacian's; during the
-bench's 5 mm drag on the 12k liver with the relaxing volume term the bound stays within 5 %
-of the eigensolved bound of the same bands (:func:`particle.stability.step_bound`), 3
-substeps per ms as with the eigensolve. The joint bound of ``step_bound`` (one Laplacian
-with the volume term's edge weights) is not used: on bands this narrow the sum is the
-smaller (12k liver, relaxing volume: 2.7e7 against 3.3e7 1/s^2).
+bench's 5 mm drag on the 12k liver with the relaxing volume term the bound rises to 7 %
+above the eigensolved bound of the same bands (:func:`particle.stability.step_bound`; 5 %
+with two rounds at every centring), still 3 substeps per ms as with the eigensolve. The
+joint bound of ``step_bound`` (one Laplacian with the volume term's edge weights) is not
+used: on bands this narrow the sum is the smaller (12k liver, relaxing volume: 2.7e7
+against 3.3e7 1/s^2).
 
 A tet's volume ratio is not bounded by its edges' strains (a flat tet gains or loses
 volume fast), so its range is the one of the uniform dilations of its bands, ``((1 + min
@@ -66,8 +69,9 @@ from particle.volume import tet_name
 
 log = logging.getLogger(__name__)
 
-#: power iterations per centring, each one pass over the connectors and one over the tets
-POWER_ITERATIONS = 2
+#: most rounds of power iterations per centring (each one pass over the connectors and one
+#: over the tets), done only while the bound asks for more substeps than the session takes
+POWER_ITERATIONS = 4
 # the power iteration's step x <- x (r/c)^1.5 (module docstring): after a centring that
 # stiffens the tool's region, the Perron vector adapts there slowly (the rows' ratios near
 # the eigenvalue); the over-relaxed step brings the bound closer per iteration (measured on the
@@ -134,11 +138,12 @@ def centre_connectors(x, edges, rest_lengths, half_width, centre, lo, hi, histor
 
 
 @njit(**JIT)
-def connector_weights(K0, a, b, arms, lo, hi, history_lo, moved, kappa):
+def connector_weights(K0, a, b, arms, lo, hi, history_lo, moved, kappa, edges, scale, x, y):
     """``kappa`` (E,) [N/m] of :func:`particle.stability.connector_stiffness_bound` with the
     bands' history (its lower end ``history_lo`` (E,), holding 0 and ``lo``), in place, on
-    the ``moved`` connectors (E,). Returns the first of them whose spring ``K(eps)`` is not
-    > 0 somewhere in its band (-1: none)."""
+    the ``moved`` connectors (E,), and ``y = M^{-1/2} |L_kappa| M^{-1/2} x`` (N,) updated
+    for their change (:func:`laplacian_product`). Returns the first of them whose spring
+    ``K(eps)`` is not > 0 somewhere in its band (-1: none)."""
     soft = -1
     for e in range(lo.shape[0]):
         if not moved[e]:
@@ -150,8 +155,20 @@ def connector_weights(K0, a, b, arms, lo, hi, history_lo, moved, kappa):
             soft = e
         spring = max(max(kmax, 0.0) * h / (1.0 + h), max(-kmin, 0.0) * -l / (1.0 + l))
         transverse = spring + arms[e] * max(h - history_lo[e], 0.0) / (1.0 + h)
-        kappa[e] = max(max(tangent + arms[e], transverse), 0.0)
+        weight = max(max(tangent + arms[e], transverse), 0.0)
+        _add_edge_product(edges, scale, x, y, e, weight - kappa[e])
+        kappa[e] = weight
     return soft
+
+
+@njit(**JIT)
+def _add_edge_product(edges, scale, x, y, e, weight):
+    """Add connector ``e``'s part of :func:`laplacian_product` with the weight ``weight``
+    [N/m] to ``y``."""
+    i, j = edges[e, 0], edges[e, 1]
+    both = scale[i] * x[i] + scale[j] * x[j]
+    y[i] += weight * scale[i] * both
+    y[j] += weight * scale[j] * both
 
 
 @njit(**JIT)
@@ -176,7 +193,8 @@ def _tet_volume(x, tets, t):
 @njit(**JIT)
 def centre_tets(x, tets, tet_connectors, rest_volumes, rest_lengths, half_width, lo, hi,
                 moved, every, modulus, kv, arms_kv, centre, ratio_lo, ratio_hi, history_lo,
-                history_hi, volume_lo, volume_hi, inner_lo, inner_hi, gradients, curvatures):
+                history_hi, volume_lo, volume_hi, inner_lo, inner_hi, gradients, curvatures,
+                scale, perron, product):
     """Centre the volume ratio range of every tet (``every``), of those with a ``moved``
     connector (E,) and of those whose ratio at ``x`` (N, 3) [m] has left the inner half of
     their inner half on ``x`` and the connector bands ``lo``, ``hi`` (E,), in place:
@@ -190,8 +208,9 @@ def centre_tets(x, tets, tet_connectors, rest_volumes, rest_lengths, half_width,
     J_lo)``): ``S_t[a, b] = g_a g_b + (a != b) c_k`` with ``gradients`` (T, 4) ``g_a =
     sqrt(k/V0) G_a`` [N^0.5/m^0.5] and ``curvatures`` (T, 6) ``c_k = |P| lmax_k/6`` [N/m],
     k the edge opposite the pair (a, b). ``modulus``, ``kv``, ``arms_kv`` (T,) [Pa]: the
-    instantaneous stiffness k, kv, and kv1 + kv2 (0: elastic). Returns the first tet that
-    is flat or inverted at ``x`` (-1: none)."""
+    instantaneous stiffness k, kv, and kv1 + kv2 (0: elastic). ``product`` (N,) ``=
+    M^{-1/2} S M^{-1/2} perron`` is updated for the tets' change (:func:`scalar_product`).
+    Returns the first tet that is flat or inverted at ``x`` (-1: none)."""
     shrink, grow = (1.0 - half_width) ** 3, (1.0 + half_width) ** 3
     lmin = np.empty(6)
     lmax = np.empty(6)
@@ -207,6 +226,7 @@ def centre_tets(x, tets, tet_connectors, rest_volumes, rest_lengths, half_width,
             stale = stale or moved[tet_connectors[t, k]]
         if not stale:
             continue
+        _add_tet_product(tets, gradients, curvatures, scale, perron, product, t, -1.0)
         centre[t] = ratio
         smallest, largest = math.inf, -math.inf
         for k in range(6):
@@ -235,6 +255,7 @@ def centre_tets(x, tets, tet_connectors, rest_volumes, rest_lengths, half_width,
                                                        lmin[f2], lmax[f2])
         for k in range(6):
             curvatures[t, k] = pressure / 6.0 * lmax[k]
+        _add_tet_product(tets, gradients, curvatures, scale, perron, product, t, 1.0)
     return -1
 
 
@@ -245,11 +266,7 @@ def laplacian_product(edges, kappa, scale, x, y):
     particles, 0 on fixed ones, whose rows and columns it drops)."""
     y[:] = 0.0
     for e in range(edges.shape[0]):
-        i, j = edges[e, 0], edges[e, 1]
-        k = kappa[e]
-        both = scale[i] * x[i] + scale[j] * x[j]
-        y[i] += k * scale[i] * both
-        y[j] += k * scale[j] * both
+        _add_edge_product(edges, scale, x, y, e, kappa[e])
 
 
 @njit(**JIT)
@@ -258,29 +275,42 @@ def scalar_product(tets, gradients, curvatures, scale, x, y):
     :func:`centre_tets` (``scale`` as :func:`laplacian_product`)."""
     y[:] = 0.0
     for t in range(tets.shape[0]):
-        n0, n1, n2, n3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        z0, z1, z2, z3 = scale[n0] * x[n0], scale[n1] * x[n1], scale[n2] * x[n2], scale[n3] * x[n3]
-        g0, g1, g2, g3 = gradients[t, 0], gradients[t, 1], gradients[t, 2], gradients[t, 3]
-        c = curvatures[t]  # by the edge opposite each pair: 01 -> 5, 02 -> 4, 03 -> 3, ...
-        s = g0 * z0 + g1 * z1 + g2 * z2 + g3 * z3
-        y[n0] += scale[n0] * (g0 * s + c[5] * z1 + c[4] * z2 + c[3] * z3)
-        y[n1] += scale[n1] * (g1 * s + c[5] * z0 + c[2] * z2 + c[1] * z3)
-        y[n2] += scale[n2] * (g2 * s + c[4] * z0 + c[2] * z1 + c[0] * z3)
-        y[n3] += scale[n3] * (g3 * s + c[3] * z0 + c[1] * z1 + c[0] * z2)
+        _add_tet_product(tets, gradients, curvatures, scale, x, y, t, 1.0)
 
 
 @njit(**JIT)
-def power_step(x, y, free, floor, relaxation):
-    """The Collatz-Wielandt bound ``c = max (y/x)`` over the free particles of ``y = Q x``, and
-    ``x <- x (r/c)^relaxation`` with the rows' ratios ``r = y/x`` (1: the power iteration,
-    above: over-relaxed), normalised to a largest entry of 1, every free entry at least
-    ``floor``."""
+def _add_tet_product(tets, gradients, curvatures, scale, x, y, t, sign):
+    """Add ``sign`` x tet ``t``'s part of :func:`scalar_product` to ``y``."""
+    n0, n1, n2, n3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    z0, z1, z2, z3 = scale[n0] * x[n0], scale[n1] * x[n1], scale[n2] * x[n2], scale[n3] * x[n3]
+    g0, g1, g2, g3 = gradients[t, 0], gradients[t, 1], gradients[t, 2], gradients[t, 3]
+    c = curvatures[t]  # by the edge opposite each pair: 01 -> 5, 02 -> 4, 03 -> 3, ...
+    s = g0 * z0 + g1 * z1 + g2 * z2 + g3 * z3
+    y[n0] += sign * scale[n0] * (g0 * s + c[5] * z1 + c[4] * z2 + c[3] * z3)
+    y[n1] += sign * scale[n1] * (g1 * s + c[5] * z0 + c[2] * z2 + c[1] * z3)
+    y[n2] += sign * scale[n2] * (g2 * s + c[4] * z0 + c[2] * z1 + c[0] * z3)
+    y[n3] += sign * scale[n3] * (g3 * s + c[3] * z0 + c[1] * z1 + c[0] * z2)
+
+
+@njit(**JIT)
+def largest_ratio(x, y, free):
+    """The Collatz-Wielandt bound ``max (y/x)`` over the ``free`` particles of ``y = Q x``."""
     bound = 0.0
     for n in range(x.shape[0]):
         if free[n]:
             bound = max(bound, y[n] / x[n])
+    return bound
+
+
+@njit(**JIT)
+def power_step(x, y, free, floor, relaxation):
+    """``x <- x (r/c)^relaxation`` for ``y = Q x``, with the rows' ratios ``r = y/x`` and
+    their largest ``c`` over the ``free`` particles (1: the power iteration, above:
+    over-relaxed), normalised to a largest entry of 1, every free entry at least
+    ``floor``."""
+    bound = largest_ratio(x, y, free)
     if not bound > 0.0:
-        return bound
+        return
     top = 0.0
     for n in range(x.shape[0]):
         if free[n]:
@@ -289,7 +319,6 @@ def power_step(x, y, free, floor, relaxation):
     for n in range(x.shape[0]):
         if free[n]:
             x[n] = max(x[n] / top, floor)
-    return bound
 
 
 @njit(**JIT)
@@ -340,8 +369,11 @@ class StrainBands:
         self.kappa = np.zeros(n_edges)
         self.free = ~model.fixed
         self._scale = np.where(self.free, 1.0 / np.sqrt(model.masses), 0.0)
-        self._y = np.zeros(n)
         self.volume = p.kv is not None and model.n_tets > 0
+        # per matrix (springs, volume term): its Perron vector x (0 until the first bands are
+        # set) and y = Q x, kept up to date as the bands move
+        self._perron = [np.zeros(n) for _ in range(1 + self.volume)]
+        self._product = [np.zeros(n) for _ in range(1 + self.volume)]
         if self.volume:
             t = model.n_tets
             self._moduli = tuple(np.ascontiguousarray(np.broadcast_to(v, (t,)), dtype=np.float64)
@@ -357,7 +389,9 @@ class StrainBands:
         # model's read-only ones (a second signature would compile at the first re-centring)
         self.centre(model.rest_positions.copy(), iterations=0, every=True)
         # Perron vectors of the first bands' matrices (Lanczos), refreshed at each centring
-        self._perron = [self._lanczos_perron(product) for product in self._products()]
+        for product, x, y in zip(self._products(), self._perron, self._product):
+            x[:] = self._lanczos_perron(product)
+            product(x, y)
         self.omega2 = self._bound(STARTING_ITERATIONS)
 
     def _products(self) -> list:
@@ -399,25 +433,31 @@ class StrainBands:
         x[free] = np.maximum(vector / vector.max(), PERRON_FLOOR)
         return x
 
-    def _bound(self, iterations: int) -> float:
-        """:data:`~particle.stability.EIGENVALUE_MARGIN` x the sum of the matrices' smallest
-        Collatz-Wielandt bounds over ``iterations`` power iterations (at least one)."""
-        total = 0.0
-        for product, x in zip(self._products(), self._perron):
-            bound = math.inf
-            for _ in range(max(1, iterations)):
-                product(x, self._y)
-                bound = min(bound, power_step(x, self._y, self.free, PERRON_FLOOR, OVER_RELAXATION))
-            total += bound
-        return EIGENVALUE_MARGIN * total
+    def _bound(self, iterations: int, enough=None) -> float:
+        """:data:`~particle.stability.EIGENVALUE_MARGIN` x the sum of the matrices'
+        Collatz-Wielandt bounds at their Perron vectors, the smallest over up to
+        ``iterations`` rounds of one power iteration per matrix, stopping once
+        ``enough(bound)`` (None: never)."""
+        bounds = [largest_ratio(x, y, self.free) for x, y in zip(self._perron, self._product)]
+        for _ in range(iterations):
+            if enough is not None and enough(EIGENVALUE_MARGIN * sum(bounds)):
+                break
+            for k, (product, x, y) in enumerate(zip(self._products(), self._perron,
+                                                    self._product)):
+                power_step(x, y, self.free, PERRON_FLOOR, OVER_RELAXATION)
+                product(x, y)
+                bounds[k] = min(bounds[k], largest_ratio(x, y, self.free))
+        return EIGENVALUE_MARGIN * sum(bounds)
 
-    def centre(self, x: np.ndarray, iterations: int | None = None, every: bool = False
-               ) -> None:
+    def centre(self, x: np.ndarray, iterations: int | None = None, every: bool = False,
+               enough=None) -> None:
         """Centre on positions ``x`` (N, 3) [m] the bands of the connectors whose strains (and
         the volume ranges of the tets whose ratios) have left the inner half of their inner
         half, and of ``every`` one if asked, the tets' ranges on their connectors' bands, and
-        refresh ``omega2`` with ``iterations`` power iterations per matrix (None:
-        :data:`POWER_ITERATIONS`; 0: not at all, before the Perron vectors exist). Raises
+        refresh ``omega2``: the Collatz-Wielandt bounds at the current Perron vectors (their
+        products updated for the bands that moved), tightened by up to ``iterations`` rounds
+        of power iterations (None: :data:`POWER_ITERATIONS`) unless ``enough(omega2)`` is
+        true (None: all rounds). Raises
         :class:`ParameterError` naming a connector whose spring stiffness is not > 0
         somewhere in its new band, :class:`StabilityError` naming a tet that is flat or
         inverted at ``x``."""
@@ -427,7 +467,8 @@ class StrainBands:
                           self._moved, every)
         p = m.params
         soft = connector_weights(p.K0, p.a, p.b, self._arms, self.lo, self.hi,
-                                 self._history[0], self._moved, self.kappa)
+                                 self._history[0], self._moved, self.kappa, m.edges,
+                                 self._scale, self._perron[0], self._product[0])
         if soft >= 0:
             raise ParameterError(
                 f"{connector_name(soft, m.edges)}: spring stiffness K(eps) = K0 + a eps + b "
@@ -438,13 +479,13 @@ class StrainBands:
                                self.lo, self.hi, self._moved, every, *self._moduli,
                                self._ratio_centre, self.ratio_lo, self.ratio_hi,
                                *self._ratio_history, self.volume_lo, self.volume_hi,
-                               *self._inner_volume, self._gradients, self._curvatures)
+                               *self._inner_volume, self._gradients, self._curvatures,
+                               self._scale, self._perron[1], self._product[1])
             if flat >= 0:
                 raise StabilityError(f"{tet_name(flat, m.tets)} is flat or inverted: no volume "
                                      "ratio range to verify")
-        iterations = POWER_ITERATIONS if iterations is None else iterations
-        if iterations:
-            self.omega2 = self._bound(iterations)
+        self.omega2 = self._bound(POWER_ITERATIONS if iterations is None else iterations,
+                                  enough)
 
     def holds(self, state) -> bool:
         """True while ``state``'s connectors (their elongations at the start of its last step,

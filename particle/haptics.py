@@ -78,16 +78,16 @@ class HapticSession:
             centred (at rest to start with), each tet on a volume ratio range around its
             ratio then, and the step is the smaller of ``dt`` and ``dt_safety`` x the
             stability limit of those bands (a rigorous bound, the arms' memory included,
-            within a few percent of the eigensolved one). After each call, a connector
+            within 10 % of the eigensolved one). After each call, a connector
             whose strain (or a tet whose volume) has left the inner half of its band
             re-centres the bands that have drifted on the state and refreshes the step
-            without an eigensolve (``recentred`` counts them; ~0.4 ms on a 12k-connector
-            mesh with the volume term; the tool's prepared runs are kept unless the
-            substeps change). Most of the mesh stays near rest while the tool drags, and the limit
-            of a narrow band is well below the fixed range's with the volume term (whose
-            bound grows with the faces' and volumes' possible growth). The kernel
-            verifies the bands and ranges as it verifies ``strain_range``
-            (StabilityError if a state leaves them).
+            without an eigensolve (``recentred`` counts them; 0.25-0.8 ms on a
+            12k-connector mesh with the volume term; the tool's prepared runs are kept
+            unless the substeps change). Most of the mesh stays near rest while the tool
+            drags, and the limit of a narrow band is well below the fixed range's with
+            the volume term (whose bound grows with the faces' and volumes' possible
+            growth). The kernel verifies the bands and ranges as it verifies
+            ``strain_range`` (StabilityError if a state leaves them).
         dt_safety: with ``envelope``, the fraction of the stability limit stepped at.
 
     Attributes:
@@ -139,6 +139,11 @@ class HapticSession:
     def _set_step(self, dt: float) -> None:
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
         self.dt = self.period / self.substeps
+
+    def _keeps_substeps(self, omega2: float) -> bool:
+        """True if the bound ``omega2`` [1/s^2] needs no more substeps than the session takes."""
+        limit = stable_step(omega2, self.damping)
+        return self.period / self.substeps <= min(self._largest_dt, self.dt_safety * limit)
 
     def _take_bands_step(self) -> None:
         """Step at ``dt_safety`` x the ``envelope`` bands' limit (at most the largest ``dt``);
@@ -216,6 +221,6 @@ class HapticSession:
         # the elongations the last substep started from, left by the kernel's force pass
         if self._bands is not None and not self._bands.holds(state):
             self.recentred += 1
-            self._bands.centre(state.x)
+            self._bands.centre(state.x, enough=self._keeps_substeps)
             self._take_bands_step()
         return force

@@ -13,8 +13,8 @@ from particle.envelope import StrainBands, laplacian_product, scalar_product
 from particle.haptics import HapticSession
 from particle.model import ModelBuilder
 from particle.params import viscoelastic_params
-from particle.stability import (connector_stiffness_bound, critical_time_step, step_bound,
-                                strain_history)
+from particle.stability import (connector_stiffness_bound, critical_time_step,
+                                mass_scaled_laplacian, step_bound, strain_history)
 from particle.volume_bounds import _scalar_matrix, _tet_bounds
 from tests.particle_models import box_model, top_centre
 from tests.test_haptic_volume import jittered_box, mass_scaled_volume_tangent, strains_and_ratios
@@ -111,9 +111,10 @@ def test_the_band_bound_is_above_the_tangent_at_states_inside_the_bands(seed):
 
 def test_the_compiled_weights_are_the_numpy_bounds():
     """The compiled connector weights are :func:`connector_stiffness_bound`'s with the bands'
-    history (nonlinear springs, bands centred on a stretched state: to rounding), and at rest
+    history (nonlinear springs, bands centred on a stretched state: to rounding), at rest
     the tets' scalar matrix is :func:`particle.volume_bounds.volume_scalar_matrix`'s (their
-    products with a random vector, to rounding)."""
+    products with a random vector, to rounding), and the products kept for the bound, updated
+    connector by connector and tet by tet as bands move, are the matrices' products."""
     model = relaxing(jittered_box(0))
     bands = StrainBands(model, 0.05)
     n = model.n_particles
@@ -131,10 +132,16 @@ def test_the_compiled_weights_are_the_numpy_bounds():
     np.testing.assert_allclose(bands.kappa,
                                connector_stiffness_bound(model.params, bands.lo, bands.hi, past),
                                rtol=1e-14)
-    from particle.stability import mass_scaled_laplacian
     laplacian = mass_scaled_laplacian(model, bands.kappa)
     laplacian_product(model.edges, bands.kappa, bands._scale, x, ours)
     np.testing.assert_allclose(ours[free], abs(laplacian) @ x[free], rtol=1e-12)
+    # the products kept with the Perron vectors, updated for the bands that moved, are the
+    # products at the moved bands (the bound's rows): centre on a state that moves some
+    bands.centre(stretched * np.array([1.0, 1.0, 1.05]), iterations=0)
+    assert 0 < bands._moved.sum() < model.n_connectors
+    for product, perron, kept in zip(bands._products(), bands._perron, bands._product):
+        product(perron, ours)
+        np.testing.assert_allclose(kept[free], ours[free], rtol=1e-12)
 
 
 def flat_tet(height=0.001, side=0.02):
