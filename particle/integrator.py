@@ -141,10 +141,15 @@ class VerletIntegrator:
         strain_range: connector strains the runs stay in [1]: one (lo, hi) pair or
             per-connector (lo (E,), hi (E,)) arrays; the stability limit is the one of
             this range.
+        limit: the stability limit [s] of ``strain_range`` when the caller bounds it
+            itself (the haptic session's strain bands,
+            :class:`particle.envelope.StrainBands`; it may set the attribute again as the
+            range moves), None: :func:`critical_time_step`.
     """
 
     def __init__(self, damping: float = 0.0, *, check_every: int = 64,
-                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> None:
+                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+                 limit: float | None = None) -> None:
         if not (math.isfinite(damping) and damping >= 0.0):
             raise ParameterError(f"damping = {damping} 1/s must be >= 0")
         if check_every < 1:
@@ -152,11 +157,15 @@ class VerletIntegrator:
         self.damping = float(damping)
         self.check_every = int(check_every)
         self.strain_range = strain_range
+        self.limit = limit
         self._critical: tuple[Model, float] | None = None
         self._inertial: tuple[Model, np.ndarray, Model] | None = None
 
     def critical_time_step(self, model: Model) -> float:
-        """:func:`critical_time_step` of ``model`` (cached for the last model seen)."""
+        """:func:`critical_time_step` of ``model`` (cached for the last model seen), or the
+        ``limit`` the caller set."""
+        if self.limit is not None:
+            return self.limit
         if self._critical is None or self._critical[0] is not model:
             value = critical_time_step(model, strain_range=self.strain_range,
                                        damping=self.damping)
@@ -353,6 +362,21 @@ class Run:
         if n_steps:
             state.dt = dt
         return out
+
+    def retarget(self, strain_range: tuple[np.ndarray, np.ndarray],
+                 elongation_limits: tuple[np.ndarray, np.ndarray],
+                 ratio_range: tuple[np.ndarray, np.ndarray] | None = None,
+                 volume_limits: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Verify the strain range (lo (E,), hi (E,)) [1], as ``elongation_limits`` (E,) x 2
+        [m], and with the volume term the volume ratio range (lo (T,), hi (T,)) [1], as
+        ``volume_limits`` (T,) x 2 [m^3], from the next call on; the step is not checked
+        again (the caller bounds its stability on them, and may update the arrays in place
+        between calls, which the run then verifies: :class:`particle.envelope.StrainBands`).
+        """
+        self.monitored, self._elongation_limits = strain_range, elongation_limits
+        if self._volume is not None:
+            self.volume_ratio_range = ratio_range
+            self._volume = (*self._volume[:3], *volume_limits)
 
     def volume_arms(self, state: State) -> tuple | None:
         """The volume arms' kernel tuple of ``state`` (:mod:`particle.volume`; its pressures and

@@ -39,7 +39,8 @@ DENSE_EIGEN_LIMIT = 100
 
 
 
-def connector_stiffness_bound(params: ConnectorParams, lo: np.ndarray, hi: np.ndarray
+def connector_stiffness_bound(params: ConnectorParams, lo: np.ndarray, hi: np.ndarray,
+                              history: tuple[np.ndarray, np.ndarray] | None = None
                               ) -> np.ndarray:
     """(E,) kappa_e >= the largest eigenvalue of connector e's 3x3 tangent block [N/m].
 
@@ -59,13 +60,25 @@ def connector_stiffness_bound(params: ConnectorParams, lo: np.ndarray, hi: np.nd
 
     kappa is at least 0, so that ``kappa``-weighted graph Laplacians are positive
     semidefinite.
+
+    ``history`` (lo (E,), hi (E,)): the strain hull every past elongation of the run
+    stayed in (it holds ``[lo, hi]`` and 0, the rest state; None: ``[lo, hi]``
+    itself). Then the arms' transverse part is the tighter ``k_i (hi - h_lo)/(1 +
+    hi)``: the arm force is ``c_i (dx - m)`` with ``c_i <= k_i`` and ``m`` a convex
+    combination of the past elongations and of the rest state's 0 (the backward-Euler
+    recursion ``F/c = r (F_prev/c_prev + dx - dx_prev)``, ``0 <= r <= 1``, keeps ``dx
+    - F/c`` a convex combination of the elongations whatever the steps), so ``F_arm/l
+    <= k_i (eps - h_lo)/(1 + eps)``, increasing in ``eps`` while ``1 + h_lo > 0``.
     """
     _, tangent = params.extreme_tangent_stiffness((lo, hi))
     kmin, kmax = params.extreme_stiffness((lo, hi))
     arms = params.k1 + params.k2
     spring = np.maximum(np.maximum(kmax, 0.0) * hi / (1.0 + hi),
                         np.maximum(-kmin, 0.0) * -lo / (1.0 + lo))
-    transverse = spring + arms * (hi - lo) / (1.0 + lo)
+    if history is None:
+        transverse = spring + arms * (hi - lo) / (1.0 + lo)
+    else:
+        transverse = spring + arms * np.maximum(hi - history[0], 0.0) / (1.0 + hi)
     return np.maximum(np.maximum(tangent + arms, transverse), 0.0)
 
 
@@ -139,18 +152,22 @@ class StepBound:
     volume_matrix: sp.csr_matrix | None = None
 
 
-def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> StepBound:
+def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+               history: StrainBounds | None = None) -> StepBound:
     """The ``omega_max^2`` bound of :func:`critical_time_step` for ``model`` (its own parameters,
     validated on ``strain_range``, and at least one free particle): with the volume term the
-    smaller of the springs' bound plus the term's own and the joint bound (see there)."""
+    smaller of the springs' bound plus the term's own and the joint bound (see there).
+    ``history``: the strain hull the run's past elongations stayed in, for the arms'
+    forces (:func:`connector_stiffness_bound`; None: ``strain_range``, the classic bound)."""
     p = model.params
     lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
-    kappa = connector_stiffness_bound(p, lo, hi)
+    past = None if history is None else strain_history(history, lo, hi, model)
+    kappa = connector_stiffness_bound(p, lo, hi, past)
     laplacian = mass_scaled_laplacian(model, kappa)
     springs = EIGENVALUE_MARGIN * largest_eigenvalue(laplacian)
     if p.kv is None:
         return StepBound(springs, kappa, laplacian, springs)
-    own, edge_weights, scalar = volume_step_bounds(model, lo, hi)
+    own, edge_weights, scalar = volume_step_bounds(model, lo, hi, past)
     own = min(own, EIGENVALUE_MARGIN * largest_eigenvalue(scalar))
     joint_kappa = kappa + edge_weights
     joint_laplacian = mass_scaled_laplacian(model, joint_kappa)
@@ -158,6 +175,14 @@ def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) 
     if joint < springs + own:
         return StepBound(joint, joint_kappa, joint_laplacian, joint)
     return StepBound(springs + own, kappa, laplacian, springs, own, scalar)
+
+
+def strain_history(history: StrainBounds, lo: np.ndarray, hi: np.ndarray, model: Model
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) (lo, hi): ``history`` as per-connector arrays, widened to hold ``[lo, hi]`` and the
+    rest state's 0 (the hull the arms' convolution averages over)."""
+    h_lo, h_hi = connector_strain_bounds(history, model.n_connectors, model.edges)
+    return np.minimum(np.minimum(h_lo, lo), 0.0), np.maximum(np.maximum(h_hi, hi), 0.0)
 
 
 def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
@@ -211,7 +236,14 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     p.validate(strain_range, model.edges, model.tets)
     if not (~model.fixed).any():
         return math.inf  # nothing moves
-    omega2 = step_bound(model if params is None else model.with_params(p), strain_range).omega2
+    return stable_step(step_bound(model if params is None else model.with_params(p),
+                                  strain_range).omega2, damping)
+
+
+def stable_step(omega2: float, damping: float = 0.0) -> float:
+    """The central-difference limit [s] for the largest frequency ``sqrt(omega2)`` [1/s] and
+    mass-proportional damping [1/s]: ``(2/omega)(sqrt(1 + xi^2) - xi)``, ``xi = damping/(2
+    omega)`` (inf without stiffness)."""
     if not omega2 > 0.0:
         return math.inf  # no stiffness at all: nothing oscillates
     omega = math.sqrt(omega2)

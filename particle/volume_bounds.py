@@ -55,13 +55,17 @@ def _max_triangle_area(a: tuple, b: tuple, c: tuple) -> np.ndarray:
                                                               a1 * c1))
 
 
-def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray):
+def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None):
     """Per-tet quantities of the volume term's frequency bounds over the strain box ``[lo, hi]``:
     (face gradient bounds G (T, 4) [m^2] >= |dV/dp_a| (the face opposite a over 3, Heron),
     longest lengths lmax (T, 6) [m] of the edges (:data:`TET_PAIRS` order), the largest
     instantaneous stiffness k (T,) [Pa] and the largest ``|P|`` (T,) [Pa] (module
     docstring; ``|V/V0 - 1|`` from :func:`volume_ratio_range`), free vertices (T, 4)
-    bool)."""
+    bool). ``history`` (lo (E,), hi (E,)): the strain hull the run's past states stayed in
+    (:func:`particle.stability.strain_history`, None: ``[lo, hi]``): an arm's pressure is
+    ``c_i (j - m)``, ``m`` a convex combination of the past volume strains (as the
+    connectors' arms, :func:`particle.stability.connector_stiffness_bound`), so ``|P_i| <=
+    kv_i max(J_hi - Jh_lo, Jh_hi - J_lo)`` with ``Jh`` the history's volume ratio range."""
     conn = model.tet_connectors  # (T, 6) in TET_PAIRS order: 01 02 03 12 13 23
     L0 = model.rest_lengths[conn]
     lmin, lmax = (1.0 + lo[conn]) * L0, (1.0 + hi[conn]) * L0
@@ -74,7 +78,11 @@ def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray):
     p = model.params
     pressure = p.kv * np.maximum(1.0 - j_lo, j_hi - 1.0)
     if p.has_volume_arms:
-        pressure = pressure + (p.kv1 + p.kv2) * (j_hi - j_lo)
+        if history is None:
+            pressure = pressure + (p.kv1 + p.kv2) * (j_hi - j_lo)
+        else:
+            h_lo, h_hi = volume_ratio_range(model, *history)
+            pressure = pressure + (p.kv1 + p.kv2) * np.maximum(j_hi - h_lo, h_hi - j_lo)
     return grad, lmax, p.volume_instantaneous, pressure, ~model.fixed[model.tets]
 
 
@@ -275,11 +283,11 @@ def volume_tet_energies(model, lo: np.ndarray, hi: np.ndarray, mode: np.ndarray)
     return np.einsum("ta,tab,tb->t", xt, _scalar_entries(model, *_tet_bounds(model, lo, hi)), xt)
 
 
-def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray
+def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None
                        ) -> tuple[float, np.ndarray, sp.csr_matrix]:
     """(:func:`volume_frequency_bound`, :func:`volume_edge_stiffness_bound`,
     :func:`volume_scalar_matrix`) of one strain range, the per-tet bounds they share computed
-    once (the stable step takes all three)."""
-    bounds = _tet_bounds(model, lo, hi)
+    once (the stable step takes all three); ``history``: :func:`_tet_bounds`'."""
+    bounds = _tet_bounds(model, lo, hi, history)
     return (_frequency_bound(model, bounds), _edge_weights(model, *bounds[:4]),
             _scalar_matrix(model, bounds))

@@ -272,7 +272,8 @@ def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
     """The benchmark's volume rows on a small box: float64 is the errors' reference (0), the
     narrower strain range and mass scaling take fewer substeps with small or stated errors,
     and volume_cost compares the volume term's time per call with springs-only."""
-    from pipelines.bench.haptic import ENVELOPE, mesh_rows, volume_cost, volume_rows
+    from pipelines.bench.haptic import (BAND, ENVELOPE, FOLLOWING, mesh_rows, volume_cost,
+                                        volume_rows)
 
     model = box_model((3, 3, 2), K0=200.0)
     gravity = np.array([0.0, 0.0, -9.81])
@@ -280,7 +281,7 @@ def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
     rows = volume_rows("box", model, node, tracked, gravity, kv=3e4)
     by = {r["variant"]: r for r in rows}
     narrow = ENVELOPE
-    assert set(by) == {"float64", narrow, "mass-scaled 1", "mass-scaled 2"}
+    assert set(by) == {"float64", narrow, FOLLOWING, "mass-scaled 1", "mass-scaled 2"}
     assert all(r["terms"] == "springs + arms + volume" and r["tets"] == model.n_tets
                for r in rows)
     ref = by["float64"]
@@ -289,6 +290,10 @@ def test_the_haptic_scale_volume_rows_state_substeps_errors_and_cost():
     reach = by[narrow]["strain_range"][1]  # 1.2 x the drag's largest |strain|, to 0.05
     assert by[narrow]["strain_range"] == [-reach, reach] and 0.0 < reach < 0.5
     assert 0.0 < by[narrow]["error_drag"] < 1e-2  # a smaller step of the same physics
+    # the bands that follow the state: fewer substeps, the same physics at another step
+    following = by[FOLLOWING]
+    assert following["band"] == BAND and following["substeps"] < ref["substeps"]
+    assert 0.0 < following["error_drag"] < 1e-2 and 0.0 < following["error_release"] < 1e-2
     for k in (1, 2):
         assert by[f"mass-scaled {k}"]["substeps"] == k
         assert by[f"mass-scaled {k}"]["added_mass"] > 0.0

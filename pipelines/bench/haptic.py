@@ -29,7 +29,12 @@ as the benchmark's connectors have (:func:`volume_model`); the variants of each 
 errors), ``drag's strains`` (the session verified on the strain range the drag needs,
 +-:data:`ENVELOPE_MARGIN` x the largest |strain| of the float64 drag rounded up to 0.05,
 instead of +-0.5: a larger stable step, as the volume term's bound grows with the faces'
-and volumes' possible growth; ``strain_range`` in the row) and ``mass-scaled 1``/``2``.
+and volumes' possible growth; ``strain_range`` in the row), ``state's strains`` (the
+session's per-connector strain bands of half-width :data:`BAND` that follow the state,
+``HapticSession(envelope=...)``: ``substeps`` the most of any call, ``recentred`` how often
+the bands moved, ``recentre_max_us`` the longest of those calls, which the latencies include;
+its release runs at that step, unmonitored, as the bands verify the drag)
+and ``mass-scaled 1``/``2``.
 ``volume_cost`` gives per mesh the time per call with the volume term over springs-only
 (the goal: at most :data:`VOLUME_COST_GOAL`, the term may cost half the springs' period again).
 
@@ -84,6 +89,10 @@ PERIOD = 1e-3  # s, the device period: one call
 # drag (0.28 on the 12k-connector liver, 0.35 on the 54k one), rounded up to 0.05
 ENVELOPE_MARGIN = 1.2
 ENVELOPE = "drag's strains"
+# the "state's strains" variant: HapticSession(envelope=BAND), per-connector strain bands of
+# this half-width that follow the state (re-centred as the drag strains the mesh)
+BAND = 0.05
+FOLLOWING = "state's strains"
 SPRINGS, VOLUME = "springs + arms", "springs + arms + volume"
 RELAXING = "springs + arms + relaxing volume"
 VOLUME_GOAL_US = 200.0  # the p99 goal with a volume term (elastic or relaxing)
@@ -140,7 +149,8 @@ def volume_rows(name: str, model, tool: int, tracked: int, gravity: np.ndarray,
     (:data:`ENVELOPE_MARGIN`; a larger stable step), and mass scaling to 1 and 2 substeps."""
     model = volume_model(model, kv, prony)
     default = _default_substeps(model)
-    variants = [Variant("float64"), Variant(ENVELOPE, envelope=True)]
+    variants = [Variant("float64"), Variant(ENVELOPE, envelope=True),
+                Variant(FOLLOWING, band=BAND)]
     variants += [Variant(f"mass-scaled {k}", substeps=k) for k in (1, 2) if k < default]
     return _rows(name, VOLUME if prony is None else RELAXING, model, None, tool, tracked,
                  gravity, variants)
@@ -155,6 +165,7 @@ class Variant:
     renumbered: bool = False
     substeps: int | None = None
     envelope: bool = False
+    band: float | None = None
 
 
 def _default_substeps(model) -> int:
@@ -187,16 +198,21 @@ def _rows(name: str, terms: str, model, renumbering, tool: int, tracked: int,
                                  if v.renumbered else (model, tool, tracked))
         # the session's largest step: the default's, or the period / k with the inertia
         # that makes it stable; the release takes the same step, inertia and strain range
-        if v.substeps is None:
+        if v.band is not None:
+            step, inertia = PERIOD, None  # the session takes dt_safety x its bands' limit
+        elif v.substeps is None:
             step, inertia = safety * critical_time_step(m, strain_range=strains), None
         else:
             step = PERIOD / v.substeps
             inertia = scaled_inertia(m, step / safety, strain_range=strains)
         log.info("haptic scale: %s, %s, %s", name, terms, v.name)
         drag = pb.haptic_drag(m, node, DOWN, step, calls=CALLS, inertia=inertia,
-                              strain_range=strains)
+                              strain_range=strains, envelope=v.band)
+        if v.band is not None:  # the release at the drag's (smallest) step
+            step = drag["dt_s"]
         release = pb.release_history(m, RELEASE_GRAVITY * gravity, step, tracked_node,
-                                     inertia=inertia, strain_range=strains)
+                                     inertia=inertia, strain_range=strains,
+                                     checked=v.band is None)
         if reference is None:
             reference, ref_release = drag, release
         us = drag["latencies_us"]
@@ -205,10 +221,13 @@ def _rows(name: str, terms: str, model, renumbering, tool: int, tracked: int,
             "mesh": name, "terms": terms, "variant": v.name, "connectors": model.n_connectors,
             "particles": model.n_particles, "tets": model.n_tets if terms == VOLUME else 0,
             "strain_range": list(strains),
-            "substeps": drag["substeps"], "dt_s": drag["dt_s"],
+            "substeps": drag["substeps"], "dt_s": drag["dt_s"], "band": v.band,
+            "recentred": drag["recentred"],
             "added_mass": 0.0 if inertia is None else added_mass_fraction(m, inertia),
             "min_us": float(us.min()), "median_us": median,
             "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max()),
+            "recentre_max_us": (float(us[drag["recentring"]].max())
+                                if drag["recentring"].any() else None),
             "cpu_us": drag["cpu_us"],
             "updates_per_s": model.n_connectors * drag["substeps"] / (1e-6 * median),
             "error_drag": pb.relative_history_error(drag["forces"], reference["forces"]),
@@ -331,18 +350,22 @@ def markdown(b: dict[str, Any]) -> list[str]:
              "long-term stiffness, with Maxwell arms of the connectors' Prony split; "
              "`drag's strains`: the session verified on "
              f"+-{ENVELOPE_MARGIN:g} x the largest strain of the float64 drag (rounded up to "
-             "0.05) instead of +-0.5. updates/s counts connectors only."
+             "0.05) instead of +-0.5; `state's strains`: per-connector bands of half-width "
+             f"{BAND:g} that follow the state (`HapticSession(envelope=...)`), re-centred "
+             "(`recentred` times, the longest such call under `re-centre [us]`, included in "
+             "the other times). updates/s counts connectors only."
              " min and CPU time per call are the "
              "measures least affected by other processes. Load average "
              f"{h['load_average_start'][0]:.1f} at the start, {h['load_average_end'][0]:.1f} "
              "at the end.", ""]
     lines += table(["mesh", "connectors", "terms", "variant", "substeps", "added mass",
                     "min [us]", "median [us]", "p99 [us]", "max [us]", "CPU [us/call]",
-                    "updates/s", "error drag", "error release"],
+                    "recentred", "re-centre [us]", "updates/s", "error drag", "error release"],
                    [[r["mesh"], r["connectors"], r.get("terms", SPRINGS), r["variant"],
                      r["substeps"],
                      f"{100 * r['added_mass']:.2g} %",
                      r["min_us"], r["median_us"], r["p99_us"], r["max_us"], r["cpu_us"],
+                     r.get("recentred") or "", r.get("recentre_max_us") or "",
                      r["updates_per_s"], r["error_drag"], r["error_release"]]
                     for r in h["rows"]])
     if h.get("volume_cost"):

@@ -148,35 +148,46 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 
 def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls: int = 1000,
                 depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None,
-                strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> dict:
+                strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+                envelope: float | None = None) -> dict:
     """``calls`` periods (1 ms each) of :class:`HapticSession` dragging ``node`` ``depth`` [m]
     along ``normal`` (linearly over the first quarter, then held), timed call by call.
 
     ``dt`` is the session's largest step [s], ``threads``, ``inertia`` and
-    ``strain_range`` (verified by the session) go to the session. Returns the session's
-    ``substeps`` and ``dt_s``, ``latencies_us`` (calls,) [us] of wall time per call,
+    ``strain_range`` (verified by the session) and ``envelope`` (bands that follow the
+    state) go to the session. Returns the session's ``substeps`` and ``dt_s`` (with
+    ``envelope``: the most substeps of any call and its step; ``recentred``, how often
+    the bands were re-centred), ``latencies_us`` (calls,) [us] of wall time per call,
     ``cpu_us`` [us] the process CPU time per call (less sensitive to a busy machine than
     wall time: time spent waiting for a core is not counted), ``forces`` (calls, 3)
-    [N], the force on the tool after each call, and ``max_abs_strain`` [1], the largest
+    [N], the force on the tool after each call, ``recentring`` (calls,) bool, the calls that
+    re-centred the bands (their time included), and ``max_abs_strain`` [1], the largest
     connector |strain| at the end of a call (outside the clock). One call before the
     clock compiles the kernels.
     """
     session = HapticSession(model, dt, threads=threads, inertia=inertia,
-                            strain_range=strain_range)
+                            strain_range=strain_range, envelope=envelope)
     start = model.rest_positions[node]
     session.step(node, start)  # compile outside the clock (the tissue stays at rest)
     latencies = np.empty(calls)
     forces = np.empty((calls, 3))
     strain = np.empty(calls)
+    recentring = np.zeros(calls, dtype=bool)
     cpu = 0.0
+    substeps = session.substeps
     for k in range(calls):
         target = start + depth * min(1.0, k / (calls / 4)) * normal
+        recentred = session.recentred
         c0, t0 = time.process_time(), time.perf_counter()
         forces[k] = session.step(node, target)
         latencies[k] = time.perf_counter() - t0
         cpu += time.process_time() - c0
+        recentring[k] = session.recentred > recentred
         strain[k] = np.max(np.abs(session.state.dx_prev / model.rest_lengths))
-    return {"substeps": session.substeps, "dt_s": session.dt, "latencies_us": 1e6 * latencies,
+        substeps = max(substeps, session.substeps)
+    return {"substeps": substeps, "dt_s": session.period / substeps,
+            "latencies_us": 1e6 * latencies, "recentring": recentring,
+            "recentred": session.recentred,
             "cpu_us": 1e6 * cpu / calls, "forces": forces, "max_abs_strain": float(strain.max())}
 
 
@@ -210,18 +221,21 @@ def haptic_latency(model: Model, node: int, normal: np.ndarray, *, calls: int = 
 def release_history(model: Model, gravity: np.ndarray, dt: float, node: int, *,
                     duration: float = 3.0, record_interval: float = 0.005,
                     strain_range: StrainBounds = THROUGHPUT_STRAIN_RANGE,
-                    inertia: np.ndarray | None = None) -> np.ndarray:
+                    inertia: np.ndarray | None = None, checked: bool = True) -> np.ndarray:
     """(S, 3) displacement [m] of particle ``node`` every ``record_interval`` over
     ``duration`` s of release from rest under ``gravity`` (explicit steps of at most ``dt``
     that divide the interval; strains verified in ``strain_range``; optional mass
-    scaling ``inertia``)."""
+    scaling ``inertia``; ``checked`` False: ``dt`` is not checked against the limit of
+    ``strain_range`` nor the strains monitored, for a step verified elsewhere, e.g. on bands
+    that follow the state)."""
     steps_per_record = math.ceil(record_interval / dt * (1.0 - 1e-12))
     step = record_interval / steps_per_record
     samples = int(round(duration / record_interval))
     record_steps = steps_per_record * np.arange(samples + 1)
     history = VerletIntegrator(strain_range=strain_range).simulate(
         model, model.state(), step, int(record_steps[-1]), gravity=gravity,
-        record_nodes=np.array([node]), record_steps=record_steps, inertia=inertia)
+        record_nodes=np.array([node]), record_steps=record_steps, inertia=inertia,
+        _check_dt=checked)
     return history[:, 0] - model.rest_positions[node]
 
 
