@@ -32,6 +32,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx import mesh as dmesh
+from dolfinx.fem.assemble import pack_coefficients
 from dolfinx.fem.petsc import NonlinearProblem, assemble_vector, set_bc
 from dolfinx.nls.petsc import NewtonSolver
 from mpi4py import MPI
@@ -242,6 +243,10 @@ class _ResidualProblem(NonlinearProblem):
         self.seconds = dict.fromkeys(PROFILE_PARTS, 0.0)
         self._solve_start = 0.0  # end of the last J (the linear solve follows it)
         self._refreshed = False  # the last J asked for a fresh factorisation
+        # the residual form's packed coefficients of this solve (the unknown's entries
+        # refreshed per residual, see _coefficients) and where the unknown goes in them
+        self._packed: dict | None = None
+        self._unknown_gather = _unknown_gather(self.L, w)
 
     def chord(self) -> bool:
         """Whether the next iteration is a chord step (class docstring)."""
@@ -325,6 +330,7 @@ class _ResidualProblem(NonlinearProblem):
         first = not self.residual_norms
         if first:
             self.restart_mixing()
+            self._packed = None  # the step's coefficients (history, predictor) are new
         self.plain_residual = not (first and self.lift_first)
         norm = self._residual(x, b, lift=not self.plain_residual)
         norms = self.residual_norms
@@ -350,6 +356,19 @@ class _ResidualProblem(NonlinearProblem):
         self.previous_residual = b.array.copy()
         self.previous_unconstrained = self.unconstrained
 
+    def _coefficients(self, x: PETSc.Vec) -> dict:
+        """The residual form's packed coefficients at the iterate ``x``: packed by dolfinx at
+        the first residual of a solve; afterwards only the unknown's entries change, and they
+        are gathered from ``x`` (0.03 ms instead of 0.25 ms for dolfinx's packing of the
+        Prony history and the predictor too, on the default liver)."""
+        gather = self._unknown_gather
+        if self._packed is None or gather is None:
+            self._packed = pack_coefficients(self.L)
+        else:
+            packed, columns, dofs = gather
+            self._packed[packed][:, columns] = x.array_r[dofs]
+        return self._packed
+
     def _residual(self, x: PETSc.Vec, b: PETSc.Vec, *, lift: bool) -> float:
         """Assemble the residual at ``x`` into ``b``; return its norm [N]."""
         self.unconstrained = None
@@ -361,7 +380,7 @@ class _ResidualProblem(NonlinearProblem):
             # x holds them (from the first update on, or a guess that had them: see
             # solve_step), so the lifting, a tangent of every constrained cell and most of a
             # residual's cost, adds nothing
-            assemble_unconstrained(b, self.L)
+            assemble_unconstrained(b, self.L, self._coefficients(x))
             # kept: at the converged iterate of a quasi-static step it is the nodal force
             self.unconstrained = b.array_r.copy()
             set_bc(b, self.bcs, x, -1.0)  # the rows' constraint equations, x - g
@@ -622,12 +641,43 @@ def _set_material(model: FEModel, state: FEState, dt: float | None) -> tuple[np.
     return decay, gain
 
 
-def assemble_unconstrained(b: PETSc.Vec, form: fem.FormMetaClass) -> None:
-    """Assemble the linear ``form`` into ``b`` (zeroed first), no Dirichlet conditions."""
+def assemble_unconstrained(b: PETSc.Vec, form: fem.FormMetaClass,
+                           coefficients: dict | None = None) -> None:
+    """Assemble the linear ``form`` into ``b`` (zeroed first), no Dirichlet conditions;
+    ``coefficients`` packed as :func:`dolfinx.fem.assemble.pack_coefficients` (default: packed
+    here)."""
     with b.localForm() as loc:
         loc.set(0.0)
-    assemble_vector(b, form)
+    assemble_vector(b, form, coeffs=coefficients)
     b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+
+
+def _unknown_gather(form: fem.FormMetaClass, unknown: fem.Function
+                    ) -> tuple[tuple, np.ndarray, np.ndarray] | None:
+    """Where ``unknown``'s entries go in ``form``'s packed coefficients: ``(key, columns,
+    dofs)`` with ``packed[key][:, columns] == unknown.x.array[dofs]`` for any values of it, or
+    None when the packing is not such a gather (more than one cell integral, or dof
+    transformations). Found by packing the unknown set to 1..n, checked on random values."""
+    x = unknown.x.array
+    saved = x.copy()
+    try:
+        x[:] = 0.0
+        zero = pack_coefficients(form)
+        if len(zero) != 1:
+            return None
+        key = next(iter(zero))
+        x[:] = np.arange(1, x.size + 1)
+        numbered = pack_coefficients(form)[key]
+        columns = np.flatnonzero(np.any(numbered != zero[key], axis=0))
+        dofs = np.rint(numbered[:, columns] - zero[key][:, columns]).astype(np.int64) - 1
+        if np.any(dofs < 0) or np.any(dofs >= x.size):
+            return None
+        x[:] = np.random.default_rng(0).standard_normal(x.size)
+        if not np.array_equal(pack_coefficients(form)[key][:, columns], x[dofs]):
+            return None
+        return key, columns, dofs
+    finally:
+        x[:] = saved
 
 
 def _assemble_residual(model: FEModel) -> np.ndarray:
