@@ -465,9 +465,10 @@ def test_a_kept_factorisation_and_chord_steps_change_nothing_but_the_cost(monkey
     assert fresh_factorisations == fresh_assemblies == fresh_iterations  # exact Newton
     assert assemblies < fresh_iterations / 2
     assert factorisations <= fresh_iterations // 4
-    # both converge to the same Newton tolerance (1e-8 of the force scale); GMRES solves to
-    # 1e-8 of each residual, so the curves agree far below that
-    np.testing.assert_allclose(kept, fresh, rtol=0, atol=1e-9 * np.abs(fresh).max())
+    # both converge to the same Newton tolerance (1e-8 of the force scale), so the curves agree
+    # to it: the hold's guesses (creep_guess) are fitted to each run's own converged states,
+    # so the two runs stop at different iterates within it (1.05e-9 of the largest force)
+    np.testing.assert_allclose(kept, fresh, rtol=0, atol=1e-8 * np.abs(fresh).max())
 
 
 def test_a_chord_step_that_raises_the_residual_is_taken_back(monkeypatch):
