@@ -117,6 +117,44 @@ def extrapolate(state: FEState, previous: FEState | None, drive: Callable[[float
     return state.u + ratio * (state.u - previous.u)
 
 
+#: extra terms of :func:`creep_guess`'s fit besides the constant and the Prony exponentials:
+#: a linear and a quadratic term in time. Measured on four default-liver relaxation curves
+#: (Newton iterations of the 40 steps): 750 with ``HELD_EXTRAPOLATION`` alone, 669 fitting
+#: the constant and the two exponentials to the last 3 held states, 628 with the linear term
+#: (4 states), 600 with the quadratic one too (5 states)
+CREEP_POLYNOMIAL_TERMS = 2
+
+
+def creep_guess(held: list[FEState], target: float, taus: np.ndarray) -> np.ndarray | None:
+    """Newton guess of a held step: the last converged states of the hold (``held``, oldest
+    first, all at the same prescribed depth) fitted in time and evaluated at ``target`` [s].
+
+    While the depth stands still the displacement creeps as the Prony terms relax: a
+    constant plus the exponentials ``exp(-t / tau_i)`` of the relaxation times ``taus`` [s]
+    (the slowest first), then ``CREEP_POLYNOMIAL_TERMS`` powers of t for what they miss (the
+    body's own time constants are combinations of them). The fit uses as many of these
+    functions, in that order, as there are states (at most all of them), interpolating the
+    last states exactly; the result is a weighted sum of their solutions. None with fewer
+    than 3 states (the caller extrapolates linearly).
+    """
+    n = min(len(held), 1 + len(taus) + CREEP_POLYNOMIAL_TERMS)
+    if n < 3:
+        return None
+    states = held[-n:]
+    t_last = states[-1].progress
+
+    def basis(t: float) -> np.ndarray:
+        dt = t - t_last
+        terms = [1.0, *np.exp(-dt / np.sort(np.asarray(taus, float))[::-1]),
+                 *(dt ** k for k in range(1, CREEP_POLYNOMIAL_TERMS + 1))]
+        return np.array(terms[:n])
+
+    B = np.array([basis(s.progress) for s in states])  # (n states, n functions)
+    scale = np.abs(B).max(axis=0)  # each function of order 1 over the states (conditioning)
+    weights = np.linalg.lstsq((B / scale).T, basis(target) / scale, rcond=None)[0]
+    return sum(w * s.u for w, s in zip(weights, states))
+
+
 def _indent(held: tuple[Constraint, ...], dofs: np.ndarray, normal: np.ndarray,
             depth: float) -> Load:
     """The clamp ``held`` and the nodes ``dofs`` moved by ``depth * normal``."""
@@ -172,9 +210,19 @@ def held_relaxation_curve(model: FEModel, fixed: np.ndarray, dofs: np.ndarray,
         return float(np.interp(t, t_knots, d_knots))
 
     held = clamp(model.clamp_dofs(fixed))
+    taus = np.asarray(model.material.prony_tau, float)
+    hold: list[FEState] = []  # the last converged states at the current depth, oldest first
 
     def step(state: FEState, previous: FEState | None, t: float) -> FEState:
-        guess = extrapolate(state, previous, depth_at, t, held=HELD_EXTRAPOLATION)
+        if not hold or hold[-1] is not state:  # a new converged state (not a retried step)
+            if hold and depth_at(hold[-1].progress) != depth_at(state.progress):
+                hold.clear()
+            hold.append(state)
+            del hold[:-(1 + len(taus) + CREEP_POLYNOMIAL_TERMS)]
+        guess = (creep_guess(hold, t, taus) if depth_at(t) == depth_at(state.progress)
+                 else None)
+        if guess is None:
+            guess = extrapolate(state, previous, depth_at, t, held=HELD_EXTRAPOLATION)
         return solve_step(model, state, _indent(held, dofs, normal, depth_at(t)), t,
                           dt=t - state.progress, guess=guess)
 
