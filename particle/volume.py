@@ -337,6 +337,27 @@ def add_tet_force(forces, tets, t, f):
     forces[i0, 2] -= f[11]
 
 
+@njit(inline="always", **JIT)
+def _tet_edge_lanes(x, tets, t):
+    """The edge vectors p1 - p0, p2 - p0, p3 - p0 (3-tuples of vectors [m]) of tets
+    ``t .. t+LANES-1``."""
+    q0, q1, q2 = gather_rows(x, tets, t, 0)
+    r1 = gather_rows(x, tets, t, 1)
+    r2 = gather_rows(x, tets, t, 2)
+    r3 = gather_rows(x, tets, t, 3)
+    return ((vsub(r1[0], q0), vsub(r1[1], q1), vsub(r1[2], q2)),
+            (vsub(r2[0], q0), vsub(r2[1], q1), vsub(r2[2], q2)),
+            (vsub(r3[0], q0), vsub(r3[1], q1), vsub(r3[2], q2)))
+
+
+@njit(**JIT)
+def _volume_lanes(a, g1):
+    """The volumes ``(a . g1) / 6`` [m^3] of the lanes' tets, ``a`` = p1 - p0, ``g1`` = 6
+    dV/dp1, as :func:`tet_volume` computes them."""
+    return vmul(vadd(vadd(vmul(a[0], g1[0]), vmul(a[1], g1[1])), vmul(a[2], g1[2])),
+                vsplat(1.0 / 6.0))
+
+
 @njit(**JIT)
 def _cross_lanes(a, b):
     """The lane-wise cross product of two 3-tuples of vectors."""
@@ -352,29 +373,23 @@ def tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t):
     v_hi]``); the arms (or None) advanced and stored. Inlined where it is called: as a
     function of its own, its 14 returned vectors go through memory (measured 1.4x slower).
     """
-    q0, q1, q2 = gather_rows(x, tets, t, 0)
-    r1 = gather_rows(x, tets, t, 1)
-    r2 = gather_rows(x, tets, t, 2)
-    r3 = gather_rows(x, tets, t, 3)
-    a = (vsub(r1[0], q0), vsub(r1[1], q1), vsub(r1[2], q2))
-    b = (vsub(r2[0], q0), vsub(r2[1], q1), vsub(r2[2], q2))
-    c = (vsub(r3[0], q0), vsub(r3[1], q1), vsub(r3[2], q2))
+    a, b, c = _tet_edge_lanes(x, tets, t)
     g1 = _cross_lanes(b, c)
     g2 = _cross_lanes(c, a)
     g3 = _cross_lanes(a, b)
+    v = _volume_lanes(a, g1)
     sixth = vsplat(1.0 / 6.0)
-    v = vmul(vadd(vadd(vmul(a[0], g1[0]), vmul(a[1], g1[1])), vmul(a[2], g1[2])), sixth)
     inside = vlt_mask(vload(v_lo, t), v) & vle_mask(v, vload(v_hi, t))  # NaN: outside
     strain = vsub(vdiv(v, vload(rest_volumes, t)), vsplat(1.0))
     pressure = vmul(vload(kv, t), strain)
     if arms is not None:
-        r, c_, prev, strain_prev, out, strain_out = arms
-        r1_, r2_ = vload2(r, t)
-        c1, c2 = vload2(c_, t)
+        r, k, prev, strain_prev, out, strain_out = arms
+        r1, r2 = vload2(r, t)
+        k1, k2 = vload2(k, t)
         p1, p2 = vload2(prev, t)
         d = vsub(strain, vload(strain_prev, t))
-        p1 = vadd(vmul(r1_, p1), vmul(c1, d))
-        p2 = vadd(vmul(r2_, p2), vmul(c2, d))
+        p1 = vadd(vmul(r1, p1), vmul(k1, d))
+        p2 = vadd(vmul(r2, p2), vmul(k2, d))
         vstore2(out, t, p1, p2)  # may alias the previous pressures: already read
         vstore(strain_out, t, strain)
         pressure = vadd(pressure, vadd(p1, p2))
@@ -389,10 +404,17 @@ def tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t):
 @njit(**JIT)
 def first_volume_outside(x, tets, v_lo, v_hi):
     """The first tet whose volume at ``x`` is not in ``(v_lo, v_hi]`` (T,) [m^3] (-1: none):
-    the range check of :func:`add_volume_forces` without the forces (a run's final state)."""
-    for t in range(tets.shape[0]):
-        # the gradients it also returns are dead code the compiler drops
-        v = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3])[4]
+    the range check of :func:`add_volume_forces` (its volumes, bit for bit) without the
+    forces (a run's final state), :data:`~particle.lanes.LANES` tets at a time."""
+    n = tets.shape[0]
+    rest = n // LANES * LANES
+    seen = 0  # the lanes outside, or-ed (no branch in the loop)
+    for t in range(0, rest, LANES):
+        a, b, c = _tet_edge_lanes(x, tets, t)
+        v = _volume_lanes(a, _cross_lanes(b, c))
+        seen |= ALL_LANES ^ (vlt_mask(vload(v_lo, t), v) & vle_mask(v, vload(v_hi, t)))
+    for t in range(0 if seen != 0 else rest, n):  # which one: the same formula, scalar
+        v = tet_volume(x, tets, t)
         if not (v > v_lo[t] and v <= v_hi[t]):
             return np.int64(t)
     return np.int64(-1)
