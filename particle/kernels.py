@@ -135,9 +135,14 @@ def add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_pre
         rest = first + (stop - first) // LANES * LANES
         i = edges[first, 0]
         held = (i, forces[i, 0], forces[i, 1], forces[i, 2])
+        ahead = connector_lengths(x, edges, first)
         for e in range(first, rest, LANES):
+            current = ahead
+            # the next connectors' lengths first: their gathers and square roots overlap
+            # this batch's divisions and scatter (the last batch recomputes its own)
+            ahead = connector_lengths(x, edges, e + LANES if e + LANES < rest else e)
             s0, s1, s2, lanes_outside = connector_lanes(
-                x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, arm_out,
+                current, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, arm_out,
                 dx_out, dx_lo, dx_hi, e)
             if lanes_outside != 0 and outside < 0:
                 outside = np.int64(e) + first_lane(lanes_outside)
@@ -172,21 +177,29 @@ def add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_pre
 
 
 @njit(**JIT)
-def connector_lanes(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, arm_out,
-                    dx_out, dx_lo, dx_hi, e):
-    """Connectors ``e .. e+LANES-1`` as lanes (:mod:`particle.lanes`): the scalar loop of
-    :func:`add_connector_forces` lane-wise, the same operations in the same order.
-
-    Stores their elongations (and arm forces); returns the three vectors of the force
-    ``s (x_j - x_i)`` [N] they add to particle i (and subtract from j), and a bit mask of
-    the lanes outside ``[dx_lo, dx_hi]`` (0 when ``dx_lo`` is None).
-    """
+def connector_lengths(x, edges, e):
+    """(x_j - x_i as three vectors [m], their lengths [m]) of connectors ``e .. e+LANES-1``
+    (:mod:`particle.lanes`), as :func:`connector_vector` computes them."""
     xi0, xi1, xi2 = gather_rows(x, edges, e, 0)
     xj0, xj1, xj2 = gather_rows(x, edges, e, 1)
     d0 = vsub(xj0, xi0)
     d1 = vsub(xj1, xi1)
     d2 = vsub(xj2, xi2)
-    length = vsqrt(vadd(vadd(vmul(d0, d0), vmul(d1, d1)), vmul(d2, d2)))
+    return d0, d1, d2, vsqrt(vadd(vadd(vmul(d0, d0), vmul(d1, d1)), vmul(d2, d2)))
+
+
+@njit(**JIT)
+def connector_lanes(lengths, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, arm_out,
+                    dx_out, dx_lo, dx_hi, e):
+    """Connectors ``e .. e+LANES-1`` as lanes (:mod:`particle.lanes`) from their
+    :func:`connector_lengths`: the scalar loop of :func:`add_connector_forces` lane-wise, the
+    same operations in the same order.
+
+    Stores their elongations (and arm forces); returns the three vectors of the force
+    ``s (x_j - x_i)`` [N] they add to particle i (and subtract from j), and a bit mask of
+    the lanes outside ``[dx_lo, dx_hi]`` (0 when ``dx_lo`` is None).
+    """
+    d0, d1, d2, length = lengths
     rest = vload(rest_lengths, e)
     dx = vsub(length, rest)
     outside = 0
