@@ -13,6 +13,11 @@ more compilation in every fresh calibration worker than the skipped terms save. 
 explicit step loop that calls these kernels (serial and multi-threaded) is
 :mod:`particle.step_kernels`.
 
+Without a tension output (every explicit step) :func:`add_connector_forces` takes the
+connectors four at a time as SIMD lanes (:mod:`particle.lanes`, :func:`connector_lanes`),
+bit for bit the scalar loop it keeps for the remainder and the static path (measured in
+:mod:`particle.step_kernels`' docstring).
+
 Index arrays (connector ends, node lists) may be passed as unsigned views
 (:func:`index_view`): numba then drops the wrap-around handling of negative
 indices from every gathered index. Measured on the 12k-connector liver: one

@@ -13,8 +13,9 @@ Loads of per-item data (``item`` .. ``item + LANES - 1`` of a 1-d array or of on
 pair of an (n, 2) array) are one contiguous vector load for C-contiguous arrays and lane
 by lane otherwise; the particles' coordinates are gathered by scalar loads put into lanes
 (:func:`gather_rows`): on the AMD Zen 4 cores this was measured on, the AVX-512 gather
-instruction was slower (one pass over the 12k-connector liver's connectors 51 against
-33 us). Four lanes (:data:`LANES`) measured faster than eight there.
+instruction was slower (the connectors' lane arithmetic on the 12k-connector liver, without
+the scatter: 51 against 33 us). Four lanes (:data:`LANES`) measured faster than eight or
+two there.
 """
 
 from __future__ import annotations

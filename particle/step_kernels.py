@@ -18,25 +18,32 @@ busy core, up to a scheduler time slice, and costs microseconds even when idle, 
 meshes (the 1400-connector liver) the serial loop is faster and stays the default. A
 scatter-free gather over a node -> connector incidence was slower than the serial scatter.
 
-The connector pass is bound by issue slots, not memory: per connector 2 index + 6 position
-loads, 9 stores (6 force read-modify-writes, 2 arm forces, 1 elongation), one sqrt and one
-division. None of these made it faster (each bitwise or round-off equal, measured on the
-12k-connector liver): connector data in float32 (conversions, no fewer instructions on the
-critical path); the sqrt and the division in separate vectorised loops (the scalar ones
-overlap the loads and stores anyway); keeping particle i's running sum in registers while
-consecutive connectors share it; float32 positions and arm state. Nor these, measured on
-the same mesh, one core, in the same session: a two-stage software pipeline (connector
-e+1's gathers and sqrt during connector e's forces; 7 % faster alone, nothing in a haptic
-call); chunks of 256 connectors in three loops (gathers and lengths, tensions, scatter) with
-the sqrt and division vectorised (1.6x slower: the scratch traffic costs more); structure of
-arrays for the arms and split connector ends (slower); positions and forces in one (N, 8)
-buffer (slower); flat arrays with unsigned indices (half the instructions per connector,
-the same time); interleaving two halves of the connector list (no chain of stores to one
-particle: the same time); a mesh whose positions and forces fit in L1 (the same 6 ns per
-connector from 1,000 to 12,062 connectors: neither cache nor memory bound). What halves the
-cost of a device period is one substep instead of two: mass scaling (:mod:`particle.mass_scaling`;
-the inertia enters only through ``inv_masses``, so no kernel changes), measured with its
-error in ``runs/bench/BENCH.md``.
+The connector and tet passes go :data:`~particle.lanes.LANES` items at a time as SIMD
+lanes (:mod:`particle.lanes`: the same IEEE operations per item, bit for bit the scalar
+loops): the connectors in two stages (the next batch's gathers and square roots issued
+before this batch's divisions and scatter) with particle i's sum carried in registers along
+its run of connectors, the tets in one stage. Measured on the 12k-connector liver, one core: the
+connector pass 91 -> 52 us, the tet pass 108 -> 68 us (elastic), 142 -> 79 us (with arms).
+Measured with the lanes and not kept: eight lanes (AVX-512; 1.4x slower than four), two lanes
+(1.2x slower), the AVX-512 gather instruction (slower than scalar loads into lanes), a
+third stage (divisions a batch ahead of the scatter: slower), gathers two batches ahead
+(the same), forces padded to (N, 4) with one vector load and store per particle (the
+same), positions padded to (N, 4) and transposed (the same), the arms' pairs used
+interleaved (the same), the tets in two stages (3 % faster elastic, 7 % slower with arms),
+a tet's range check as a branch in the loop (30 % slower than or-ing the lane masks).
+Measured on the scalar loop before the lanes and not kept (each bitwise or round-off
+equal): connector data in float32; the sqrt and the division in separate vectorised loops;
+particle i's running sum in registers (it pays only once the rest is lanes); float32
+positions and arm state; a two-stage software pipeline (7 % faster alone, nothing in a
+haptic call); chunks of 256 connectors in three loops (1.6x slower: the scratch traffic);
+structure of arrays for the arms and split connector ends; positions and forces in one
+(N, 8) buffer; flat arrays with unsigned indices (half the instructions, the same time);
+interleaving two halves of the connector list. The passes are neither cache nor memory
+bound (the same ns per connector from 1,000 to 12,062 connectors); they appear bound by
+the latency of each batch's chain (gathers, square root, division) over the out-of-order
+window. What halves the cost of a device period is one substep instead of two: mass
+scaling (:mod:`particle.mass_scaling`; the inertia enters only through ``inv_masses``, so
+no kernel changes), measured with its error in ``runs/bench/BENCH.md``.
 """
 
 from __future__ import annotations

@@ -5,7 +5,8 @@ take their items ``LANES`` at a time; a range shorter than ``LANES`` goes throug
 loop. Calling them item by item in order is therefore the scalar reference: the same
 additions into the force array in the same order, so forces, arm states, elongations,
 the first connector / tet outside its range and that tet's volume must be identical, not
-close. Checked on a box mesh in its own connector order and shuffled (ends swapped too: no
+close (and :func:`particle.volume.first_volume_outside`, the final-state check, must name
+the same tet). Checked on a box mesh in its own connector order and shuffled (ends swapped too: no
 order is assumed), linear / nonlinear springs, with and without arms, and for arrays that
 are not C-contiguous (the lanes' element-wise loads).
 """
@@ -16,7 +17,7 @@ import pytest
 
 from particle import kernels
 from particle.lanes import LANES
-from particle.volume import add_volume_forces
+from particle.volume import add_volume_forces, first_volume_outside
 from tests.particle_models import box_model
 
 RNG_SEED = 7
@@ -158,3 +159,5 @@ def test_the_tet_lanes_equal_the_scalar_loop_bit_for_bit(arms, bad):
         np.testing.assert_array_equal(got, want)
     assert lanes[3] == scalar[3]
     assert lanes[3][0] == (min(bad) if bad else -1)
+    # a run's final-state check finds the same tet
+    assert first_volume_outside(case[0], case[1], v_lo, v_hi) == lanes[3][0]
