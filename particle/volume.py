@@ -315,7 +315,8 @@ def tet_volume(x, tets, t):
     a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
     b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
     c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
-    return (a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)) * (1.0 / 6.0)
+    g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0
+    return (a0 * g10 + a1 * g11 + a2 * g12) * (1.0 / 6.0)
 
 
 @njit(**JIT)
