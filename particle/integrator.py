@@ -415,13 +415,16 @@ def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
                   ) -> tuple[tuple[np.ndarray, np.ndarray], tuple]:
     """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments) of a run:
     volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is the one of
-    the ``monitored`` strain range (without one: any positive volume)."""
+    the ``monitored`` strain range (without one: any positive volume). The arguments end
+    with the run's scratch for the volumes of its last force pass (T,) [m^3]
+    (:func:`particle.step_kernels.final_volume_check`)."""
     if monitored is None:
         ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
     else:
         ratio = volume_ratio_range(model, *monitored)
     return ratio, (kernels.index_view(model.tets), model.rest_volumes, model.params.kv,
-                   ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes)
+                   ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes,
+                   np.empty(model.n_tets))
 
 
 def check_steps(n_steps: int) -> int:

@@ -321,7 +321,7 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
 
     ``state``, ``springs``, ``particles``, ``loads``: the explicit loop's argument groups
     (:func:`particle.step_kernels.run_verlet`). ``volume`` = (tets (T, 4), rest_volumes
-    (T,), kv (T,), v_lo (T,), v_hi (T,)) adds the volume term
+    (T,), kv (T,), v_lo (T,), v_hi (T,), the volumes out (T,)) adds the volume term
     (:func:`particle.volume.add_volume_forces`), None compiles it out; ``volume_arms`` its
     arms (the kernels' tuple, outputs aliasing the state: :mod:`particle.volume`), None:
     elastic. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
@@ -336,7 +336,7 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
     bad = -1
     if volume is not None:
         bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                   forces, volume_arms)
+                                   forces, volume_arms, volume[5])
     add_loads(forces, masses, x, x_prev, loads, active)
     return outside, bad
 

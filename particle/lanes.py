@@ -279,3 +279,15 @@ def first_lane(mask):
     while not (mask >> k) & 1:
         k += 1
     return k
+
+
+@intrinsic
+def vmax(typingctx, a, b):
+    """Lane-wise ``a if a > b else b`` (a NaN lane of ``a`` gives ``b``)."""
+    if a != VECTOR or b != VECTOR:
+        return None
+
+    def codegen(context, builder, sig, args):
+        va, vb = _to_vector(builder, args[0]), _to_vector(builder, args[1])
+        return _from_vector(builder, builder.select(builder.fcmp_ordered(">", va, vb), va, vb))
+    return VECTOR(a, b), codegen

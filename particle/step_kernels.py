@@ -54,6 +54,8 @@ import numpy as np
 from numba import njit, prange
 
 from particle.kernels import JIT, add_connector_forces, add_loads, net_forces, node_force
+from particle.lanes import (ALL_LANES, LANES, vadd, vle_mask, vload, vlt_mask, vmax, vsplat,
+                            vsub)
 from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
 
 # status codes of run_verlet
@@ -121,7 +123,7 @@ def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi
         bad = -1
         if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
             bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                       blocks[0][0], volume_arms)
+                                       blocks[0][0], volume_arms, volume[5])
         energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, loads, scale,
                                   check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
@@ -241,31 +243,109 @@ def first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi):
 
 
 @njit(**JIT)
+def largest_move(x, x_prev):
+    """An upper bound of max over the particles of |x - x_prev| [m]: sqrt(3) x the largest
+    coordinate change (lane-wise over the flat arrays); NaN if a position is not finite
+    (the final-state checks then take their exact pass)."""
+    flat, flat_prev = x.reshape(-1), x_prev.reshape(-1)
+    n = flat.shape[0]
+    rest = n // LANES * LANES
+    largest = vsplat(0.0)
+    finite = ALL_LANES
+    for k in range(0, rest, LANES):
+        d = vsub(vload(flat, k), vload(flat_prev, k))
+        finite &= vle_mask(d, d)  # NaN: cleared
+        largest = vmax(largest, vmax(d, vsub(vsplat(0.0), d)))
+    move = 0.0
+    for k in range(LANES):
+        move = max(move, largest[k])
+    for k in range(rest, n):
+        d = abs(flat[k] - flat_prev[k])
+        if not d <= move:  # NaN propagates
+            move = d
+    if finite != ALL_LANES:
+        return np.nan
+    return math.sqrt(3.0) * move
+
+
+@njit(**JIT)
+def longest_connector(rest_lengths, dx_prev):
+    """max of ``rest_lengths + dx_prev`` [m] (lane-wise; NaN lanes ignored: a NaN
+    elongation comes from a NaN position, which :func:`largest_move` reports)."""
+    n = dx_prev.shape[0]
+    rest = n // LANES * LANES
+    longest = vsplat(0.0)
+    for e in range(0, rest, LANES):
+        longest = vmax(vadd(vload(rest_lengths, e), vload(dx_prev, e)), longest)
+    out = 0.0
+    for k in range(LANES):
+        out = max(out, longest[k])
+    for e in range(rest, n):
+        out = max(out, rest_lengths[e] + dx_prev[e])
+    return out
+
+
+@njit(**JIT)
+def final_volume_check(x, x_prev, rest_lengths, dx_prev, volume):
+    """The first tet whose volume at ``x`` (a run's final state) is outside ``(v_lo, v_hi]``,
+    -1 if none; ``volume`` is the loop's volume group, whose last array holds the volumes
+    [m^3] the last step's force pass computed at ``x_prev``, where the connectors'
+    elongations were ``dx_prev`` (E,) [m].
+
+    Every tet edge is a connector (a model invariant), none longer than ``L = max(L0 +
+    dx_prev)`` at ``x_prev``, and no particle moved more than ``D``
+    (:func:`largest_move`): each edge vector changed by at most ``2 D``, so no volume (a
+    sixth of the triple product of three edge vectors) by more than ``((L + 2 D)^3 -
+    L^3) / 6``. When every stored volume is that much, plus ``1e-13 (L + 2 D)^3`` for the
+    round-off of both computed volumes, inside its range, passes over contiguous arrays
+    decide (no gathers); otherwise the exact pass :func:`first_volume_outside`.
+    """
+    tets, _, _, v_lo, v_hi, volumes = volume
+    longest = longest_connector(rest_lengths, dx_prev)
+    reach = longest + 2.0 * largest_move(x, x_prev)
+    margin = (reach * reach * reach - longest * longest * longest) / 6.0
+    margin += 1e-13 * reach * reach * reach
+    n = volumes.shape[0]
+    rest = n // LANES * LANES
+    inside = ALL_LANES
+    m = vsplat(margin)
+    for t in range(0, rest, LANES):  # NaN: not inside
+        v = vload(volumes, t)
+        inside &= vlt_mask(vload(v_lo, t), vsub(v, m)) & vle_mask(vadd(v, m), vload(v_hi, t))
+    ok = inside == ALL_LANES
+    for t in range(rest, n):
+        ok &= (v_lo[t] < volumes[t] - margin) & (volumes[t] + margin <= v_hi[t])
+    if ok:
+        return np.int64(-1)
+    return first_volume_outside(x, tets, v_lo, v_hi)
+
+
+@njit(**JIT)
 def final_strain_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi):
     """The first connector whose elongation at ``x`` (a run's final state) is outside
     ``[dx_lo, dx_hi]`` (E,) [m], -1 if none; ``x_prev`` (N, 3) are the positions the last
     step started from and ``dx_prev`` (E,) the elongations there (stored by its force pass).
 
-    No particle moved more than ``D = max |x - x_prev|`` in that step, so no connector's
-    length changed by more than 2 D: when every ``dx_prev`` is 2 D inside its range, so is
-    the final state, which a pass over contiguous arrays decides (a node pass and a
-    connector pass without gathers; 1.2 us on the 1400-connector liver, the exact pass
-    4.3 us); otherwise (a connector near its bound, or a large last move) the exact pass
+    No particle moved more than ``D`` (:func:`largest_move`) in that step, so no
+    connector's length changed by more than 2 D: when every ``dx_prev`` is 2 D inside its
+    range, so is the final state, which passes over contiguous arrays decide (lane-wise,
+    no gathers; 4 us on the 12k-connector liver, the exact pass 22 us); otherwise (a
+    connector near its bound, or a large last move) the exact pass
     :func:`first_length_outside`.
     """
-    d2 = 0.0
-    for n in range(x.shape[0]):
-        a = x[n, 0] - x_prev[n, 0]
-        b = x[n, 1] - x_prev[n, 1]
-        c = x[n, 2] - x_prev[n, 2]
-        v2 = a * a + b * b + c * c
-        if not v2 <= d2:  # NaN propagates: then the exact pass decides
-            d2 = v2
-    margin = 2.0 * math.sqrt(d2)
-    inside = True
-    for e in range(dx_prev.shape[0]):
-        inside &= (dx_lo[e] + margin <= dx_prev[e]) & (dx_prev[e] <= dx_hi[e] - margin)
-    if inside:
+    margin = 2.0 * largest_move(x, x_prev)
+    n = dx_prev.shape[0]
+    rest = n // LANES * LANES
+    inside = ALL_LANES
+    m = vsplat(margin)
+    for e in range(0, rest, LANES):  # NaN: not inside
+        dx = vload(dx_prev, e)
+        inside &= (vle_mask(vadd(vload(dx_lo, e), m), dx)
+                   & vle_mask(dx, vsub(vload(dx_hi, e), m)))
+    ok = inside == ALL_LANES
+    for e in range(rest, n):
+        ok &= (dx_lo[e] + margin <= dx_prev[e]) & (dx_prev[e] <= dx_hi[e] - margin)
+    if ok:
         return np.int64(-1)
     return first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi)
 
@@ -332,7 +412,7 @@ def final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi, vol
     none is (``volume`` None, ``dx_lo`` empty: that check is not made)."""
     code, bad = OK, np.int64(-1)
     if volume is not None:
-        code, bad = VOLUME_END, first_volume_outside(x, volume[0], volume[3], volume[4])
+        code, bad = VOLUME_END, final_volume_check(x, x_prev, rest_lengths, dx_prev, volume)
     if bad < 0 and dx_lo.shape[0] > 0:
         code, bad = STRAIN_END, final_strain_check(x, x_prev, edges, rest_lengths, dx_prev,
                                                    dx_lo, dx_hi)
@@ -392,7 +472,7 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
     a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
-    rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out),
+    rest_volumes, kv, v_lo, v_hi, volumes out) adds the volume term (None: compiled out),
     ``volume_arms`` its Maxwell arms (:mod:`particle.volume`'s tuple, outputs aliasing the
     state's arm pressures and volume strains; None: elastic); a tet whose volume leaves
     ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an inverted tet always does) stops

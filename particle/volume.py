@@ -252,7 +252,7 @@ def volume_arm_step(k, strain, arms):
 
 
 @njit(**JIT)
-def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms):
+def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volumes=None):
     """forces += the volume forces of every tet [N]; returns (first bad tet, its volume [m^3]).
 
     ``tets`` (T, 4), ``rest_volumes`` (T,) [m^3], ``kv`` (T,) [Pa], ``x``/``forces``
@@ -260,7 +260,9 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms):
     stored in their outputs, or None (elastic: compiled out). A tet is bad when its
     volume V is not in ``(v_lo, v_hi]`` (T,) [m^3]
     (``v_lo`` >= 0: an inverted tet, V <= 0, is always bad); (-1, 0.0) if none. A bad
-    tet still gets its (restoring) force; the caller decides to stop. The tets go
+    tet still gets its (restoring) force; the caller decides to stop. ``volumes`` (T,)
+    [m^3], unless None, receives every tet's volume (for a run's final-state check,
+    :func:`particle.step_kernels.final_volume_check`). The tets go
     :data:`~particle.lanes.LANES` at a time through :func:`tet_lanes` (the same operations
     lane-wise: bit for bit the scalar loop's forces), the remainder one by one.
     """
@@ -270,8 +272,10 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms):
     rest = n // LANES * LANES
     seen = 0  # the lanes outside their range, or-ed over the batches (no branch in the loop)
     for t in range(0, rest, LANES):
-        f, outside = tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t)
+        f, v, outside = tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t)
         seen |= outside
+        if volumes is not None:
+            vstore(volumes, t, v)
         for k in range(LANES):
             add_tet_force(forces, tets, t + k, (f[0][k], f[1][k], f[2][k], f[3][k], f[4][k],
                                                 f[5][k], f[6][k], f[7][k], f[8][k], f[9][k],
@@ -296,6 +300,8 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms):
         if bad < 0 and not (v > v_lo[t] and v <= v_hi[t]):
             bad = np.int64(t)
             bad_volume = v
+        if volumes is not None:
+            volumes[t] = v
         strain = v / rest_volumes[t] - 1.0
         pressure = kv[t] * strain
         if arms is not None:
@@ -370,8 +376,8 @@ def _cross_lanes(a, b):
 def tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t):
     """Tets ``t .. t+LANES-1`` as lanes (:mod:`particle.lanes`), the scalar loop of
     :func:`add_volume_forces` lane-wise: returns (the 12 force vectors of
-    :func:`add_tet_force` [N], the bit mask of the lanes whose volume is outside ``(v_lo,
-    v_hi]``); the arms (or None) advanced and stored. Inlined where it is called: as a
+    :func:`add_tet_force` [N], the volumes [m^3], the bit mask of the lanes whose volume is
+    outside ``(v_lo, v_hi]``); the arms (or None) advanced and stored. Inlined where it is called: as a
     function of its own, its 14 returned vectors go through memory (measured 1.4x slower).
     """
     a, b, c = _tet_edge_lanes(x, tets, t)
@@ -399,7 +405,7 @@ def tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t):
          vmul(s, g2[2]), vmul(s, g3[0]), vmul(s, g3[1]), vmul(s, g3[2]),
          vmul(s, vadd(vadd(g1[0], g2[0]), g3[0])), vmul(s, vadd(vadd(g1[1], g2[1]), g3[1])),
          vmul(s, vadd(vadd(g1[2], g2[2]), g3[2])))
-    return f, ALL_LANES ^ inside
+    return f, v, ALL_LANES ^ inside
 
 
 @njit(**JIT)
