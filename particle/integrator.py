@@ -305,6 +305,8 @@ class Run:
                                                                      self.threads)
         self._scratch = (self._forces, self._blocks)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # compiled entry points of run_verlet by (keyframes object, no probe) (:meth:`_kernel`)
+        self._entries: dict[tuple[int, bool], tuple[tuple, object]] = {}
         # the kernel's probe group without a probe: empty arrays of a probe's types (its tets
         # None without the volume term, which is compiled out then anyway)
         self._no_probe = (-1, kernels.index_view(model.incidence_edge[:0]), np.empty(0),
@@ -333,14 +335,14 @@ class Run:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
         try:
             # run_verlet's argument groups (its docstring), in its order
-            status = step_kernels.run_verlet(
-                (state.x, state.x_prev, state.arm_force, state.dx_prev),
-                self._springs, self._particles, self._loads,
-                (dt, int(n_steps), state.dt is None, float(state.t)),
-                (self._prescribed, *keyframes), record,
-                (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
-                probe_group, self._scratch,
-                self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
+            args = ((state.x, state.x_prev, state.arm_force, state.dx_prev),
+                    self._springs, self._particles, self._loads,
+                    (dt, int(n_steps), state.dt is None, float(state.t)),
+                    (self._prescribed, *keyframes), record,
+                    (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
+                    probe_group, self._scratch,
+                    self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
+            status = self._kernel(args, keyframes, probe is None, record)
         finally:
             if pool is not None:
                 numba.set_num_threads(pool)
@@ -353,6 +355,33 @@ class Run:
         if n_steps:
             state.dt = dt
         return out
+
+    def _kernel(self, args: tuple, keyframes: tuple, no_probe: bool, record: tuple):
+        """``run_verlet(*args)``; a call with the same ``keyframes`` object (the haptic
+        session's), the same kind of probe and no recording as an earlier one calls that
+        one's compiled entry point directly.
+
+        Every other argument has the types of the first call: the run's own arrays, the
+        state's (checked by :func:`check_state` on every call: C-contiguous, writeable
+        float64 of the model's shapes), Python scalars; the keyframes are held, so their
+        identity stands for their types. Numba's dispatch re-derives the types of every
+        argument on each call, and numba 0.56 caches them by a fingerprint that is garbage
+        beyond 40 bytes (a tuple of five or more arrays: the spring and volume groups):
+        its cache then misses at random, and a call spends 40-500 us in Python typing
+        instead of about 3 us.
+        """
+        fast = all(r is None for r in record)
+        key = (id(keyframes), no_probe)
+        if fast:
+            held = self._entries.get(key)
+            if held is not None and held[0] is keyframes:
+                return held[1](*args)
+        status = step_kernels.run_verlet(*args)
+        if fast:
+            signature = tuple(numba.typeof(a) for a in args)
+            self._entries[key] = (keyframes,
+                                  step_kernels.run_verlet.overloads[signature].entry_point)
+        return status
 
     def volume_arms(self, state: State) -> tuple | None:
         """The volume arms' kernel tuple of ``state`` (:mod:`particle.volume`; its pressures and
