@@ -48,8 +48,8 @@ import math
 import numpy as np
 from numba import njit
 
-from particle.lanes import (ALL_LANES, LANES, first_lane, gather_rows, vadd, vdiv, vle_mask,
-                            vload, vload2, vmul, vsqrt, vstore, vstore2, vsub)
+from particle.lanes import (ALL_LANES, LANES, arm_pair_lanes, first_lane, gather_rows, vadd,
+                            vdiv, vle_mask, vload, vmul, vsqrt, vstore, vsub)
 from particle.volume import add_volume_forces
 
 # numpy's error model: a degenerate input gives inf/NaN, which the divergence check turns
@@ -216,15 +216,9 @@ def connector_lanes(lengths, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_
         strain = vdiv(dx, rest)
         f = vmul(vadd(vadd(vload(K0, e), vmul(vload(a, e), strain)),
                       vmul(vmul(vload(b, e), strain), strain)), dx)
-    if arm_r is not None:
-        r1, r2 = vload2(arm_r, e)
-        c1, c2 = vload2(arm_c, e)
-        p1, p2 = vload2(arm_prev, e)
-        ddx = vsub(dx, vload(dx_prev, e))
-        f1 = vadd(vmul(r1, p1), vmul(c1, ddx))
-        f2 = vadd(vmul(r2, p2), vmul(c2, ddx))
-        vstore2(arm_out, e, f1, f2)  # may alias arm_prev: already read
-        f = vadd(f, vadd(f1, f2))
+    if arm_r is not None:  # arm_out may alias arm_prev
+        f = vadd(f, arm_pair_lanes(arm_r, arm_c, arm_prev, arm_out, e,
+                                   vsub(dx, vload(dx_prev, e))))
     vstore(dx_out, e, dx)
     s = vdiv(f, length)
     return vmul(s, d0), vmul(s, d1), vmul(s, d2), outside

@@ -291,3 +291,36 @@ def vmax(typingctx, a, b):
         va, vb = _to_vector(builder, args[0]), _to_vector(builder, args[1])
         return _from_vector(builder, builder.select(builder.fcmp_ordered(">", va, vb), va, vb))
     return VECTOR(a, b), codegen
+
+
+@njit(cache=True)
+def arm_pair_lanes(r, c, prev, out, item, change):
+    """Two Maxwell arms of items ``item .. item+LANES-1`` advanced lane-wise: ``out[k, a] =
+    r[k, a] prev[k, a] + c[k, a] change_k`` (a = 0, 1; (n, 2) arrays, ``out`` may alias
+    ``prev``: read first); returns the vector of ``out[k, 0] + out[k, 1]`` (the connectors'
+    arm forces, the tets' arm pressures: the scalar recursions' operations, in order)."""
+    r1, r2 = vload2(r, item)
+    c1, c2 = vload2(c, item)
+    p1, p2 = vload2(prev, item)
+    p1 = vadd(vmul(r1, p1), vmul(c1, change))
+    p2 = vadd(vmul(r2, p2), vmul(c2, change))
+    vstore2(out, item, p1, p2)
+    return vadd(p1, p2)
+
+
+@njit(cache=True)
+def all_inside(values, lo, hi, margin):
+    """Whether every ``lo + margin < values <= hi - margin`` (1-d arrays; a NaN is not
+    inside), lane-wise: the final-state checks' test of stored values against their range
+    with room for the last step's change."""
+    n = values.shape[0]
+    rest = n // LANES * LANES
+    inside = ALL_LANES
+    m = vsplat(margin)
+    for k in range(0, rest, LANES):
+        v = vload(values, k)
+        inside &= vlt_mask(vadd(vload(lo, k), m), v) & vle_mask(v, vsub(vload(hi, k), m))
+    ok = inside == ALL_LANES
+    for k in range(rest, n):
+        ok &= (lo[k] + margin < values[k]) & (values[k] <= hi[k] - margin)
+    return ok

@@ -54,8 +54,7 @@ import numpy as np
 from numba import njit, prange
 
 from particle.kernels import JIT, add_connector_forces, add_loads, net_forces, node_force
-from particle.lanes import (ALL_LANES, LANES, vadd, vle_mask, vload, vlt_mask, vmax, vsplat,
-                            vsub)
+from particle.lanes import ALL_LANES, LANES, all_inside, vadd, vle_mask, vload, vmax, vsplat, vsub
 from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
 
 # status codes of run_verlet
@@ -305,17 +304,7 @@ def final_volume_check(x, x_prev, rest_lengths, dx_prev, volume):
     reach = longest + 2.0 * largest_move(x, x_prev)
     margin = (reach * reach * reach - longest * longest * longest) / 6.0
     margin += 1e-13 * reach * reach * reach
-    n = volumes.shape[0]
-    rest = n // LANES * LANES
-    inside = ALL_LANES
-    m = vsplat(margin)
-    for t in range(0, rest, LANES):  # NaN: not inside
-        v = vload(volumes, t)
-        inside &= vlt_mask(vload(v_lo, t), vsub(v, m)) & vle_mask(vadd(v, m), vload(v_hi, t))
-    ok = inside == ALL_LANES
-    for t in range(rest, n):
-        ok &= (v_lo[t] < volumes[t] - margin) & (volumes[t] + margin <= v_hi[t])
-    if ok:
+    if all_inside(volumes, v_lo, v_hi, margin):
         return np.int64(-1)
     return first_volume_outside(x, tets, v_lo, v_hi)
 
@@ -333,19 +322,7 @@ def final_strain_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi):
     connector near its bound, or a large last move) the exact pass
     :func:`first_length_outside`.
     """
-    margin = 2.0 * largest_move(x, x_prev)
-    n = dx_prev.shape[0]
-    rest = n // LANES * LANES
-    inside = ALL_LANES
-    m = vsplat(margin)
-    for e in range(0, rest, LANES):  # NaN: not inside
-        dx = vload(dx_prev, e)
-        inside &= (vle_mask(vadd(vload(dx_lo, e), m), dx)
-                   & vle_mask(dx, vsub(vload(dx_hi, e), m)))
-    ok = inside == ALL_LANES
-    for e in range(rest, n):
-        ok &= (dx_lo[e] + margin <= dx_prev[e]) & (dx_prev[e] <= dx_hi[e] - margin)
-    if ok:
+    if all_inside(dx_prev, dx_lo, dx_hi, 2.0 * largest_move(x, x_prev)):
         return np.int64(-1)
     return first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi)
 

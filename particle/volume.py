@@ -72,8 +72,8 @@ import numpy as np
 from numba import njit
 
 from forcecal.errors import MeshError, ParameterError
-from particle.lanes import (ALL_LANES, LANES, vadd, vdiv, vle_mask, vload, vload2,
-                            vlt_mask, vmul, vsplat, vstore, vstore2, vsub, gather_rows)
+from particle.lanes import (ALL_LANES, LANES, arm_pair_lanes, gather_rows, vadd, vdiv, vle_mask,
+                            vload, vlt_mask, vmul, vsplat, vstore, vsub)
 from particle.volume_bounds import (node_volume_stiffness_bound, volume_frequency_bound,
                                     volume_ratio_range)
 
@@ -389,17 +389,11 @@ def tet_lanes(x, tets, rest_volumes, kv, v_lo, v_hi, arms, t):
     inside = vlt_mask(vload(v_lo, t), v) & vle_mask(v, vload(v_hi, t))  # NaN: outside
     strain = vsub(vdiv(v, vload(rest_volumes, t)), vsplat(1.0))
     pressure = vmul(vload(kv, t), strain)
-    if arms is not None:
+    if arms is not None:  # the outputs may alias the previous pressures and strains
         r, k, prev, strain_prev, out, strain_out = arms
-        r1, r2 = vload2(r, t)
-        k1, k2 = vload2(k, t)
-        p1, p2 = vload2(prev, t)
-        d = vsub(strain, vload(strain_prev, t))
-        p1 = vadd(vmul(r1, p1), vmul(k1, d))
-        p2 = vadd(vmul(r2, p2), vmul(k2, d))
-        vstore2(out, t, p1, p2)  # may alias the previous pressures: already read
+        change = vsub(strain, vload(strain_prev, t))
         vstore(strain_out, t, strain)
-        pressure = vadd(pressure, vadd(p1, p2))
+        pressure = vadd(pressure, arm_pair_lanes(r, k, prev, out, t, change))
     s = vmul(vmul(pressure, vsplat(-1.0)), sixth)  # -P exactly, then / 6 as the scalar loop
     f = (vmul(s, g1[0]), vmul(s, g1[1]), vmul(s, g1[2]), vmul(s, g2[0]), vmul(s, g2[1]),
          vmul(s, g2[2]), vmul(s, g3[0]), vmul(s, g3[1]), vmul(s, g3[2]),
