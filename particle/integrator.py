@@ -305,8 +305,9 @@ class Run:
                                                                      self.threads)
         self._scratch = (self._forces, self._blocks)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        # compiled entry points of run_verlet by (keyframes object, no probe) (:meth:`_kernel`)
-        self._entries: dict[tuple[int, bool], tuple[tuple, object]] = {}
+        # (keyframes, run_verlet's compiled entry point or None: seen once) by (keyframes
+        # object, no probe) (:meth:`_kernel`)
+        self._entries: dict[tuple[int, bool], tuple[tuple, object | None]] = {}
         # the kernel's probe group without a probe: empty arrays of a probe's types (its tets
         # None without the volume term, which is compiled out then anyway)
         self._no_probe = (-1, kernels.index_view(model.incidence_edge[:0]), np.empty(0),
@@ -357,11 +358,11 @@ class Run:
         return out
 
     def _kernel(self, args: tuple, keyframes: tuple, no_probe: bool, record: tuple):
-        """``run_verlet(*args)``; a call with the same ``keyframes`` object (the haptic
-        session's), the same kind of probe and no recording as an earlier one calls that
-        one's compiled entry point directly.
+        """``run_verlet(*args)``; from the third call with the same ``keyframes`` object (the
+        haptic session's), the same kind of probe and no recording, the compiled entry point
+        the second found, directly.
 
-        Every other argument has the types of the first call: the run's own arrays, the
+        Every other argument has the types it had then: the run's own arrays, the
         state's (checked by :func:`check_state` on every call: C-contiguous, writeable
         float64 of the model's shapes), Python scalars; the keyframes are held, so their
         identity stands for their types. Numba's dispatch re-derives the types of every
@@ -372,15 +373,16 @@ class Run:
         """
         fast = all(r is None for r in record)
         key = (id(keyframes), no_probe)
-        if fast:
-            held = self._entries.get(key)
-            if held is not None and held[0] is keyframes:
-                return held[1](*args)
+        held = self._entries.get(key) if fast else None
+        if held is not None and held[0] is keyframes and held[1] is not None:
+            return held[1](*args)
         status = step_kernels.run_verlet(*args)
-        if fast:
-            signature = tuple(numba.typeof(a) for a in args)
-            self._entries[key] = (keyframes,
-                                  step_kernels.run_verlet.overloads[signature].entry_point)
+        if fast:  # typing the arguments costs ~0.4 ms: only for a run called again
+            entry = None
+            if held is not None and held[0] is keyframes:
+                signature = tuple(numba.typeof(a) for a in args)
+                entry = step_kernels.run_verlet.overloads[signature].entry_point
+            self._entries[key] = (keyframes, entry)
         return status
 
     def volume_arms(self, state: State) -> tuple | None:
