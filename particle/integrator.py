@@ -314,6 +314,9 @@ class Run:
                                                                      self.threads)
         self._scratch = (self._forces, self._blocks)
         self._node_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # (keyframes, run_verlet's compiled entry point or None: seen once) by (keyframes
+        # object, no probe) (:meth:`_kernel`)
+        self._entries: dict[tuple[int, bool], tuple[tuple, object | None]] = {}
         # the kernel's probe group without a probe: empty arrays of a probe's types (its tets
         # None without the volume term, which is compiled out then anyway)
         self._no_probe = (-1, kernels.index_view(model.incidence_edge[:0]), np.empty(0),
@@ -342,14 +345,14 @@ class Run:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
         try:
             # run_verlet's argument groups (its docstring), in its order
-            status = step_kernels.run_verlet(
-                (state.x, state.x_prev, state.arm_force, state.dx_prev),
-                self._springs, self._particles, self._loads,
-                (dt, int(n_steps), state.dt is None, float(state.t)),
-                (self._prescribed, *keyframes), record,
-                (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
-                probe_group, self._scratch,
-                self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
+            args = ((state.x, state.x_prev, state.arm_force, state.dx_prev),
+                    self._springs, self._particles, self._loads,
+                    (dt, int(n_steps), state.dt is None, float(state.t)),
+                    (self._prescribed, *keyframes), record,
+                    (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
+                    probe_group, self._scratch,
+                    self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
+            status = self._kernel(args, keyframes, probe is None, record)
         finally:
             if pool is not None:
                 numba.set_num_threads(pool)
@@ -376,7 +379,35 @@ class Run:
         self.monitored, self._elongation_limits = strain_range, elongation_limits
         if self._volume is not None:
             self.volume_ratio_range = ratio_range
-            self._volume = (*self._volume[:3], *volume_limits)
+            self._volume = (*self._volume[:3], *volume_limits, self._volume[5])
+
+    def _kernel(self, args: tuple, keyframes: tuple, no_probe: bool, record: tuple):
+        """``run_verlet(*args)``; from the third call with the same ``keyframes`` object (the
+        haptic session's), the same kind of probe and no recording, the compiled entry point
+        the second found, directly.
+
+        Every other argument has the types it had then: the run's own arrays, the
+        state's (checked by :func:`check_state` on every call: C-contiguous, writeable
+        float64 of the model's shapes), Python scalars; the keyframes are held, so their
+        identity stands for their types. Numba's dispatch re-derives the types of every
+        argument on each call, and numba 0.56 caches them by a fingerprint that is garbage
+        beyond 40 bytes (a tuple of five or more arrays: the spring and volume groups):
+        its cache then misses at random, and a call spends 40-500 us in Python typing
+        instead of about 3 us.
+        """
+        fast = all(r is None for r in record)
+        key = (id(keyframes), no_probe)
+        held = self._entries.get(key) if fast else None
+        if held is not None and held[0] is keyframes and held[1] is not None:
+            return held[1](*args)
+        status = step_kernels.run_verlet(*args)
+        if fast:  # typing the arguments costs ~0.4 ms: only for a run called again
+            entry = None
+            if held is not None and held[0] is keyframes:
+                signature = tuple(numba.typeof(a) for a in args)
+                entry = step_kernels.run_verlet.overloads[signature].entry_point
+            self._entries[key] = (keyframes, entry)
+        return status
 
     def volume_arms(self, state: State) -> tuple | None:
         """The volume arms' kernel tuple of ``state`` (:mod:`particle.volume`; its pressures and
@@ -439,13 +470,16 @@ def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
                   ) -> tuple[tuple[np.ndarray, np.ndarray], tuple]:
     """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments) of a run:
     volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is the one of
-    the ``monitored`` strain range (without one: any positive volume)."""
+    the ``monitored`` strain range (without one: any positive volume). The arguments end
+    with the run's scratch for the volumes of its last force pass (T,) [m^3]
+    (:func:`particle.step_kernels.final_volume_check`)."""
     if monitored is None:
         ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
     else:
         ratio = volume_ratio_range(model, *monitored)
     return ratio, (kernels.index_view(model.tets), model.rest_volumes, model.params.kv,
-                   ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes)
+                   ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes,
+                   np.empty(model.n_tets))
 
 
 def check_steps(n_steps: int) -> int:

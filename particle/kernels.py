@@ -13,6 +13,11 @@ more compilation in every fresh calibration worker than the skipped terms save. 
 explicit step loop that calls these kernels (serial and multi-threaded) is
 :mod:`particle.step_kernels`.
 
+Without a tension output (every explicit step) :func:`add_connector_forces` takes the
+connectors four at a time as SIMD lanes (:mod:`particle.lanes`, :func:`connector_lanes`),
+bit for bit the scalar loop it keeps for the remainder and the static path (measured in
+:mod:`particle.step_kernels`' docstring).
+
 Index arrays (connector ends, node lists) may be passed as unsigned views
 (:func:`index_view`): numba then drops the wrap-around handling of negative
 indices from every gathered index. Measured on the 12k-connector liver: one
@@ -43,6 +48,8 @@ import math
 import numpy as np
 from numba import njit
 
+from particle.lanes import (ALL_LANES, LANES, arm_pair_lanes, first_lane, gather_rows, vadd,
+                            vdiv, vle_mask, vload, vmul, vsqrt, vstore, vsub)
 from particle.volume import add_volume_forces
 
 # numpy's error model: a degenerate input gives inf/NaN, which the divergence check turns
@@ -123,9 +130,33 @@ def add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_pre
     """:func:`internal_forces` of the connectors ``first .. stop-1``, added to ``forces``.
 
     Returns the first of them outside ``[dx_lo, dx_hi]``, -1 if none (or ``dx_lo`` None).
+    Without ``tension`` (the explicit steps) the connectors go :data:`LANES` at a time
+    through :func:`connector_lanes` and :func:`add_lane_forces`, the remainder one by one;
+    each connector's force and each particle's sum are the scalar loop's, bit for bit.
     """
     outside = -1
-    for e in range(first, stop):
+    rest = first
+    if tension is None and stop - first >= LANES:
+        rest = first + (stop - first) // LANES * LANES
+        i = edges[first, 0]
+        held = (i, forces[i, 0], forces[i, 1], forces[i, 2])
+        ahead = connector_lengths(x, edges, first)
+        for e in range(first, rest, LANES):
+            current = ahead
+            # the next connectors' lengths first: their gathers and square roots overlap
+            # this batch's divisions and scatter (the last batch recomputes its own)
+            ahead = connector_lengths(x, edges, e + LANES if e + LANES < rest else e)
+            s0, s1, s2, lanes_outside = connector_lanes(
+                current, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, arm_out,
+                dx_out, dx_lo, dx_hi, e)
+            if lanes_outside != 0 and outside < 0:
+                outside = np.int64(e) + first_lane(lanes_outside)
+            held = add_lane_forces(forces, edges, e, s0, s1, s2, held)
+        i, f0, f1, f2 = held
+        forces[i, 0] = f0
+        forces[i, 1] = f1
+        forces[i, 2] = f2
+    for e in range(rest, stop):
         i, j, d0, d1, d2, length = connector_vector(x, edges, e)
         dx = length - rest_lengths[e]
         if dx_lo is not None:
@@ -148,6 +179,77 @@ def add_connector_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_pre
         forces[j, 1] -= s * d1
         forces[j, 2] -= s * d2
     return outside
+
+
+@njit(**JIT)
+def connector_lengths(x, edges, e):
+    """(x_j - x_i as three vectors [m], their lengths [m]) of connectors ``e .. e+LANES-1``
+    (:mod:`particle.lanes`), as :func:`connector_vector` computes them."""
+    xi0, xi1, xi2 = gather_rows(x, edges, e, 0)
+    xj0, xj1, xj2 = gather_rows(x, edges, e, 1)
+    d0 = vsub(xj0, xi0)
+    d1 = vsub(xj1, xi1)
+    d2 = vsub(xj2, xi2)
+    return d0, d1, d2, vsqrt(vadd(vadd(vmul(d0, d0), vmul(d1, d1)), vmul(d2, d2)))
+
+
+@njit(**JIT)
+def connector_lanes(lengths, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, arm_out,
+                    dx_out, dx_lo, dx_hi, e):
+    """Connectors ``e .. e+LANES-1`` as lanes (:mod:`particle.lanes`) from their
+    :func:`connector_lengths`: the scalar loop of :func:`add_connector_forces` lane-wise, the
+    same operations in the same order.
+
+    Stores their elongations (and arm forces); returns the three vectors of the force
+    ``s (x_j - x_i)`` [N] they add to particle i (and subtract from j), and a bit mask of
+    the lanes outside ``[dx_lo, dx_hi]`` (0 when ``dx_lo`` is None).
+    """
+    d0, d1, d2, length = lengths
+    rest = vload(rest_lengths, e)
+    dx = vsub(length, rest)
+    outside = 0
+    if dx_lo is not None:  # NaN: outside
+        outside = ALL_LANES ^ (vle_mask(vload(dx_lo, e), dx) & vle_mask(dx, vload(dx_hi, e)))
+    if a is None:
+        f = vmul(vload(K0, e), dx)
+    else:
+        strain = vdiv(dx, rest)
+        f = vmul(vadd(vadd(vload(K0, e), vmul(vload(a, e), strain)),
+                      vmul(vmul(vload(b, e), strain), strain)), dx)
+    if arm_r is not None:  # arm_out may alias arm_prev
+        f = vadd(f, arm_pair_lanes(arm_r, arm_c, arm_prev, arm_out, e,
+                                   vsub(dx, vload(dx_prev, e))))
+    vstore(dx_out, e, dx)
+    s = vdiv(f, length)
+    return vmul(s, d0), vmul(s, d1), vmul(s, d2), outside
+
+
+@njit(**JIT)
+def add_lane_forces(forces, edges, e, s0, s1, s2, held):
+    """forces[i] += s, forces[j] -= s for connectors ``e .. e+LANES-1`` in order, the lanes'
+    forces ``s`` (:func:`connector_lanes`).
+
+    Particle i's sum is carried in ``held`` = (particle, its force (3 floats) [N]) while
+    consecutive connectors share it (the connectors are sorted by their first end: five
+    in six do on the meshes here), and written back when it changes; returns the new
+    ``held``. No connector updates its own first end as j, so the carried sum sees the
+    same additions in the same order as the force array would.
+    """
+    for k in range(LANES):
+        i = edges[e + k, 0]
+        j = edges[e + k, 1]
+        node, f0, f1, f2 = held
+        if i != node:
+            forces[node, 0] = f0
+            forces[node, 1] = f1
+            forces[node, 2] = f2
+            f0, f1, f2 = forces[i, 0], forces[i, 1], forces[i, 2]
+        a0, a1, a2 = s0[k], s1[k], s2[k]
+        held = (i, f0 + a0, f1 + a1, f2 + a2)
+        forces[j, 0] -= a0
+        forces[j, 1] -= a1
+        forces[j, 2] -= a2
+    return held
 
 
 @njit(**JIT)
@@ -213,7 +315,7 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
 
     ``state``, ``springs``, ``particles``, ``loads``: the explicit loop's argument groups
     (:func:`particle.step_kernels.run_verlet`). ``volume`` = (tets (T, 4), rest_volumes
-    (T,), kv (T,), v_lo (T,), v_hi (T,)) adds the volume term
+    (T,), kv (T,), v_lo (T,), v_hi (T,), the volumes out (T,)) adds the volume term
     (:func:`particle.volume.add_volume_forces`), None compiles it out; ``volume_arms`` its
     arms (the kernels' tuple, outputs aliasing the state: :mod:`particle.volume`), None:
     elastic. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
@@ -228,7 +330,7 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
     bad = -1
     if volume is not None:
         bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                   forces, volume_arms)
+                                   forces, volume_arms, volume[5])
     add_loads(forces, masses, x, x_prev, loads, active)
     return outside, bad
 

@@ -18,25 +18,32 @@ busy core, up to a scheduler time slice, and costs microseconds even when idle, 
 meshes (the 1400-connector liver) the serial loop is faster and stays the default. A
 scatter-free gather over a node -> connector incidence was slower than the serial scatter.
 
-The connector pass is bound by issue slots, not memory: per connector 2 index + 6 position
-loads, 9 stores (6 force read-modify-writes, 2 arm forces, 1 elongation), one sqrt and one
-division. None of these made it faster (each bitwise or round-off equal, measured on the
-12k-connector liver): connector data in float32 (conversions, no fewer instructions on the
-critical path); the sqrt and the division in separate vectorised loops (the scalar ones
-overlap the loads and stores anyway); keeping particle i's running sum in registers while
-consecutive connectors share it; float32 positions and arm state. Nor these, measured on
-the same mesh, one core, in the same session: a two-stage software pipeline (connector
-e+1's gathers and sqrt during connector e's forces; 7 % faster alone, nothing in a haptic
-call); chunks of 256 connectors in three loops (gathers and lengths, tensions, scatter) with
-the sqrt and division vectorised (1.6x slower: the scratch traffic costs more); structure of
-arrays for the arms and split connector ends (slower); positions and forces in one (N, 8)
-buffer (slower); flat arrays with unsigned indices (half the instructions per connector,
-the same time); interleaving two halves of the connector list (no chain of stores to one
-particle: the same time); a mesh whose positions and forces fit in L1 (the same 6 ns per
-connector from 1,000 to 12,062 connectors: neither cache nor memory bound). What halves the
-cost of a device period is one substep instead of two: mass scaling (:mod:`particle.mass_scaling`;
-the inertia enters only through ``inv_masses``, so no kernel changes), measured with its
-error in ``runs/bench/BENCH.md``.
+The connector and tet passes go :data:`~particle.lanes.LANES` items at a time as SIMD
+lanes (:mod:`particle.lanes`: the same IEEE operations per item, bit for bit the scalar
+loops): the connectors in two stages (the next batch's gathers and square roots issued
+before this batch's divisions and scatter) with particle i's sum carried in registers along
+its run of connectors, the tets in one stage. Measured on the 12k-connector liver, one core: the
+connector pass 91 -> 52 us, the tet pass 108 -> 68 us (elastic), 142 -> 79 us (with arms).
+Measured with the lanes and not kept: eight lanes (AVX-512; 1.4x slower than four), two lanes
+(1.2x slower), the AVX-512 gather instruction (slower than scalar loads into lanes), a
+third stage (divisions a batch ahead of the scatter: slower), gathers two batches ahead
+(the same), forces padded to (N, 4) with one vector load and store per particle (the
+same), positions padded to (N, 4) and transposed (the same), the arms' pairs used
+interleaved (the same), the tets in two stages (3 % faster elastic, 7 % slower with arms),
+a tet's range check as a branch in the loop (30 % slower than or-ing the lane masks).
+Measured on the scalar loop before the lanes and not kept (each bitwise or round-off
+equal): connector data in float32; the sqrt and the division in separate vectorised loops;
+particle i's running sum in registers (it pays only once the rest is lanes); float32
+positions and arm state; a two-stage software pipeline (7 % faster alone, nothing in a
+haptic call); chunks of 256 connectors in three loops (1.6x slower: the scratch traffic);
+structure of arrays for the arms and split connector ends; positions and forces in one
+(N, 8) buffer; flat arrays with unsigned indices (half the instructions, the same time);
+interleaving two halves of the connector list. The passes are neither cache nor memory
+bound (the same ns per connector from 1,000 to 12,062 connectors); they appear bound by
+the latency of each batch's chain (gathers, square root, division) over the out-of-order
+window. What halves the cost of a device period is one substep instead of two: mass
+scaling (:mod:`particle.mass_scaling`; the inertia enters only through ``inv_masses``, so
+no kernel changes), measured with its error in ``runs/bench/BENCH.md``.
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ import numpy as np
 from numba import njit, prange
 
 from particle.kernels import JIT, add_connector_forces, add_loads, net_forces, node_force
+from particle.lanes import ALL_LANES, LANES, all_inside, vadd, vle_mask, vload, vmax, vsplat, vsub
 from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
 
 # status codes of run_verlet
@@ -114,7 +122,7 @@ def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi
         bad = -1
         if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
             bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                       blocks[0][0], volume_arms)
+                                       blocks[0][0], volume_arms, volume[5])
         energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, loads, scale,
                                   check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
@@ -234,31 +242,87 @@ def first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi):
 
 
 @njit(**JIT)
+def largest_move(x, x_prev):
+    """An upper bound of max over the particles of |x - x_prev| [m]: sqrt(3) x the largest
+    coordinate change (lane-wise over the flat arrays); NaN if a position is not finite
+    (the final-state checks then take their exact pass)."""
+    flat, flat_prev = x.reshape(-1), x_prev.reshape(-1)
+    n = flat.shape[0]
+    rest = n // LANES * LANES
+    largest = vsplat(0.0)
+    finite = ALL_LANES
+    for k in range(0, rest, LANES):
+        d = vsub(vload(flat, k), vload(flat_prev, k))
+        finite &= vle_mask(d, d)  # NaN: cleared
+        largest = vmax(largest, vmax(d, vsub(vsplat(0.0), d)))
+    move = 0.0
+    for k in range(LANES):
+        move = max(move, largest[k])
+    for k in range(rest, n):
+        d = abs(flat[k] - flat_prev[k])
+        if not d <= move:  # NaN propagates
+            move = d
+    if finite != ALL_LANES:
+        return np.nan
+    return math.sqrt(3.0) * move
+
+
+@njit(**JIT)
+def longest_connector(rest_lengths, dx_prev):
+    """max of ``rest_lengths + dx_prev`` [m] (lane-wise; NaN lanes ignored: a NaN
+    elongation comes from a NaN position, which :func:`largest_move` reports)."""
+    n = dx_prev.shape[0]
+    rest = n // LANES * LANES
+    longest = vsplat(0.0)
+    for e in range(0, rest, LANES):
+        longest = vmax(vadd(vload(rest_lengths, e), vload(dx_prev, e)), longest)
+    out = 0.0
+    for k in range(LANES):
+        out = max(out, longest[k])
+    for e in range(rest, n):
+        out = max(out, rest_lengths[e] + dx_prev[e])
+    return out
+
+
+@njit(**JIT)
+def final_volume_check(x, x_prev, rest_lengths, dx_prev, volume):
+    """The first tet whose volume at ``x`` (a run's final state) is outside ``(v_lo, v_hi]``,
+    -1 if none; ``volume`` is the loop's volume group, whose last array holds the volumes
+    [m^3] the last step's force pass computed at ``x_prev``, where the connectors'
+    elongations were ``dx_prev`` (E,) [m].
+
+    Every tet edge is a connector (a model invariant), none longer than ``L = max(L0 +
+    dx_prev)`` at ``x_prev``, and no particle moved more than ``D``
+    (:func:`largest_move`): each edge vector changed by at most ``2 D``, so no volume (a
+    sixth of the triple product of three edge vectors) by more than ``((L + 2 D)^3 -
+    L^3) / 6``. When every stored volume is that much, plus ``1e-13 (L + 2 D)^3`` for the
+    round-off of both computed volumes, inside its range, passes over contiguous arrays
+    decide (no gathers); otherwise the exact pass :func:`first_volume_outside`.
+    """
+    tets, _, _, v_lo, v_hi, volumes = volume
+    longest = longest_connector(rest_lengths, dx_prev)
+    reach = longest + 2.0 * largest_move(x, x_prev)
+    margin = (reach * reach * reach - longest * longest * longest) / 6.0
+    margin += 1e-13 * reach * reach * reach
+    if all_inside(volumes, v_lo, v_hi, margin):
+        return np.int64(-1)
+    return first_volume_outside(x, tets, v_lo, v_hi)
+
+
+@njit(**JIT)
 def final_strain_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi):
     """The first connector whose elongation at ``x`` (a run's final state) is outside
     ``[dx_lo, dx_hi]`` (E,) [m], -1 if none; ``x_prev`` (N, 3) are the positions the last
     step started from and ``dx_prev`` (E,) the elongations there (stored by its force pass).
 
-    No particle moved more than ``D = max |x - x_prev|`` in that step, so no connector's
-    length changed by more than 2 D: when every ``dx_prev`` is 2 D inside its range, so is
-    the final state, which a pass over contiguous arrays decides (a node pass and a
-    connector pass without gathers; 1.2 us on the 1400-connector liver, the exact pass
-    4.3 us); otherwise (a connector near its bound, or a large last move) the exact pass
+    No particle moved more than ``D`` (:func:`largest_move`) in that step, so no
+    connector's length changed by more than 2 D: when every ``dx_prev`` is 2 D inside its
+    range, so is the final state, which passes over contiguous arrays decide (lane-wise,
+    no gathers; 4 us on the 12k-connector liver, the exact pass 22 us); otherwise (a
+    connector near its bound, or a large last move) the exact pass
     :func:`first_length_outside`.
     """
-    d2 = 0.0
-    for n in range(x.shape[0]):
-        a = x[n, 0] - x_prev[n, 0]
-        b = x[n, 1] - x_prev[n, 1]
-        c = x[n, 2] - x_prev[n, 2]
-        v2 = a * a + b * b + c * c
-        if not v2 <= d2:  # NaN propagates: then the exact pass decides
-            d2 = v2
-    margin = 2.0 * math.sqrt(d2)
-    inside = True
-    for e in range(dx_prev.shape[0]):
-        inside &= (dx_lo[e] + margin <= dx_prev[e]) & (dx_prev[e] <= dx_hi[e] - margin)
-    if inside:
+    if all_inside(dx_prev, dx_lo, dx_hi, 2.0 * largest_move(x, x_prev)):
         return np.int64(-1)
     return first_length_outside(x, edges, rest_lengths, dx_lo, dx_hi)
 
@@ -325,7 +389,7 @@ def final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi, vol
     none is (``volume`` None, ``dx_lo`` empty: that check is not made)."""
     code, bad = OK, np.int64(-1)
     if volume is not None:
-        code, bad = VOLUME_END, first_volume_outside(x, volume[0], volume[3], volume[4])
+        code, bad = VOLUME_END, final_volume_check(x, x_prev, rest_lengths, dx_prev, volume)
     if bad < 0 and dx_lo.shape[0] > 0:
         code, bad = STRAIN_END, final_strain_check(x, x_prev, edges, rest_lengths, dx_prev,
                                                    dx_lo, dx_hi)
@@ -385,7 +449,7 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
     a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
-    rest_volumes, kv, v_lo, v_hi) adds the volume term (None: compiled out),
+    rest_volumes, kv, v_lo, v_hi, volumes out) adds the volume term (None: compiled out),
     ``volume_arms`` its Maxwell arms (:mod:`particle.volume`'s tuple, outputs aliasing the
     state's arm pressures and volume strains; None: elastic); a tet whose volume leaves
     ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an inverted tet always does) stops

@@ -374,3 +374,37 @@ def test_the_final_volume_check_matches_numpy():
             assert got == (bad[0] if len(bad) else -1)
             seen.add(got >= 0)
     assert seen == {False, True}
+
+
+def test_the_final_volume_check_by_the_displacement_bound_matches_the_exact_pass():
+    """step_kernels.final_volume_check (the bound from the stored volumes, the longest
+    connector and the largest move, else the exact pass) names the tet first_volume_outside
+    names, from small moves (the bound decides) to large ones (the exact pass), and a
+    non-finite position is never inside."""
+    from particle import kernels, step_kernels
+    from particle.volume import add_volume_forces, first_volume_outside
+    model = jittered_box()
+    tets = kernels.index_view(model.tets)
+    v_lo, v_hi = 0.7 * model.rest_volumes, 1.3 * model.rest_volumes
+    rng = np.random.default_rng(8)
+    seen = set()
+    for amplitude in (1e-6, 1e-5, 3e-4, 1e-3, 3e-3):
+        for _ in range(20):
+            x_prev = model.rest_positions + amplitude * rng.standard_normal(
+                (model.n_particles, 3))
+            x = x_prev + 0.3 * amplitude * rng.standard_normal(x_prev.shape)
+            # the stored volumes and elongations at x_prev, as the last step's passes leave them
+            volumes = np.empty(model.n_tets)
+            add_volume_forces(x_prev, tets, model.rest_volumes, model.params.kv,
+                              np.zeros(model.n_tets), np.full(model.n_tets, np.inf),
+                              np.zeros_like(x_prev), None, volumes)
+            d = x_prev[model.edges[:, 1]] - x_prev[model.edges[:, 0]]
+            dx_prev = np.linalg.norm(d, axis=1) - model.rest_lengths
+            volume = (tets, model.rest_volumes, model.params.kv, v_lo, v_hi, volumes)
+            got = step_kernels.final_volume_check(x, x_prev, model.rest_lengths, dx_prev,
+                                                  volume)
+            assert got == first_volume_outside(x, tets, v_lo, v_hi)
+            seen.add(got >= 0)
+    assert seen == {False, True}
+    x[3, 0] = np.nan
+    assert step_kernels.final_volume_check(x, x_prev, model.rest_lengths, dx_prev, volume) >= 0

@@ -179,3 +179,21 @@ def test_a_session_gravity_that_is_not_three_finite_numbers_is_refused():
         HapticSession(model, dt, gravity=np.array([0.0, -9.81]))
     with pytest.raises(ParameterError, match=r"gravity \[0\.0, 0\.0, nan\] m/s\^2 is not finite"):
         HapticSession(model, dt, gravity=[0.0, 0.0, np.nan])
+
+
+def test_repeated_calls_through_the_compiled_entry_point_equal_numba_dispatch():
+    """After its first call a session's run calls run_verlet's compiled entry point (its
+    keyframes and probe kind unchanged): forces and states bit for bit those of calls
+    through numba's dispatcher (the cache emptied before every call)."""
+    model = box_model()
+    node = top_centre(model)
+    dt = 0.5 * critical_time_step(model)
+    fast, slow = HapticSession(model, dt), HapticSession(model, dt)
+    x0 = model.rest_positions[node]
+    for k in range(30):
+        target = x0 + [0.0, 0.0, -2e-4 * min(k, 10)]
+        slow._run(node)[0]._entries.clear()
+        np.testing.assert_array_equal(fast.step(node, target), slow.step(node, target))
+    assert len(fast._run(node)[0]._entries) == 1
+    np.testing.assert_array_equal(fast.state.x, slow.state.x)
+    np.testing.assert_array_equal(fast.state.arm_force, slow.state.arm_force)
