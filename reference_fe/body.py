@@ -120,14 +120,17 @@ def _set_moduli(model: FEModel, modulus: str) -> None:
     model._hist.x.array[:] = 0.0
 
 
-def stiffness_and_mass(model: FEModel, modulus: str) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-    """(K, M) of the whole solution vector at the rest state: the linearised stiffness at the
-    ``modulus`` (:data:`MODULI`) [N/m] and the consistent mass [kg] (zero on pressure dofs)."""
+def stiffness_and_mass(model: FEModel, modulus: str, u: np.ndarray | None = None
+                       ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """(K, M) of the whole solution vector at the rest state (or at the solution vector ``u``
+    with the rest state's material: the tangent a quasi-static Newton step sees there): the
+    linearised stiffness at the ``modulus`` (:data:`MODULI`) [N/m] and the consistent mass
+    [kg] (zero on pressure dofs)."""
     if modulus not in MODULI:
         raise ValueError(f"modulus {modulus!r}: must be one of {MODULI}")
     _set_moduli(model, modulus)
-    stiffness = _assembled(model, 0.0)
-    return stiffness, _assembled(model, 1.0) - stiffness
+    stiffness = _assembled(model, 0.0, u)
+    return stiffness, _assembled(model, 1.0, u) - stiffness
 
 
 def natural_modes(model: FEModel, fixed: np.ndarray, count: int, modulus: str
@@ -144,10 +147,18 @@ def natural_modes(model: FEModel, fixed: np.ndarray, count: int, modulus: str
     return _lowest_modes(model, fixed, stiffness, mass, count, f"at the {modulus} moduli")
 
 
-def _lowest_modes(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
-                  mass: sp.csr_matrix, count: int, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`natural_modes` of the assembled ``stiffness`` and ``mass`` (whole solution
-    vector); ``what`` names them in an error."""
+def eigenvalues_nearest_zero(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
+                             mass: sp.csr_matrix, count: int, what: str
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` eigenvalues ``lambda`` of ``stiffness phi = lambda mass phi`` nearest zero
+    (whole solution vector assembled; the clamp of ``fixed`` removed), ascending, signed (a
+    negative one: the equilibrium is unstable), [1/s^2] for a stiffness [N/m] and a mass [kg];
+    and their (n_dofs, count) eigenvectors (zero on the clamped dofs). ``what`` names them in
+    an error.
+
+    Raises:
+        ConvergenceError: the eigen-solve did not converge.
+    """
     held = model.clamp_dofs(fixed).ravel()
     free = np.setdiff1d(np.arange(model.n_dofs), held)
     K = stiffness[free][:, free].tocsc()
@@ -160,12 +171,19 @@ def _lowest_modes(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
         raise ConvergenceError(f"body modes {what}: the eigen-solve did not converge "
                                f"({exc})") from None
     order = np.argsort(values)
-    values, vectors = values[order], vectors[:, order]
+    full = np.zeros((model.n_dofs, count))
+    full[free] = vectors[:, order]
+    return values[order], full
+
+
+def _lowest_modes(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
+                  mass: sp.csr_matrix, count: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`natural_modes` of the assembled ``stiffness`` and ``mass`` (whole solution
+    vector); ``what`` names them in an error."""
+    values, full = eigenvalues_nearest_zero(model, fixed, stiffness, mass, count, what)
     if not np.all(values > 0):
         raise ConvergenceError(f"body modes {what}: eigenvalue {values.min():.3g} <= 0; the "
                                "support does not hold the body")
-    full = np.zeros((model.n_dofs, count))
-    full[free] = vectors
     shapes = np.moveaxis(full[model.vertex_dofs], 2, 0)  # (count, N, 3)
     for k in range(count):  # a deterministic sign: the largest vertex component positive
         flat = shapes[k].ravel()

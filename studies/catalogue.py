@@ -184,6 +184,36 @@ def body_data_answer(r: Result) -> str:
     return "; ".join(parts) + (f"; chosen: **{chosen}**" if chosen else "")
 
 
+def support_stability_command(path: str, r: Result) -> str:
+    from studies.support_stability import FACTORS
+
+    supports = "".join(f" --support {row['rule']['axis']}:{row['rule']['side']}:"
+                       f"{row['rule']['tolerance']:g}" for row in r["supports"])
+    given = "" if tuple(r["factors"]) == FACTORS else \
+        f" --factors {','.join(f'{f:g}' for f in r['factors'])}"
+    return (f"python -m studies.support_stability --scene {scene_file(r['scene'])}{supports}"
+            f"{given} --out {path}")
+
+
+def support_stability_answer(r: Result) -> str:
+    parts = []
+    for row in r["supports"]:
+        rule = row["rule"]
+        name = f"{rule['axis']} {rule['side']} ({row['n_fixed']} vertices)"
+        lowest = row["lowest_eigenvalue_vs_rest"]
+        last = row["rows"][-1]
+        if row["holds_full_gravity"]:
+            parts.append(f"{name} holds 1 g (sag {last['max_sag_mm']:.0f} mm, lowest eigenvalue "
+                         f"{min(lowest):.2f}-{max(lowest):.2f} x rest)")
+        elif not row["linear_check"]["holds"] or row["sag_check_refusal"]:
+            parts.append(f"{name} refused (linear sag {row['linear_check']['linear_sag_mm']:.0f}"
+                         f" mm, FE sag {last['max_sag_mm']:.0f} mm at {last['factor']:g} g)")
+        else:
+            parts.append(f"{name} no equilibrium past {row['reached']:.3g} g (lowest eigenvalue "
+                         f"{lowest[-1]:.2f} x rest at {last['factor']:g} g)")
+    return "; ".join(parts)
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -215,6 +245,11 @@ STUDIES = (
           "perpendicular to gravity, the modes about those loads), fitted with the surface "
           "curves, to choose on calibration data only, and what do they cost the FE?",
           "runs/studies/body_data*.json", body_data_command, body_data_answer),
+    Study("support_stability", "Does a support hold the organ under its whole weight, or does "
+          "the FE's static sag stop at a physical limit point (the tangent's lowest eigenvalue "
+          "going to zero: the organ tips over on its seat)?",
+          "runs/studies/support_stability*.json", support_stability_command,
+          support_stability_answer),
 )
 
 
