@@ -8,9 +8,10 @@ mass-scaled tangent's largest eigenvalue at every state inside them. Centring th
 (:meth:`StrainBands.centre`) moves the bands of the connectors whose strains have drifted
 more than a quarter of w from their centres (and the ranges of those connectors' tets, and
 of the tets whose ratios drifted likewise), then refreshes the bound: a few passes over the
-connectors and tets in compiled loops, no eigensolve (the bench's drag on a loaded machine,
-load average 3 on 2 cores: 0.25 ms on the 12k-connector liver with the volume term, 1 ms on
-the 54k one; up to 0.8 and 4 ms when the bound needs all :data:`POWER_ITERATIONS` rounds).
+connectors and tets in compiled loops, no eigensolve (the bench's drag, 10,000 calls, one
+core: a call that re-centres takes at most 0.3 / 0.7 / 1.5 ms on the 12k-connector liver
+with springs / the volume term / the relaxing volume term, against 0.13 / 0.43 / 0.43 ms for
+a median call; the refresh itself about 0.25 ms with the volume term, 1 ms on the 54k one).
 
 The bound is the one of :func:`particle.stability.step_bound` (springs and volume term
 added): ``K_t <= L_kappa (x) I_3 + K_vol`` and ``v^T K_vol v <= |v|^T S |v|`` with the
