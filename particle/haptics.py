@@ -126,6 +126,7 @@ class HapticSession:
         self.recentred = 0
         self.integrator = VerletIntegrator(damping, strain_range=strain_range)
         self._bands: StrainBands | None = None
+        self.substeps = 0  # set by _set_step or _take_bands_step below
         if envelope is None:
             self._set_step(dt)
         else:
@@ -140,10 +141,13 @@ class HapticSession:
         self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
         self.dt = self.period / self.substeps
 
+    def _bands_dt(self, limit: float) -> float:
+        """The step [s] an ``envelope`` session takes under the stability ``limit`` [s]."""
+        return min(self._largest_dt, self.dt_safety * limit)
+
     def _keeps_substeps(self, omega2: float) -> bool:
         """True if the bound ``omega2`` [1/s^2] needs no more substeps than the session takes."""
-        limit = stable_step(omega2, self.damping)
-        return self.period / self.substeps <= min(self._largest_dt, self.dt_safety * limit)
+        return self.period / self.substeps <= self._bands_dt(stable_step(omega2, self.damping))
 
     def _take_bands_step(self) -> None:
         """Step at ``dt_safety`` x the ``envelope`` bands' limit (at most the largest ``dt``);
@@ -151,8 +155,8 @@ class HapticSession:
         changes."""
         limit = stable_step(self._bands.omega2, self.damping)
         self.integrator.limit = limit
-        substeps = getattr(self, "substeps", None)
-        self._set_step(min(self._largest_dt, self.dt_safety * limit))
+        substeps = self.substeps
+        self._set_step(self._bands_dt(limit))
         if self.substeps != substeps:
             self._runs.clear()
 
