@@ -1,3 +1,4 @@
+import json
 import logging
 import os
 from pathlib import Path
@@ -17,14 +18,36 @@ os.environ.setdefault("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
 # depend on it (the blocks' forces are summed in block order).
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-# `make test` runs two pytest workers side by side (pytest-xdist). FFCx's JIT cache lets a
-# process wait only 10 s for a form that another process is compiling, then raises
-# TimeoutError; its MPI ranks share one compile, separate processes do not. So each worker
-# gets a JIT cache of its own (set before anything imports dolfinx, which reads it once;
-# mpirun and subprocesses inherit it).
-if "PYTEST_XDIST_WORKER" in os.environ:
-    _cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    os.environ["XDG_CACHE_HOME"] = str(_cache / f"pytest-{os.environ['PYTEST_XDIST_WORKER']}")
+# `make test` runs two pytest workers side by side (pytest-xdist) that share one FFCx JIT
+# cache, so a form is compiled once per session rather than once per worker (~35 s of CPU on
+# a cold cache). A process that finds a form another process is compiling waits for it, by
+# default for 10 s (dolfinx's JIT parameter "timeout"), then raises TimeoutError: a P2 form
+# compiled on a loaded machine can take longer. The tests' processes wait up to
+# JIT_WAIT_S, from a dolfinx JIT parameters file in a config folder of the test session's own
+# (dolfinx reads $XDG_CONFIG_HOME/dolfinx/dolfinx_jit_parameters.json once, at its first
+# JIT; mpirun and subprocesses inherit the variable).
+JIT_WAIT_S = 120
+_config = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "pytest-config"
+_parameters = _config / "dolfinx" / "dolfinx_jit_parameters.json"
+_text = json.dumps({"timeout": JIT_WAIT_S})
+if not _parameters.exists() or _parameters.read_text() != _text:
+    _parameters.parent.mkdir(parents=True, exist_ok=True)
+    _partial = _parameters.with_suffix(f".{os.getpid()}")
+    _partial.write_text(_text)
+    os.replace(_partial, _parameters)  # atomic: another process never reads half a file
+os.environ["XDG_CONFIG_HOME"] = str(_config)
+
+
+def pytest_sessionstart(session):
+    """Before the workers start: remove the C files of FFCx compiles that never finished
+    (a process killed while compiling leaves its ``.c`` without the ``.c.cached`` that
+    says it is ready), on which every later process would wait :data:`JIT_WAIT_S` and fail."""
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        return
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fenics"
+    for source in cache.glob("libffcx_*.c"):
+        if not source.with_suffix(".c.cached").exists():
+            source.unlink(missing_ok=True)
 
 
 # The test files that take longest, longest first (per-file time of `pytest --durations=0 -n 2
