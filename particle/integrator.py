@@ -74,16 +74,14 @@ def thread_blocks(model: Model, active: np.ndarray, threads: int) -> tuple:
     """Work split and scratch of the ``threads``-thread step (see :class:`Run`).
 
     Returns (thread_forces (T, N, 3) [N], edge_starts (T+1,) uint64, node_starts
-    (T+1,) uint64, outside (T,) int64, energy (T,)): thread t takes the connectors
-    ``edge_starts[t] ..`` and the ``active`` nodes (k,) ``node_starts[t] ..``
-    (contiguous blocks of equal size); the last two are its strain-check and
-    energy results.
+    (T+1,) uint64): thread t takes the connectors ``edge_starts[t] ..`` and the ``active``
+    nodes (k,) ``node_starts[t] ..`` (contiguous blocks of equal size).
     """
     def starts(n: int) -> np.ndarray:  # unsigned, as the index views (kernels.index_view)
         return np.linspace(0, n, threads + 1).round().astype(np.uint64)
 
     return (np.zeros((threads, model.n_particles, 3)), starts(model.n_connectors),
-            starts(len(active)), np.empty(threads, np.int64), np.empty(threads))
+            starts(len(active)))
 
 
 def recording(model: Model, nodes: np.ndarray | None, steps: np.ndarray | None,
@@ -296,9 +294,10 @@ class Run:
         # compared with the elongations the force kernel stores anyway: no extra sqrt
         self._elongation_limits = ((np.zeros(0), np.zeros(0)) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
-        self._volume = None
+        self._volume = self._volume_checks = None
         if p.kv is not None:
-            self.volume_ratio_range, self._volume = volume_limits(model, monitored)
+            self.volume_ratio_range, self._volume, self._volume_checks = volume_limits(
+                model, monitored)
         # the volume term's arms, with the paper's recursion like the connectors' (None: an
         # elastic volume term, or a run without arms)
         self.volume_arm_r = self.volume_arm_c = None
@@ -344,14 +343,7 @@ class Run:
         if pool is not None:
             numba.set_num_threads(self.threads)  # the caller's pool size is restored below
         try:
-            # run_verlet's argument groups (its docstring), in its order
-            args = ((state.x, state.x_prev, state.arm_force, state.dx_prev),
-                    self._springs, self._particles, self._loads,
-                    (dt, int(n_steps), state.dt is None, float(state.t)),
-                    (self._prescribed, *keyframes), record,
-                    (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
-                    probe_group, self._scratch,
-                    self._volume, None if self.volume_arm_r is None else self.volume_arms(state))
+            args = self.arguments(state, n_steps, keyframes, energy_bound, record, probe_group)
             status = self._kernel(args, keyframes, probe is None, record)
         finally:
             if pool is not None:
@@ -379,7 +371,18 @@ class Run:
         self.monitored, self._elongation_limits = strain_range, elongation_limits
         if self._volume is not None:
             self.volume_ratio_range = ratio_range
-            self._volume = (*self._volume[:3], *volume_limits, self._volume[5])
+            self._volume_checks = (*volume_limits, self._volume_checks[2])
+
+    def arguments(self, state: State, n_steps: int, keyframes: tuple, energy_bound: float,
+                  record: tuple, probe: tuple) -> tuple:
+        """:func:`~particle.step_kernels.run_verlet`'s argument groups (its docstring), in its
+        order, for a call advancing ``state`` by ``n_steps`` (``probe``: the probe group)."""
+        return ((state.x, state.x_prev, state.arm_force, state.dx_prev), *self._springs,
+                self._particles, self._loads,
+                (self.dt, int(n_steps), state.dt is None, float(state.t)),
+                (self._prescribed, *keyframes), record,
+                (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
+                probe, self._scratch, self._volume, self._volume_checks, self.volume_arms(state))
 
     def _kernel(self, args: tuple, keyframes: tuple, no_probe: bool, record: tuple):
         """``run_verlet(*args)``; from the third call with the same ``keyframes`` object (the
@@ -390,10 +393,9 @@ class Run:
         state's (checked by :func:`check_state` on every call: C-contiguous, writeable
         float64 of the model's shapes), Python scalars; the keyframes are held, so their
         identity stands for their types. Numba's dispatch re-derives the types of every
-        argument on each call, and numba 0.56 caches them by a fingerprint that is garbage
-        beyond 40 bytes (a tuple of five or more arrays: the spring and volume groups):
-        its cache then misses at random, and a call spends 40-500 us in Python typing
-        instead of about 3 us.
+        argument on each call from their fingerprints (every group fits them,
+        :mod:`particle.dispatch`): about 2 us of a call on the default liver that the
+        entry point saves.
         """
         fast = all(r is None for r in record)
         key = (id(keyframes), no_probe)
@@ -410,12 +412,13 @@ class Run:
         return status
 
     def volume_arms(self, state: State) -> tuple | None:
-        """The volume arms' kernel tuple of ``state`` (:mod:`particle.volume`; its pressures and
-        volume strains both read and written), None without arms."""
+        """The volume arms of ``state`` as the kernels take them from Python: (r, c, its
+        pressures, its volume strains) (:mod:`particle.volume`'s tuple without the outputs:
+        read only, or written in place by :func:`~particle.step_kernels.run_verlet`), None
+        without arms."""
         if self.volume_arm_r is None:
             return None
-        return (self.volume_arm_r, self.volume_arm_c, state.volume_arm, state.volume_prev,
-                state.volume_arm, state.volume_prev)
+        return (self.volume_arm_r, self.volume_arm_c, state.volume_arm, state.volume_prev)
 
     def _incident(self, node: int) -> tuple[np.ndarray, np.ndarray | None]:
         """:func:`incident` of ``node`` (cached)."""
@@ -433,10 +436,10 @@ class Run:
         """
         out = np.empty(3)
         edges, tets = self._incident(node)
-        kernels.node_force(state.x, node, edges, *self._springs, state.arm_force,
-                           state.dx_prev, out)
+        kernels.node_force(state.x, node, edges, *self._springs[0], *self._springs[1],
+                           state.arm_force, state.dx_prev, out)
         if self._volume is not None:
-            node_volume_force(state.x, node, tets, *self._volume[:3], self.volume_arms(state),
+            node_volume_force(state.x, node, tets, *self._volume, self.volume_arms(state),
                               out)
         return out
 
@@ -467,19 +470,19 @@ def close_arm_step(run: "Run", state: State) -> None:
 
 
 def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
-                  ) -> tuple[tuple[np.ndarray, np.ndarray], tuple]:
-    """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments) of a run:
+                  ) -> tuple[tuple[np.ndarray, np.ndarray], tuple, tuple]:
+    """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments
+    ``volume_term``, ``volume_checks`` (:func:`particle.step_kernels.run_verlet`)) of a run:
     volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is the one of
-    the ``monitored`` strain range (without one: any positive volume). The arguments end
+    the ``monitored`` strain range (without one: any positive volume). The checks end
     with the run's scratch for the volumes of its last force pass (T,) [m^3]
     (:func:`particle.step_kernels.final_volume_check`)."""
     if monitored is None:
         ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
     else:
         ratio = volume_ratio_range(model, *monitored)
-    return ratio, (kernels.index_view(model.tets), model.rest_volumes, model.params.kv,
-                   ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes,
-                   np.empty(model.n_tets))
+    return ratio, (kernels.index_view(model.tets), model.rest_volumes, model.params.kv), (
+        ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes, np.empty(model.n_tets))
 
 
 def check_steps(n_steps: int) -> int:

@@ -35,7 +35,8 @@ after :func:`internal_forces` (the serial path, which every haptic and dynamic
 run uses by default) and, for the threaded path, in
 :func:`particle.step_kernels.explicit_step` (as the volume term is); its term
 selector joins :class:`particle.integrator.Terms`, its arrays one of the argument groups
-of :func:`particle.step_kernels.run_verlet` (as ``springs`` and ``loads`` are). Mass scaling needs its stiffness in
+of :func:`particle.step_kernels.run_verlet` (as ``connector_terms`` and ``loads`` are; no
+group of more than four arrays, :mod:`particle.dispatch`). Mass scaling needs its stiffness in
 :func:`particle.integrator.critical_time_step` and, to put the added mass where
 the term stiffens the model, a per-particle bound in
 :func:`particle.mass_scaling.stiffness_weights` (as the volume term has).

@@ -51,8 +51,8 @@ from particle import kernels, sparse_ldl
 from particle.kernels import JIT
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
-from particle.volume import (add_volume_forces, add_volume_tangent, signed_volumes, tet_name,
-                             volume_strains)
+from particle.volume import (add_volume_forces_grouped, add_volume_tangent, signed_volumes,
+                             tet_name, volume_strains)
 from particle.volume import tet_slots as volume_tet_slots
 
 log = logging.getLogger(__name__)
@@ -490,9 +490,10 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                                      f"strains {step.strain_prev.shape}: the model has "
                                      f"{model.n_tets} tets (one row each)")
             volume = (np.zeros((model.n_tets, 2)), np.empty(model.n_tets))
-            kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev) + volume
-        bad, _ = add_volume_forces(x, model.tets, model.rest_volumes, p.kv, volume_limits[0],
-                                   volume_limits[1], forces, kernel_arms)
+            kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev)
+        bad, _ = add_volume_forces_grouped(x, model.tets, model.rest_volumes, p.kv,
+                                           volume_limits[0], volume_limits[1], forces,
+                                           kernel_arms, volume)
         if bad >= 0:
             # an inverted tet is no admissible iterate: an infinite residual makes the
             # line search shorten the step (and a converged state is never inverted)

@@ -53,6 +53,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from particle.dispatch import in_place, joined
 from particle.kernels import JIT, add_connector_forces, add_loads, net_forces, node_force
 from particle.lanes import ALL_LANES, LANES, all_inside, vadd, vle_mask, vload, vmax, vsplat, vsub
 from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
@@ -135,15 +136,15 @@ def parallel_forces(x, arm_force, dx_prev, edges, rest_lengths, K0, a, b, arm_r,
                     dx_hi, blocks):
     """The connector pass of :func:`net_forces` split over ``T`` threads (one parallel region).
 
-    ``blocks`` = (thread_forces (T, N, 3), edge_starts (T+1,), node_starts
-    (T+1,), outside (T,) int64, energy (T,)) (see
-    :meth:`particle.integrator.Run`): thread t adds connectors
+    ``blocks`` = (thread_forces (T, N, 3), edge_starts (T+1,), node_starts (T+1,)) (see
+    :func:`particle.integrator.thread_blocks`): thread t adds connectors
     ``edge_starts[t] .. edge_starts[t+1]-1`` into its own zeroed
     ``thread_forces[t]`` (no two threads write the same memory; arm forces
     and elongations are per connector). Returns the first connector outside
     ``[dx_lo, dx_hi]`` in connector order, as the serial pass.
     """
-    thread_forces, edge_starts, _, outside, _ = blocks
+    thread_forces, edge_starts, _ = blocks
+    outside = np.empty(thread_forces.shape[0], np.int64)  # each thread's first, then the first
     for t in prange(thread_forces.shape[0]):
         own = thread_forces[t]
         own[:] = 0.0
@@ -185,7 +186,8 @@ def parallel_advance(x, x_prev, forces, inv_masses, masses, active, loads, scale
     :func:`add_gravity`, :func:`add_damping` and :func:`advance_positions` of
     those nodes (:func:`add_loads`). Returns the summed energy of :func:`advance_positions`.
     """
-    thread_forces, _, node_starts, _, energy = blocks
+    thread_forces, _, node_starts = blocks
+    energy = np.empty(thread_forces.shape[0])  # each thread's, summed in thread order
     (gx, gy, gz), damping_rate, with_gravity, with_damping = loads  # a parallel loop takes
     for t in prange(thread_forces.shape[0]):  # scalars, not a tuple of tuples
         nodes = active[node_starts[t]:node_starts[t + 1]]
@@ -345,11 +347,12 @@ def prescribe(x, x_prev, nodes, times, positions, t):
             x[n, c] = target
 
 
-def spring_group(*, edges, rest_lengths, K0, a, b, arm_r, arm_c) -> tuple:
-    """:func:`run_verlet`'s ``springs``: the connector ends (E, 2) (an index view), rest
-    lengths (E,) [m], spring coefficients K0, a, b (E,) [N/m] (``a``, ``b`` None: linear),
-    the arms' recursion coefficients r, c (E, 2) (None: no arms)."""
-    return (edges, rest_lengths, K0, a, b, arm_r, arm_c)
+def spring_group(*, edges, rest_lengths, K0, a, b, arm_r, arm_c) -> tuple[tuple, tuple]:
+    """:func:`run_verlet`'s ``connectors`` = (the connector ends (E, 2) (an index view), rest
+    lengths (E,) [m], spring coefficients K0 (E,) [N/m]) and ``connector_terms`` = (a, b
+    (E,) [N/m] (None: linear), the arms' recursion coefficients r, c (E, 2) (None: no
+    arms)); the kernels' ``springs`` are the two joined."""
+    return (edges, rest_lengths, K0), (a, b, arm_r, arm_c)
 
 
 def particle_group(*, masses, inv_masses, active) -> tuple:
@@ -414,17 +417,19 @@ def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, 
 
 
 @njit(**JIT)
-def run_verlet(state, springs, particles, loads, stepping, prescribed, recording, checks, probe,
-               scratch, volume, volume_arms):
+def run_verlet(state, connectors, connector_terms, particles, loads, stepping, prescribed,
+               recording, checks, probe, scratch, volume_term, volume_checks, volume_arm_state):
     """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
 
     The arguments come in groups (tuples, in this order; a group in the wrong place does
-    not compile), built by :class:`particle.integrator.Run`:
+    not compile), built by :class:`particle.integrator.Run`, none with more than four arrays
+    (:mod:`particle.dispatch`: numba 0.56 types larger ones in Python on most calls); the
+    loop joins them into the kernels' groups:
 
     * ``state`` = (x, x_prev (N, 3) [m], arm_force (E, 2) [N], dx_prev (E,) [m]), updated
       in place;
-    * ``springs`` (:func:`spring_group`), ``particles`` (:func:`particle_group`), ``loads``
-      (:func:`load_group`);
+    * ``connectors``, ``connector_terms`` (:func:`spring_group`; joined: the kernels'
+      ``springs``), ``particles`` (:func:`particle_group`), ``loads`` (:func:`load_group`);
     * ``stepping`` = (dt [s], n_steps, startup, t0 [s]);
     * ``prescribed`` = (nodes (k,), keyframe times (K,) [s], positions (K, k, 3) [m]);
     * ``recording`` = (rec_nodes, rec_steps, rec_out), each None: no recording (compiled
@@ -432,7 +437,12 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     * ``checks`` = (check_every, energy_bound [J], dx_lo, dx_hi (E,) [m] or (0,): none);
     * ``probe`` = (probe_node, probe_edges, probe_out (3,), probe_tets), probe_node < 0:
       no probe;
-    * ``scratch`` = (forces (N, 3), blocks: None or the multi-threaded step's work split).
+    * ``scratch`` = (forces (N, 3), blocks: None or the multi-threaded step's work split);
+    * ``volume_term`` = (tets, rest_volumes, kv), ``volume_checks`` = (v_lo, v_hi, volumes
+      out), joined: the kernels' ``volume``; ``volume_arm_state`` = (r, c, pressures,
+      volume strains), the state's arrays updated in place (the kernels' ``volume_arms``
+      with outputs aliasing them: :func:`particle.dispatch.in_place`); each None: no
+      volume term, no volume arms.
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
     and not prescribed); if ``startup``, the first step uses half the
@@ -448,10 +458,9 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     connector force on ``probe_node`` at the final state into it (see
     :func:`node_force`; ``probe_edges`` are the node's connectors).
     ``blocks`` None: every step is serial; else the work split and scratch of
-    a multi-threaded step (see :func:`explicit_step`). ``volume`` = (tets,
-    rest_volumes, kv, v_lo, v_hi, volumes out) adds the volume term (None: compiled out),
-    ``volume_arms`` its Maxwell arms (:mod:`particle.volume`'s tuple, outputs aliasing the
-    state's arm pressures and volume strains; None: elastic); a tet whose volume leaves
+    a multi-threaded step (see :func:`explicit_step`). The volume term (compiled out
+    without it) with its Maxwell arms (:mod:`particle.volume`; compiled out without them):
+    a tet whose volume leaves
     ``(v_lo, v_hi]`` at any step (``v_lo`` >= 0, so an inverted tet always does) stops
     the run at once with code VOLUME (step = the step whose start positions it was found
     at, id = the tet); ``probe_tets`` are the probe node's tets.
@@ -464,6 +473,9 @@ def run_verlet(state, springs, particles, loads, stepping, prescribed, recording
     a connector outside ``[dx_lo, dx_hi]`` with STRAIN_END (step = ``n_steps``, id =
     the tet or connector), before the probe force is computed.
     """
+    springs = connectors + connector_terms
+    volume = joined(volume_term, volume_checks)
+    volume_arms = in_place(volume_arm_state)
     x, x_prev, _, dx_prev = state
     edges, rest_lengths = springs[0], springs[1]
     dt, n_steps, startup, t0 = stepping

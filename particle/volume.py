@@ -72,6 +72,7 @@ import numpy as np
 from numba import njit
 
 from forcecal.errors import MeshError, ParameterError
+from particle.dispatch import joined
 from particle.lanes import (ALL_LANES, LANES, arm_pair_lanes, gather_rows, vadd, vdiv, vle_mask,
                             vload, vlt_mask, vmul, vsplat, vstore, vsub)
 from particle.volume_bounds import (node_volume_stiffness_bound, volume_frequency_bound,
@@ -311,6 +312,15 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volum
                                         s * g30, s * g31, s * g32, s * (g10 + g20 + g30),
                                         s * (g11 + g21 + g31), s * (g12 + g22 + g32)))
     return bad, bad_volume
+
+
+@njit(**JIT)
+def add_volume_forces_grouped(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, arms_out):
+    """:func:`add_volume_forces` with its ``arms`` in two groups, (r, c, pressure_prev,
+    strain_prev) and (pressure_out, strain_out), each None: elastic (the call from Python:
+    no argument of more than four arrays, :mod:`particle.dispatch`)."""
+    return add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces,
+                             joined(arms, arms_out))
 
 
 @njit(**JIT)

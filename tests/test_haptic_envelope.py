@@ -187,7 +187,7 @@ def test_a_flat_tets_volume_range_holds_its_ratio_and_the_run_verifies_it():
     assert session.recentred >= 1
     run = session._run(3)[0]
     bands = session._bands
-    assert run._volume[3] is bands.volume_lo and run._elongation_limits[0] is bands.elongation_lo
+    assert run._volume_checks[0] is bands.volume_lo and run._elongation_limits[0] is bands.elongation_lo
     assert bands.ratio_lo[0] < 0.7 < bands.ratio_hi[0]
     with pytest.raises(StabilityError, match="volume"):
         session.step(3, apex * np.array([1.0, 1.0, 0.3]))

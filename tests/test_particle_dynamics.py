@@ -126,21 +126,19 @@ def test_compiled_step_matches_the_numpy_step(terms):
 
 
 def test_the_compiled_loop_refuses_its_argument_groups_out_of_order():
-    """Two groups swapped (the springs where the particles go) do not compile: a call in
+    """Two groups swapped (the particles where the connectors go) do not compile: a call in
     the wrong order fails loudly instead of running with K0 read as masses."""
     from numba.core.errors import TypingError
 
     from particle import step_kernels
     model = box_model()
     run = VerletIntegrator().prepare(model, 0.5 * critical_time_step(model))
-    state = model.state()
-    groups = [(state.x, state.x_prev, state.arm_force, state.dx_prev), run._particles,
-              run._springs, run._loads, (run.dt, 1, True, 0.0),
-              (run._prescribed, *run._no_keyframes), (None, None, None),
-              (1, 1.0, *run._elongation_limits), run._no_probe, run._scratch, None, None]
+    groups = run.arguments(model.state(), 1, run._no_keyframes, 1.0, (None, None, None),
+                           run._no_probe)
+    swapped = list(groups)
+    swapped[1], swapped[3] = groups[3], groups[1]
     with pytest.raises(TypingError):
-        step_kernels.run_verlet(*groups)
-    groups[1:3] = groups[2:0:-1]  # the right order runs
+        step_kernels.run_verlet(*swapped)
     assert step_kernels.run_verlet(*groups).tolist() == [step_kernels.OK, 0, 0]
 
 
