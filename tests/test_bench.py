@@ -6,6 +6,7 @@ import shutil
 import numpy as np
 import pytest
 
+from forcecal.errors import ParameterError
 from forcecal.scene import load_scene, replace
 from pipelines.bench.items import _complete_run_seconds
 from pipelines.bench.configs import (Config, derived_scene, pareto_front, scene_toml,
@@ -162,14 +163,18 @@ def test_read_bench_refuses_a_damaged_file(tmp_path):
 def test_haptic_scale_rows_state_each_variants_substeps_and_error():
     """The haptic variants benchmark on a small box whose limit needs 3 substeps per ms: the
     renumbered variant differs by round-off only, the mass-scaled ones take fewer substeps
-    with their added mass and error stated."""
-    from pipelines.bench.haptic import mesh_rows
+    with their added mass and error stated; each row records its number of timed calls,
+    which may not be fewer than the drag error's window."""
+    from pipelines.bench.haptic import ERROR_CALLS, mesh_rows
     from tests.particle_models import box_model, top_centre
 
     model = box_model((3, 3, 2), K0=200.0)
-    rows = {r["variant"]: r for r in mesh_rows("box", model, top_centre(model),
-                                                int(model.free_nodes[-1]),
-                                                np.array([0.0, 0.0, -9.81]))}
+    args = ("box", model, top_centre(model), int(model.free_nodes[-1]),
+            np.array([0.0, 0.0, -9.81]))
+    rows = {r["variant"]: r for r in mesh_rows(*args, calls=ERROR_CALLS + 200)}
+    assert {r["calls"] for r in rows.values()} == {ERROR_CALLS + 200}
+    with pytest.raises(ParameterError, match="fewer than the 1000 of the drag error's window"):
+        mesh_rows(*args, calls=ERROR_CALLS - 1)
     assert set(rows) == {"float64", "renumbered", "mass-scaled 1", "mass-scaled 1, renumbered",
                          "mass-scaled 2", "mass-scaled 2, renumbered"}
     assert rows["float64"]["substeps"] == 3 and rows["float64"]["error_drag"] == 0.0
@@ -558,27 +563,36 @@ def test_the_headline_scale_study_keeps_a_wide_range_of_sizes_without_the_rank_t
     assert vertices[-1] / vertices[0] > 5  # exponents over at least a 5x range of sizes
 
 
-def test_the_headline_haptic_scale_leaves_out_the_largest_mesh(monkeypatch):
-    """The 12k-connector liver (the goal's mesh) stays; the 54k one is the full bench's."""
+def test_the_headline_haptic_scale_leaves_out_the_largest_mesh_and_times_fewer_calls(
+        monkeypatch):
+    """The 12k-connector liver (the goal's mesh) stays; the 54k one is the full bench's, which
+    times the goals' 10,000 calls per variant."""
     from tests.particle_models import box_model
     from pipelines.bench import haptic
 
-    lengths = []
+    lengths, calls = [], []
 
     def mesh_model(scene, length):
         lengths.append(length)
         return box_model((2, 2, 2), K0=100.0), None, None
 
+    def rows(*args, **kwargs):
+        calls.append(kwargs["calls"])
+        return []
+
     monkeypatch.setattr(haptic, "_mesh_model", mesh_model)
     monkeypatch.setattr(haptic, "tracked_node_by_rule", lambda mesh, fixed, rule: 0)
-    monkeypatch.setattr(haptic, "mesh_rows", lambda *args: [])
-    monkeypatch.setattr(haptic, "volume_rows", lambda *args, **kwargs: [])
+    monkeypatch.setattr(haptic, "mesh_rows", rows)
+    monkeypatch.setattr(haptic, "volume_rows", rows)
     scene = load_scene(SCENES / "liver.toml")
-    haptic.headline_study(scene, None, False)
+    assert haptic.headline_study(scene, None, False)["haptic_scale"]["calls"] == 2000
     assert lengths == [None, 0.008]  # the scene's own mesh, then the 12k liver
+    assert set(calls) == {haptic.HEADLINE_CALLS} and len(calls) == 6
     lengths.clear()
-    haptic.study(scene, None, False)
+    calls.clear()
+    assert haptic.study(scene, None, False)["haptic_scale"]["calls"] == 10_000
     assert lengths == [length for _, length in haptic.MESHES[False]] == [None, 0.008, 0.0045]
+    assert set(calls) == {haptic.GOAL_CALLS} and len(calls) == 9
 
 
 def test_the_headline_fe_convergence_leaves_out_the_finest_sag_level(monkeypatch, tmp_path):

@@ -149,9 +149,10 @@ def skip_timings(model: Model, gravity: np.ndarray, *, duration: float = 3.0) ->
 def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls: int = 1000,
                 depth: float = 0.005, threads: int = 1, inertia: np.ndarray | None = None,
                 strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
-                envelope: float | None = None) -> dict:
+                envelope: float | None = None, ramp_calls: int | None = None) -> dict:
     """``calls`` periods (1 ms each) of :class:`HapticSession` dragging ``node`` ``depth`` [m]
-    along ``normal`` (linearly over the first quarter, then held), timed call by call.
+    along ``normal`` (linearly over the first ``ramp_calls``, default a quarter of the
+    calls, then held), timed call by call.
 
     ``dt`` is the session's largest step [s], ``threads``, ``inertia`` and
     ``strain_range`` (verified by the session) and ``envelope`` (bands that follow the
@@ -175,8 +176,9 @@ def haptic_drag(model: Model, node: int, normal: np.ndarray, dt: float, *, calls
     recentring = np.zeros(calls, dtype=bool)
     cpu = 0.0
     substeps = session.substeps
+    ramp = calls / 4 if ramp_calls is None else ramp_calls
     for k in range(calls):
-        target = start + depth * min(1.0, k / (calls / 4)) * normal
+        target = start + depth * min(1.0, k / ramp) * normal
         recentred = session.recentred
         c0, t0 = time.process_time(), time.perf_counter()
         forces[k] = session.step(node, target)
