@@ -77,3 +77,24 @@ def deformed_start_and_push(model: Model, dt: float, seed: int = 2
     start = state.x[node]
     motion = Prescribed([node], [0.0, 20 * dt], [[start], [start + [0.0, 0.0, -1e-3]]])
     return state, motion
+
+
+def volume_pass(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray, kv: np.ndarray,
+                forces: np.ndarray, arms: tuple | None = None) -> tuple[int, float]:
+    """:func:`particle.volume.add_volume_forces` of every tet, no volume range (``(0, inf]``),
+    typed as a run calls it (the tets an unsigned read-only index view, rest volumes and kv
+    read-only, the volumes stored): the tests share the runs' compiled pass, each other
+    typing of which costs ~4 s of compilation."""
+    from particle.kernels import index_view
+    from particle.volume import add_volume_forces
+
+    def fixed(a, dtype=np.float64):
+        out = np.array(a, dtype=dtype)
+        out.flags.writeable = False
+        return out
+
+    n = len(tets)
+    return add_volume_forces(x, fixed(index_view(np.ascontiguousarray(tets, dtype=np.int64)),
+                                      np.uint64),
+                             fixed(rest_volumes), fixed(kv), np.zeros(n), np.full(n, np.inf),
+                             forces, arms, np.empty(n))

@@ -15,8 +15,9 @@ from particle.model import ModelBuilder, Prescribed
 from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static, tangent_data
 from particle.params import viscoelastic_params
-from tests.particle_models import box_model, deformed_start_and_push, spring_energy, top_centre
-from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
+from tests.particle_models import (box_model, deformed_start_and_push, spring_energy, top_centre,
+                                   volume_pass)
+from particle.volume import (add_volume_tangent, add_volume_tangent_numpy,
                              network_bulk_modulus, signed_volumes, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_hessian_numpy,
                              volume_kv_sensitivity_numpy, volume_strains)
@@ -70,9 +71,7 @@ def test_uniform_dilation_of_one_tet_gives_the_closed_form_force_and_energy():
     for s in (0.9, 0.99, 1.01, 1.2):
         x = centre + s * (TET - centre)
         f = np.zeros((4, 3))
-        none = (np.zeros(1), np.full(1, np.inf))
-        assert add_volume_forces(x, model.tets, model.rest_volumes, model.params.kv, *none,
-                                 f, None)[0] == -1
+        assert volume_pass(x, model.tets, model.rest_volumes, model.params.kv, f)[0] == -1
         # the rest gradients: each vertex's opposite face normal (area vector)/3, inward
         grad_rest = np.array([np.cross(TET[3] - TET[1], TET[2] - TET[1]),
                               np.cross(TET[2] - TET[0], TET[3] - TET[0]),
@@ -96,8 +95,7 @@ def test_forces_are_minus_the_energy_gradient_and_numba_matches_numpy():
     x = deformed(model, 5e-4)
     kv = model.params.kv
     numba = np.zeros_like(x)
-    none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-    assert add_volume_forces(x, model.tets, model.rest_volumes, kv, *none, numba, None)[0] == -1
+    assert volume_pass(x, model.tets, model.rest_volumes, kv, numba)[0] == -1
     twin = volume_forces_numpy(x, model.tets, model.rest_volumes, kv)
     np.testing.assert_allclose(numba, twin, rtol=0, atol=1e-13 * np.abs(twin).max())
     fd = -central_gradient(lambda y: volume_energy(y, model.tets, model.rest_volumes, kv), x)

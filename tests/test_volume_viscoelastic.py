@@ -15,8 +15,8 @@ from particle.params import maxwell_recursions, viscoelastic_params
 from particle.stability import critical_time_step
 from particle.statics import (ArmStep, EquilibriumSolver, TangentPattern, VolumeArmStep,
                               gravity_static)
-from tests.particle_models import box_model, spring_energy, top_centre
-from particle.volume import (add_volume_forces, add_volume_tangent, add_volume_tangent_numpy,
+from tests.particle_models import box_model, spring_energy, top_centre, volume_pass
+from particle.volume import (add_volume_tangent, add_volume_tangent_numpy,
                              signed_volumes, volume_arm_energy, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_gradients_numpy,
                              volume_strains)
@@ -138,9 +138,8 @@ def test_compiled_volume_forces_with_arms_equal_the_numpy_twin():
     kept = prev.copy(), strain_prev.copy()
     out_p, out_j = np.empty_like(prev), np.empty_like(strain_prev)
     forces = np.zeros_like(x)
-    none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-    add_volume_forces(x, model.tets, model.rest_volumes, model.params.kv, *none, forces,
-                      (r, c, prev, strain_prev, out_p, out_j))
+    volume_pass(x, model.tets, model.rest_volumes, model.params.kv, forces,
+                (r, c, prev, strain_prev, out_p, out_j))
     np.testing.assert_array_equal(prev, kept[0])
     np.testing.assert_array_equal(strain_prev, kept[1])
     strain = volume_strains(x, model.tets, model.rest_volumes)
@@ -199,9 +198,8 @@ def test_the_forces_of_an_arm_step_are_minus_the_gradient_of_its_incremental_pot
         return float(np.sum(v0 * (0.5 * kv * j * j + lin * j + 0.5 * c.sum(axis=1) * j * j)))
 
     forces = np.zeros_like(x)
-    none = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-    add_volume_forces(x, model.tets, v0, kv, *none, forces,
-                      (r, c, prev, strain_prev, np.empty_like(prev), np.empty_like(strain_prev)))
+    volume_pass(x, model.tets, v0, kv, forces,
+                (r, c, prev, strain_prev, np.empty_like(prev), np.empty_like(strain_prev)))
     fd = -central_gradient(potential, x)
     np.testing.assert_allclose(forces, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
 
