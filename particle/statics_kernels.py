@@ -1,0 +1,159 @@
+"""Compiled (numba) Newton iteration of :meth:`particle.statics.EquilibriumSolver.solve`.
+
+On a calibration's small meshes an iteration's arithmetic (a force evaluation, a solve
+with the kept ``L D L^T``) takes a few microseconds, and calling it from Python, a
+dozen small calls and allocations per iteration, took ten times that. Here the
+iteration runs in one compiled loop, :func:`newton_iterations`: the forces (connectors,
+the volume term, gravity), the convergence test, the modified-Newton step with the
+kept factorisation, the trial point, the line search on a fresh factorisation's step and
+the refactorise-when-not-contracting rule. It returns to Python where the tangent has to
+be factorised (the rarer event, with its singular-shift fallback and logging in
+:func:`particle.statics.factorize`) and resumes after it.
+
+Every operation is the one the Python loop did, in the same order, on arrays of the
+same types: the same compiled kernels (:func:`particle.kernels.internal_forces`,
+:func:`particle.volume.add_volume_forces`, :func:`particle.sparse_ldl._solve_restricted`),
+gravity added as ``forces += m g`` did, the norms as ``np.dot`` (BLAS ``ddot``, which
+numpy's ``res @ res`` called): the equilibria are bitwise those of the loop it
+replaced (``tests/test_particle_statics.py`` keeps that loop as its reference).
+
+An iterate lives in one of two buffer sets (index 0 or 1 of each array of ``buffers``):
+the current one and the trial. ``buffers`` = ``(x (2, N, 3), forces (2, N, 3), tension
+(2, E), arm forces (2, E, 2), elongations (2, E), volume arm pressures (2, T, 2), volume
+strains (2, T), residuals (2, k))``; the argument groups are tuples, so the Python call
+has few arguments, each typed once.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from particle.kernels import JIT, internal_forces
+from particle.sparse_ldl import _solve_restricted
+from particle.volume import add_volume_forces
+
+#: what :func:`newton_iterations` returns for: a converged iterate, a tangent to factorise
+#: at the current iterate (then call again with ``resume``), no convergence
+CONVERGED, FACTORISE, FAILED = 0, 1, 2
+
+
+@njit(**JIT)
+def evaluate(k, buffers, springs, volume, loads, flat):
+    """Forces of iterate ``k`` at its positions ``buffers[0][k]`` into its buffers (as
+    :func:`particle.statics.net_forces`: connectors, the volume term unless ``volume[0]``
+    is False, its arms stepped if ``volume[1]``, an inverted tet -> infinite forces, then
+    gravity if ``loads[0]``), its residual (the components ``flat``); returns its norm.
+
+    ``springs`` = ``(edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev)``
+    (:func:`particle.statics.kernel_terms`), ``volume`` = ``(on, arms on, tets,
+    rest_volumes, kv, v_lo, v_hi, r, c, pressure_prev, strain_prev)``, ``loads`` = ``(on,
+    masses (N,), gravity (3,))``.
+    """
+    xs, forces, tension, arm_out, dx, vol_p, vol_s, res = buffers
+    edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev = springs
+    x, f = xs[k], forces[k]
+    arm_out[k][:] = 0.0
+    internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, f,
+                    tension[k], arm_out[k], dx[k])
+    on, arms_on, tets, rest_volumes, kv, v_lo, v_hi, r, c, p_prev, s_prev = volume
+    if on:
+        if arms_on:
+            vol_p[k][:] = 0.0
+            bad, _ = add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f,
+                                       (r, c, p_prev, s_prev, vol_p[k], vol_s[k]))
+        else:
+            bad, _ = add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f, None)
+        if bad >= 0:
+            f[:] = np.inf
+    gravity_on, masses, g = loads
+    if gravity_on:
+        for i in range(f.shape[0]):
+            for q in range(3):
+                f[i, q] += masses[i] * g[q]
+    out = res[k]
+    flat_f = f.reshape(-1)
+    for t in range(len(flat)):
+        out[t] = flat_f[flat[t]]
+    return math.sqrt(np.dot(out, out)) if len(out) else 0.0
+
+
+@njit(**JIT)
+def converged(forces, held_flat, held, norm, rtol, floor):
+    """:meth:`particle.statics.EquilibriumSolver._converged` of the iterate with ``forces``
+    (N, 3) and residual norm ``norm``; ``held`` (h,) scratch for the constraint reaction."""
+    flat_f = forces.reshape(-1)
+    for t in range(len(held_flat)):
+        held[t] = flat_f[held_flat[t]]
+    reaction = math.sqrt(np.dot(held, held)) if len(held) else 0.0
+    scale = reaction if reaction > floor else floor  # Python's max(floor, reaction)
+    return norm <= rtol * scale and math.isfinite(scale)
+
+
+@njit(**JIT)
+def moved(trial, cur, step, buffers, springs, volume, loads, flat):
+    """Iterate ``trial`` at iterate ``cur``'s positions plus ``step`` on the components
+    ``flat`` (:func:`particle.statics.displaced`), evaluated; returns its residual norm."""
+    xs = buffers[0]
+    xs[trial][:] = xs[cur]
+    out = xs[trial].reshape(-1)
+    for t in range(len(flat)):
+        out[flat[t]] += step[t]
+    return evaluate(trial, buffers, springs, volume, loads, flat)
+
+
+@njit(**JIT)
+def newton_iterations(state, buffers, springs, volume, loads, dofs, factor, settings):
+    """Modified Newton iterations from ``state`` until convergence, a refactorisation or failure.
+
+    ``state`` = ``(current buffer index, iteration, fresh, stale, start, resume, residual
+    norm)``: ``start`` evaluates the current buffer's positions first; ``resume``
+    continues an iteration after its factorisation (fresh, not stale). ``dofs`` =
+    ``(flat, held_flat, mat)`` (the free components, the prescribed ones, the free dofs
+    in the tangent), ``factor`` the kept factorisation's arrays
+    (:attr:`particle.sparse_ldl.Factor._arrays`), ``settings`` = ``(rtol, force floor,
+    max_iter, refactor_ratio)``. Returns ``(status, current index, iteration, fresh,
+    stale, residual norm)``, the status :data:`CONVERGED`, :data:`FACTORISE` or
+    :data:`FAILED`.
+    """
+    cur, it, fresh, stale, start, resume, norm = state
+    flat, held_flat, mat = dofs
+    rtol, floor, max_iter, refactor_ratio = settings
+    sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm = factor
+    step = np.empty(len(mat))
+    held = np.empty(len(held_flat))
+    if start:
+        norm = evaluate(cur, buffers, springs, volume, loads, flat)
+    while True:
+        if not resume:
+            if converged(buffers[1][cur], held_flat, held, norm, rtol, floor):
+                return CONVERGED, cur, it, fresh, stale, norm
+            if it == max_iter:
+                return FAILED, cur, it, fresh, stale, norm
+            if stale:
+                return FACTORISE, cur, it, fresh, stale, norm
+        resume = False
+        _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm, mat, buffers[7][cur],
+                          step)
+        trial = 1 - cur
+        trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat)
+        if fresh:  # line search on a fresh tangent's step
+            for _ in range(8):
+                if trial_norm < norm:
+                    break
+                for t in range(len(step)):
+                    step[t] = 0.5 * step[t]
+                trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat)
+        if not trial_norm < norm:  # includes NaN
+            if fresh:
+                return FAILED, cur, it, fresh, stale, norm
+            stale = True  # old factorisation: refactorise here and retry
+            it += 1
+            continue
+        if trial_norm > refactor_ratio * norm:
+            stale = True
+        fresh = False
+        cur, norm = trial, trial_norm
+        it += 1
