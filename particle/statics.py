@@ -318,7 +318,7 @@ class EquilibriumSolver:
         while True:
             factor = _NO_FACTOR if self._lu is None else self._lu._arrays
             status, cur, it, _, self._stale, norm = newton_iterations(
-                state, buffers, springs, volume, loads, self._dofs, factor, settings)
+                *state, *buffers, *springs, *volume, *loads, *self._dofs, *factor, *settings)
             if status != FACTORISE:
                 break
             self._factorize(buffers[0][cur], buffers[2][cur],

@@ -20,8 +20,7 @@ replaced (``tests/test_particle_statics.py`` keeps that loop as its reference).
 An iterate lives in one of two buffer sets (index 0 or 1 of each array of ``buffers``):
 the current one and the trial. ``buffers`` = ``(x (2, N, 3), forces (2, N, 3), tension
 (2, E), arm forces (2, E, 2), elongations (2, E), volume arm pressures (2, T, 2), volume
-strains (2, T), residuals (2, k))``; the argument groups are tuples, so the Python call
-has few arguments, each typed once.
+strains (2, T), residuals (2, k))``.
 """
 
 from __future__ import annotations
@@ -105,38 +104,47 @@ def moved(trial, cur, step, buffers, springs, volume, loads, flat):
 
 
 @njit(**JIT)
-def newton_iterations(state, buffers, springs, volume, loads, dofs, factor, settings):
-    """Modified Newton iterations from ``state`` until convergence, a refactorisation or failure.
+def newton_iterations(cur, it, fresh, stale, start, resume, norm,
+                      xs, forces, tension, arm_out, dx, vol_p, vol_s, res,
+                      edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev,
+                      volume_on, volume_arms_on, tets, rest_volumes, kv, v_lo, v_hi, v_r, v_c,
+                      v_pressure_prev, v_strain_prev,
+                      gravity_on, masses, gravity,
+                      flat, held_flat, mat,
+                      sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm,
+                      rtol, floor, max_iter, refactor_ratio):
+    """Modified Newton iterations from a state until convergence, a refactorisation or failure.
 
-    ``state`` = ``(current buffer index, iteration, fresh, stale, start, resume, residual
-    norm)``: ``start`` evaluates the current buffer's positions first; ``resume``
-    continues an iteration after its factorisation (fresh, not stale). ``dofs`` =
-    ``(flat, held_flat, mat)`` (the free components, the prescribed ones, the free dofs
-    in the tangent), ``factor`` the kept factorisation's arrays
-    (:attr:`particle.sparse_ldl.Factor._arrays`), ``settings`` = ``(rtol, force floor,
-    max_iter, refactor_ratio)``. Returns ``(status, current index, iteration, fresh,
-    stale, residual norm)``, the status :data:`CONVERGED`, :data:`FACTORISE` or
+    The state: the current buffer index ``cur``, the iteration ``it``, ``fresh``, ``stale``,
+    ``start`` (evaluate the current buffer's positions first), ``resume`` (continue an
+    iteration after its factorisation: fresh, not stale) and the current residual
+    ``norm``. Then the groups ``buffers``, ``springs``, ``volume``, ``loads`` of
+    :func:`evaluate`, the dofs (the free components, the prescribed ones, the free dofs in
+    the tangent), the kept factorisation (:attr:`particle.sparse_ldl.Factor._arrays`) and
+    the settings, every argument on its own: numba types a call's arguments fast one by
+    one, a tuple of more than four arrays slowly (microseconds). Returns ``(status, cur,
+    it, fresh, stale, norm)``, the status :data:`CONVERGED`, :data:`FACTORISE` or
     :data:`FAILED`.
     """
-    cur, it, fresh, stale, start, resume, norm = state
-    flat, held_flat, mat = dofs
-    rtol, floor, max_iter, refactor_ratio = settings
-    sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm = factor
+    buffers = (xs, forces, tension, arm_out, dx, vol_p, vol_s, res)
+    springs = (edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev)
+    volume = (volume_on, volume_arms_on, tets, rest_volumes, kv, v_lo, v_hi, v_r, v_c,
+              v_pressure_prev, v_strain_prev)
+    loads = (gravity_on, masses, gravity)
     step = np.empty(len(mat))
     held = np.empty(len(held_flat))
     if start:
         norm = evaluate(cur, buffers, springs, volume, loads, flat)
     while True:
         if not resume:
-            if converged(buffers[1][cur], held_flat, held, norm, rtol, floor):
+            if converged(forces[cur], held_flat, held, norm, rtol, floor):
                 return CONVERGED, cur, it, fresh, stale, norm
             if it == max_iter:
                 return FAILED, cur, it, fresh, stale, norm
             if stale:
                 return FACTORISE, cur, it, fresh, stale, norm
         resume = False
-        _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm, mat, buffers[7][cur],
-                          step)
+        _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm, mat, res[cur], step)
         trial = 1 - cur
         trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat)
         if fresh:  # line search on a fresh tangent's step
