@@ -24,8 +24,9 @@ steps and calls, and refactorises only when the residual stops contracting
 fast (ratio above ``refactor_ratio``). A step that does not reduce the
 residual with a fresh factorisation is backtracked (line search); a load step
 that still fails is halved by :func:`continuation`. The iteration runs as one compiled
-loop (:mod:`particle.statics_kernels`: on small meshes the cost of calling the kernels
-from Python was most of it) that returns to Python only to factorise.
+loop (:mod:`particle.statics_kernels`, factorisations included: on small meshes the cost
+of calling the kernels from Python was most of it) that returns to Python only where a
+tangent has a zero pivot (:func:`factorize`'s shifted retry).
 
 Where the equilibrium being followed ends (a fold of the loading path: a weakly held
 particle snaps through a face of its neighbours, the tangent's smallest eigenvalue going to
@@ -61,10 +62,9 @@ from particle.volume import tet_slots as volume_tet_slots
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-#: what the compiled Newton loop gets for no gravity and no factorisation yet (both unread)
+#: what the compiled Newton loop gets for no gravity and no factorisation's L, D yet (unread)
 _NO_GRAVITY = np.zeros(3)
-_NO_FACTOR = (np.zeros(2, np.int64), np.zeros(2, np.int64), np.zeros(0, np.int64),
-              np.zeros(2, np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
+_NO_FACTOR = np.zeros(0)
 #: most damped steps of :meth:`EquilibriumSolver.settle`, and most increases of its shift
 #: in one step (4^30: the step is then a vanishing move along the force)
 SETTLE_ITERATIONS, SETTLE_SHIFTS = 200, 30
@@ -247,6 +247,10 @@ class EquilibriumSolver:
         self._mat = pattern.dofs(active)
         self._dofs = (self._flat, self._held_flat, self._mat)  # the compiled loop's
         self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
+        tet_slots = (np.zeros((0, 4, 4, 3, 3), np.int64) if pattern.tet_slots is None
+                     else pattern.tet_slots)
+        self._tangent = (len(pattern.indices), pattern.slots, tet_slots, self._zero_slots,
+                         self._diag_slots)
         self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
         # what the compiled loop gets (unread) without kv or a volume arm step, typed as
         # the parameters' read-only arrays and a step's arrays are
@@ -314,24 +318,39 @@ class EquilibriumSolver:
         floor = self._force_floor(params, gravity)
         buffers, springs, volume, loads = self._workspace(x, params, nonlinear, arms, gravity)
         settings = (float(self.rtol), floor, int(self.max_iter), float(self.refactor_ratio))
+        symbolic = self.pattern.ldl
         state = (0, 0, False, self._stale, True, False, 0.0)
         while True:
-            factor = _NO_FACTOR if self._lu is None else self._lu._arrays
-            status, cur, it, _, self._stale, norm = newton_iterations(
-                *state, *buffers, *springs, *volume, *loads, *self._dofs, *factor, *settings)
+            lu = (_NO_FACTOR, _NO_FACTOR) if self._lu is None else (self._lu.x, self._lu.d)
+            status, cur, it, _, stale, norm, lx, ld, factorisations = newton_iterations(
+                *state, *buffers, *springs, *volume, *loads, *self._dofs, *self._tangent,
+                *self._symbolic(symbolic), *lu, *settings)
+            if factorisations:
+                self.factorization = sparse_ldl.Factor(symbolic, lx, ld)
+                self.factorizations += factorisations
+            self._stale = stale
             if status != FACTORISE:
                 break
+            # a zero pivot: factorise here, with the singular fallback, and go on
             self._factorize(buffers[0][cur], buffers[2][cur],
                             buffers[5][cur] if volume[1] else None, params, nonlinear, arms)
             state = (cur, it, True, False, False, True, norm)
         if status == CONVERGED:
-            x, forces, tension, arm_force, dx, vol_p, vol_s, res = (b[cur].copy()
-                                                                     for b in buffers)
-            return self._equilibrium(_Iterate(x, forces, tension, arm_force, dx, res,
-                                              (vol_p, vol_s) if volume[1] else None), it)
+            xs, forces, _, arm_force, dx, vol_p, vol_s, _ = buffers
+            return Equilibrium(xs[cur].copy(), forces[cur].copy(), arm_force[cur].copy(),
+                               dx[cur].copy(), it,
+                               *volume_state(self.model, xs[cur], (vol_p[cur].copy(),
+                                                                   vol_s[cur].copy())
+                                             if volume[1] else None))
         raise ConvergenceError(f"Newton did not converge for prescribed particles "
                                f"{self.prescribed.tolist()}: residual {norm:.3g} N after {it} "
                                f"iterations (tolerance {self.rtol:g} x force scale)")
+
+    @staticmethod
+    def _symbolic(s: sparse_ldl.Symbolic) -> tuple:
+        """The arrays of the pattern's symbolic analysis the compiled loop factorises with."""
+        return (s.sup_ptr, s.row_ptr, s.rows, s.x_ptr, s.upd_ptr, s.upd_sup, s.upd_q1,
+                s.upd_q2, s.a_src, s.a_dst, s.perm)
 
     def _workspace(self, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                    arms: ArmStep | None, gravity: np.ndarray | None) -> tuple:
@@ -610,12 +629,21 @@ class _Iterate:
         self.norm = math.sqrt(res @ res)
 
     def volume_state(self, model: Model) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """(volume arm pressures (T, 2), volume strains (T,)) of an :class:`Equilibrium`: the
-        arm step's, zeros when the arms are relaxed (no arm step), None without arms."""
-        if self.volume_arm is not None or not model.params.has_volume_arms:
-            return self.volume_arm, self.volume_strain
-        return (np.zeros((model.n_tets, 2)),
-                volume_strains(self.x, model.tets, model.rest_volumes))
+        """:func:`volume_state` of this iterate."""
+        return volume_state(model, self.x, None if self.volume_arm is None
+                            else (self.volume_arm, self.volume_strain))
+
+
+def volume_state(model: Model, x: np.ndarray, volume: tuple[np.ndarray, np.ndarray] | None
+                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(volume arm pressures (T, 2), volume strains (T,)) of an :class:`Equilibrium` at ``x``
+    (N, 3): the arm step's ``volume``, zeros when the arms are relaxed (no arm step), None
+    without arms."""
+    if volume is not None:
+        return volume
+    if not model.params.has_volume_arms:
+        return None, None
+    return np.zeros((model.n_tets, 2)), volume_strains(x, model.tets, model.rest_volumes)
 
 
 @contextlib.contextmanager

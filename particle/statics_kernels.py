@@ -6,8 +6,10 @@ dozen small calls and allocations per iteration, took ten times that. Here the
 iteration runs in one compiled loop, :func:`newton_iterations`: the forces (connectors,
 the volume term, gravity), the convergence test, the modified-Newton step with the
 kept factorisation, the trial point, the line search on a fresh factorisation's step and
-the refactorise-when-not-contracting rule. It returns to Python where the tangent has to
-be factorised (the rarer event, with its singular-shift fallback and logging in
+the refactorise-when-not-contracting rule, and the factorisations (:func:`factorise`:
+the tangent assembled as :func:`particle.statics.tangent_data` does, the constraints
+applied, :func:`particle.sparse_ldl._numeric`). It returns to Python only where a
+factorisation meets a zero pivot (the singular-shift fallback and its logging in
 :func:`particle.statics.factorize`) and resumes after it.
 
 Every operation is the one the Python loop did, in the same order, on arrays of the
@@ -30,12 +32,12 @@ import math
 import numpy as np
 from numba import njit
 
-from particle.kernels import JIT, internal_forces
-from particle.sparse_ldl import _solve_restricted
-from particle.volume import add_volume_forces
+from particle.kernels import JIT, assemble_tangent, internal_forces
+from particle.sparse_ldl import _numeric, _solve_restricted
+from particle.volume import add_volume_forces, add_volume_tangent
 
 #: what :func:`newton_iterations` returns for: a converged iterate, a tangent to factorise
-#: at the current iterate (then call again with ``resume``), no convergence
+#: in Python at the current iterate (then call again with ``resume``), no convergence
 CONVERGED, FACTORISE, FAILED = 0, 1, 2
 
 
@@ -104,6 +106,52 @@ def moved(trial, cur, step, buffers, springs, volume, loads, flat):
 
 
 @njit(**JIT)
+def row_sums(v):
+    """(M,) ``v.sum(axis=1)`` of ``v`` (M, 2) as numpy sums: ``(0.0 + v[:, 0]) + v[:, 1]``."""
+    out = np.empty(v.shape[0])
+    for m in range(v.shape[0]):
+        out[m] = (0.0 + v[m, 0]) + v[m, 1]
+    return out
+
+
+@njit(**JIT)
+def factorise(cur, buffers, springs, volume, tangent, symbolic):
+    """``(first bad pivot or -1, L, D)``: the ``L D L^T`` factorisation
+    (:func:`particle.sparse_ldl._numeric`) of the tangent at iterate ``cur`` with the
+    constraints applied, as :meth:`particle.statics.EquilibriumSolver._factorize` builds it
+    (:func:`particle.statics.tangent_data`).
+
+    ``tangent`` = ``(nnz, slots, tet_slots, zero_slots, diag_slots)`` (the pattern's entries
+    and the data indices of its blocks and of the constraints), ``symbolic`` the pattern's
+    :class:`particle.sparse_ldl.Symbolic` arrays ``(sup_ptr, row_ptr, rows, x_ptr, upd_ptr,
+    upd_sup, upd_q1, upd_q2, a_src, a_dst, perm)``.
+    """
+    xs, _, tension, _, _, vol_p, _, _ = buffers
+    edges, rest_lengths, K0, a, b, _, arm_c, _, _ = springs
+    on, arms_on, tets, rest_volumes, kv, _, _, _, v_c, _, _ = volume
+    nnz, slots, tet_slots, zero_slots, diag_slots = tangent
+    sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src, a_dst, perm = symbolic
+    x = xs[cur]
+    data = np.empty(nnz)
+    assemble_tangent(x, edges, rest_lengths, K0, a, b, row_sums(arm_c), tension[cur], slots,
+                     data)
+    if on:
+        if arms_on:
+            add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data,
+                               (row_sums(v_c), row_sums(vol_p[cur])))
+        else:
+            add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data, None)
+    for t in range(len(zero_slots)):
+        data[zero_slots[t]] = 0.0
+    for t in range(len(diag_slots)):
+        data[diag_slots[t]] = 1.0
+    lx, ld = np.empty(x_ptr[-1]), np.empty(len(perm))
+    bad = _numeric(sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src,
+                   a_dst, data, lx, ld)
+    return bad, lx, ld
+
+
+@njit(**JIT)
 def newton_iterations(cur, it, fresh, stale, start, resume, norm,
                       xs, forces, tension, arm_out, dx, vol_p, vol_s, res,
                       edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev,
@@ -111,7 +159,9 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
                       v_pressure_prev, v_strain_prev,
                       gravity_on, masses, gravity,
                       flat, held_flat, mat,
-                      sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm,
+                      nnz, slots, tet_slots, zero_slots, diag_slots,
+                      sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src,
+                      a_dst, perm, lx, ld,
                       rtol, floor, max_iter, refactor_ratio):
     """Modified Newton iterations from a state until convergence, a refactorisation or failure.
 
@@ -120,17 +170,23 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
     iteration after its factorisation: fresh, not stale) and the current residual
     ``norm``. Then the groups ``buffers``, ``springs``, ``volume``, ``loads`` of
     :func:`evaluate`, the dofs (the free components, the prescribed ones, the free dofs in
-    the tangent), the kept factorisation (:attr:`particle.sparse_ldl.Factor._arrays`) and
-    the settings, every argument on its own: numba types a call's arguments fast one by
-    one, a tuple of more than four arrays slowly (microseconds). Returns ``(status, cur,
-    it, fresh, stale, norm)``, the status :data:`CONVERGED`, :data:`FACTORISE` or
-    :data:`FAILED`.
+    the tangent), the groups ``tangent`` and ``symbolic`` of :func:`factorise`, the kept
+    factorisation's ``L`` and ``D`` (``lx``, ``ld``: :class:`particle.sparse_ldl.Factor`)
+    and the settings, every argument on its own: numba types a call's arguments fast one
+    by one, a tuple of more than four arrays slowly (microseconds). Returns ``(status,
+    cur, it, fresh, stale, norm, lx, ld, factorisations)``: the status :data:`CONVERGED`,
+    :data:`FACTORISE` (a zero pivot: factorise in Python) or :data:`FAILED`, the kept
+    factorisation and how many factorisations this call made.
     """
     buffers = (xs, forces, tension, arm_out, dx, vol_p, vol_s, res)
     springs = (edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev)
     volume = (volume_on, volume_arms_on, tets, rest_volumes, kv, v_lo, v_hi, v_r, v_c,
               v_pressure_prev, v_strain_prev)
     loads = (gravity_on, masses, gravity)
+    tangent = (nnz, slots, tet_slots, zero_slots, diag_slots)
+    symbolic = (sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src, a_dst,
+                perm)
+    factorisations = 0
     step = np.empty(len(mat))
     held = np.empty(len(held_flat))
     if start:
@@ -138,11 +194,17 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
     while True:
         if not resume:
             if converged(forces[cur], held_flat, held, norm, rtol, floor):
-                return CONVERGED, cur, it, fresh, stale, norm
+                return CONVERGED, cur, it, fresh, stale, norm, lx, ld, factorisations
             if it == max_iter:
-                return FAILED, cur, it, fresh, stale, norm
+                return FAILED, cur, it, fresh, stale, norm, lx, ld, factorisations
             if stale:
-                return FACTORISE, cur, it, fresh, stale, norm
+                bad, new_lx, new_ld = factorise(cur, buffers, springs, volume, tangent,
+                                                symbolic)
+                if bad >= 0:
+                    return FACTORISE, cur, it, fresh, stale, norm, lx, ld, factorisations
+                lx, ld = new_lx, new_ld
+                factorisations += 1
+                stale, fresh = False, True
         resume = False
         _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm, mat, res[cur], step)
         trial = 1 - cur
@@ -156,7 +218,7 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
                 trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat)
         if not trial_norm < norm:  # includes NaN
             if fresh:
-                return FAILED, cur, it, fresh, stale, norm
+                return FAILED, cur, it, fresh, stale, norm, lx, ld, factorisations
             stale = True  # old factorisation: refactorise here and retry
             it += 1
             continue
