@@ -14,10 +14,16 @@ factorisation meets a zero pivot (the singular-shift fallback and its logging in
 
 Every operation is the one the Python loop did, in the same order, on arrays of the
 same types: the same compiled kernels (:func:`particle.kernels.internal_forces`,
-:func:`particle.volume.add_volume_forces`, :func:`particle.sparse_ldl._solve_restricted`),
-gravity added as ``forces += m g`` did, the norms as ``np.dot`` (BLAS ``ddot``, which
-numpy's ``res @ res`` called): the equilibria are bitwise those of the loop it
-replaced (``tests/test_particle_statics.py`` keeps that loop as its reference).
+:func:`particle.volume.add_volume_forces`, :func:`particle.sparse_ldl._solve_restricted`,
+the tangent's and the factorisation's), gravity added as ``forces += m g`` did, the norms
+as ``np.dot`` (BLAS ``ddot``, which numpy's ``res @ res`` called), the arms' summed
+coefficients and pressures as numpy's ``sum(axis=1)`` (:func:`row_sums`): the equilibria
+and the kept factorisations are bitwise those of the loop it replaced
+(``tests/test_particle_statics.py`` keeps that loop as its reference).
+
+Cold compilation: the loop is one more specialisation that links the kernels it calls
+(compiled for the Python paths anyway) into its own machine code, some 3-6 s of CPU in a
+process with an empty cache; a process with the cache loads it in milliseconds.
 
 An iterate lives in one of two buffer sets (index 0 or 1 of each array of ``buffers``):
 the current one and the trial. ``buffers`` = ``(x (2, N, 3), forces (2, N, 3), tension

@@ -506,7 +506,8 @@ def test_the_compiled_newton_loop_is_the_python_loop_to_the_last_bit():
     each keeping its factorisation between them: nonlinear springs with and without an arm
     step, the volume term elastic and with its arms, gravity, a push deep enough from rest
     that trial points invert tets (infinite residual -> line search), a solve that fails
-    (max_iter) and one that fails on a fresh factorisation. Every equilibrium, iteration
+    (max_iter) and one that fails on a fresh factorisation, and an exactly singular tangent
+    (a hanging spring at rest: the shifted factorisation). Every equilibrium, iteration
     count, factorisation count, error message and the kept factorisation's staleness are
     equal, bit for bit."""
     from forcecal.errors import ConvergenceError
@@ -551,3 +552,14 @@ def test_the_compiled_newton_loop_is_the_python_loop_to_the_last_bit():
             else:
                 assert got == want
     assert min(counts["halved"], counts["inverted"], counts["retried"]) > 0  # every fallback ran
+    # a hanging spring at rest: an exactly singular tangent, factorised shifted in Python
+    hanging = two_particle_model(direction=(0.0, 0.0, -1.0))
+    pair = [EquilibriumSolver(hanging, np.zeros(0, np.int64), TangentPattern.of(hanging))
+            for _ in range(2)]
+    got = pair[0].solve(hanging.rest_positions, hanging.params, gravity=GRAVITY_Z)
+    want = python_newton(pair[1], hanging.rest_positions, hanging.params, gravity=GRAVITY_Z)
+    np.testing.assert_array_equal(got.x, want.x)
+    np.testing.assert_array_equal(got.forces, want.forces)
+    assert got.iterations == want.iterations > 0
+    assert pair[0].factorizations == pair[1].factorizations
+    np.testing.assert_array_equal(pair[0].factorization.d, pair[1].factorization.d)
