@@ -198,6 +198,9 @@ class Equilibrium:
         volume_arm: (T, 2) float64, the volume arms' pressures [Pa] (zeros without an arm
             step), or None: the volume term has no arms.
         volume_strain: (T,) float64, the tets' volume strains [1] with ``volume_arm``.
+        tension: (E,) float64, the connectors' tensions [N] (arm forces included) as the
+            solver's last force evaluation left them (what the tangent at ``x`` is assembled
+            from), or None (not computed: :meth:`at_rest`).
     """
     x: np.ndarray
     forces: np.ndarray
@@ -206,6 +209,7 @@ class Equilibrium:
     iterations: int
     volume_arm: np.ndarray | None = None
     volume_strain: np.ndarray | None = None
+    tension: np.ndarray | None = None
 
     @classmethod
     def at_rest(cls, model: Model) -> "Equilibrium":
@@ -336,12 +340,12 @@ class EquilibriumSolver:
                             buffers[5][cur] if volume[1] else None, params, nonlinear, arms)
             state = (cur, it, True, False, False, True, norm)
         if status == CONVERGED:
-            xs, forces, _, arm_force, dx, vol_p, vol_s, _ = buffers
+            xs, forces, tension, arm_force, dx, vol_p, vol_s, _ = buffers
             return Equilibrium(xs[cur].copy(), forces[cur].copy(), arm_force[cur].copy(),
                                dx[cur].copy(), it,
                                *volume_state(self.model, xs[cur], (vol_p[cur].copy(),
                                                                    vol_s[cur].copy())
-                                             if volume[1] else None))
+                                             if volume[1] else None), tension[cur].copy())
         raise ConvergenceError(f"Newton did not converge for prescribed particles "
                                f"{self.prescribed.tolist()}: residual {norm:.3g} N after {it} "
                                f"iterations (tolerance {self.rtol:g} x force scale)")
@@ -463,7 +467,7 @@ class EquilibriumSolver:
 
     def _equilibrium(self, cur: "_Iterate", iterations: int) -> Equilibrium:
         return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, iterations,
-                           *cur.volume_state(self.model))
+                           *cur.volume_state(self.model), cur.tension)
 
 
 def flat_dofs(nodes: np.ndarray) -> np.ndarray:

@@ -563,3 +563,26 @@ def test_the_compiled_newton_loop_is_the_python_loop_to_the_last_bit():
     assert got.iterations == want.iterations > 0
     assert pair[0].factorizations == pair[1].factorizations
     np.testing.assert_array_equal(pair[0].factorization.d, pair[1].factorization.d)
+
+
+def test_an_equilibrium_keeps_the_tensions_a_force_evaluation_at_it_gives():
+    """``Equilibrium.tension`` (what the adjoint pass assembles its tangent from instead of
+    evaluating the forces again) is bitwise the tension, and the volume arms' pressures
+    bitwise those, of a force evaluation at the equilibrium with the same arm step; solve
+    and settle both keep it."""
+    from particle.evaluators import arm_coefficients, arm_step
+    from tests.test_particle_volume import with_kv
+    model = with_kv(box_model(a=-30.0, b=400.0), 2000.0, (1500.0, 1000.0))
+    node = top_centre(model)
+    solver = EquilibriumSolver(model, [node], TangentPattern.of(model))
+    guess = model.rest_positions.copy()
+    guess[node] += 0.003 * DOWN
+    eq = solver.solve(guess, model.params)
+    arms = arm_step(arm_coefficients(model.params, 0.02), eq)
+    for step, found in ((None, eq), (arms, solver.solve(guess, model.params, arms=arms)),
+                        (arms, solver.settle(guess, model.params, arms=arms))):
+        it = solver._evaluate(found.x, model.params, True, step, None)
+        np.testing.assert_array_equal(found.tension, it.tension)
+        if step is not None:
+            np.testing.assert_array_equal(found.volume_arm, it.volume_arm)
+    assert Equilibrium.at_rest(model).tension is None
