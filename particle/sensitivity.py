@@ -294,7 +294,13 @@ class _Adjoint(_Recorded):
     @staticmethod
     def _tangent(solver: EquilibriumSolver, model: Model, pat, eq: Equilibrium,
                  arms: ArmStep | None) -> np.ndarray:
-        """CSC data (nnz,) of the exact tangent ``K`` at the equilibrium (no constraints yet)."""
+        """CSC data (nnz,) of the exact tangent ``K`` at the equilibrium (no constraints yet):
+        from the tensions (and the volume arms' pressures) the solve left (bitwise those a
+        force evaluation at ``eq.x`` gives: the same kernel at the same point with the same
+        arm step), else from an evaluation."""
+        if eq.tension is not None:
+            return tangent_data(model, pat, eq.x, eq.tension, model.params, True, arms,
+                                eq.volume_arm)
         it = solver._evaluate(eq.x, model.params, not model.params.is_linear, arms, None)
         return tangent_data(model, pat, eq.x, it.tension, model.params, True, arms,
                             it.volume_arm)

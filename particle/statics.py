@@ -23,7 +23,10 @@ runs a *modified* Newton iteration: it keeps its LU between iterations, load
 steps and calls, and refactorises only when the residual stops contracting
 fast (ratio above ``refactor_ratio``). A step that does not reduce the
 residual with a fresh factorisation is backtracked (line search); a load step
-that still fails is halved by :func:`continuation`.
+that still fails is halved by :func:`continuation`. The iteration runs as one compiled
+loop (:mod:`particle.statics_kernels`, factorisations included: on small meshes the cost
+of calling the kernels from Python was most of it) that returns to Python only where a
+tangent has a zero pivot (:func:`factorize`'s shifted retry).
 
 Where the equilibrium being followed ends (a fold of the loading path: a weakly held
 particle snaps through a face of its neighbours, the tangent's smallest eigenvalue going to
@@ -51,6 +54,7 @@ from particle import kernels, sparse_ldl
 from particle.kernels import JIT
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
+from particle.statics_kernels import CONVERGED, FACTORISE, newton_iterations
 from particle.volume import (add_volume_forces_grouped, add_volume_tangent, signed_volumes,
                              tet_name, volume_strains)
 from particle.volume import tet_slots as volume_tet_slots
@@ -58,6 +62,9 @@ from particle.volume import tet_slots as volume_tet_slots
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+#: what the compiled Newton loop gets for no gravity and no factorisation's L, D yet (unread)
+_NO_GRAVITY = np.zeros(3)
+_NO_FACTOR = np.zeros(0)
 #: most damped steps of :meth:`EquilibriumSolver.settle`, and most increases of its shift
 #: in one step (4^30: the step is then a vanishing move along the force)
 SETTLE_ITERATIONS, SETTLE_SHIFTS = 200, 30
@@ -191,6 +198,9 @@ class Equilibrium:
         volume_arm: (T, 2) float64, the volume arms' pressures [Pa] (zeros without an arm
             step), or None: the volume term has no arms.
         volume_strain: (T,) float64, the tets' volume strains [1] with ``volume_arm``.
+        tension: (E,) float64, the connectors' tensions [N] (arm forces included) as the
+            solver's last force evaluation left them (what the tangent at ``x`` is assembled
+            from), or None (not computed: :meth:`at_rest`).
     """
     x: np.ndarray
     forces: np.ndarray
@@ -199,6 +209,7 @@ class Equilibrium:
     iterations: int
     volume_arm: np.ndarray | None = None
     volume_strain: np.ndarray | None = None
+    tension: np.ndarray | None = None
 
     @classmethod
     def at_rest(cls, model: Model) -> "Equilibrium":
@@ -238,8 +249,18 @@ class EquilibriumSolver:
         self._flat = flat_dofs(active)
         self._held_flat = flat_dofs(self.prescribed)
         self._mat = pattern.dofs(active)
+        self._dofs = (self._flat, self._held_flat, self._mat)  # the compiled loop's
         self._zero_slots, self._diag_slots = pattern.constraint_slots(self.prescribed)
+        tet_slots = (np.zeros((0, 4, 4, 3, 3), np.int64) if pattern.tet_slots is None
+                     else pattern.tet_slots)
+        self._tangent = (len(pattern.indices), pattern.slots, tet_slots, self._zero_slots,
+                         self._diag_slots)
         self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
+        # what the compiled loop gets (unread) without kv or a volume arm step, typed as
+        # the parameters' read-only arrays and a step's arrays are
+        self._no_kv = np.zeros(model.n_tets)
+        self._no_kv.flags.writeable = False
+        self._no_volume_arms = (np.zeros((model.n_tets, 2)), np.zeros(model.n_tets))
         self._mean_length = np.mean(model.rest_lengths)
         self._floor_of: tuple[ConnectorParams | None, float] = (None, 0.0)  # force scale floor
         self._lu = None
@@ -273,17 +294,16 @@ class EquilibriumSolver:
                                                           gravity, self._no_volume_limit)
         return _Iterate(x, forces, tension, arm_out, dx, forces.ravel()[self._flat], volume)
 
-    def _factorize(self, it: _Iterate, p: ConnectorParams, nonlinear: bool,
-                   arms: ArmStep | None) -> None:
-        data = tangent_data(self.model, self.pattern, it.x, it.tension, p, nonlinear, arms,
-                            it.volume_arm)
+    def _factorize(self, x: np.ndarray, tension: np.ndarray, volume_arm: np.ndarray | None,
+                   p: ConnectorParams, nonlinear: bool, arms: ArmStep | None) -> None:
+        """Factorise the constrained tangent at positions ``x`` (tension (E,), the volume
+        arms' pressures (T, 2) with a volume arm step) and keep it."""
+        data = tangent_data(self.model, self.pattern, x, tension, p, nonlinear, arms,
+                            volume_arm)
         data[self._zero_slots] = 0.0
         data[self._diag_slots] = 1.0
         self.factorization = factorize(self.pattern, data, self.prescribed)
         self.factorizations += 1
-
-    def _newton_step(self, res: np.ndarray) -> np.ndarray:
-        return self._lu.solve_restricted(self._mat, res)
 
     def _moved(self, it: _Iterate, step: np.ndarray, *args) -> _Iterate:
         return self._evaluate(displaced(it.x, self._flat, step), *args)
@@ -298,37 +318,69 @@ class EquilibriumSolver:
         search). Raises :class:`ConvergenceError` if the residual cannot be
         brought below the tolerance in ``max_iter`` iterations.
         """
-        args = (params, not params.is_linear, arms, gravity)
+        nonlinear = not params.is_linear
         floor = self._force_floor(params, gravity)
-        cur = self._evaluate(np.array(x, dtype=np.float64, order="C"), *args)
-        fresh = False
-        for it in range(self.max_iter + 1):
-            if self._converged(cur, floor):
-                return self._equilibrium(cur, it)
-            if it == self.max_iter:
+        buffers, springs, volume, loads = self._workspace(x, params, nonlinear, arms, gravity)
+        settings = (float(self.rtol), floor, int(self.max_iter), float(self.refactor_ratio))
+        symbolic = self.pattern.ldl
+        state = (0, 0, False, self._stale, True, False, 0.0)
+        while True:
+            lu = (_NO_FACTOR, _NO_FACTOR) if self._lu is None else (self._lu.x, self._lu.d)
+            status, cur, it, _, stale, norm, lx, ld, factorisations = newton_iterations(
+                *state, *buffers, *springs, *volume, *loads, *self._dofs, *self._tangent,
+                *self._symbolic(symbolic), *lu, *settings)
+            if factorisations:
+                self.factorization = sparse_ldl.Factor(symbolic, lx, ld)
+                self.factorizations += factorisations
+            self._stale = stale
+            if status != FACTORISE:
                 break
-            if self._stale:
-                self._factorize(cur, *args[:3])
-                fresh = True
-            newton = self._newton_step(cur.res)
-            trial = self._moved(cur, newton, *args)
-            for _ in range(8 if fresh else 0):  # line search on a fresh tangent's step
-                if trial.norm < cur.norm:
-                    break
-                newton = 0.5 * newton
-                trial = self._moved(cur, newton, *args)
-            if not trial.norm < cur.norm:  # includes NaN
-                if fresh:
-                    break
-                self._stale = True  # old factorisation: refactorise here and retry
-                continue
-            if trial.norm > self.refactor_ratio * cur.norm:
-                self._stale = True
-            fresh = False
-            cur = trial
+            # a zero pivot: factorise here, with the singular fallback, and go on
+            self._factorize(buffers[0][cur], buffers[2][cur],
+                            buffers[5][cur] if volume[1] else None, params, nonlinear, arms)
+            state = (cur, it, True, False, False, True, norm)
+        if status == CONVERGED:
+            xs, forces, tension, arm_force, dx, vol_p, vol_s, _ = buffers
+            return Equilibrium(xs[cur].copy(), forces[cur].copy(), arm_force[cur].copy(),
+                               dx[cur].copy(), it,
+                               *volume_state(self.model, xs[cur], (vol_p[cur].copy(),
+                                                                   vol_s[cur].copy())
+                                             if volume[1] else None), tension[cur].copy())
         raise ConvergenceError(f"Newton did not converge for prescribed particles "
-                               f"{self.prescribed.tolist()}: residual {cur.norm:.3g} N after {it} "
+                               f"{self.prescribed.tolist()}: residual {norm:.3g} N after {it} "
                                f"iterations (tolerance {self.rtol:g} x force scale)")
+
+    @staticmethod
+    def _symbolic(s: sparse_ldl.Symbolic) -> tuple:
+        """The arrays of the pattern's symbolic analysis the compiled loop factorises with."""
+        return (s.sup_ptr, s.row_ptr, s.rows, s.x_ptr, s.upd_ptr, s.upd_sup, s.upd_q1,
+                s.upd_q2, s.a_src, s.a_dst, s.perm)
+
+    def _workspace(self, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
+                   arms: ArmStep | None, gravity: np.ndarray | None) -> tuple:
+        """``(buffers, springs, volume, loads)`` of :func:`particle.statics_kernels.evaluate`
+        for a solve from ``x`` (N, 3): two iterates' buffers, the first at ``x``; every
+        optional term an array (zeros where it is off), so that one specialisation of the
+        compiled loop serves every combination."""
+        model = self.model
+        n, e, t = model.n_particles, model.n_connectors, model.n_tets
+        xs = np.empty((2, n, 3))
+        xs[0] = x
+        buffers = (xs, np.empty((2, n, 3)), np.empty((2, e)), np.empty((2, e, 2)),
+                   np.empty((2, e)), np.empty((2, t, 2)), np.empty((2, t)),
+                   np.empty((2, len(self._flat))))
+        springs = (model.edges, model.rest_lengths, p.K0) + kernel_terms(p, nonlinear, arms)
+        step = volume_step(model, p, arms)
+        pressures, strains = self._no_volume_arms
+        r = c = pressures
+        if step is not None:
+            r, c, pressures, strains = step.r, step.c, step.pressure_prev, step.strain_prev
+        volume = (p.kv is not None, step is not None, model.tets, model.rest_volumes,
+                  self._no_kv if p.kv is None else p.kv, *self._no_volume_limit, r, c,
+                  pressures, strains)
+        loads = ((True, model.masses, np.array(gravity, dtype=np.float64))
+                 if gravity is not None else (False, model.masses, _NO_GRAVITY))
+        return buffers, springs, volume, loads
 
     def settle(self, x: np.ndarray, params: ConnectorParams, *, arms: ArmStep | None = None,
                gravity: np.ndarray | None = None) -> Equilibrium:
@@ -415,7 +467,7 @@ class EquilibriumSolver:
 
     def _equilibrium(self, cur: "_Iterate", iterations: int) -> Equilibrium:
         return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, iterations,
-                           *cur.volume_state(self.model))
+                           *cur.volume_state(self.model), cur.tension)
 
 
 def flat_dofs(nodes: np.ndarray) -> np.ndarray:
@@ -477,18 +529,9 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
                             *kernel_terms(p, nonlinear, arms), forces, tension, arm_out, dx)
     volume = None
     if p.kv is not None:
-        step = None if arms is None else arms.volume
-        if step is None and arms is not None and p.has_volume_arms:
-            raise ParameterError("an arm step of a model whose volume term has arms needs "
-                                 "their step too (ArmStep.volume)")
+        step = volume_step(model, p, arms)
         kernel_arms = None
         if step is not None:
-            if not (step.r.shape == step.c.shape == step.pressure_prev.shape
-                    == (model.n_tets, 2) and step.strain_prev.shape == (model.n_tets,)):
-                raise ParameterError(f"volume arm step of shapes r {step.r.shape}, c "
-                                     f"{step.c.shape}, pressures {step.pressure_prev.shape}, "
-                                     f"strains {step.strain_prev.shape}: the model has "
-                                     f"{model.n_tets} tets (one row each)")
             volume = (np.zeros((model.n_tets, 2)), np.empty(model.n_tets))
             kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev)
         bad, _ = add_volume_forces_grouped(x, model.tets, model.rest_volumes, p.kv,
@@ -501,6 +544,27 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
     if gravity is not None:
         forces += model.masses[:, None] * gravity
     return forces, tension, arm_out, dx, volume
+
+
+def volume_step(model: Model, p: ConnectorParams, arms: ArmStep | None) -> VolumeArmStep | None:
+    """The volume arms' step of ``arms`` (None without the volume term, an arm step or
+    volume arms); :class:`ParameterError` if a model with volume arms gets an arm step
+    without theirs, or theirs does not have one row per tet."""
+    if p.kv is None or arms is None:
+        return None
+    step = arms.volume
+    if step is None:
+        if p.has_volume_arms:
+            raise ParameterError("an arm step of a model whose volume term has arms needs "
+                                 "their step too (ArmStep.volume)")
+        return None
+    if not (step.r.shape == step.c.shape == step.pressure_prev.shape
+            == (model.n_tets, 2) and step.strain_prev.shape == (model.n_tets,)):
+        raise ParameterError(f"volume arm step of shapes r {step.r.shape}, c "
+                             f"{step.c.shape}, pressures {step.pressure_prev.shape}, "
+                             f"strains {step.strain_prev.shape}: the model has "
+                             f"{model.n_tets} tets (one row each)")
+    return step
 
 
 def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.ndarray,
@@ -570,12 +634,21 @@ class _Iterate:
         self.norm = math.sqrt(res @ res)
 
     def volume_state(self, model: Model) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """(volume arm pressures (T, 2), volume strains (T,)) of an :class:`Equilibrium`: the
-        arm step's, zeros when the arms are relaxed (no arm step), None without arms."""
-        if self.volume_arm is not None or not model.params.has_volume_arms:
-            return self.volume_arm, self.volume_strain
-        return (np.zeros((model.n_tets, 2)),
-                volume_strains(self.x, model.tets, model.rest_volumes))
+        """:func:`volume_state` of this iterate."""
+        return volume_state(model, self.x, None if self.volume_arm is None
+                            else (self.volume_arm, self.volume_strain))
+
+
+def volume_state(model: Model, x: np.ndarray, volume: tuple[np.ndarray, np.ndarray] | None
+                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(volume arm pressures (T, 2), volume strains (T,)) of an :class:`Equilibrium` at ``x``
+    (N, 3): the arm step's ``volume``, zeros when the arms are relaxed (no arm step), None
+    without arms."""
+    if volume is not None:
+        return volume
+    if not model.params.has_volume_arms:
+        return None, None
+    return np.zeros((model.n_tets, 2)), volume_strains(x, model.tets, model.rest_volumes)
 
 
 @contextlib.contextmanager

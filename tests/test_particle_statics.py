@@ -15,11 +15,13 @@ from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
 from particle.model import Prescribed, build_model
-from particle.statics import ArmStep, EquilibriumSolver, TangentPattern, gravity_static
+from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
+                              gravity_static)
 from particle.params import viscoelastic_params
 from tests.particle_models import box_model, top_centre, two_particle_model
 
 DOWN = np.array([0.0, 0.0, -1.0])  # inward normal of the top face
+GRAVITY_Z = np.array([0.0, 0.0, -9.81])  # [m/s^2]
 
 
 @pytest.mark.parametrize("with_arms", [False, True])
@@ -451,3 +453,136 @@ def test_displaced_adds_the_step_to_the_raveled_components_of_a_copy():
     kept = x.copy()
     np.testing.assert_array_equal(displaced(x, flat, step), expected)
     np.testing.assert_array_equal(x, kept)
+
+
+def python_newton(solver, x, params, arms=None, gravity=None, counts=None):
+    """The Newton iteration of :meth:`EquilibriumSolver.solve` as the Python loop it was before
+    it was compiled (:mod:`particle.statics_kernels`), composed from the solver's Python
+    pieces that :meth:`EquilibriumSolver.settle` keeps; ``counts`` (dict) tallies the
+    line-search halvings (those of a step to an inverted tet's infinite residual) and the
+    refactorisations of a step that did not contract."""
+    from forcecal.errors import ConvergenceError
+    counts = {} if counts is None else counts
+    args = (params, not params.is_linear, arms, gravity)
+    floor = solver._force_floor(params, gravity)
+    cur = solver._evaluate(np.array(x, dtype=np.float64, order="C"), *args)
+    fresh = False
+    for it in range(solver.max_iter + 1):
+        if solver._converged(cur, floor):
+            return solver._equilibrium(cur, it)
+        if it == solver.max_iter:
+            break
+        if solver._stale:
+            solver._factorize(cur.x, cur.tension, cur.volume_arm, *args[:3])
+            fresh = True
+        newton = solver.factorization.solve_restricted(solver._mat, cur.res)
+        trial = solver._moved(cur, newton, *args)
+        for _ in range(8 if fresh else 0):
+            if trial.norm < cur.norm:
+                break
+            if trial.norm == np.inf:
+                counts["inverted"] = counts.get("inverted", 0) + 1
+            counts["halved"] = counts.get("halved", 0) + 1
+            newton = 0.5 * newton
+            trial = solver._moved(cur, newton, *args)
+        if not trial.norm < cur.norm:
+            if fresh:
+                break
+            counts["retried"] = counts.get("retried", 0) + 1
+            solver._stale = True
+            continue
+        if trial.norm > solver.refactor_ratio * cur.norm:
+            solver._stale = True
+        fresh = False
+        cur = trial
+    raise ConvergenceError(f"Newton did not converge for prescribed particles "
+                           f"{solver.prescribed.tolist()}: residual {cur.norm:.3g} N after {it} "
+                           f"iterations (tolerance {solver.rtol:g} x force scale)")
+
+
+def test_the_compiled_newton_loop_is_the_python_loop_to_the_last_bit():
+    """:meth:`EquilibriumSolver.solve` (the compiled loop) against the Python loop it replaced
+    (:func:`python_newton`), two solvers side by side through the same sequence of solves,
+    each keeping its factorisation between them: nonlinear springs with and without an arm
+    step, the volume term elastic and with its arms, gravity, a push deep enough from rest
+    that trial points invert tets (infinite residual -> line search), a solve that fails
+    (max_iter) and one that fails on a fresh factorisation, and an exactly singular tangent
+    (a hanging spring at rest: the shifted factorisation). Every equilibrium, iteration
+    count, factorisation count, error message and the kept factorisation's staleness are
+    equal, bit for bit."""
+    from forcecal.errors import ConvergenceError
+    from particle.evaluators import arm_coefficients, arm_step
+    from tests.test_particle_volume import with_kv
+    base = box_model(a=-30.0, b=400.0)
+    counts = {}
+    for model in (base, with_kv(base, 2000.0), with_kv(base, 2000.0, (1500.0, 1000.0))):
+        node = top_centre(model)
+        pat = TangentPattern.of(model)
+        pair = [EquilibriumSolver(model, [node], pat, rtol=1e-10) for _ in range(2)]
+        falling = [EquilibriumSolver(model, np.zeros(0, np.int64), pat) for _ in range(2)]
+        coeffs = arm_coefficients(model.params, 0.02)
+        runs = []
+        for k, solve in enumerate((lambda s, *a, **kw: s.solve(*a, **kw), python_newton)):
+            kwargs = {} if k == 0 else {"counts": counts}
+            out, eq = [], Equilibrium.at_rest(model)
+            for depth, relax in ((0.001, False), (0.004, False), (0.004, True), (0.012, False),
+                                 (0.002, True), (0.0125, False)):
+                guess = (model.rest_positions if depth > 0.01 else eq.x).copy()
+                guess[node] = model.rest_positions[node] + depth * DOWN
+                try:
+                    eq = solve(pair[k], guess, model.params,
+                               arms=arm_step(coeffs, eq) if relax else None, **kwargs)
+                    out.append(eq)
+                except ConvergenceError as exc:
+                    out.append(str(exc))
+                out.append((pair[k].factorizations, pair[k]._stale))
+            for gravity in (GRAVITY_Z, 3.0 * GRAVITY_Z):
+                out.append(solve(falling[k], model.rest_positions, model.params,
+                                 gravity=gravity, **kwargs))
+            pair[k].max_iter = 2
+            with pytest.raises(ConvergenceError) as failed:
+                solve(pair[k], guess, model.params, **kwargs)
+            out.append(str(failed.value))
+            runs.append(out)
+        for got, want in zip(*runs):
+            if isinstance(want, Equilibrium):
+                for name in ("x", "forces", "arm_force", "dx", "iterations", "volume_arm",
+                             "volume_strain"):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+            else:
+                assert got == want
+    assert min(counts["halved"], counts["inverted"], counts["retried"]) > 0  # every fallback ran
+    # a hanging spring at rest: an exactly singular tangent, factorised shifted in Python
+    hanging = two_particle_model(direction=(0.0, 0.0, -1.0))
+    pair = [EquilibriumSolver(hanging, np.zeros(0, np.int64), TangentPattern.of(hanging))
+            for _ in range(2)]
+    got = pair[0].solve(hanging.rest_positions, hanging.params, gravity=GRAVITY_Z)
+    want = python_newton(pair[1], hanging.rest_positions, hanging.params, gravity=GRAVITY_Z)
+    np.testing.assert_array_equal(got.x, want.x)
+    np.testing.assert_array_equal(got.forces, want.forces)
+    assert got.iterations == want.iterations > 0
+    assert pair[0].factorizations == pair[1].factorizations
+    np.testing.assert_array_equal(pair[0].factorization.d, pair[1].factorization.d)
+
+
+def test_an_equilibrium_keeps_the_tensions_a_force_evaluation_at_it_gives():
+    """``Equilibrium.tension`` (what the adjoint pass assembles its tangent from instead of
+    evaluating the forces again) is bitwise the tension, and the volume arms' pressures
+    bitwise those, of a force evaluation at the equilibrium with the same arm step; solve
+    and settle both keep it."""
+    from particle.evaluators import arm_coefficients, arm_step
+    from tests.test_particle_volume import with_kv
+    model = with_kv(box_model(a=-30.0, b=400.0), 2000.0, (1500.0, 1000.0))
+    node = top_centre(model)
+    solver = EquilibriumSolver(model, [node], TangentPattern.of(model))
+    guess = model.rest_positions.copy()
+    guess[node] += 0.003 * DOWN
+    eq = solver.solve(guess, model.params)
+    arms = arm_step(arm_coefficients(model.params, 0.02), eq)
+    for step, found in ((None, eq), (arms, solver.solve(guess, model.params, arms=arms)),
+                        (arms, solver.settle(guess, model.params, arms=arms))):
+        it = solver._evaluate(found.x, model.params, True, step, None)
+        np.testing.assert_array_equal(found.tension, it.tension)
+        if step is not None:
+            np.testing.assert_array_equal(found.volume_arm, it.volume_arm)
+    assert Equilibrium.at_rest(model).tension is None
