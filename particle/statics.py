@@ -261,6 +261,8 @@ class EquilibriumSolver:
         self._no_kv = np.zeros(model.n_tets)
         self._no_kv.flags.writeable = False
         self._no_volume_arms = (np.zeros((model.n_tets, 2)), np.zeros(model.n_tets))
+        # the force pass typed as the explicit runs call it (statics_kernels.evaluate)
+        self._force_tets, self._volumes = kernels.index_view(model.tets), np.empty(model.n_tets)
         self._mean_length = np.mean(model.rest_lengths)
         self._floor_of: tuple[ConnectorParams | None, float] = (None, 0.0)  # force scale floor
         self._lu = None
@@ -377,7 +379,7 @@ class EquilibriumSolver:
             r, c, pressures, strains = step.r, step.c, step.pressure_prev, step.strain_prev
         volume = (p.kv is not None, step is not None, model.tets, model.rest_volumes,
                   self._no_kv if p.kv is None else p.kv, *self._no_volume_limit, r, c,
-                  pressures, strains)
+                  pressures, strains, self._force_tets, self._volumes)
         loads = ((True, model.masses, np.array(gravity, dtype=np.float64))
                  if gravity is not None else (False, model.masses, _NO_GRAVITY))
         return buffers, springs, volume, loads
@@ -534,9 +536,11 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
         if step is not None:
             volume = (np.zeros((model.n_tets, 2)), np.empty(model.n_tets))
             kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev)
-        bad, _ = add_volume_forces_grouped(x, model.tets, model.rest_volumes, p.kv,
-                                           volume_limits[0], volume_limits[1], forces,
-                                           kernel_arms, volume)
+        # typed as the explicit runs call the force pass (unsigned tets, volumes stored):
+        # one compiled pass for both (another typing costs ~4 s of compilation)
+        bad, _ = add_volume_forces_grouped(x, kernels.index_view(model.tets), model.rest_volumes,
+                                           p.kv, volume_limits[0], volume_limits[1], forces,
+                                           kernel_arms, volume, np.empty(model.n_tets))
         if bad >= 0:
             # an inverted tet is no admissible iterate: an infinite residual makes the
             # line search shorten the step (and a converged state is never inverted)

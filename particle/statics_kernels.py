@@ -56,8 +56,11 @@ def evaluate(k, buffers, springs, volume, loads, flat):
 
     ``springs`` = ``(edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev)``
     (:func:`particle.statics.kernel_terms`), ``volume`` = ``(on, arms on, tets,
-    rest_volumes, kv, v_lo, v_hi, r, c, pressure_prev, strain_prev)``, ``loads`` = ``(on,
-    masses (N,), gravity (3,))``.
+    rest_volumes, kv, v_lo, v_hi, r, c, pressure_prev, strain_prev, force_tets, volumes)``
+    (the tets twice: as the tangent takes them, and as an unsigned index view with a
+    scratch for their volumes, the explicit runs' typing of the force pass, so that the
+    two share its compiled code: another typing costs ~4 s of compilation), ``loads`` =
+    ``(on, masses (N,), gravity (3,))``.
     """
     xs, forces, tension, arm_out, dx, vol_p, vol_s, res = buffers
     edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev = springs
@@ -65,14 +68,14 @@ def evaluate(k, buffers, springs, volume, loads, flat):
     arm_out[k][:] = 0.0
     internal_forces(x, edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev, f,
                     tension[k], arm_out[k], dx[k])
-    on, arms_on, tets, rest_volumes, kv, v_lo, v_hi, r, c, p_prev, s_prev = volume
+    on, arms_on, _, rest_volumes, kv, v_lo, v_hi, r, c, p_prev, s_prev, tets, volumes = volume
     if on:
         if arms_on:
             vol_p[k][:] = 0.0
             bad, _ = add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f,
-                                       (r, c, p_prev, s_prev, vol_p[k], vol_s[k]))
+                                       (r, c, p_prev, s_prev, vol_p[k], vol_s[k]), volumes)
         else:
-            bad, _ = add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f, None)
+            bad, _ = add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f, None, volumes)
         if bad >= 0:
             f[:] = np.inf
     gravity_on, masses, g = loads
@@ -134,7 +137,7 @@ def factorise(cur, buffers, springs, volume, tangent, symbolic):
     """
     xs, _, tension, _, _, vol_p, _, _ = buffers
     edges, rest_lengths, K0, a, b, _, arm_c, _, _ = springs
-    on, arms_on, tets, rest_volumes, kv, _, _, _, v_c, _, _ = volume
+    on, arms_on, tets, rest_volumes, kv, _, _, _, v_c, _, _, _, _ = volume
     nnz, slots, tet_slots, zero_slots, diag_slots = tangent
     sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src, a_dst, perm = symbolic
     x = xs[cur]
@@ -162,7 +165,7 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
                       xs, forces, tension, arm_out, dx, vol_p, vol_s, res,
                       edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev,
                       volume_on, volume_arms_on, tets, rest_volumes, kv, v_lo, v_hi, v_r, v_c,
-                      v_pressure_prev, v_strain_prev,
+                      v_pressure_prev, v_strain_prev, force_tets, volumes,
                       gravity_on, masses, gravity,
                       flat, held_flat, mat,
                       nnz, slots, tet_slots, zero_slots, diag_slots,
@@ -187,7 +190,7 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
     buffers = (xs, forces, tension, arm_out, dx, vol_p, vol_s, res)
     springs = (edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev)
     volume = (volume_on, volume_arms_on, tets, rest_volumes, kv, v_lo, v_hi, v_r, v_c,
-              v_pressure_prev, v_strain_prev)
+              v_pressure_prev, v_strain_prev, force_tets, volumes)
     loads = (gravity_on, masses, gravity)
     tangent = (nnz, slots, tet_slots, zero_slots, diag_slots)
     symbolic = (sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src, a_dst,

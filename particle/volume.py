@@ -315,12 +315,13 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volum
 
 
 @njit(**JIT)
-def add_volume_forces_grouped(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, arms_out):
+def add_volume_forces_grouped(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, arms_out,
+                              volumes=None):
     """:func:`add_volume_forces` with its ``arms`` in two groups, (r, c, pressure_prev,
     strain_prev) and (pressure_out, strain_out), each None: elastic (the call from Python:
     no argument of more than four arrays, :mod:`particle.dispatch`)."""
     return add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces,
-                             joined(arms, arms_out))
+                             joined(arms, arms_out), volumes)
 
 
 @njit(**JIT)

@@ -123,9 +123,11 @@ def test_the_static_volume_arms_call_types_no_argument_after_its_first_and_match
     grouped, whole = np.zeros_like(x), np.zeros_like(x)
     outputs = [(np.zeros((model.n_tets, 2)), np.zeros(model.n_tets)) for _ in range(2)]
     add_volume_forces_grouped(x, tets, model.rest_volumes, p.kv, *limits, grouped,
-                              (r, c, step.pressure_prev, step.strain_prev), outputs[0])
+                              (r, c, step.pressure_prev, step.strain_prev), outputs[0],
+                              np.empty(model.n_tets))
     add_volume_forces(x, tets, model.rest_volumes, p.kv, *limits, whole,
-                      (r, c, step.pressure_prev, step.strain_prev, *outputs[1]))
+                      (r, c, step.pressure_prev, step.strain_prev, *outputs[1]),
+                      np.empty(model.n_tets))
     np.testing.assert_array_equal(grouped, whole)
     np.testing.assert_array_equal(outputs[0][0], outputs[1][0])
     np.testing.assert_array_equal(outputs[0][1], outputs[1][1])
