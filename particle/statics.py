@@ -325,6 +325,13 @@ class EquilibriumSolver:
         buffers, springs, volume, loads = self._workspace(x, params, nonlinear, arms, gravity)
         settings = (float(self.rtol), floor, int(self.max_iter), float(self.refactor_ratio))
         symbolic = self.pattern.ldl
+        kept = self._lu
+        if kept is not None and (kept.symbolic is not symbolic and not (
+                np.array_equal(kept.symbolic.perm, symbolic.perm)
+                and np.array_equal(kept.symbolic.x_ptr, symbolic.x_ptr))):
+            # a factorisation handed over from another pattern: the compiled loop solves
+            # with this pattern's analysis, so factorise afresh here
+            self.factorization = None
         state = (0, 0, False, self._stale, True, False, 0.0)
         while True:
             lu = (_NO_FACTOR, _NO_FACTOR) if self._lu is None else (self._lu.x, self._lu.d)

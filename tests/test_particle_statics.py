@@ -586,3 +586,19 @@ def test_an_equilibrium_keeps_the_tensions_a_force_evaluation_at_it_gives():
         if step is not None:
             np.testing.assert_array_equal(found.volume_arm, it.volume_arm)
     assert Equilibrium.at_rest(model).tension is None
+
+
+def test_a_factorisation_of_another_pattern_is_not_used_by_the_compiled_loop():
+    """A factorisation handed over from a solver of another mesh (another pattern: the
+    compiled loop solves with its own pattern's analysis) is dropped and the tangent
+    factorised afresh: the same equilibrium as a solver that starts without one."""
+    model, other = box_model((2, 2, 2)), box_model((3, 2, 2))
+    none = np.zeros(0, np.int64)
+    donor = EquilibriumSolver(other, none, TangentPattern.of(other))
+    donor.solve(other.rest_positions, other.params, gravity=GRAVITY_Z)
+    handed, fresh = (EquilibriumSolver(model, none, TangentPattern.of(model)) for _ in range(2))
+    handed.factorization = donor.factorization
+    got = handed.solve(model.rest_positions, model.params, gravity=GRAVITY_Z)
+    want = fresh.solve(model.rest_positions, model.params, gravity=GRAVITY_Z)
+    np.testing.assert_array_equal(got.x, want.x)
+    assert got.iterations == want.iterations and handed.factorizations == fresh.factorizations
