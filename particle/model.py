@@ -30,13 +30,13 @@ import numpy as np
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import TetMesh, check_mesh_arrays, vertex_ids
 from forcecal.problem import Problem
-from particle.params import N_ARMS, VOLUME_ARM_NAMES, ConnectorParams, frozen_copy
+from particle.params import N_ARMS, VOLUME_ARM_NAMES, ConnectorParams, FrozenArrays, frozen_copy
 from particle.volume import signed_volumes, tet_edge_connectors, tet_name
 
 log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, eq=False)
-class Model:
+class Model(FrozenArrays):
     """Immutable particle model: flat arrays only, shared by every run and solver.
 
     Attributes:

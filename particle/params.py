@@ -38,6 +38,22 @@ def frozen_copy(arr: np.ndarray, dtype) -> np.ndarray:
     return out
 
 
+class FrozenArrays:
+    """Base of the immutable dataclasses whose array fields are :func:`frozen_copy` s
+    (:class:`ConnectorParams`, :class:`particle.model.Model`): an unpickled one freezes them
+    again. Pickle does not keep numpy's write flag, so a model sent to a calibration worker
+    would arrive with writable arrays: mutable where the original is not, and typed by numba
+    as other signatures, every kernel then compiled a second time in each worker process with
+    an empty cache (the static Newton loop alone ~5 s)."""
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)  # as pickle does without this method
+        for f in dataclasses.fields(self):
+            value = state.get(f.name)
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+
+
 def _quadratic_extremes(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, lo, hi
                         ) -> tuple[np.ndarray, np.ndarray]:
     """(E,) min and max of ``c0 + c1 eps + c2 eps^2`` over ``[lo, hi]`` (floats or (E,) arrays).
@@ -112,7 +128,7 @@ def check_count(value, name: str, hint: str) -> int:
 
 
 @dataclass(frozen=True, eq=False)
-class ConnectorParams:
+class ConnectorParams(FrozenArrays):
     """Per-connector Maxwell-Solid parameters; seven (E,) float64 arrays.
 
     Attributes:

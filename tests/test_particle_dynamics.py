@@ -392,3 +392,29 @@ def test_numpy_integer_step_counts_are_accepted():
     dt = 0.5 * critical_time_step(model)
     VerletIntegrator().simulate(model, state, dt, np.int64(3), gravity=GRAVITY)
     assert state.t == pytest.approx(3 * dt)
+
+
+def test_an_unpickled_model_is_as_immutable_and_typed_as_the_original():
+    """Pickle does not keep numpy's write flag: a model sent to a calibration worker gets its
+    arrays (and its parameters') frozen again, so it cannot be written to and the kernels
+    see the original's types (one compiled specialisation for both), with the same run."""
+    import pickle
+
+    import numba
+
+    from tests.test_particle_volume import with_kv
+    model = with_kv(box_model((2, 2, 2), a=-20.0, b=300.0), 3000.0, arms=(1500.0, 1000.0))
+    copy = pickle.loads(pickle.dumps(model))
+    for owner, twin in ((model, copy), (model.params, copy.params)):
+        for f in dataclasses.fields(owner):
+            value = getattr(twin, f.name)
+            if isinstance(value, np.ndarray):
+                assert not value.flags.writeable, f.name
+                assert numba.typeof(value) == numba.typeof(getattr(owner, f.name)), f.name
+                np.testing.assert_array_equal(value, getattr(owner, f.name))
+    dt = 0.5 * critical_time_step(model)
+    states = [m.state() for m in (model, copy)]
+    for m, state in zip((model, copy), states):
+        state.x[-1, 2] += 1e-4
+        VerletIntegrator().simulate(m, state, dt, 50)
+    np.testing.assert_array_equal(states[0].x, states[1].x)
