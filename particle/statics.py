@@ -54,7 +54,7 @@ from particle import kernels, sparse_ldl
 from particle.kernels import JIT
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
-from particle.statics_kernels import CONVERGED, FACTORISE, newton_iterations
+from particle.statics_kernels import CONVERGED, FACTORISE, converged, newton_iterations
 from particle.volume import (add_volume_forces_grouped, add_volume_tangent, signed_volumes,
                              tet_name, volume_strains)
 from particle.volume import tet_slots as volume_tet_slots
@@ -467,12 +467,9 @@ class EquilibriumSolver:
 
     def _converged(self, cur: "_Iterate", floor: float) -> bool:
         """The residual within ``rtol`` x the force scale (the constraint reaction, at least
-        ``floor``)."""
-        held = cur.forces.ravel()[self._held_flat]
-        scale = max(floor, math.sqrt(held @ held))  # np.linalg.norm's sum, without its overhead
-        # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
-        # and inf <= rtol x inf must not pass for convergence
-        return cur.norm <= self.rtol * scale and math.isfinite(scale)
+        ``floor``): the compiled loop's test (:func:`particle.statics_kernels.converged`)."""
+        return converged(cur.forces, self._held_flat, np.empty(len(self._held_flat)), cur.norm,
+                         self.rtol, floor)
 
     def _equilibrium(self, cur: "_Iterate", iterations: int) -> Equilibrium:
         return Equilibrium(cur.x, cur.forces, cur.arm_force, cur.dx, iterations,

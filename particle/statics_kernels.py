@@ -92,13 +92,16 @@ def evaluate(k, buffers, springs, volume, loads, flat):
 
 @njit(**JIT)
 def converged(forces, held_flat, held, norm, rtol, floor):
-    """:meth:`particle.statics.EquilibriumSolver._converged` of the iterate with ``forces``
-    (N, 3) and residual norm ``norm``; ``held`` (h,) scratch for the constraint reaction."""
+    """Whether the iterate with ``forces`` (N, 3) and residual norm ``norm`` [N] has converged:
+    the residual within ``rtol`` x the force scale, the constraint reaction (its components
+    ``held_flat``; ``held`` (h,) scratch) but at least ``floor`` [N]."""
     flat_f = forces.reshape(-1)
     for t in range(len(held_flat)):
         held[t] = flat_f[held_flat[t]]
     reaction = math.sqrt(np.dot(held, held)) if len(held) else 0.0
-    scale = reaction if reaction > floor else floor  # Python's max(floor, reaction)
+    scale = reaction if reaction > floor else floor  # max(floor, reaction), floor on a tie/NaN
+    # an inadmissible iterate (an inverted tet: infinite forces) has an infinite scale,
+    # and inf <= rtol x inf must not pass for convergence
     return norm <= rtol * scale and math.isfinite(scale)
 
 
