@@ -256,13 +256,9 @@ class EquilibriumSolver:
         self._tangent = (len(pattern.indices), pattern.slots, tet_slots, self._zero_slots,
                          self._diag_slots)
         self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-        # what the compiled loop gets (unread) without kv or a volume arm step, typed as
-        # the parameters' read-only arrays and a step's arrays are
-        self._no_kv = np.zeros(model.n_tets)
-        self._no_kv.flags.writeable = False
         self._no_volume_arms = (np.zeros((model.n_tets, 2)), np.zeros(model.n_tets))
-        # the force pass typed as the explicit runs call it (statics_kernels.evaluate)
-        self._force_tets, self._volumes = kernels.index_view(model.tets), np.empty(model.n_tets)
+        self._volumes = np.empty(model.n_tets)
+        self._read_only_inputs()
         self._mean_length = np.mean(model.rest_lengths)
         self._floor_of: tuple[ConnectorParams | None, float] = (None, 0.0)  # force scale floor
         self._lu = None
@@ -272,11 +268,26 @@ class EquilibriumSolver:
         self._mass_diagonal = np.zeros(pattern.n_dofs)
         self._mass_diagonal[self._mat] = np.repeat(model.masses[active], 3)
 
+    def _read_only_inputs(self) -> None:
+        """The compiled loop's read-only inputs that are not the model's or the parameters'
+        arrays, typed as those are (read-only, so numba compiles one specialisation for
+        every solver)."""
+        # what the compiled loop gets (unread) without kv, typed as the parameters' kv
+        self._no_kv = np.zeros(self.model.n_tets)
+        self._no_kv.flags.writeable = False
+        # the force pass typed as the explicit runs call it (statics_kernels.evaluate)
+        self._force_tets = kernels.index_view(self.model.tets)
+
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_lu"], state["_stale"] = None, True  # factorisations are not shipped
         state["_floor_of"] = (None, 0.0)
+        del state["_no_kv"], state["_force_tets"]  # pickle would ship them writable
         return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._read_only_inputs()  # a view of the unpickled (read-only again) model's tets
 
     @property
     def factorization(self):

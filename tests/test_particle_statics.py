@@ -18,6 +18,7 @@ from particle.model import Prescribed, build_model
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
                               gravity_static)
 from particle.params import viscoelastic_params
+from particle.statics_kernels import newton_iterations
 from tests.particle_models import box_model, top_centre, two_particle_model
 
 DOWN = np.array([0.0, 0.0, -1.0])  # inward normal of the top face
@@ -194,8 +195,12 @@ def test_evaluators_points_warm_starts_and_pickling():
     fresh = IndentationEvaluator(model, top, normals, depths)(stiffer)
     # both converge to rtol = 1e-8 of the indenter force
     np.testing.assert_allclose(warm, fresh, rtol=1e-7)
+    compiled = len(newton_iterations.signatures)
     clone = pickle.loads(pickle.dumps(ev))  # what calibration's worker processes receive
     np.testing.assert_allclose(clone(model.params), cold, rtol=1e-7)
+    # the clone's solvers call the compiled Newton loop with the original's argument types
+    # (read-only where those are), not a second specialisation (~15 s of compilation)
+    assert len(newton_iterations.signatures) == compiled
     times, rdepths = relaxation_schedule(RelaxationSection(depth=0.002, ramp_time=0.05,
                                                            ramp_steps=3, hold_time=2.5,
                                                            hold_steps=6))
