@@ -63,6 +63,7 @@ from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams
 from particle.sensitivity import _Geometry, volume_pattern_matrix
 from particle.statics import (ArmStep, TangentPattern, VolumeArmStep, ldl_factor, net_forces,
                               tangent_data, weight_equilibrium)
+from particle.nodal_volume import refuse_nodal
 from particle.volume import volume_strains
 
 log = logging.getLogger(__name__)
@@ -188,6 +189,7 @@ class RestOperators:
 
     @classmethod
     def of(cls, model: Model) -> "RestOperators":
+        refuse_nodal(model, "the whole-body operators (particle.body)")
         pat = TangentPattern.of(model)
         x = model.rest_positions
         pressure = volume_pattern_matrix(model, x, pat)  # (n, T); unused without kv
@@ -251,6 +253,7 @@ def load_forces(model: Model, x: np.ndarray, pat: TangentPattern) -> sp.csr_matr
     """(n, P) ``df/dp`` at positions ``x`` at fixed positions (long-term model, arms relaxed):
     ``G_e dx_e``, ``G_e eps_e dx_e``, ``G_e eps_e^2 dx_e`` for ``K0, a, b``, ``H_t j_t`` for
     ``kv`` (``j = V/V0 - 1``)."""
+    refuse_nodal(model, "the whole-body load derivatives (particle.body)")
     p = model.params
     geometry = _Geometry(model, x)
     G = geometry.pattern_matrix(pat)

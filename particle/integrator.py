@@ -49,6 +49,7 @@ from particle.params import ConnectorParams, StrainBounds, check_count, connecto
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.guard import check_state, energy_bound
+from particle.nodal_volume import refuse_nodal
 from particle.volume import (node_volume_force, signed_volumes, tet_name, volume_ratio_range,
                              volume_strains)
 
@@ -295,6 +296,7 @@ class Run:
         self._elongation_limits = ((np.zeros(0), np.zeros(0)) if monitored is None else
                                    tuple(b * model.rest_lengths for b in monitored))
         self._volume = self._volume_checks = None
+        refuse_nodal(model, "the explicit run (particle.integrator)")
         if p.kv is not None:
             self.volume_ratio_range, self._volume, self._volume_checks = volume_limits(
                 model, monitored)

@@ -74,6 +74,7 @@ from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams, same_values
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, VolumeArmStep,
                               ldl_factor, tangent_data)
+from particle.nodal_volume import refuse_nodal
 from particle.volume import signed_volumes, volume_gradients_numpy
 
 log = logging.getLogger(__name__)
@@ -143,6 +144,7 @@ class _VolumeAdjoint:
     respect to each tet's ``kv1, bv1, kv2, bv2``."""
 
     def __init__(self, model: Model, n_out: int):
+        refuse_nodal(model, "the volume term's adjoint sensitivities (particle.sensitivity)")
         p = model.params
         self.model = model
         self.stiffness, self.viscosity = p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2])

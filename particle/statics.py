@@ -55,6 +55,7 @@ from particle.kernels import JIT
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
 from particle.statics_kernels import CONVERGED, FACTORISE, converged, newton_iterations
+from particle.nodal_volume import refuse_nodal
 from particle.volume import (add_volume_forces_grouped, add_volume_tangent, signed_volumes,
                              tet_name, volume_strains)
 from particle.volume import tet_slots as volume_tet_slots
@@ -569,6 +570,8 @@ def volume_step(model: Model, p: ConnectorParams, arms: ArmStep | None) -> Volum
     """The volume arms' step of ``arms`` (None without the volume term, an arm step or
     volume arms); :class:`ParameterError` if a model with volume arms gets an arm step
     without theirs, or theirs does not have one row per tet."""
+    if p.kv is not None:
+        refuse_nodal(model, "the static solver (particle.statics)")
     if p.kv is None or arms is None:
         return None
     step = arms.volume

@@ -144,6 +144,12 @@ def volume_forces_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarra
     ``arm_pressure`` (T,) [Pa]: the arms' summed pressures at ``x`` (None: no arms)."""
     j = volume_strains(x, tets, rest_volumes)
     pressure = kv * j if arm_pressure is None else kv * j + arm_pressure
+    return pressure_forces_numpy(x, tets, pressure)
+
+
+def pressure_forces_numpy(x: np.ndarray, tets: np.ndarray, pressure: np.ndarray) -> np.ndarray:
+    """(N, 3) forces [N] ``f_a = -P_t dV_t/dp_a`` of tet pressures ``pressure`` (T,) [Pa]
+    summed on the particles (the per-tet and the nodal term's force pass)."""
     f = -pressure[:, None, None] * volume_gradients_numpy(x, tets)
     out = np.zeros_like(x, dtype=np.float64)
     np.add.at(out, tets.ravel(), f.reshape(-1, 3))
@@ -650,7 +656,8 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
 
 
 __all__ = ["add_volume_forces", "add_volume_tangent", "add_volume_tangent_numpy", "check_kv",
-           "network_bulk_modulus", "node_volume_force", "signed_volumes", "tet_edge_connectors",
+           "network_bulk_modulus", "node_volume_force", "pressure_forces_numpy",
+           "signed_volumes", "tet_edge_connectors",
            "tet_name", "tet_slots", "volume_arm_energy", "volume_arm_pressures",
            "volume_arm_pressures_numpy", "volume_arm_step", "volume_frequency_bound",
            "volume_ratio_range", "node_volume_stiffness", "node_volume_stiffness_bound",
