@@ -372,7 +372,7 @@ class StrainBands:
         self.free = ~model.fixed
         self._scale = np.where(self.free, 1.0 / np.sqrt(model.masses), 0.0)
         self.volume = p.kv is not None and model.n_tets > 0
-        refuse_nodal(model, "the haptic stability envelope (particle.envelope)")
+        refuse_nodal(model, "the haptic strain envelope (particle.envelope)")
         # per matrix (springs, volume term): its Perron vector x (0 until the first bands are
         # set) and y = Q x, kept up to date as the bands move
         self._perron = [np.zeros(n) for _ in range(1 + self.volume)]

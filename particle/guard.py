@@ -21,9 +21,9 @@ import numpy as np
 from forcecal.errors import ParameterError
 from particle.model import Model, Prescribed, State
 from particle.params import connector_name
-from particle.nodal_volume import refuse_nodal
+from particle.nodal_volume import element_arm_energy, element_energy
 from particle.statics import check_stiffness, check_volumes
-from particle.volume import node_volume_stiffness, tet_name, volume_arm_energy, volume_energy
+from particle.volume import node_volume_stiffness, tet_name
 
 # the kinetic energy may exceed the work the loads can do by this factor before a run is
 # declared divergent: a real run stays far below, an unstable one grows exponentially
@@ -57,13 +57,11 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
     check_stiffness(model, strain, f"explicit run from t = {state.t:.6g} s")
     energy += float(np.sum(0.5 * p.stiffness(strain) * dx ** 2))
     if p.kv is not None:
-        refuse_nodal(model, "the explicit run's energy bound (particle.guard)")
         check_volumes(model, state.x, f"explicit run from t = {state.t:.6g} s")
-        energy += volume_energy(state.x, model.tets, model.rest_volumes, p.kv)
+        energy += element_energy(model, state.x)
     energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
     if p.has_volume_arms:
-        energy += volume_arm_energy(state.volume_arm, p.volume_arm_stiffness,
-                                    model.rest_volumes)
+        energy += element_arm_energy(model, state.volume_arm)
     if gravity is not None:
         g = float(np.linalg.norm(gravity))
         energy += total_mass * g * (size + 0.5 * g * duration ** 2)

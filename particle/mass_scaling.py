@@ -32,7 +32,6 @@ from particle.stability import (DEFAULT_STRAIN_RANGE, EIGENVALUE_MARGIN, check_t
                                 connector_stiffness_bound, critical_time_step, inertial_model)
 from particle.model import Model
 from particle.params import StrainBounds, connector_strain_bounds
-from particle.nodal_volume import refuse_nodal
 from particle.volume_bounds import node_volume_stiffness_bound
 
 log = logging.getLogger(__name__)
@@ -57,7 +56,6 @@ def stiffness_weights(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_
     kappa = connector_stiffness_bound(model.params, lo, hi)
     weights = np.bincount(model.edges.ravel(), np.repeat(kappa, 2), model.n_particles)
     if model.params.kv is not None:
-        refuse_nodal(model, "mass scaling (particle.mass_scaling)")
         weights += node_volume_stiffness_bound(model, lo, hi)
     return weights
 

@@ -24,7 +24,6 @@ from forcecal.errors import ParameterError, StabilityError, TimeStepError
 from forcecal.scene import ParticleSection
 from particle.model import Model
 from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
-from particle.nodal_volume import refuse_nodal
 from particle.volume_bounds import volume_step_bounds
 
 log = logging.getLogger(__name__)
@@ -168,7 +167,6 @@ def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
     springs = EIGENVALUE_MARGIN * largest_eigenvalue(laplacian)
     if p.kv is None:
         return StepBound(springs, kappa, laplacian, springs)
-    refuse_nodal(model, "the stable step bound (particle.stability)")
     own, edge_weights, scalar = volume_step_bounds(model, lo, hi, past)
     own = min(own, EIGENVALUE_MARGIN * largest_eigenvalue(scalar))
     joint_kappa = kappa + edge_weights

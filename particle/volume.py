@@ -37,8 +37,8 @@ strain_out (M,))`` (outputs aliasing the inputs commit a step in place, scratch 
 leave the state unchanged, as :func:`particle.kernels.internal_forces` does), or None,
 which compiles the arms out; :func:`volume_arm_pressures` / :func:`volume_arm_step`
 advance the arms of one *volume element* k given its volume strain: a tet here, and the
-same functions serve any other element with a volume strain (e.g. a particle's one-ring
-averaged volume).
+same functions serve any other element with a volume strain (the nodal term's particles,
+:mod:`particle.nodal_volume`).
 
 ``kv`` and the arms live in :class:`particle.params.ConnectorParams` (``kv``, ``kv1``,
 ``bv1``, ``kv2``, ``bv2``, each (T,) or None), so :meth:`Model.with_params` and
@@ -596,9 +596,11 @@ def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
 def node_volume_stiffness(model) -> np.ndarray:
     """(N,) diagonal stiffness scale of the volume term at rest [N/m]: sum over a
     particle's tets of ``k/V0 |dV/dp|^2`` with ``k`` the instantaneous stiffness ``kv (+
-    kv1 + kv2)`` (for the divergence bound's work estimate)."""
+    kv1 + kv2)`` (for the divergence bound's work estimate; for the nodal term
+    :func:`particle.nodal_volume.tet_moduli`'s, which bound it)."""
+    from particle.nodal_volume import tet_moduli
     g = volume_gradients_numpy(model.rest_positions, model.tets)
-    per = (model.params.volume_instantaneous[:, None] / model.rest_volumes[:, None]
+    per = (tet_moduli(model)[:, None] / model.rest_volumes[:, None]
            * np.sum(g * g, axis=2))
     return np.bincount(model.tets.ravel(), per.ravel(), model.n_particles)
 

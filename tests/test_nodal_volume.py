@@ -40,11 +40,12 @@ def with_volume(model, kv, arms=None, element="nodal"):
         element)
 
 
-def single_tet(element, kv=2500.0, arms=None):
+def single_tet(element, kv=2500.0, arms=None, K0=1e-9, fixed=(False,) * 4, **springs):
     builder = ModelBuilder()
-    builder.add_particles(TET, np.full(4, 1e-3))
+    builder.add_particles(TET, np.full(4, 1e-3), np.array(fixed))
     builder.add_connectors([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-    model = builder.finalize(viscoelastic_params(6, 1e-9), tets=np.array([[0, 1, 2, 3]]))
+    model = builder.finalize(viscoelastic_params(6, K0, **springs),
+                             tets=np.array([[0, 1, 2, 3]]))
     return with_volume(model, kv, arms, element)
 
 
@@ -272,22 +273,20 @@ def test_the_numpy_step_on_one_tet_is_the_per_tet_step(arms):
 
 
 def test_paths_without_the_nodal_term_refuse_it(liver_scene):
-    """The explicit run, the stable step, mass scaling, statics and the scene's calibration
-    refuse a nodal model (never the per-tet term in its place), naming it."""
-    from particle.integrator import VerletIntegrator
-    from particle.mass_scaling import stiffness_weights
-    from particle.stability import critical_time_step
+    """Statics, the haptic strain envelope, the whole-body operators and the scene's
+    calibration refuse a nodal model (never the per-tet term in its place), naming
+    themselves."""
+    from particle.body import RestOperators
+    from particle.envelope import StrainBands
     from particle.statics import EquilibriumSolver, TangentPattern
     model = single_tet("nodal")
-    with pytest.raises(ParameterError, match="stable step bound .* nodal volume element"):
-        critical_time_step(model)
-    with pytest.raises(ParameterError, match="explicit run .* nodal volume element"):
-        VerletIntegrator().prepare(model, 1e-6, _check_dt=False)
-    with pytest.raises(ParameterError, match="mass scaling .* nodal volume element"):
-        stiffness_weights(model)
     solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
     with pytest.raises(ParameterError, match="static solver .* nodal volume element"):
         solver.solve(model.rest_positions.copy(), model.params)
+    with pytest.raises(ParameterError, match="strain envelope .* nodal volume element"):
+        StrainBands(model, 0.1)
+    with pytest.raises(ParameterError, match="whole-body operators .* nodal volume element"):
+        RestOperators.of(model)
     with pytest.raises(SceneError, match="calibration .* does not support the nodal"):
         replace(liver_scene, particle={"volume": True, "volume_element": "nodal"})
     with pytest.raises(SceneError, match="needs particle.volume"):
@@ -373,3 +372,237 @@ def test_mean_tet_pressures_is_exact_for_equal_pressures():
     tets = np.array([[0, 0, 0, 0], [1, 1, 1, 1], [2, 2, 2, 2]])
     np.testing.assert_array_equal(mean_tet_pressures(tets, p), p)
     assert signed_volumes(TET, np.array([[0, 1, 2, 3]]))[0] > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# the compiled explicit path. Each new typing of run_verlet costs ~4 s of compilation per test
+# process, so the nodal tests share two: the elastic term with a recording (as gravity_dynamic
+# calls it) and the relaxing term without (as the haptic session and blows_up call it), both
+# on the nonlinear viscoelastic springs of NONLINEAR.
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+NONLINEAR = dict(a=-20.0, b=300.0)
+
+
+def nodal_box(kv=2000.0, arms=None, n=(3, 3, 2)):
+    return with_volume(box_model(n, **NONLINEAR), kv, arms)
+
+
+def test_the_compiled_elastic_step_matches_the_numpy_step_and_records():
+    """Springs + elastic nodal term + gravity + damping + a prescribed particle: the compiled
+    loop against step_numpy, 50 steps, round-off only (1e-12 of the displacement: the twin
+    divides the cross products by 6 before the pressure, the kernel after); the recording
+    holds the final positions."""
+    from particle.integrator import VerletIntegrator
+    from particle.stability import critical_time_step
+    from tests.particle_models import deformed_start_and_push
+    model = nodal_box(np.random.default_rng(5).uniform(1e3, 4e3, 108))
+    dt = 0.5 * critical_time_step(model, damping=3.0)
+    compiled, motion = deformed_start_and_push(model, dt)
+    reference = compiled.copy()
+    recorded = VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY,
+                                              prescribed=motion, record_nodes=[0, 40],
+                                              record_steps=[50])
+    for _ in range(50):
+        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
+    scale = np.abs(reference.x - model.rest_positions).max()
+    np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(recorded[0], compiled.x[[0, 40]])
+
+
+def test_the_compiled_relaxing_step_matches_the_numpy_step():
+    """The same with the nodal arms (per particle, the paper's recursion): positions, arm
+    pressures and strains to round-off."""
+    from particle.integrator import VerletIntegrator
+    from particle.stability import critical_time_step
+    from tests.particle_models import deformed_start_and_push
+    model = nodal_box(arms=ARMS)
+    dt = 0.5 * critical_time_step(model, damping=3.0)
+    compiled, motion = deformed_start_and_push(model, dt)
+    reference = compiled.copy()
+    VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY, prescribed=motion)
+    for _ in range(50):
+        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
+    scale = np.abs(reference.x - model.rest_positions).max()
+    np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
+    pressure = np.abs(reference.volume_arm).max()
+    assert pressure > 0 and compiled.volume_arm.shape == (model.n_particles, 2)
+    np.testing.assert_allclose(compiled.volume_arm, reference.volume_arm, rtol=0,
+                               atol=1e-10 * pressure)
+    np.testing.assert_allclose(compiled.volume_prev, reference.volume_prev, rtol=0, atol=1e-13)
+
+
+def test_the_haptic_force_includes_the_nodal_term():
+    """A haptic session on a relaxing nodal model: the force of a step is minus the net
+    internal force on the tool particle at the step's end, springs (their arms stepped) plus
+    the nodal term (its arms stepped per particle, numpy twin): the probe's two-ring pass
+    equals the whole pass to round-off, and Run.force_on gives it bit for bit."""
+    from particle.haptics import HapticSession
+    from particle.stability import critical_time_step
+    from tests.particle_models import top_centre
+    model = nodal_box(3e4, (1.5e4, 1e4))
+    node = top_centre(model)
+    session = HapticSession(model, 0.5 * critical_time_step(model))
+    target = model.rest_positions[node] + [0.0, 0.0, -5e-4]
+    for _ in range(3):
+        force = session.step(node, target)
+    s = session.state
+    np.testing.assert_array_equal(force, session._run(node)[0].force_on(s, node))
+    x, p = s.x, model.params
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    dx = length - model.rest_lengths
+    r, c = p.arm_recursion(session.dt)
+    tension = (p.stiffness(dx / model.rest_lengths) * dx
+               + (r * s.arm_force + c * (dx - s.dx_prev)[:, None]).sum(axis=1))
+    pull = (tension / length)[:, None] * d
+    f = np.zeros_like(x)
+    np.add.at(f, model.edges[:, 0], pull)
+    np.add.at(f, model.edges[:, 1], -pull)
+    vr, vc = nodal_arm_recursion(nodal_params(model), session.dt)
+    strain = node_volume_strains(x, model.tets, model.node_volumes)
+    pressure = volume_arm_pressures_numpy(strain, vr, vc, s.volume_arm,
+                                          s.volume_prev).sum(axis=1)
+    tets, v0, kv = nodal_terms(model)
+    vol = nodal_volume_forces_numpy(x, tets, v0, kv, pressure)
+    np.testing.assert_allclose(force, (f + vol)[node], rtol=1e-9,
+                               atol=1e-12 * np.abs(f[node]).max())
+    assert np.linalg.norm(vol[node]) > 0.05 * np.linalg.norm(force)  # measured 9 %
+    elastic = nodal_volume_forces_numpy(x, tets, v0, kv)[node]  # the arms': 4 %
+    assert np.linalg.norm(vol[node] - elastic) > 0.01 * np.linalg.norm(force)
+
+
+def test_a_tet_leaving_its_volume_range_stops_a_nodal_run_naming_it():
+    """The nodal run checks the tets' volume ratios (the range its stable step is bounded on)
+    as the per-tet run does: one tet's free vertex driven through its opposite face in 100
+    steps, V/V0 = 1 - 2 s/100 after step s, stops at step 44 (0.12 < (1 - 0.5)^3 = 0.125)
+    with a StabilityError naming the tet and the step, as the per-tet test does."""
+    from forcecal.errors import StabilityError
+    from particle.integrator import VerletIntegrator
+    from particle.model import Prescribed
+    from particle.stability import critical_time_step
+    model = single_tet("nodal", 1000.0, ARMS, K0=1.0, fixed=(True, True, True, False),
+                       **NONLINEAR)
+    dt = 0.5 * critical_time_step(model)
+    x3 = model.rest_positions[3]
+    motion = Prescribed([3], [0.0, 100 * dt], [[x3], [x3 - [0.0, 0.0, 2 * x3[2]]]])
+    state = model.state()
+    with pytest.raises(StabilityError, match=r"tet 0 \(particles 0-1-2-3\) reached volume "
+                       r"ratio V/V0 = 0.12 at step 44 .*outside \[0.125, 3.375\]"):
+        VerletIntegrator().simulate(model, state, dt, 200, prescribed=motion)
+    assert np.all(np.isfinite(state.x))
+
+
+def test_the_stability_bound_with_the_nodal_term_is_below_the_bisected_limit():
+    """Rigorous for the explicit runs: critical_time_step of a relaxing nodal model is never
+    above the limit found by bisection (3000 steps from rest perturbed by 1e-6 m); on a
+    narrow strain range (+-1e-3) it is within a factor 2 of it."""
+    from pipelines.bench.empirical_limit import bisect, blows_up
+    from particle.stability import critical_time_step
+    model = nodal_box(2e4, (1.2e4, 8e3))
+    estimate = critical_time_step(model)
+    empirical = bisect(lambda dt: blows_up(model, dt), estimate)
+    narrow = critical_time_step(model, strain_range=(-1e-3, 1e-3))
+    assert estimate < narrow <= empirical
+    assert narrow / empirical > 0.5
+
+
+@pytest.mark.parametrize("arms", [None, ARMS], ids=["elastic", "viscoelastic"])
+def test_the_nodal_stability_bounds_hold_at_sampled_states(arms):
+    """Every bound the stable step and mass scaling take of the nodal term is above the term's
+    tangent at states in their range: a (3, 3, 2) box (bottom fixed) with kv drawn per tet
+    (1-10 kPa), strains in +-0.1 (volume ratios in [0.9^3, 1.1^3] per tet), at rest and at
+    random deformations inside both ranges, the arms (instantaneous coefficients c_i = kv_i,
+    their largest) loaded to +- their pressure bound kv_i (J_hi - J_lo) per particle.
+    Checked: volume_frequency_bound and the largest eigenvalue of volume_scalar_matrix >=
+    lambda_max(M^-1/2 K M^-1/2); diag(D) (x) I - K (node_volume_stiffness_bound) and
+    L_w (x) I - K (volume_edge_stiffness_bound, the graph Laplacian of its weights) positive
+    semidefinite (to 1e-10 of the largest entry), all on the free particles."""
+    from particle.volume_bounds import (node_volume_stiffness_bound, volume_edge_stiffness_bound,
+                                        volume_frequency_bound, volume_ratio_range,
+                                        volume_scalar_matrix)
+    rng = np.random.default_rng(8)
+    model = with_volume(box_model((3, 3, 2)), rng.uniform(1e3, 1e4, 108), arms)
+    lo, hi = np.full(model.n_connectors, -0.1), np.full(model.n_connectors, 0.1)
+    j_lo, j_hi = volume_ratio_range(model, lo, hi)
+    omega2 = volume_frequency_bound(model, lo, hi)
+    scalar = float(np.linalg.eigvalsh(volume_scalar_matrix(model, lo, hi).toarray()).max())
+    node_bound = node_volume_stiffness_bound(model, lo, hi)
+    w = volume_edge_stiffness_bound(model, lo, hi)
+    n = model.n_particles
+    laplacian = sp.csr_matrix((np.r_[w, w, -w, -w], (np.r_[model.edges[:, 0], model.edges[:, 1],
+                                                          model.edges[:, 0], model.edges[:, 1]],
+                                                    np.r_[model.edges[:, 0], model.edges[:, 1],
+                                                          model.edges[:, 1], model.edges[:, 0]])),
+                              shape=(n, n)).toarray()
+    free = np.repeat(~model.fixed, 3)
+    scale = np.repeat(1.0 / np.sqrt(model.masses), 3)[free]
+    nodal = nodal_params(model)
+    tets, v0, kv = nodal_terms(model)
+    samples = 0
+    largest = 0.0
+    for k in range(12):
+        x = deformed(model, 0.0 if k == 0 else 1e-4 * (1 + k % 3), k)
+        x[model.fixed] = model.rest_positions[model.fixed]
+        strain = (np.linalg.norm(x[model.edges[:, 1]] - x[model.edges[:, 0]], axis=1)
+                  / model.rest_lengths - 1.0)
+        ratio = signed_volumes(x, tets) / model.rest_volumes
+        if not (np.all((lo <= strain) & (strain <= hi)) and np.all((j_lo < ratio) &
+                                                                   (ratio <= j_hi))):
+            continue
+        samples += 1
+        extra = None
+        if arms is not None:
+            span = np.full(n, -np.inf)
+            np.maximum.at(span, tets.ravel(), np.repeat(j_hi - j_lo, 4))
+            sign = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+            extra = (nodal.arm_stiffness.sum(1), sign * nodal.arm_stiffness.sum(1) * span)
+        k_full = nodal_volume_tangent_numpy(x, tets, v0, kv, extra).toarray()
+        k_free = k_full[free][:, free]
+        mass_scaled = scale[:, None] * k_free * scale[None, :]
+        top = float(np.linalg.eigvalsh(mass_scaled).max())
+        largest = max(largest, top)
+        tol = 1e-10 * np.abs(k_free).max()
+        assert top <= omega2 and top <= scalar * (1 + 1e-12)
+        assert np.linalg.eigvalsh(np.diag(np.repeat(node_bound, 3)[free]) - k_free).min() >= -tol
+        assert np.linalg.eigvalsh(np.kron(laplacian, np.eye(3))[free][:, free] - k_free).min() \
+            >= -tol
+    assert samples >= 8 and largest > 0.0
+
+
+def test_the_gravity_release_runs_the_nodal_term():
+    """gravity_dynamic (release from rest under gravity, every particle recorded) on an elastic
+    nodal model: its displacements are step_numpy's to round-off (it shares the elastic
+    recorded typing of the compiled loop)."""
+    from particle.experiments import gravity_dynamic
+    from particle.stability import critical_time_step
+    model = nodal_box(np.random.default_rng(6).uniform(1e3, 4e3, 108))
+    dt = 0.5 * critical_time_step(model)
+    shown = gravity_dynamic(model, GRAVITY, 40 * dt, dt, np.array([0.0, 20 * dt, 40 * dt]))
+    state = model.state()
+    for _ in range(40):
+        step_numpy(model, state, dt, gravity=GRAVITY)
+    sag = state.x - model.rest_positions
+    assert np.abs(sag).max() > 0
+    np.testing.assert_allclose(shown[-1], sag, rtol=0, atol=1e-12 * np.abs(sag).max())
+
+
+def test_every_argument_a_nodal_run_passes_fits_numbas_fingerprint():
+    """The nodal term adds one group to the compiled loop's arguments (the particles' volume
+    and pressure scratch), which fits numba 0.56's type fingerprint with the others
+    (particle.dispatch), arms and probe included."""
+    from particle import dispatch, step_kernels
+    from particle.integrator import VerletIntegrator, recording
+    from particle.stability import critical_time_step
+    from tests.particle_models import top_centre
+    model = nodal_box(3000.0, ARMS)
+    node = top_centre(model)
+    run = VerletIntegrator().prepare(model, 0.5 * critical_time_step(model),
+                                     prescribed_nodes=[node])
+    state = model.state()
+    probe = (node, *run._incident(node)[:1], np.empty(3), run._incident(node)[1])
+    args = run.arguments(state, 1, (np.zeros(2), np.zeros((2, 1, 3))), 1.0,
+                         recording(model, [node], [0, 1], 1), probe)
+    assert len(args) == step_kernels.run_verlet.py_func.__code__.co_argcount
+    assert [k for k, a in enumerate(args) if not dispatch.fits(a)] == []
+    assert args[-1] is not None and len(args[-1]) == 2

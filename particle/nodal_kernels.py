@@ -1,0 +1,150 @@
+"""Compiled (numba) passes of the nodal volume term (:mod:`particle.nodal_volume`).
+
+:func:`add_nodal_volume_forces` is the explicit step's force pass, in three passes:
+
+1. over the tets: each tet's volume (the per-tet pass's formula, :func:`particle.volume.tet_volume`,
+   bit for bit, so the range check and the stored volumes are the per-tet term's), a quarter of
+   it added to each of its particles' volume ``V_n``;
+2. over the particles: the strain ``j_n = V_n / V0_n - 1`` and pressure ``P_n = kv_n j_n``,
+   plus the arms' (:func:`particle.volume.volume_arm_step` with the particle as the volume
+   element);
+3. over the tets: the per-tet force ``-Pbar_t dV_t/dp_a`` with ``Pbar_t`` the pairwise mean of
+   its particles' pressures (:func:`particle.nodal_volume.mean_tet_pressures`' order).
+
+Its arguments are the per-tet pass's (:func:`particle.volume.add_volume_forces`) with the
+rest volumes and ``kv`` of the particles instead of the tets', and ``nodes`` = (volumes
+(N,) [m^3], pressures (N,) [Pa]), scratch the passes fill. The plain-numpy twin is
+:func:`particle.nodal_volume.nodal_volume_forces_numpy` (round-off equal: the twin divides the
+cross products by 6 before scaling them by the pressure).
+
+:func:`nodal_node_volume_force` is the force on one particle (the haptic probe,
+:meth:`particle.integrator.Run.force_on`): from its tets' particles' pressures, whose volumes
+need those particles' tets, the particle's two-ring of tets (:func:`ring_tets`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from particle.volume import (JIT, add_tet_force, tet_volume, volume_arm_pressures,
+                             volume_arm_step)
+
+
+@njit(**JIT)
+def _tet_gradient_scaled(x, tets, t, s):
+    """The 12 floats of :func:`particle.volume.add_tet_force` for the pressure-like ``s``
+    (= -P/6): ``s`` times 6 dV/dp_1, 6 dV/dp_2, 6 dV/dp_3 and their sum (minus 6 dV/dp_0)."""
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
+    a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
+    b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
+    c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
+    g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0
+    g20, g21, g22 = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0
+    g30, g31, g32 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    return (s * g10, s * g11, s * g12, s * g20, s * g21, s * g22, s * g30, s * g31, s * g32,
+            s * (g10 + g20 + g30), s * (g11 + g21 + g31), s * (g12 + g22 + g32))
+
+
+@njit(**JIT)
+def _mean_pressure(tets, t, pressure):
+    """``((P_0 + P_1) + (P_2 + P_3)) / 4`` [Pa] of tet t's particles' ``pressure`` (N,)."""
+    return ((pressure[tets[t, 0]] + pressure[tets[t, 1]])
+            + (pressure[tets[t, 2]] + pressure[tets[t, 3]])) * 0.25
+
+
+@njit(**JIT)
+def add_nodal_volume_forces(x, tets, node_volumes, kv, v_lo, v_hi, forces, arms, volumes,
+                            nodes):
+    """forces += the nodal volume forces [N]; returns (first bad tet, its volume [m^3]).
+
+    ``tets`` (T, 4), ``node_volumes`` (N,) [m^3] the particles' rest volumes, ``kv`` (N,)
+    [Pa] theirs, ``v_lo``/``v_hi`` (T,) [m^3] each tet's volume range (as the per-tet
+    pass: a tet outside ``(v_lo, v_hi]`` is bad, (-1, 0.0) if none; it still gets its
+    force), ``volumes`` (T,) receives every tet's volume, ``arms``: the particles' arms (the
+    kernels' tuple of :mod:`particle.volume` with one row per particle) advanced and stored,
+    or None; ``nodes`` = (volumes (N,), pressures (N,)) scratch (module docstring).
+    """
+    node_volume, node_pressure = nodes
+    node_volume[:] = 0.0
+    bad = -1
+    bad_volume = 0.0
+    n_tets = tets.shape[0]
+    for t in range(n_tets):
+        v = tet_volume(x, tets, t)
+        if bad < 0 and not (v > v_lo[t] and v <= v_hi[t]):
+            bad = np.int64(t)
+            bad_volume = v
+        volumes[t] = v
+        quarter = v * 0.25
+        node_volume[tets[t, 0]] += quarter
+        node_volume[tets[t, 1]] += quarter
+        node_volume[tets[t, 2]] += quarter
+        node_volume[tets[t, 3]] += quarter
+    for m in range(node_volume.shape[0]):
+        strain = node_volume[m] / node_volumes[m] - 1.0
+        pressure = kv[m] * strain
+        if arms is not None:
+            pressure += volume_arm_step(m, strain, arms)
+        node_pressure[m] = pressure
+    sixth = 1.0 / 6.0
+    for t in range(n_tets):
+        s = -_mean_pressure(tets, t, node_pressure) * sixth
+        add_tet_force(forces, tets, t, _tet_gradient_scaled(x, tets, t, s))
+    return bad, bad_volume
+
+
+@njit(**JIT)
+def nodal_node_volume_force(x, node, ring, tets, node_volumes, kv, arms, node_volume, out):
+    """out (3,) += the nodal volume force [N] on particle ``node``; ``ring``: its two-ring of
+    tets (:func:`ring_tets`, ascending: each of its particles' volumes summed in the full
+    pass's order), ``node_volume`` (N,) scratch (only its ring's entries are written),
+    ``arms`` (or None) advanced one step into scratch (nothing stored)."""
+    for k in range(ring.shape[0]):
+        t = ring[k]
+        for a in range(4):
+            node_volume[tets[t, a]] = 0.0
+    for k in range(ring.shape[0]):
+        t = ring[k]
+        quarter = tet_volume(x, tets, t) * 0.25
+        for a in range(4):
+            node_volume[tets[t, a]] += quarter
+    sixth = 1.0 / 6.0
+    for k in range(ring.shape[0]):
+        t = ring[k]
+        slot = -1
+        for a in range(4):
+            if tets[t, a] == node:
+                slot = a
+        if slot < 0:
+            continue
+        p = np.empty(4)
+        for a in range(4):
+            m = tets[t, a]
+            strain = node_volume[m] / node_volumes[m] - 1.0
+            p[a] = kv[m] * strain
+            if arms is not None:
+                p1, p2 = volume_arm_pressures(m, strain, arms)
+                p[a] += p1 + p2
+        s = -((p[0] + p[1]) + (p[2] + p[3])) * 0.25 * sixth
+        f = _tet_gradient_scaled(x, tets, t, s)
+        if slot == 0:
+            out[0] -= f[9]
+            out[1] -= f[10]
+            out[2] -= f[11]
+        else:
+            out[0] += f[3 * slot - 3]
+            out[1] += f[3 * slot - 2]
+            out[2] += f[3 * slot - 1]
+
+
+def ring_tets(tets: np.ndarray, node: int) -> np.ndarray:
+    """(k,) int64 ascending: the tets touching any particle of particle ``node``'s tets (what
+    :func:`nodal_node_volume_force` needs)."""
+    own = np.any(tets == node, axis=1)
+    ring = np.unique(tets[own])
+    return np.nonzero(np.isin(tets, ring).any(axis=1))[0].astype(np.int64)
+
+
+__all__ = ["add_nodal_volume_forces", "nodal_node_volume_force", "ring_tets"]
