@@ -729,8 +729,9 @@ def _cross_checks(scene: Scene, origin: str) -> None:
                              "\"viscoelastic\"")
         raise SceneError(f"{origin}: particle.volume_element = 'nodal': the calibration "
                          f"(calibration.method = {scene.calibration.method!r}) does not support "
-                         "the nodal volume element yet (its static solver and adjoint "
-                         "sensitivities are per tet); use particle.volume_element = 'tet'")
+                         "the nodal volume element yet (the adjoint sensitivities, the "
+                         "whole-body fit and the export are per tet); use "
+                         "particle.volume_element = 'tet'")
     if not p.dt_safety < 1:
         raise SceneError(f"{origin}: particle.dt_safety = {p.dt_safety}: must be in (0, 1) (the "
                          "fraction of the critical time step particle.dt = 'auto' uses; 1 or "

@@ -425,6 +425,7 @@ def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
     Returns (q [N m], (N, 3) dq/dx [N], (P,) dq/dp at fixed x in the layout of
     :func:`parameter_layout`).
     """
+    refuse_nodal(model, "the whole-body incremental tangent (particle.body)")
     p = model.params
     i, j = model.edges[:, 0], model.edges[:, 1]
     d = x[j] - x[i]
@@ -492,6 +493,7 @@ def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
 
 def incremental_tangent(model: Model, pat: TangentPattern, x: np.ndarray) -> sp.csc_matrix:
     """(n, n) the tangent ``K_t`` of :func:`incremental_form` on the free dofs [N/m]."""
+    refuse_nodal(model, "the whole-body incremental tangent (particle.body)")
     p = model.params
     forces, tension, *_ = net_forces(model, x, p, not p.is_linear, None, None,
                                      (np.zeros(model.n_tets), np.full(model.n_tets, np.inf)))

@@ -338,7 +338,8 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
     (:func:`particle.volume.add_volume_forces`), None compiles it out; ``volume_arms`` its
     arms (the kernels' tuple, outputs aliasing the state: :mod:`particle.volume`), None:
     elastic; ``volume_nodes`` None: the per-tet term, else the nodal term's scratch (its
-    rest volumes and kv then the particles', :func:`particle.nodal_kernels.add_nodal_volume_forces`).
+    rest volumes and kv then the particles',
+    :func:`particle.nodal_kernels.add_nodal_volume_forces`).
     Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
     :func:`internal_forces`), the first tet whose volume is outside ``(v_lo, v_hi]``), -1
     for none.

@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from particle.volume import (JIT, add_tet_force, tet_volume, volume_arm_pressures,
-                             volume_arm_step)
+from particle.volume import (JIT, _tet_gradient_tuples, add_tet_force, add_tet_tangent,
+                             tet_volume, volume_arm_pressures, volume_arm_step)
 
 
 @njit(**JIT)
@@ -139,6 +139,66 @@ def nodal_node_volume_force(x, node, ring, tets, node_volumes, kv, arms, node_vo
             out[2] += f[3 * slot - 1]
 
 
+@njit(**JIT)
+def add_nodal_volume_tangent(x, tets, node_volumes, kv, pattern, tet_slots, data, arms,
+                             scratch):
+    """data += the nodal term's tangent -d(forces)/dx [N/m] (:mod:`particle.nodal_volume`).
+
+    ``x`` (N, 3) [m], ``tets`` (T, 4), ``node_volumes`` (N,) [m^3] and ``kv`` (N,) [Pa] the
+    particles', ``pattern`` = (node_tet_ptr (N + 1,), node_tets (K,), node_tet_local (K, 4),
+    star_ptr (N + 1,), block_ptr (N + 1,), block_slots (B, 3, 3)) (:class:`NodalPattern`),
+    ``tet_slots`` (T, 4, 4, 3, 3) the tets' blocks (:func:`particle.volume.tet_slots`), ``arms``
+    None (elastic, or the arms relaxed) or (the arms' step coefficients c_1 + c_2 (N,) [Pa],
+    their summed pressures at ``x`` (N,) [Pa]), ``scratch`` = (volumes (N,), pressures (N,)).
+
+    The curvature ``sum_t Pbar_t d^2V_t`` per tet (:func:`particle.volume.add_tet_tangent`
+    with no rank-one part), then per particle n the rank-one ``k_n/V0_n b_n b_n^T``, ``b_n =
+    sum_{t ∋ n} dV_t/dx / 4`` over its star (the particles of its tets), ``k_n = kv_n (+ c_1,n
+    + c_2,n)``.
+    """
+    node_tet_ptr, node_tets, node_tet_local, star_ptr, block_ptr, block_slots = pattern
+    node_volume, node_pressure = scratch
+    node_volume[:] = 0.0
+    for t in range(tets.shape[0]):
+        quarter = tet_volume(x, tets, t) * 0.25
+        for a in range(4):
+            node_volume[tets[t, a]] += quarter
+    for m in range(node_volume.shape[0]):
+        pressure = kv[m] * (node_volume[m] / node_volumes[m] - 1.0)
+        if arms is not None:
+            pressure += arms[1][m]
+        node_pressure[m] = pressure
+    sixth = 1.0 / 6.0
+    for t in range(tets.shape[0]):
+        g0, g1, g2, g3, _ = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2],
+                                                 tets[t, 3])
+        add_tet_tangent(x, tets, t, 0.0, _mean_pressure(tets, t, node_pressure) * sixth,
+                        (g0, g1, g2, g3), tet_slots, data)
+    for n in range(node_volume.shape[0]):
+        size = star_ptr[n + 1] - star_ptr[n]
+        b = np.zeros((size, 3))
+        for k in range(node_tet_ptr[n], node_tet_ptr[n + 1]):
+            t = node_tets[k]
+            g0, g1, g2, g3, _ = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2],
+                                                     tets[t, 3])
+            for a, g in ((0, g0), (1, g1), (2, g2), (3, g3)):
+                row = node_tet_local[k, a]
+                b[row, 0] += 0.25 * g[0]
+                b[row, 1] += 0.25 * g[1]
+                b[row, 2] += 0.25 * g[2]
+        stiffness = kv[n] if arms is None else kv[n] + arms[0][n]
+        w = stiffness / node_volumes[n]
+        base = block_ptr[n]
+        for i in range(size):
+            for j in range(size):
+                slots = block_slots[base + i * size + j]
+                for p in range(3):
+                    for q in range(3):
+                        s = slots[p, q]
+                        if s >= 0:
+                            data[s] += w * b[i, p] * b[j, q]
+
+
 def ring_tets(tets: np.ndarray, node: int) -> np.ndarray:
     """(k,) int64 ascending: the tets touching any particle of particle ``node``'s tets (what
     :func:`nodal_node_volume_force` needs)."""
@@ -147,4 +207,5 @@ def ring_tets(tets: np.ndarray, node: int) -> np.ndarray:
     return np.nonzero(np.isin(tets, ring).any(axis=1))[0].astype(np.int64)
 
 
-__all__ = ["add_nodal_volume_forces", "nodal_node_volume_force", "ring_tets"]
+__all__ = ["add_nodal_volume_forces", "add_nodal_volume_tangent", "nodal_node_volume_force",
+           "ring_tets"]

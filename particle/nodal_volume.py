@@ -217,6 +217,17 @@ def element_arm_recursion(model, dt: float, *, exact: bool = False
     return model.params.volume_arm_recursion(dt, exact=exact)
 
 
+def element_arm_recursions(model, dts: np.ndarray, *, exact: bool = False
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """(r, c), each (S, M, 2), of ``model``'s volume arms for S time steps ``dts`` [s], one
+    row per volume element (:func:`element_arm_recursion` for many steps at once)."""
+    from particle.params import maxwell_recursions, volume_arm_recursions
+    if model.volume_element == "nodal":
+        nodal = nodal_params(model)
+        return maxwell_recursions(nodal.arm_stiffness, nodal.arm_tau, dts, exact=exact)
+    return volume_arm_recursions(model.params, dts, exact=exact)
+
+
 def element_coefficients(model) -> tuple[np.ndarray, np.ndarray]:
     """(rest volumes [m^3], kv [Pa]) of ``model``'s volume elements (volume term on): the
     tets', or the particles' for the nodal term (the compiled passes' arguments)."""
@@ -274,10 +285,10 @@ def refuse_nodal(model, what: str) -> None:
                              "particle.volume_element); use volume_element = 'tet'")
 
 
-__all__ = ["NodalParams", "VOLUME_ELEMENTS", "check_volume_element", "element_arm_recursion",
-           "element_arm_energy", "element_coefficients", "element_energy", "element_strains",
-           "is_nodal", "tet_moduli",
-           "mean_tet_pressures", "nodal_arm_recursion", "nodal_params", "nodal_pressures",
-           "nodal_volume_energy", "nodal_volume_forces_numpy", "nodal_volume_tangent_numpy",
-           "node_average", "node_rest_volumes", "node_volume_gradients", "node_volume_strains",
-           "node_volumes_at", "refuse_nodal"]
+__all__ = ["NodalParams", "VOLUME_ELEMENTS", "check_volume_element", "element_arm_energy",
+           "element_arm_recursion", "element_arm_recursions", "element_coefficients",
+           "element_energy", "element_strains", "is_nodal", "mean_tet_pressures",
+           "nodal_arm_recursion", "nodal_params", "nodal_pressures", "nodal_volume_energy",
+           "nodal_volume_forces_numpy", "nodal_volume_tangent_numpy", "node_average",
+           "node_rest_volumes", "node_volume_gradients", "node_volume_strains", "node_volumes_at",
+           "refuse_nodal", "tet_moduli"]

@@ -259,6 +259,8 @@ class _Adjoint(_Recorded):
         its recorded path and force vectors are used (what :meth:`force_vectors`, hence
         :meth:`__call__`, returned then).
         """
+        refuse_nodal(self.model.with_params(params),
+                     "the adjoint sensitivities (particle.sensitivity)")
         idx = self._indices(points)
         vectors = self.forward(params, idx)
         if directions is None:

@@ -526,50 +526,60 @@ def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data, arms):
     :func:`add_volume_tangent_numpy` still does.
     """
     sixth = 1.0 / 6.0
-    zero = (0.0, 0.0, 0.0)
     for t in range(tets.shape[0]):
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        p0 = (x[i0, 0], x[i0, 1], x[i0, 2])
-        p1 = (x[i1, 0], x[i1, 1], x[i1, 2])
-        p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
-        p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
-        g0, g1, g2, g3, v = _tet_gradient_tuples(x, i0, i1, i2, i3)
+        g0, g1, g2, g3, v = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2],
+                                                 tets[t, 3])
         if arms is None:
             k1 = kv[t] / rest_volumes[t]
             k2 = kv[t] * (v / rest_volumes[t] - 1.0) * sixth
         else:
             k1 = (kv[t] + arms[0][t]) / rest_volumes[t]
             k2 = (kv[t] * (v / rest_volumes[t] - 1.0) + arms[1][t]) * sixth
-        # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
-        w01 = _scaled_difference(k2, p2, p3)  # (0, 1, 2, 3)
-        w02 = _scaled_difference(k2, p3, p1)  # (0, 2, 3, 1)
-        w03 = _scaled_difference(k2, p1, p2)  # (0, 3, 1, 2)
-        w12 = _scaled_difference(k2, p0, p3)  # (1, 2, 0, 3)
-        w13 = _scaled_difference(k2, p2, p0)  # (1, 3, 2, 0)
-        w23 = _scaled_difference(k2, p0, p1)  # (2, 3, 0, 1)
-        w10 = _scaled_difference(k2, p3, p2)  # w_ba = -w_ab
-        w20 = _scaled_difference(k2, p1, p3)
-        w30 = _scaled_difference(k2, p2, p1)
-        w21 = _scaled_difference(k2, p3, p0)
-        w31 = _scaled_difference(k2, p0, p2)
-        w32 = _scaled_difference(k2, p1, p0)
-        # in storage order (a, b)
-        _add_tet_block(data, tet_slots[t, 0, 0], k1, g0, g0, zero)
-        _add_tet_block(data, tet_slots[t, 0, 1], k1, g0, g1, w01)
-        _add_tet_block(data, tet_slots[t, 0, 2], k1, g0, g2, w02)
-        _add_tet_block(data, tet_slots[t, 0, 3], k1, g0, g3, w03)
-        _add_tet_block(data, tet_slots[t, 1, 0], k1, g1, g0, w10)
-        _add_tet_block(data, tet_slots[t, 1, 1], k1, g1, g1, zero)
-        _add_tet_block(data, tet_slots[t, 1, 2], k1, g1, g2, w12)
-        _add_tet_block(data, tet_slots[t, 1, 3], k1, g1, g3, w13)
-        _add_tet_block(data, tet_slots[t, 2, 0], k1, g2, g0, w20)
-        _add_tet_block(data, tet_slots[t, 2, 1], k1, g2, g1, w21)
-        _add_tet_block(data, tet_slots[t, 2, 2], k1, g2, g2, zero)
-        _add_tet_block(data, tet_slots[t, 2, 3], k1, g2, g3, w23)
-        _add_tet_block(data, tet_slots[t, 3, 0], k1, g3, g0, w30)
-        _add_tet_block(data, tet_slots[t, 3, 1], k1, g3, g1, w31)
-        _add_tet_block(data, tet_slots[t, 3, 2], k1, g3, g2, w32)
-        _add_tet_block(data, tet_slots[t, 3, 3], k1, g3, g3, zero)
+        add_tet_tangent(x, tets, t, k1, k2, (g0, g1, g2, g3), tet_slots, data)
+
+
+@njit(**JIT)
+def add_tet_tangent(x, tets, t, k1, k2, grads, tet_slots, data):
+    """data += tet t's tangent blocks ``k1 g_a g_b^T + k2 [p_c - p_d]_x`` [N/m] (the
+    closed form of :func:`add_volume_tangent`: ``k1`` = k/V0 [N/m^5], ``k2`` = P/6 [Pa],
+    ``grads`` its dV/dp_a, four 3-tuples [m^2])."""
+    zero = (0.0, 0.0, 0.0)
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    p0 = (x[i0, 0], x[i0, 1], x[i0, 2])
+    p1 = (x[i1, 0], x[i1, 1], x[i1, 2])
+    p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
+    p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
+    g0, g1, g2, g3 = grads
+    # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
+    w01 = _scaled_difference(k2, p2, p3)  # (0, 1, 2, 3)
+    w02 = _scaled_difference(k2, p3, p1)  # (0, 2, 3, 1)
+    w03 = _scaled_difference(k2, p1, p2)  # (0, 3, 1, 2)
+    w12 = _scaled_difference(k2, p0, p3)  # (1, 2, 0, 3)
+    w13 = _scaled_difference(k2, p2, p0)  # (1, 3, 2, 0)
+    w23 = _scaled_difference(k2, p0, p1)  # (2, 3, 0, 1)
+    w10 = _scaled_difference(k2, p3, p2)  # w_ba = -w_ab
+    w20 = _scaled_difference(k2, p1, p3)
+    w30 = _scaled_difference(k2, p2, p1)
+    w21 = _scaled_difference(k2, p3, p0)
+    w31 = _scaled_difference(k2, p0, p2)
+    w32 = _scaled_difference(k2, p1, p0)
+    # in storage order (a, b)
+    _add_tet_block(data, tet_slots[t, 0, 0], k1, g0, g0, zero)
+    _add_tet_block(data, tet_slots[t, 0, 1], k1, g0, g1, w01)
+    _add_tet_block(data, tet_slots[t, 0, 2], k1, g0, g2, w02)
+    _add_tet_block(data, tet_slots[t, 0, 3], k1, g0, g3, w03)
+    _add_tet_block(data, tet_slots[t, 1, 0], k1, g1, g0, w10)
+    _add_tet_block(data, tet_slots[t, 1, 1], k1, g1, g1, zero)
+    _add_tet_block(data, tet_slots[t, 1, 2], k1, g1, g2, w12)
+    _add_tet_block(data, tet_slots[t, 1, 3], k1, g1, g3, w13)
+    _add_tet_block(data, tet_slots[t, 2, 0], k1, g2, g0, w20)
+    _add_tet_block(data, tet_slots[t, 2, 1], k1, g2, g1, w21)
+    _add_tet_block(data, tet_slots[t, 2, 2], k1, g2, g2, zero)
+    _add_tet_block(data, tet_slots[t, 2, 3], k1, g2, g3, w23)
+    _add_tet_block(data, tet_slots[t, 3, 0], k1, g3, g0, w30)
+    _add_tet_block(data, tet_slots[t, 3, 1], k1, g3, g1, w31)
+    _add_tet_block(data, tet_slots[t, 3, 2], k1, g3, g2, w32)
+    _add_tet_block(data, tet_slots[t, 3, 3], k1, g3, g3, zero)
 
 
 def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -657,7 +667,8 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
     return float(K0 * np.sum(np.asarray(lengths) ** 2) / (9.0 * volume))
 
 
-__all__ = ["add_volume_forces", "add_volume_tangent", "add_volume_tangent_numpy", "check_kv",
+__all__ = ["add_tet_tangent", "add_volume_forces", "add_volume_tangent",
+           "add_volume_tangent_numpy", "check_kv",
            "network_bulk_modulus", "node_volume_force", "pressure_forces_numpy",
            "signed_volumes", "tet_edge_connectors",
            "tet_name", "tet_slots", "volume_arm_energy", "volume_arm_pressures",

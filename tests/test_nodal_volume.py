@@ -273,16 +273,16 @@ def test_the_numpy_step_on_one_tet_is_the_per_tet_step(arms):
 
 
 def test_paths_without_the_nodal_term_refuse_it(liver_scene):
-    """Statics, the haptic strain envelope, the whole-body operators and the scene's
-    calibration refuse a nodal model (never the per-tet term in its place), naming
-    themselves."""
+    """The adjoint sensitivities, the haptic strain envelope, the whole-body operators and
+    the scene's calibration refuse a nodal model (never the per-tet term in its place),
+    naming themselves."""
     from particle.body import RestOperators
     from particle.envelope import StrainBands
-    from particle.statics import EquilibriumSolver, TangentPattern
-    model = single_tet("nodal")
-    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
-    with pytest.raises(ParameterError, match="static solver .* nodal volume element"):
-        solver.solve(model.rest_positions.copy(), model.params)
+    from particle.sensitivity import IndentationSensitivity
+    model = single_tet("nodal", fixed=(True, True, True, False))
+    sensitivity = IndentationSensitivity(model, [3], np.array([[0.0, 0.0, -1.0]]), [1e-4])
+    with pytest.raises(ParameterError, match="adjoint sensitivities .* nodal volume element"):
+        sensitivity.jacobian(model.params)
     with pytest.raises(ParameterError, match="strain envelope .* nodal volume element"):
         StrainBands(model, 0.1)
     with pytest.raises(ParameterError, match="whole-body operators .* nodal volume element"):
@@ -606,3 +606,128 @@ def test_every_argument_a_nodal_run_passes_fits_numbas_fingerprint():
     assert len(args) == step_kernels.run_verlet.py_func.__code__.co_argcount
     assert [k for k, a in enumerate(args) if not dispatch.fits(a)] == []
     assert args[-1] is not None and len(args[-1]) == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# statics: the compiled Newton loop with the nodal term (its tangent on the two-ring pattern)
+
+def arm_step_of(model, seed=2, dt=0.01):
+    """A quasi-static arm step (exact recursion over ``dt`` [s]) from a random loaded arm state
+    of ``model`` (connectors and, with volume arms, the particles' volume arms)."""
+    from particle.nodal_volume import element_arm_recursion
+    from particle.statics import ArmStep, VolumeArmStep
+    rng = np.random.default_rng(seed)
+    p, n = model.params, model.n_volume_elements
+    volume = None
+    if p.has_volume_arms:
+        volume = VolumeArmStep(*element_arm_recursion(model, dt, exact=True),
+                               10.0 * rng.standard_normal((n, 2)), 1e-4 * rng.standard_normal(n))
+    return ArmStep(*p.arm_recursion(dt, exact=True), 1e-3 * rng.standard_normal(
+        (model.n_connectors, 2)), 1e-5 * rng.standard_normal(model.n_connectors), volume)
+
+
+@pytest.mark.parametrize("arms", [None, ARMS], ids=["elastic", "viscoelastic"])
+def test_the_static_tangent_is_the_derivative_of_the_forces_and_its_twins(arms):
+    """The statics' assembled tangent of a nodal model (compiled, on the pattern extended by
+    every particle's star pairs) against central differences of the statics' forces (h = 1e-8
+    m: 1e-7 of the largest entry, measured 2e-10), with a quasi-static arm step when the term
+    has arms; its volume part against the numpy twin nodal_volume_tangent_numpy (round-off,
+    1e-12); the pattern holds the two-ring pairs the per-tet pattern lacks."""
+    from particle.statics import TangentPattern, tangent_data
+    from tests.test_particle_volume import tangent_and_differences
+    model = nodal_box(np.random.default_rng(1).uniform(1e3, 1e4, 108), arms)
+    x = deformed(model, 2e-4, 3)
+    x[model.fixed] = model.rest_positions[model.fixed]
+    step = None if arms is None else arm_step_of(model)
+    tangent, fd = tangent_and_differences(model, x, step)
+    np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-7 * np.abs(tangent).max())
+    pat = TangentPattern.of(model)
+    assert len(pat.indices) > len(TangentPattern.of(model.with_volume_element("tet")).indices)
+    springs = dataclasses.replace(model.params, kv=None, kv1=None, bv1=None, kv2=None, bv2=None)
+    forces_step = None if step is None else dataclasses.replace(step, volume=None)
+    solver_tension = _tension(model, x, step)
+    only_springs = sp.csc_matrix((tangent_data(model.with_params(springs), pat, x,
+                                               solver_tension, springs, True, forces_step),
+                                  pat.indices, pat.indptr)).toarray()
+    twin_arms = None
+    if step is not None:
+        strain = node_volume_strains(x, model.tets, model.node_volumes)
+        pressure = volume_arm_pressures_numpy(strain, step.volume.r, step.volume.c,
+                                              step.volume.pressure_prev,
+                                              step.volume.strain_prev).sum(axis=1)
+        twin_arms = (step.volume.stiffness, pressure)
+    twin = nodal_volume_tangent_numpy(x, *nodal_terms(model), twin_arms).toarray()
+    free = np.repeat(~model.fixed, 3)
+    volume_part = tangent - only_springs
+    np.testing.assert_allclose(volume_part, twin[free][:, free], rtol=0,
+                               atol=1e-12 * np.abs(twin).max())
+
+
+def _tension(model, x, step):
+    """(E,) connector tensions [N] at ``x`` with the arm step ``step`` (the statics' forces)."""
+    from particle.statics import EquilibriumSolver, TangentPattern
+    solver = EquilibriumSolver(model, np.zeros(0, np.int64), TangentPattern.of(model))
+    return solver._evaluate(x, model.params, True, step, None).tension
+
+
+def test_a_nodal_static_sag_balances_the_numpy_forces_and_unlocks_the_cantilever():
+    """gravity_static (the compiled Newton loop) of the locking test's cantilever under a weak
+    gravity (0.01 m/s^2: the springs alone sag 0.108 mm, 1 % of the section: nearly linear),
+    kv = 100 kappa. The numpy twin's net force vanishes at the free particles (to the
+    solver's tolerance: 1e-8 of the force scale, 4e-4 N, so 4e-8 of the 1e-4 N weight;
+    1e-8 because the stiff volume term's round-off, ~1e-12 N, is above the default 1e-10
+    for the per-tet term and the nodal one alike), and the sags are the small-deflection
+    solves' within 2 %: the per-tet term keeps 15.5 % of the springs' sag (locked), the
+    nodal term 87 %."""
+    from particle.reference_numpy import forces_numpy
+    from particle.statics import gravity_static
+    mesh = box_mesh((20, 3, 3), (0.1, 0.01, 0.01))
+    fixed = np.nonzero(np.isclose(mesh.vertices[:, 0], 0.0))[0]
+    springs = ConnectorParams.uniform(len(mesh.edges), K0=100.0, k1=1.0, b1=1.0, k2=1.0, b2=1.0)
+    base = build_model(mesh, 1000.0, springs, fixed=fixed)
+    tet = with_volume(base, 100.0 * network_bulk_modulus(base, 100.0), element="tet")
+    nodal = tet.with_volume_element("nodal")
+    gravity = np.array([0.0, 0.0, -0.01])
+    k_springs = spring_tangent(base)
+    load = base.masses[:, None] * gravity
+    sags, linear = {}, {}
+    for name, model, k in (("springs", base, k_springs),
+                           ("per-tet", tet, k_springs + per_tet_rest_tangent(tet)),
+                           ("nodal", nodal, k_springs + nodal_volume_tangent_numpy(
+                               nodal.rest_positions, *nodal_terms(nodal)))):
+        sag = gravity_static(model, gravity, rtol=1e-8)
+        sags[name] = -sag[:, 2].min()
+        free = np.repeat(~model.fixed, 3)
+        u = np.zeros(3 * model.n_particles)
+        u[free] = spla.spsolve(sp.csc_matrix(k)[free][:, free], load.ravel()[free])
+        linear[name] = -u.reshape(-1, 3)[:, 2].min()
+        assert sags[name] == pytest.approx(linear[name], rel=0.02)
+        if name == "nodal":
+            state = nodal.state()
+            state.x[:] = nodal.rest_positions + sag
+            f = forces_numpy(nodal, state, 1.0, gravity=gravity, arms=False)
+            assert np.abs(f[nodal.free_nodes]).max() < 1e-7 * nodal.masses.sum() * 0.01
+    assert sags["springs"] == pytest.approx(1.076e-4, rel=1e-3)
+    assert sags["per-tet"] < 0.2 * sags["springs"] and sags["nodal"] > 0.8 * sags["springs"]
+
+
+def test_nodal_relaxation_curves_relax_to_the_static_force():
+    """The evaluators on a relaxing nodal model (the particles' arms stepped exactly over each
+    sample): a ramp-and-hold ends at the long-term static indentation force (the arms relaxed;
+    within 2e-5, the per-tet test's tolerance: the particles still creep late in the hold),
+    holds more force early in the hold, and the nodal term adds force to the springs'."""
+    from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
+    from tests.particle_models import top_centre
+    model = nodal_box(4000.0, (3000.0, 2000.0))
+    node = top_centre(model)
+    normal = np.array([0.0, 0.0, -1.0])
+    depth = 1e-3
+    static = IndentationEvaluator(model, [node], normal[None], [depth])
+    relax = RelaxationEvaluator(model, [node], normal[None], [0.05, 1.0, 5.0, 10.0],
+                                [depth] * 4)
+    f_static = static(model.params)[0, 0]
+    f_relax = relax(model.params)[0]
+    assert f_relax[-1] == pytest.approx(f_static, rel=2e-5)
+    assert f_relax[0] > f_relax[-1]
+    springs = dataclasses.replace(model.params, kv=None, kv1=None, bv1=None, kv2=None, bv2=None)
+    assert f_static > static(springs)[0, 0]
