@@ -2,20 +2,20 @@
 
 :func:`add_nodal_volume_forces` is the explicit step's force pass, in three passes:
 
-1. over the tets: each tet's volume (the per-tet pass's formula, :func:`particle.volume.tet_volume`,
-   bit for bit, so the range check and the stored volumes are the per-tet term's), a quarter of
-   it added to each of its particles' volume ``V_n``;
+1. over the tets: each tet's volume (the per-tet pass's formula,
+   :func:`particle.volume.tet_volume`, bit for bit, so the range check and the stored volumes
+   are the per-tet term's), a quarter of it added to each of its particles' volume ``V_n``;
 2. over the particles: the strain ``j_n = V_n / V0_n - 1`` and pressure ``P_n = kv_n j_n``,
    plus the arms' (:func:`particle.volume.volume_arm_step` with the particle as the volume
    element);
 3. over the tets: the per-tet force ``-Pbar_t dV_t/dp_a`` with ``Pbar_t`` the pairwise mean of
-   its particles' pressures (:func:`particle.nodal_volume.mean_tet_pressures`' order).
+   its particles' pressures (:func:`particle.nodal_volume.mean_tet_pressures`' order), the
+   gradients as :func:`particle.volume.add_volume_tangent` takes them.
 
 Its arguments are the per-tet pass's (:func:`particle.volume.add_volume_forces`) with the
 rest volumes and ``kv`` of the particles instead of the tets', and ``nodes`` = (volumes
 (N,) [m^3], pressures (N,) [Pa]), scratch the passes fill. The plain-numpy twin is
-:func:`particle.nodal_volume.nodal_volume_forces_numpy` (round-off equal: the twin divides the
-cross products by 6 before scaling them by the pressure).
+:func:`particle.nodal_volume.nodal_volume_forces_numpy` (round-off equal).
 
 :func:`nodal_node_volume_force` is the force on one particle (the haptic probe,
 :meth:`particle.integrator.Run.force_on`): from its tets' particles' pressures, whose volumes
@@ -32,19 +32,13 @@ from particle.volume import (JIT, _tet_gradient_tuples, add_tet_force, add_tet_t
 
 
 @njit(**JIT)
-def _tet_gradient_scaled(x, tets, t, s):
-    """The 12 floats of :func:`particle.volume.add_tet_force` for the pressure-like ``s``
-    (= -P/6): ``s`` times 6 dV/dp_1, 6 dV/dp_2, 6 dV/dp_3 and their sum (minus 6 dV/dp_0)."""
-    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-    p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
-    a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
-    b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
-    c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
-    g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0
-    g20, g21, g22 = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0
-    g30, g31, g32 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-    return (s * g10, s * g11, s * g12, s * g20, s * g21, s * g22, s * g30, s * g31, s * g32,
-            s * (g10 + g20 + g30), s * (g11 + g21 + g31), s * (g12 + g22 + g32))
+def _pressure_forces(x, tets, t, pressure):
+    """The 12 floats of :func:`particle.volume.add_tet_force` of tet t under the pressure
+    ``pressure`` [Pa]: ``-P dV/dp_a`` for a = 1, 2, 3, then ``P dV/dp_0`` [N]."""
+    g0, g1, g2, g3, _ = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3])
+    s = -pressure
+    return (s * g1[0], s * g1[1], s * g1[2], s * g2[0], s * g2[1], s * g2[2], s * g3[0],
+            s * g3[1], s * g3[2], pressure * g0[0], pressure * g0[1], pressure * g0[2])
 
 
 @njit(**JIT)
@@ -88,10 +82,9 @@ def add_nodal_volume_forces(x, tets, node_volumes, kv, v_lo, v_hi, forces, arms,
         if arms is not None:
             pressure += volume_arm_step(m, strain, arms)
         node_pressure[m] = pressure
-    sixth = 1.0 / 6.0
     for t in range(n_tets):
-        s = -_mean_pressure(tets, t, node_pressure) * sixth
-        add_tet_force(forces, tets, t, _tet_gradient_scaled(x, tets, t, s))
+        add_tet_force(forces, tets, t, _pressure_forces(x, tets, t,
+                                                        _mean_pressure(tets, t, node_pressure)))
     return bad, bad_volume
 
 
@@ -110,7 +103,6 @@ def nodal_node_volume_force(x, node, ring, tets, node_volumes, kv, arms, node_vo
         quarter = tet_volume(x, tets, t) * 0.25
         for a in range(4):
             node_volume[tets[t, a]] += quarter
-    sixth = 1.0 / 6.0
     for k in range(ring.shape[0]):
         t = ring[k]
         slot = -1
@@ -127,8 +119,7 @@ def nodal_node_volume_force(x, node, ring, tets, node_volumes, kv, arms, node_vo
             if arms is not None:
                 p1, p2 = volume_arm_pressures(m, strain, arms)
                 p[a] += p1 + p2
-        s = -((p[0] + p[1]) + (p[2] + p[3])) * 0.25 * sixth
-        f = _tet_gradient_scaled(x, tets, t, s)
+        f = _pressure_forces(x, tets, t, ((p[0] + p[1]) + (p[2] + p[3])) * 0.25)
         if slot == 0:
             out[0] -= f[9]
             out[1] -= f[10]

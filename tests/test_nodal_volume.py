@@ -21,7 +21,8 @@ from particle.reference_numpy import step_numpy
 from particle.volume import (network_bulk_modulus, signed_volumes, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_gradients_numpy,
                              volume_hessian_numpy, volume_strains)
-from tests.particle_models import box_model
+from tests.particle_models import box_model, compiled_and_numpy_steps
+from tests.test_particle_volume import central_gradient, tangent_and_differences
 
 TET = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.003, 0.018, 0.0], [0.004, 0.006, 0.017]])
 ARMS = (1500.0, 1000.0)  # kv1, kv2 [Pa]
@@ -75,17 +76,6 @@ def arm_pressure_at(model, x, dt=1e-3):
     r, c = nodal_arm_recursion(nodal_params(model), dt)
     strain = node_volume_strains(x, model.tets, model.node_volumes)
     return volume_arm_pressures_numpy(strain, r, c, prev, strain_prev).sum(axis=1), c.sum(1)
-
-
-def central_gradient(energy, x, h=1e-7):
-    grad = np.empty_like(x)
-    for n in range(x.shape[0]):
-        for c in range(3):
-            xp, xm = x.copy(), x.copy()
-            xp[n, c] += h
-            xm[n, c] -= h
-            grad[n, c] = (energy(xp) - energy(xm)) / (2 * h)
-    return grad
 
 
 def per_tet_tangent(x, model):
@@ -389,22 +379,12 @@ def nodal_box(kv=2000.0, arms=None, n=(3, 3, 2)):
 
 
 def test_the_compiled_elastic_step_matches_the_numpy_step_and_records():
-    """Springs + elastic nodal term + gravity + damping + a prescribed particle: the compiled
-    loop against step_numpy, 50 steps, round-off only (1e-12 of the displacement: the twin
-    divides the cross products by 6 before the pressure, the kernel after); the recording
-    holds the final positions."""
-    from particle.integrator import VerletIntegrator
-    from particle.stability import critical_time_step
-    from tests.particle_models import deformed_start_and_push
+    """Springs + elastic nodal term (kv drawn per tet) + gravity + damping + a prescribed
+    particle: the compiled loop against step_numpy, 50 steps, round-off only (1e-12 of the
+    displacement); the recording holds the final positions."""
     model = nodal_box(np.random.default_rng(5).uniform(1e3, 4e3, 108))
-    dt = 0.5 * critical_time_step(model, damping=3.0)
-    compiled, motion = deformed_start_and_push(model, dt)
-    reference = compiled.copy()
-    recorded = VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY,
-                                              prescribed=motion, record_nodes=[0, 40],
-                                              record_steps=[50])
-    for _ in range(50):
-        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
+    compiled, reference, recorded = compiled_and_numpy_steps(
+        model, GRAVITY, record_nodes=[0, 40], record_steps=[50])
     scale = np.abs(reference.x - model.rest_positions).max()
     np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
     np.testing.assert_array_equal(recorded[0], compiled.x[[0, 40]])
@@ -413,16 +393,8 @@ def test_the_compiled_elastic_step_matches_the_numpy_step_and_records():
 def test_the_compiled_relaxing_step_matches_the_numpy_step():
     """The same with the nodal arms (per particle, the paper's recursion): positions, arm
     pressures and strains to round-off."""
-    from particle.integrator import VerletIntegrator
-    from particle.stability import critical_time_step
-    from tests.particle_models import deformed_start_and_push
     model = nodal_box(arms=ARMS)
-    dt = 0.5 * critical_time_step(model, damping=3.0)
-    compiled, motion = deformed_start_and_push(model, dt)
-    reference = compiled.copy()
-    VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY, prescribed=motion)
-    for _ in range(50):
-        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
+    compiled, reference, _ = compiled_and_numpy_steps(model, GRAVITY)
     scale = np.abs(reference.x - model.rest_positions).max()
     np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
     pressure = np.abs(reference.volume_arm).max()
@@ -437,28 +409,14 @@ def test_the_haptic_force_includes_the_nodal_term():
     internal force on the tool particle at the step's end, springs (their arms stepped) plus
     the nodal term (its arms stepped per particle, numpy twin): the probe's two-ring pass
     equals the whole pass to round-off, and Run.force_on gives it bit for bit."""
-    from particle.haptics import HapticSession
-    from particle.stability import critical_time_step
-    from tests.particle_models import top_centre
+    from particle.reference_numpy import forces_numpy
+    from tests.particle_models import haptic_push
     model = nodal_box(3e4, (1.5e4, 1e4))
-    node = top_centre(model)
-    session = HapticSession(model, 0.5 * critical_time_step(model))
-    target = model.rest_positions[node] + [0.0, 0.0, -5e-4]
-    for _ in range(3):
-        force = session.step(node, target)
+    session, node, force = haptic_push(model)
     s = session.state
-    np.testing.assert_array_equal(force, session._run(node)[0].force_on(s, node))
-    x, p = s.x, model.params
-    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-    length = np.linalg.norm(d, axis=1)
-    dx = length - model.rest_lengths
-    r, c = p.arm_recursion(session.dt)
-    tension = (p.stiffness(dx / model.rest_lengths) * dx
-               + (r * s.arm_force + c * (dx - s.dx_prev)[:, None]).sum(axis=1))
-    pull = (tension / length)[:, None] * d
-    f = np.zeros_like(x)
-    np.add.at(f, model.edges[:, 0], pull)
-    np.add.at(f, model.edges[:, 1], -pull)
+    x = s.x
+    springs = dataclasses.replace(model.params, kv=None, kv1=None, bv1=None, kv2=None, bv2=None)
+    f = forces_numpy(model.with_params(springs), s.copy(), session.dt)  # arms stepped
     vr, vc = nodal_arm_recursion(nodal_params(model), session.dt)
     strain = node_volume_strains(x, model.tets, model.node_volumes)
     pressure = volume_arm_pressures_numpy(strain, vr, vc, s.volume_arm,
@@ -634,7 +592,6 @@ def test_the_static_tangent_is_the_derivative_of_the_forces_and_its_twins(arms):
     has arms; its volume part against the numpy twin nodal_volume_tangent_numpy (round-off,
     1e-12); the pattern holds the two-ring pairs the per-tet pattern lacks."""
     from particle.statics import TangentPattern, tangent_data
-    from tests.test_particle_volume import tangent_and_differences
     model = nodal_box(np.random.default_rng(1).uniform(1e3, 1e4, 108), arms)
     x = deformed(model, 2e-4, 3)
     x[model.fixed] = model.rest_positions[model.fixed]
