@@ -9,8 +9,8 @@
    plus the arms' (:func:`particle.volume.volume_arm_step` with the particle as the volume
    element);
 3. over the tets: the per-tet force ``-Pbar_t dV_t/dp_a`` with ``Pbar_t`` the pairwise mean of
-   its particles' pressures (:func:`particle.nodal_volume.mean_tet_pressures`' order), the
-   gradients as :func:`particle.volume.add_volume_tangent` takes them.
+   its particles' pressures (:func:`particle.nodal_volume.mean_tet_pressures`' order), with
+   the per-tet pass's scalar operations.
 
 Its arguments are the per-tet pass's (:func:`particle.volume.add_volume_forces`) with the
 rest volumes and ``kv`` of the particles instead of the tets', and ``nodes`` = (volumes
@@ -28,17 +28,8 @@ import numpy as np
 from numba import njit
 
 from particle.volume import (JIT, _tet_gradient_tuples, add_tet_force, add_tet_tangent,
-                             tet_volume, volume_arm_pressures, volume_arm_step)
-
-
-@njit(**JIT)
-def _pressure_forces(x, tets, t, pressure):
-    """The 12 floats of :func:`particle.volume.add_tet_force` of tet t under the pressure
-    ``pressure`` [Pa]: ``-P dV/dp_a`` for a = 1, 2, 3, then ``P dV/dp_0`` [N]."""
-    g0, g1, g2, g3, _ = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3])
-    s = -pressure
-    return (s * g1[0], s * g1[1], s * g1[2], s * g2[0], s * g2[1], s * g2[2], s * g3[0],
-            s * g3[1], s * g3[2], pressure * g0[0], pressure * g0[1], pressure * g0[2])
+                             crosses_forces, tet_crosses, tet_volume, volume_arm_pressures,
+                             volume_arm_step)
 
 
 @njit(**JIT)
@@ -59,6 +50,14 @@ def add_nodal_volume_forces(x, tets, node_volumes, kv, v_lo, v_hi, forces, arms,
     force), ``volumes`` (T,) receives every tet's volume, ``arms``: the particles' arms (the
     kernels' tuple of :mod:`particle.volume` with one row per particle) advanced and stored,
     or None; ``nodes`` = (volumes (N,), pressures (N,)) scratch (module docstring).
+
+    Scalar loops (the per-tet pass's scalar operations, :func:`particle.volume.tet_crosses`,
+    :func:`particle.volume.crosses_forces`). Measured and not kept: both passes over the tets
+    as :data:`~particle.lanes.LANES`-wide lanes like the per-tet pass (a 12^3-cell Kuhn box,
+    10,368 tets, 2,197 particles, 13,428 connectors, elastic: 194-201 us per explicit step
+    with the springs against 194-195 us scalar; the per-tet term's step 151-163 us): the
+    scatter of the particles' volumes and the gather of their pressures, not the arithmetic,
+    are what the term adds.
     """
     node_volume, node_pressure = nodes
     node_volume[:] = 0.0
@@ -82,9 +81,11 @@ def add_nodal_volume_forces(x, tets, node_volumes, kv, v_lo, v_hi, forces, arms,
         if arms is not None:
             pressure += volume_arm_step(m, strain, arms)
         node_pressure[m] = pressure
+    sixth = 1.0 / 6.0
     for t in range(n_tets):
-        add_tet_force(forces, tets, t, _pressure_forces(x, tets, t,
-                                                        _mean_pressure(tets, t, node_pressure)))
+        _, g1, g2, g3 = tet_crosses(x, tets, t)
+        add_tet_force(forces, tets, t, crosses_forces(
+            g1, g2, g3, -_mean_pressure(tets, t, node_pressure) * sixth))
     return bad, bad_volume
 
 
@@ -119,7 +120,8 @@ def nodal_node_volume_force(x, node, ring, tets, node_volumes, kv, arms, node_vo
             if arms is not None:
                 p1, p2 = volume_arm_pressures(m, strain, arms)
                 p[a] += p1 + p2
-        f = _pressure_forces(x, tets, t, ((p[0] + p[1]) + (p[2] + p[3])) * 0.25)
+        _, g1, g2, g3 = tet_crosses(x, tets, t)
+        f = crosses_forces(g1, g2, g3, -(((p[0] + p[1]) + (p[2] + p[3])) * 0.25) * (1.0 / 6.0))
         if slot == 0:
             out[0] -= f[9]
             out[1] -= f[10]

@@ -295,15 +295,7 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volum
                 break
     sixth = 1.0 / 6.0
     for t in range(rest, n):
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
-        a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
-        b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
-        c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
-        g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0  # 6 dV/dp1
-        g20, g21, g22 = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0  # 6 dV/dp2
-        g30, g31, g32 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0  # 6 dV/dp3
-        v = (a0 * g10 + a1 * g11 + a2 * g12) * sixth
+        v, g1, g2, g3 = tet_crosses(x, tets, t)
         if bad < 0 and not (v > v_lo[t] and v <= v_hi[t]):
             bad = np.int64(t)
             bad_volume = v
@@ -313,11 +305,33 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volum
         pressure = kv[t] * strain
         if arms is not None:
             pressure += volume_arm_step(t, strain, arms)
-        s = -pressure * sixth
-        add_tet_force(forces, tets, t, (s * g10, s * g11, s * g12, s * g20, s * g21, s * g22,
-                                        s * g30, s * g31, s * g32, s * (g10 + g20 + g30),
-                                        s * (g11 + g21 + g31), s * (g12 + g22 + g32)))
+        add_tet_force(forces, tets, t, crosses_forces(g1, g2, g3, -pressure * sixth))
     return bad, bad_volume
+
+
+@njit(**JIT)
+def tet_crosses(x, tets, t):
+    """(volume [m^3], 6 dV/dp_1, 6 dV/dp_2, 6 dV/dp_3 (3-tuples [m^2])) of tet t: the scalar
+    loop's (:func:`tet_volume`'s volume, bit for bit)."""
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
+    a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
+    b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
+    c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
+    g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0  # 6 dV/dp1
+    g20, g21, g22 = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0  # 6 dV/dp2
+    g30, g31, g32 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0  # 6 dV/dp3
+    return ((a0 * g10 + a1 * g11 + a2 * g12) * (1.0 / 6.0), (g10, g11, g12), (g20, g21, g22),
+            (g30, g31, g32))
+
+
+@njit(**JIT)
+def crosses_forces(g1, g2, g3, s):
+    """The 12 floats of :func:`add_tet_force` for ``s`` = -P/6 [Pa] and the cross products
+    ``g_a`` = 6 dV/dp_a (a = 1, 2, 3; :func:`tet_crosses`)."""
+    return (s * g1[0], s * g1[1], s * g1[2], s * g2[0], s * g2[1], s * g2[2], s * g3[0],
+            s * g3[1], s * g3[2], s * (g1[0] + g2[0] + g3[0]), s * (g1[1] + g2[1] + g3[1]),
+            s * (g1[2] + g2[2] + g3[2]))
 
 
 @njit(**JIT)
