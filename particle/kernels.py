@@ -48,7 +48,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import overload
 
 from particle.lanes import (ALL_LANES, LANES, arm_pair_lanes, first_lane, gather_rows, vadd,
                             vdiv, vle_mask, vload, vmul, vsqrt, vstore, vsub)
@@ -58,6 +59,8 @@ from particle.volume import add_volume_forces
 # numpy's error model: a degenerate input gives inf/NaN, which the divergence check turns
 # into a StabilityError, instead of an exception raised from inside compiled code
 JIT = dict(cache=True, error_model="numpy")
+#: an overload's options (compiled into its cached caller: no cache of its own)
+OVERLOAD_JIT = dict(error_model="numpy")
 
 
 
@@ -312,19 +315,34 @@ def add_loads(forces, masses, x, x_prev, loads, nodes):
         add_damping(forces, masses, x, x_prev, damping_rate, nodes)
 
 
-@njit(**JIT)
 def add_volume_pass(x, forces, volume, volume_arms, volume_nodes):
-    """forces += the volume term's forces [N] (``volume`` = (tets, rest volumes, kv, v_lo,
-    v_hi, volumes out), per tet when ``volume_nodes`` is None, else nodal with that scratch:
-    :func:`net_forces`); returns the first tet outside its volume range, -1 if none."""
-    if volume_nodes is None:
-        bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                   forces, volume_arms, volume[5])
-    else:
+    """In compiled code: forces += the volume term's forces [N] (``volume`` = (tets, rest
+    volumes, kv, v_lo, v_hi, volumes out), per tet when ``volume_nodes`` is None, else nodal
+    with that scratch: :func:`net_forces`); returns the first tet outside its volume range,
+    -1 if none.
+
+    The element is chosen by the type of ``volume_nodes`` when the caller is compiled (an
+    overload), not by a branch: numba prunes ``if volume_nodes is None`` only where it is
+    None, so a nodal run would otherwise also compile the per-tet pass it never calls
+    (~6 s per specialisation on an empty cache)."""
+    raise NotImplementedError("add_volume_pass is for compiled code")
+
+
+@overload(add_volume_pass, jit_options=OVERLOAD_JIT)
+def _add_volume_pass(x, forces, volume, volume_arms, volume_nodes):
+    if isinstance(volume_nodes, types.NoneType):
+        def per_tet(x, forces, volume, volume_arms, volume_nodes):
+            bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3],
+                                       volume[4], forces, volume_arms, volume[5])
+            return bad
+        return per_tet
+
+    def nodal(x, forces, volume, volume_arms, volume_nodes):
         bad, _ = add_nodal_volume_forces(x, volume[0], volume[1], volume[2], volume[3],
                                          volume[4], forces, volume_arms, volume[5],
                                          volume_nodes)
-    return bad
+        return bad
+    return nodal
 
 
 @njit(**JIT)

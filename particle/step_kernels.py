@@ -55,11 +55,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 from particle.dispatch import in_place, joined
-from particle.kernels import (JIT, add_connector_forces, add_loads, add_volume_pass, net_forces,
-                              node_force)
+from particle.kernels import (JIT, OVERLOAD_JIT, add_connector_forces, add_loads,
+                              add_volume_pass, net_forces, node_force)
 from particle.nodal_kernels import nodal_node_volume_force
 from particle.lanes import ALL_LANES, LANES, all_inside, vadd, vle_mask, vload, vmax, vsplat, vsub
 from particle.volume import first_volume_outside, node_volume_force
@@ -410,8 +411,7 @@ def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, 
                 volume_arms, volume_nodes):
     """The force on ``probe_node`` at the final state into ``probe_out`` (``probe_node`` < 0:
     nothing): its connectors (:func:`node_force`) and, with the volume term, its tets
-    ``probe_tets`` (nodal, ``volume_nodes`` not None: its two-ring of tets,
-    :func:`particle.nodal_kernels.nodal_node_volume_force`)."""
+    ``probe_tets`` (:func:`add_probe_volume_force`)."""
     if probe_node < 0:
         return
     x, _, arm_force, dx_prev = state
@@ -419,12 +419,29 @@ def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, 
     node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                arm_force, dx_prev, probe_out)
     if volume is not None:
-        if volume_nodes is None:
-            node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
-                              volume_arms, probe_out)
-        else:
-            nodal_node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
-                                    volume_arms, volume_nodes[0], probe_out)
+        add_probe_volume_force(x, probe_node, probe_tets, volume, volume_arms, volume_nodes,
+                               probe_out)
+
+
+def add_probe_volume_force(x, node, tets, volume, volume_arms, volume_nodes, out):
+    """In compiled code: out (3,) += the volume term's force [N] on particle ``node`` from its
+    tets ``tets`` (:func:`particle.volume.node_volume_force`), or with ``volume_nodes`` not
+    None from its two-ring of tets (:func:`particle.nodal_kernels.nodal_node_volume_force`);
+    chosen by type as :func:`particle.kernels.add_volume_pass` is."""
+    raise NotImplementedError("add_probe_volume_force is for compiled code")
+
+
+@overload(add_probe_volume_force, jit_options=OVERLOAD_JIT)
+def _add_probe_volume_force(x, node, tets, volume, volume_arms, volume_nodes, out):
+    if isinstance(volume_nodes, types.NoneType):
+        def per_tet(x, node, tets, volume, volume_arms, volume_nodes, out):
+            node_volume_force(x, node, tets, volume[0], volume[1], volume[2], volume_arms, out)
+        return per_tet
+
+    def nodal(x, node, tets, volume, volume_arms, volume_nodes, out):
+        nodal_node_volume_force(x, node, tets, volume[0], volume[1], volume[2], volume_arms,
+                                volume_nodes[0], out)
+    return nodal
 
 
 @njit(**JIT)
