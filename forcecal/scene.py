@@ -270,7 +270,8 @@ class ParticleSection:
         "tet", "the volume term's element: \"tet\" (one volume constraint per tet, "
         "particle/volume.py) or \"nodal\" (one per particle, its share of its tets' volume, "
         "like the FE's ANP element: particle/nodal_volume.py); the parameters are per tet "
-        "either way. \"nodal\" is not supported by the calibration yet and is refused",
+        "either way. \"nodal\" is refused with the experiment \"body\" (the whole-body "
+        "operators are per tet) and by the export",
         choices=("tet", "nodal"))
 
     @property
@@ -727,11 +728,11 @@ def _cross_checks(scene: Scene, origin: str) -> None:
             raise SceneError(f"{origin}: particle.volume_element = 'nodal' is the volume "
                              "term's element; it needs particle.volume = true or "
                              "\"viscoelastic\"")
-        raise SceneError(f"{origin}: particle.volume_element = 'nodal': the calibration "
-                         f"(calibration.method = {scene.calibration.method!r}) does not support "
-                         "the nodal volume element yet (the adjoint sensitivities, the "
-                         "whole-body fit and the export are per tet); use "
-                         "particle.volume_element = 'tet'")
+        if scene.runs("body"):
+            raise SceneError(f"{origin}: particle.volume_element = 'nodal' with the "
+                             "experiment 'body': the whole-body operators (particle.body) do "
+                             "not support the nodal volume element yet; use "
+                             "particle.volume_element = 'tet' or drop 'body' from experiments")
     if not p.dt_safety < 1:
         raise SceneError(f"{origin}: particle.dt_safety = {p.dt_safety}: must be in (0, 1) (the "
                          "fraction of the critical time step particle.dt = 'auto' uses; 1 or "

@@ -47,7 +47,10 @@ term) carry history exactly as the connectors' arms do, in the volume strain: ``
 pbar_i + pi_t`` times ``dP_i/dkv_i, dP_i/dbv_i``, then ``pbar_i <- r_i mu_i``, ``jbar <-
 -sum_i c_i mu_i``, and the history enters the next (earlier) step's right-hand side as
 the forces of the pressures ``gamma/V0``, ``gamma = jbar + sum_i c_i pbar_i``
-(:class:`_VolumeAdjoint`). Another term plugs in likewise: its tangent in the assembly, its
+(:class:`_VolumeAdjoint`). The nodal term (:mod:`particle.nodal_volume`) is this with the
+particles as the volume elements: a particle's pressure pushes each of its tets with a
+quarter, its coefficients are linear means of the per-tet ones, and the derivatives are
+mapped back to those (:class:`NodalElements`). Another term plugs in likewise: its tangent in the assembly, its
 force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
 
 The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`

@@ -3,6 +3,7 @@ the per-tet term, gradients, tangent, the model's volume element, refusals, and 
 it removes on a slender cantilever."""
 import dataclasses
 import pickle
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -263,8 +264,9 @@ def test_the_numpy_step_on_one_tet_is_the_per_tet_step(arms):
 
 
 def test_paths_without_the_nodal_term_refuse_it(liver_scene):
-    """The haptic strain envelope, the whole-body operators and the scene's calibration
-    refuse a nodal model (never the per-tet term in its place), naming themselves."""
+    """The haptic strain envelope, the whole-body operators (so a scene with the experiment
+    'body') and the export refuse a nodal model (never the per-tet term in its place), naming
+    themselves; a scene without 'body' is accepted."""
     from particle.body import RestOperators
     from particle.envelope import StrainBands
     model = single_tet("nodal", fixed=(True, True, True, False))
@@ -272,8 +274,13 @@ def test_paths_without_the_nodal_term_refuse_it(liver_scene):
         StrainBands(model, 0.1)
     with pytest.raises(ParameterError, match="whole-body operators .* nodal volume element"):
         RestOperators.of(model)
-    with pytest.raises(SceneError, match="calibration .* does not support the nodal"):
-        replace(liver_scene, particle={"volume": True, "volume_element": "nodal"})
+    with pytest.raises(ParameterError, match="export .* nodal volume element"):
+        from pipelines.export import model_document
+        model_document(SimpleNamespace(model=model))
+    nodal_scene = replace(liver_scene, particle={"volume": True, "volume_element": "nodal"})
+    assert nodal_scene.particle.volume_element == "nodal"
+    with pytest.raises(SceneError, match="experiment 'body': the whole-body operators"):
+        replace(nodal_scene, experiments=["indentation", "body"])
     with pytest.raises(SceneError, match="needs particle.volume"):
         replace(liver_scene, particle={"volume_element": "nodal"})
 
