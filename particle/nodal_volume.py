@@ -184,14 +184,16 @@ def nodal_volume_tangent_numpy(x: np.ndarray, tets: np.ndarray, node_volumes: np
     :func:`node_volume_gradients`, ``k_n = kv_n (+ c_1,n + c_2,n)``; ``arms`` None (elastic,
     or the arms relaxed) or (the arms' step coefficients ``c_1 + c_2`` (N,) [Pa], their
     summed pressures at ``x`` (N,) [Pa]). The curvature blocks are
-    :func:`particle.volume.volume_hessian_numpy`'s (d^2V from unit displacements)."""
+    :func:`particle.volume.volume_hessian_numpy`'s (d^2V from unit displacements), of the tets
+    whose mean pressure is not exactly 0 (the others' blocks are 0: at rest, none)."""
     stiffness, arm_pressure = (kv, None) if arms is None else (kv + arms[0], arms[1])
     b = node_volume_gradients(x, tets)
     rank_one = (b.T @ sp.diags(stiffness / node_volumes) @ b).tocsr()
     mean = mean_tet_pressures(tets, nodal_pressures(x, tets, node_volumes, kv, arm_pressure))
+    loaded = np.flatnonzero(mean)
     blocks = np.stack([volume_hessian_numpy(x, tets[t], 1.0, 0.0, 0.0, mean[t])
-                       for t in range(len(tets))]) if len(tets) else np.zeros((0, 12, 12))
-    dofs = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+                       for t in loaded]) if len(loaded) else np.zeros((0, 12, 12))
+    dofs = (3 * tets[loaded, :, None] + np.arange(3)).reshape(len(loaded), 12)
     rows = np.broadcast_to(dofs[:, :, None], blocks.shape)
     cols = np.broadcast_to(dofs[:, None, :], blocks.shape)
     n = 3 * len(x)

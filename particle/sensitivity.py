@@ -50,8 +50,9 @@ the forces of the pressures ``gamma/V0``, ``gamma = jbar + sum_i c_i pbar_i``
 (:class:`_VolumeAdjoint`). The nodal term (:mod:`particle.nodal_volume`) is this with the
 particles as the volume elements: a particle's pressure pushes each of its tets with a
 quarter, its coefficients are linear means of the per-tet ones, and the derivatives are
-mapped back to those (:class:`NodalElements`). Another term plugs in likewise: its tangent in the assembly, its
-force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
+mapped back to those (:class:`NodalElements`). Another term plugs in likewise: its tangent
+in the assembly, its force derivative contracted with ``omega`` (a kernel here, its twin in
+numpy).
 
 The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`
 (``G beta`` and ``G^T omega`` straight from the connectors' unit vectors and end
