@@ -20,6 +20,7 @@ builder, mutable State, integrators and solvers apart):
   one-ring's volume, ``Model.volume_element = "nodal"``), which does not lock bending.
 """
 import forcecal  # noqa: F401  (settles the numba cache folder before numba is imported: forcecal.caches)
+import particle.numba_fixes  # noqa: F401  (fixes numba's inliner before anything is compiled)
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.haptics import HapticSession
