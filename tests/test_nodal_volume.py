@@ -367,7 +367,7 @@ def test_mean_tet_pressures_is_exact_for_equal_pressures():
 
 
 # ---------------------------------------------------------------------------------------------
-# the compiled explicit path. Each new typing of run_verlet costs ~4 s of compilation per test
+# the compiled explicit path. Each new typing of run_verlet costs ~3 s of compilation per test
 # process, so the nodal tests share two: the elastic term with a recording (as gravity_dynamic
 # calls it) and the relaxing term without (as the haptic session and blows_up call it), both
 # on the nonlinear viscoelastic springs of NONLINEAR.
