@@ -228,7 +228,8 @@ def prepare_fit(scene: Scene, reference_path: str | Path) -> FitSetup:
     reach = experiment_reach(scene, problem, shape, footprints)
     linear, strain = reach.linear, reach.strain
     experiments = Experiments(problem, material.density, ref.indentation.displacement,
-                              times, relax_depths, strain.bounds, footprints)
+                              times, relax_depths, strain.bounds, footprints,
+                              scene.particle.volume_element)
     fe_slope = fe_initial_slopes(experiments.depths, ref_curves["indentation"][:n_cal])
     initial = initial_guess(material, fe_slope, linear.slope[:n_cal],
                             mesh if scene.particle.volume else None, shape,

@@ -96,7 +96,8 @@ def gradient_backend(experiments: Experiments, points: np.ndarray, params: Conne
     from particle.sensitivity import sensitivity_evaluators
 
     p = experiments.problem
-    model = build_model(p, experiments.density, params)
+    model = build_model(p, experiments.density, params,
+                        volume_element=experiments.volume_element)
     return sensitivity_evaluators(model, p.test_points[points], p.normals[points],
                                   experiments.depths, experiments.times,
                                   experiments.relaxation_depths, experiments.strain_range,

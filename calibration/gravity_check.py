@@ -92,7 +92,8 @@ def gravity_outcome(scene: Scene, problem: Problem, params: ConnectorParams,
     model's stability limit is the scene's setting, not the model's failure: refused
     (:class:`~forcecal.errors.TimeStepError`).
     """
-    model = build_model(problem, scene.material.density, params)
+    model = build_model(problem, scene.material.density, params,
+                        volume_element=scene.particle.volume_element)
     gravity = np.asarray(scene.gravity.acceleration, dtype=np.float64)
     settings = dict(particle=scene.particle, strain_range=strain_range, name=name)
     try:

@@ -4,8 +4,8 @@
 model a calibration fitted: one particle per vertex of the mesh the file stores, lumped
 masses from the scene's density (the ``material`` settings the fit read), the vertices of
 the scene's support fixed, one connector per edge with the variant's fitted ``K0, a, b``
-and Maxwell arms, and the per-tet volume term (elastic or viscoelastic) when the scene had
-one (``particle.volume``). :func:`load_calibrated` returns it with what a user of the model
+and Maxwell arms, and the volume term (elastic or viscoelastic, per tet or nodal) when the
+scene had one (``particle.volume``, ``particle.volume_element``). :func:`load_calibrated` returns it with what a user of the model
 needs besides: the mesh and test points (:class:`~forcecal.problem.Problem`) and the strain
 range the fit required the springs to stay positive on. Every command and benchmark that
 runs a calibrated model from ``params.h5`` builds it here (:func:`calibrated_model`).
@@ -21,6 +21,7 @@ from calibration.results import VARIANTS, CalibrationResult, read_params
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.problem import Problem
 from particle.model import Model, build_model
+from particle.nodal_volume import VOLUME_ELEMENTS
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,6 +65,15 @@ def _density(result: CalibrationResult, where: str) -> float:
     return float(value)
 
 
+def volume_element_of(result: CalibrationResult, where: str) -> str:
+    """The volume term's element the fit used (settings ``model``, absent: ``"tet"``)."""
+    value = result.settings.get("model", {}).get("particle.volume_element", "tet")
+    if value not in VOLUME_ELEMENTS:
+        raise DataFileError(f"{where}: settings particle.volume_element = {value!r} is not one "
+                            f"of {list(VOLUME_ELEMENTS)} (corrupt or edited file?)")
+    return value
+
+
 def _check_volume(result: CalibrationResult, variant: str, model: Model, where: str) -> None:
     """The fitted variants carry the volume term the scene asked for (``particle.volume``):
     a file whose parameters and settings disagree is damaged or edited."""
@@ -89,8 +99,10 @@ def calibrated_model(result: CalibrationResult, variant: str = "calibrated",
         raise DataFileError(f"{where}: unknown variant {variant!r}; the variants are "
                             f"{', '.join(v for v in VARIANTS if v in result.connectors)}")
     density = _density(result, where)
+    element = volume_element_of(result, where)
     try:
-        model = build_model(result.problem, density, result.connectors[variant])
+        model = build_model(result.problem, density, result.connectors[variant],
+                            volume_element=element)
     except ForcecalError as exc:  # parameters that do not fit the mesh stored next to them
         raise DataFileError(f"{where}: the {variant} parameters do not make a model of the "
                             f"stored mesh: {exc}") from None

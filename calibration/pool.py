@@ -63,6 +63,8 @@ class Experiments:
             positive (the evaluators refuse parameters that violate it).
         footprints: per test point, the particles the indenter holds (a flat punch,
             :func:`forcecal.indenter.indenter_footprints`); None: the test point alone.
+        volume_element: the volume term's element (:attr:`particle.model.Model.volume_element`,
+            scene key ``particle.volume_element``): the evaluators' models use it.
     """
     problem: Problem
     density: float
@@ -71,6 +73,7 @@ class Experiments:
     relaxation_depths: np.ndarray
     strain_range: tuple[float, float]
     footprints: tuple[np.ndarray, ...] | None = None
+    volume_element: str = "tet"
 
     def held(self, points: np.ndarray) -> list[np.ndarray] | None:
         """The footprints of ``points`` (indices into the test points), None for the vertex
@@ -99,7 +102,8 @@ def particle_backend(experiments: Experiments, points: np.ndarray,
     from particle.model import build_model
 
     p = experiments.problem
-    model = build_model(p, experiments.density, params)
+    model = build_model(p, experiments.density, params,
+                        volume_element=experiments.volume_element)
     nodes, normals = p.test_points[points], p.normals[points]
     strain = experiments.strain_range
     held = experiments.held(points)

@@ -29,8 +29,13 @@ NOT_RESULT_SETTINGS = ("workers",)
 def fit_settings(scene: Scene) -> dict[str, dict]:
     """The scene sections a calibration reads, as plain dicts (recorded in ``params.h5``)."""
     settings = {s: scene.section_dict(s) for s in FIT_SECTIONS}
-    # the model the fit fits (the rest of [particle] is about the explicit runs, not the fit)
+    # the model the fit fits (the rest of [particle] is about the explicit runs, not the fit);
+    # the volume element only when it is not the per-tet default (absent: "tet"), so the
+    # settings of a per-tet fit, and the checkpoints and files compared with them, stay as
+    # they were
     settings["model"] = {"particle.volume": scene.particle.volume}
+    if scene.particle.volume_element != "tet":
+        settings["model"]["particle.volume_element"] = scene.particle.volume_element
     return settings
 
 

@@ -101,7 +101,8 @@ def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path,
     (``timings_s``) of a reference the FE did not compute are zero.
     """
     problem = build_problem(scene)
-    model = build_model(problem, scene.material.density, params)
+    model = build_model(problem, scene.material.density, params,
+                        volume_element=scene.particle.volume_element)
     nodes, normals = problem.test_points, problem.normals
     depths = indentation_depths(scene.indentation)
     times, relax_depths = relaxation_schedule(scene.relaxation)

@@ -266,6 +266,13 @@ class ParticleSection:
         "strain (stiffnesses kv1, kv2 [Pa], the springs' relaxation times tau1, tau2), fitted "
         "with the springs' arms on the relaxation curves (README, \"The particle model\"); "
         "false: the paper's springs-only model", choices=(False, True, "viscoelastic"))
+    volume_element: str = key(
+        "tet", "the volume term's element: \"tet\" (one volume constraint per tet, "
+        "particle/volume.py) or \"nodal\" (one per particle, its share of its tets' volume, "
+        "like the FE's ANP element: particle/nodal_volume.py); the parameters are per tet "
+        "either way. \"nodal\" is refused with the experiment \"body\" (the whole-body "
+        "operators are per tet) and by the export",
+        choices=("tet", "nodal"))
 
     @property
     def volume_arms(self) -> bool:
@@ -716,6 +723,16 @@ def _cross_checks(scene: Scene, origin: str) -> None:
                          f"got {p.dt!r}")
     if isinstance(p.dt, float) and p.dt <= 0:
         raise SceneError(f"{origin}: particle.dt = {p.dt} must be > 0")
+    if p.volume_element == "nodal":
+        if not p.volume:
+            raise SceneError(f"{origin}: particle.volume_element = 'nodal' is the volume "
+                             "term's element; it needs particle.volume = true or "
+                             "\"viscoelastic\"")
+        if scene.runs("body"):
+            raise SceneError(f"{origin}: particle.volume_element = 'nodal' with the "
+                             "experiment 'body': the whole-body operators (particle.body) do "
+                             "not support the nodal volume element yet; use "
+                             "particle.volume_element = 'tet' or drop 'body' from experiments")
     if not p.dt_safety < 1:
         raise SceneError(f"{origin}: particle.dt_safety = {p.dt_safety}: must be in (0, 1) (the "
                          "fraction of the critical time step particle.dt = 'auto' uses; 1 or "

@@ -16,6 +16,8 @@ builder, mutable State, integrators and solvers apart):
 - :mod:`particle.volume`: the optional per-tet volume term (``ConnectorParams.kv``,
   elastic or with Maxwell arms ``kv1, bv1, kv2, bv2``): forces, tangent, energy, its part
   of the stability bound.
+- :mod:`particle.nodal_volume`: the same term on one volume constraint per particle (its
+  one-ring's volume, ``Model.volume_element = "nodal"``), which does not lock bending.
 """
 import forcecal  # noqa: F401  (settles the numba cache folder before numba is imported: forcecal.caches)
 import particle.numba_fixes  # noqa: F401  (fixes numba's inliner before anything is compiled)

@@ -63,6 +63,7 @@ from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams
 from particle.sensitivity import _Geometry, volume_pattern_matrix
 from particle.statics import (ArmStep, TangentPattern, VolumeArmStep, ldl_factor, net_forces,
                               tangent_data, weight_equilibrium)
+from particle.nodal_volume import refuse_nodal
 from particle.volume import volume_strains
 
 log = logging.getLogger(__name__)
@@ -188,6 +189,7 @@ class RestOperators:
 
     @classmethod
     def of(cls, model: Model) -> "RestOperators":
+        refuse_nodal(model, "the whole-body operators (particle.body)")
         pat = TangentPattern.of(model)
         x = model.rest_positions
         pressure = volume_pattern_matrix(model, x, pat)  # (n, T); unused without kv
@@ -251,6 +253,7 @@ def load_forces(model: Model, x: np.ndarray, pat: TangentPattern) -> sp.csr_matr
     """(n, P) ``df/dp`` at positions ``x`` at fixed positions (long-term model, arms relaxed):
     ``G_e dx_e``, ``G_e eps_e dx_e``, ``G_e eps_e^2 dx_e`` for ``K0, a, b``, ``H_t j_t`` for
     ``kv`` (``j = V/V0 - 1``)."""
+    refuse_nodal(model, "the whole-body load derivatives (particle.body)")
     p = model.params
     geometry = _Geometry(model, x)
     G = geometry.pattern_matrix(pat)
@@ -422,6 +425,7 @@ def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
     Returns (q [N m], (N, 3) dq/dx [N], (P,) dq/dp at fixed x in the layout of
     :func:`parameter_layout`).
     """
+    refuse_nodal(model, "the whole-body incremental tangent (particle.body)")
     p = model.params
     i, j = model.edges[:, 0], model.edges[:, 1]
     d = x[j] - x[i]
@@ -489,6 +493,7 @@ def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
 
 def incremental_tangent(model: Model, pat: TangentPattern, x: np.ndarray) -> sp.csc_matrix:
     """(n, n) the tangent ``K_t`` of :func:`incremental_form` on the free dofs [N/m]."""
+    refuse_nodal(model, "the whole-body incremental tangent (particle.body)")
     p = model.params
     forces, tension, *_ = net_forces(model, x, p, not p.is_linear, None, None,
                                      (np.zeros(model.n_tets), np.full(model.n_tets, np.inf)))

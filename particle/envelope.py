@@ -66,6 +66,7 @@ from particle.kernels import JIT
 from particle.model import Model
 from particle.params import connector_name
 from particle.stability import DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN
+from particle.nodal_volume import refuse_nodal
 from particle.volume import tet_name
 
 log = logging.getLogger(__name__)
@@ -371,6 +372,7 @@ class StrainBands:
         self.free = ~model.fixed
         self._scale = np.where(self.free, 1.0 / np.sqrt(model.masses), 0.0)
         self.volume = p.kv is not None and model.n_tets > 0
+        refuse_nodal(model, "the haptic strain envelope (particle.envelope)")
         # per matrix (springs, volume term): its Perron vector x (0 until the first bands are
         # set) and y = Q x, kept up to date as the bands move
         self._perron = [np.zeros(n) for _ in range(1 + self.volume)]

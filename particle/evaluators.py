@@ -33,7 +33,8 @@ import numpy as np
 
 from forcecal.errors import ConvergenceError, ParameterError
 from particle.model import Model
-from particle.params import ConnectorParams, arm_recursions, volume_arm_recursions
+from particle.nodal_volume import element_arm_recursion, element_arm_recursions
+from particle.params import ConnectorParams, arm_recursions
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, TangentPattern,
                               VolumeArmStep, check_stiffness, continuation, reaching)
 
@@ -380,7 +381,8 @@ class RelaxationEvaluator(_PointEvaluator):
         """Each sample step's arm coefficients: (r, c, the volume arms' (r, c) or None)."""
         steps = np.diff(np.r_[0.0, self.times])
         r, c = arm_recursions(params, steps, exact=True)
-        volume = (list(zip(*volume_arm_recursions(params, steps, exact=True)))
+        volume = (list(zip(*element_arm_recursions(self.model.with_params(params), steps,
+                                                   exact=True)))
                   if params.has_volume_arms else [None] * len(steps))
         return list(zip(r, c, volume))
 
@@ -404,7 +406,8 @@ class RelaxationEvaluator(_PointEvaluator):
                 warm_start = full and warm is not None and snaps.warm(sample) and not settling
                 guess = (warm_guess(warm, solutions, sample) if warm_start else eq.x).copy()
                 guess[held] = self._target(k, np.interp(t1, times, depths))
-                coeffs = prepared[sample] if full else arm_coefficients(params, t1 - t0)
+                coeffs = (prepared[sample] if full
+                          else arm_coefficients(params, t1 - t0, model=model))
                 if settling:
                     return snaps.settled(sample, solver.settle(guess, params,
                                                                arms=arm_step(coeffs, eq)))
@@ -444,9 +447,15 @@ class _Snaps:
         return eq
 
 
-def arm_coefficients(params: ConnectorParams, dt: float) -> tuple:
-    """(r, c, the volume arms' (r, c) or None) of one exact arm step of ``dt`` [s]."""
-    volume = params.volume_arm_recursion(dt, exact=True) if params.has_volume_arms else None
+def arm_coefficients(params: ConnectorParams, dt: float, *, model: Model | None = None
+                     ) -> tuple:
+    """(r, c, the volume arms' (r, c) or None) of one exact arm step of ``dt`` [s]; the
+    volume arms' rows are ``model``'s volume elements (its particles for the nodal term;
+    None: per tet)."""
+    volume = None
+    if params.has_volume_arms:
+        volume = (params.volume_arm_recursion(dt, exact=True) if model is None
+                  else element_arm_recursion(model.with_params(params), dt, exact=True))
     return (*params.arm_recursion(dt, exact=True), volume)
 
 

@@ -21,8 +21,9 @@ import numpy as np
 from forcecal.errors import ParameterError
 from particle.model import Model, Prescribed, State
 from particle.params import connector_name
+from particle.nodal_volume import element_arm_energy, element_energy
 from particle.statics import check_stiffness, check_volumes
-from particle.volume import node_volume_stiffness, tet_name, volume_arm_energy, volume_energy
+from particle.volume import node_volume_stiffness, tet_name
 
 # the kinetic energy may exceed the work the loads can do by this factor before a run is
 # declared divergent: a real run stays far below, an unstable one grows exponentially
@@ -57,11 +58,10 @@ def energy_bound(model: Model, state: State, dt: float, n_steps: int,
     energy += float(np.sum(0.5 * p.stiffness(strain) * dx ** 2))
     if p.kv is not None:
         check_volumes(model, state.x, f"explicit run from t = {state.t:.6g} s")
-        energy += volume_energy(state.x, model.tets, model.rest_volumes, p.kv)
+        energy += element_energy(model, state.x)
     energy += float(np.sum(state.arm_force ** 2 / (2.0 * p.arm_stiffness)))
     if p.has_volume_arms:
-        energy += volume_arm_energy(state.volume_arm, p.volume_arm_stiffness,
-                                    model.rest_volumes)
+        energy += element_arm_energy(model, state.volume_arm)
     if gravity is not None:
         g = float(np.linalg.norm(gravity))
         energy += total_mass * g * (size + 0.5 * g * duration ** 2)
@@ -87,7 +87,9 @@ def check_state(model: Model, state: State, *, finite: bool = False) -> None:
     Its arrays must have the model's shapes and be C-contiguous, writeable
     float64 (another dtype would be truncated to it or compile another kernel
     specialisation), and its time finite; with the volume term's arms, it must hold
-    their pressures and volume strains (``volume_arm`` (T, 2), ``volume_prev`` (T,)).
+    their pressures and volume strains (``volume_arm`` (M, 2), ``volume_prev`` (M,), M the
+    model's :attr:`~particle.model.Model.n_volume_elements`: its tets, or its particles for
+    the nodal term).
     With ``finite`` (at the start of a run: one
     numpy pass over the state, so not on every haptic call) its arrays must hold finite
     values too: a NaN put into the state would otherwise surface as a divergence steps
@@ -96,7 +98,8 @@ def check_state(model: Model, state: State, *, finite: bool = False) -> None:
     shapes = (("x", (model.n_particles, 3)), ("x_prev", (model.n_particles, 3)),
               ("arm_force", (model.n_connectors, 2)), ("dx_prev", (model.n_connectors,)))
     if model.params.has_volume_arms:
-        shapes += (("volume_arm", (model.n_tets, 2)), ("volume_prev", (model.n_tets,)))
+        rows = model.n_volume_elements
+        shapes += (("volume_arm", (rows, 2)), ("volume_prev", (rows,)))
     for name, shape in shapes:
         arr = getattr(state, name)
         if arr is None:

@@ -49,8 +49,10 @@ from particle.params import ConnectorParams, StrainBounds, check_count, connecto
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, critical_time_step,
                                 inertial_model)
 from particle.guard import check_state, energy_bound
-from particle.volume import (node_volume_force, signed_volumes, tet_name, volume_ratio_range,
-                             volume_strains)
+from particle.nodal_kernels import nodal_node_volume_force, ring_tets
+from particle.nodal_volume import (element_arm_recursion, element_coefficients, element_strains,
+                                   is_nodal)
+from particle.volume import node_volume_force, signed_volumes, tet_name, volume_ratio_range
 
 log = logging.getLogger(__name__)
 
@@ -298,11 +300,14 @@ class Run:
         if p.kv is not None:
             self.volume_ratio_range, self._volume, self._volume_checks = volume_limits(
                 model, monitored)
+        # the nodal term's scratch (particle volumes and pressures), None: per tet
+        self._volume_nodes = ((np.empty(model.n_particles), np.empty(model.n_particles))
+                              if is_nodal(model) else None)
         # the volume term's arms, with the paper's recursion like the connectors' (None: an
         # elastic volume term, or a run without arms)
         self.volume_arm_r = self.volume_arm_c = None
         if p.has_volume_arms and arms:
-            self.volume_arm_r, self.volume_arm_c = p.volume_arm_recursion(dt)
+            self.volume_arm_r, self.volume_arm_c = element_arm_recursion(model, dt)
         self._active = kernels.index_view(self.active)
         self._particles = step_kernels.particle_group(
             masses=model.masses, inv_masses=self.inv_masses, active=self._active)
@@ -382,7 +387,8 @@ class Run:
                 (self.dt, int(n_steps), state.dt is None, float(state.t)),
                 (self._prescribed, *keyframes), record,
                 (self.integrator.check_every, float(energy_bound), *self._elongation_limits),
-                probe, self._scratch, self._volume, self._volume_checks, self.volume_arms(state))
+                probe, self._scratch, self._volume, self._volume_checks, self.volume_arms(state),
+                self._volume_nodes)
 
     def _kernel(self, args: tuple, keyframes: tuple, no_probe: bool, record: tuple):
         """``run_verlet(*args)``; from the third call with the same ``keyframes`` object (the
@@ -424,7 +430,8 @@ class Run:
         """:func:`incident` of ``node`` (cached)."""
         found = self._node_edges.get(node)
         if found is None:
-            found = self._node_edges[node] = incident(self.model, node, self._volume is not None)
+            found = self._node_edges[node] = incident(self.model, node, self._volume is not None,
+                                                      self._volume_nodes is not None)
         return found
 
     def force_on(self, state: State, node: int) -> np.ndarray:
@@ -438,7 +445,10 @@ class Run:
         edges, tets = self._incident(node)
         kernels.node_force(state.x, node, edges, *self._springs[0], *self._springs[1],
                            state.arm_force, state.dx_prev, out)
-        if self._volume is not None:
+        if self._volume_nodes is not None:
+            nodal_node_volume_force(state.x, node, tets, *self._volume,
+                                    self.volume_arms(state), self._volume_nodes[0], out)
+        elif self._volume is not None:
             node_volume_force(state.x, node, tets, *self._volume, self.volume_arms(state),
                               out)
         return out
@@ -462,8 +472,8 @@ def close_arm_step(run: "Run", state: State) -> None:
     state.dx_prev[:] = dx
     state.arm_force[:] = force / run.arm_r
     if run.volume_arm_r is not None:
-        r_old, c_old = model.params.volume_arm_recursion(state.dt)
-        strain = volume_strains(state.x, model.tets, model.rest_volumes)
+        r_old, c_old = element_arm_recursion(model, state.dt)
+        strain = element_strains(model, state.x)
         pressure = r_old * state.volume_arm + c_old * (strain - state.volume_prev)[:, None]
         state.volume_prev[:] = strain
         state.volume_arm[:] = pressure / run.volume_arm_r
@@ -474,14 +484,16 @@ def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
     """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments
     ``volume_term``, ``volume_checks`` (:func:`particle.step_kernels.run_verlet`)) of a run:
     volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is the one of
-    the ``monitored`` strain range (without one: any positive volume). The checks end
+    the ``monitored`` strain range (without one: any positive volume); the term's rest
+    volumes and kv are the tets', or the particles' for the nodal term (the tets' volume
+    range is checked for both). The checks end
     with the run's scratch for the volumes of its last force pass (T,) [m^3]
     (:func:`particle.step_kernels.final_volume_check`)."""
     if monitored is None:
         ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
     else:
         ratio = volume_ratio_range(model, *monitored)
-    return ratio, (kernels.index_view(model.tets), model.rest_volumes, model.params.kv), (
+    return ratio, (kernels.index_view(model.tets), *element_coefficients(model)), (
         ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes, np.empty(model.n_tets))
 
 
@@ -516,14 +528,19 @@ def start_call(run: Run, state: State, n_steps: int, keyframes: tuple | None) ->
     return keyframes
 
 
-def incident(model: Model, node: int, tets: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """The connectors and (with ``tets``, else None) tets touching particle ``node``, as
-    index views for the kernels."""
+def incident(model: Model, node: int, tets: bool, ring: bool = False
+             ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The connectors and (with ``tets``, else None) tets touching particle ``node`` (with
+    ``ring``, its two-ring of tets: the nodal term's, :func:`particle.nodal_kernels.ring_tets`),
+    as index views for the kernels."""
     node = int(model.check_nodes([node], "force_on", movable=False)[0])
     ptr = model.incidence_ptr
     edges = kernels.index_view(model.incidence_edge[ptr[node]:ptr[node + 1]])
-    return edges, (kernels.index_view(np.nonzero(np.any(model.tets == node, axis=1))[0])
-                   if tets else None)
+    if not tets:
+        return edges, None
+    if ring:
+        return edges, kernels.index_view(ring_tets(model.tets, node))
+    return edges, kernels.index_view(np.nonzero(np.any(model.tets == node, axis=1))[0])
 
 
 def exit_error(run: Run, state: State, code: int, step: int, index: int,

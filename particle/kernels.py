@@ -24,7 +24,8 @@ indices from every gathered index. Measured on the 12k-connector liver: one
 force evaluation 61 -> 50 us, results bitwise identical.
 
 The optional per-tet volume term (:mod:`particle.volume`) enters the same
-way: ``volume`` None compiles it out of :func:`net_forces` and the loop.
+way: ``volume`` None compiles it out of :func:`net_forces` and the loop; with
+``volume_nodes`` its nodal form (:mod:`particle.nodal_kernels`) replaces it.
 
 The force terms are small functions composed in :func:`net_forces`; the
 plain-numpy twin used as the reference in tests is :mod:`particle.reference_numpy`.
@@ -47,15 +48,19 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import overload
 
 from particle.lanes import (ALL_LANES, LANES, arm_pair_lanes, first_lane, gather_rows, vadd,
                             vdiv, vle_mask, vload, vmul, vsqrt, vstore, vsub)
+from particle.nodal_kernels import add_nodal_volume_forces
 from particle.volume import add_volume_forces
 
 # numpy's error model: a degenerate input gives inf/NaN, which the divergence check turns
 # into a StabilityError, instead of an exception raised from inside compiled code
 JIT = dict(cache=True, error_model="numpy")
+#: an overload's options (compiled into its cached caller: no cache of its own)
+OVERLOAD_JIT = dict(error_model="numpy")
 
 
 
@@ -310,8 +315,39 @@ def add_loads(forces, masses, x, x_prev, loads, nodes):
         add_damping(forces, masses, x, x_prev, damping_rate, nodes)
 
 
+def add_volume_pass(x, forces, volume, volume_arms, volume_nodes):
+    """In compiled code: forces += the volume term's forces [N] (``volume`` = (tets, rest
+    volumes, kv, v_lo, v_hi, volumes out), per tet when ``volume_nodes`` is None, else nodal
+    with that scratch: :func:`net_forces`); returns the first tet outside its volume range,
+    -1 if none.
+
+    The element is chosen by the type of ``volume_nodes`` when the caller is compiled (an
+    overload), not by a branch: numba prunes ``if volume_nodes is None`` only where it is
+    None, so a nodal run would otherwise also compile the per-tet pass it never calls
+    (~6 s per specialisation on an empty cache)."""
+    raise NotImplementedError("add_volume_pass is for compiled code")
+
+
+@overload(add_volume_pass, jit_options=OVERLOAD_JIT)
+def _add_volume_pass(x, forces, volume, volume_arms, volume_nodes):
+    if isinstance(volume_nodes, types.NoneType):
+        def per_tet(x, forces, volume, volume_arms, volume_nodes):
+            bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3],
+                                       volume[4], forces, volume_arms, volume[5])
+            return bad
+        return per_tet
+
+    def nodal(x, forces, volume, volume_arms, volume_nodes):
+        bad, _ = add_nodal_volume_forces(x, volume[0], volume[1], volume[2], volume[3],
+                                         volume[4], forces, volume_arms, volume[5],
+                                         volume_nodes)
+        return bad
+    return nodal
+
+
 @njit(**JIT)
-def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, volume_arms):
+def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, volume_arms,
+               volume_nodes):
     """All force terms of one explicit step, composed; commits the arm recursions in place.
 
     ``state``, ``springs``, ``particles``, ``loads``: the explicit loop's argument groups
@@ -319,7 +355,10 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
     (T,), kv (T,), v_lo (T,), v_hi (T,), the volumes out (T,)) adds the volume term
     (:func:`particle.volume.add_volume_forces`), None compiles it out; ``volume_arms`` its
     arms (the kernels' tuple, outputs aliasing the state: :mod:`particle.volume`), None:
-    elastic. Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
+    elastic; ``volume_nodes`` None: the per-tet term, else the nodal term's scratch (its
+    rest volumes and kv then the particles',
+    :func:`particle.nodal_kernels.add_nodal_volume_forces`).
+    Returns (the first connector outside ``[dx_lo, dx_hi]`` (see
     :func:`internal_forces`), the first tet whose volume is outside ``(v_lo, v_hi]``), -1
     for none.
     """
@@ -330,8 +369,7 @@ def net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi, volume, v
                               dx_prev, forces, None, arm_force, dx_prev, dx_lo, dx_hi)
     bad = -1
     if volume is not None:
-        bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                   forces, volume_arms, volume[5])
+        bad = add_volume_pass(x, forces, volume, volume_arms, volume_nodes)
     add_loads(forces, masses, x, x_prev, loads, active)
     return outside, bad
 

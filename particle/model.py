@@ -30,6 +30,7 @@ import numpy as np
 from forcecal.errors import MeshError, ParameterError
 from forcecal.mesh import TetMesh, check_mesh_arrays, vertex_ids
 from forcecal.problem import Problem
+from particle.nodal_volume import check_volume_element, node_rest_volumes
 from particle.params import N_ARMS, VOLUME_ARM_NAMES, ConnectorParams, FrozenArrays, frozen_copy
 from particle.volume import signed_volumes, tet_edge_connectors, tet_name
 
@@ -51,6 +52,12 @@ class Model(FrozenArrays):
             positively oriented; every tet edge must be a connector. (0, 4) if none.
         rest_volumes: (T,) float64, rest volume V0 of each tet [m^3] (> 0); computed
             from ``rest_positions`` when not given.
+        volume_element: ``"tet"`` (the volume term's constraint per tet,
+            :mod:`particle.volume`) or ``"nodal"`` (per particle over its one-ring,
+            :mod:`particle.nodal_volume`; every particle must then belong to a tet). The
+            parameters stay per tet either way.
+        node_volumes: (N,) float64, each particle's rest volume ``V0_n = sum_{t ∋ n}
+            V0_t / 4`` [m^3] (the nodal term's; 0 for a particle in no tet).
         free_nodes: (Nf,) int64, ids of the particles that are not fixed.
         incidence_ptr: (N + 1,) int64, CSR row pointer of the particle -> connector incidence.
         incidence_edge: (2E,) int64, connector ids touching each particle (CSR order).
@@ -63,6 +70,8 @@ class Model(FrozenArrays):
     params: ConnectorParams
     tets: np.ndarray | None = None
     rest_volumes: np.ndarray | None = None
+    volume_element: str = "tet"
+    node_volumes: np.ndarray = field(init=False)
     free_nodes: np.ndarray = field(init=False)
     incidence_ptr: np.ndarray = field(init=False)
     incidence_edge: np.ndarray = field(init=False)
@@ -76,6 +85,13 @@ class Model(FrozenArrays):
         tets, volumes = checked_tets(self.rest_positions, self.tets, self.rest_volumes)
         object.__setattr__(self, "tets", tets)
         object.__setattr__(self, "rest_volumes", frozen_copy(volumes, np.float64))
+        check_volume_element(self.volume_element)
+        node_volumes = node_rest_volumes(tets, volumes, self.n_particles)
+        if self.volume_element == "nodal" and len(tets) and not np.all(node_volumes > 0.0):
+            n = int(np.nonzero(~(node_volumes > 0.0))[0][0])
+            raise MeshError(f"particle {n} belongs to no tet; the nodal volume element needs "
+                            "every particle in one (its volume is a quarter of its tets')")
+        object.__setattr__(self, "node_volumes", frozen_copy(node_volumes, np.float64))
         object.__setattr__(self, "tet_connectors", frozen_copy(
             tet_edge_connectors(tets, self.edges) if len(tets) else np.zeros((0, 6)), np.int64))
         object.__setattr__(self, "params", self._check_params(self.params))
@@ -101,6 +117,12 @@ class Model(FrozenArrays):
         """True when the volume term is on (the parameters carry ``kv``)."""
         return self.params.kv is not None
 
+    @property
+    def n_volume_elements(self) -> int:
+        """The volume term's elements: its tets, or its particles when it is nodal (the rows
+        of the volume arms' state)."""
+        return self.n_particles if self.volume_element == "nodal" else self.n_tets
+
     def _check_params(self, params: ConnectorParams) -> ConnectorParams:
         """``params`` checked against this model, a (1,) kv broadcast to one per tet."""
         return params_for(params, self.n_connectors, len(self.tets))
@@ -113,6 +135,11 @@ class Model(FrozenArrays):
             object.__setattr__(new, f.name, getattr(self, f.name))
         object.__setattr__(new, "params", params)
         return new
+
+    def with_volume_element(self, element: str) -> "Model":
+        """The same model with the volume term on ``element`` (:attr:`volume_element`)."""
+        return self if element == self.volume_element else dataclasses.replace(
+            self, volume_element=element)
 
     def renumbered(self, order: np.ndarray) -> tuple["Model", np.ndarray]:
         """The same model with particle ``order[k]`` as particle k; returns (model, connectors).
@@ -127,17 +154,19 @@ class Model(FrozenArrays):
         return Model(rest_positions=self.rest_positions[order], edges=edges,
                      rest_lengths=self.rest_lengths[connectors], masses=self.masses[order],
                      fixed=self.fixed[order], params=self.params.connectors(connectors),
-                     tets=new_id[self.tets], rest_volumes=self.rest_volumes), connectors
+                     tets=new_id[self.tets], rest_volumes=self.rest_volumes,
+                     volume_element=self.volume_element), connectors
 
     def state(self) -> "State":
         """A fresh State: at rest in the undeformed configuration, arms unloaded (the volume
         term's too, when it has arms), t = 0."""
         arms = self.params.has_volume_arms
+        rows = self.n_volume_elements
         return State(x=self.rest_positions.copy(), x_prev=self.rest_positions.copy(),
                      arm_force=np.zeros((self.n_connectors, N_ARMS)),
                      dx_prev=np.zeros(self.n_connectors), t=0.0,
-                     volume_arm=np.zeros((self.n_tets, N_ARMS)) if arms else None,
-                     volume_prev=np.zeros(self.n_tets) if arms else None)
+                     volume_arm=np.zeros((rows, N_ARMS)) if arms else None,
+                     volume_prev=np.zeros(rows) if arms else None)
 
     def check_nodes(self, nodes: np.ndarray, what: str, *, movable: bool = True) -> np.ndarray:
         """(k,) int64 particle ids, checked: in range, and (if ``movable``) not fixed."""
@@ -392,11 +421,13 @@ class ModelBuilder:
         self._edges.append(pairs)
         return np.arange(first, first + len(pairs), dtype=np.int64)
 
-    def finalize(self, params: ConnectorParams, tets: np.ndarray | None = None) -> Model:
+    def finalize(self, params: ConnectorParams, tets: np.ndarray | None = None,
+                 volume_element: str = "tet") -> Model:
         """Freeze into a :class:`Model` (rest lengths and volumes from the current positions).
 
         ``tets`` (T, 4): particle ids of the volume term's tetrahedra (positively
-        oriented, edges among the connectors), or None.
+        oriented, edges among the connectors), or None; ``volume_element``: the volume
+        term's element (:attr:`Model.volume_element`).
         """
         if self._n == 0 or not self._edges:
             raise MeshError("ModelBuilder.finalize: the model needs particles and connectors")
@@ -414,7 +445,7 @@ class ModelBuilder:
                             "zero rest length")
         model = Model(rest_positions=x, edges=edges, rest_lengths=lengths,
                       masses=np.concatenate(self._m), fixed=np.concatenate(self._fixed),
-                      params=params, tets=tets)
+                      params=params, tets=tets, volume_element=volume_element)
         log.debug("model: %d particles (%d fixed), %d connectors", model.n_particles,
                   int(model.fixed.sum()), model.n_connectors)
         return model
@@ -435,13 +466,14 @@ def check_density(density) -> float:
 
 
 def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: ConnectorParams,
-                fixed: np.ndarray | None = None) -> Model:
+                fixed: np.ndarray | None = None, volume_element: str = "tet") -> Model:
     """Particle model of a mesh: one particle per vertex, one connector per ``mesh.edges`` row.
 
     Masses are lumped (each tet's mass split equally over its 4 vertices).
     ``fixed`` (vertex ids) defaults to ``problem.fixed`` for a Problem and to
     no fixed vertex for a bare mesh. The model always carries the mesh's tets
-    (``Model.tets``, ``rest_volumes``); the volume term is on when ``params.kv`` is given.
+    (``Model.tets``, ``rest_volumes``); the volume term is on when ``params.kv`` is given,
+    its element ``volume_element`` (:attr:`Model.volume_element`).
     """
     if isinstance(problem_or_mesh, Problem):
         mesh = problem_or_mesh.mesh
@@ -463,4 +495,4 @@ def build_model(problem_or_mesh: Problem | TetMesh, density: float, params: Conn
     builder = ModelBuilder()
     builder.add_particles(mesh.vertices, mesh.lumped_masses(density), mask)
     builder.add_connectors(mesh.edges)
-    return builder.finalize(params, tets=mesh.tets)
+    return builder.finalize(params, tets=mesh.tets, volume_element=volume_element)

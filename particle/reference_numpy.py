@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from particle.model import Model, Prescribed, State
-from particle.volume import volume_arm_pressures_numpy, volume_forces_numpy, volume_strains
+from particle.nodal_volume import (element_arm_recursion, element_coefficients, element_strains,
+                                   nodal_volume_forces_numpy)
+from particle.volume import volume_arm_pressures_numpy, volume_forces_numpy
 
 
 def step_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray | None = None,
@@ -78,18 +80,28 @@ def forces_numpy(model: Model, state: State, dt: float, *, gravity: np.ndarray |
     np.add.at(forces, i, pull)
     np.add.at(forces, j, -pull)
     if p.kv is not None:
-        pressure = None
-        if p.has_volume_arms and arms:
-            strain = volume_strains(x, model.tets, model.rest_volumes)
-            r, c = p.volume_arm_recursion(dt)
-            state.volume_arm[:] = volume_arm_pressures_numpy(strain, r, c, state.volume_arm,
-                                                             state.volume_prev)
-            state.volume_prev[:] = strain
-            pressure = state.volume_arm.sum(axis=1)
-        forces += volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv, pressure)
+        forces += volume_forces_of(model, state, dt, arms)
     m = model.masses[:, None]
     if gravity is not None:
         forces += m * np.asarray(gravity)
     if damping:
         forces -= m * (damping / dt) * (x - x_prev)
     return forces
+
+
+def volume_forces_of(model: Model, state: State, dt: float, arms: bool) -> np.ndarray:
+    """(N, 3) the volume term's forces [N] at ``state.x``, per tet or nodal
+    (``model.volume_element``), its arms (if any and ``arms``) advanced by the paper's
+    recursion for ``dt`` into ``state.volume_arm``, ``state.volume_prev``."""
+    p, x = model.params, state.x
+    pressure = None
+    if p.has_volume_arms and arms:
+        strain = element_strains(model, x)
+        r, c = element_arm_recursion(model, dt)
+        state.volume_arm[:] = volume_arm_pressures_numpy(strain, r, c, state.volume_arm,
+                                                         state.volume_prev)
+        state.volume_prev[:] = strain
+        pressure = state.volume_arm.sum(axis=1)
+    if model.volume_element == "nodal":
+        return nodal_volume_forces_numpy(x, model.tets, *element_coefficients(model), pressure)
+    return volume_forces_numpy(x, model.tets, model.rest_volumes, p.kv, pressure)

@@ -47,8 +47,12 @@ term) carry history exactly as the connectors' arms do, in the volume strain: ``
 pbar_i + pi_t`` times ``dP_i/dkv_i, dP_i/dbv_i``, then ``pbar_i <- r_i mu_i``, ``jbar <-
 -sum_i c_i mu_i``, and the history enters the next (earlier) step's right-hand side as
 the forces of the pressures ``gamma/V0``, ``gamma = jbar + sum_i c_i pbar_i``
-(:class:`_VolumeAdjoint`). Another term plugs in likewise: its tangent in the assembly, its
-force derivative contracted with ``omega`` (a kernel here, its twin in numpy).
+(:class:`_VolumeAdjoint`). The nodal term (:mod:`particle.nodal_volume`) is this with the
+particles as the volume elements: a particle's pressure pushes each of its tets with a
+quarter, its coefficients are linear means of the per-tet ones, and the derivatives are
+mapped back to those (:class:`NodalElements`). Another term plugs in likewise: its tangent
+in the assembly, its force derivative contracted with ``omega`` (a kernel here, its twin in
+numpy).
 
 The pass runs on the compiled kernels of :mod:`particle.sensitivity_kernels`
 (``G beta`` and ``G^T omega`` straight from the connectors' unit vectors and end
@@ -74,6 +78,7 @@ from particle.model import Model
 from particle.params import PARAM_NAMES, ConnectorParams, same_values
 from particle.statics import (ArmStep, Equilibrium, EquilibriumSolver, VolumeArmStep,
                               ldl_factor, tangent_data)
+from particle.nodal_volume import element_strains, is_nodal, node_average
 from particle.volume import signed_volumes, volume_gradients_numpy
 
 log = logging.getLogger(__name__)
@@ -136,17 +141,74 @@ def volume_partials_numpy(model: Model, x: np.ndarray, pat, omega: np.ndarray) -
     return -np.einsum("t,tac,tacs->st", strain, grad, virtual[model.tets])
 
 
+class NodalElements:
+    """The nodal volume term's particles as the adjoint pass's volume elements
+    (:mod:`particle.nodal_volume`). A particle's pressure pushes its tets with a quarter each
+    (``dV_n/dx = sum_{t ∋ n} dV_t/dx / 4``), so the adjoint of its pressure is ``pi_n = sum_{t
+    ∋ n} pi_t / 4`` (:attr:`quarter` applied to the tets' ``pi_t``), and the forces of
+    pressures ``gamma_n / V0_n`` on the particles are those of ``sum_{n ∈ t} gamma_n / (4
+    V0_n)`` on each tet. Its coefficients are linear in the per-tet ones (``kv_n = sum_{t ∋
+    n} kv_t V0_t / 4 / V0_n``, likewise ``kv_i``, ``bv_i``: :attr:`average`), so a
+    derivative with respect to the per-tet parameters is the particles' times
+    :attr:`average` (:meth:`to_tets`)."""
+
+    def __init__(self, model: Model):
+        tets, n, t = model.tets, model.n_particles, model.n_tets
+        rows, cols = tets.ravel(), np.repeat(np.arange(t), 4)
+        self.model = model
+        #: (N, T) 1/4 where particle n is a vertex of tet t
+        self.quarter = sp.csr_matrix((np.full(4 * t, 0.25), (rows, cols)), shape=(n, t))
+        #: (N, T) d(a particle's coefficient)/d(a tet's): V0_t / 4 / V0_n on its tets
+        self.average = sp.csr_matrix((np.repeat(model.rest_volumes / 4.0, 4)
+                                      / model.node_volumes[rows], (rows, cols)), shape=(n, t))
+
+    @classmethod
+    def of(cls, model: Model) -> "NodalElements | None":
+        """The nodal elements of ``model``, None when its volume term is per tet (or off)."""
+        return cls(model) if is_nodal(model) else None
+
+    def means(self, per_tet: np.ndarray) -> np.ndarray:
+        """(N, k) the particles' volume-weighted means of per-tet values (T, k)
+        (:func:`particle.nodal_volume.node_average`, the forward pass's coefficients)."""
+        m = self.model
+        return node_average(m.tets, m.rest_volumes, m.node_volumes, per_tet)
+
+    def pressure_adjoints(self, per_tet: np.ndarray) -> np.ndarray:
+        """(S', N) the particles' pressure adjoints from the tets' (S', T), C-ordered."""
+        return np.ascontiguousarray((self.quarter @ per_tet.T).T)
+
+    def tet_strain_adjoints(self, gamma: np.ndarray) -> np.ndarray:
+        """(S', T) per-tet strain adjoints whose pressures ``gamma_t / V0_t`` push the tets as
+        the particles' strain adjoints ``gamma`` (S', N) push them through ``gamma_n / V0_n``
+        (:func:`particle.sensitivity_kernels.add_volume_pattern_product`'s input)."""
+        m = self.model
+        return np.ascontiguousarray(
+            (self.quarter.T @ (gamma / m.node_volumes).T).T * m.rest_volumes)
+
+    def to_tets(self, jac: np.ndarray | None) -> np.ndarray | None:
+        """(..., T) derivatives with respect to the per-tet parameters from those (..., N)
+        with respect to the particles' coefficients (None stays None)."""
+        if jac is None:
+            return None
+        flat = jac.reshape(-1, jac.shape[-1])
+        return np.asarray(flat @ self.average).reshape(*jac.shape[:-1], self.average.shape[1])
+
+
 class _VolumeAdjoint:
     """The volume arms' part of one point's adjoint pass (module docstring): their history
-    adjoints, output-major like the connectors' (``pbar`` (S, 2, T) of the arm pressures,
-    ``jbar`` (S, T) of the volume strains), and the derivatives ``jac`` (S, 4, T) with
-    respect to each tet's ``kv1, bv1, kv2, bv2``."""
+    adjoints, output-major like the connectors' (``pbar`` (S, 2, M) of the arm pressures,
+    ``jbar`` (S, M) of the volume strains), and the derivatives ``jac`` (S, 4, M) with
+    respect to each volume element's ``kv1, bv1, kv2, bv2`` (M: the tets, or the particles of
+    a nodal term, ``nodal``: :class:`NodalElements`)."""
 
-    def __init__(self, model: Model, n_out: int):
+    def __init__(self, model: Model, n_out: int, nodal: "NodalElements | None" = None):
         p = model.params
-        self.model = model
-        self.stiffness, self.viscosity = p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2])
-        t = model.n_tets
+        self.model, self.nodal = model, nodal
+        stiffness, viscosity = p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2])
+        if nodal is not None:
+            stiffness, viscosity = nodal.means(stiffness), nodal.means(viscosity)
+        self.stiffness, self.viscosity = stiffness, viscosity
+        t = model.n_volume_elements
         self.jac = np.zeros((n_out, 4, t))
         self.pbar, self.jbar = np.zeros((n_out, 2, t)), np.zeros((n_out, t))
         self.dP_dk, self.dP_db = np.empty((t, 2)), np.empty((t, 2))
@@ -158,15 +220,17 @@ class _VolumeAdjoint:
         strain), as :func:`~particle.sensitivity_kernels.pattern_product` adds the
         connectors' ``G beta``."""
         m = self.model
-        gamma = np.empty((len(cols), m.n_tets))
+        gamma = np.empty((len(cols), m.n_volume_elements))
         kern.elongation_adjoint(cols, self.jbar, self.pbar, step.c, True, gamma)
+        if self.nodal is not None:
+            gamma = self.nodal.tet_strain_adjoints(gamma)
         kern.add_volume_pattern_product(x, m.tets, tet_dofs, m.rest_volumes, gamma, out)
 
     def add_partials(self, cols: np.ndarray, step: VolumeArmStep, pressure: np.ndarray,
                      strain: np.ndarray) -> None:
         """This step's derivatives with respect to the volume arms, and their history
-        adjoints stepped back; ``pressure`` (S', T) the adjoints of the tets' pressures,
-        ``strain`` (T,) the volume strains at the step."""
+        adjoints stepped back; ``pressure`` (S', M) the adjoints of the volume elements'
+        pressures, ``strain`` (M,) their volume strains at the step."""
         kern.arm_derivatives(step.r, step.c, self.stiffness, self.viscosity,
                              step.pressure_prev, strain, step.strain_prev, self.dP_dk,
                              self.dP_db)
@@ -337,8 +401,9 @@ class _Adjoint(_Recorded):
         tet_dofs = None if p.kv is None else pat.node_dof[model.tets]
         arm_k, arm_b = p.arm_stiffness, np.column_stack([p.b1, p.b2])
         jac = np.zeros((n_out, N_PARAMS, e))
-        jac_kv = None if p.kv is None else np.zeros((n_out, model.n_tets))
-        volume = None if not p.has_volume_arms else _VolumeAdjoint(model, n_out)
+        nodal = NodalElements.of(model)
+        jac_kv = None if p.kv is None else np.zeros((n_out, model.n_volume_elements))
+        volume = None if not p.has_volume_arms else _VolumeAdjoint(model, n_out, nodal)
         abar = np.zeros((n_out, 2, e))  # adjoint of the arm forces passed to the next step
         dbar = np.zeros((n_out, e))  # adjoint of the elongation passed to the next step
         carried = np.zeros(n_out, dtype=bool)  # outputs whose abar, dbar may be nonzero
@@ -390,10 +455,20 @@ class _Adjoint(_Recorded):
             if jac_kv is not None:
                 pressure = np.empty((len(cols), model.n_tets))  # adjoint of each tet's pressure
                 strain = np.empty(model.n_tets)
-                kern.add_volume_partials(eq.x, model.tets, tet_dofs, model.rest_volumes, cols,
-                                         lam, jac_kv, pressure, strain)
+                if nodal is None:
+                    kern.add_volume_partials(eq.x, model.tets, tet_dofs, model.rest_volumes,
+                                             cols, lam, jac_kv, pressure, strain)
+                else:  # the tets' pressure adjoints, then the particles' (the tets' kv unused)
+                    kern.add_volume_partials(eq.x, model.tets, tet_dofs, model.rest_volumes,
+                                             cols, lam, np.zeros((n_out, model.n_tets)),
+                                             pressure, strain)
+                    pressure = nodal.pressure_adjoints(pressure)
+                    jac_kv[cols] += pressure * element_strains(model, eq.x)
                 if volume is not None and step is not None:
                     volume.add_partials(cols, step, pressure, eq.volume_strain)
+        if nodal is not None:
+            return jac, nodal.to_tets(jac_kv), None if volume is None else nodal.to_tets(
+                volume.jac)
         return jac, jac_kv, None if volume is None else volume.jac
 
     @staticmethod
@@ -414,12 +489,20 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
     push = np.repeat(push, n_samples, axis=0).T  # (n_dofs, D S): each output's direction
     jac = np.zeros((n_out, N_PARAMS, e))
     p = model.params
-    jac_kv = None if p.kv is None else np.zeros((n_out, model.n_tets))
-    jac_arms = np.zeros((n_out, 4, model.n_tets)) if p.has_volume_arms else None
+    nodal = NodalElements.of(model)
+    m = model.n_volume_elements  # the tets, or the particles of the nodal term
+    rest = model.rest_volumes if nodal is None else model.node_volumes
+    arm_k = arm_b = None
+    if p.has_volume_arms:
+        arm_k, arm_b = p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2])
+        if nodal is not None:
+            arm_k, arm_b = nodal.means(arm_k), nodal.means(arm_b)
+    jac_kv = None if p.kv is None else np.zeros((n_out, m))
+    jac_arms = np.zeros((n_out, 4, m)) if p.has_volume_arms else None
     abar = np.zeros((e, 2, n_out))  # adjoint of the arm forces passed to the next step
     dbar = np.zeros((e, n_out))  # adjoint of the elongation passed to the next step
-    pbar = np.zeros((model.n_tets, 2, n_out))  # adjoint of the volume arms' pressures
-    jbar = np.zeros((model.n_tets, n_out))  # adjoint of the volume strains
+    pbar = np.zeros((m, 2, n_out))  # adjoint of the volume arms' pressures
+    jbar = np.zeros((m, n_out))  # adjoint of the volume strains
     end_of = {s: j for j, s in enumerate(ends)}
     for s in range(len(steps) - 1, -1, -1):
         arms, eq = steps[s]
@@ -439,16 +522,20 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
         rhs = (full @ push) * w[None, :] - G @ beta
         if p.kv is not None:
             H = volume_pattern_matrix(model, eq.x, pat)  # (n_dofs, T): force of a unit pressure
+            if nodal is not None:  # (n_dofs, N): a particle's pressure, a quarter on each tet
+                H = (H @ nodal.quarter.T).tocsr()
         if volume is not None:
             gamma = jbar + np.einsum("ti,tis->ts", volume.c, pbar)
-            rhs -= H @ (gamma / model.rest_volumes[:, None])
+            rhs -= H @ (gamma / rest[:, None])
         rhs[pdofs] = 0.0
         lam = ev._constrained_factor(solver, pat, data).solve(rhs)
         lam[pdofs] = -push[pdofs] * w[None, :]
         tau = G.T @ lam  # (E, S) adjoint of each connector's tension
         jac += partials_numpy(model, geo, arms, tau, abar)
-        if p.kv is not None:
+        if p.kv is not None and nodal is None:
             jac_kv += volume_partials_numpy(model, eq.x, pat, lam)
+        elif p.kv is not None:
+            jac_kv += ((H.T @ lam) * element_strains(model, eq.x)[:, None]).T
         if arms is not None:
             mu = abar + tau[:, None, :]
             abar = arms.r[:, :, None] * mu
@@ -456,10 +543,12 @@ def point_jacobian_numpy(ev: "_Adjoint", model: Model, k: int,
         if volume is not None:
             mu = pbar + (H.T @ lam)[:, None, :]  # (T, 2, S)
             jac_arms += maxwell_partials_numpy(
-                volume.r, volume.c, p.volume_arm_stiffness, np.column_stack([p.bv1, p.bv2]),
-                volume.pressure_prev, eq.volume_strain - volume.strain_prev, mu)
+                volume.r, volume.c, arm_k, arm_b, volume.pressure_prev,
+                eq.volume_strain - volume.strain_prev, mu)
             pbar = volume.r[:, :, None] * mu
             jbar = -np.einsum("ti,tis->ts", volume.c, mu)
+    if nodal is not None:
+        return jac, nodal.to_tets(jac_kv), nodal.to_tets(jac_arms)
     return jac, jac_kv, jac_arms
 
 

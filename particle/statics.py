@@ -9,7 +9,9 @@ precomputed index map (:class:`TangentPattern`, no Python loop over
 connectors); with the volume term (``params.kv``) each tet adds its 12x12
 block ``kv/V0 g g^T + kv (V/V0 - 1) d^2V/dx^2``
 (:func:`particle.volume.add_volume_tangent`) through the same map (a tet's vertex
-pairs are connectors), and with its Maxwell arms in a quasi-static arm step their
+pairs are connectors; the nodal term, :mod:`particle.nodal_volume`, couples each
+particle's star, whose pairs :class:`NodalPattern` adds), and with its Maxwell arms in a
+quasi-static arm step their
 coefficients and pressures (:class:`VolumeArmStep`; without an arm step, as in the
 long-term indentation curves and the static sag, the arms are relaxed: ``kv`` alone);
 prescribed particles keep their rows and columns with an identity block, so one
@@ -55,8 +57,10 @@ from particle.kernels import JIT
 from particle.model import Model, check_gravity
 from particle.params import ConnectorParams, connector_name
 from particle.statics_kernels import CONVERGED, FACTORISE, converged, newton_iterations
+from particle.nodal_kernels import add_nodal_volume_forces, add_nodal_volume_tangent
+from particle.nodal_volume import element_coefficients, element_strains
 from particle.volume import (add_volume_forces_grouped, add_volume_tangent, signed_volumes,
-                             tet_name, volume_strains)
+                             tet_name)
 from particle.volume import tet_slots as volume_tet_slots
 
 log = logging.getLogger(__name__)
@@ -65,6 +69,9 @@ T = TypeVar("T")
 #: what the compiled Newton loop gets for no gravity and no factorisation's L, D yet (unread)
 _NO_GRAVITY = np.zeros(3)
 _NO_FACTOR = np.zeros(0)
+#: the compiled loop's nodal pattern for a per-tet model (unread; typed as a nodal one's)
+_NO_NODAL_PATTERN = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 4), np.int64),
+                     np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((0, 3, 3), np.int64))
 #: most damped steps of :meth:`EquilibriumSolver.settle`, and most increases of its shift
 #: in one step (4^30: the step is then a vanishing move along the force)
 SETTLE_ITERATIONS, SETTLE_SHIFTS = 200, 30
@@ -82,12 +89,16 @@ class TangentPattern:
             (i,i), (j,j), (i,j), (j,i); -1 where a fixed particle is involved.
         tet_slots: (T, 4, 4, 3, 3) int64, data index of each entry of the tets'
             vertex blocks (a, b) (:func:`particle.volume.tet_slots`), -1 likewise.
+        nodal: the nodal volume term's blocks (:class:`NodalPattern`: a particle's one-ring
+            couples every pair of its star, so the pattern holds those pairs too), or None
+            (a per-tet model: the pattern is the connectors').
     """
     node_dof: np.ndarray
     indptr: np.ndarray
     indices: np.ndarray
     slots: np.ndarray
     tet_slots: np.ndarray | None = None
+    nodal: "NodalPattern | None" = None
 
     @classmethod
     def of(cls, model: Model) -> "TangentPattern":
@@ -103,13 +114,19 @@ class TangentPattern:
         valid = np.broadcast_to(valid[..., None, None], rows.shape)
         n = 3 * len(model.free_nodes)
         keys = cols[valid] * n + rows[valid]
+        stars = None
+        if model.volume_element == "nodal" and model.n_tets:
+            stars = NodalPattern.stars(model.tets, model.n_particles)
+            keys = np.concatenate([keys, NodalPattern.keys(stars, node_dof, n)])
         unique = np.unique(keys)
         slots = np.full(rows.shape, -1, dtype=np.int64)
-        slots[valid] = np.searchsorted(unique, keys)
+        slots[valid] = np.searchsorted(unique, keys[:int(valid.sum())])
         indptr = np.searchsorted(unique // n, np.arange(n + 1)).astype(np.int32)
         indices = (unique % n).astype(np.int32)
         return cls(node_dof=node_dof, indptr=indptr, indices=indices, slots=slots,
-                   tet_slots=volume_tet_slots(model.tets, node_dof, indptr, indices))
+                   tet_slots=volume_tet_slots(model.tets, node_dof, indptr, indices),
+                   nodal=None if stars is None else NodalPattern.of(stars, model.tets,
+                                                                     node_dof, unique, n))
 
     @property
     def n_dofs(self) -> int:
@@ -139,6 +156,80 @@ class TangentPattern:
         in_col = np.isin(cols, dofs)
         diag = np.nonzero(in_row & (self.indices == cols))[0]
         return np.nonzero(in_row | in_col)[0], diag
+
+
+@dataclass(frozen=True, eq=False)
+class NodalPattern:
+    """Where the nodal volume term's rank-one blocks go in a :class:`TangentPattern`.
+
+    Particle n's term ``k_n/V0_n b_n b_n^T`` (:mod:`particle.nodal_volume`) couples every
+    pair of its *star* (the particles of its tets). Attributes (the arrays of
+    :func:`particle.nodal_kernels.add_nodal_volume_tangent`'s ``pattern``):
+
+    * ``node_tet_ptr`` (N + 1,), ``node_tets`` (K,): each particle's tets, ascending (CSR);
+    * ``node_tet_local`` (K, 4): the position of each of those tets' particles in the star;
+    * ``star_ptr`` (N + 1,): the star sizes (CSR pointer; the stars are ascending ids);
+    * ``block_ptr`` (N + 1,), ``block_slots`` (B, 3, 3): the data indices of the star's
+      (i, j) blocks, row-major (i size + j), -1 where a fixed particle is involved.
+    """
+    node_tet_ptr: np.ndarray
+    node_tets: np.ndarray
+    node_tet_local: np.ndarray
+    star_ptr: np.ndarray
+    block_ptr: np.ndarray
+    block_slots: np.ndarray
+
+    @staticmethod
+    def stars(tets: np.ndarray, n_particles: int) -> tuple:
+        """(node_tet_ptr, node_tets, stars: a list of each particle's ascending star ids)."""
+        owner = tets.ravel()
+        order = np.argsort(owner, kind="stable")  # by particle, then tet (ascending)
+        node_tets = (order // 4).astype(np.int64)
+        ptr = np.zeros(n_particles + 1, dtype=np.int64)
+        ptr[1:] = np.cumsum(np.bincount(owner, minlength=n_particles))
+        return ptr, node_tets, [np.unique(tets[node_tets[ptr[m]:ptr[m + 1]]])
+                                for m in range(n_particles)]
+
+    @staticmethod
+    def keys(stars: tuple, node_dof: np.ndarray, n: int) -> np.ndarray:
+        """The CSC keys (column n + row) of every free entry of every star's blocks."""
+        out = []
+        for star in stars[2]:
+            dof = node_dof[star]
+            dof = dof[dof >= 0]
+            rows = (dof[:, None] + np.arange(3)).ravel()
+            out.append((rows[None, :] * n + rows[:, None]).ravel())
+        return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+    @classmethod
+    def of(cls, stars: tuple, tets: np.ndarray, node_dof: np.ndarray, unique: np.ndarray,
+           n: int) -> "NodalPattern":
+        """The pattern of ``stars`` (:meth:`stars`) in a CSC pattern of sorted ``unique`` keys
+        (column n + row) on ``n`` dofs."""
+        ptr, node_tets, star_list = stars
+        sizes = np.array([len(s) for s in star_list], dtype=np.int64)
+        star_ptr = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+        block_ptr = np.r_[0, np.cumsum(sizes ** 2)].astype(np.int64)
+        local = np.empty((len(node_tets), 4), dtype=np.int64)
+        slots = np.full((int(block_ptr[-1]), 3, 3), -1, dtype=np.int64)
+        for m, star in enumerate(star_list):
+            local[ptr[m]:ptr[m + 1]] = np.searchsorted(star, tets[node_tets[ptr[m]:ptr[m + 1]]])
+            dof = node_dof[star]
+            row = dof[:, None, None, None] + np.arange(3)[:, None]  # (s, 1, 3, 1)
+            col = dof[None, :, None, None] + np.arange(3)[None, :]  # (1, s, 1, 3)
+            row, col = np.broadcast_arrays(row, col)
+            free = (row >= 0) & (col >= 0) & (dof[:, None, None, None] >= 0) & \
+                (dof[None, :, None, None] >= 0)
+            block = np.full(row.shape, -1, dtype=np.int64)
+            block[free] = np.searchsorted(unique, col[free] * n + row[free])
+            slots[block_ptr[m]:block_ptr[m + 1]] = block.reshape(-1, 3, 3)
+        return cls(ptr, node_tets, local, star_ptr, block_ptr, slots)
+
+    @property
+    def arrays(self) -> tuple:
+        """The kernels' ``pattern`` tuple."""
+        return (self.node_tet_ptr, self.node_tets, self.node_tet_local, self.star_ptr,
+                self.block_ptr, self.block_slots)
 
 
 @dataclass
@@ -214,11 +305,11 @@ class Equilibrium:
     @classmethod
     def at_rest(cls, model: Model) -> "Equilibrium":
         """The undeformed, unloaded state (arms unloaded, the volume arms' too)."""
-        arms = model.params.has_volume_arms
+        arms, rows = model.params.has_volume_arms, model.n_volume_elements
         return cls(model.rest_positions.copy(), np.zeros((model.n_particles, 3)),
                    np.zeros((model.n_connectors, 2)), np.zeros(model.n_connectors), 0,
-                   np.zeros((model.n_tets, 2)) if arms else None,
-                   np.zeros(model.n_tets) if arms else None)
+                   np.zeros((rows, 2)) if arms else None,
+                   np.zeros(rows) if arms else None)
 
     def reaction(self, nodes: int | np.ndarray) -> np.ndarray:
         """Force [N] the constraint applies to prescribed particle(s) ``nodes``: (3,) or (k, 3)."""
@@ -256,7 +347,14 @@ class EquilibriumSolver:
         self._tangent = (len(pattern.indices), pattern.slots, tet_slots, self._zero_slots,
                          self._diag_slots)
         self._no_volume_limit = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
-        self._no_volume_arms = (np.zeros((model.n_tets, 2)), np.zeros(model.n_tets))
+        rows = model.n_volume_elements  # the volume arms': per tet, or per particle (nodal)
+        self._no_volume_arms = (np.zeros((rows, 2)), np.zeros(rows))
+        # the nodal term's pattern and scratch (flag, pattern arrays, particles' volumes and
+        # pressures), empty arrays of the same types for a per-tet model: one compiled loop
+        nodal = pattern.nodal
+        self._nodal = ((False, *_NO_NODAL_PATTERN, np.zeros(0), np.zeros(0)) if nodal is None
+                       else (True, *nodal.arrays, np.empty(model.n_particles),
+                             np.empty(model.n_particles)))
         self._volumes = np.empty(model.n_tets)
         self._read_only_inputs()
         self._mean_length = np.mean(model.rest_lengths)
@@ -348,6 +446,7 @@ class EquilibriumSolver:
             lu = (_NO_FACTOR, _NO_FACTOR) if self._lu is None else (self._lu.x, self._lu.d)
             status, cur, it, _, stale, norm, lx, ld, factorisations = newton_iterations(
                 *state, *buffers, *springs, *volume, *loads, *self._dofs, *self._tangent,
+                *self._nodal,
                 *self._symbolic(symbolic), *lu, *settings)
             if factorisations:
                 self.factorization = sparse_ldl.Factor(symbolic, lx, ld)
@@ -383,7 +482,7 @@ class EquilibriumSolver:
         optional term an array (zeros where it is off), so that one specialisation of the
         compiled loop serves every combination."""
         model = self.model
-        n, e, t = model.n_particles, model.n_connectors, model.n_tets
+        n, e, t = model.n_particles, model.n_connectors, model.n_volume_elements
         xs = np.empty((2, n, 3))
         xs[0] = x
         buffers = (xs, np.empty((2, n, 3)), np.empty((2, e)), np.empty((2, e, 2)),
@@ -395,9 +494,11 @@ class EquilibriumSolver:
         r = c = pressures
         if step is not None:
             r, c, pressures, strains = step.r, step.c, step.pressure_prev, step.strain_prev
-        volume = (p.kv is not None, step is not None, model.tets, model.rest_volumes,
-                  self._no_kv if p.kv is None else p.kv, *self._no_volume_limit, r, c,
-                  pressures, strains, self._force_tets, self._volumes)
+        rest, kv = ((model.rest_volumes, self._no_kv) if p.kv is None
+                    else element_coefficients(model.with_params(p)))
+        volume = (p.kv is not None, step is not None, model.tets, rest, kv,
+                  *self._no_volume_limit, r, c, pressures, strains, self._force_tets,
+                  self._volumes)
         loads = ((True, model.masses, np.array(gravity, dtype=np.float64))
                  if gravity is not None else (False, model.masses, _NO_GRAVITY))
         return buffers, springs, volume, loads
@@ -549,13 +650,22 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
         step = volume_step(model, p, arms)
         kernel_arms = None
         if step is not None:
-            volume = (np.zeros((model.n_tets, 2)), np.empty(model.n_tets))
+            rows = model.n_volume_elements
+            volume = (np.zeros((rows, 2)), np.empty(rows))
             kernel_arms = (step.r, step.c, step.pressure_prev, step.strain_prev)
         # typed as the explicit runs call the force pass (unsigned tets, volumes stored):
         # one compiled pass for both (another typing costs ~4 s of compilation)
-        bad, _ = add_volume_forces_grouped(x, kernels.index_view(model.tets), model.rest_volumes,
-                                           p.kv, volume_limits[0], volume_limits[1], forces,
-                                           kernel_arms, volume, np.empty(model.n_tets))
+        if model.volume_element == "nodal":
+            rest, kv = element_coefficients(model.with_params(p))
+            bad, _ = add_nodal_volume_forces(
+                x, kernels.index_view(model.tets), rest, kv, volume_limits[0],
+                volume_limits[1], forces, None if step is None else kernel_arms + volume,
+                np.empty(model.n_tets), (np.empty(model.n_particles),
+                                         np.empty(model.n_particles)))
+        else:
+            bad, _ = add_volume_forces_grouped(
+                x, kernels.index_view(model.tets), model.rest_volumes, p.kv, volume_limits[0],
+                volume_limits[1], forces, kernel_arms, volume, np.empty(model.n_tets))
         if bad >= 0:
             # an inverted tet is no admissible iterate: an infinite residual makes the
             # line search shorten the step (and a converged state is never inverted)
@@ -577,12 +687,14 @@ def volume_step(model: Model, p: ConnectorParams, arms: ArmStep | None) -> Volum
             raise ParameterError("an arm step of a model whose volume term has arms needs "
                                  "their step too (ArmStep.volume)")
         return None
+    rows = model.n_volume_elements
     if not (step.r.shape == step.c.shape == step.pressure_prev.shape
-            == (model.n_tets, 2) and step.strain_prev.shape == (model.n_tets,)):
+            == (rows, 2) and step.strain_prev.shape == (rows,)):
+        what = "particles (the nodal term" if model.volume_element == "nodal" else "tets ("
         raise ParameterError(f"volume arm step of shapes r {step.r.shape}, c "
                              f"{step.c.shape}, pressures {step.pressure_prev.shape}, "
                              f"strains {step.strain_prev.shape}: the model has "
-                             f"{model.n_tets} tets (one row each)")
+                             f"{rows} {what}: one row each)")
     return step
 
 
@@ -599,8 +711,14 @@ def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.n
                              tension, pat.slots, data)
     if p.kv is not None:
         step = None if arms is None else arms.volume
-        add_volume_tangent(x, model.tets, model.rest_volumes, p.kv, pat.tet_slots, data,
-                           None if step is None else (step.stiffness, volume_arm.sum(axis=1)))
+        volume_arms = None if step is None else (step.stiffness, volume_arm.sum(axis=1))
+        if model.volume_element == "nodal":
+            add_nodal_volume_tangent(x, model.tets, *element_coefficients(model.with_params(p)),
+                                     pat.nodal.arrays, pat.tet_slots, data, volume_arms,
+                                     (np.empty(model.n_particles), np.empty(model.n_particles)))
+        else:
+            add_volume_tangent(x, model.tets, model.rest_volumes, p.kv, pat.tet_slots, data,
+                               volume_arms)
     return data
 
 
@@ -667,7 +785,7 @@ def volume_state(model: Model, x: np.ndarray, volume: tuple[np.ndarray, np.ndarr
         return volume
     if not model.params.has_volume_arms:
         return None, None
-    return np.zeros((model.n_tets, 2)), volume_strains(x, model.tets, model.rest_volumes)
+    return np.zeros((model.n_volume_elements, 2)), element_strains(model, x)
 
 
 @contextlib.contextmanager

@@ -40,6 +40,7 @@ from numba import njit
 
 from particle.kernels import JIT, assemble_tangent, internal_forces
 from particle.sparse_ldl import _numeric, _solve_restricted
+from particle.nodal_kernels import add_nodal_volume_forces, add_nodal_volume_tangent
 from particle.volume import add_volume_forces, add_volume_tangent
 
 #: what :func:`newton_iterations` returns for: a converged iterate, a tangent to factorise
@@ -48,7 +49,7 @@ CONVERGED, FACTORISE, FAILED = 0, 1, 2
 
 
 @njit(**JIT)
-def evaluate(k, buffers, springs, volume, loads, flat):
+def evaluate(k, buffers, springs, volume, loads, flat, nodal):
     """Forces of iterate ``k`` at its positions ``buffers[0][k]`` into its buffers (as
     :func:`particle.statics.net_forces`: connectors, the volume term unless ``volume[0]``
     is False, its arms stepped if ``volume[1]``, an inverted tet -> infinite forces, then
@@ -60,7 +61,9 @@ def evaluate(k, buffers, springs, volume, loads, flat):
     (the tets twice: as the tangent takes them, and as an unsigned index view with a
     scratch for their volumes, the explicit runs' typing of the force pass, so that the
     two share its compiled code: another typing costs ~4 s of compilation), ``loads`` =
-    ``(on, masses (N,), gravity (3,))``.
+    ``(on, masses (N,), gravity (3,))``; ``nodal`` = ``(on, pattern, scratch)``: with ``on``
+    the volume term is nodal (its rest volumes and kv the particles', its arms one row per
+    particle; :func:`particle.nodal_kernels.add_nodal_volume_forces` with the scratch).
     """
     xs, forces, tension, arm_out, dx, vol_p, vol_s, res = buffers
     edges, rest_lengths, K0, a, b, arm_r, arm_c, arm_prev, dx_prev = springs
@@ -70,7 +73,16 @@ def evaluate(k, buffers, springs, volume, loads, flat):
                     tension[k], arm_out[k], dx[k])
     on, arms_on, _, rest_volumes, kv, v_lo, v_hi, r, c, p_prev, s_prev, tets, volumes = volume
     if on:
-        if arms_on:
+        if nodal[0]:
+            if arms_on:
+                vol_p[k][:] = 0.0
+                bad, _ = add_nodal_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f,
+                                                 (r, c, p_prev, s_prev, vol_p[k], vol_s[k]),
+                                                 volumes, nodal[2])
+            else:
+                bad, _ = add_nodal_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f,
+                                                 None, volumes, nodal[2])
+        elif arms_on:
             vol_p[k][:] = 0.0
             bad, _ = add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, f,
                                        (r, c, p_prev, s_prev, vol_p[k], vol_s[k]), volumes)
@@ -106,7 +118,7 @@ def converged(forces, held_flat, held, norm, rtol, floor):
 
 
 @njit(**JIT)
-def moved(trial, cur, step, buffers, springs, volume, loads, flat):
+def moved(trial, cur, step, buffers, springs, volume, loads, flat, nodal):
     """Iterate ``trial`` at iterate ``cur``'s positions plus ``step`` on the components
     ``flat`` (:func:`particle.statics.displaced`), evaluated; returns its residual norm."""
     xs = buffers[0]
@@ -114,7 +126,7 @@ def moved(trial, cur, step, buffers, springs, volume, loads, flat):
     out = xs[trial].reshape(-1)
     for t in range(len(flat)):
         out[flat[t]] += step[t]
-    return evaluate(trial, buffers, springs, volume, loads, flat)
+    return evaluate(trial, buffers, springs, volume, loads, flat, nodal)
 
 
 @njit(**JIT)
@@ -127,7 +139,7 @@ def row_sums(v):
 
 
 @njit(**JIT)
-def factorise(cur, buffers, springs, volume, tangent, symbolic):
+def factorise(cur, buffers, springs, volume, tangent, symbolic, nodal):
     """``(first bad pivot or -1, L, D)``: the ``L D L^T`` factorisation
     (:func:`particle.sparse_ldl._numeric`) of the tangent at iterate ``cur`` with the
     constraints applied, as :meth:`particle.statics.EquilibriumSolver._factorize` builds it
@@ -136,7 +148,8 @@ def factorise(cur, buffers, springs, volume, tangent, symbolic):
     ``tangent`` = ``(nnz, slots, tet_slots, zero_slots, diag_slots)`` (the pattern's entries
     and the data indices of its blocks and of the constraints), ``symbolic`` the pattern's
     :class:`particle.sparse_ldl.Symbolic` arrays ``(sup_ptr, row_ptr, rows, x_ptr, upd_ptr,
-    upd_sup, upd_q1, upd_q2, a_src, a_dst, perm)``.
+    upd_sup, upd_q1, upd_q2, a_src, a_dst, perm)``, ``nodal`` :func:`evaluate`'s (the nodal
+    term's tangent, :func:`particle.nodal_kernels.add_nodal_volume_tangent`).
     """
     xs, _, tension, _, _, vol_p, _, _ = buffers
     edges, rest_lengths, K0, a, b, _, arm_c, _, _ = springs
@@ -148,7 +161,14 @@ def factorise(cur, buffers, springs, volume, tangent, symbolic):
     assemble_tangent(x, edges, rest_lengths, K0, a, b, row_sums(arm_c), tension[cur], slots,
                      data)
     if on:
-        if arms_on:
+        if nodal[0]:
+            if arms_on:
+                add_nodal_volume_tangent(x, tets, rest_volumes, kv, nodal[1], tet_slots, data,
+                                         (row_sums(v_c), row_sums(vol_p[cur])), nodal[2])
+            else:
+                add_nodal_volume_tangent(x, tets, rest_volumes, kv, nodal[1], tet_slots, data,
+                                         None, nodal[2])
+        elif arms_on:
             add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data,
                                (row_sums(v_c), row_sums(vol_p[cur])))
         else:
@@ -172,6 +192,8 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
                       gravity_on, masses, gravity,
                       flat, held_flat, mat,
                       nnz, slots, tet_slots, zero_slots, diag_slots,
+                      nodal_on, node_tet_ptr, node_tets, node_tet_local, star_ptr, block_ptr,
+                      block_slots, node_volume, node_pressure,
                       sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src,
                       a_dst, perm, lx, ld,
                       rtol, floor, max_iter, refactor_ratio):
@@ -182,7 +204,8 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
     iteration after its factorisation: fresh, not stale) and the current residual
     ``norm``. Then the groups ``buffers``, ``springs``, ``volume``, ``loads`` of
     :func:`evaluate`, the dofs (the free components, the prescribed ones, the free dofs in
-    the tangent), the groups ``tangent`` and ``symbolic`` of :func:`factorise`, the kept
+    the tangent), the groups ``tangent``, ``nodal`` (:func:`evaluate`'s, flattened: the flag,
+    the pattern's six arrays, the scratch's two) and ``symbolic`` of :func:`factorise`, the kept
     factorisation's ``L`` and ``D`` (``lx``, ``ld``: :class:`particle.sparse_ldl.Factor`)
     and the settings, every argument on its own: numba types a call's arguments fast one
     by one, a tuple of more than four arrays slowly (microseconds). Returns ``(status,
@@ -196,13 +219,15 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
               v_pressure_prev, v_strain_prev, force_tets, volumes)
     loads = (gravity_on, masses, gravity)
     tangent = (nnz, slots, tet_slots, zero_slots, diag_slots)
+    nodal = (nodal_on, (node_tet_ptr, node_tets, node_tet_local, star_ptr, block_ptr,
+                        block_slots), (node_volume, node_pressure))
     symbolic = (sup_ptr, row_ptr, rows, x_ptr, upd_ptr, upd_sup, upd_q1, upd_q2, a_src, a_dst,
                 perm)
     factorisations = 0
     step = np.empty(len(mat))
     held = np.empty(len(held_flat))
     if start:
-        norm = evaluate(cur, buffers, springs, volume, loads, flat)
+        norm = evaluate(cur, buffers, springs, volume, loads, flat, nodal)
     while True:
         if not resume:
             if converged(forces[cur], held_flat, held, norm, rtol, floor):
@@ -211,7 +236,7 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
                 return FAILED, cur, it, fresh, stale, norm, lx, ld, factorisations
             if stale:
                 bad, new_lx, new_ld = factorise(cur, buffers, springs, volume, tangent,
-                                                symbolic)
+                                                symbolic, nodal)
                 if bad >= 0:
                     return FACTORISE, cur, it, fresh, stale, norm, lx, ld, factorisations
                 lx, ld = new_lx, new_ld
@@ -220,14 +245,15 @@ def newton_iterations(cur, it, fresh, stale, start, resume, norm,
         resume = False
         _solve_restricted(sup_ptr, row_ptr, rows, x_ptr, lx, ld, perm, mat, res[cur], step)
         trial = 1 - cur
-        trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat)
+        trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat, nodal)
         if fresh:  # line search on a fresh tangent's step
             for _ in range(8):
                 if trial_norm < norm:
                     break
                 for t in range(len(step)):
                     step[t] = 0.5 * step[t]
-                trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat)
+                trial_norm = moved(trial, cur, step, buffers, springs, volume, loads, flat,
+                                   nodal)
         if not trial_norm < norm:  # includes NaN
             if fresh:
                 return FAILED, cur, it, fresh, stale, norm, lx, ld, factorisations

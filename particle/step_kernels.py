@@ -55,12 +55,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 from particle.dispatch import in_place, joined
-from particle.kernels import JIT, add_connector_forces, add_loads, net_forces, node_force
+from particle.kernels import (JIT, OVERLOAD_JIT, add_connector_forces, add_loads,
+                              add_volume_pass, net_forces, node_force)
+from particle.nodal_kernels import nodal_node_volume_force
 from particle.lanes import ALL_LANES, LANES, all_inside, vadd, vle_mask, vload, vmax, vsplat, vsub
-from particle.volume import add_volume_forces, first_volume_outside, node_volume_force
+from particle.volume import first_volume_outside, node_volume_force
 
 # status codes of run_verlet
 OK = 0
@@ -100,7 +103,7 @@ def advance_positions(x, x_prev, forces, inv_masses, nodes, scale, check, masses
 
 @njit(**JIT)
 def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi, scale, check,
-                  dt, energy_bound, status, volume, volume_arms):
+                  dt, energy_bound, status, volume, volume_arms, volume_nodes):
     """One explicit step in place: :func:`net_forces` at ``x``, then :func:`advance_positions`.
 
     ``state``, ``springs``, ``particles``, ``loads``: :func:`run_verlet`'s argument groups.
@@ -112,13 +115,14 @@ def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi
     at ``x`` is outside its range (-1: none or no volume term)). ``blocks`` None runs the
     serial passes, else the same passes split over threads
     (:func:`parallel_forces`, :func:`parallel_advance`). ``volume_arms``: the volume
-    term's arms (:func:`net_forces`), None: elastic.
+    term's arms (:func:`net_forces`), None: elastic; ``volume_nodes``: None (per tet) or the
+    nodal term's scratch (:func:`net_forces`).
     """
     x, x_prev, arm_force, dx_prev = state
     masses, inv_masses, active = particles
     if blocks is None:
         outside, bad = net_forces(state, springs, particles, loads, forces, dx_lo, dx_hi,
-                                  volume, volume_arms)
+                                  volume, volume_arms, volume_nodes)
         energy = advance_positions(x, x_prev, forces, inv_masses, active, scale, check, masses)
     else:
         edges, rest_lengths, K0, a, b, arm_r, arm_c = springs
@@ -126,8 +130,7 @@ def explicit_step(state, springs, particles, loads, forces, blocks, dx_lo, dx_hi
                                   arm_c, dx_lo, dx_hi, blocks)
         bad = -1
         if volume is not None:  # serial, into thread 0's buffer (summed by parallel_advance)
-            bad, _ = add_volume_forces(x, volume[0], volume[1], volume[2], volume[3], volume[4],
-                                       blocks[0][0], volume_arms, volume[5])
+            bad = add_volume_pass(x, blocks[0][0], volume, volume_arms, volume_nodes)
         energy = parallel_advance(x, x_prev, forces, inv_masses, masses, active, loads, scale,
                                   check, blocks)
     if check and not 0.5 * energy / (dt * dt) <= energy_bound:
@@ -405,10 +408,10 @@ def final_state_check(x, x_prev, edges, rest_lengths, dx_prev, dx_lo, dx_hi, vol
 
 @njit(**JIT)
 def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, volume,
-                volume_arms):
+                volume_arms, volume_nodes):
     """The force on ``probe_node`` at the final state into ``probe_out`` (``probe_node`` < 0:
     nothing): its connectors (:func:`node_force`) and, with the volume term, its tets
-    ``probe_tets``."""
+    ``probe_tets`` (:func:`add_probe_volume_force`)."""
     if probe_node < 0:
         return
     x, _, arm_force, dx_prev = state
@@ -416,13 +419,35 @@ def probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, 
     node_force(x, probe_node, probe_edges, edges, rest_lengths, K0, a, b, arm_r, arm_c,
                arm_force, dx_prev, probe_out)
     if volume is not None:
-        node_volume_force(x, probe_node, probe_tets, volume[0], volume[1], volume[2],
-                          volume_arms, probe_out)
+        add_probe_volume_force(x, probe_node, probe_tets, volume, volume_arms, volume_nodes,
+                               probe_out)
+
+
+def add_probe_volume_force(x, node, tets, volume, volume_arms, volume_nodes, out):
+    """In compiled code: out (3,) += the volume term's force [N] on particle ``node`` from its
+    tets ``tets`` (:func:`particle.volume.node_volume_force`), or with ``volume_nodes`` not
+    None from its two-ring of tets (:func:`particle.nodal_kernels.nodal_node_volume_force`);
+    chosen by type as :func:`particle.kernels.add_volume_pass` is."""
+    raise NotImplementedError("add_probe_volume_force is for compiled code")
+
+
+@overload(add_probe_volume_force, jit_options=OVERLOAD_JIT)
+def _add_probe_volume_force(x, node, tets, volume, volume_arms, volume_nodes, out):
+    if isinstance(volume_nodes, types.NoneType):
+        def per_tet(x, node, tets, volume, volume_arms, volume_nodes, out):
+            node_volume_force(x, node, tets, volume[0], volume[1], volume[2], volume_arms, out)
+        return per_tet
+
+    def nodal(x, node, tets, volume, volume_arms, volume_nodes, out):
+        nodal_node_volume_force(x, node, tets, volume[0], volume[1], volume[2], volume_arms,
+                                volume_nodes[0], out)
+    return nodal
 
 
 @njit(**JIT)
 def run_verlet(state, connectors, connector_terms, particles, loads, stepping, prescribed,
-               recording, checks, probe, scratch, volume_term, volume_checks, volume_arm_state):
+               recording, checks, probe, scratch, volume_term, volume_checks, volume_arm_state,
+               volume_nodes):
     """Advance ``n_steps`` position-Verlet steps in place; returns status (code, step, id).
 
     The arguments come in groups (tuples, in this order; a group in the wrong place does
@@ -446,7 +471,10 @@ def run_verlet(state, connectors, connector_terms, particles, loads, stepping, p
       out), joined: the kernels' ``volume``; ``volume_arm_state`` = (r, c, pressures,
       volume strains), the state's arrays updated in place (the kernels' ``volume_arms``
       with outputs aliasing them: :func:`particle.dispatch.in_place`); each None: no
-      volume term, no volume arms.
+      volume term, no volume arms; ``volume_nodes`` None: the volume term is per tet, else
+      nodal (:mod:`particle.nodal_volume`): (volumes (N,), pressures (N,)) scratch, the
+      ``volume_term``'s rest volumes and kv the particles' and the arms' state one row per
+      particle; the tets' volume range is checked as for the per-tet term.
 
     ``x^{n+1} = 2 x^n - x^{n-1} + dt^2 f^n/m`` for the ``active`` nodes (free
     and not prescribed); if ``startup``, the first step uses half the
@@ -498,11 +526,11 @@ def run_verlet(state, connectors, connector_terms, particles, loads, stepping, p
         if check and monitored:
             outside, inverted = explicit_step(
                 state, springs, particles, loads, forces, blocks, dx_lo, dx_hi, scale, True,
-                dt, energy_bound, status, volume, volume_arms)
+                dt, energy_bound, status, volume, volume_arms, volume_nodes)
         else:  # the strain range compiled out of the connector pass
             outside, inverted = explicit_step(
                 state, springs, particles, loads, forces, blocks, None, None, scale, check,
-                dt, energy_bound, status, volume, volume_arms)
+                dt, energy_bound, status, volume, volume_arms, volume_nodes)
         if volume is not None and inverted >= 0:
             status[0] = VOLUME
             status[1] = step  # the tet was inverted at the positions the step started from
@@ -526,5 +554,5 @@ def run_verlet(state, connectors, connector_terms, particles, loads, stepping, p
             status[2] = bad
             return status
     probe_force(state, springs, probe_node, probe_edges, probe_out, probe_tets, volume,
-                volume_arms)
+                volume_arms, volume_nodes)
     return status

@@ -37,8 +37,8 @@ strain_out (M,))`` (outputs aliasing the inputs commit a step in place, scratch 
 leave the state unchanged, as :func:`particle.kernels.internal_forces` does), or None,
 which compiles the arms out; :func:`volume_arm_pressures` / :func:`volume_arm_step`
 advance the arms of one *volume element* k given its volume strain: a tet here, and the
-same functions serve any other element with a volume strain (e.g. a particle's one-ring
-averaged volume).
+same functions serve any other element with a volume strain (the nodal term's particles,
+:mod:`particle.nodal_volume`).
 
 ``kv`` and the arms live in :class:`particle.params.ConnectorParams` (``kv``, ``kv1``,
 ``bv1``, ``kv2``, ``bv2``, each (T,) or None), so :meth:`Model.with_params` and
@@ -144,6 +144,12 @@ def volume_forces_numpy(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarra
     ``arm_pressure`` (T,) [Pa]: the arms' summed pressures at ``x`` (None: no arms)."""
     j = volume_strains(x, tets, rest_volumes)
     pressure = kv * j if arm_pressure is None else kv * j + arm_pressure
+    return pressure_forces_numpy(x, tets, pressure)
+
+
+def pressure_forces_numpy(x: np.ndarray, tets: np.ndarray, pressure: np.ndarray) -> np.ndarray:
+    """(N, 3) forces [N] ``f_a = -P_t dV_t/dp_a`` of tet pressures ``pressure`` (T,) [Pa]
+    summed on the particles (the per-tet and the nodal term's force pass)."""
     f = -pressure[:, None, None] * volume_gradients_numpy(x, tets)
     out = np.zeros_like(x, dtype=np.float64)
     np.add.at(out, tets.ravel(), f.reshape(-1, 3))
@@ -289,15 +295,7 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volum
                 break
     sixth = 1.0 / 6.0
     for t in range(rest, n):
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
-        a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
-        b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
-        c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
-        g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0  # 6 dV/dp1
-        g20, g21, g22 = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0  # 6 dV/dp2
-        g30, g31, g32 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0  # 6 dV/dp3
-        v = (a0 * g10 + a1 * g11 + a2 * g12) * sixth
+        v, g1, g2, g3 = tet_crosses(x, tets, t)
         if bad < 0 and not (v > v_lo[t] and v <= v_hi[t]):
             bad = np.int64(t)
             bad_volume = v
@@ -307,11 +305,33 @@ def add_volume_forces(x, tets, rest_volumes, kv, v_lo, v_hi, forces, arms, volum
         pressure = kv[t] * strain
         if arms is not None:
             pressure += volume_arm_step(t, strain, arms)
-        s = -pressure * sixth
-        add_tet_force(forces, tets, t, (s * g10, s * g11, s * g12, s * g20, s * g21, s * g22,
-                                        s * g30, s * g31, s * g32, s * (g10 + g20 + g30),
-                                        s * (g11 + g21 + g31), s * (g12 + g22 + g32)))
+        add_tet_force(forces, tets, t, crosses_forces(g1, g2, g3, -pressure * sixth))
     return bad, bad_volume
+
+
+@njit(**JIT)
+def tet_crosses(x, tets, t):
+    """(volume [m^3], 6 dV/dp_1, 6 dV/dp_2, 6 dV/dp_3 (3-tuples [m^2])) of tet t: the scalar
+    loop's (:func:`tet_volume`'s volume, bit for bit)."""
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    p0, p1, p2 = x[i0, 0], x[i0, 1], x[i0, 2]
+    a0, a1, a2 = x[i1, 0] - p0, x[i1, 1] - p1, x[i1, 2] - p2
+    b0, b1, b2 = x[i2, 0] - p0, x[i2, 1] - p1, x[i2, 2] - p2
+    c0, c1, c2 = x[i3, 0] - p0, x[i3, 1] - p1, x[i3, 2] - p2
+    g10, g11, g12 = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0  # 6 dV/dp1
+    g20, g21, g22 = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0  # 6 dV/dp2
+    g30, g31, g32 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0  # 6 dV/dp3
+    return ((a0 * g10 + a1 * g11 + a2 * g12) * (1.0 / 6.0), (g10, g11, g12), (g20, g21, g22),
+            (g30, g31, g32))
+
+
+@njit(**JIT)
+def crosses_forces(g1, g2, g3, s):
+    """The 12 floats of :func:`add_tet_force` for ``s`` = -P/6 [Pa] and the cross products
+    ``g_a`` = 6 dV/dp_a (a = 1, 2, 3; :func:`tet_crosses`)."""
+    return (s * g1[0], s * g1[1], s * g1[2], s * g2[0], s * g2[1], s * g2[2], s * g3[0],
+            s * g3[1], s * g3[2], s * (g1[0] + g2[0] + g3[0]), s * (g1[1] + g2[1] + g3[1]),
+            s * (g1[2] + g2[2] + g3[2]))
 
 
 @njit(**JIT)
@@ -520,50 +540,60 @@ def add_volume_tangent(x, tets, rest_volumes, kv, tet_slots, data, arms):
     :func:`add_volume_tangent_numpy` still does.
     """
     sixth = 1.0 / 6.0
-    zero = (0.0, 0.0, 0.0)
     for t in range(tets.shape[0]):
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        p0 = (x[i0, 0], x[i0, 1], x[i0, 2])
-        p1 = (x[i1, 0], x[i1, 1], x[i1, 2])
-        p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
-        p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
-        g0, g1, g2, g3, v = _tet_gradient_tuples(x, i0, i1, i2, i3)
+        g0, g1, g2, g3, v = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2],
+                                                 tets[t, 3])
         if arms is None:
             k1 = kv[t] / rest_volumes[t]
             k2 = kv[t] * (v / rest_volumes[t] - 1.0) * sixth
         else:
             k1 = (kv[t] + arms[0][t]) / rest_volumes[t]
             k2 = (kv[t] * (v / rest_volumes[t] - 1.0) + arms[1][t]) * sixth
-        # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
-        w01 = _scaled_difference(k2, p2, p3)  # (0, 1, 2, 3)
-        w02 = _scaled_difference(k2, p3, p1)  # (0, 2, 3, 1)
-        w03 = _scaled_difference(k2, p1, p2)  # (0, 3, 1, 2)
-        w12 = _scaled_difference(k2, p0, p3)  # (1, 2, 0, 3)
-        w13 = _scaled_difference(k2, p2, p0)  # (1, 3, 2, 0)
-        w23 = _scaled_difference(k2, p0, p1)  # (2, 3, 0, 1)
-        w10 = _scaled_difference(k2, p3, p2)  # w_ba = -w_ab
-        w20 = _scaled_difference(k2, p1, p3)
-        w30 = _scaled_difference(k2, p2, p1)
-        w21 = _scaled_difference(k2, p3, p0)
-        w31 = _scaled_difference(k2, p0, p2)
-        w32 = _scaled_difference(k2, p1, p0)
-        # in storage order (a, b)
-        _add_tet_block(data, tet_slots[t, 0, 0], k1, g0, g0, zero)
-        _add_tet_block(data, tet_slots[t, 0, 1], k1, g0, g1, w01)
-        _add_tet_block(data, tet_slots[t, 0, 2], k1, g0, g2, w02)
-        _add_tet_block(data, tet_slots[t, 0, 3], k1, g0, g3, w03)
-        _add_tet_block(data, tet_slots[t, 1, 0], k1, g1, g0, w10)
-        _add_tet_block(data, tet_slots[t, 1, 1], k1, g1, g1, zero)
-        _add_tet_block(data, tet_slots[t, 1, 2], k1, g1, g2, w12)
-        _add_tet_block(data, tet_slots[t, 1, 3], k1, g1, g3, w13)
-        _add_tet_block(data, tet_slots[t, 2, 0], k1, g2, g0, w20)
-        _add_tet_block(data, tet_slots[t, 2, 1], k1, g2, g1, w21)
-        _add_tet_block(data, tet_slots[t, 2, 2], k1, g2, g2, zero)
-        _add_tet_block(data, tet_slots[t, 2, 3], k1, g2, g3, w23)
-        _add_tet_block(data, tet_slots[t, 3, 0], k1, g3, g0, w30)
-        _add_tet_block(data, tet_slots[t, 3, 1], k1, g3, g1, w31)
-        _add_tet_block(data, tet_slots[t, 3, 2], k1, g3, g2, w32)
-        _add_tet_block(data, tet_slots[t, 3, 3], k1, g3, g3, zero)
+        add_tet_tangent(x, tets, t, k1, k2, (g0, g1, g2, g3), tet_slots, data)
+
+
+@njit(**JIT)
+def add_tet_tangent(x, tets, t, k1, k2, grads, tet_slots, data):
+    """data += tet t's tangent blocks ``k1 g_a g_b^T + k2 [p_c - p_d]_x`` [N/m] (the
+    closed form of :func:`add_volume_tangent`: ``k1`` = k/V0 [N/m^5], ``k2`` = P/6 [Pa],
+    ``grads`` its dV/dp_a, four 3-tuples [m^2])."""
+    zero = (0.0, 0.0, 0.0)
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    p0 = (x[i0, 0], x[i0, 1], x[i0, 2])
+    p1 = (x[i1, 0], x[i1, 1], x[i1, 2])
+    p2 = (x[i2, 0], x[i2, 1], x[i2, 2])
+    p3 = (x[i3, 0], x[i3, 1], x[i3, 2])
+    g0, g1, g2, g3 = grads
+    # kv (V/V0 - 1) d^2V/dp_a dp_b = [w_ab]_x, w_ab = k2 (p_c - p_d), (a, b, c, d) even
+    w01 = _scaled_difference(k2, p2, p3)  # (0, 1, 2, 3)
+    w02 = _scaled_difference(k2, p3, p1)  # (0, 2, 3, 1)
+    w03 = _scaled_difference(k2, p1, p2)  # (0, 3, 1, 2)
+    w12 = _scaled_difference(k2, p0, p3)  # (1, 2, 0, 3)
+    w13 = _scaled_difference(k2, p2, p0)  # (1, 3, 2, 0)
+    w23 = _scaled_difference(k2, p0, p1)  # (2, 3, 0, 1)
+    w10 = _scaled_difference(k2, p3, p2)  # w_ba = -w_ab
+    w20 = _scaled_difference(k2, p1, p3)
+    w30 = _scaled_difference(k2, p2, p1)
+    w21 = _scaled_difference(k2, p3, p0)
+    w31 = _scaled_difference(k2, p0, p2)
+    w32 = _scaled_difference(k2, p1, p0)
+    # in storage order (a, b)
+    _add_tet_block(data, tet_slots[t, 0, 0], k1, g0, g0, zero)
+    _add_tet_block(data, tet_slots[t, 0, 1], k1, g0, g1, w01)
+    _add_tet_block(data, tet_slots[t, 0, 2], k1, g0, g2, w02)
+    _add_tet_block(data, tet_slots[t, 0, 3], k1, g0, g3, w03)
+    _add_tet_block(data, tet_slots[t, 1, 0], k1, g1, g0, w10)
+    _add_tet_block(data, tet_slots[t, 1, 1], k1, g1, g1, zero)
+    _add_tet_block(data, tet_slots[t, 1, 2], k1, g1, g2, w12)
+    _add_tet_block(data, tet_slots[t, 1, 3], k1, g1, g3, w13)
+    _add_tet_block(data, tet_slots[t, 2, 0], k1, g2, g0, w20)
+    _add_tet_block(data, tet_slots[t, 2, 1], k1, g2, g1, w21)
+    _add_tet_block(data, tet_slots[t, 2, 2], k1, g2, g2, zero)
+    _add_tet_block(data, tet_slots[t, 2, 3], k1, g2, g3, w23)
+    _add_tet_block(data, tet_slots[t, 3, 0], k1, g3, g0, w30)
+    _add_tet_block(data, tet_slots[t, 3, 1], k1, g3, g1, w31)
+    _add_tet_block(data, tet_slots[t, 3, 2], k1, g3, g2, w32)
+    _add_tet_block(data, tet_slots[t, 3, 3], k1, g3, g3, zero)
 
 
 def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -590,9 +620,11 @@ def tet_edge_connectors(tets: np.ndarray, edges: np.ndarray) -> np.ndarray:
 def node_volume_stiffness(model) -> np.ndarray:
     """(N,) diagonal stiffness scale of the volume term at rest [N/m]: sum over a
     particle's tets of ``k/V0 |dV/dp|^2`` with ``k`` the instantaneous stiffness ``kv (+
-    kv1 + kv2)`` (for the divergence bound's work estimate)."""
+    kv1 + kv2)`` (for the divergence bound's work estimate; for the nodal term
+    :func:`particle.nodal_volume.tet_moduli`'s, which bound it)."""
+    from particle.nodal_volume import tet_moduli
     g = volume_gradients_numpy(model.rest_positions, model.tets)
-    per = (model.params.volume_instantaneous[:, None] / model.rest_volumes[:, None]
+    per = (tet_moduli(model)[:, None] / model.rest_volumes[:, None]
            * np.sum(g * g, axis=2))
     return np.bincount(model.tets.ravel(), per.ravel(), model.n_particles)
 
@@ -649,8 +681,10 @@ def network_bulk_modulus(mesh_or_model, K0: float) -> float:
     return float(K0 * np.sum(np.asarray(lengths) ** 2) / (9.0 * volume))
 
 
-__all__ = ["add_volume_forces", "add_volume_tangent", "add_volume_tangent_numpy", "check_kv",
-           "network_bulk_modulus", "node_volume_force", "signed_volumes", "tet_edge_connectors",
+__all__ = ["add_tet_tangent", "add_volume_forces", "add_volume_tangent",
+           "add_volume_tangent_numpy", "check_kv",
+           "network_bulk_modulus", "node_volume_force", "pressure_forces_numpy",
+           "signed_volumes", "tet_edge_connectors",
            "tet_name", "tet_slots", "volume_arm_energy", "volume_arm_pressures",
            "volume_arm_pressures_numpy", "volume_arm_step", "volume_frequency_bound",
            "volume_ratio_range", "node_volume_stiffness", "node_volume_stiffness_bound",

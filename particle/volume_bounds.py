@@ -10,7 +10,9 @@ scaling
 :func:`node_volume_stiffness_bound`. All three hold for every state whose connector strains
 lie in a range and whose tets' volume ratios lie in :func:`volume_ratio_range`, which the
 explicit runs verify at every step. Kept apart from the force kernels: numpy only, used
-when a run is prepared, never inside the loop.
+when a run is prepared, never inside the loop. The same bounds hold for the nodal term
+(:mod:`particle.nodal_volume`) with each tet's modulus and pressure bound taken from its
+particles' (:func:`_nodal_modulus_and_pressure`).
 
 With the volume term's Maxwell arms (:mod:`particle.volume`) a tet's tangent is
 ``k/V0 g g^T + P d^2V`` with the instantaneous stiffness ``k = kv + c_1 + c_2 <= kv + kv1 +
@@ -75,15 +77,51 @@ def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None):
     faces = ((3, 4, 5), (1, 2, 5), (0, 2, 4), (0, 1, 3))
     grad = np.column_stack([_max_triangle_area(*(side[k] for k in f)) / 3.0 for f in faces])
     j_lo, j_hi = volume_ratio_range(model, lo, hi)
+    h_lo, h_hi = (j_lo, j_hi) if history is None else volume_ratio_range(model, *history)
+    if model.volume_element == "nodal":
+        modulus, pressure = _nodal_modulus_and_pressure(model, j_lo, j_hi, h_lo, h_hi)
+        return grad, lmax, modulus, pressure, ~model.fixed[model.tets]
     p = model.params
     pressure = p.kv * np.maximum(1.0 - j_lo, j_hi - 1.0)
     if p.has_volume_arms:
-        if history is None:
-            pressure = pressure + (p.kv1 + p.kv2) * (j_hi - j_lo)
-        else:
-            h_lo, h_hi = volume_ratio_range(model, *history)
-            pressure = pressure + (p.kv1 + p.kv2) * np.maximum(j_hi - h_lo, h_hi - j_lo)
+        pressure = pressure + (p.kv1 + p.kv2) * np.maximum(j_hi - h_lo, h_hi - j_lo)
     return grad, lmax, p.volume_instantaneous, pressure, ~model.fixed[model.tets]
+
+
+def _nodal_modulus_and_pressure(model, j_lo, j_hi, h_lo, h_hi):
+    """(T,) the per-tet modulus and pressure bound that make the per-tet bounds hold for the
+    nodal term (:mod:`particle.nodal_volume`), over the tets' volume ratios ``[j_lo, j_hi]``
+    (T,) and their history's ``[h_lo, h_hi]`` (T,).
+
+    Its tangent is ``sum_n k_n/V0_n (b_n . v)^2 + sum_t Pbar_t v^T d^2V_t v`` with ``b_n . v
+    = sum_{t ∋ n} g_t . v_t / 4`` and ``V0_n = sum_{t ∋ n} V0_t / 4``. Cauchy-Schwarz with
+    the weights ``V0_t / 4``: ``(sum_{t ∋ n} g_t . v_t / 4)^2 <= V0_n sum_{t ∋ n} (g_t .
+    v_t)^2 / (4 V0_t)``, so the rank-one part is at most ``sum_t kbar_t / V0_t (g_t . v)^2``
+    with ``kbar_t`` the mean of the tet's particles' instantaneous ``k_n``: in the Loewner
+    order the nodal tangent is below a per-tet tangent with modulus ``kbar_t`` and pressure
+    ``Pbar_t``, a mean of four ``P_n``. A particle's volume ratio ``V_n / V0_n = sum_{t ∋ n}
+    (V0_t / 4 / V0_n) V_t / V0_t`` is a convex combination of its tets', so it lies in
+    ``[min j_lo, max j_hi]`` over them (the history's likewise), and ``|P_n| <= kv_n |J_n -
+    1|_max + (kv1_n + kv2_n) max(J_hi - Jh_lo, Jh_hi - J_lo)`` (the per-tet argument,
+    :func:`_tet_bounds`); ``|Pbar_t|`` is at most the largest of its four."""
+    from particle.nodal_volume import nodal_params
+    tets, n = model.tets, model.n_particles
+    nodal = nodal_params(model)
+
+    def node_range(lo_t, hi_t):
+        lo_n, hi_n = np.full(n, np.inf), np.full(n, -np.inf)
+        np.minimum.at(lo_n, tets.ravel(), np.repeat(lo_t, 4))
+        np.maximum.at(hi_n, tets.ravel(), np.repeat(hi_t, 4))
+        return lo_n, hi_n
+
+    jn_lo, jn_hi = node_range(j_lo, j_hi)
+    hn_lo, hn_hi = node_range(h_lo, h_hi)
+    pressure = nodal.kv * np.maximum(1.0 - jn_lo, jn_hi - 1.0)
+    if nodal.arm_stiffness is not None:
+        pressure = pressure + nodal.arm_stiffness.sum(axis=1) * np.maximum(jn_hi - hn_lo,
+                                                                           hn_hi - jn_lo)
+    modulus = nodal.instantaneous[tets].mean(axis=1)
+    return modulus, pressure[tets].max(axis=1)
 
 
 def _irons_bound(model, grad, lmax, modulus, pressure, free) -> float:

@@ -30,6 +30,7 @@ from forcecal import __version__
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.h5io import atomic_path
 from forcecal.scene import ParticleSection
+from particle.nodal_volume import refuse_nodal
 from particle.model import Model
 from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams, StrainBounds
 from particle.stability import critical_time_step
@@ -111,6 +112,7 @@ def time_step(model: Model, strain_range: StrainBounds, safety: float = DT_SAFET
 def model_document(calibrated: CalibratedModel) -> dict[str, Any]:
     """``model.json``'s content (schema: ``docs/export.md``)."""
     model = calibrated.model
+    refuse_nodal(model, "the export (model.json)")
     p = model.params
     volume = None
     if p.kv is not None:

@@ -98,3 +98,37 @@ def volume_pass(x: np.ndarray, tets: np.ndarray, rest_volumes: np.ndarray, kv: n
                                       np.uint64),
                              fixed(rest_volumes), fixed(kv), np.zeros(n), np.full(n, np.inf),
                              forces, arms, np.empty(n))
+
+
+def compiled_and_numpy_steps(model: Model, gravity: np.ndarray, n_steps: int = 50,
+                             damping: float = 3.0, **record) -> tuple[State, State, object]:
+    """(the compiled loop's state, the numpy twin's, the recording) after ``n_steps`` steps
+    of half the stable step from :func:`deformed_start_and_push`, under ``gravity`` with
+    ``damping`` [1/s]; ``record``: the recording's ``record_nodes``/``record_steps``."""
+    from particle.integrator import VerletIntegrator
+    from particle.reference_numpy import step_numpy
+    from particle.stability import critical_time_step
+    dt = 0.5 * critical_time_step(model, damping=damping)
+    compiled, motion = deformed_start_and_push(model, dt)
+    reference = compiled.copy()
+    recorded = VerletIntegrator(damping).simulate(model, compiled, dt, n_steps,
+                                                  gravity=gravity, prescribed=motion, **record)
+    for _ in range(n_steps):
+        step_numpy(model, reference, dt, gravity=gravity, damping=damping, prescribed=motion)
+    return compiled, reference, recorded
+
+
+def haptic_push(model: Model, depth: float = 5e-4, periods: int = 3) -> tuple:
+    """(session, tool particle, the force of the last period [N]): a haptic session at half
+    the stable step holding the top-centre particle ``depth`` [m] down for ``periods``
+    periods, and the force :meth:`Run.force_on` gives at its final state, which must equal
+    it bit for bit (asserted here)."""
+    from particle.haptics import HapticSession
+    from particle.stability import critical_time_step
+    node = top_centre(model)
+    session = HapticSession(model, 0.5 * critical_time_step(model))
+    target = model.rest_positions[node] + [0.0, 0.0, -depth]
+    for _ in range(periods):
+        force = session.step(node, target)
+    np.testing.assert_array_equal(force, session._run(node)[0].force_on(session.state, node))
+    return session, node, force

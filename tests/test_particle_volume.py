@@ -8,15 +8,14 @@ import scipy.sparse as sp
 from forcecal.errors import MeshError, ParameterError, StabilityError
 from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
-from particle.haptics import HapticSession
 from particle.integrator import VerletIntegrator
 from particle.stability import critical_time_step
 from particle.model import ModelBuilder, Prescribed
 from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static, tangent_data
 from particle.params import viscoelastic_params
-from tests.particle_models import (box_model, deformed_start_and_push, spring_energy, top_centre,
-                                   volume_pass)
+from tests.particle_models import (box_model, compiled_and_numpy_steps, haptic_push,
+                                   spring_energy, top_centre, volume_pass)
 from particle.volume import (add_volume_tangent, add_volume_tangent_numpy,
                              network_bulk_modulus, signed_volumes, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_hessian_numpy,
@@ -241,12 +240,7 @@ def test_compiled_step_with_the_volume_term_matches_the_numpy_step(arms):
     (elastic or relaxing): same formulas, same order, round-off only (as the springs-only twin
     test), the volume arms' pressures and strains too."""
     model = with_kv(box_model(a=-20.0, b=300.0), 2000.0, arms)
-    dt = 0.5 * critical_time_step(model, damping=3.0)
-    compiled, motion = deformed_start_and_push(model, dt)
-    reference = compiled.copy()
-    VerletIntegrator(3.0).simulate(model, compiled, dt, 50, gravity=GRAVITY, prescribed=motion)
-    for _ in range(50):
-        step_numpy(model, reference, dt, gravity=GRAVITY, damping=3.0, prescribed=motion)
+    compiled, reference, _ = compiled_and_numpy_steps(model, GRAVITY)
     scale = np.abs(reference.x - model.rest_positions).max()
     np.testing.assert_allclose(compiled.x, reference.x, rtol=0, atol=1e-12 * scale)
     if arms is not None:
@@ -419,13 +413,8 @@ def test_the_haptic_force_includes_the_volume_term(arms):
     on the tool particle at the step's end, both kinds of arms advanced one step (numpy
     twin), and Run.force_on gives it bit for bit."""
     model = with_kv(box_model(), 3000.0, arms)
-    node = top_centre(model)
-    session = HapticSession(model, 0.5 * critical_time_step(model))
-    target = model.rest_positions[node] + [0.0, 0.0, -5e-4]
-    for _ in range(3):
-        force = session.step(node, target)
+    session, node, force = haptic_push(model)
     s = session.state
-    np.testing.assert_array_equal(force, session._run(node)[0].force_on(s, node))
     x = s.x
     p = model.params
     d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
@@ -478,8 +467,11 @@ def test_volume_tangent_compiles_its_block_helper_once_and_matches_the_numpy_twi
     rest, kv = np.array([1.0 / 6.0]), np.array([6.0])
     data, twin = np.zeros(4 * 4 * 9), np.zeros(4 * 4 * 9)
     # compiled here, without the on-disk cache: a kernel loaded from that cache types none
-    # of its callees, and the helper would show no signature at all
-    numba.njit(volume.add_volume_tangent.py_func)(x, tets, rest, kv, slots, data, None)
+    # of its callees, and the helper would show no signature at all (the blocks come from
+    # add_tet_tangent, which the nodal term's tangent shares)
+    volume.add_volume_tangent(x, tets, rest, kv, slots, data, None)
+    numba.njit(volume.add_tet_tangent.py_func)(x, tets, 0, 1.0, 0.5, ((0.1, 0.2, 0.3),) * 4,
+                                               slots, np.zeros(4 * 4 * 9))
     volume.add_volume_tangent_numpy(x, tets, rest, kv, slots, twin)
     assert len(volume._add_tet_block.signatures) == 1
     np.testing.assert_allclose(data, twin, rtol=1e-12, atol=1e-12 * np.abs(twin).max())

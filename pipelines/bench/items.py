@@ -111,7 +111,8 @@ def calibrated_release(scene: Scene, folder: Path, reference: Reference):
     from pipelines.gravity import read_gravity
 
     model = build_model(reference.problem, scene.material.density,
-                        read_params(folder / PARAMS).connectors["calibrated"])
+                        read_params(folder / PARAMS).connectors["calibrated"],
+                        volume_element=scene.particle.volume_element)
     if not (folder / GRAVITY).is_file():
         log.warning("bench: no %s (the gravity stage failed): particle gravity runs use the "
                     "default strain range %s", folder / GRAVITY, DEFAULT_STRAIN_RANGE)
