@@ -22,7 +22,9 @@ what ``report.json`` quotes as ``force_vector_errors``), reported beside it, not
 ``python -m studies.fold_cv --scene scenes/liver_punch.toml [--run DIR] [--variants JSON]
 [--work DIR] [--out FILE]`` (5 x 2 calibrations, minutes on the punch scene); ``--variants``
 maps a label to ``[calibration]`` changes, by default ``{"kv per tet": {}, "kv global":
-{"kv_per_tet": false}}``. The committed results are ``runs/studies/fold_cv*.json``
+{"kv_per_tet": false}}``; a change whose value is a table changes that section instead
+(``{"nodal": {"particle": {"volume_element": "nodal"}}}``), for choices outside the
+calibration such as the volume term's element. The committed results are ``runs/studies/fold_cv*.json``
 (``docs/studies.md`` lists each with its command and its choice).
 """
 
@@ -46,6 +48,16 @@ log = logging.getLogger(__name__)
 
 EXPERIMENTS = ("indentation", "relaxation")
 DEFAULT_VARIANTS = {"kv per tet": {}, "kv global": {"kv_per_tet": False}}
+
+
+def sections(changes: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """A variant's ``changes`` by scene section: a table value is that section's changes, the
+    other keys are ``[calibration]``'s."""
+    out = {name: dict(value) for name, value in changes.items() if isinstance(value, dict)}
+    bare = {name: value for name, value in changes.items() if not isinstance(value, dict)}
+    if bare:
+        out.setdefault("calibration", {}).update(bare)
+    return out
 
 
 def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, dict[str, Any]],
@@ -76,7 +88,7 @@ def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, di
             sub = derived_scene(scene, f"{scene.name}_cv", {
                 "test_points": {"calibration": train.tolist(),
                                 "held_out": points[fold].tolist() + held_out},
-                "calibration": changes}, folder)
+                **sections(changes)}, folder)
             sub_reference = sliced_reference(reference, sub)
             write_reference(folder / REFERENCE, sub_reference)
             log.info("fold cv: %s, fold %d/%d: fitted to %d points, predicting %s", label,
@@ -110,7 +122,7 @@ def study(scene_path: str | Path, run: str | Path | None, variants: dict[str, di
 def main(argv: list[str] | None = None) -> None:
     parser = study_parser("studies.fold_cv", __doc__)
     parser.add_argument("--variants", type=json.loads, default=DEFAULT_VARIANTS,
-                        help="JSON: label -> [calibration] changes")
+                        help="JSON: label -> [calibration] changes (a table value: that section's)")
     parser.add_argument("--work", help="folder of the fold calibrations")
     args = parse_study(parser, argv)
     result = study(args.scene, args.run, args.variants, args.work)

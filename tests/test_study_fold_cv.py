@@ -3,7 +3,7 @@ import numpy as np
 
 from calibration.synthetic import box_scene, synthetic_reference
 from forcecal.problem import build_problem
-from studies.fold_cv import EXPERIMENTS, study
+from studies.fold_cv import EXPERIMENTS, sections, study
 from tests.test_calibration_fit import SETTINGS, TRUE_GLOBAL
 
 
@@ -39,3 +39,11 @@ def test_every_calibration_point_is_predicted_once_and_the_better_fit_is_chosen(
     assert max(max(fitted["per_point_vector"][e]) for e in EXPERIMENTS) < 3e-3
     assert stopped["score"] > 10.0 * fitted["score"]
     assert result["chosen"] == "fitted"
+
+
+def test_a_variant_changes_calibration_keys_or_whole_sections():
+    """Bare keys are [calibration]'s; a table value changes its own section."""
+    assert sections({}) == {}
+    assert sections({"kv_per_tet": False}) == {"calibration": {"kv_per_tet": False}}
+    assert sections({"particle": {"volume_element": "nodal"}, "kv_per_tet": False}) == {
+        "particle": {"volume_element": "nodal"}, "calibration": {"kv_per_tet": False}}
