@@ -230,9 +230,13 @@ def element_arm_recursions(model, dts: np.ndarray, *, exact: bool = False
     return volume_arm_recursions(model.params, dts, exact=exact)
 
 
-def element_coefficients(model) -> tuple[np.ndarray, np.ndarray]:
-    """(rest volumes [m^3], kv [Pa]) of ``model``'s volume elements (volume term on): the
-    tets', or the particles' for the nodal term (the compiled passes' arguments)."""
+def element_coefficients(model, params=None) -> tuple[np.ndarray, np.ndarray]:
+    """(rest volumes [m^3], kv [Pa]) of ``model``'s volume elements (volume term on) with
+    the parameters ``params`` (None: the model's): the tets', or the particles' for the nodal
+    term (the compiled passes' arguments; a (1,) kv broadcast as :meth:`Model.with_params`
+    does)."""
+    if params is not None:
+        model = model.with_params(params)
     if model.volume_element == "nodal":
         return model.node_volumes, nodal_params(model).kv
     return model.rest_volumes, model.params.kv

@@ -359,6 +359,7 @@ class EquilibriumSolver:
         self._read_only_inputs()
         self._mean_length = np.mean(model.rest_lengths)
         self._floor_of: tuple[ConnectorParams | None, float] = (None, 0.0)  # force scale floor
+        self._coefficients_of: tuple = (None,)  # (parameters, their volume coefficients)
         self._lu = None
         self._stale = True  # refactorise before the next step
         self.factorizations = 0
@@ -380,6 +381,7 @@ class EquilibriumSolver:
         state = self.__dict__.copy()
         state["_lu"], state["_stale"] = None, True  # factorisations are not shipped
         state["_floor_of"] = (None, 0.0)
+        state["_coefficients_of"] = (None,)  # read-only arrays pickle would ship writable
         del state["_no_kv"], state["_force_tets"]  # pickle would ship them writable
         return state
 
@@ -494,8 +496,7 @@ class EquilibriumSolver:
         r = c = pressures
         if step is not None:
             r, c, pressures, strains = step.r, step.c, step.pressure_prev, step.strain_prev
-        rest, kv = ((model.rest_volumes, self._no_kv) if p.kv is None
-                    else element_coefficients(model.with_params(p)))
+        rest, kv = self._volume_coefficients(p)
         volume = (p.kv is not None, step is not None, model.tets, rest, kv,
                   *self._no_volume_limit, r, c, pressures, strains, self._force_tets,
                   self._volumes)
@@ -567,6 +568,17 @@ class EquilibriumSolver:
                                f"prescribed particles {self.prescribed.tolist()}: residual "
                                f"{cur.norm:.3g} N after {it} damped steps (tolerance "
                                f"{self.rtol:g} x force scale)")
+
+    def _volume_coefficients(self, p: ConnectorParams) -> tuple[np.ndarray, np.ndarray]:
+        """(rest volumes, kv) of the volume elements with parameters ``p``
+        (:func:`~particle.nodal_volume.element_coefficients`; placeholders without kv), kept
+        for the last ``p``: the same parameters serve a whole curve, and the nodal term's
+        averages cost passes over the tets."""
+        if p.kv is None:
+            return self.model.rest_volumes, self._no_kv
+        if self._coefficients_of[0] is not p:
+            self._coefficients_of = (p, *element_coefficients(self.model, p))
+        return self._coefficients_of[1], self._coefficients_of[2]
 
     def _force_floor(self, params: ConnectorParams, gravity: np.ndarray | None) -> float:
         """The smallest force scale [N] a residual is measured against: the force of 0.1 %
@@ -656,7 +668,7 @@ def net_forces(model: Model, x: np.ndarray, p: ConnectorParams, nonlinear: bool,
         # typed as the explicit runs call the force pass (unsigned tets, volumes stored):
         # one compiled pass for both (another typing costs ~4 s of compilation)
         if model.volume_element == "nodal":
-            rest, kv = element_coefficients(model.with_params(p))
+            rest, kv = element_coefficients(model, p)
             bad, _ = add_nodal_volume_forces(
                 x, kernels.index_view(model.tets), rest, kv, volume_limits[0],
                 volume_limits[1], forces, None if step is None else kernel_arms + volume,
@@ -713,7 +725,7 @@ def tangent_data(model: Model, pat: TangentPattern, x: np.ndarray, tension: np.n
         step = None if arms is None else arms.volume
         volume_arms = None if step is None else (step.stiffness, volume_arm.sum(axis=1))
         if model.volume_element == "nodal":
-            add_nodal_volume_tangent(x, model.tets, *element_coefficients(model.with_params(p)),
+            add_nodal_volume_tangent(x, model.tets, *element_coefficients(model, p),
                                      pat.nodal.arrays, pat.tet_slots, data, volume_arms,
                                      (np.empty(model.n_particles), np.empty(model.n_particles)))
         else:
