@@ -1,8 +1,11 @@
-"""particle.numba_fixes: numba's inliner copies a variable without copying its location."""
+"""particle.numba_fixes: numba's inliner copies a variable without copying its location; the
+cyclic collector is held back while numba compiles."""
 import copy
+import gc
 
 import numba
-from numba.core import ir
+import pytest
+from numba.core import event, ir
 
 from particle import numba_fixes
 
@@ -26,3 +29,37 @@ def test_installed_exactly_where_numba_lacks_it():
         numba.version_info[:2] >= numba_fixes.FIXED_IN
     assert not numba_fixes.needed()  # installed (or not needed) once particle is imported
     assert not numba_fixes.needed((0, 59))
+
+
+def test_the_collector_threshold_is_raised_for_the_outermost_compilation_only():
+    before = gc.get_threshold()
+    listener = numba_fixes.CollectorThreshold(gen0=before[0] + 1000)
+    listener.on_start(None)
+    assert gc.get_threshold() == (before[0] + 1000, *before[1:])
+    listener.on_start(None)  # a callee compiled inside it
+    listener.on_end(None)
+    assert gc.get_threshold()[0] == before[0] + 1000  # still compiling the outermost
+    listener.on_end(None)
+    assert gc.get_threshold() == before
+
+
+def test_a_compilation_that_fails_sets_the_threshold_back():
+    seen = []
+
+    class Probe(event.Listener):  # runs after the installed listener's start
+        def on_start(self, ev):
+            seen.append(gc.get_threshold()[0])
+
+        def on_end(self, ev):
+            pass
+
+    before = gc.get_threshold()
+    with event.install_listener("numba:compile", Probe()):
+        @numba.njit
+        def broken(x):
+            return x + "text"
+
+        with pytest.raises(numba.TypingError):
+            broken(1.0)
+    assert seen and seen[0] == max(numba_fixes.COMPILE_GEN0, before[0])
+    assert gc.get_threshold() == before
