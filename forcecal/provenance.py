@@ -165,24 +165,24 @@ def declared_modules(entries: tuple[str, ...]) -> dict[str, Path]:
             for m in _entry_modules(entry, roots, subpackages=True)}
 
 
-def source_digest(path: Path, ignored_classes: frozenset[str] = frozenset()) -> str:
+def source_digest(path: Path, ignored: frozenset[str] = frozenset()) -> str:
     """SHA-256 of a module's syntax tree without docstrings.
 
     Comments, formatting and docstrings do not change what the code computes,
     so editing them must not discard a result; every other change (code,
-    string constants such as messages) does. ``ignored_classes``: names of
-    top-level classes left out as well (the scene sections a computation does
-    not read, :attr:`CodeDependencies.sections`).
+    string constants such as messages) does. ``ignored``: names of top-level
+    classes and functions left out as well (:meth:`CodeDependencies.ignored_definitions`).
     """
-    return _tree_digest(path.read_text(), str(path), ignored_classes)
+    return _tree_digest(path.read_text(), str(path), ignored)
 
 
 def _without_docstrings(source: str, filename: str,
-                        ignored_classes: frozenset[str] = frozenset()) -> ast.Module:
+                        ignored: frozenset[str] = frozenset()) -> ast.Module:
     tree = ast.parse(source, filename)
-    if ignored_classes:
+    if ignored:
         tree.body = [node for node in tree.body
-                     if not (isinstance(node, ast.ClassDef) and node.name in ignored_classes)]
+                     if not (isinstance(node, (ast.ClassDef, ast.FunctionDef))
+                             and node.name in ignored)]
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
@@ -194,9 +194,8 @@ def _without_docstrings(source: str, filename: str,
 
 
 @functools.lru_cache(maxsize=1024)  # keyed on the text: the stages share most of their modules
-def _tree_digest(source: str, filename: str, ignored_classes: frozenset[str] = frozenset()
-                 ) -> str:
-    tree = _without_docstrings(source, filename, ignored_classes)
+def _tree_digest(source: str, filename: str, ignored: frozenset[str] = frozenset()) -> str:
+    tree = _without_docstrings(source, filename, ignored)
     return hashlib.sha256(ast.dump(tree).encode()).hexdigest()
 
 
@@ -233,23 +232,27 @@ class CodeDependencies:
         sections: the scene sections it reads, or None for all: the classes of the others
             in ``forcecal.scene`` are left out of that module's digest (their keys cannot
             change its result, e.g. a new ``[calibration]`` key and the FE reference).
+
+    The scene's refusals (:data:`forcecal.scene.REFUSALS`) are left out of every key: they
+    only refuse a scene, so editing them cannot change a result computed for a scene they
+    accept (one they now refuse is refused before any cached result is read).
     """
     runs: tuple[str, ...]
     reads: tuple[str, ...]
     sections: tuple[str, ...] | None = None
 
-    def ignored_classes(self) -> dict[str, frozenset[str]]:
-        """``{module: top-level class names}`` left out of its digest."""
-        if self.sections is None:
-            return {}
-        from forcecal.scene import SECTIONS
-        return {"forcecal.scene": frozenset(cls.__name__ for name, cls in SECTIONS.items()
-                                            if name not in self.sections)}
+    def ignored_definitions(self) -> dict[str, frozenset[str]]:
+        """``{module: names of top-level classes and functions}`` left out of its digest:
+        the scene's refusals, and the classes of the sections it does not read."""
+        from forcecal.scene import REFUSALS, SECTIONS
+        unread = () if self.sections is None else (
+            cls.__name__ for name, cls in SECTIONS.items() if name not in self.sections)
+        return {"forcecal.scene": frozenset(REFUSALS).union(unread)}
 
     def digests(self) -> dict[str, str]:
         """``{file path relative to its package root: source_digest}`` of every module of
         ``reads`` (per file, so a cache can say which files changed)."""
-        ignored = self.ignored_classes()
+        ignored = self.ignored_definitions()
         out = {}
         for name, path in declared_modules(self.reads).items():
             rel = path.relative_to(package_root(name.split(".")[0]))

@@ -663,7 +663,14 @@ def section_from_values(name: str, values: dict[str, Any], origin: str) -> Any:
     return _build_section(name, SECTIONS[name], values, origin)
 
 
+#: the functions that only refuse a scene (raise SceneError or return None; a Scene is
+#: frozen): cache keys leave them out (:class:`forcecal.provenance.CodeDependencies`)
+REFUSALS = ("_cross_checks", "_check_calibration_list")
+
+
 def _cross_checks(scene: Scene, origin: str) -> None:
+    """Raise :class:`SceneError` for a combination of keys, across sections, that the
+    computations do not support."""
     if scene.mesh.source == "generate":
         from forcecal.liver_mesh import liver_length_error
         problem = liver_length_error(scene.mesh.characteristic_length)

@@ -1,4 +1,5 @@
 """Pipeline parts: stage cache, particle gravity runs and gravity.h5, report errors, XDMF fields."""
+import ast
 import dataclasses
 import os
 import re
@@ -13,7 +14,7 @@ import pytest
 from forcecal.errors import DataFileError, ParameterError
 from forcecal.mesh import box_mesh
 from forcecal.problem import Problem
-from forcecal.scene import scene_from_dict
+from forcecal.scene import REFUSALS, scene_from_dict
 from particle.model import build_model
 from particle.params import ConnectorParams
 from particle.stability import connector_strains
@@ -125,16 +126,19 @@ def test_code_digests_hold_the_declared_code_only(tmp_path, monkeypatch):
     assert "fc_decl_pkg.unrelated" in code.undeclared()
 
 
-def test_source_digest_leaves_out_the_ignored_classes_only(tmp_path):
+def test_source_digest_leaves_out_the_ignored_definitions_only(tmp_path):
     module = tmp_path / "sections.py"
-    source = "class Read:\n    x: int = {}\n\n\nclass Unread:\n    y: int = {}\n"
-    module.write_text(source.format(1, 1))
-    ignored = frozenset({"Unread"})
+    source = ("class Read:\n    x: int = {}\n\n\nclass Unread:\n    y: int = {}\n\n\n"
+              "def refuse(x):\n    if x > {}:\n        raise ValueError(x)\n")
+    module.write_text(source.format(1, 1, 1))
+    ignored = frozenset({"Unread", "refuse"})
     before, whole = source_digest(module, ignored), source_digest(module)
-    module.write_text(source.format(1, 2))  # a new default in an unread class
+    module.write_text(source.format(1, 2, 1))  # a new default in an unread class
     assert source_digest(module, ignored) == before
     assert source_digest(module) != whole
-    module.write_text(source.format(2, 2))  # one in a class that is read
+    module.write_text(source.format(1, 2, 5))  # another refusal
+    assert source_digest(module, ignored) == before
+    module.write_text(source.format(2, 2, 5))  # a new default in a class that is read
     assert source_digest(module, ignored) != before
 
 
@@ -153,10 +157,11 @@ def test_every_cached_computation_declares_the_code_it_imports():
 
 def test_the_fe_code_key_leaves_out_the_sections_the_fe_does_not_read():
     # a new [calibration] key must not make an FE reference stale; a new [fe] key must
-    assert FE.ignored_classes() == {"forcecal.scene": {
-        "ParticleSection", "CalibrationSection", "OutputsSection", "VerdictSection"}}
-    assert STAGE_CODE["reference"].ignored_classes() == FE.ignored_classes()
-    assert FIT.ignored_classes() == {}
+    assert FE.ignored_definitions() == {"forcecal.scene": {
+        "ParticleSection", "CalibrationSection", "OutputsSection", "VerdictSection",
+        *REFUSALS}}
+    assert STAGE_CODE["reference"].ignored_definitions() == FE.ignored_definitions()
+    assert FIT.ignored_definitions() == {"forcecal.scene": set(REFUSALS)}
     # no module of the FE reads those sections' values (but forcecal.scene, which defines
     # and validates them, and the cost check, which reads particle.dt for the particle
     # side's estimate before any FE work)
@@ -164,6 +169,37 @@ def test_the_fe_code_key_leaves_out_the_sections_the_fe_does_not_read():
         if name not in ("forcecal.scene", "forcecal.cost"):
             assert not re.search(r"\bscene\.(particle|calibration|outputs|verdict)\b",
                                  path.read_text()), name
+
+
+def test_the_scenes_refusals_only_refuse_and_leave_every_key_alone(tmp_path):
+    # what lets the keys leave them out: each returns nothing and assigns nothing but its
+    # own locals (a Scene and its sections are frozen), so it can only raise
+    from forcecal import scene as scene_module
+
+    tree = ast.parse((ROOT / "forcecal" / "scene.py").read_text())
+    functions = {node.name: node for node in tree.body if isinstance(node, ast.FunctionDef)}
+    assert set(REFUSALS) <= set(functions)
+    for name in REFUSALS:
+        for node in ast.walk(functions[name]):
+            assert not (isinstance(node, ast.Return) and node.value is not None), name
+            targets = (node.targets if isinstance(node, ast.Assign)
+                       else [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign))
+                       else [])
+            assert all(isinstance(t, ast.Name) for t in targets), name
+    assert dataclasses.fields(scene_module.Scene)  # a dataclass, and frozen:
+    assert scene_module.Scene.__dataclass_params__.frozen
+    # a changed refusal leaves the FE's and the calibration's keys as they were
+    copy = tmp_path / "scene.py"
+    source = (ROOT / "forcecal" / "scene.py").read_text()
+    changed = source.replace("is shorter than \"\n                         f\"5 x tau_max",
+                             "is below \"\n                         f\"5 x tau_max")
+    assert changed != source
+    copy.write_text(changed)
+    for code in (FE, FIT):
+        ignored = code.ignored_definitions()["forcecal.scene"]
+        assert source_digest(copy, ignored) == source_digest(ROOT / "forcecal" / "scene.py",
+                                                             ignored)
+        assert source_digest(copy) != source_digest(ROOT / "forcecal" / "scene.py")
 
 
 def test_fe_stage_code_is_the_fe_and_shared_packages():
