@@ -21,8 +21,9 @@ youngest generation every :data:`DEFAULT_GEN0` net allocations. While numba comp
 the start of the outermost ``numba:compile`` event to its end) the threshold is
 :data:`COMPILE_GEN0`, then set back to what it was; what is allocated meanwhile is still
 collected, in fewer, larger passes. Nothing compiled changes. Measured on an empty cache,
-one core: the static Newton loop 14.4 -> 13.2 s of compilation, an explicit loop with arms
-2.9 -> 2.6 s, the Newton loop's peak memory 258 -> 286 MB (with the collector off: 500 MB).
+one core, three runs each: the static Newton loop 14.7-15.2 -> 13.8-14.1 s of compilation,
+the explicit loop with arms 2.82-3.08 -> 2.66-2.75 s; the Newton loop's peak memory 258 ->
+286 MB with a threshold of 10,000 (500 MB with the collector off).
 """
 from __future__ import annotations
 
