@@ -263,7 +263,7 @@ def tet_moduli(model) -> np.ndarray:
     """(T,) a modulus [Pa] per tet whose per-tet tangent ``sum_t k_t/V0_t g_t g_t^T`` bounds
     the volume term's rank-one part from above: the instantaneous ``kv + kv1 + kv2`` per
     tet, or for the nodal term the mean of its particles' (the Cauchy-Schwarz bound of
-    :func:`particle.volume_bounds._nodal_modulus_and_pressure`)."""
+    :func:`particle.volume_bounds._nodal_pressure_bound`)."""
     if model.volume_element == "nodal":
         return nodal_params(model).instantaneous[model.tets].mean(axis=1)
     return model.params.volume_instantaneous

@@ -12,7 +12,7 @@ lie in a range and whose tets' volume ratios lie in :func:`volume_ratio_range`, 
 explicit runs verify at every step. Kept apart from the force kernels: numpy only, used
 when a run is prepared, never inside the loop. The same bounds hold for the nodal term
 (:mod:`particle.nodal_volume`) with each tet's modulus and pressure bound taken from its
-particles' (:func:`_nodal_modulus_and_pressure`).
+particles' (:func:`particle.nodal_volume.tet_moduli`, :func:`_nodal_pressure_bound`).
 
 With the volume term's Maxwell arms (:mod:`particle.volume`) a tet's tangent is
 ``k/V0 g g^T + P d^2V`` with the instantaneous stiffness ``k = kv + c_1 + c_2 <= kv + kv1 +
@@ -76,22 +76,24 @@ def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None):
     # 3 -> (01, 02, 12)
     faces = ((3, 4, 5), (1, 2, 5), (0, 2, 4), (0, 1, 3))
     grad = np.column_stack([_max_triangle_area(*(side[k] for k in f)) / 3.0 for f in faces])
+    from particle.nodal_volume import tet_moduli
     j_lo, j_hi = volume_ratio_range(model, lo, hi)
     h_lo, h_hi = (j_lo, j_hi) if history is None else volume_ratio_range(model, *history)
     if model.volume_element == "nodal":
-        modulus, pressure = _nodal_modulus_and_pressure(model, j_lo, j_hi, h_lo, h_hi)
-        return grad, lmax, modulus, pressure, ~model.fixed[model.tets]
-    p = model.params
-    pressure = p.kv * np.maximum(1.0 - j_lo, j_hi - 1.0)
-    if p.has_volume_arms:
-        pressure = pressure + (p.kv1 + p.kv2) * np.maximum(j_hi - h_lo, h_hi - j_lo)
-    return grad, lmax, p.volume_instantaneous, pressure, ~model.fixed[model.tets]
+        pressure = _nodal_pressure_bound(model, j_lo, j_hi, h_lo, h_hi)
+    else:
+        p = model.params
+        pressure = p.kv * np.maximum(1.0 - j_lo, j_hi - 1.0)
+        if p.has_volume_arms:
+            pressure = pressure + (p.kv1 + p.kv2) * np.maximum(j_hi - h_lo, h_hi - j_lo)
+    return grad, lmax, tet_moduli(model), pressure, ~model.fixed[model.tets]
 
 
-def _nodal_modulus_and_pressure(model, j_lo, j_hi, h_lo, h_hi):
-    """(T,) the per-tet modulus and pressure bound that make the per-tet bounds hold for the
-    nodal term (:mod:`particle.nodal_volume`), over the tets' volume ratios ``[j_lo, j_hi]``
-    (T,) and their history's ``[h_lo, h_hi]`` (T,).
+def _nodal_pressure_bound(model, j_lo, j_hi, h_lo, h_hi):
+    """(T,) the per-tet pressure bound that, with the modulus of
+    :func:`particle.nodal_volume.tet_moduli`, makes the per-tet bounds hold for the nodal term
+    (:mod:`particle.nodal_volume`), over the tets' volume ratios ``[j_lo, j_hi]`` (T,) and
+    their history's ``[h_lo, h_hi]`` (T,).
 
     Its tangent is ``sum_n k_n/V0_n (b_n . v)^2 + sum_t Pbar_t v^T d^2V_t v`` with ``b_n . v
     = sum_{t ∋ n} g_t . v_t / 4`` and ``V0_n = sum_{t ∋ n} V0_t / 4``. Cauchy-Schwarz with
@@ -120,8 +122,7 @@ def _nodal_modulus_and_pressure(model, j_lo, j_hi, h_lo, h_hi):
     if nodal.arm_stiffness is not None:
         pressure = pressure + nodal.arm_stiffness.sum(axis=1) * np.maximum(jn_hi - hn_lo,
                                                                            hn_hi - jn_lo)
-    modulus = nodal.instantaneous[tets].mean(axis=1)
-    return modulus, pressure[tets].max(axis=1)
+    return pressure[tets].max(axis=1)
 
 
 def _irons_bound(model, grad, lmax, modulus, pressure, free) -> float:
