@@ -162,9 +162,12 @@ def add_nodal_volume_tangent(x, tets, node_volumes, kv, pattern, tet_slots, data
             pressure += arms[1][m]
         node_pressure[m] = pressure
     sixth = 1.0 / 6.0
+    grads = np.empty((tets.shape[0], 4, 3))  # each tet's dV/dp_a, for the particles' b_n too
     for t in range(tets.shape[0]):
         g0, g1, g2, g3, _ = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2],
                                                  tets[t, 3])
+        for a, g in ((0, g0), (1, g1), (2, g2), (3, g3)):
+            grads[t, a, 0], grads[t, a, 1], grads[t, a, 2] = g[0], g[1], g[2]
         add_tet_tangent(x, tets, t, 0.0, _mean_pressure(tets, t, node_pressure) * sixth,
                         (g0, g1, g2, g3), tet_slots, data)
     for n in range(node_volume.shape[0]):
@@ -172,13 +175,11 @@ def add_nodal_volume_tangent(x, tets, node_volumes, kv, pattern, tet_slots, data
         b = np.zeros((size, 3))
         for k in range(node_tet_ptr[n], node_tet_ptr[n + 1]):
             t = node_tets[k]
-            g0, g1, g2, g3, _ = _tet_gradient_tuples(x, tets[t, 0], tets[t, 1], tets[t, 2],
-                                                     tets[t, 3])
-            for a, g in ((0, g0), (1, g1), (2, g2), (3, g3)):
+            for a in range(4):
                 row = node_tet_local[k, a]
-                b[row, 0] += 0.25 * g[0]
-                b[row, 1] += 0.25 * g[1]
-                b[row, 2] += 0.25 * g[2]
+                b[row, 0] += 0.25 * grads[t, a, 0]
+                b[row, 1] += 0.25 * grads[t, a, 1]
+                b[row, 2] += 0.25 * grads[t, a, 2]
         stiffness = kv[n] if arms is None else kv[n] + arms[0][n]
         w = stiffness / node_volumes[n]
         base = block_ptr[n]

@@ -57,14 +57,15 @@ VOLUME_ELEMENTS = ("tet", "nodal")
 
 
 def node_rest_volumes(tets: np.ndarray, rest_volumes: np.ndarray, n: int) -> np.ndarray:
-    """(N,) ``V0_n = sum_{t ∋ n} V0_t / 4`` [m^3] (0 for a particle in no tet)."""
+    """(N,) ``V0_n = sum_{t ∋ n} V0_t / 4`` [m^3] (0 for a particle in no tet); with the tets'
+    current volumes, their current ``V_n`` (:func:`node_volumes_at`)."""
     return np.bincount(np.asarray(tets).ravel(), np.repeat(np.asarray(rest_volumes) / 4.0, 4),
                        n)
 
 
 def node_volumes_at(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """(N,) ``V_n = sum_{t ∋ n} V_t / 4`` [m^3] at positions ``x`` (N, 3)."""
-    return np.bincount(tets.ravel(), np.repeat(signed_volumes(x, tets) / 4.0, 4), len(x))
+    return node_rest_volumes(tets, signed_volumes(x, tets), len(x))
 
 
 def node_volume_strains(x: np.ndarray, tets: np.ndarray, node_volumes: np.ndarray
