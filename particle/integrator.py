@@ -52,7 +52,8 @@ from particle.guard import check_state, energy_bound
 from particle.nodal_kernels import nodal_node_volume_force, ring_tets
 from particle.nodal_volume import (element_arm_recursion, element_coefficients, element_strains,
                                    is_nodal)
-from particle.volume import node_volume_force, signed_volumes, tet_name, volume_ratio_range
+from particle.volume import node_volume_force, signed_volumes, tet_name
+from particle.volume_bounds import verified_ratio_range
 
 log = logging.getLogger(__name__)
 
@@ -145,11 +146,16 @@ class VerletIntegrator:
             itself (the haptic session's strain bands,
             :class:`particle.envelope.StrainBands`; it may set the attribute again as the
             range moves), None: :func:`critical_time_step`.
+        volume_range: with the volume term, each tet's volume ratios V/V0 the runs stay in
+            [1] (J_lo (T,), J_hi (T,)), verified and bounded with ``strain_range``
+            (:func:`particle.volume_bounds.verified_ratio_range`; None: those of
+            ``strain_range``).
     """
 
     def __init__(self, damping: float = 0.0, *, check_every: int = 64,
                  strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
-                 limit: float | None = None) -> None:
+                 limit: float | None = None,
+                 volume_range: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not (math.isfinite(damping) and damping >= 0.0):
             raise ParameterError(f"damping = {damping} 1/s must be >= 0")
         if check_every < 1:
@@ -157,6 +163,7 @@ class VerletIntegrator:
         self.damping = float(damping)
         self.check_every = int(check_every)
         self.strain_range = strain_range
+        self.volume_range = volume_range
         self.limit = limit
         self._critical: tuple[Model, float] | None = None
         self._inertial: tuple[Model, np.ndarray, Model] | None = None
@@ -168,7 +175,7 @@ class VerletIntegrator:
             return self.limit
         if self._critical is None or self._critical[0] is not model:
             value = critical_time_step(model, strain_range=self.strain_range,
-                                       damping=self.damping)
+                                       damping=self.damping, volume_range=self.volume_range)
             self._critical = (model, value)
         return self._critical[1]
 
@@ -299,7 +306,7 @@ class Run:
         self._volume = self._volume_checks = None
         if p.kv is not None:
             self.volume_ratio_range, self._volume, self._volume_checks = volume_limits(
-                model, monitored)
+                model, monitored, integrator.volume_range)
         # the nodal term's scratch (particle volumes and pressures), None: per tet
         self._volume_nodes = ((np.empty(model.n_particles), np.empty(model.n_particles))
                               if is_nodal(model) else None)
@@ -479,12 +486,14 @@ def close_arm_step(run: "Run", state: State) -> None:
         state.volume_arm[:] = pressure / run.volume_arm_r
 
 
-def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
+def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None,
+                  volume_range: tuple[np.ndarray, np.ndarray] | None = None
                   ) -> tuple[tuple[np.ndarray, np.ndarray], tuple, tuple]:
     """(volume ratio range (lo (T,), hi (T,)), the volume term's kernel arguments
     ``volume_term``, ``volume_checks`` (:func:`particle.step_kernels.run_verlet`)) of a run:
-    volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is the one of
-    the ``monitored`` strain range (without one: any positive volume); the term's rest
+    volumes outside (v_lo, v_hi] stop it (v_lo >= 0: inverted), the range is
+    :func:`~particle.volume_bounds.verified_ratio_range` of the ``monitored`` strain range
+    and ``volume_range`` (without a monitored range: any positive volume); the term's rest
     volumes and kv are the tets', or the particles' for the nodal term (the tets' volume
     range is checked for both). The checks end
     with the run's scratch for the volumes of its last force pass (T,) [m^3]
@@ -492,7 +501,7 @@ def volume_limits(model: Model, monitored: tuple[np.ndarray, np.ndarray] | None
     if monitored is None:
         ratio = (np.zeros(model.n_tets), np.full(model.n_tets, np.inf))
     else:
-        ratio = volume_ratio_range(model, *monitored)
+        ratio = verified_ratio_range(model, *monitored, volume_range)
     return ratio, (kernels.index_view(model.tets), *element_coefficients(model)), (
         ratio[0] * model.rest_volumes, ratio[1] * model.rest_volumes, np.empty(model.n_tets))
 
@@ -587,7 +596,8 @@ def volume_exit(run: Run, state: State, t: int, step: int, final: bool = False
     return StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
                           f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
                           "was verified stable for; the run stopped rather than continue with "
-                          "an unverified step (widen the strain range: it sets this one)")
+                          "an unverified step (a wider strain range widens it; in a scene's gravity "
+                          "release, so does a larger particle.strain_margin)")
 
 
 def strain_exit(run: Run, state: State, e: int, t: float, final: bool = False

@@ -153,12 +153,15 @@ class StepBound:
 
 
 def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
-               history: StrainBounds | None = None) -> StepBound:
+               history: StrainBounds | None = None,
+               volume_range: tuple[np.ndarray, np.ndarray] | None = None) -> StepBound:
     """The ``omega_max^2`` bound of :func:`critical_time_step` for ``model`` (its own parameters,
     validated on ``strain_range``, and at least one free particle): with the volume term the
     smaller of the springs' bound plus the term's own and the joint bound (see there).
     ``history``: the strain hull the run's past elongations stayed in, for the arms'
-    forces (:func:`connector_stiffness_bound`; None: ``strain_range``, the classic bound)."""
+    forces (:func:`connector_stiffness_bound`; None: ``strain_range``, the classic bound).
+    ``volume_range``: the tets' verified volume ratios
+    (:func:`particle.volume_bounds.verified_ratio_range`; None: those of ``strain_range``)."""
     p = model.params
     lo, hi = connector_strain_bounds(strain_range, model.n_connectors, model.edges)
     past = None if history is None else strain_history(history, lo, hi, model)
@@ -167,7 +170,7 @@ def step_bound(model: Model, strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
     springs = EIGENVALUE_MARGIN * largest_eigenvalue(laplacian)
     if p.kv is None:
         return StepBound(springs, kappa, laplacian, springs)
-    own, edge_weights, scalar = volume_step_bounds(model, lo, hi, past)
+    own, edge_weights, scalar = volume_step_bounds(model, lo, hi, past, volume_range)
     own = min(own, EIGENVALUE_MARGIN * largest_eigenvalue(scalar))
     joint_kappa = kappa + edge_weights
     joint_laplacian = mass_scaled_laplacian(model, joint_kappa)
@@ -187,12 +190,16 @@ def strain_history(history: StrainBounds, lo: np.ndarray, hi: np.ndarray, model:
 
 def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
                        strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
-                       damping: float = 0.0) -> float:
+                       damping: float = 0.0,
+                       volume_range: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """Stability limit [s] of the explicit step: ``2/omega_max`` (less with damping).
 
     ``strain_range`` is where the connectors' strains stay during the run: one
     (lo, hi) pair, or per-connector ``(lo (E,), hi (E,))`` arrays (e.g.
     :func:`strain_range_for_release`); :class:`Run` verifies it while stepping.
+    ``volume_range`` (J_lo (T,), J_hi (T,)): with the volume term, each tet's volume
+    ratios V/V0 [1] the run verifies (e.g. :func:`release_volume_range`; None:
+    :func:`particle.volume_bounds.volume_ratio_range` of ``strain_range``).
 
     The bound is rigorous for any state with strains in that range. Each
     connector's 3x3 tangent block ``A_e`` satisfies ``A_e <= kappa_e I_3`` in the
@@ -211,7 +218,7 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
 
     With the volume term (``params.kv`` given), ``K_t = K_springs + K_vol``, and the
     smaller of two bounds is taken, each valid while the tets' volume ratios stay in
-    :func:`particle.volume_bounds.volume_ratio_range` (which the runs verify):
+    :func:`particle.volume_bounds.verified_ratio_range` (which the runs verify):
 
     * ``lambda_max(A + B) <= lambda_max(A) + lambda_max(B)``: the volume term's own
       bound added to omega_max^2, the smallest of Irons' element bound, a per-particle one
@@ -237,7 +244,7 @@ def critical_time_step(model: Model, params: ConnectorParams | None = None, *,
     if not (~model.fixed).any():
         return math.inf  # nothing moves
     return stable_step(step_bound(model if params is None else model.with_params(p),
-                                  strain_range).omega2, damping)
+                                  strain_range, volume_range=volume_range).omega2, damping)
 
 
 def stable_step(omega2: float, damping: float = 0.0) -> float:

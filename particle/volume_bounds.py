@@ -8,8 +8,9 @@ the springs' Laplacian with :func:`volume_edge_stiffness_bound` added to its wei
 scaling
 (:func:`particle.mass_scaling.stiffness_weights`) steers its added mass with
 :func:`node_volume_stiffness_bound`. All three hold for every state whose connector strains
-lie in a range and whose tets' volume ratios lie in :func:`volume_ratio_range`, which the
-explicit runs verify at every step. Kept apart from the force kernels: numpy only, used
+lie in a range and whose tets' volume ratios lie in :func:`volume_ratio_range` of it, or in
+a range of each tet's own that a run is given instead (:func:`verified_ratio_range`), which
+the explicit runs verify at every step. Kept apart from the force kernels: numpy only, used
 when a run is prepared, never inside the loop. The same bounds hold for the nodal term
 (:mod:`particle.nodal_volume`) with each tet's modulus and pressure bound taken from its
 particles' (:func:`particle.nodal_volume.tet_moduli`, :func:`_nodal_pressure_bound`).
@@ -30,6 +31,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from forcecal.errors import ParameterError
+
 
 def volume_ratio_range(model, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(T,) (J_lo, J_hi): the volume ratios V/V0 a run whose connector strains stay in
@@ -42,6 +45,34 @@ def volume_ratio_range(model, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarra
     """
     conn = model.tet_connectors
     return (1.0 + lo[conn].min(axis=1)) ** 3, (1.0 + hi[conn].max(axis=1)) ** 3
+
+
+def verified_ratio_range(model, lo: np.ndarray, hi: np.ndarray, volume_range=None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(T,) (J_lo, J_hi): the volume ratios V/V0 [1] a run whose connector strains stay in
+    ``[lo, hi]`` (E,) is verified for: ``volume_range`` (J_lo (T,), J_hi (T,)) when given (a
+    range of each tet's own, e.g. :func:`particle.stability.release_volume_range`), else
+    :func:`volume_ratio_range` of the strains. Every bound here holds on it and the runs
+    check it; a given range must be finite with ``0 <= J_lo <= 1 <= J_hi`` (the runs stop
+    at ``V <= J_lo V0``, and the arms' pressures average over the past volume strains, the
+    rest state's among them), else :class:`~forcecal.errors.ParameterError` naming the tet.
+    """
+    if volume_range is None:
+        return volume_ratio_range(model, lo, hi)
+    from particle.volume import tet_name
+    if len(volume_range) != 2:
+        raise ParameterError(f"a volume ratio range is a (lo, hi) pair, got {volume_range!r}")
+    j_lo, j_hi = (np.asarray(b, dtype=np.float64) for b in volume_range)
+    if j_lo.shape != (model.n_tets,) or j_hi.shape != (model.n_tets,):
+        raise ParameterError(f"volume ratio range bounds of shapes {j_lo.shape}, {j_hi.shape}: "
+                             f"expected one per tet ({model.n_tets},)")
+    bad = np.nonzero(~(np.isfinite(j_lo) & np.isfinite(j_hi) & (j_lo >= 0.0) & (j_lo <= 1.0)
+                       & (j_hi >= 1.0)))[0]
+    if len(bad):
+        t = int(bad[0])
+        raise ParameterError(f"{tet_name(t, model.tets)}: volume ratio range [{j_lo[t]:g}, "
+                             f"{j_hi[t]:g}] must be finite with 0 <= lo <= 1 <= hi")
+    return j_lo, j_hi
 
 
 def _max_triangle_area(a: tuple, b: tuple, c: tuple) -> np.ndarray:
@@ -57,17 +88,23 @@ def _max_triangle_area(a: tuple, b: tuple, c: tuple) -> np.ndarray:
                                                               a1 * c1))
 
 
-def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None):
+def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None, volume_range=None):
     """Per-tet quantities of the volume term's frequency bounds over the strain box ``[lo, hi]``:
     (face gradient bounds G (T, 4) [m^2] >= |dV/dp_a| (the face opposite a over 3, Heron),
     longest lengths lmax (T, 6) [m] of the edges (:data:`TET_PAIRS` order), the largest
     instantaneous stiffness k (T,) [Pa] and the largest ``|P|`` (T,) [Pa] (module
-    docstring; ``|V/V0 - 1|`` from :func:`volume_ratio_range`), free vertices (T, 4)
-    bool). ``history`` (lo (E,), hi (E,)): the strain hull the run's past states stayed in
-    (:func:`particle.stability.strain_history`, None: ``[lo, hi]``): an arm's pressure is
-    ``c_i (j - m)``, ``m`` a convex combination of the past volume strains (as the
-    connectors' arms, :func:`particle.stability.connector_stiffness_bound`), so ``|P_i| <=
-    kv_i max(J_hi - Jh_lo, Jh_hi - J_lo)`` with ``Jh`` the history's volume ratio range."""
+    docstring; ``|V/V0 - 1|`` on :func:`verified_ratio_range` of ``volume_range``), free
+    vertices (T, 4) bool). ``history`` (lo (E,), hi (E,)): the strain hull the run's past
+    states stayed in (:func:`particle.stability.strain_history`, None: ``[lo, hi]``): an
+    arm's pressure is ``c_i (j - m)``, ``m`` a convex combination of the past volume strains
+    (as the connectors' arms, :func:`particle.stability.connector_stiffness_bound`), so
+    ``|P_i| <= kv_i max(J_hi - Jh_lo, Jh_hi - J_lo)`` with ``Jh`` the history's volume ratio
+    range, widened to hold the verified one.
+
+    The pressure bound is the only part a volume ratio range enters: the face and edge
+    bounds follow from the edge lengths alone (Heron), so a range reaching down towards 0
+    (a tet squeezed flat) adds at most ``kv`` to the elastic pressure bound (``|J - 1| <=
+    1`` below rest) and ``kv_i`` to each arm's."""
     conn = model.tet_connectors  # (T, 6) in TET_PAIRS order: 01 02 03 12 13 23
     L0 = model.rest_lengths[conn]
     lmin, lmax = (1.0 + lo[conn]) * L0, (1.0 + hi[conn]) * L0
@@ -77,8 +114,11 @@ def _tet_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None):
     faces = ((3, 4, 5), (1, 2, 5), (0, 2, 4), (0, 1, 3))
     grad = np.column_stack([_max_triangle_area(*(side[k] for k in f)) / 3.0 for f in faces])
     from particle.nodal_volume import tet_moduli
-    j_lo, j_hi = volume_ratio_range(model, lo, hi)
-    h_lo, h_hi = (j_lo, j_hi) if history is None else volume_ratio_range(model, *history)
+    j_lo, j_hi = verified_ratio_range(model, lo, hi, volume_range)
+    h_lo, h_hi = j_lo, j_hi
+    if history is not None:
+        h_lo, h_hi = volume_ratio_range(model, *history)
+        h_lo, h_hi = np.minimum(h_lo, j_lo), np.maximum(h_hi, j_hi)
     if model.volume_element == "nodal":
         pressure = _nodal_pressure_bound(model, j_lo, j_hi, h_lo, h_hi)
     else:
@@ -322,11 +362,12 @@ def volume_tet_energies(model, lo: np.ndarray, hi: np.ndarray, mode: np.ndarray)
     return np.einsum("ta,tab,tb->t", xt, _scalar_entries(model, *_tet_bounds(model, lo, hi)), xt)
 
 
-def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None
+def volume_step_bounds(model, lo: np.ndarray, hi: np.ndarray, history=None, volume_range=None
                        ) -> tuple[float, np.ndarray, sp.csr_matrix]:
     """(:func:`volume_frequency_bound`, :func:`volume_edge_stiffness_bound`,
     :func:`volume_scalar_matrix`) of one strain range, the per-tet bounds they share computed
-    once (the stable step takes all three); ``history``: :func:`_tet_bounds`'."""
-    bounds = _tet_bounds(model, lo, hi, history)
+    once (the stable step takes all three); ``history``, ``volume_range`` (the tets' verified
+    volume ratios, None: :func:`volume_ratio_range` of the strains): :func:`_tet_bounds`'."""
+    bounds = _tet_bounds(model, lo, hi, history, volume_range)
     return (_frequency_bound(model, bounds), _edge_weights(model, *bounds[:4]),
             _scalar_matrix(model, bounds))
