@@ -24,7 +24,8 @@ from forcecal.scene import ParticleSection
 from particle.guard import energy_bound
 from particle.integrator import VerletIntegrator
 from particle.stability import (DEFAULT_STRAIN_RANGE, check_time_step, connector_strains,
-                                critical_time_step, release_strain_range, resolve_time_step)
+                                critical_time_step, release_strain_range, release_volume_range,
+                                resolve_time_step)
 from particle.model import Model, Prescribed
 from particle.params import StrainBounds
 from particle.statics import check_stiffness, gravity_static, reaching
@@ -49,7 +50,8 @@ def sample_steps(times: np.ndarray, dt: float) -> tuple[float, np.ndarray]:
 
 def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: float,
                     record_times: np.ndarray, *, damping: float = 0.0, skip: bool = True,
-                    strain_range: StrainBounds = DEFAULT_STRAIN_RANGE) -> np.ndarray:
+                    strain_range: StrainBounds = DEFAULT_STRAIN_RANGE,
+                    volume_range: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(S, N, 3) displacements [m] at ``record_times`` after release from rest under gravity.
 
     Explicit Verlet with the paper's arm recursion, fixed particles clamped,
@@ -57,8 +59,10 @@ def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: floa
     ``dt`` that divides the record spacing (see :func:`sample_steps`), so
     samples fall exactly on steps; ``dt`` above the stability limit for
     ``strain_range`` (a pair or per-connector arrays, e.g.
-    :func:`~particle.stability.strain_range_for_release`), or a connector
-    leaving that range during the run, raises :class:`~forcecal.errors.StabilityError`.
+    :func:`~particle.stability.strain_range_for_release`) and ``volume_range`` (each
+    tet's volume ratios [1], e.g. :func:`~particle.stability.release_volume_range`;
+    None: those of the strain range), or a connector or tet leaving its range during the
+    run, raises :class:`~forcecal.errors.StabilityError`.
     """
     step, record_steps = sample_steps(record_times, dt)
     if record_times[-1] > duration * (1 + 1e-9):
@@ -66,7 +70,8 @@ def gravity_dynamic(model: Model, gravity: np.ndarray, duration: float, dt: floa
                              f"({duration} s)")
     n_steps = max(int(record_steps[-1]), math.ceil(duration / step - 1e-9))
     state = model.state()
-    positions = VerletIntegrator(damping, strain_range=strain_range).simulate(
+    positions = VerletIntegrator(damping, strain_range=strain_range,
+                                 volume_range=volume_range).simulate(
         model, state, step, n_steps, gravity=gravity, record_nodes=np.arange(model.n_particles),
         record_steps=record_steps, skip=skip)
     log.info("gravity: %d steps of %.3g s", n_steps, step)
@@ -125,9 +130,10 @@ def gravity_static_test(model: Model, gravity: np.ndarray, *, load_steps: int,
     positive); the sag is refused (:class:`ParameterError`) if a spring's K(eps) becomes
     <= 0 at a strain it reaches, and the strain extremes are recorded so that leaving the
     calibrated range can be reported. The explicit step is chosen for each connector's
-    strain range of the release (:func:`release_strain_range` of the static sag,
-    ``particle.strain_margin``); an explicit ``particle.dt`` must be stable over the
-    calibrated range as well. ``name`` names the model in errors and the log.
+    strain range and each tet's volume ratio range of the release (:func:`release_ranges`
+    of the static sag, ``particle.strain_margin``); an explicit ``particle.dt`` must be
+    stable over the calibrated range as well. ``name`` names the model in errors and the
+    log.
     """
     t0 = time.perf_counter()
     static = gravity_static(model, gravity, load_steps=load_steps, strain_range=strain_range)
@@ -135,8 +141,9 @@ def gravity_static_test(model: Model, gravity: np.ndarray, *, load_steps: int,
     eps = connector_strains(model, static)
     with reaching(lambda: 1.0):  # the whole load was carried
         check_stiffness(model, eps, f"static sag of the {name} model")
-        critical = critical_time_step(model, strain_range=_release_range(
-            model, static, particle, strain_range), damping=particle.damping)
+        strains, volumes = release_ranges(model, static, particle, strain_range)
+        critical = critical_time_step(model, strain_range=strains, volume_range=volumes,
+                                      damping=particle.damping)
     dt = resolve_time_step(particle, critical)
     log.info("gravity, %s model: max static sag %.3g mm, strains [%.3g, %.3g], static %.2f s",
              name, 1e3 * np.linalg.norm(static, axis=1).max(), eps.min(), eps.max(), t1 - t0)
@@ -150,19 +157,22 @@ def gravity_release(model: Model, gravity: np.ndarray, times: np.ndarray, static
     """``static`` (:func:`gravity_static_test` of the same model) completed by the release
     from rest in the undeformed shape at t = 0, sampled at ``times`` [s], at its step.
 
-    The step was chosen for each connector's strain range of the release, which the run
-    verifies (:class:`~forcecal.errors.StabilityError` if a connector leaves it); a spring
-    whose K(eps) <= 0 at a sample is refused (:class:`ParameterError`). Either error records
-    in ``reached`` the time [s] the release had reached.
+    The step was chosen for each connector's strain range and each tet's volume ratio range
+    of the release (:func:`release_ranges`), which the run verifies
+    (:class:`~forcecal.errors.StabilityError` if a connector or tet leaves its range); a
+    spring whose K(eps) <= 0 at a sample is refused (:class:`ParameterError`). Either error
+    records in ``reached`` the time [s] the release had reached.
     """
-    release = _release_range(model, static.static_displacement, particle, strain_range)
+    strains, volumes = release_ranges(model, static.static_displacement, particle,
+                                      strain_range)
     # a few steps first so that dynamic_time measures the simulation, not numba compiling
     # (or loading from its cache) this model's kernel specialisation
     gravity_dynamic(model, gravity, float(times[1]), static.dt, times[:2],
-                    damping=particle.damping, strain_range=release)
+                    damping=particle.damping, strain_range=strains, volume_range=volumes)
     t2 = time.perf_counter()
     dynamic = gravity_dynamic(model, gravity, float(times[-1]), static.dt, times,
-                              damping=particle.damping, strain_range=release)
+                              damping=particle.damping, strain_range=strains,
+                              volume_range=volumes)
     t3 = time.perf_counter()
     strain = np.vstack([connector_strains(model, static.static_displacement)[None],
                         connector_strains(model, dynamic)])
@@ -177,16 +187,20 @@ def gravity_release(model: Model, gravity: np.ndarray, times: np.ndarray, static
                                strain_min=float(strain.min()), strain_max=float(strain.max()))
 
 
-def _release_range(model: Model, static: np.ndarray, particle: ParticleSection,
-                   strain_range: tuple[float, float]) -> StrainBounds:
-    """Each connector's strain range of the release from the static sag ``static`` (N, 3)
-    [m] (:func:`release_strain_range`), widened to the calibrated ``strain_range`` for an
-    explicit ``particle.dt``, which must be stable there too."""
-    release = release_strain_range(model, static, particle.strain_margin)
+def release_ranges(model: Model, static: np.ndarray, particle: ParticleSection,
+                   strain_range: tuple[float, float]
+                   ) -> tuple[StrainBounds, tuple[np.ndarray, np.ndarray] | None]:
+    """(each connector's strain range (lo (E,), hi (E,)) [1], each tet's volume ratio range
+    (J_lo (T,), J_hi (T,)) [1] or None without the volume term) of the release from the
+    static sag ``static`` (N, 3) [m], the ranges its step is chosen for and the run verifies:
+    :func:`release_strain_range` (``particle.strain_margin``), widened to the calibrated
+    ``strain_range`` for an explicit ``particle.dt``, which must be stable there too, and
+    :func:`release_volume_range` of the static sag on that strain range."""
+    strains = release_strain_range(model, static, particle.strain_margin)
     if particle.dt != "auto":
-        release = (np.minimum(release[0], strain_range[0]),
-                   np.maximum(release[1], strain_range[1]))
-    return release
+        strains = (np.minimum(strains[0], strain_range[0]),
+                   np.maximum(strains[1], strain_range[1]))
+    return strains, release_volume_range(model, static, particle.strain_margin, strains)
 
 
 def relaxation_dynamic(model: Model, node: int, normal: np.ndarray, times: np.ndarray,

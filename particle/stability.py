@@ -2,11 +2,12 @@
 
 The step of :class:`~particle.integrator.VerletIntegrator` is stable below
 ``2/omega_max``; :func:`critical_time_step` bounds ``omega_max`` rigorously for
-every state whose connector strains stay in a given range (the run verifies the
-range while stepping). The ranges come from here too: the default +-0.5, the
-range of a release from a static sag (:func:`strain_range_for_release`,
-:func:`release_strain_range` for the gravity stage), the interval where a
-nonlinear spring stays positive (:func:`positive_spring_range`). The empirical
+every state whose connector strains (and, with the volume term, tets' volume ratios)
+stay in given ranges (the run verifies them while stepping). The ranges come from here
+too: the default +-0.5, the range of a release from a static sag
+(:func:`strain_range_for_release`, :func:`release_strain_range` for the gravity stage,
+and each tet's :func:`release_volume_range`, all from :func:`overshoot_range`), the
+interval where a nonlinear spring stays positive (:func:`positive_spring_range`). The empirical
 limit the bound is checked against by the tests and ``make bench`` is in
 :mod:`pipelines.bench.empirical_limit` (a bisection over real runs of the integrator).
 """
@@ -24,7 +25,8 @@ from forcecal.errors import ParameterError, StabilityError, TimeStepError
 from forcecal.scene import ParticleSection
 from particle.model import Model
 from particle.params import ConnectorParams, StrainBounds, connector_strain_bounds
-from particle.volume_bounds import volume_step_bounds
+from particle.volume import signed_volumes
+from particle.volume_bounds import volume_ratio_range, volume_step_bounds
 
 log = logging.getLogger(__name__)
 
@@ -268,21 +270,38 @@ def strain_range_for_release(model: Model, static_displacement: np.ndarray, marg
     that a compression is capped at half the static length, ``lo >= (eps_s -
     1)/2`` (twice a static strain near -0.5 would reach zero length; the
     viscoelastic arms keep strongly compressed connectors well short of twice
-    their static strain). The run verifies the range (:class:`Run`).
-    ``static_displacement`` (N, 3) [m] is the static solution (e.g.
-    :func:`particle.statics.gravity_static`).
+    their static strain): :func:`overshoot_range` of the static strains. The run
+    verifies the range (:class:`Run`). ``static_displacement`` (N, 3) [m] is the
+    static solution (e.g. :func:`particle.statics.gravity_static`).
     """
+    x = _static_positions(model, static_displacement)
+    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+    static = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
+    lo, hi = overshoot_range(static, margin)
+    return connector_strain_bounds((np.maximum(lo, 0.5 * (static - 1.0)), hi),
+                                   model.n_connectors, model.edges)
+
+
+def overshoot_range(static: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [1] around each static strain ``static`` [1] (a connector's length strain or a
+    tet's volume strain) that a release from rest reaches: ``[min(0, 2 s) - margin, max(0, 2
+    s) + margin]``, twice the static strain (the undamped linear overshoot) widened by
+    ``margin`` >= 0. The callers bound its compressive end, each by what its stability
+    bound can take (:func:`strain_range_for_release`, :func:`release_volume_range`)."""
     if not (math.isfinite(margin) and margin >= 0.0):
         raise ParameterError(f"strain margin = {margin} must be >= 0")
+    static = np.asarray(static, dtype=np.float64)
+    return np.minimum(2.0 * static, 0.0) - margin, np.maximum(2.0 * static, 0.0) + margin
+
+
+def _static_positions(model: Model, static_displacement: np.ndarray) -> np.ndarray:
+    """(N, 3) positions [m] of the static state ``static_displacement`` (N, 3) [m] (its shape
+    checked against the model)."""
     x = model.rest_positions + np.asarray(static_displacement, dtype=np.float64).reshape(-1, 3)
     if x.shape != model.rest_positions.shape:
         raise ParameterError(f"static displacement of shape {np.shape(static_displacement)} "
                              f"does not fit the model's {model.n_particles} particles")
-    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-    static = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
-    lo = np.maximum(np.minimum(2.0 * static, 0.0) - margin, 0.5 * (static - 1.0))
-    hi = np.maximum(2.0 * static, 0.0) + margin
-    return connector_strain_bounds((lo, hi), model.n_connectors, model.edges)
+    return x
 
 
 def resolve_time_step(section: ParticleSection, critical: float) -> float:
@@ -380,6 +399,42 @@ def release_strain_range(model: Model, static: np.ndarray, margin: float
                  "twice their static strain +- %g: their springs would lose stiffness there",
                  cut, margin)
     return cut_lo, cut_hi
+
+
+def release_volume_range(model: Model, static: np.ndarray, margin: float,
+                         strain_range: tuple[np.ndarray, np.ndarray]
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-tet volume ratio range (J_lo (T,), J_hi (T,)) [1] of the gravity release from the
+    static sag ``static`` (N, 3) [m] whose strain range is ``strain_range`` (lo (E,), hi (E,),
+    e.g. :func:`release_strain_range`); None without the volume term (nothing to verify).
+
+    A tet's edges do not bound its volume: a sliver flattened by the sag loses volume while
+    its edges stretch, so :func:`particle.volume_bounds.volume_ratio_range` of the strain
+    range (the uniform dilations of each tet's connector ranges) can miss the tet's own
+    static volume ratio ``J_s`` and its overshoot. The range is that one widened to hold
+    ``1 +`` :func:`overshoot_range` of the tet's static volume strain ``J_s - 1`` (the
+    connectors' rule: twice the static volume strain widened by ``margin``), its lower end
+    cut at 0, where the run stops anyway (an inverted tet). Unlike a connector's, a
+    compression is not capped short of that: the volume term's pressure bound stays finite
+    down to ``V = 0`` (``kv |J - 1| <= kv`` below rest,
+    :func:`particle.volume_bounds._tet_bounds`), while a spring's transverse stiffness grows
+    without bound as its length goes to 0. Where the cube range
+    already holds the overshoot it is the cube range, unchanged. The step is chosen for
+    this range (:func:`particle.volume_bounds.verified_ratio_range`) and the run verifies
+    it.
+    """
+    if model.params.kv is None:
+        return None
+    lo, hi = volume_ratio_range(model, *strain_range)
+    ratio = signed_volumes(_static_positions(model, static), model.tets) / model.rest_volumes
+    own_lo, own_hi = overshoot_range(ratio - 1.0, margin)
+    wider = (own_lo + 1.0 < lo) | (own_hi + 1.0 > hi)
+    if wider.any():
+        log.info("gravity release: %d tet(s) verified on a wider volume ratio range than their "
+                 "connectors' strain ranges give: their static volume ratios (%.3g .. %.3g) need "
+                 "it", int(np.count_nonzero(wider)), float(ratio[wider].min()),
+                 float(ratio[wider].max()))
+    return (np.maximum(np.minimum(lo, own_lo + 1.0), 0.0), np.maximum(hi, own_hi + 1.0))
 
 
 def connector_strains(model: Model, displacement: np.ndarray) -> np.ndarray:

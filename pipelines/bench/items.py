@@ -99,26 +99,30 @@ def default_run(scene: Scene, cache: Path, *, ranks: int, progress: bool
 # ---------------------------------------------------------------------------- particle dt axis
 
 def calibrated_release(scene: Scene, folder: Path, reference: Reference):
-    """(calibrated Model, per-connector strain range of its release) as the gravity stage has them.
+    """(calibrated Model, the ranges of its release as keywords ``strain_range`` and
+    ``volume_range``) as the gravity stage has them.
 
-    The range is :func:`~particle.stability.release_strain_range` of the stage's own
-    static sag (``gravity.h5``), so steps chosen for it are the ones ``make demo`` uses;
-    without that file (the gravity stage failed) the default range +-0.5, with a warning.
+    The ranges are :func:`~particle.experiments.release_ranges` of the stage's own static
+    sag (``gravity.h5``), so steps chosen for them are the ones ``make demo`` uses; without
+    that file (the gravity stage failed) the default strain range +-0.5, with a warning.
     """
     from calibration import read_params
+    from particle.experiments import release_ranges
     from particle.model import build_model
-    from particle.stability import DEFAULT_STRAIN_RANGE, release_strain_range
+    from particle.stability import DEFAULT_STRAIN_RANGE
     from pipelines.gravity import read_gravity
 
+    params = read_params(folder / PARAMS)
     model = build_model(reference.problem, scene.material.density,
-                        read_params(folder / PARAMS).connectors["calibrated"],
+                        params.connectors["calibrated"],
                         volume_element=scene.particle.volume_element)
     if not (folder / GRAVITY).is_file():
         log.warning("bench: no %s (the gravity stage failed): particle gravity runs use the "
                     "default strain range %s", folder / GRAVITY, DEFAULT_STRAIN_RANGE)
-        return model, DEFAULT_STRAIN_RANGE
+        return model, {"strain_range": DEFAULT_STRAIN_RANGE, "volume_range": None}
     static = read_gravity(folder / GRAVITY).models["calibrated"].static_displacement
-    return model, release_strain_range(model, static, scene.particle.strain_margin)
+    strains, volumes = release_ranges(model, static, scene.particle, params.strain.bounds)
+    return model, {"strain_range": strains, "volume_range": volumes}
 
 
 def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[dict[str, Any]]:
@@ -136,19 +140,19 @@ def dt_sweep(scene: Scene, folder: Path, fractions: tuple[float, ...]) -> list[d
     reference = read_reference(folder / REFERENCE)
     model, release = calibrated_release(scene, folder, reference)
     damping = scene.particle.damping
-    critical = critical_time_step(model, strain_range=release, damping=damping)
+    critical = critical_time_step(model, damping=damping, **release)
     g = np.asarray(scene.gravity.acceleration, dtype=float)
     times = reference.gravity.time
     node = reference.problem.tracked_node
     fe = reference.gravity.displacement[:, node]
     gravity_dynamic(model, g, float(times[2]), critical, times[:3], damping=damping,
-                    strain_range=release)  # compile
+                    **release)  # compile
     if scene.particle.dt == "auto":
         fractions = (*fractions, scene.particle.dt_safety)
     runs = []
     for f in sorted(set(fractions)):
         u, wall = bc.timed(gravity_dynamic, model, g, float(times[-1]), f * critical, times,
-                           damping=damping, strain_range=release)
+                           damping=damping, **release)
         runs.append((f, u[:, node], wall))
     finest = runs[0][1]
     default = scene.particle.dt_safety if scene.particle.dt == "auto" else None
@@ -357,7 +361,7 @@ def particle_items(scene: Scene, folder: Path, quick: bool) -> dict[str, Any]:
     calibrated, release = calibrated_release(scene, folder, reference)
     dynamics = pb.gravity_realtime(calibrated, g, duration=scene.gravity.duration,
                                    record_interval=scene.gravity.record_interval,
-                                   safety=scene.particle.dt_safety, strain_range=release)
+                                   safety=scene.particle.dt_safety, **release)
     fe_dynamic = json.loads(reference.meta["timings_s"])["gravity_dynamic"]
     skip = pb.skip_timings(uniform, g, duration=1.0 if quick else scene.gravity.duration)
     top = int(np.argmax(large_mesh.vertices[:, 2]))
