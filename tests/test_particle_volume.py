@@ -1,5 +1,6 @@
 """The per-tet volume term (particle/volume.py): closed forms, twins, tangent, stability, refusals."""
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -9,7 +10,9 @@ from forcecal.errors import MeshError, ParameterError, StabilityError
 from particle import kernels
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.integrator import VerletIntegrator
-from particle.stability import critical_time_step
+from particle.experiments import release_ranges
+from particle.stability import (critical_time_step, release_volume_range, step_bound,
+                                strain_range_for_release)
 from particle.model import ModelBuilder, Prescribed
 from particle.reference_numpy import step_numpy
 from particle.statics import EquilibriumSolver, TangentPattern, gravity_static, tangent_data
@@ -19,7 +22,7 @@ from tests.particle_models import (box_model, compiled_and_numpy_steps, haptic_p
 from particle.volume import (add_volume_tangent, add_volume_tangent_numpy,
                              network_bulk_modulus, signed_volumes, volume_arm_pressures_numpy,
                              volume_energy, volume_forces_numpy, volume_hessian_numpy,
-                             volume_kv_sensitivity_numpy, volume_strains)
+                             volume_kv_sensitivity_numpy, volume_ratio_range, volume_strains)
 from pipelines.bench.empirical_limit import bisect, blows_up
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -475,3 +478,221 @@ def test_volume_tangent_compiles_its_block_helper_once_and_matches_the_numpy_twi
     volume.add_volume_tangent_numpy(x, tets, rest, kv, slots, twin)
     assert len(volume._add_tet_block.signatures) == 1
     np.testing.assert_allclose(data, twin, rtol=1e-12, atol=1e-12 * np.abs(twin).max())
+
+
+# ------------------------------------------------------------- the gravity release's volume range
+
+#: the flat tet's apex mass [kg], base area [m^2] (equilateral, circumradius 20 mm)
+APEX_MASS, BASE_AREA = 1e-3, 0.75 * np.sqrt(3.0) * 0.02 ** 2
+#: its volume stiffness [Pa] for a static sag to V/V0 = 0.6 under GRAVITY (the volume term
+#: carrying the apex: kv A/3 (1 - J) = m g)
+SAG_KV = 3.0 * APEX_MASS * 9.81 / (0.4 * BASE_AREA)
+
+
+def flat_tet(kv=SAG_KV, K0=1.0, free=(False, False, False, True), arms=None):
+    """A flat tet (sliver): an equilateral base of circumradius R = 20 mm in z = 0 under an
+    apex at height h = R/4 above its centre, the apex 1 g, the base vertices 10 g; linear
+    springs K0 [N/m] on the edges (arms of negligible stiffness), kv [Pa] on the tet (with
+    ``arms`` (kv1, kv2) [Pa], relaxation times 0.05 / 0.5 s), ``free`` the vertices that move.
+    Lowering the apex by d shrinks V/V0 to 1 - d/h while its edges shorten by only about
+    h d/(R^2 + h^2): the volume falls 18x faster than a uniform compression of the edges."""
+    R, h = 0.02, 0.005
+    angles = 2 * np.pi * np.arange(3) / 3
+    x = np.vstack([np.column_stack([R * np.cos(angles), R * np.sin(angles), np.zeros(3)]),
+                   [[0.0, 0.0, h]]])
+    builder = ModelBuilder()
+    builder.add_particles(x, np.array([1e-2, 1e-2, 1e-2, APEX_MASS]), ~np.array(free))
+    builder.add_connectors([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    params = dataclasses.replace(viscoelastic_params(6, K0, **ELASTIC), kv=np.array([kv]))
+    model = builder.finalize(params, tets=np.array([[0, 1, 2, 3]]))
+    return model if arms is None else with_kv(model, kv, arms)
+
+
+def apex_lowered(model, ratio):
+    """(4, 3) displacement [m] lowering the flat tet's apex to V/V0 = ``ratio``."""
+    u = np.zeros((4, 3))
+    u[3, 2] = -(1.0 - ratio) * model.rest_positions[3, 2]
+    return u
+
+
+def volume_ratio(model, displacement):
+    """V/V0 of the (one) tet at ``displacement`` (..., N, 3) [m]."""
+    x = model.rest_positions + np.asarray(displacement)
+    return np.array([signed_volumes(y, model.tets)[0] for y in x.reshape(-1, *x.shape[-2:])]
+                    ).reshape(x.shape[:-2]) / model.rest_volumes[0]
+
+
+def test_the_release_volume_range_is_the_connectors_rule_on_each_tets_volume_strain():
+    """release_volume_range on the flat tet: the apex lowered to V/V0 = J_s with the edges
+    barely shorter, so the cube of the connectors' release range misses the tet's own
+    static volume. The range is that one widened to 1 + [min(0, 2 j_s) - m, max(0, 2 j_s) +
+    m] (j_s = J_s - 1): twice the static volume strain with the margin (J_s = 0.8, m = 0.05:
+    0.55; J_s = 0.6: 0.15), cut at 0 (J_s = 0.3, and a statically inverted tet, J_s = -0.2),
+    the upper end kept where the cube range is wider. A tet whose static overshoot is inside
+    the cube range keeps it bit for bit; no range without the volume term."""
+    model = flat_tet()
+    for ratio, expected in ((0.8, 0.55), (0.6, 0.15), (0.3, 0.0), (-0.2, 0.0)):
+        static = apex_lowered(model, ratio)
+        strains = strain_range_for_release(model, static, 0.05)
+        cube_lo, cube_hi = volume_ratio_range(model, *strains)
+        j_lo, j_hi = release_volume_range(model, static, 0.05, strains)
+        assert cube_lo[0] > ratio  # the edges shorten by at most 4 %: the cube misses J_s
+        assert j_lo[0] == pytest.approx(expected, abs=1e-12)
+        assert j_hi[0] == cube_hi[0]  # (1 + m)^3 > 1 + m: the cube's upper end is wider
+    # the apex raised to V/V0 = 1.02: 1 + 2 x 0.02 + 0.05 is inside the cube's upper end
+    static = apex_lowered(model, 1.02)
+    strains = strain_range_for_release(model, static, 0.05)
+    cube = volume_ratio_range(model, *strains)
+    own = release_volume_range(model, static, 0.05, strains)
+    assert np.array_equal(own[0], cube[0]) and np.array_equal(own[1], cube[1])
+    springs = model.with_params(dataclasses.replace(model.params, kv=None))
+    assert release_volume_range(springs, static, 0.05, strains) is None
+
+
+def test_a_sliver_squeezed_beyond_its_edges_range_is_verified_and_its_release_runs():
+    """The flat tet's apex sagging under gravity (springs 1 N/m, kv for a sag to V/V0 = 0.6:
+    the volume term carries the weight, up to the springs' share of a few %). Released from
+    rest, the undamped elastic apex swings to twice its static volume strain, V/V0 = 0.2,
+    far below the cube of its connectors' release range (0.76 with the margin 0.05). The
+    gravity test (static sag, then the release at the step chosen for its ranges) completes
+    and reaches V/V0 = 2 J_s - 1 (2e-2: the springs' share and the sampling at 0.5 ms),
+    inside the range it verified (from 0.15); the same run on the cube range alone stops at
+    its lower end, naming the tet."""
+    from forcecal.scene import ParticleSection
+    from particle.experiments import gravity_dynamic, gravity_test
+    model = flat_tet()
+    particle = ParticleSection(strain_margin=0.05)
+    times = np.linspace(0.0, 0.3, 601)  # about three periods of the apex (0.09 s)
+    test = gravity_test(model, GRAVITY, times, load_steps=2, particle=particle,
+                        strain_range=(-0.5, 0.5), name="flat tet")
+    static = volume_ratio(model, test.static_displacement)
+    assert static == pytest.approx(0.6, abs=0.02)
+    strains, volumes = release_ranges(model, test.static_displacement, particle, (-0.5, 0.5))
+    cube = volume_ratio_range(model, *strains)[0][0]
+    ratios = volume_ratio(model, test.displacement)
+    assert ratios.min() == pytest.approx(2.0 * static - 1.0, abs=0.02)
+    assert volumes[0][0] < ratios.min() and cube > 0.75
+    with pytest.raises(StabilityError, match=rf"tet 0 \(particles 0-1-2-3\) reached volume ratio "
+                       rf"V/V0 = 0\.7\d+ at step \d+ .* outside \[{cube:.4g}, "):
+        gravity_dynamic(model, GRAVITY, times[-1], test.dt, times, strain_range=strains)
+
+
+def test_a_tet_leaving_its_release_volume_range_still_stops_the_run_naming_it():
+    """The flat tet released on the volume range of half its static sag without margin (V/V0
+    down to 1 + 2 (0.8 - 1) = 0.6, below the cube range of its strains): the apex swings to
+    0.2, so the run stops with StabilityError naming the tet, its volume ratio and the
+    range, never NaN."""
+    from particle.experiments import gravity_dynamic
+    model = flat_tet()
+    static = gravity_static(model, GRAVITY)
+    strains = strain_range_for_release(model, static, 0.05)
+    volumes = release_volume_range(model, 0.5 * static, 0.0, strains)
+    assert volumes[0][0] == pytest.approx(2.0 * volume_ratio(model, 0.5 * static) - 1.0,
+                                          rel=1e-12)
+    assert volumes[0][0] < volume_ratio_range(model, *strains)[0][0]
+    times = np.linspace(0.0, 0.1, 201)
+    dt = 0.9 * critical_time_step(model, strain_range=strains, volume_range=volumes)
+    with pytest.raises(StabilityError, match=r"tet 0 \(particles 0-1-2-3\) reached volume ratio "
+                       r"V/V0 = 0\.\d+ at step \d+ .* outside \[0\.6\d*, \d\.\d+\], the "
+                       r"range the step was verified stable for") as stop:
+        gravity_dynamic(model, GRAVITY, times[-1], dt, times, strain_range=strains,
+                        volume_range=volumes)
+    reached = float(re.search(r"V/V0 = ([\d.]+)", str(stop.value)).group(1))
+    assert reached < volumes[0][0]
+
+
+@pytest.mark.parametrize("arms", [None, (150.0, 100.0)], ids=["elastic", "viscoelastic"])
+def test_the_step_bound_holds_at_sampled_states_of_a_volume_range_below_the_cube_one(arms):
+    """Rigour on a given volume range: the flat tet with every vertex free (its curvature
+    blocks d^2V/dp_a dp_b all present), strains in +-0.1 (the cube range [0.729, 1.331]) and
+    the release range of a static sag to V/V0 = 0.6 without margin ([0.2, 1.331]). At the
+    apex lowered to V/V0 in 0.21 .. 1 (below the cube range from 0.7 on) plus random
+    perturbations of every vertex (0.2 mm), those inside both ranges, the largest
+    mass-scaled eigenvalue of the exact tangent (linear springs: K0 e e^T + F/l (I - e e^T)
+    per connector; the volume term's numpy Hessian, with the arms at their largest step
+    coefficient kv1 + kv2 and a summed pressure of +- their bound (kv1 + kv2)(J_hi - J_lo))
+    is at most the step bound of these ranges, which is above the cube range's."""
+    K0 = 20.0
+    model = flat_tet(kv=2000.0, K0=K0, free=(True,) * 4, arms=arms)
+    lo, hi = np.full(6, -0.1), np.full(6, 0.1)
+    volumes = release_volume_range(model, apex_lowered(model, 0.6), 0.0, (lo, hi))
+    assert volumes[0][0] == pytest.approx(0.2, rel=1e-12)
+    assert volumes[1][0] == pytest.approx(1.1 ** 3, rel=1e-12)
+    omega2 = step_bound(model, (lo, hi), volume_range=volumes).omega2
+    assert omega2 > step_bound(model, (lo, hi)).omega2
+    rng = np.random.default_rng(3)
+    scale = np.repeat(1.0 / np.sqrt(model.masses), 3)
+    largest, below_cube = 0.0, 0
+    for ratio in np.linspace(0.21, 1.0, 9):
+        for k in range(4):
+            x = model.rest_positions + apex_lowered(model, ratio)
+            x += (0.0 if k == 0 else 2e-4) * rng.standard_normal(x.shape)
+            d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+            length = np.linalg.norm(d, axis=1)
+            strain = length / model.rest_lengths - 1.0
+            j = signed_volumes(x, model.tets)[0] / model.rest_volumes[0]
+            if not (np.all((lo <= strain) & (strain <= hi))
+                    and volumes[0][0] < j <= volumes[1][0]):
+                continue
+            below_cube += j < 0.9 ** 3
+            tangent = np.zeros((12, 12))
+            for (a, b), e, l, l0 in zip(model.edges, d, length, model.rest_lengths):
+                n = np.outer(e, e) / l ** 2
+                block = K0 * n + K0 * (l - l0) / l * (np.eye(3) - n)
+                for p, q, sign in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
+                    tangent[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sign * block
+            for sign in ((None,) if arms is None else (-1.0, 1.0)):
+                extra = () if arms is None else (
+                    sum(arms), sign * sum(arms) * (volumes[1][0] - volumes[0][0]))
+                full = tangent + volume_hessian_numpy(x, model.tets[0], model.rest_volumes[0],
+                                                      model.params.kv[0], *extra)
+                top = float(np.linalg.eigvalsh(scale[:, None] * full * scale[None, :]).max())
+                largest = max(largest, top)
+                assert top <= omega2
+    assert below_cube >= 8 and largest > 0.0
+
+
+@VOLUME_TERMS
+def test_a_release_whose_static_volumes_are_inside_the_cube_range_is_unchanged(arms):
+    """A box with the volume term sagging under gravity (every tet's static overshoot inside
+    the cube of its connectors' release range, margin 0.2): the release's volume range is
+    that cube range bit for bit, so are its stable step and its displacements (the run as
+    it was without a range of the tets' own)."""
+    from forcecal.scene import ParticleSection
+    from particle.experiments import gravity_dynamic
+    model = with_kv(box_model((3, 3, 2), K0=10.0, a=-4.0, b=60.0), 3000.0, arms)
+    static = gravity_static(model, GRAVITY)
+    strains, volumes = release_ranges(model, static, ParticleSection(), (-0.5, 0.5))
+    cube = volume_ratio_range(model, *strains)
+    assert np.array_equal(volumes[0], cube[0]) and np.array_equal(volumes[1], cube[1])
+    assert np.abs(volume_ratio(model, static) - 1.0).max() > 0.01  # the sag changes volumes
+    dt = critical_time_step(model, strain_range=strains)
+    assert critical_time_step(model, strain_range=strains, volume_range=volumes) == dt
+    times = np.linspace(0.0, 0.05, 11)
+    before = gravity_dynamic(model, GRAVITY, times[-1], 0.9 * dt, times, strain_range=strains)
+    after = gravity_dynamic(model, GRAVITY, times[-1], 0.9 * dt, times, strain_range=strains,
+                            volume_range=volumes)
+    assert np.array_equal(before, after) and np.abs(after).max() > 0.0
+
+
+def test_a_given_volume_ratio_range_is_checked_naming_the_tet():
+    """verified_ratio_range refuses a range it could not verify or bound: the wrong shape, a
+    lower end below 0 or above 1 (the rest state), an upper end below 1, non-finite ends;
+    ParameterError naming the tet. The runs and the stable step check it the same way."""
+    from particle.volume_bounds import verified_ratio_range
+    model = with_kv(box_model((2, 2, 2)), 1000.0)
+    n = model.n_tets
+    lo, hi = np.full(model.n_connectors, -0.1), np.full(model.n_connectors, 0.1)
+    with pytest.raises(ParameterError, match=r"expected one per tet \(%d,\)" % n):
+        verified_ratio_range(model, lo, hi, (np.zeros(3), np.ones(3)))
+    for j_lo, j_hi in ((-0.1, 2.0), (1.1, 2.0), (0.5, 0.9), (np.nan, 2.0), (0.5, np.inf)):
+        bad = (np.full(n, 0.5), np.full(n, 2.0))
+        bad[0][4], bad[1][4] = j_lo, j_hi
+        with pytest.raises(ParameterError, match=r"tet 4 \(particles [0-9-]+\): volume ratio "
+                           r"range .* must be finite with 0 <= lo <= 1 <= hi"):
+            verified_ratio_range(model, lo, hi, bad)
+        with pytest.raises(ParameterError, match=r"tet 4 "):
+            VerletIntegrator(strain_range=(lo, hi), volume_range=bad).prepare(model, 1e-5)
+    good = (np.full(n, 0.5), np.full(n, 2.0))
+    checked = verified_ratio_range(model, lo, hi, good)
+    assert np.array_equal(checked[0], good[0]) and np.array_equal(checked[1], good[1])
