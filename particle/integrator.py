@@ -596,8 +596,8 @@ def volume_exit(run: Run, state: State, t: int, step: int, final: bool = False
     return StabilityError(f"{tet_name(t, model.tets)} reached volume ratio V/V0 = {ratio:.4g} "
                           f"{where}, outside [{lo[t]:.4g}, {hi[t]:.4g}], the range the step "
                           "was verified stable for; the run stopped rather than continue with "
-                          "an unverified step (a wider strain range widens it; in a scene's gravity "
-                          "release, so does a larger particle.strain_margin)")
+                          "an unverified step (a wider strain range widens it; in a scene's "
+                          "gravity release, so does a larger particle.strain_margin)")
 
 
 def strain_exit(run: Run, state: State, e: int, t: float, final: bool = False

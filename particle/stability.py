@@ -7,8 +7,8 @@ stay in given ranges (the run verifies them while stepping). The ranges come fro
 too: the default +-0.5, the range of a release from a static sag
 (:func:`strain_range_for_release`, :func:`release_strain_range` for the gravity stage,
 and each tet's :func:`release_volume_range`, all from :func:`overshoot_range`), the
-interval where a nonlinear spring stays positive (:func:`positive_spring_range`). The empirical
-limit the bound is checked against by the tests and ``make bench`` is in
+interval where a nonlinear spring stays positive (:func:`positive_spring_range`). The
+empirical limit the bound is checked against by the tests and ``make bench`` is in
 :mod:`pipelines.bench.empirical_limit` (a bisection over real runs of the integrator).
 """
 
@@ -418,10 +418,9 @@ def release_volume_range(model: Model, static: np.ndarray, margin: float,
     compression is not capped short of that: the volume term's pressure bound stays finite
     down to ``V = 0`` (``kv |J - 1| <= kv`` below rest,
     :func:`particle.volume_bounds._tet_bounds`), while a spring's transverse stiffness grows
-    without bound as its length goes to 0. Where the cube range
-    already holds the overshoot it is the cube range, unchanged. The step is chosen for
-    this range (:func:`particle.volume_bounds.verified_ratio_range`) and the run verifies
-    it.
+    without bound as its length goes to 0. Where the cube range already holds the overshoot
+    it is the cube range, unchanged. The step is chosen for this range
+    (:func:`particle.volume_bounds.verified_ratio_range`) and the run verifies it.
     """
     if model.params.kv is None:
         return None
