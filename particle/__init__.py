@@ -21,6 +21,7 @@ builder, mutable State, integrators and solvers apart):
 """
 import forcecal  # noqa: F401  (settles the numba cache folder before numba is imported: forcecal.caches)
 import particle.numba_fixes  # noqa: F401  (fixes numba's inliner before anything is compiled)
+import particle.numba_cache  # noqa: F401  (cached kernels keyed on the kernel sources: before any is decorated)
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator
 from particle.experiments import gravity_dynamic, relaxation_dynamic
 from particle.haptics import HapticSession
