@@ -34,6 +34,7 @@ import math
 import operator
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -355,6 +356,10 @@ class ImplicitSession:
         size = len(flat)
         self._scratch = (mass, flat, np.zeros(size), np.empty(size), np.empty(size))
         self._factors: dict[int, tuple] = {}
+        # implicit_step's compiled entry point by tool: its arguments' fingerprints are past
+        # the length numba's dispatch caches intact (particle.dispatch), and every call has
+        # the same argument types
+        self._entries: dict[int, object] = {}
         self._scheme = scheme.arguments(self.h)
         # at rest: the forces, and the consistent initial acceleration M^-1 f(x_0)
         none = index_view(np.zeros(0, np.int64))
@@ -402,7 +407,7 @@ class ImplicitSession:
             raise MeshError(f"tool node {tool_node!r} must be an integer particle id") from None
         if not 0 <= node < self.model.n_particles or self.model.fixed[node]:
             raise MeshError(f"tool node {node} is not a free particle of the model")
-        target = np.asarray(tool_position, dtype=np.float64)
+        target = np.array(tool_position, dtype=np.float64)  # C-contiguous: the typed entry's
         if target.shape != (3,) or not np.all(np.isfinite(target)):
             raise ParameterError(f"tool position {tool_position!r} must be 3 finite "
                                  "coordinates [m]")
@@ -417,9 +422,15 @@ class ImplicitSession:
     def _advance(self, tool: int, target: np.ndarray) -> None:
         factor, constraint = self._constraint(tool)
         if self.scheme.iterations == 1:
-            inverted, finite = implicit_step(self._state, self._forces, self._scheme, factor,
-                                             constraint, target, self._scratch, self._groups,
-                                             self._tool_force)
+            args = (self._state, self._forces, self._scheme, factor, constraint, target,
+                    self._scratch, self._groups, self._tool_force)
+            entry = self._entries.get(tool)
+            if entry is None:  # typed once (numba.typeof: ~0.4 ms), then called directly
+                inverted, finite = implicit_step(*args)
+                signature = tuple(numba.typeof(a) for a in args)
+                self._entries[tool] = implicit_step.overloads[signature].entry_point
+            else:
+                inverted, finite = entry(*args)
         else:
             inverted, finite = self._iterated(factor, constraint, target)
         self.t += self.h

@@ -214,6 +214,25 @@ def support_stability_answer(r: Result) -> str:
     return "; ".join(parts)
 
 
+def implicit_haptics_answer(r: Result) -> str:
+    parts = []
+    for row in r["rows"]:
+        e, f = row["explicit"], row["floor"]
+        said = (f"{row['mesh']}, {row['terms']}: explicit p99 {e['p99_us']:.0f} us, one solve "
+                f"{f['solve']['median_us']:.0f} us + one force pass "
+                f"{f['force']['median_us']:.0f} us")
+        newmark = next((i for i in row["implicit"] if i["scheme"] == "newmark"), None)
+        if newmark is not None:
+            errors = (f"drag {newmark['error_drag']:.1e}" if newmark["error_drag"] is not None
+                      else "drag diverged") + (
+                f", release {pct(newmark['error_release'])}"
+                if newmark["error_release"] is not None else ", release diverged")
+            said += f"; Newmark p99 {newmark['p99_us']:.0f} us, {errors}"
+        parts.append(said)
+    wins = ", ".join(r["wins"]) or "none"
+    return "; ".join(parts) + f"; faster and within the error rules: **{wins}**"
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -250,6 +269,11 @@ STUDIES = (
           "going to zero: the organ tips over on its seat)?",
           "runs/studies/support_stability*.json", support_stability_command,
           support_stability_answer),
+    Study("implicit_haptics", "Would one linearised implicit step per 1 ms (Newmark or "
+          "HHT-alpha on the tangent factorised at rest) beat the exact explicit haptic step at "
+          "large sizes, within 1e-3 of its drag force and 1 % RMS of its release?",
+          "runs/studies/implicit_haptics*.json", lambda path, r: r["command"],
+          implicit_haptics_answer),
 )
 
 

@@ -19,8 +19,11 @@ pattern: a tet's vertex pairs are connectors, so the substitution costs the same
 bench's reference: ``particle.dt_safety`` x the rigorous stable step) and each scheme of
 :data:`SCHEMES` on the bench's drag (the top vertex 5 mm down over 0.25 s, then held, every
 call timed) and release (3 s from rest under a quarter of the scene's gravity, the tracked
-vertex every 5 ms), with the bench's errors against the explicit run. ``newmark,
-converged`` iterates each step to convergence on the same factor (not a haptic candidate:
+vertex every 5 ms), with the bench's errors against the explicit run (``error_drag`` over
+the drag's first second, ``error_release``), the same error over the drag's last second
+(``error_drag_end``: the tool held 9.75 s, where a growing mode shows), the time a release
+diverged at (``release_diverged_s``) and the spread of its last second over the explicit
+one's (``release_amplitude_ratio``: below 1, damped). ``newmark, converged`` iterates each step to convergence on the same factor (not a haptic candidate:
 it separates the time discretisation's error from the linearisation's). The implicit drags
 are run where the floor puts one under :data:`MAX_DRAG_S`. The release's lowest natural
 frequency gives the analytic damping of backward Euler there and Newmark's period error
@@ -56,6 +59,7 @@ CALLS = 10_000  # timed calls per drag (the haptic goals' p99 is of at least thi
 FLOOR_CALLS = 1_000  # timed substitutions and force evaluations per model
 MAX_DRAG_S = 60.0  # the implicit drags are run where the floor puts one under this [s]
 ERROR_RULES = {"drag": 1e-3, "release": 1e-2}  # a variant's allowed errors against float64
+RECORD_S = 0.005  # s: the release's record interval (the bench's)
 SCHEMES = (NEWMARK, Scheme("hht -0.05", alpha=-0.05), Scheme("hht -0.3", alpha=-0.3),
            Scheme("backward euler", euler=True),
            Scheme("newmark, converged", iterations=4))
@@ -261,23 +265,32 @@ def mesh_rows(name: str, model: Model, tool: int, tracked: int, gravity: np.ndar
         with holding(lock if timed else None):
             drag = implicit_drag(model, scheme, tool, calls=calls if timed else window,
                                  ramp_calls=bh.RAMP_CALLS, depth=0.005, direction=bh.DOWN)
-        release = implicit_release(model, scheme, release_gravity, tracked)
+        release = implicit_release(model, scheme, release_gravity, tracked,
+                                   record_interval=RECORD_S)
         done = drag["diverged"] is None and np.all(np.isfinite(release))
         drag_error = (pb.relative_history_error(drag["forces"][:window],
                                                 reference["forces"][:window])
                       if drag["diverged"] is None or drag["diverged"]["call"] >= window
                       else None)
-        release_error = amplitude = None
+        release_error = amplitude = release_diverged_s = None
         if np.all(np.isfinite(release)):
             release_error = pb.relative_history_error(release, ref_release)
             amplitude = float(np.linalg.norm(np.std(release[-200:], axis=0))
                               / np.linalg.norm(spread))
+        else:
+            release_diverged_s = RECORD_S * int(np.argmax(~np.isfinite(release[:, 0])))
+        # the held tool's force over the drag's last second: where an instability shows
+        end = len(drag["forces"]) if drag["diverged"] is None else 0
+        end_error = (pb.relative_history_error(drag["forces"][end - window:end],
+                                               reference["forces"][end - window:end])
+                     if end >= 2 * window else None)
         entry = {"scheme": scheme.name, "alpha": scheme.alpha, "euler": scheme.euler,
                  "iterations": scheme.iterations, "calls": len(drag["latencies_us"]),
                  "diverged": drag["diverged"],
                  **(timings(drag["latencies_us"]) if timed and len(drag["latencies_us"])
                     else {}),
-                 "error_drag": drag_error, "error_release": release_error,
+                 "error_drag": drag_error, "error_drag_end": end_error,
+                 "error_release": release_error, "release_diverged_s": release_diverged_s,
                  "release_amplitude_ratio": amplitude}
         entry["within_rules"] = bool(done and drag_error <= ERROR_RULES["drag"]
                                      and release_error <= ERROR_RULES["release"])
@@ -327,13 +340,15 @@ def summary_line(row: dict[str, Any]) -> str:
             f"({e['substeps']} substeps); floor: solve {f['solve']['median_us']:7.0f} us + "
             f"force {f['force']['median_us']:5.0f} us")
     for i in row["implicit"]:
-        err = ("drag -" if i["error_drag"] is None else f"drag {i['error_drag']:.1e}") + (
-            ", release -" if i["error_release"] is None
-            else f", release {i['error_release']:.1e}")
+        def err(key, i=i):
+            return "-" if i[key] is None else f"{i[key]:.1e}"
         timed = (f"p99 {i['p99_us']:7.0f} us, median {i['median_us']:7.0f} us" if "p99_us" in i
                  else "(not timed)")
-        text += (f"\n    {i['scheme']:18s} {timed}; {err}"
-                 + (f"; diverged at call {i['diverged']['call']}" if i["diverged"] else ""))
+        text += (f"\n    {i['scheme']:18s} {timed}; drag {err('error_drag')} (last second "
+                 f"{err('error_drag_end')}), release {err('error_release')}"
+                 + (f"; drag diverged at call {i['diverged']['call']}" if i["diverged"] else "")
+                 + (f"; release diverged at {i['release_diverged_s']:.2f} s"
+                    if i["release_diverged_s"] is not None else ""))
     return text
 
 
