@@ -223,11 +223,12 @@ def implicit_haptics_answer(r: Result) -> str:
                 f"{f['force']['median_us']:.0f} us")
         newmark = next((i for i in row["implicit"] if i["scheme"] == "newmark"), None)
         if newmark is not None:
-            errors = (f"drag {newmark['error_drag']:.1e}" if newmark["error_drag"] is not None
-                      else "drag diverged") + (
-                f", release {pct(newmark['error_release'])}"
-                if newmark["error_release"] is not None else ", release diverged")
-            said += f"; Newmark p99 {newmark['p99_us']:.0f} us, {errors}"
+            said += f"; Newmark p99 {newmark['p99_us']:.0f} us, drag "
+            said += (f"{newmark['error_drag']:.1e}" if newmark["diverged"] is None else
+                     f"diverged after {newmark['diverged']['call'] * r['period_s']:.1f} s")
+            said += (f", release {pct(newmark['error_release'], 2)}"
+                     if newmark["release_diverged_s"] is None
+                     else f", release diverged after {newmark['release_diverged_s']:.2f} s")
         parts.append(said)
     wins = ", ".join(r["wins"]) or "none"
     return "; ".join(parts) + f"; faster and within the error rules: **{wins}**"

@@ -19,15 +19,32 @@ pattern: a tet's vertex pairs are connectors, so the substitution costs the same
 bench's reference: ``particle.dt_safety`` x the rigorous stable step) and each scheme of
 :data:`SCHEMES` on the bench's drag (the top vertex 5 mm down over 0.25 s, then held, every
 call timed) and release (3 s from rest under a quarter of the scene's gravity, the tracked
-vertex every 5 ms), with the bench's errors against the explicit run (``error_drag`` over
-the drag's first second, ``error_release``), the same error over the drag's last second
+vertex every 5 ms), with the bench's errors against the explicit run (``error_drag`` over the
+drag's first second, ``error_release``), the same error over the drag's last second
 (``error_drag_end``: the tool held 9.75 s, where a growing mode shows), the time a release
 diverged at (``release_diverged_s``) and the spread of its last second over the explicit
-one's (``release_amplitude_ratio``: below 1, damped). ``newmark, converged`` iterates each step to convergence on the same factor (not a haptic candidate:
-it separates the time discretisation's error from the linearisation's). The implicit drags
-are run where the floor puts one under :data:`MAX_DRAG_S`. The release's lowest natural
-frequency gives the analytic damping of backward Euler there and Newmark's period error
-(:func:`analytic_damping`).
+one's (``release_amplitude_ratio``: below 1, damped). ``newmark, converged`` iterates each
+step to convergence on the same factor (not a haptic candidate: it tells the time
+discretisation's error from the linearisation's). The implicit drags are run where the floor
+puts one under :data:`MAX_DRAG_S`. The release's lowest natural frequency gives the analytic
+damping of backward Euler there and Newmark's period error (:func:`analytic_damping`), and
+:func:`frozen_amplification` what a step frozen at the rest tangent does to a mode whose
+stiffness has moved away from it (``frozen_tangent``).
+
+**The answer** (``runs/studies/implicit_haptics.json``): no implicit variant is both faster
+than the explicit step and within the error rules, at any size. The substitution alone is
+above the explicit p99 on the 12k and 54k livers (1.1 ms and 21 ms against 0.23 and 1.2 ms
+springs + arms; with the relaxing volume term one substitution and one force pass, 1.2 ms,
+match the explicit p99, and the 54k one's 22 ms is 2.6x it); the factor is read twice per
+substitution (9.5 and 115 MB), so its time follows its size. On the default liver the step's
+p99 exceeds the explicit one's too. And the step frozen at the rest tangent is not accurate
+enough: a mode the deformed state stiffens grows by the step's amplification (1.016 per step
+at omega h = 1 and 5 % stiffer), one it softens is damped: the 12k liver's held drag
+diverges after 4.1 s under Newmark, HHT-alpha at -0.3 stays stable but misses the release
+rule on the 12k liver, and backward Euler damps every release by 7-9 % RMS. Converged,
+Newmark meets both rules but for the default liver's drag with the relaxing volume term
+(1.5e-3: the 1 ms step itself), so the linearisation is what costs the accuracy, and four
+solves per step cost four times the floor.
 
 ``python -m studies.implicit_haptics --out runs/studies/implicit_haptics.json [--calls 10000]
 [--mesh NAME ...] [--lock FILE]``: ``--lock`` holds FILE while timing (created with this
@@ -228,6 +245,29 @@ def analytic_damping(frequency: float, h: float = PERIOD, duration: float = 3.0
             "newmark_period_error": wh / (2.0 * math.atan(0.5 * wh)) - 1.0}
 
 
+def frozen_amplification(scheme: Scheme, ratio: float, omega_h: float) -> float:
+    """Spectral radius of one linearised step (:mod:`studies._implicit_step`) of an undamped
+    one-dof oscillator whose stiffness is ``ratio`` x the frozen one the step's matrix holds
+    (``omega_h``: the frozen stiffness' omega x h): 1 for Newmark at ``ratio`` 1 (exact
+    step), above 1 where the state is stiffer than the factorised tangent (the mode grows),
+    below where it is softer (damped)."""
+    h, k0 = 1.0, omega_h ** 2  # unit mass and step: only omega h matters
+    k = ratio * k0
+    mass_coef, stiff_coef = scheme.coefficients(h)
+    beta, gamma, alpha = scheme.beta, scheme.gamma, scheme.alpha
+    columns = []
+    for x, v, a in np.eye(3):  # the map of (x, v, a); HHT's f(x_n) = -k x_n exactly
+        if scheme.euler:
+            d = (-k * x + v / h) / (mass_coef + stiff_coef * k0)
+            columns.append((x + d, d / h, 0.0))
+            continue
+        inertia = -(h * v + h * h * (0.5 - beta) * a) / (beta * h * h)
+        d = (-k * x - inertia) / (mass_coef + stiff_coef * k0)
+        a_new = (d - h * v - h * h * (0.5 - beta) * a) / (beta * h * h)
+        columns.append((x + d, v + h * ((1.0 - gamma) * a + gamma * a_new), a_new))
+    return float(np.max(np.abs(np.linalg.eigvals(np.array(columns).T))))
+
+
 def mesh_rows(name: str, model: Model, tool: int, tracked: int, gravity: np.ndarray, *,
               calls: int, lock: Path | None, schemes: tuple[Scheme, ...] = SCHEMES
               ) -> dict[str, Any]:
@@ -326,8 +366,13 @@ def measure(calls: int = CALLS, lock: Path | None = None,
             print(summary_line(rows[-1]), flush=True)
         load.append(os.getloadavg()[0])
     euler_5hz = analytic_damping(5.0)
+    frozen = [{"scheme": scheme.name, "ratio": ratio, "omega_h": wh,
+               "amplification": frozen_amplification(scheme, ratio, wh)}
+              for scheme in SCHEMES if scheme.iterations == 1
+              for ratio in (0.8, 0.95, 1.05, 1.2) for wh in (0.03, 1.0, 3.0)]
     return {"scene": str(SCENE), "period_s": PERIOD, "calls": calls,
             "error_rules": ERROR_RULES, "rows": rows, "euler_5hz": euler_5hz,
+            "frozen_tangent": frozen,
             "wins": [f"{r['mesh']}, {r['terms']}, {i['scheme']}" for r in rows
                      for i in r["implicit"] if i["within_rules"] and i["faster"]],
             "load_average": load, "cpus": os.cpu_count()}

@@ -9,7 +9,7 @@ from forcecal.errors import MeshError, ParameterError
 from particle.model import ModelBuilder
 from particle.params import ConnectorParams, viscoelastic_params
 from studies._implicit_step import NEWMARK, ImplicitSession, Scheme
-from studies.implicit_haptics import analytic_damping
+from studies.implicit_haptics import analytic_damping, frozen_amplification
 
 H = 1e-3  # s
 MASS, K0, L = 1e-3, 30.0, 0.01  # kg, N/m, m: omega = 173 rad/s, omega h = 0.17
@@ -116,6 +116,22 @@ def test_the_fixed_point_is_the_exact_nonlinear_equilibrium():
     eps = dx / L
     assert session.x[1, 0] - L == pytest.approx(dx, rel=1e-9)
     assert force == pytest.approx([-(K0 + a * eps) * dx, 0.0, 0.0], rel=1e-9, abs=1e-15)
+
+
+def test_a_step_frozen_at_another_tangent_grows_stiffer_modes_and_damps_softer_ones():
+    """The one-dof recurrence of the linearised step: exact (radius 1) for Newmark when the
+    factorised stiffness is the state's, backward Euler's closed form 1/sqrt(1 + (omega h)^2)
+    whatever the mismatch (its eigenvalues' product does not depend on it), above 1 for a
+    stiffer state and below for a softer one (the 12k liver's divergence)."""
+    euler = Scheme("backward euler", euler=True)
+    for wh in (0.03, 1.0, 3.0):
+        assert frozen_amplification(NEWMARK, 1.0, wh) == pytest.approx(1.0, abs=1e-12)
+        for ratio in (0.8, 1.2):
+            assert frozen_amplification(euler, ratio, wh) == pytest.approx(
+                (1.0 + wh * wh) ** -0.5, rel=1e-12)
+        assert frozen_amplification(NEWMARK, 1.05, wh) > 1.0 > frozen_amplification(
+            NEWMARK, 0.95, wh)
+    assert frozen_amplification(NEWMARK, 1.05, 1.0) == pytest.approx(1.0157, abs=1e-4)
 
 
 def test_bad_input_is_refused():
