@@ -1,31 +1,27 @@
-"""A linearised implicit haptic step (the study :mod:`studies.implicit_haptics`'s subject).
+"""A linearised implicit haptic step (the subject of the study :mod:`studies.implicit_haptics`).
 
-One step per device period ``h``, in residual form, so that its fixed point is the exact
-nonlinear equilibrium and only the dynamics carry the linearisation error:
+One step per device period ``h``, in residual form (its fixed point is the exact nonlinear
+equilibrium; only the dynamics carry the linearisation error):
 
 * Newmark's average acceleration (the trapezoidal rule: no numerical damping, period error
-  ``(omega h)^2 / 12``) or its HHT-alpha variant, ``M a_{n+1} + (1 + alpha) f(x_{n+1}) -
-  alpha f(x_n) = 0`` with ``beta = (1 - alpha)^2 / 4``, ``gamma = 1/2 - alpha`` (``alpha`` in
-  [-1/3, 0] damps the modes near the Nyquist rate, third order at low frequency), or backward
-  Euler, ``M (x_{n+1} - x_n - h v_n) / h^2 = f(x_{n+1})`` (it damps every mode: an undamped
-  oscillator keeps ``(1 + (omega h)^2)^(-1/2)`` of its amplitude per step);
-* the linear solve ``(m M + k K0) dx = R(x_n)`` (``m = 1/(beta h^2)``, ``k = 1 + alpha``;
-  backward Euler ``1/h^2``, 1): ``K0`` the tangent at the rest state with the Maxwell arms'
-  step coefficients ``c_i = k_i b_i / (k_i h + b_i)`` and the volume term (and its arms')
-  (:func:`particle.statics.tangent_data`), factorised once per tool particle
-  (:mod:`particle.sparse_ldl`; the tool's dofs constrained, its move entering the
-  right-hand side through the matrix's columns);
-* ``R(x_n)`` the exact nonlinear forces at the start of the step, the arms advanced by the
-  step's recursion (the model's own, ``F = r F_n + c (dx - dx_n)``, ``r = b/(k h + b)``),
-  minus the inertia that the step's kinematics give for ``x_{n+1} = x_n``; after the solve
-  one pass over the connectors and tets at ``x_{n+1}`` (:func:`end_of_step`) commits the
-  arms and writes the next step's residual forces and the force on the tool.
+  ``(omega h)^2 / 12``), its HHT-alpha variant ``M a_{n+1} + (1 + alpha) f(x_{n+1}) - alpha
+  f(x_n) = 0``, ``beta = (1 - alpha)^2 / 4``, ``gamma = 1/2 - alpha`` (``alpha`` in [-1/3, 0]
+  damps the modes near the Nyquist rate), or backward Euler ``M (x_{n+1} - x_n - h v_n) / h^2
+  = f(x_{n+1})`` (an undamped mode keeps ``(1 + (omega h)^2)^(-1/2)`` of its amplitude a step);
+* one solve ``(m M + k K0) dx = R(x_n)`` (``m = 1/(beta h^2)``, ``k = 1 + alpha``; backward
+  Euler ``1/h^2``, 1), ``K0`` the tangent at rest with the arms' step coefficients ``c_i = k_i
+  b_i / (k_i h + b_i)`` and the volume term's (:func:`particle.statics.tangent_data`),
+  factorised once per tool (:mod:`particle.sparse_ldl`; the tool's dofs constrained, its move
+  entering the right-hand side through the matrix's columns);
+* ``R(x_n)`` the exact nonlinear forces at the step's start (the arms advanced by the model's
+  own recursion ``F = r F_n + c (dx - dx_n)``) minus the inertia the kinematics give for
+  ``x_{n+1} = x_n``; after the solve one pass at ``x_{n+1}`` (:func:`end_of_step`) commits the
+  arms and writes the next residual's forces and the force on the tool.
 
-For a linear network the step is exact Newmark (or exact backward Euler); for a nonlinear
-one each step leaves the residual ``(K(x) - K0) dx``, ``dx`` one step's motion.
-``iterations`` > 1 repeats the solve on the residual at the iterate (modified Newton on the
-same factor, the forces from :func:`particle.statics.net_forces`): the converged scheme, to
-tell its time discretisation error from the linearisation's.
+For a linear network the step is exact Newmark (or backward Euler); a nonlinear one leaves the
+residual ``(K(x) - K0) dx`` each step. ``iterations`` > 1 repeats the solve on the residual at
+the iterate (modified Newton on the one factor): the converged scheme, whose error is the
+time discretisation's alone.
 """
 
 from __future__ import annotations
@@ -82,10 +78,6 @@ class Scheme:
             return 1.0 / h ** 2, 1.0
         return 1.0 / (self.beta * h * h), 1.0 + self.alpha
 
-    def arguments(self, h: float) -> tuple:
-        """The kernels' ``scheme`` group (h, alpha, beta, gamma, euler)."""
-        return (float(h), float(self.alpha), self.beta, self.gamma, bool(self.euler))
-
 
 NEWMARK = Scheme("newmark")
 
@@ -96,13 +88,9 @@ def rest_tangent(model: Model, h: float, pattern: TangentPattern, arms: bool = T
     (and the volume arms') step coefficients at the step ``h`` [s] included (``arms``
     False: without them, the tangent of a run whose arms are held at zero)."""
     p = model.params
-    zero = np.zeros(model.n_connectors)
-    if not arms:
-        return tangent_data(model, pattern, model.rest_positions, zero, p, not p.is_linear,
-                            None)
-    step, volume_arm = arm_step(model, h)
-    return tangent_data(model, pattern, model.rest_positions, zero, p, not p.is_linear, step,
-                        volume_arm)
+    step, volume_arm = arm_step(model, h) if arms else (None, None)
+    return tangent_data(model, pattern, model.rest_positions, np.zeros(model.n_connectors), p,
+                        not p.is_linear, step, volume_arm)
 
 
 def arm_step(model: Model, h: float, state: tuple | None = None
@@ -110,12 +98,9 @@ def arm_step(model: Model, h: float, state: tuple | None = None
     """(the statics' arm step of ``model``'s arms at the step ``h`` [s] from ``state`` =
     (arm forces (E, 2), elongations (E,), volume pressures (T, 2), volume strains (T,)),
     None: at rest; zero volume pressures (T, 2) with volume arms, else None)."""
-    p = model.params
-    r, c = p.arm_recursion(h)
-    e, t = model.n_connectors, model.n_tets
-    if state is None:
-        state = (np.zeros((e, 2)), np.zeros(e), np.zeros((t, 2)), np.zeros(t))
-    step = ArmStep(r, c, state[0], state[1])
+    p, e, t = model.params, model.n_connectors, model.n_tets
+    state = state or (np.zeros((e, 2)), np.zeros(e), np.zeros((t, 2)), np.zeros(t))
+    step = ArmStep(*p.arm_recursion(h), state[0], state[1])
     if p.kv is None or not p.has_volume_arms:
         return step, None
     vr, vc = p.volume_arm_recursion(h)
@@ -208,9 +193,8 @@ def residual(forces, g_end, v, acc, offset, mass, flat, scheme, rhs):
 
 @njit(**JIT)
 def update(v, acc, delta, flat, scheme):
-    """The state's velocity and acceleration (3N,) after the step's motion ``delta`` (n,) [m]
-    per dof (the positions are moved by the caller). Returns False if a motion is not
-    finite."""
+    """The velocities and accelerations (3N,) after the motion ``delta`` (n,) [m] per dof (the
+    caller moves the positions). Returns False if a motion is not finite."""
     h, alpha, beta, gamma, euler = scheme
     total = 0.0
     for k in range(flat.shape[0]):
@@ -228,17 +212,15 @@ def update(v, acc, delta, flat, scheme):
 
 @njit(**JIT)
 def first_solve(state, forces, scheme, factor, constraint, target, scratch):
-    """The step's first solve from ``x_n``: :func:`residual` of the forces ``g_next``, the
-    tool's move through the matrix's coupling entries, the substitution, and the positions
-    moved by ``delta`` (n,), which is left with the motion (the tool's to ``target`` (3,)
-    [m] included).
+    """The step's first solve from ``x_n``: :func:`residual` of ``g_next``, the tool's move
+    through the matrix's coupling entries, the substitution; the positions moved by ``delta``
+    (n,), left with the motion (the tool's to ``target`` (3,) [m] included).
 
-    ``state`` = (x (N, 3), its flat view (3N,), v (3N,), a (3N,)), ``forces`` = (g_next flat
-    (3N,), g_end flat), ``factor`` = :func:`~particle.sparse_ldl._solve_one`'s seven leading
-    arrays, ``constraint`` = (tool (-1: none), its three dofs, the coupled dofs (k,), the
-    tool's component of each (k,), the matrix entries (k,), its connectors, its tets),
-    ``scratch`` = (masses per dof (n,), each dof's flat index (n,), offset (n,) zeros, rhs
-    (n,), delta (n,)).
+    ``state`` = (x (N, 3), its flat view, v (3N,), a (3N,)), ``forces`` = (g_next, g_end)
+    flat, ``factor`` = :func:`~particle.sparse_ldl._solve_one`'s seven leading arrays,
+    ``constraint`` = (tool (-1: none), its three dofs, the coupled dofs (k,), the tool's
+    component of each, the matrix entries there, its connectors, its tets), ``scratch`` =
+    (masses per dof (n,), each dof's flat index, zeros, rhs, delta).
     """
     x, xf, v, acc = state
     tool, tool_dofs, rows, comps, values = constraint[:5]
@@ -356,11 +338,11 @@ class ImplicitSession:
         size = len(flat)
         self._scratch = (mass, flat, np.zeros(size), np.empty(size), np.empty(size))
         self._factors: dict[int, tuple] = {}
-        # implicit_step's compiled entry point by tool: its arguments' fingerprints are past
-        # the length numba's dispatch caches intact (particle.dispatch), and every call has
-        # the same argument types
+        # implicit_step's entry point by tool: its arguments' fingerprints are past the length
+        # numba's dispatch caches intact (particle.dispatch); every call has the same types
         self._entries: dict[int, object] = {}
-        self._scheme = scheme.arguments(self.h)
+        self._scheme = (self.h, float(scheme.alpha), scheme.beta, scheme.gamma,
+                        bool(scheme.euler))  # the kernels' scheme group
         # at rest: the forces, and the consistent initial acceleration M^-1 f(x_0)
         none = index_view(np.zeros(0, np.int64))
         end_of_step(self.x, springs, arm_groups, volume, loads,
@@ -444,9 +426,8 @@ class ImplicitSession:
     def _iterated(self, factor: tuple, constraint: tuple, target: np.ndarray) -> tuple:
         """The step with ``scheme.iterations`` solves (modified Newton on the one factor, the
         forces at each iterate from :func:`particle.statics.net_forces`)."""
-        mass, flat, zero, rhs, delta = self._scratch
-        x_flat = self._state[1]
-        start = x_flat[flat].copy()
+        mass, flat, _, rhs, delta = self._scratch
+        x_flat, start = self._state[1], self._state[1][flat].copy()
         first_solve(self._state, (self._g_next.reshape(-1), self._g_end.reshape(-1)),
                     self._scheme, factor, constraint, target, self._scratch)
         model, p = self.model, self.model.params
