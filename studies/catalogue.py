@@ -214,6 +214,26 @@ def support_stability_answer(r: Result) -> str:
     return "; ".join(parts)
 
 
+def implicit_haptics_answer(r: Result) -> str:
+    parts = []
+    for row in r["rows"]:
+        e, f = row["explicit"], row["floor"]
+        said = (f"{row['mesh']}, {row['terms']}: explicit p99 {e['p99_us']:.0f} us, one solve "
+                f"{f['solve']['median_us']:.0f} us + one force pass "
+                f"{f['force']['median_us']:.0f} us")
+        newmark = next((i for i in row["implicit"] if i["scheme"] == "newmark"), None)
+        if newmark is not None:
+            said += f"; Newmark p99 {newmark['p99_us']:.0f} us, drag "
+            said += (f"{newmark['error_drag']:.1e}" if newmark["diverged"] is None else
+                     f"diverged after {newmark['diverged']['call'] * r['period_s']:.1f} s")
+            said += (f", release {pct(newmark['error_release'], 2)}"
+                     if newmark["release_diverged_s"] is None
+                     else f", release diverged after {newmark['release_diverged_s']:.2f} s")
+        parts.append(said)
+    wins = ", ".join(r["wins"]) or "none"
+    return "; ".join(parts) + f"; faster and within the error rules: **{wins}**"
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -250,6 +270,11 @@ STUDIES = (
           "going to zero: the organ tips over on its seat)?",
           "runs/studies/support_stability*.json", support_stability_command,
           support_stability_answer),
+    Study("implicit_haptics", "Would one linearised implicit step per 1 ms (Newmark or "
+          "HHT-alpha on the tangent factorised at rest) beat the exact explicit haptic step at "
+          "large sizes, within 1e-3 of its drag force and 1 % RMS of its release?",
+          "runs/studies/implicit_haptics*.json", lambda path, r: r["command"],
+          implicit_haptics_answer),
 )
 
 
