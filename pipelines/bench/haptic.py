@@ -238,7 +238,7 @@ def _rows(name: str, terms: str, model, renumbering, tool: int, tracked: int,
         rows.append({
             "mesh": name, "terms": terms, "variant": v.name, "calls": calls,
             "connectors": model.n_connectors,
-            "particles": model.n_particles, "tets": model.n_tets if terms == VOLUME else 0,
+            "particles": model.n_particles, "tets": 0 if terms == SPRINGS else model.n_tets,
             "strain_range": list(strains),
             "substeps": drag["substeps"], "dt_s": drag["dt_s"], "band": v.band,
             "recentred": drag["recentred"],
