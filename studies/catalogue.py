@@ -214,6 +214,17 @@ def support_stability_answer(r: Result) -> str:
     return "; ".join(parts)
 
 
+def free_modes_answer(r: Result) -> str:
+    parts = []
+    for support in ("main", "second", "free"):
+        row = next(row for row in r["rows"]
+                   if row["support"] == support and row["modulus"] == "instantaneous")
+        parts.append(f"{support} {pct(row['calibrated']['mean_abs_frequency_error'])} "
+                     f"(baseline {pct(row['baseline']['mean_abs_frequency_error'])})")
+    return ("mean frequency error of the lowest modes, calibrated, instantaneous moduli: "
+            + ", ".join(parts))
+
+
 def implicit_haptics_answer(r: Result) -> str:
     parts = []
     for row in r["rows"]:
@@ -275,6 +286,11 @@ STUDIES = (
           "large sizes, within 1e-3 of its drag force and 1 % RMS of its release?",
           "runs/studies/implicit_haptics*.json", lambda path, r: r["command"],
           implicit_haptics_answer),
+    Study("free_modes", "Do the calibrated model's natural modes match the FE's with a "
+          "support it was not fitted with, and without any support (free-free): would "
+          "support-free modes tell the calibration what its whole-body data miss?",
+          "runs/studies/free_modes*.json", finished_run_command("free_modes"),
+          free_modes_answer),
 )
 
 
