@@ -85,7 +85,7 @@ class BodyData:
         self.model, self.kinds, self.load_steps = model, tuple(kinds), load_steps
         self.target = BodyTarget.of(body, BODY_KINDS)
         self.fitted = BodyTarget.of(body, self.kinds)
-        self.ops = RestOperators.of(model)
+        self.ops = RestOperators.of(model, unsupported=self.target.free_frequencies.size > 0)
 
     @classmethod
     def of(cls, reference: Reference, kinds: tuple[str, ...], params: ConnectorParams,

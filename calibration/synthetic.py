@@ -31,7 +31,7 @@ from forcecal.problem import Problem, body_load_directions, build_problem, secon
 from forcecal.scene import Scene, load_scene
 from forcecal.schedules import indentation_depths, record_times, relaxation_schedule
 from particle.evaluators import IndentationEvaluator, RelaxationEvaluator, normal_force
-from particle.body import RestOperators, incremental_tangent, model_modes
+from particle.body import RestOperators, incremental_tangent, model_modes, unsupported_model
 from particle.model import Model, build_model
 from particle.params import ConnectorParams
 from particle.statics import weight_equilibrium
@@ -68,16 +68,21 @@ def synthetic_body(model: Model, acceleration: np.ndarray, modes: int, load_step
     """The experiment ``body`` of ``model`` itself (what :mod:`reference_fe.body` computes
     for the FE): its ``modes`` lowest modes at both moduli (shapes mass-normalised with its
     lumped masses), its static equilibria under the weight along the two directions
-    perpendicular to ``acceleration`` and the modes about each of them."""
-    ops = RestOperators.of(model)
+    perpendicular to ``acceleration``, the modes about each of them and the unsupported
+    body's modes."""
+    ops = RestOperators.of(model, unsupported=True)
 
-    def lowest(modulus: str, stiffness=None) -> tuple[np.ndarray, np.ndarray]:
-        values, vectors, _ = model_modes(model, ops, modulus, modes, stiffness)
+    def lowest(modulus: str, stiffness=None, free: bool = False
+               ) -> tuple[np.ndarray, np.ndarray]:
+        which, which_ops = (unsupported_model(model), ops.unsupported) if free else (model, ops)
+        values, vectors, _ = model_modes(which, which_ops, modulus, modes, stiffness,
+                                         free_free=free)
         full = np.zeros((modes, model.n_particles, 3))
-        full[:, model.free_nodes] = vectors.T.reshape(modes, -1, 3)
+        full[:, which.free_nodes] = vectors.T.reshape(modes, -1, 3)
         return np.sqrt(values) / (2.0 * np.pi), full
 
     frequencies, shapes = zip(*(lowest(modulus) for modulus in BODY_MODULI))
+    free_f, free_phi = zip(*(lowest(modulus, free=True) for modulus in BODY_MODULI))
     directions = body_load_directions(acceleration)
     magnitude = float(np.linalg.norm(acceleration))
     positions = [weight_equilibrium(model, magnitude * d, load_steps) for d in directions]
@@ -85,7 +90,8 @@ def synthetic_body(model: Model, acceleration: np.ndarray, modes: int, load_step
                                  for x in positions))
     return BodyResult(np.stack(frequencies), np.stack(shapes), directions, magnitude,
                       np.stack([x - model.rest_positions for x in positions]),
-                      np.stack(loaded_f), np.stack(loaded_phi))
+                      np.stack(loaded_f), np.stack(loaded_phi), np.stack(free_f),
+                      np.stack(free_phi))
 
 
 def synthetic_reference(scene: Scene, params: ConnectorParams, path: str | Path, *,

@@ -374,6 +374,11 @@ class BodyResult:
         loaded_frequencies: (L, M) float64, the M lowest frequencies [Hz] of small motions
             about each load's equilibrium (instantaneous incremental moduli), ascending.
         loaded_shapes: (L, M, N, 3) float64, their shapes, normalised as ``shapes``.
+        free_frequencies: (2, M) float64, the M lowest natural frequencies [Hz] of the
+            unsupported body (free-free: its six rigid modes left out), ascending, at the two
+            moduli as ``frequencies``; None in a reference computed without them.
+        free_shapes: (2, M, N, 3) float64, their shapes, normalised as ``shapes``; None with
+            ``free_frequencies``.
     """
     frequencies: np.ndarray
     shapes: np.ndarray
@@ -382,6 +387,8 @@ class BodyResult:
     load_displacement: np.ndarray
     loaded_frequencies: np.ndarray
     loaded_shapes: np.ndarray
+    free_frequencies: np.ndarray | None = None
+    free_shapes: np.ndarray | None = None
 
     @property
     def load_accelerations(self) -> np.ndarray:
@@ -843,6 +850,14 @@ def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:
         "motions about each load's equilibrium, instantaneous incremental moduli (L, M)")
     put(g, "loaded_shapes", body.loaded_shapes, "1/sqrt(kg)", "their mode shapes at the "
         "vertices, normalised as shapes (L, M, N, 3)")
+    if body.free_frequencies is not None:
+        _check_shape("body.free_shapes", body.free_shapes,
+                     (len(BODY_MODULI), body.free_frequencies.shape[1], n_vertices, 3))
+        put(g, "free_frequencies", body.free_frequencies, "Hz", "lowest natural frequencies "
+            "of the unsupported body (rigid modes left out), ascending, at the moduli of "
+            "frequencies (2, M)")
+        put(g, "free_shapes", body.free_shapes, "1/sqrt(kg)", "their mode shapes at the "
+            "vertices, normalised as shapes (2, M, N, 3)")
 
 
 def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
@@ -855,7 +870,15 @@ def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
     n_modes = frequencies.shape[1]
     directions = get(fh, "body/load_directions", (None, 3), dtype="float")
     loaded = get(fh, "body/loaded_frequencies", (len(directions), n_modes), dtype="float")
-    for name, values in (("frequencies", frequencies), ("loaded_frequencies", loaded)):
+    free = free_shapes = None
+    if "free_frequencies" in group(fh, "body"):  # absent from a reference computed before them
+        free = get(fh, "body/free_frequencies", (len(BODY_MODULI), None), dtype="float")
+        free_shapes = get(fh, "body/free_shapes",
+                          (len(BODY_MODULI), free.shape[1], n_vertices, 3), dtype="float")
+    for name, values in (("frequencies", frequencies), ("loaded_frequencies", loaded),
+                         ("free_frequencies", free)):
+        if values is None:
+            continue
         if np.any(values <= 0) or np.any(np.diff(values, axis=1) < 0):
             raise DataFileError(f"{fh.filename}:/body/{name} must be positive and ascending")
     if not np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9):
@@ -872,7 +895,8 @@ def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
                               dtype="float"),
         loaded_frequencies=loaded,
         loaded_shapes=get(fh, "body/loaded_shapes", (len(directions), n_modes, n_vertices, 3),
-                          dtype="float"))
+                          dtype="float"),
+        free_frequencies=free, free_shapes=free_shapes)
 
 
 

@@ -283,11 +283,12 @@ class CodeDependencies:
 
 #: the shared modules the FE reads: the scene and its sections, the mesh (and the generated
 #: liver), the support and test-point rules, the schedules and indenter, the HDF5 files; the
-#: preflight and failure records it writes into reference.h5 and the cost estimate they hold; the errors that decide a failure
+#: preflight and failure records it writes into reference.h5 and the cost estimate they hold;
+#: the errors that decide a failure; the free-free eigen-solve of the whole-body data
 SHARED_FE = ("forcecal.scene", "forcecal.sections", "forcecal.mesh", "forcecal.liver_mesh",
              "forcecal.point_selection", "forcecal.problem",
              "forcecal.h5io", "forcecal.indenter", "forcecal.schedules", "forcecal.errors",
-             "forcecal.preflight", "forcecal.fe_failures", "forcecal.cost")
+             "forcecal.preflight", "forcecal.fe_failures", "forcecal.cost", "forcecal.eigen")
 #: and those the particle side reads besides: the BLAS thread count (the order of its sums)
 SHARED_PARTICLE = SHARED_FE + ("forcecal.blas",)
 

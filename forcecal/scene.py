@@ -281,7 +281,7 @@ class ParticleSection:
 
 
 #: the kinds of whole-body data a calibration can fit (experiment "body")
-BODY_KINDS = ("loads", "modes", "loaded_modes")
+BODY_KINDS = ("loads", "modes", "loaded_modes", "free_modes")
 #: ``calibration.body_data``: "none" or kinds joined by "+", in :data:`BODY_KINDS` order
 BODY_DATA_CHOICES = ("none",) + tuple(
     "+".join(k for b, k in enumerate(BODY_KINDS) if mask >> b & 1)
@@ -364,7 +364,8 @@ class CalibrationSection:
                          "weight along the two directions perpendicular to gravity, static), "
                          "\"modes\" (natural frequencies and shapes at the instantaneous and "
                          "long-term moduli), \"loaded_modes\" (those of quick motions about "
-                         "each load's equilibrium) (README Calibration)",
+                         "each load's equilibrium), \"free_modes\" (the natural modes of the "
+                         "unsupported body at both moduli) (README Calibration)",
                          choices=BODY_DATA_CHOICES)
     body_weight: Union[str, float] = key("cv", "gradient method: weight of each whole-body "
                                          "item's squared relative error against a calibration "

@@ -55,6 +55,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from scipy.optimize import linear_sum_assignment
 
+from forcecal.eigen import RIGID_MODES, free_modes
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.h5io import BODY_MODULI, BodyResult
 from forcecal.scene import BODY_KINDS
@@ -121,6 +122,8 @@ class BodyTarget:
         loaded_accelerations: (L', 3) the loads whose loaded states' modes are fitted
             ((0, 3): none).
         loaded_frequencies: (L', M') their FE frequencies [Hz]; loaded_shapes: (L', M', N, 3).
+        free_frequencies: (2, M'') FE natural frequencies of the unsupported body [Hz]
+            ((2, 0): not fitted, or a reference without them); free_shapes: (2, M'', N, 3).
     """
     accelerations: np.ndarray
     displacement: np.ndarray
@@ -129,13 +132,28 @@ class BodyTarget:
     loaded_accelerations: np.ndarray
     loaded_frequencies: np.ndarray
     loaded_shapes: np.ndarray
+    free_frequencies: np.ndarray
+    free_shapes: np.ndarray
 
     @classmethod
     def of(cls, body: BodyResult, kinds: tuple[str, ...]) -> "BodyTarget":
-        """The data of ``kinds`` (some of :data:`BODY_KINDS`) of an FE ``body`` result."""
+        """The data of ``kinds`` (some of :data:`BODY_KINDS`) of an FE ``body`` result.
+
+        Raises:
+            ParameterError: an unknown kind, or ``free_modes`` asked of a reference computed
+                without them.
+        """
+        if BODY_KINDS[3] in kinds and body.free_frequencies is None:
+            raise ParameterError("whole-body data 'free_modes': the reference's experiment "
+                                 "body was computed without the unsupported body's modes; "
+                                 "recompute it (make reference)")
+        n = body.shapes.shape[2]
+        free = body.free_frequencies is not None
         every = cls(body.load_accelerations, body.load_displacement, body.frequencies,
                     body.shapes, body.load_accelerations, body.loaded_frequencies,
-                    body.loaded_shapes)
+                    body.loaded_shapes,
+                    body.free_frequencies if free else np.zeros((len(BODY_MODULI), 0)),
+                    body.free_shapes if free else np.zeros((len(BODY_MODULI), 0, n, 3)))
         return every.subset(kinds)
 
     def subset(self, kinds: tuple[str, ...]) -> "BodyTarget":
@@ -143,30 +161,34 @@ class BodyTarget:
         unknown = sorted(set(kinds) - set(BODY_KINDS))
         if unknown:
             raise ParameterError(f"whole-body data {unknown}: known kinds are {BODY_KINDS}")
-        loads, modes, loaded = (k in kinds for k in BODY_KINDS)
+        loads, modes, loaded, free = (k in kinds for k in BODY_KINDS)
         n = self.shapes.shape[2]
+        no_modes = np.zeros((len(BODY_MODULI), 0)), np.zeros((len(BODY_MODULI), 0, n, 3))
         return BodyTarget(self.accelerations if loads else np.zeros((0, 3)),
                           self.displacement if loads else np.zeros((0, n, 3)),
-                          self.frequencies if modes else np.zeros((len(BODY_MODULI), 0)),
-                          self.shapes if modes else np.zeros((len(BODY_MODULI), 0, n, 3)),
+                          *((self.frequencies, self.shapes) if modes else no_modes),
                           self.loaded_accelerations if loaded else np.zeros((0, 3)),
                           self.loaded_frequencies if loaded else np.zeros((0, 0)),
-                          self.loaded_shapes if loaded else np.zeros((0, 0, n, 3)))
+                          self.loaded_shapes if loaded else np.zeros((0, 0, n, 3)),
+                          *((self.free_frequencies, self.free_shapes) if free else no_modes))
 
     @property
     def items(self) -> list[str]:
         """Names of the data items, in residual order: ``load <k>``, ``<modulus> mode <j>``
-        for each modulus, then ``load <k> mode <j>``."""
+        for each modulus, ``load <k> mode <j>``, then ``free <modulus> mode <j>``."""
         return ([f"load {k}" for k in range(len(self.accelerations))]
                 + [f"{modulus} mode {k}" for modulus in BODY_MODULI
                    for k in range(self.frequencies.shape[1])]
                 + [f"load {k} mode {j}" for k in range(len(self.loaded_accelerations))
-                   for j in range(self.loaded_frequencies.shape[1])])
+                   for j in range(self.loaded_frequencies.shape[1])]
+                + [f"free {modulus} mode {k}" for modulus in BODY_MODULI
+                   for k in range(self.free_frequencies.shape[1])])
 
     @property
     def item_kinds(self) -> list[str]:
         """The kind (:data:`BODY_KINDS`) of each of :attr:`items`."""
-        return [BODY_KINDS[2] if " mode " in name and name.startswith("load")
+        return [BODY_KINDS[3] if name.startswith("free")
+                else BODY_KINDS[2] if " mode " in name and name.startswith("load")
                 else BODY_KINDS[0] if name.startswith("load") else BODY_KINDS[1]
                 for name in self.items]
 
@@ -176,6 +198,7 @@ class RestOperators:
     """The model's linear operators at the rest state, on the dofs of its free particles.
 
     Attributes:
+        unsupported: the same operators of the model with no particle fixed, or None.
         pattern: the tangent pattern (dof numbering) of the model.
         tension: (n, E) sparse ``G``: forces of unit connector tensions at rest.
         pressure: (n, T) sparse ``H``: forces of unit tet pressures at rest (used with the
@@ -186,15 +209,19 @@ class RestOperators:
     tension: sp.csr_matrix
     pressure: sp.csr_matrix
     mass: np.ndarray
+    unsupported: "RestOperators | None" = None
 
     @classmethod
-    def of(cls, model: Model) -> "RestOperators":
+    def of(cls, model: Model, *, unsupported: bool = False) -> "RestOperators":
+        """The operators of ``model``; with ``unsupported`` also those of the model with no
+        particle fixed (:attr:`unsupported`: the free-free modes' dofs)."""
         refuse_nodal(model, "the whole-body operators (particle.body)")
         pat = TangentPattern.of(model)
         x = model.rest_positions
         pressure = volume_pattern_matrix(model, x, pat)  # (n, T); unused without kv
         mass = np.repeat(model.masses[model.free_nodes], 3)
-        return cls(pat, _Geometry(model, x).pattern_matrix(pat), pressure, mass)
+        free = cls.of(unsupported_model(model)) if unsupported else None
+        return cls(pat, _Geometry(model, x).pattern_matrix(pat), pressure, mass, free)
 
     def stiffnesses(self, p: ConnectorParams, modulus: str) -> tuple[np.ndarray, np.ndarray]:
         """((E,) connector [N/m], (T,) volume [Pa]) stiffnesses at ``modulus``."""
@@ -302,13 +329,25 @@ def load_rows(model: Model, acceleration: np.ndarray, target: np.ndarray, load_s
     return Rows((u - u_fe) / scale, np.ascontiguousarray(fields), load_forces(model, x, pat))
 
 
+def unsupported_model(model: Model) -> Model:
+    """``model`` with no particle fixed (its free-free modes' model)."""
+    return dataclasses.replace(model, fixed=np.zeros(model.n_particles, bool))
+
+
 def model_modes(model: Model, ops: RestOperators, modulus: str, count: int,
-                stiffness: sp.csc_matrix | None = None
+                stiffness: sp.csc_matrix | None = None, *, free_free: bool = False
                 ) -> tuple[np.ndarray, np.ndarray, sp.csc_matrix]:
     """The ``count`` lowest modes of ``model`` at ``modulus`` (or of the given ``stiffness``
     on the free dofs, ``modulus`` then only names it): (eigenvalues (count,) [1/s^2],
-    mass-normalised shapes (n, count) on the free dofs, the stiffness ``K``)."""
+    mass-normalised shapes (n, count) on the free dofs, the stiffness ``K``). With
+    ``free_free``, ``model`` has no fixed particle and its six rigid modes are left out
+    (:func:`forcecal.eigen.free_modes`)."""
     K = ops.stiffness(model, modulus) if stiffness is None else stiffness
+    if free_free:
+        count = min(count, K.shape[0] - RIGID_MODES - 1)
+        values, vectors = free_modes(K, sp.diags(ops.mass), count, f"particle modes of the "
+                                     f"unsupported body at the {modulus} stiffness")
+        return values, vectors, sp.csc_matrix(K)
     count = min(count, K.shape[0] - 1)
     lu = sla.splu(K)
     inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
@@ -368,14 +407,17 @@ class ModeMatch:
 
 def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.ndarray,
               shapes: np.ndarray, stiffness: sp.csc_matrix | None = None, *,
-              jacobian: bool = True) -> ModeMatch:
+              jacobian: bool = True, free_free: bool = False) -> ModeMatch:
     """Residual rows of the FE modes ``frequencies`` (M,) [Hz], ``shapes`` (M, N, 3) at
     ``modulus`` against the model's (module docstring), with their Jacobian (``jacobian``
     False: the residuals alone, without the bordered solves); with a given ``stiffness`` (a
     loaded state's, :func:`loaded_mode_rows`) its modes, the rows' forces left for the
-    caller (None)."""
+    caller (None). ``free_free``: ``model`` and ``ops`` are the unsupported body's, whose
+    rigid modes are left out (the bordered system stays regular: ``K - lambda M`` is
+    singular only along the mode itself, and a rigid mode's force pattern is zero)."""
     n_fe = len(frequencies)
-    values, vectors, K = model_modes(model, ops, modulus, n_fe + EXTRA_MODES, stiffness)
+    values, vectors, K = model_modes(model, ops, modulus, n_fe + EXTRA_MODES, stiffness,
+                                     free_free=free_free)
     mass = ops.mass
     psi = np.stack([free_dofs_values(model, s) for s in shapes], axis=1)  # (n, M)
     psi = psi / np.sqrt(np.einsum("nk,n,nk->k", psi, mass, psi))
@@ -622,4 +664,13 @@ def body_response(model: Model, target: BodyTarget, load_steps: int,
                                              target.loaded_frequencies[k],
                                              target.loaded_shapes[k], jacobian=jacobian)
         parts += modes[f"load {k}"].parts
+    if target.free_frequencies.shape[1]:
+        free = unsupported_model(model)
+        free_ops = ops.unsupported if ops.unsupported is not None else RestOperators.of(free)
+        for i, modulus in enumerate(BODY_MODULI):
+            modes[f"free {modulus}"] = mode_rows(free, free_ops, modulus,
+                                                 target.free_frequencies[i],
+                                                 target.free_shapes[i], jacobian=jacobian,
+                                                 free_free=True)
+            parts += modes[f"free {modulus}"].parts
     return BodyResponse(target.items, parts, np.array(load_errors), modes)

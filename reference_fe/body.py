@@ -16,6 +16,9 @@ not use (its gravity direction and its release stay held out):
   is zero on the pressure dofs, which shift-invert tolerates: their eigenvalues are
   infinite and never among the lowest). Shapes are mass-normalised with the FE's mass
   (``phi^T M phi = 1``), each signed so its largest vertex component is positive;
+* **natural modes of the unsupported body** (free-free, :func:`unsupported_modes`) at the
+  same two moduli, its six rigid modes left out: a clamp's modes are felt mostly near the
+  clamp, these weigh the whole body's stiffness without a support's bias;
 * **static body loads**: the organ's weight (``|gravity.acceleration|``) along the two
   directions perpendicular to the test's gravity
   (:func:`forcecal.problem.body_load_directions`), each a
@@ -31,7 +34,7 @@ not use (its gravity direction and its release stay held out):
   rest-state modes do not tell (a release swings about a loaded state).
 
 Both run on the model of the gravity experiments (the particle mesh refined ``fe.refine``
-times, read back at the particle vertices). Cost: two eigen-solves and two static solves,
+times, read back at the particle vertices). Cost: four eigen-solves and two static solves,
 measured on the liver punch scene (Taylor-Hood on the particle mesh, 5,328 dofs) at ~1.5 s
 per eigen-solve and about the gravity sag's time per load.
 """
@@ -45,6 +48,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from dolfinx.fem.petsc import assemble_matrix
 
+from forcecal.eigen import free_modes
 from forcecal.errors import ConvergenceError
 from forcecal.h5io import BodyResult
 from forcecal.problem import body_load_directions
@@ -147,6 +151,23 @@ def natural_modes(model: FEModel, fixed: np.ndarray, count: int, modulus: str
     return _lowest_modes(model, fixed, stiffness, mass, count, f"at the {modulus} moduli")
 
 
+def unsupported_modes(model: FEModel, count: int, modulus: str
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` lowest natural modes at ``modulus`` of the unsupported body (free-free,
+    its six rigid modes left out: :func:`forcecal.eigen.free_modes`): ((count,) frequencies
+    [Hz] ascending, (count, N, 3) mass-normalised shapes at the FE vertices [1/sqrt(kg)],
+    signed as :func:`natural_modes`'). They weigh the body's stiffness without the support's
+    bias: a clamp's modes are felt mostly near it.
+
+    Raises:
+        ConvergenceError: the eigen-solve did not converge or found no six rigid modes.
+    """
+    stiffness, mass = stiffness_and_mass(model, modulus)
+    values, vectors = free_modes(stiffness, mass, count,
+                                 f"body modes of the unsupported body at the {modulus} moduli")
+    return _frequencies_and_shapes(model, values, vectors, f"unsupported at the {modulus} moduli")
+
+
 def eigenvalues_nearest_zero(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
                              mass: sp.csr_matrix, count: int, what: str
                              ) -> tuple[np.ndarray, np.ndarray]:
@@ -184,6 +205,15 @@ def _lowest_modes(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
     if not np.all(values > 0):
         raise ConvergenceError(f"body modes {what}: eigenvalue {values.min():.3g} <= 0; the "
                                "support does not hold the body")
+    return _frequencies_and_shapes(model, values, full, what)
+
+
+def _frequencies_and_shapes(model: FEModel, values: np.ndarray, full: np.ndarray, what: str
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """((count,) frequencies [Hz], (count, N, 3) shapes at the FE vertices, each signed so its
+    largest vertex component is positive) of eigenvalues ``values`` [1/s^2] and eigenvectors
+    ``full`` (n_dofs, count)."""
+    count = len(values)
     shapes = np.moveaxis(full[model.vertex_dofs], 2, 0)  # (count, N, 3)
     for k in range(count):  # a deterministic sign: the largest vertex component positive
         flat = shapes[k].ravel()
@@ -198,13 +228,16 @@ def body_data(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray, modes
     """The arrays of the ``body`` work item at the FE vertices: ``frequencies`` (2, M) [Hz]
     and ``shapes`` (2, M, N, 3) of :data:`MODULI`, ``load_directions`` (2, 3),
     ``load_displacement`` (2, N, 3) [m], ``loaded_frequencies`` (2, M) [Hz] and
-    ``loaded_shapes`` (2, M, N, 3) about each load's equilibrium."""
+    ``loaded_shapes`` (2, M, N, 3) about each load's equilibrium, ``free_frequencies`` (2, M)
+    and ``free_shapes`` (2, M, N, 3) of the unsupported body."""
     frequencies, shapes = zip(*(natural_modes(model, fixed, modes, m) for m in MODULI))
+    free_f, free_phi = zip(*(unsupported_modes(model, modes, m) for m in MODULI))
     directions, displacement, loaded_f, loaded_phi = static_loads(model, fixed, acceleration,
                                                                   load_steps, modes)
     return {"frequencies": np.stack(frequencies), "shapes": np.stack(shapes),
             "load_directions": directions, "load_displacement": displacement,
-            "loaded_frequencies": loaded_f, "loaded_shapes": loaded_phi}
+            "loaded_frequencies": loaded_f, "loaded_shapes": loaded_phi,
+            "free_frequencies": np.stack(free_f), "free_shapes": np.stack(free_phi)}
 
 
 def at_vertices(arrays: dict[str, np.ndarray], vertices: np.ndarray) -> dict[str, np.ndarray]:
@@ -212,7 +245,8 @@ def at_vertices(arrays: dict[str, np.ndarray], vertices: np.ndarray) -> dict[str
     vertices on a refined FE mesh)."""
     return {**arrays, "shapes": arrays["shapes"][:, :, vertices],
             "load_displacement": arrays["load_displacement"][:, vertices],
-            "loaded_shapes": arrays["loaded_shapes"][:, :, vertices]}
+            "loaded_shapes": arrays["loaded_shapes"][:, :, vertices],
+            "free_shapes": arrays["free_shapes"][:, :, vertices]}
 
 
 def result_of(arrays: dict[str, np.ndarray], acceleration: float) -> BodyResult:
@@ -222,7 +256,9 @@ def result_of(arrays: dict[str, np.ndarray], acceleration: float) -> BodyResult:
                       load_directions=arrays["load_directions"], load_acceleration=acceleration,
                       load_displacement=arrays["load_displacement"],
                       loaded_frequencies=arrays["loaded_frequencies"],
-                      loaded_shapes=arrays["loaded_shapes"])
+                      loaded_shapes=arrays["loaded_shapes"],
+                      free_frequencies=arrays.get("free_frequencies"),
+                      free_shapes=arrays.get("free_shapes"))
 
 
 def arrays_of(result: BodyResult) -> dict[str, np.ndarray]:
@@ -232,4 +268,6 @@ def arrays_of(result: BodyResult) -> dict[str, np.ndarray]:
             "load_directions": result.load_directions,
             "load_displacement": result.load_displacement,
             "loaded_frequencies": result.loaded_frequencies,
-            "loaded_shapes": result.loaded_shapes}
+            "loaded_shapes": result.loaded_shapes,
+            **({} if result.free_frequencies is None else
+               {"free_frequencies": result.free_frequencies, "free_shapes": result.free_shapes})}

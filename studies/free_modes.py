@@ -14,17 +14,18 @@ This study measures it on a finished run, nothing refitted: for each support -- 
 (``main``, the fitted one), the second support (``second``, held out: read here to test the
 explanation, not to choose anything) and none (``free``) -- the ``count`` lowest natural
 modes about the rest state of the FE (Taylor-Hood or the scene's element on the gravity
-experiments' mesh, :func:`reference_fe.body.stiffness_and_mass`, shapes read at the
-particle vertices) and of each particle-model variant (``baseline``, ``calibrated``: the
-tangent at rest, :class:`particle.body.RestOperators`, lumped masses), at the instantaneous
-and long-term moduli. Each FE mode is paired with a model mode by MAC
+experiments' mesh, :func:`reference_fe.body.natural_modes` and
+:func:`~reference_fe.body.unsupported_modes`, shapes read at the particle vertices) and of
+each particle-model variant (``baseline``, ``calibrated``: the tangent at rest,
+:func:`particle.body.model_modes`, lumped masses), at the instantaneous and long-term
+moduli. Each FE mode is paired with a model mode by MAC
 (:func:`particle.body.pair_modes`, among ``count + 4`` model modes); the row is the pair's
-frequency error ``f_model / f_FE - 1`` and its MAC. Free-free problems are solved shifted
-(``K - sigma M`` with ``sigma`` below zero) and their six rigid modes dropped.
+frequency error ``f_model / f_FE - 1`` and its MAC. Free-free problems are solved shifted,
+their six rigid modes left out (:func:`forcecal.eigen.free_modes`).
 
 ``python -m studies.free_modes --scene scenes/liver_punch.toml [--run DIR] [--count 6]
-[--out FILE]`` (default ``runs/studies/free_modes_<scene name>.json``; a minute or two per
-scene on a finished run folder: the FE eigen-solves dominate).
+[--out FILE]`` (default ``runs/studies/free_modes_<scene name>.json``; seconds per
+scene on a finished run folder: 6 s on the liver punch scene).
 """
 
 from __future__ import annotations
@@ -35,10 +36,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
-from forcecal.errors import ConvergenceError
 from forcecal.problem import second_support
 from studies._finished_run import finished_run, parse_study, study_parser, write_result
 
@@ -46,45 +44,8 @@ log = logging.getLogger(__name__)
 
 #: the moduli the modes are compared at (:data:`reference_fe.body.MODULI`)
 MODULI = ("instantaneous", "long_term")
-#: rigid-body modes of an unsupported body
-RIGID = 6
 #: the model modes each FE mode may pair with, beyond ``count``
 EXTRA = 4
-#: the shift of a free-free solve: (2 pi x 1 Hz)^2 below zero, far under any elastic mode of
-#: an organ (tens of Hz) and clear of the rigid modes' zero
-SHIFT = -(2.0 * np.pi) ** 2
-
-
-def lowest_modes(stiffness: sp.spmatrix, mass: sp.spmatrix, count: int, free_free: bool,
-                 what: str) -> tuple[np.ndarray, np.ndarray]:
-    """The ``count`` lowest elastic eigenpairs of ``stiffness phi = lambda mass phi``:
-    (eigenvalues (count,) [1/s^2], vectors (n, count)), by shift-invert Lanczos about 0, or
-    about :data:`SHIFT` with the :data:`RIGID` rigid modes dropped when ``free_free``.
-
-    Raises:
-        ConvergenceError: the solve failed, or a free-free solve did not find six rigid modes
-            well below the elastic ones (the body is not free, or the shift is wrong).
-    """
-    sigma = SHIFT if free_free else 0.0
-    k = count + (RIGID if free_free else 0)
-    K, M = sp.csc_matrix(stiffness), sp.csc_matrix(mass)
-    lu = sla.splu(sp.csc_matrix(K - sigma * M))
-    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
-    try:
-        values, vectors = sla.eigsh(K, k=k, M=M, sigma=sigma, OPinv=inverse, which="LM")
-    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
-        raise ConvergenceError(f"{what}: the eigen-solve did not converge ({exc})") from None
-    order = np.argsort(values)
-    values, vectors = values[order], vectors[:, order]
-    if free_free:
-        rigid, elastic = values[:RIGID], values[RIGID:]
-        if not np.all(np.abs(rigid) < 1e-6 * elastic[0]):
-            raise ConvergenceError(f"{what}: the six lowest eigenvalues {rigid.tolist()} are "
-                                   f"not rigid modes below the first elastic {elastic[0]:.4g}")
-        values, vectors = elastic, vectors[:, RIGID:]
-    if not np.all(values > 0):
-        raise ConvergenceError(f"{what}: eigenvalue {values.min():.3g} <= 0")
-    return values, vectors
 
 
 class FEModes:
@@ -102,21 +63,16 @@ class FEModes:
               ) -> tuple[np.ndarray, np.ndarray]:
         """((count,) frequencies [Hz], (count, N, 3) shapes at the particle vertices) with the
         particle vertices ``fixed`` clamped (None: free-free)."""
-        from reference_fe.body import stiffness_and_mass
+        from reference_fe.body import natural_modes, unsupported_modes
         from reference_fe.refine import fe_clamp
 
-        model = self.model
-        stiffness, mass = stiffness_and_mass(model, modulus)
-        free = np.arange(model.n_dofs)
-        if fixed is not None:
-            held = model.clamp_dofs(fe_clamp(self.problem, fixed, self.fe, self.scene.fe))
-            free = np.setdiff1d(free, np.asarray(held).ravel())
-        values, vectors = lowest_modes(stiffness[free][:, free], mass[free][:, free], count,
-                                       fixed is None, f"FE modes at the {modulus} moduli")
-        full = np.zeros((model.n_dofs, count))
-        full[free] = vectors
-        shapes = np.moveaxis(full[model.vertex_dofs], 2, 0)[:, self.fe.vertex_map]
-        return np.sqrt(values) / (2.0 * np.pi), shapes
+        if fixed is None:
+            frequencies, shapes = unsupported_modes(self.model, count, modulus)
+        else:
+            frequencies, shapes = natural_modes(
+                self.model, fe_clamp(self.problem, fixed, self.fe, self.scene.fe), count,
+                modulus)
+        return frequencies, shapes[:, self.fe.vertex_map]
 
 
 def model_modes(model, fixed: np.ndarray | None, modulus: str, count: int
@@ -125,16 +81,15 @@ def model_modes(model, fixed: np.ndarray | None, modulus: str, count: int
     frequencies [Hz], (n, count) shapes on its free dofs, (n,) dof masses [kg], (Nf,) free
     particles)."""
     from particle.body import RestOperators
+    from particle.body import model_modes as lowest
 
     held = np.zeros(model.n_particles, bool)
     if fixed is not None:
         held[fixed] = True
     supported = dataclasses.replace(model, fixed=held)
     ops = RestOperators.of(supported)
-    values, vectors = lowest_modes(ops.stiffness(supported, modulus), sp.diags(ops.mass),
-                                   count, fixed is None,
-                                   f"particle modes at the {modulus} stiffness")
-    return (np.sqrt(values) / (2.0 * np.pi), vectors, ops.mass, supported.free_nodes)
+    values, vectors, _ = lowest(supported, ops, modulus, count, free_free=fixed is None)
+    return np.sqrt(values) / (2.0 * np.pi), vectors, ops.mass, supported.free_nodes
 
 
 def compare(fe_freq: np.ndarray, fe_shapes: np.ndarray, model, fixed: np.ndarray | None,

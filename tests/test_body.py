@@ -14,7 +14,7 @@ from calibration.synthetic import synthetic_body, synthetic_reference
 from forcecal.h5io import read_reference
 from forcecal.mesh import box_mesh
 from forcecal.problem import build_problem
-from forcecal.scene import BODY_KINDS, replace
+from forcecal.scene import BODY_DATA_CHOICES, BODY_KINDS, replace
 from particle.body import (BodyTarget, RestOperators, body_response, incremental_form,
                            incremental_tangent, load_rows, model_modes, parameter_layout)
 from particle.model import ModelBuilder
@@ -98,15 +98,16 @@ def test_incremental_form_is_the_tangent_and_its_gradient_is_exact():
 @pytest.mark.parametrize("arms", [False, True], ids=["elastic kv", "viscoelastic kv"])
 def test_whole_body_jacobians_match_finite_differences(arms):
     """Every item's residual Jacobian (loads, rest modes at both moduli, modes about each
-    load's equilibrium) along a random direction of every parameter block, against central
-    differences: measured within 1e-7 of the largest difference (asserted 1e-5)."""
+    load's equilibrium, the unsupported body's modes at both moduli) along a random direction
+    of every parameter block, against central differences: measured within 1e-7 of the
+    largest difference (asserted 1e-5)."""
     model = _box_model(arms)
     p = model.params
     other = model.with_params(dataclasses.replace(p, K0=1.2 * p.K0, b=0.5 * p.b))
     target = BodyTarget.of(synthetic_body(other, np.array([0.0, 0.0, -9.81]), 3, 4),
                            BODY_KINDS)
     response = body_response(model, target, 4)
-    assert len(response.parts) == len(target.items) == 2 + 6 + 6
+    assert len(response.parts) == len(target.items) == 2 + 6 + 6 + 6
     layout = parameter_layout(model.n_connectors, model.n_tets, arms)
     rng = np.random.default_rng(3)
     direction = {name: 1e-4 * getattr(p, name) * rng.standard_normal(cols.stop - cols.start)
@@ -122,11 +123,12 @@ def test_whole_body_jacobians_match_finite_differences(arms):
                                    err_msg=name)
     # the residuals alone (a trial step's objective) are the same numbers: the loads' bit for
     # bit, the modes' to ARPACK's round-off (its random start vector: two calls with the
-    # Jacobian differ by up to 4e-15)
+    # Jacobian differ by up to 4e-15 held, 1.3e-13 free-free, whose shifted factor is less
+    # well conditioned)
     alone = body_response(model, target, 4, jacobian=False)
     assert all(part.fields is None for part in alone.parts)
     np.testing.assert_array_equal(alone.parts[0].residual, response.parts[0].residual)
-    np.testing.assert_allclose(alone.residual, response.residual, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(alone.residual, response.residual, rtol=0, atol=1e-12)
 
 
 def test_chain_matrix_is_the_chain_rule():
@@ -169,17 +171,19 @@ def test_a_model_that_does_not_carry_a_fitted_load_is_a_failed_calibration():
 def test_gradient_fit_recovers_the_truth_from_curves_and_whole_body_data(tmp_path):
     """Synthetic reference made by the particle model with a smooth per-connector truth
     (:func:`~tests.test_calibration_gradient.smooth_truth`) and its whole-body data (rest
-    modes, loads, modes about the loads), only 4 calibration points on the box, every kind of
-    whole-body data fitted, the weight by cross-validation (it picks 100, the grid's end:
-    exact data). Measured: the curves to 0.00 %, the held-out points at 0.17 / 0.13 of the
-    global fit's errors, every whole-body item within 0.18 % (global fit: 0.2-22 %), K(eps)
-    within 1.4 % (median) and 10 % (max) of the truth, K0 1.5 %, the arms 0.0-2.4 %. The
+    modes, loads, modes about the loads, the unsupported body's modes), only 4 calibration
+    points on the box, every kind of whole-body data fitted, the weight by cross-validation
+    (it picks 100, the grid's end: exact data). Measured: the curves to 0.00 %, the held-out
+    points at 0.054 / 0.065 of the global fit's errors, every whole-body item within 0.09 %
+    (global fit: 0.2-22 %), K(eps) within 0.54 % (median) and 5.4 % (max) of the truth, the
+    arms 0.0-2.4 % (without the unsupported body's modes: held-out 0.17 / 0.13, K(eps) 1.4 %
+    / 10 %). The
     same curves without the whole-body data (``body_data = "none"``): the cross-validation
     keeps the global fit nearly (smoothness weight 1000), held-out at 0.82 / 0.80 of it,
     K(eps) 9 % / 51 %, the arms 1-7 %. Asserted with ~1.5-2x margins."""
     scene = replace(_box(tmp_path, n_calibration=4),
                     experiments=["indentation", "relaxation", "body"],
-                    calibration={"body_data": "loads+modes+loaded_modes",
+                    calibration={"body_data": "+".join(BODY_KINDS),
                                  "body_candidates": True, "static_max_evaluations": 40,
                                  "relaxation_max_evaluations": 60},
                     body={"modes": 3, "load_steps": 2})
@@ -192,14 +196,12 @@ def test_gradient_fit_recovers_the_truth_from_curves_and_whole_body_data(tmp_pat
     record = result.body
     assert record["status"] == "fitted" and record["weight"] > 0
     assert record["kinds"] == list(BODY_KINDS)
-    assert max(record["variants"]["calibrated"]["item_errors"]) < 0.005
+    assert max(record["variants"]["calibrated"]["item_errors"]) < 0.002
     assert min(record["variants"]["global"]["item_errors"]) > 0.001
-    assert set(record["cv"]["round_1"]) == {"none", "loads", "modes", "loads+modes",
-                                            "loaded_modes", "loads+loaded_modes",
-                                            "modes+loaded_modes", "loads+modes+loaded_modes"}
+    assert set(record["cv"]["round_1"]) == set(BODY_DATA_CHOICES)  # every set of kinds
     calibrated, held_out_ratio, spring, arms = _recovery(problem, truth, result)
-    assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.3
-    assert np.median(spring) < 0.03 and spring.max() < 0.2
+    assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.12
+    assert np.median(spring) < 0.01 and spring.max() < 0.1
     assert max(arms.values()) < 0.05, arms
 
 

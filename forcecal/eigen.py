@@ -1,0 +1,54 @@
+"""The lowest natural modes of an unsupported (free-free) body: a shifted Lanczos solve.
+
+Both the FE reference (:mod:`reference_fe.body`) and the particle model
+(:mod:`particle.body`) compute the free-free modes of the whole-body data the same way:
+the stiffness of an unsupported body is singular (its six rigid modes have zero
+eigenvalue), so shift-invert Lanczos factorises ``K - sigma M`` with ``sigma`` below zero
+instead of ``K`` and the six rigid modes, nearest the shift, are left out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from forcecal.errors import ConvergenceError
+
+#: rigid-body modes of an unsupported body
+RIGID_MODES = 6
+#: the shift [1/s^2]: (2 pi x 1 Hz)^2 below zero, far under any elastic mode of an organ (tens
+#: of Hz unsupported) and well clear of the rigid modes' zero
+FREE_SHIFT = -(2.0 * np.pi) ** 2
+#: a rigid mode's eigenvalue relative to the first elastic one: round-off of the factorised
+#: shift (1e-12 or so), far below any elastic mode
+RIGID_TOLERANCE = 1e-6
+
+
+def free_modes(stiffness: sp.spmatrix, mass: sp.spmatrix, count: int, what: str
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` lowest elastic eigenpairs of ``stiffness phi = lambda mass phi`` for an
+    unsupported body: (eigenvalues (count,) [1/s^2] ascending, M-normalised vectors (n,
+    count)); ``what`` names them in an error.
+
+    Raises:
+        ConvergenceError: the solve did not converge, or the six lowest eigenvalues are not
+            rigid modes well below the elastic ones (the body is held somewhere, or is a
+            mechanism with more zero modes).
+    """
+    K, M = sp.csc_matrix(stiffness), sp.csc_matrix(mass)
+    lu = sla.splu(sp.csc_matrix(K - FREE_SHIFT * M))
+    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
+    try:
+        values, vectors = sla.eigsh(K, k=count + RIGID_MODES, M=M, sigma=FREE_SHIFT,
+                                    OPinv=inverse, which="LM")
+    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
+        raise ConvergenceError(f"{what}: the eigen-solve did not converge ({exc})") from None
+    order = np.argsort(values)
+    values, vectors = values[order], vectors[:, order]
+    rigid, elastic = values[:RIGID_MODES], values[RIGID_MODES:]
+    if not (elastic[0] > 0 and np.all(np.abs(rigid) < RIGID_TOLERANCE * elastic[0])):
+        raise ConvergenceError(f"{what}: the six lowest eigenvalues {np.round(rigid, 6).tolist()}"
+                               f" /s^2 are not rigid modes below the first elastic one "
+                               f"{elastic[0]:.4g} /s^2 (is the body held, or a mechanism?)")
+    return elastic, vectors[:, RIGID_MODES:]
