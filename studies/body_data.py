@@ -3,10 +3,10 @@
 The calibrated punch models carry over at the surface but are no better than the closed-form
 baseline as bodies (README, "Why the release misses its goal"): nothing in the surface
 curves constrains the interior or the global modes. The FE stage's experiment ``body``
-(:mod:`reference_fe.body`) gives three kinds of whole-body data the gravity test does not
+(:mod:`reference_fe.body`) gives four kinds of whole-body data the gravity test does not
 use: the natural modes about the rest state (instantaneous and long-term moduli), the static
-weight along the two directions perpendicular to the test's gravity, and the modes about
-each of those loaded states. This study calibrates each scene with some choices of
+weight along the two directions perpendicular to the test's gravity, the modes about each
+of those loaded states, and the natural modes of the unsupported body. This study calibrates each scene with some choices of
 ``calibration.body_data`` (gradient method, the body weight chosen by the calibration's own
 cross-validation) and records, for every fit:
 
