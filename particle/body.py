@@ -1,8 +1,9 @@
 """Whole-body responses of the particle model and their exact parameter derivatives.
 
-The FE reference's experiment ``body`` (:class:`forcecal.h5io.BodyResult`) holds two kinds of
-whole-body data; this module computes the particle model's counterparts, their residuals
-against the FE's and the Jacobians of those residuals with respect to every parameter:
+The FE reference's experiment ``body`` (:class:`forcecal.h5io.BodyResult`) holds whole-body
+data (modes with the support and without, static loads, modes about the loads); this module
+computes the particle model's counterparts, their residuals against the FE's and the
+Jacobians of those residuals with respect to every parameter:
 
 * **natural modes** about the rest state (the fixed particles held), at the instantaneous
   stiffness (springs ``K0 + k1 + k2``, volume term ``kv + kv1 + kv2`` when it relaxes) and
@@ -19,6 +20,10 @@ against the FE's and the Jacobians of those residuals with respect to every para
   with ``S = sum_{j != m} phi_j phi_j^T / (lambda_j - lambda_m)`` (the masses do not
   depend on the parameters). ``S b`` is one solve of the bordered system ``[[K - lambda
   M, M phi], [phi^T M, 0]]`` (exact, no modal truncation).
+* **natural modes of the unsupported body** (no particle held; :func:`unsupported_model`):
+  the same, with its six rigid modes left out (:func:`forcecal.eigen.free_modes`). A rigid
+  mode's force pattern ``G^T psi`` is zero, so it adds nothing to ``dlambda/dp`` and the
+  bordered solve stays regular;
 * **static body loads**: the weight along a direction, long-term model, nonlinear, load
   stepped (:func:`particle.statics.weight_equilibrium`); at the equilibrium ``f(x, p) =
   0`` with tangent ``K_t = -df/dx``, ``du/dp = K_t^{-1} E`` with ``E = df/dp`` at fixed
