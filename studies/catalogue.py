@@ -221,8 +221,8 @@ def free_modes_answer(r: Result) -> str:
                    if row["support"] == support and row["modulus"] == "instantaneous")
         parts.append(f"{support} {pct(row['calibrated']['mean_abs_frequency_error'])} "
                      f"(baseline {pct(row['baseline']['mean_abs_frequency_error'])})")
-    return ("mean frequency error of the lowest modes, calibrated, instantaneous moduli: "
-            + ", ".join(parts))
+    return (f"calibrated fitting {r['fitted_body_data']}: mean frequency error of the "
+            "lowest modes, instantaneous moduli: " + ", ".join(parts))
 
 
 def implicit_haptics_answer(r: Result) -> str:

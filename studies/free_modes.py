@@ -140,6 +140,7 @@ def study(scene_path: str | Path, run: str | Path | None = None, count: int = 6)
         check = float(np.max(np.abs(ours[:, :fitted.shape[1]] / fitted[:, :ours.shape[1]]
                                     - 1.0)))
     return {"scene": scene.name, "count": count,
+            "fitted_body_data": "+".join(params.body.get("kinds", [])) or "none",
             "element": scene.fe.element, "fe_refine": scene.fe.refine,
             "main_support_vs_body_experiment_max_relative_difference": check,
             "load_average": list(os.getloadavg()), "rows": rows}
