@@ -221,8 +221,11 @@ def free_modes_answer(r: Result) -> str:
                    if row["support"] == support and row["modulus"] == "instantaneous")
         parts.append(f"{support} {pct(row['calibrated']['mean_abs_frequency_error'])} "
                      f"(baseline {pct(row['baseline']['mean_abs_frequency_error'])})")
+    split = r["calibrated_split"]
+    kv = "" if split["kv_median_pa"] is None else f", kv median {split['kv_median_pa']:.0f} Pa"
     return (f"calibrated fitting {r['fitted_body_data']}: mean frequency error of the "
-            "lowest modes, instantaneous moduli: " + ", ".join(parts))
+            "lowest modes, instantaneous moduli: " + ", ".join(parts)
+            + f"; springs {split['spring_ratio_median']:.2f}x the baseline's (median){kv}")
 
 
 def implicit_haptics_answer(r: Result) -> str:

@@ -20,7 +20,10 @@ each particle-model variant (``baseline``, ``calibrated``: the tangent at rest,
 :func:`particle.body.model_modes`, lumped masses), at the instantaneous and long-term
 moduli. Each FE mode is paired with a model mode by MAC
 (:func:`particle.body.pair_modes`, among ``count + 4`` model modes); the row is the pair's
-frequency error ``f_model / f_FE - 1`` and its MAC. Free-free problems are solved shifted,
+frequency error ``f_model / f_FE - 1`` and its MAC. With them, how the calibrated model
+splits its stiffness between springs and volume term (``calibrated_split``: the median of
+its springs' ``K0`` over the baseline's, the same at the instantaneous stiffness, its median
+``kv``). Free-free problems are solved shifted,
 their six rigid modes left out (:func:`forcecal.eigen.free_modes`).
 
 ``python -m studies.free_modes --scene scenes/liver_punch.toml [--run DIR] [--count 6]
@@ -139,7 +142,12 @@ def study(scene_path: str | Path, run: str | Path | None = None, count: int = 6)
         ours = np.array([r["fe_frequency_hz"] for r in main])
         check = float(np.max(np.abs(ours[:, :fitted.shape[1]] / fitted[:, :ours.shape[1]]
                                     - 1.0)))
-    return {"scene": scene.name, "count": count,
+    base, cal = models["baseline"].params, models["calibrated"].params
+    split = {"spring_ratio_median": float(np.median(cal.K0 / base.K0)),
+             "instantaneous_spring_ratio_median": float(np.median(
+                 (cal.K0 + cal.k1 + cal.k2) / (base.K0 + base.k1 + base.k2))),
+             "kv_median_pa": None if cal.kv is None else float(np.median(cal.kv))}
+    return {"scene": scene.name, "count": count, "calibrated_split": split,
             "fitted_body_data": "+".join(params.body.get("kinds", [])) or "none",
             "element": scene.fe.element, "fe_refine": scene.fe.refine,
             "main_support_vs_body_experiment_max_relative_difference": check,
