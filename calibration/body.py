@@ -34,7 +34,8 @@ from calibration.optimize import INFEASIBLE
 from forcecal.errors import ConvergenceError
 from forcecal.h5io import Reference
 from forcecal.h5io import BodyResult
-from particle.body import BODY_KINDS, BodyResponse, BodyTarget, RestOperators, Rows, body_response
+from particle.body import (BODY_KINDS, BodyResponse, BodyTarget, RestOperators, Rows,
+                           available_kinds, body_response)
 from particle.model import Model, build_model
 from particle.params import ConnectorParams
 
@@ -83,7 +84,7 @@ class BodyData:
     def __init__(self, model: Model, body: BodyResult, kinds: tuple[str, ...],
                  load_steps: int):
         self.model, self.kinds, self.load_steps = model, tuple(kinds), load_steps
-        self.target = BodyTarget.of(body, BODY_KINDS)
+        self.target = BodyTarget.of(body, available_kinds(body))
         self.fitted = BodyTarget.of(body, self.kinds)
         self.ops = RestOperators.of(model, unsupported=self.target.free_frequencies.size > 0)
 

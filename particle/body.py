@@ -114,6 +114,12 @@ class Rows:
         return out if self.explicit is None else out + self.explicit
 
 
+def available_kinds(body: BodyResult) -> tuple[str, ...]:
+    """The kinds (:data:`BODY_KINDS`) an FE ``body`` result holds: every one, but
+    ``free_modes`` in a reference computed before them."""
+    return tuple(k for k in BODY_KINDS if k != BODY_KINDS[3] or body.free_frequencies is not None)
+
+
 @dataclass(frozen=True, eq=False)
 class BodyTarget:
     """The FE's whole-body data in the particle model's terms.

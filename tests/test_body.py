@@ -11,7 +11,8 @@ from calibration.body import BodyData, body_record
 from calibration.core import calibrate
 from calibration.gradient import Coordinates
 from calibration.synthetic import synthetic_body, synthetic_reference
-from forcecal.h5io import read_reference
+from forcecal.errors import ParameterError
+from forcecal.h5io import read_reference, write_reference
 from forcecal.mesh import box_mesh
 from forcecal.problem import build_problem
 from forcecal.scene import BODY_DATA_CHOICES, BODY_KINDS, replace
@@ -203,6 +204,27 @@ def test_gradient_fit_recovers_the_truth_from_curves_and_whole_body_data(tmp_pat
     assert max(calibrated) < 0.002 and max(held_out_ratio) < 0.12
     assert np.median(spring) < 0.01 and spring.max() < 0.1
     assert max(arms.values()) < 0.05, arms
+
+
+def test_a_reference_without_the_unsupported_bodys_modes_serves_the_other_kinds(tmp_path):
+    """A ``reference.h5`` written before the unsupported body's modes existed reads back
+    without them (None); a fit of the other kinds runs on it, and one asking for them is
+    refused, naming what to recompute."""
+    scene = replace(_box(tmp_path, n_calibration=4),
+                    experiments=["indentation", "relaxation", "body"],
+                    body={"modes": 2, "load_steps": 2})
+    truth = smooth_truth(build_problem(scene))
+    ref = synthetic_reference(scene, truth, tmp_path / "reference.h5")
+    assert ref.body.free_frequencies.shape == (2, 2)
+    old = dataclasses.replace(ref.body, free_frequencies=None, free_shapes=None)
+    write_reference(tmp_path / "old.h5", dataclasses.replace(ref, body=old))
+    back = read_reference(tmp_path / "old.h5")
+    assert back.body.free_frequencies is None and back.body.free_shapes is None
+    data = BodyData.of(back, ("modes",), truth, 2)
+    assert not any(name.startswith("free") for name in data.items)
+    np.testing.assert_allclose(data.residuals(truth), 0.0, atol=1e-8)  # its own data
+    with pytest.raises(ParameterError, match="free_modes.*recompute"):
+        BodyData.of(back, ("modes", "free_modes"), truth, 2)
 
 
 def test_the_kinds_a_model_has_no_response_to_are_named():

@@ -211,7 +211,10 @@ def test_the_reference_stage_computes_stores_and_reuses_the_body_experiment(tmp_
     assert back.experiments == ("indentation", "body")
     n = back.problem.mesh.n_vertices
     assert back.body.shapes.shape == (2, 2, n, 3) and back.body.loaded_shapes.shape == (2, 2, n, 3)
+    assert back.body.free_shapes.shape == (2, 2, n, 3)
     np.testing.assert_array_equal(back.body.frequencies, ref.body.frequencies)
+    np.testing.assert_array_equal(back.body.free_frequencies, ref.body.free_frequencies)
+    assert back.body.free_shapes[:, :, back.problem.fixed].any()  # held nowhere
     assert not back.body.shapes[:, :, back.problem.fixed].any()
     assert back.body.load_acceleration == pytest.approx(9.81)
     np.testing.assert_allclose(back.body.load_directions, [[1, 0, 0], [0, 1, 0]])
