@@ -101,7 +101,7 @@ def test_whole_body_jacobians_match_finite_differences(arms):
     """Every item's residual Jacobian (loads, rest modes at both moduli, modes about each
     load's equilibrium, the unsupported body's modes at both moduli) along a random direction
     of every parameter block, against central differences: measured within 1e-7 of the
-    largest difference (asserted 1e-5)."""
+    largest difference, 5.6e-7 for the unsupported body's long-term modes (asserted 1e-5)."""
     model = _box_model(arms)
     p = model.params
     other = model.with_params(dataclasses.replace(p, K0=1.2 * p.K0, b=0.5 * p.b))
