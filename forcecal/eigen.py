@@ -1,10 +1,10 @@
-"""The lowest natural modes of an unsupported (free-free) body: a shifted Lanczos solve.
+"""Natural modes by shift-invert Lanczos, held and unsupported (free-free).
 
-Both the FE reference (:mod:`reference_fe.body`) and the particle model
-(:mod:`particle.body`) compute the free-free modes of the whole-body data the same way:
-the stiffness of an unsupported body is singular (its six rigid modes have zero
-eigenvalue), so shift-invert Lanczos factorises ``K - sigma M`` with ``sigma`` below zero
-instead of ``K`` and the six rigid modes, nearest the shift, are left out.
+The FE reference (:mod:`reference_fe.body`) and the particle model (:mod:`particle.body`)
+compute the modes of their whole-body data the same way (:func:`nearest_modes`). The
+stiffness of an unsupported body is singular (its six rigid modes have zero eigenvalue), so
+:func:`free_modes` factorises ``K - sigma M`` with ``sigma`` below zero instead of ``K`` and
+leaves out the six rigid modes, nearest the shift.
 """
 
 from __future__ import annotations
@@ -25,6 +25,26 @@ FREE_SHIFT = -(2.0 * np.pi) ** 2
 RIGID_TOLERANCE = 1e-6
 
 
+def nearest_modes(stiffness: sp.spmatrix, mass: sp.spmatrix, count: int, sigma: float,
+                  what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` eigenpairs of ``stiffness phi = lambda mass phi`` nearest ``sigma`` [1/s^2]
+    by shift-invert Lanczos on a sparse LU of ``stiffness - sigma mass``: (eigenvalues
+    (count,) ascending, M-normalised vectors (n, count)); ``what`` names them in an error.
+
+    Raises:
+        ConvergenceError: the eigen-solve did not converge.
+    """
+    K, M = sp.csc_matrix(stiffness), sp.csc_matrix(mass)
+    lu = sla.splu(K if sigma == 0.0 else sp.csc_matrix(K - sigma * M))
+    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
+    try:
+        values, vectors = sla.eigsh(K, k=count, M=M, sigma=sigma, OPinv=inverse, which="LM")
+    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
+        raise ConvergenceError(f"{what}: the eigen-solve did not converge ({exc})") from None
+    order = np.argsort(values)
+    return values[order], vectors[:, order]
+
+
 def free_modes(stiffness: sp.spmatrix, mass: sp.spmatrix, count: int, what: str
                ) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` lowest elastic eigenpairs of ``stiffness phi = lambda mass phi`` for an
@@ -36,16 +56,7 @@ def free_modes(stiffness: sp.spmatrix, mass: sp.spmatrix, count: int, what: str
             rigid modes well below the elastic ones (the body is held somewhere, or is a
             mechanism with more zero modes).
     """
-    K, M = sp.csc_matrix(stiffness), sp.csc_matrix(mass)
-    lu = sla.splu(sp.csc_matrix(K - FREE_SHIFT * M))
-    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
-    try:
-        values, vectors = sla.eigsh(K, k=count + RIGID_MODES, M=M, sigma=FREE_SHIFT,
-                                    OPinv=inverse, which="LM")
-    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
-        raise ConvergenceError(f"{what}: the eigen-solve did not converge ({exc})") from None
-    order = np.argsort(values)
-    values, vectors = values[order], vectors[:, order]
+    values, vectors = nearest_modes(stiffness, mass, count + RIGID_MODES, FREE_SHIFT, what)
     rigid, elastic = values[:RIGID_MODES], values[RIGID_MODES:]
     if not (elastic[0] > 0 and np.all(np.abs(rigid) < RIGID_TOLERANCE * elastic[0])):
         raise ConvergenceError(f"{what}: the six lowest eigenvalues {np.round(rigid, 6).tolist()}"

@@ -60,7 +60,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 from scipy.optimize import linear_sum_assignment
 
-from forcecal.eigen import RIGID_MODES, free_modes
+from forcecal.eigen import RIGID_MODES, free_modes, nearest_modes
 from forcecal.errors import ConvergenceError, ParameterError
 from forcecal.h5io import BODY_MODULI, BodyResult
 from forcecal.scene import BODY_KINDS
@@ -120,6 +120,11 @@ def available_kinds(body: BodyResult) -> tuple[str, ...]:
     return tuple(k for k in BODY_KINDS if k != BODY_KINDS[3] or body.free_frequencies is not None)
 
 
+def _no_modes(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Empty (frequencies (2, 0), shapes (2, 0, n, 3)) at :data:`BODY_MODULI`: no modes."""
+    return np.zeros((len(BODY_MODULI), 0)), np.zeros((len(BODY_MODULI), 0, n, 3))
+
+
 @dataclass(frozen=True, eq=False)
 class BodyTarget:
     """The FE's whole-body data in the particle model's terms.
@@ -158,13 +163,11 @@ class BodyTarget:
             raise ParameterError("whole-body data 'free_modes': the reference's experiment "
                                  "body was computed without the unsupported body's modes; "
                                  "recompute it (make reference)")
-        n = body.shapes.shape[2]
-        free = body.free_frequencies is not None
+        free = ((body.free_frequencies, body.free_shapes) if body.free_frequencies is not None
+                else _no_modes(body.shapes.shape[2]))
         every = cls(body.load_accelerations, body.load_displacement, body.frequencies,
                     body.shapes, body.load_accelerations, body.loaded_frequencies,
-                    body.loaded_shapes,
-                    body.free_frequencies if free else np.zeros((len(BODY_MODULI), 0)),
-                    body.free_shapes if free else np.zeros((len(BODY_MODULI), 0, n, 3)))
+                    body.loaded_shapes, *free)
         return every.subset(kinds)
 
     def subset(self, kinds: tuple[str, ...]) -> "BodyTarget":
@@ -174,7 +177,7 @@ class BodyTarget:
             raise ParameterError(f"whole-body data {unknown}: known kinds are {BODY_KINDS}")
         loads, modes, loaded, free = (k in kinds for k in BODY_KINDS)
         n = self.shapes.shape[2]
-        no_modes = np.zeros((len(BODY_MODULI), 0)), np.zeros((len(BODY_MODULI), 0, n, 3))
+        no_modes = _no_modes(n)
         return BodyTarget(self.accelerations if loads else np.zeros((0, 3)),
                           self.displacement if loads else np.zeros((0, n, 3)),
                           *((self.frequencies, self.shapes) if modes else no_modes),
@@ -360,19 +363,12 @@ def model_modes(model: Model, ops: RestOperators, modulus: str, count: int,
                                      f"unsupported body at the {modulus} stiffness")
         return values, vectors, sp.csc_matrix(K)
     count = min(count, K.shape[0] - 1)
-    lu = sla.splu(K)
-    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
-    try:
-        values, vectors = sla.eigsh(K, k=count, M=sp.diags(ops.mass).tocsc(), sigma=0.0,
-                                    OPinv=inverse, which="LM")
-    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
-        raise ConvergenceError(f"particle modes at the {modulus} stiffness: the eigen-solve "
-                               f"did not converge ({exc})") from None
-    order = np.argsort(values)
-    if not values[order[0]] > 0:
-        raise ConvergenceError(f"particle modes at the {modulus} stiffness: eigenvalue "
-                               f"{values[order[0]]:.3g} <= 0 (the model is not held)")
-    return values[order], vectors[:, order], K
+    what = f"particle modes at the {modulus} stiffness"
+    values, vectors = nearest_modes(K, sp.diags(ops.mass), count, 0.0, what)
+    if not values[0] > 0:
+        raise ConvergenceError(f"{what}: eigenvalue {values[0]:.3g} <= 0 (the model is not "
+                               "held)")
+    return values, vectors, K
 
 
 def mass_orthonormal(shapes: np.ndarray, mass: np.ndarray) -> np.ndarray:

@@ -45,10 +45,9 @@ import logging
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 from dolfinx.fem.petsc import assemble_matrix
 
-from forcecal.eigen import free_modes
+from forcecal.eigen import free_modes, nearest_modes
 from forcecal.errors import ConvergenceError
 from forcecal.h5io import BodyResult
 from forcecal.problem import body_load_directions
@@ -182,19 +181,11 @@ def eigenvalues_nearest_zero(model: FEModel, fixed: np.ndarray, stiffness: sp.cs
     """
     held = model.clamp_dofs(fixed).ravel()
     free = np.setdiff1d(np.arange(model.n_dofs), held)
-    K = stiffness[free][:, free].tocsc()
-    M = mass[free][:, free].tocsc()
-    lu = sla.splu(K)
-    inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
-    try:
-        values, vectors = sla.eigsh(K, k=count, M=M, sigma=0.0, OPinv=inverse, which="LM")
-    except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
-        raise ConvergenceError(f"body modes {what}: the eigen-solve did not converge "
-                               f"({exc})") from None
-    order = np.argsort(values)
+    values, vectors = nearest_modes(stiffness[free][:, free], mass[free][:, free], count, 0.0,
+                                    f"body modes {what}")
     full = np.zeros((model.n_dofs, count))
-    full[free] = vectors[:, order]
-    return values[order], full
+    full[free] = vectors
+    return values, full
 
 
 def _lowest_modes(model: FEModel, fixed: np.ndarray, stiffness: sp.csr_matrix,
