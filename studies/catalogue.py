@@ -156,6 +156,13 @@ def haptic_cost_answer(r: Result) -> str:
         for name, row in rows.items())
 
 
+def stable_step_gap_answer(r: Result) -> str:
+    return "substeps per 1 ms, bound over +-0.5 / over a +-0.05 band / exact at rest (the " \
+        "fewest any rigorous bound can give): " + "; ".join(
+            f"{row['mesh']} {row['terms']} {row['bound_default_substeps']} / "
+            f"{row['bound_band_substeps']} / {row['exact_rest_substeps']}" for row in r["rows"])
+
+
 def body_data_command(path: str, r: Result) -> str:
     from studies.body_data import VARIANTS
 
@@ -275,6 +282,11 @@ STUDIES = (
     Study("haptic_cost", "What does the volume term, elastic or viscoelastic, cost the haptic "
           "step on the default liver?",
           "runs/studies/haptic_cost*.json", lambda path, r: r["command"], haptic_cost_answer),
+    Study("stable_step_gap", "How many haptic substeps could a tighter rigorous stability "
+          "bound save: the bound's stable step against the exact one at rest, which no bound "
+          "valid at rest can exceed?",
+          "runs/studies/stable_step_gap*.json", lambda path, r: r["command"],
+          stable_step_gap_answer),
     Study("body_data", "Which whole-body data (natural modes, the weight along the axes "
           "perpendicular to gravity, the modes about those loads), fitted with the surface "
           "curves, to choose on calibration data only, and what do they cost the FE?",
