@@ -3,9 +3,9 @@
 A :class:`TetMesh` is two arrays (vertices, tets) plus derived quantities that
 are pure functions of them (edges, volumes, surface, normals). Meshes come
 from :func:`forcecal.liver_mesh.generate_liver` (deterministic gmsh model of a
-liver-like organ), :func:`read_mesh` (any tetrahedral mesh meshio reads) or
-:func:`box_mesh` (structured boxes for tests), and always pass :func:`check_mesh`
-before use. Which vertices are held and which are indented is chosen in
+liver-like organ), :func:`read_mesh` (any tetrahedral mesh meshio reads, and Gmsh's
+legacy format) or :func:`box_mesh` (structured boxes for tests), and always pass
+:func:`check_mesh` before use. Which vertices are held and which are indented is chosen in
 :mod:`forcecal.point_selection`.
 """
 
@@ -293,36 +293,106 @@ def orient_tets(vertices: np.ndarray, tets: np.ndarray, origin: str) -> np.ndarr
     return tets
 
 
+# Gmsh's legacy format 1 element types (by number) as meshio names them
+GMSH1_TYPES = {1: "line", 2: "triangle", 3: "quad", 4: "tetra", 5: "hexahedron", 6: "wedge",
+               7: "pyramid", 8: "line3", 9: "triangle6", 11: "tetra10", 15: "vertex"}
+
+
+def is_gmsh1(path: Path) -> bool:
+    """Whether ``path`` is in Gmsh's legacy format 1 (``$NOD`` ... ``$ELM``), which meshio
+    does not read (SOFA's ``share/mesh/*.msh`` are)."""
+    with open(path, "rb") as f:
+        return f.read(64).lstrip().startswith(b"$NOD")
+
+
+def read_gmsh1(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Points (N, 3) and cells by kind (each (n, k) of point rows) of a Gmsh format 1 file.
+
+    A node line is ``id x y z``, an element line ``id type physical elementary n node-ids``;
+    node ids are labels (any order, gaps allowed), mapped to rows in the order the nodes are
+    listed. A missing section, a count that does not match its lines, a short or non-numeric
+    line, a repeated node id or an element naming an unknown node is a :class:`MeshError`
+    naming the line.
+    """
+    lines = path.read_text(errors="replace").splitlines()
+
+    def section(name: str) -> tuple[int, list[str]]:
+        """(line number of the first entry, the entries) of ``$name`` .. ``$ENDname``."""
+        try:
+            start = next(i for i, line in enumerate(lines) if line.strip() == f"${name}")
+            end = next(i for i in range(start + 1, len(lines))
+                       if lines[i].strip() == f"$END{name}")
+        except StopIteration:
+            raise MeshError(f"{path}: Gmsh format 1 file without a complete ${name} ... "
+                            f"$END{name} section") from None
+        body = [line for line in lines[start + 1:end]]
+        try:
+            count = int(body[0])
+        except (IndexError, ValueError):
+            raise MeshError(f"{path}:{start + 2}: expected the number of entries of ${name}, "
+                            f"got {body[0] if body else 'nothing'!r}") from None
+        if count != len(body) - 1:
+            raise MeshError(f"{path}: ${name} says {count} entries but lists {len(body) - 1}")
+        return start + 3, body[1:]
+
+    def numbers(line: str, number: int, kind: type) -> list:
+        try:
+            return [kind(word) for word in line.split()]
+        except ValueError:
+            raise MeshError(f"{path}:{number}: not a line of numbers: {line.strip()!r}") from None
+
+    first, node_lines = section("NOD")
+    row_of: dict[int, int] = {}
+    points = np.empty((len(node_lines), 3))
+    for k, line in enumerate(node_lines):
+        values = numbers(line, first + k, float)
+        if len(values) != 4 or not values[0].is_integer():
+            raise MeshError(f"{path}:{first + k}: a node line is 'id x y z', got "
+                            f"{line.strip()!r}")
+        label = int(values[0])
+        if label in row_of:
+            raise MeshError(f"{path}:{first + k}: node {label} listed twice")
+        row_of[label] = k
+        points[k] = values[1:]
+    first, element_lines = section("ELM")
+    cells: dict[str, list[list[int]]] = {}
+    for k, line in enumerate(element_lines):
+        values = numbers(line, first + k, int)
+        if len(values) < 5 or len(values) != 5 + values[4]:
+            raise MeshError(f"{path}:{first + k}: an element line is 'id type physical "
+                            f"elementary n' and n node ids, got {line.strip()!r}")
+        try:
+            rows = [row_of[label] for label in values[5:]]
+        except KeyError as exc:
+            raise MeshError(f"{path}:{first + k}: element {values[0]} names node {exc.args[0]}, "
+                            "which $NOD does not list") from None
+        cells.setdefault(GMSH1_TYPES.get(values[1], f"type {values[1]}"), []).append(rows)
+    return points, {kind: np.array(rows, dtype=np.int64) for kind, rows in cells.items()}
+
+
 def read_mesh(path: str | Path, scale: float = 1.0) -> TetMesh:
     """Read a tetrahedral mesh with meshio (.msh, .vtu, .vtk, .xdmf, ...) and check it.
 
+    Gmsh's legacy format 1, which meshio does not read, is read by :func:`read_gmsh1`.
     Only ``tetra`` cells are used (surface/line cells in the file are ignored);
     a file with no ``tetra`` cells is refused. A file whose tets are *all*
     negatively oriented is reoriented; a mix of orientations is an error.
     """
-    import meshio
-
     path = Path(path)
     if path.is_dir():
         raise MeshError(f"mesh file {path} is a directory, not a file; give a tetrahedral "
                         "mesh file (.msh, .vtu, .vtk, .xdmf)")
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
-    said = io.StringIO()  # meshio prints an "Error: ..." line before exiting on some files
-    try:
-        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
-            m = meshio.read(path)
-    except (Exception, SystemExit) as exc:  # many types for bad files; sys.exit for some
-        words = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
-        fmt = path.suffix.lstrip(".") or "(no suffix)"
-        raise MeshError(f"{path}: meshio could not read it as {fmt}: {words} (a damaged file, "
-                        "or not a mesh of that format?)") from None
-    blocks = [c.data for c in m.cells if c.type == "tetra"]
-    if not blocks:
-        kinds = sorted({c.type for c in m.cells})
-        raise MeshError(f"{path}: no tetra cells (found {kinds}); forcecal needs linear tets")
-    tets = np.concatenate(blocks).astype(np.int64)
-    pts = np.asarray(m.points, dtype=np.float64)
+    if is_gmsh1(path):
+        pts, cells = read_gmsh1(path)
+    else:
+        pts, cells = _read_meshio(path)
+    if "tetra" not in cells:
+        raise MeshError(f"{path}: no tetra cells (found {sorted(cells)}); forcecal needs "
+                        "linear tets")
+    tets = cells["tetra"]
+    pts = np.asarray(pts, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] not in (2, 3):
         raise MeshError(f"{path}: points array has shape {pts.shape}; expected (N, 3)")
     if pts.shape[1] == 2:
@@ -334,6 +404,26 @@ def read_mesh(path: str | Path, scale: float = 1.0) -> TetMesh:
         return check_mesh(TetMesh(pts, tets))
     except MeshError as exc:
         raise MeshError(f"{path}: {exc}") from None
+
+
+def _read_meshio(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Points and cells by kind (:func:`read_gmsh1`'s) of a file meshio reads."""
+    import meshio
+
+    said = io.StringIO()  # meshio prints an "Error: ..." line before exiting on some files
+    try:
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(path)
+    except (Exception, SystemExit) as exc:  # many types for bad files; sys.exit for some
+        words = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        fmt = path.suffix.lstrip(".") or "(no suffix)"
+        raise MeshError(f"{path}: meshio could not read it as {fmt}: {words} (a damaged file, "
+                        "or not a mesh of that format?)") from None
+    cells: dict[str, list[np.ndarray]] = {}
+    for block in m.cells:
+        cells.setdefault(block.type, []).append(np.asarray(block.data))
+    return (np.asarray(m.points, dtype=np.float64),
+            {kind: np.concatenate(blocks).astype(np.int64) for kind, blocks in cells.items()})
 
 
 def box_mesh(n: tuple[int, int, int] = (2, 2, 2),

@@ -37,7 +37,8 @@ def key(default: Any, doc: str, unit: str = "", *, minimum: float | None = None,
 class MeshSection:
     source: str = key("generate", "'generate' builds the default liver with gmsh; otherwise a path "
                       "(relative to the scene file) to a tetrahedral mesh meshio reads "
-                      "(.msh, .vtu, .vtk, .xdmf)")
+                      "(.msh, .vtu, .vtk, .xdmf) or in Gmsh's legacy .msh format 1 "
+                      "(SOFA's meshes)")
     characteristic_length: float = key(0.0182, "target edge length of the generated liver "
                                        "(0.0182 m gives 282 vertices / 885 tets / 1400 edges)",
                                        "m", exclusive_minimum=0.0)

@@ -319,6 +319,60 @@ def test_read_mesh_roundtrip_and_errors(tmp_path):
         read_mesh(tmp_path / "missing.vtu")
 
 
+def _gmsh1(nodes: dict[int, np.ndarray], elements: list[tuple[int, list[int]]]) -> str:
+    """A Gmsh format 1 file: ``nodes`` by label, ``elements`` (type, node labels)."""
+    lines = ["$NOD", str(len(nodes))]
+    lines += [f"{label} {x!r} {y!r} {z!r}" for label, (x, y, z) in nodes.items()]
+    lines += ["$ENDNOD", "$ELM", str(len(elements))]
+    lines += [f"{k + 1} {kind} 1 1 {len(ids)} " + " ".join(map(str, ids))
+              for k, (kind, ids) in enumerate(elements)]
+    return "\n".join(lines + ["$ENDELM", ""])
+
+
+def test_gmsh_legacy_format_is_read_with_its_node_labels(tmp_path):
+    """Gmsh's format 1 (SOFA's meshes), which meshio does not read: node labels in any order
+    and with gaps become rows in the order listed, tets are taken and surface elements left
+    out; the mesh read back is the written one, bit for bit (coordinates written with repr)."""
+    m = box_mesh((2, 1, 1))
+    order = np.random.default_rng(1).permutation(m.n_vertices)
+    labels = 7 + 3 * np.arange(m.n_vertices)  # label of row r of the file: labels[r]
+    nodes = {int(labels[r]): m.vertices[order[r]] for r in range(m.n_vertices)}
+    label_of = np.empty(m.n_vertices, dtype=np.int64)
+    label_of[order] = labels  # label of the box's vertex v
+    elements = [(4, label_of[t].tolist()) for t in m.tets]
+    elements += [(2, label_of[f].tolist()) for f in m.surface_faces[:3]]
+    path = tmp_path / "legacy.msh"
+    path.write_text(_gmsh1(nodes, elements))
+    back = read_mesh(path)
+    np.testing.assert_array_equal(back.vertices, m.vertices[order])
+    rows = np.empty(m.n_vertices, dtype=np.int64)
+    rows[order] = np.arange(m.n_vertices)  # the file's row of the box's vertex v
+    np.testing.assert_array_equal(back.tets, rows[m.tets])
+    scaled = read_mesh(path, scale=0.001)
+    np.testing.assert_array_equal(scaled.vertices, m.vertices[order] * 0.001)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda t: t.replace("$ENDELM", ""), r"without a complete \$ELM \.\.\. \$ENDELM"),
+    (lambda t: t.replace("$NOD\n5", "$NOD\n6"), r"\$NOD says 6 entries but lists 5"),
+    (lambda t: t.replace("4 0.0 1.0 0.0", "4 0.0 one 0.0"), r"legacy\.msh:6: not a line of "),
+    (lambda t: t.replace("5 0.0 0.0 2.0", "4 0.0 0.0 2.0"), r"legacy\.msh:7: node 4 listed twice"),
+    (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 4 1 1 4 1 2 3 9"),
+     r"legacy\.msh:11: element 1 names node 9, which \$NOD does not list"),
+    (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 4 1 1 4 1 2 3"),
+     r"legacy\.msh:11: an element line is"),
+    (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 11 1 1 4 1 2 3 4"),
+     r"no tetra cells \(found \['tetra10'\]\)"),
+])
+def test_a_broken_gmsh_legacy_file_is_refused_naming_the_line(tmp_path, edit, message):
+    nodes = {1: (0.0, 0.0, 0.0), 2: (1.0, 0.0, 0.0), 3: (0.0, 0.0, 1.0), 4: (0.0, 1.0, 0.0),
+             5: (0.0, 0.0, 2.0)}
+    path = tmp_path / "legacy.msh"
+    path.write_text(edit(_gmsh1(nodes, [(4, [1, 2, 3, 4])])))
+    with pytest.raises(MeshError, match=message):
+        read_mesh(path)
+
+
 def test_read_mesh_refuses_2d_points(tmp_path, monkeypatch):
     """meshio's writers pad 2-D points to 3-D, so a reader returning them is simulated."""
     import meshio
