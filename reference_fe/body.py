@@ -72,7 +72,8 @@ def static_loads(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
     magnitude = float(np.linalg.norm(acceleration))
     displacement, frequencies, shapes = [], [], []
     for d in directions:
-        u, state = gravity_static(model, fixed, magnitude * d, load_steps, with_state=True)
+        u, state = gravity_static(model, fixed, magnitude * d, load_steps, with_state=True,
+                                  what=f"the weight along {np.round(d, 3).tolist()} (static)")
         displacement.append(u)
         if modes:
             f, phi = loaded_modes(model, fixed, state.u, modes)

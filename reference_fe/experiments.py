@@ -266,14 +266,16 @@ TEST_NAMES = {"fixed": "gravity", "second_support": "second support"}
 
 
 def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
-                   load_steps: int, *, section: str = "fixed", with_state: bool = False
-                   ) -> np.ndarray | tuple[np.ndarray, FEState]:
+                   load_steps: int, *, section: str = "fixed", with_state: bool = False,
+                   what: str | None = None) -> np.ndarray | tuple[np.ndarray, FEState]:
     """(N, 3) static displacement of every vertex under gravity [m] (long-term material), and
     with ``with_state`` the converged :class:`FEState` too.
 
     Gravity is applied in ``load_steps`` equal increments (a single P2 step diverges).
-    ``section`` is the scene section of the clamp ``fixed`` (named in the messages).
+    ``section`` is the scene section of the clamp ``fixed`` (named in the messages), ``what``
+    the load (default: the section's gravity test, "gravity static").
     """
+    what = what or f"{TEST_NAMES[section]} static"
     held = clamp(model.clamp_dofs(fixed))
     g = np.asarray(acceleration, float)
 
@@ -290,13 +292,13 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
     first = None  # sag per unit load of the first step
     for factor, state in zip(factors, march(initial_state(model), factors, step,
                                             max_cuts=model.fe.max_step_cuts,
-                                            what=f"{TEST_NAMES[section]} static",
+                                            what=what,
                                             unit="x gravity")):
         u = model.vertex_values(state.u)
         sag = float(np.linalg.norm(u, axis=1).max())
         first = sag / factor if first is None else first
         try:
-            check_sag(sag, factor, first, extent, len(fixed), section)
+            check_sag(sag, factor, first, extent, len(fixed), section, what)
         except StabilityError as error:
             error.reached = factor  # how far the experiment got
             raise
@@ -309,7 +311,7 @@ SAG_GROWTH_LIMIT = 5.0
 
 
 def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: int,
-              section: str = "fixed") -> None:
+              section: str = "fixed", what: str | None = None) -> None:
     """Refuse a static sag that grows much faster than the load or exceeds half the body.
 
     Args:
@@ -319,18 +321,28 @@ def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: i
         extent: diagonal of the mesh's bounding box [m].
         n_fixed: number of fixed vertices (named in the message).
         section: the scene section whose rule clamps them (its keys are named).
+        what: the static load named in the message (default: the section's gravity test's).
 
     Raises:
-        StabilityError: the support does not hold the body.
+        StabilityError: the support does not hold the body; the message says which of the
+            two happened.
     """
     growth = (sag / factor) / first if first > 0 else 1.0
-    if growth > SAG_GROWTH_LIMIT or sag > 0.5 * extent:
-        raise StabilityError(
-            f"{TEST_NAMES[section]} static: unstable support: the sag grows much faster than "
-            f"the load ({sag * 1e3:.3g} mm at {factor:.3g} x gravity, {growth:.3g} x the first "
-            f"load step's sag per unit load; body size {extent * 1e3:.3g} mm): the {n_fixed} "
-            f"fixed vertices of the [{section}] section do not hold the body; clamp a larger "
-            f"patch ({section}.tolerance) or another side ({section}.axis, {section}.side)")
+    if growth > SAG_GROWTH_LIMIT:
+        cause = (f"unstable support: the sag grows much faster than the load ({sag * 1e3:.3g} "
+                 f"mm at {factor:.3g} x gravity, {growth:.3g} x the first load step's sag per "
+                 f"unit load; body size {extent * 1e3:.3g} mm)")
+    elif sag > 0.5 * extent:
+        cause = (f"the support does not hold the body: the sag reaches more than half the "
+                 f"body's size ({sag * 1e3:.3g} mm at {factor:.3g} x gravity, body size "
+                 f"{extent * 1e3:.3g} mm; {growth:.3g} x the first load step's sag per unit "
+                 f"load)")
+    else:
+        return
+    raise StabilityError(
+        f"{what or TEST_NAMES[section] + ' static'}: {cause}: the {n_fixed} fixed vertices of "
+        f"the [{section}] section do not hold the body; clamp a larger patch "
+        f"({section}.tolerance) or another side ({section}.axis, {section}.side)")
 
 
 def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,

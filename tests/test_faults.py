@@ -605,7 +605,9 @@ def _fake_reference(scene):
 
 @pytest.mark.parametrize("sag, factor, first, cause", [
     (0.066, 0.25, 0.002 / 0.25, r"unstable support: the sag grows much faster than the load"),
-    (0.3, 1.0, 0.29, r"body size 200 mm"),  # more than half the body at once
+    # more than half the body, proportionally to the load: not called a runaway sag
+    (0.3, 1.0, 0.29, r"gravity static: the support does not hold the body: the sag reaches "
+                     r"more than half the body's size \(300 mm at 1 x gravity, body size 200 mm"),
 ])
 def test_unstable_support_is_named(sag, factor, first, cause):
     from reference_fe.experiments import check_sag
@@ -613,7 +615,10 @@ def test_unstable_support_is_named(sag, factor, first, cause):
     with pytest.raises(StabilityError, match=cause) as info:
         check_sag(sag, factor, first, 0.2, 5)
     assert "5 fixed vertices of the [fixed] section" in str(info.value)
+    assert ("grows much faster" in str(info.value)) == (sag / factor / first > 5.0)
     check_sag(0.004, 1.0, 0.0039, 0.2, 5)  # a sound support: nearly linear
+    with pytest.raises(StabilityError, match=r"^the weight along \[1.0, 0.0, 0.0\] \(static\): "):
+        check_sag(sag, factor, first, 0.2, 5, what="the weight along [1.0, 0.0, 0.0] (static)")
 
 
 def test_a_failed_item_stops_the_other_ranks_at_their_next_step():
