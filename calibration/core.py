@@ -71,6 +71,7 @@ from forcecal.fe_failures import apply_fe_failures
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import GRAVITY_EXPERIMENTS, CalibrationSection, Scene, load_scene
 from forcecal.schedules import indentation_depths, relaxation_schedule
+from particle.body import LOAD_KINDS
 from particle.params import ConnectorParams
 
 log = logging.getLogger(__name__)
@@ -310,21 +311,27 @@ def whole_body_data(setup: FitSetup, glob: GlobalParams) -> BodyFitData:
     the kinds it has a response to are fitted from the start."""
     kinds = (body_kinds(setup.settings.body_data) if setup.whole_body and setup.gradient
              else ())
-    every, fitted, failure = None, None, None
+    every, fitted, failures = None, None, []
+    # kinds the FE could not compute (its static body loads failed): never fitted
+    lost = tuple(k for k in kinds if k in LOAD_KINDS) if (
+        setup.whole_body and setup.ref.body.load_failure is not None) else ()
+    if lost:
+        failures.append(f"the FE has no {'+'.join(lost)} data: {setup.ref.body.load_failure}")
+        log.warning("whole-body data: %s", failures[-1])
     if setup.whole_body:
-        every = BodyData.of(setup.ref, kinds, setup.connector_params(glob),
-                            setup.scene.body.load_steps)
-    if kinds:
+        every = BodyData.of(setup.ref, tuple(k for k in kinds if k not in lost),
+                            setup.connector_params(glob), setup.scene.body.load_steps)
+    if every is not None and every.kinds:
         missing = {k: why for k, why in every.carried(setup.connector_params(glob)).items()
                    if why is not None}
         if missing:
-            failure = ("the global fit has no response to the whole-body data "
-                       + "; ".join(f"{k} ({why})" for k, why in missing.items())
-                       + "; they join the fit once it carries them")
-            log.warning("%s", failure)
-        carried = tuple(k for k in kinds if k not in missing)
+            failures.append("the global fit has no response to the whole-body data "
+                            + "; ".join(f"{k} ({why})" for k, why in missing.items())
+                            + "; they join the fit once it carries them")
+            log.warning("%s", failures[-1])
+        carried = tuple(k for k in every.kinds if k not in missing)
         fitted = every.with_kinds(carried) if carried else None
-    return BodyFitData(kinds, every, fitted, failure)
+    return BodyFitData(kinds, every, fitted, "; ".join(failures) or None)
 
 
 @dataclass(frozen=True, eq=False)

@@ -379,6 +379,9 @@ class BodyResult:
             moduli as ``frequencies``; None in a reference computed without them.
         free_shapes: (2, M, N, 3) float64, their shapes, normalised as ``shapes``; None with
             ``free_frequencies``.
+        load_failure: why the static body loads are absent (L = 0: the FE could not hold the
+            body under one of them, e.g. a seat that lets it swing over sideways; the modes
+            are kept), None when they were computed.
     """
     frequencies: np.ndarray
     shapes: np.ndarray
@@ -389,6 +392,7 @@ class BodyResult:
     loaded_shapes: np.ndarray
     free_frequencies: np.ndarray | None = None
     free_shapes: np.ndarray | None = None
+    load_failure: str | None = None
 
     @property
     def load_accelerations(self) -> np.ndarray:
@@ -836,6 +840,11 @@ def write_body(g: h5py.Group, body: BodyResult, n_vertices: int) -> None:
     _check_shape("body.load_displacement", body.load_displacement, (n_loads, n_vertices, 3))
     g.attrs["moduli"] = json.dumps(list(BODY_MODULI))
     g.attrs["load_acceleration"] = float(body.load_acceleration)
+    if body.load_failure is not None:
+        if n_loads:
+            raise DataFileError("body: a load failure with loads; the loads of a failed "
+                                "static body load are left out")
+        g.attrs["load_failure"] = body.load_failure
     put(g, "frequencies", body.frequencies, "Hz", "lowest natural frequencies, ascending, at "
         "the instantaneous (row 0) and long-term (row 1) moduli (2, M)")
     put(g, "shapes", body.shapes, "1/sqrt(kg)", "their mode shapes at the vertices, "
@@ -896,7 +905,9 @@ def read_body(fh: h5py.File, n_vertices: int) -> BodyResult:
         loaded_frequencies=loaded,
         loaded_shapes=get(fh, "body/loaded_shapes", (len(directions), n_modes, n_vertices, 3),
                           dtype="float"),
-        free_frequencies=free, free_shapes=free_shapes)
+        free_frequencies=free, free_shapes=free_shapes,
+        load_failure=(str(group(fh, "body").attrs["load_failure"])
+                      if "load_failure" in group(fh, "body").attrs else None))
 
 
 

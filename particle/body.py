@@ -114,10 +114,17 @@ class Rows:
         return out if self.explicit is None else out + self.explicit
 
 
+#: the kinds of whole-body data that come from the static body loads
+LOAD_KINDS = (BODY_KINDS[0], BODY_KINDS[2])
+
+
 def available_kinds(body: BodyResult) -> tuple[str, ...]:
     """The kinds (:data:`BODY_KINDS`) an FE ``body`` result holds: every one, but
-    ``free_modes`` in a reference computed before them."""
-    return tuple(k for k in BODY_KINDS if k != BODY_KINDS[3] or body.free_frequencies is not None)
+    ``free_modes`` in a reference computed before them and the loads and the modes about
+    them (:data:`LOAD_KINDS`) where the FE could not hold the body under the loads."""
+    return tuple(k for k in BODY_KINDS
+                 if (k != BODY_KINDS[3] or body.free_frequencies is not None)
+                 and (k not in LOAD_KINDS or body.load_failure is None))
 
 
 def _no_modes(n: int) -> tuple[np.ndarray, np.ndarray]:

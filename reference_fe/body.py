@@ -23,7 +23,10 @@ not use (its gravity direction and its release stay held out):
   directions perpendicular to the test's gravity
   (:func:`forcecal.problem.body_load_directions`), each a
   nonlinear, long-term, load-stepped static solve exactly like the gravity sag's
-  (:func:`reference_fe.experiments.gravity_static`).
+  (:func:`reference_fe.experiments.gravity_static`). A support that holds the body under
+  the test's gravity may not hold it sideways (a narrow seat lets it swing over): then the
+  loads and their modes are left out, with the reason (``load_failure``), and the modes
+  kept, so the calibration fits what the FE could compute;
 
 * **modes about each loaded state**: the ``body.modes`` lowest modes of small motions
   about each static load's equilibrium, at the instantaneous incremental moduli (the
@@ -48,7 +51,7 @@ import scipy.sparse as sp
 from dolfinx.fem.petsc import assemble_matrix
 
 from forcecal.eigen import free_modes, nearest_modes
-from forcecal.errors import ConvergenceError
+from forcecal.errors import ConvergenceError, StabilityError
 from forcecal.h5io import BodyResult
 from forcecal.problem import body_load_directions
 from reference_fe.experiments import gravity_static
@@ -224,12 +227,22 @@ def body_data(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray, modes
     and ``free_shapes`` (2, M, N, 3) of the unsupported body."""
     frequencies, shapes = zip(*(natural_modes(model, fixed, modes, m) for m in MODULI))
     free_f, free_phi = zip(*(unsupported_modes(model, modes, m) for m in MODULI))
-    directions, displacement, loaded_f, loaded_phi = static_loads(model, fixed, acceleration,
-                                                                  load_steps, modes)
+    failure = {}
+    try:
+        directions, displacement, loaded_f, loaded_phi = static_loads(model, fixed, acceleration,
+                                                                      load_steps, modes)
+    except (ConvergenceError, StabilityError) as exc:
+        # the support holds the body under the scene's gravity (its own test) but not under
+        # its weight sideways: the loads and their modes are left out, the modes kept
+        log.warning("body: the static body loads are left out: %s", exc)
+        n = model.mesh.n_vertices
+        directions, displacement = np.zeros((0, 3)), np.zeros((0, n, 3))
+        loaded_f, loaded_phi = np.zeros((0, modes)), np.zeros((0, modes, n, 3))
+        failure = {"load_failure": np.array(str(exc))}
     return {"frequencies": np.stack(frequencies), "shapes": np.stack(shapes),
             "load_directions": directions, "load_displacement": displacement,
             "loaded_frequencies": loaded_f, "loaded_shapes": loaded_phi,
-            "free_frequencies": np.stack(free_f), "free_shapes": np.stack(free_phi)}
+            "free_frequencies": np.stack(free_f), "free_shapes": np.stack(free_phi), **failure}
 
 
 def at_vertices(arrays: dict[str, np.ndarray], vertices: np.ndarray) -> dict[str, np.ndarray]:
@@ -250,7 +263,9 @@ def result_of(arrays: dict[str, np.ndarray], acceleration: float) -> BodyResult:
                       loaded_frequencies=arrays["loaded_frequencies"],
                       loaded_shapes=arrays["loaded_shapes"],
                       free_frequencies=arrays.get("free_frequencies"),
-                      free_shapes=arrays.get("free_shapes"))
+                      free_shapes=arrays.get("free_shapes"),
+                      load_failure=(str(arrays["load_failure"]) if "load_failure" in arrays
+                                    else None))
 
 
 def arrays_of(result: BodyResult) -> dict[str, np.ndarray]:
@@ -262,4 +277,6 @@ def arrays_of(result: BodyResult) -> dict[str, np.ndarray]:
             "loaded_frequencies": result.loaded_frequencies,
             "loaded_shapes": result.loaded_shapes,
             **({} if result.free_frequencies is None else
-               {"free_frequencies": result.free_frequencies, "free_shapes": result.free_shapes})}
+               {"free_frequencies": result.free_frequencies, "free_shapes": result.free_shapes}),
+            **({} if result.load_failure is None else
+               {"load_failure": np.array(result.load_failure)})}

@@ -227,6 +227,45 @@ def test_a_reference_without_the_unsupported_bodys_modes_serves_the_other_kinds(
         BodyData.of(back, ("modes", "free_modes"), truth, 2)
 
 
+def test_a_reference_whose_body_loads_failed_fits_the_modes_and_says_why(tmp_path):
+    """The FE could not hold the body under its weight sideways (``load_failure``, no loads
+    and no modes about them): ``reference.h5`` keeps the reason; a fit asking for the loads
+    and the modes fits the modes, and its ``body`` record names the kinds the FE could not
+    give and why (the run ends in a report instead of an error). Loads together with a
+    load failure are refused when written."""
+    from forcecal.errors import DataFileError
+    from particle.body import available_kinds
+
+    scene = replace(_box(tmp_path, n_calibration=4),
+                    experiments=["indentation", "relaxation", "body"],
+                    calibration={"body_data": "loads+modes", "static_max_evaluations": 20,
+                                 "relaxation_max_evaluations": 20,
+                                 "gradient_max_iterations": 4},
+                    body={"modes": 2, "load_steps": 2})
+    truth = smooth_truth(build_problem(scene))
+    ref = synthetic_reference(scene, truth, tmp_path / "synthetic.h5")
+    why = "the weight along [1.0, 0.0, 0.0] (static): the support does not hold the body"
+    n = ref.problem.mesh.n_vertices
+    failed = dataclasses.replace(ref.body, load_directions=np.zeros((0, 3)),
+                                 load_displacement=np.zeros((0, n, 3)),
+                                 loaded_frequencies=np.zeros((0, 2)),
+                                 loaded_shapes=np.zeros((0, 2, n, 3)), load_failure=why)
+    with pytest.raises(DataFileError, match="a load failure with loads"):
+        write_reference(tmp_path / "bad.h5", dataclasses.replace(
+            ref, body=dataclasses.replace(ref.body, load_failure=why)))
+    write_reference(tmp_path / "reference.h5", dataclasses.replace(ref, body=failed))
+    back = read_reference(tmp_path / "reference.h5")
+    assert back.body.load_failure == why and back.body.load_directions.shape == (0, 3)
+    assert available_kinds(back.body) == ("modes", "free_modes")
+    assert read_reference(tmp_path / "synthetic.h5").body.load_failure is None
+    result = calibrate(scene, tmp_path / "reference.h5", tmp_path / "params.h5",
+                       progress=False)
+    record = result.body
+    assert record["status"] == "fitted" and record["kinds"] == ["modes"]
+    assert record["failure"] == f"the FE has no loads data: {why}"
+    assert not any(item.startswith("load") for item in record["items"])
+
+
 def test_the_kinds_a_model_has_no_response_to_are_named():
     """:meth:`BodyData.carried` tells, kind by kind, whether a model has a response: the soft
     box under 5 g sideways has its rest modes but no equilibrium under the loads, so neither

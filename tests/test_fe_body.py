@@ -225,11 +225,43 @@ def test_the_reference_stage_computes_stores_and_reuses_the_body_experiment(tmp_
     np.testing.assert_array_equal(again.body.loaded_shapes, back.body.loaded_shapes)
 
 
+def test_a_support_that_cannot_hold_the_body_sideways_leaves_the_loads_out(monkeypatch):
+    """A support may hold the body under the test's gravity and not under its weight
+    sideways (a narrow seat it swings over from): ``body_data`` then keeps the modes, leaves
+    the loads and their modes out (no rows) and says why; the work item's arrays read back as
+    a :class:`BodyResult` and are written again unchanged (a resumed run)."""
+    from forcecal.errors import StabilityError
+    from reference_fe import body
+
+    mesh = box_mesh((4, 1, 1), (0.04, 0.01, 0.01))
+    model = FEModel(mesh, MaterialSection(C10=2.0e5, C01=1.0e5, kappa=3.0e7),
+                    FESection(element="P2"))
+    fixed = np.flatnonzero(mesh.vertices[:, 0] < 1e-12)
+    why = "the weight along [1.0, 0.0, 0.0] (static): the support does not hold the body"
+
+    def swings_over(*args, **kwargs):
+        raise StabilityError(why)
+
+    monkeypatch.setattr(body, "static_loads", swings_over)
+    data = body.body_data(model, fixed, np.array([0.0, 0.0, -9.81]), 3, 2)
+    assert data["frequencies"].shape == (len(MODULI), 3)
+    assert data["free_frequencies"].shape == (len(MODULI), 3)
+    assert data["load_directions"].shape == (0, 3)
+    assert data["load_displacement"].shape == (0, mesh.n_vertices, 3)
+    assert data["loaded_frequencies"].shape == (0, 3)
+    assert data["loaded_shapes"].shape == (0, 3, mesh.n_vertices, 3)
+    result = body.result_of(body.at_vertices(data, np.arange(mesh.n_vertices)), 9.81)
+    assert result.load_failure == why
+    again = body.arrays_of(result)
+    assert str(again["load_failure"]) == why and set(again) == set(data)
+
+
 def test_a_failed_body_experiment_stops_the_reference_naming_it(tmp_path, monkeypatch):
-    """Unlike a test point's curve (replaced or dropped) or the gravity test (left out), the
-    whole-body data failing stops the run: the scene asked for them explicitly and a
-    reference without them would only fail the calibration later. The error names the item
-    and no reference is written."""
+    """Unlike a test point's curve (replaced or dropped), the gravity test (left out) or the
+    body's static loads alone (left out, the modes kept: the test above), the whole-body data
+    failing stops the run: the scene asked for them explicitly and a reference without them
+    would only fail the calibration later. The error names the item and no reference is
+    written."""
     from forcecal.errors import ConvergenceError
     from forcecal.scene import load_scene, replace
     from reference_fe.run import compute_reference
