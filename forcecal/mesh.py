@@ -293,9 +293,10 @@ def orient_tets(vertices: np.ndarray, tets: np.ndarray, origin: str) -> np.ndarr
     return tets
 
 
-# Gmsh's legacy format 1 element types (by number) as meshio names them
-GMSH1_TYPES = {1: "line", 2: "triangle", 3: "quad", 4: "tetra", 5: "hexahedron", 6: "wedge",
-               7: "pyramid", 8: "line3", 9: "triangle6", 11: "tetra10", 15: "vertex"}
+# Gmsh's legacy format 1 element types (by number): the name meshio gives them, their nodes
+GMSH1_TYPES = {1: ("line", 2), 2: ("triangle", 3), 3: ("quad", 4), 4: ("tetra", 4),
+               5: ("hexahedron", 8), 6: ("wedge", 6), 7: ("pyramid", 5), 8: ("line3", 3),
+               9: ("triangle6", 6), 11: ("tetra10", 10), 15: ("vertex", 1)}
 
 
 def is_gmsh1(path: Path) -> bool:
@@ -325,7 +326,7 @@ def read_gmsh1(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         except StopIteration:
             raise MeshError(f"{path}: Gmsh format 1 file without a complete ${name} ... "
                             f"$END{name} section") from None
-        body = [line for line in lines[start + 1:end]]
+        body = lines[start + 1:end]
         try:
             count = int(body[0])
         except (IndexError, ValueError):
@@ -361,12 +362,16 @@ def read_gmsh1(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         if len(values) < 5 or len(values) != 5 + values[4]:
             raise MeshError(f"{path}:{first + k}: an element line is 'id type physical "
                             f"elementary n' and n node ids, got {line.strip()!r}")
+        kind, nodes = GMSH1_TYPES.get(values[1], (f"type {values[1]}", values[4]))
+        if values[4] != nodes:
+            raise MeshError(f"{path}:{first + k}: element {values[0]} is a {kind} with "
+                            f"{values[4]} nodes; a {kind} has {nodes}")
         try:
             rows = [row_of[label] for label in values[5:]]
         except KeyError as exc:
             raise MeshError(f"{path}:{first + k}: element {values[0]} names node {exc.args[0]}, "
                             "which $NOD does not list") from None
-        cells.setdefault(GMSH1_TYPES.get(values[1], f"type {values[1]}"), []).append(rows)
+        cells.setdefault(kind, []).append(rows)
     return points, {kind: np.array(rows, dtype=np.int64) for kind, rows in cells.items()}
 
 

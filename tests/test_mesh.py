@@ -361,7 +361,9 @@ def test_gmsh_legacy_format_is_read_with_its_node_labels(tmp_path):
      r"legacy\.msh:11: element 1 names node 9, which \$NOD does not list"),
     (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 4 1 1 4 1 2 3"),
      r"legacy\.msh:11: an element line is"),
-    (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 11 1 1 4 1 2 3 4"),
+    (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 4 1 1 3 1 2 3"),
+     r"legacy\.msh:11: element 1 is a tetra with 3 nodes; a tetra has 4"),
+    (lambda t: t.replace("1 4 1 1 4 1 2 3 4", "1 11 1 1 10 1 2 3 4 5 1 2 3 4 5"),
      r"no tetra cells \(found \['tetra10'\]\)"),
 ])
 def test_a_broken_gmsh_legacy_file_is_refused_naming_the_line(tmp_path, edit, message):
