@@ -706,6 +706,27 @@ def test_mpirun_boilerplate_is_kept_for_the_log(text, error, shown, tmp_path, ca
     assert "Primary job" in caplog.text  # kept for --verbose
 
 
+@pytest.mark.parametrize("rc, said", [(137, "137 is a rank killed (SIGKILL), most often for "
+                                             "want of memory: fewer ranks (--ranks)"),
+                                       (2, "mpirun exit code 2; --verbose")])
+def test_a_rank_killed_by_the_system_is_named_as_such(rc, said, tmp_path, monkeypatch):
+    """mpirun ending with 137 (a rank sent SIGKILL: on Linux the out-of-memory killer; seen
+    with two ranks of refined punch models next to another job) says so and what needs less
+    memory; another code is given as it is."""
+    import types
+
+    from pipelines.runners import reference as runner
+    CASES["fault"] += 1
+    monkeypatch.setattr(runner, "run_mpirun", lambda cmd: (rc, None))
+    monkeypatch.setattr(runner.shutil, "which", lambda name: "/usr/bin/mpirun")
+    ctx = types.SimpleNamespace(out=tmp_path, under_mpi=False, ranks=2, progress=False,
+                                scene=types.SimpleNamespace(path=tmp_path / "scene.toml"),
+                                problem=None)
+    with pytest.raises(runner.StageFailed, match=re.escape(said)) as info:
+        runner.run_reference(ctx)
+    assert ("SIGKILL" in str(info.value)) == (rc == 137)
+
+
 def test_describe_names_every_kind_of_failure():
     from forcecal.failures import describe, note_stage
     CASES["fault"] += 1

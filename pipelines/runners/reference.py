@@ -66,8 +66,11 @@ def run_reference(ctx: Context) -> list[str]:
         if error is not None:  # the ranks' own refusal, printed once by the pipeline
             raise StageFailed(f"{error} ({kept})" if kept and "kept in" not in error
                               else error)
-        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}; --verbose shows "
-                          "mpirun's own text)" + (f"; {kept}" if kept else ""))
+        # 128 + 9: a rank was sent SIGKILL, on Linux most often by the out-of-memory killer
+        killed = ("; 137 is a rank killed (SIGKILL), most often for want of memory: fewer "
+                  "ranks (--ranks) or a smaller fe.local_refine need less" if rc == 137 else "")
+        raise StageFailed(f"the FE reference failed (mpirun exit code {rc}{killed}; --verbose "
+                          "shows mpirun's own text)" + (f"; {kept}" if kept else ""))
     return [REFERENCE]
 
 
