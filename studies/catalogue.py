@@ -163,6 +163,25 @@ def stable_step_gap_answer(r: Result) -> str:
             f"{row['bound_band_substeps']} / {row['exact_rest_substeps']}" for row in r["rows"])
 
 
+def independent_check_answer(r: Result) -> str:
+    if "checks" not in r:
+        return (f"no report (exit status {r['exit_status']}): "
+                f"{(r.get('error') or '').split(';')[0]}")
+    ran = {n: c for n, c in r["checks"].items() if c["status"] != "not_run"}
+    better = [n for n, c in ran.items()
+              if c["calibrated"] is not None and c["baseline"] is not None
+              and (c["calibrated"] >= c["baseline"] if n == "carries_its_weight"
+                   else c["calibrated"] <= c["baseline"])]
+    cells = ", ".join(f"{n} {pct(c['calibrated'])} ({pct(c['baseline'])})"
+                      for n, c in ran.items() if n != "carries_its_weight")
+    left = [n for n, c in r["checks"].items() if c["status"] == "not_run"]
+    return (f"verdict {'passed' if r['passed'] else 'failed'}; calibrated (baseline): {cells}; "
+            f"no worse than the baseline on {len(better)} of {len(ran)} checks run"
+            + (f"; not run: {', '.join(left)}" if left else "")
+            + (f"; whole-body data fitted: {'+'.join(r['body']['kinds'])}" if r.get("body")
+               and r["body"].get("kinds") else ""))
+
+
 def body_data_command(path: str, r: Result) -> str:
     from studies.body_data import VARIANTS
 
@@ -287,6 +306,11 @@ STUDIES = (
           "valid at rest can exceed?",
           "runs/studies/stable_step_gap*.json", lambda path, r: r["command"],
           stable_step_gap_answer),
+    Study("independent_check", "Does the README's own-mesh recipe end in a verdict, and beat "
+          "the closed-form baseline, on a mesh nobody tuned forcecal on (SOFA's liver, kept "
+          "out of the corpus for this)?",
+          "runs/studies/independent_check*.json", lambda path, r: r["command"],
+          independent_check_answer),
     Study("body_data", "Which whole-body data (natural modes, the weight along the axes "
           "perpendicular to gravity, the modes about those loads), fitted with the surface "
           "curves, to choose on calibration data only, and what do they cost the FE?",
