@@ -37,6 +37,12 @@ TOOL_RUN_CACHE = 16
 DT_SAFETY = ParticleSection().dt_safety
 
 
+def substeps_per_period(period: float, dt: float) -> int:
+    """The fewest equal steps that cover ``period`` [s] without exceeding ``dt`` [s] (a dt
+    within round-off of period / n gives n)."""
+    return max(1, math.ceil(period / dt * (1.0 - 1e-12)))
+
+
 class HapticSession:
     """Real-time session on one model.
 
@@ -138,7 +144,7 @@ class HapticSession:
         self.integrator.prepare(model, self.dt, inertia=self.inertia)
 
     def _set_step(self, dt: float) -> None:
-        self.substeps = max(1, math.ceil(self.period / dt * (1.0 - 1e-12)))
+        self.substeps = substeps_per_period(self.period, dt)
         self.dt = self.period / self.substeps
 
     def _bands_dt(self, limit: float) -> float:

@@ -31,6 +31,7 @@ from forcecal.errors import DataFileError, ForcecalError
 from forcecal.h5io import atomic_path
 from forcecal.scene import ParticleSection
 from particle.nodal_volume import refuse_nodal
+from particle.haptics import substeps_per_period
 from particle.model import Model
 from particle.params import PARAM_NAMES, VOLUME_ARM_NAMES, ConnectorParams, StrainBounds
 from particle.stability import critical_time_step
@@ -104,7 +105,7 @@ def time_step(model: Model, strain_range: StrainBounds, safety: float = DT_SAFET
     return {"critical_dt": critical if math.isfinite(critical) else None,
             "dt": dt if math.isfinite(dt) else None, "dt_safety": safety,
             "period": PERIOD,
-            "substeps_per_period": math.ceil(PERIOD / dt * (1.0 - 1e-12))
+            "substeps_per_period": substeps_per_period(PERIOD, dt)
             if math.isfinite(dt) else 1,
             "strain_low": lo.tolist(), "strain_high": hi.tolist()}
 

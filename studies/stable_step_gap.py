@@ -53,7 +53,9 @@ def exact_rest_step(model) -> float:
 
 def substeps(dt: float, safety: float) -> int:
     """Substeps per haptic period at ``safety`` x the stable step ``dt`` [s]."""
-    return max(1, math.ceil(PERIOD / (safety * dt) * (1.0 - 1e-12)))
+    from particle.haptics import substeps_per_period
+
+    return substeps_per_period(PERIOD, safety * dt)
 
 
 def measure(meshes: int) -> dict[str, Any]:

@@ -185,10 +185,11 @@ class Variant:
 def _default_substeps(model) -> int:
     """Substeps per period of the float64 default session (the default strain range)."""
     from pipelines.bench import particle_engine as pb
+    from particle.haptics import substeps_per_period
     from particle.stability import critical_time_step
 
     limit = critical_time_step(model)
-    return max(1, math.ceil(PERIOD / (pb.DT_SAFETY * limit) * (1.0 - 1e-12)))
+    return substeps_per_period(PERIOD, pb.DT_SAFETY * limit)
 
 
 def _rows(name: str, terms: str, model, renumbering, tool: int, tracked: int,
