@@ -28,7 +28,7 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 STAGE_ARGS := --scene $(SCENE) $(if $(OUT),--out $(OUT))
 
-.PHONY: help setup test demo validate reference calibrate gravity report bench bench-full bench-quick corpus clean
+.PHONY: help setup test demo validate reference calibrate gravity report bench bench-full bench-quick corpus corpus-recipe clean
 
 help:
 	@echo "make demo        # install what is missing, then mesh -> FE reference -> calibration -> gravity -> report"
@@ -38,6 +38,7 @@ help:
 	@echo "make bench       # headline benchmarks, 8.5 min cold (measured, idle 2 cores) -> runs/bench-headline/ (bench-quick: a few minutes)"
 	@echo "make bench-full  # every benchmark at full size, 1.5-2 h cold -> runs/bench/ (the committed bench.json)"
 	@echo "make corpus      # every scenes/corpus/*.toml through the pipeline -> runs/corpus/corpus.json, docs/corpus.md"
+	@echo "make corpus-recipe # the same with the README's own-mesh recipe -> runs/corpus_recipe/, docs/corpus_recipe.md"
 
 setup: $(STAMP)
 
@@ -99,6 +100,9 @@ bench-quick: setup
 
 corpus: setup
 	$(PY) -m pipelines corpus
+
+corpus-recipe: setup
+	$(PY) -m pipelines corpus --recipe
 
 clean:
 	rm -rf $(VENV) .cache build *.egg-info

@@ -89,6 +89,75 @@ def mesh_summary(scene_path: Path) -> dict[str, Any]:
             "edge_mean_m": float(edges.mean())}
 
 
+#: the README's "Running your own mesh" recipe (its TOML block), less what belongs to one mesh:
+#: what ``--recipe`` gives every corpus scene on top of its own keys (a key both set is the
+#: corpus scene's: it says what that mesh needs)
+RECIPE: dict[str, Any] = {
+    "experiments": ["indentation", "relaxation", "gravity_static", "gravity_dynamic", "body",
+                    "second_support", "floor"],
+    "test_points": {"calibration": "auto", "n_calibration": 31, "held_out": "auto",
+                    "n_held_out": 8},
+    "indentation": {"indenter": "punch"},
+    "fe": {"element": "TH", "local_refine": 3},
+    "particle": {"volume": "viscoelastic"},
+    "calibration": {"method": "gradient", "global_shape": "van_gelder",
+                    "body_data": "modes+loaded_modes+free_modes"},
+}
+#: the recipe's punch radius, in mean surface edge lengths of the mesh
+RECIPE_RADIUS_EDGES = 1.5
+RECIPE_OUT = Path("runs/corpus_recipe")
+RECIPE_DOCS = Path("docs/corpus_recipe.md")
+
+
+def recipe_scene(scene_path: Path, folder: Path) -> Path:
+    """``folder/<stem>.toml``: the corpus scene ``scene_path`` with the README's own-mesh
+    recipe (:data:`RECIPE`), as a user following it would write it for that mesh: its own
+    keys kept (mesh, support, gravity, depths), the punch radius
+    :data:`RECIPE_RADIUS_EDGES` mean surface edge lengths of its mesh, and the second support
+    the side opposite its ``[fixed]`` one, same axis and tolerance (hung from it where it
+    lies on a table). A scene whose mesh is refused is written as it is (its run ends in the
+    same refusal, the scene's recorded result). The file is written only when its text
+    changes; a scene file that cannot be loaded raises the :class:`ForcecalError` naming it."""
+    import tomllib
+
+    from forcecal.indenter import mean_surface_edge
+    from forcecal.problem import load_mesh
+    from forcecal.scene import load_scene, scene_from_dict
+    from pipelines.bench.configs import scene_toml
+
+    own = tomllib.loads(scene_path.read_text())
+    scene = load_scene(scene_path)
+    if scene.mesh_source_path() is not None:  # as a path from the written scene's folder
+        own["mesh"] = {**own["mesh"], "source": os.path.relpath(
+            scene.mesh_source_path().resolve(), folder.resolve())}
+    try:
+        mesh = load_mesh(scene)
+    except ForcecalError:  # the scene as it is: its run is refused the same way, recorded
+        data = own
+    else:
+        data = {"name": f"{scene.name}_recipe",
+                "description": f"{scene.description} (the README's own-mesh recipe)"}
+        for key, value in RECIPE.items():
+            data[key] = {**value, **own.get(key, {})} if isinstance(value, dict) else value
+        data.update({key: value for key, value in own.items() if key not in data})
+        radius = RECIPE_RADIUS_EDGES * mean_surface_edge(mesh)
+        data["indentation"].setdefault("radius", float(f"{radius:.4g}"))
+        fixed = scene.fixed
+        data.setdefault("second_support", {
+            "axis": fixed.axis, "side": "max" if fixed.side == "min" else "min",
+            "tolerance": fixed.tolerance})
+    path = folder / f"{scene_path.stem}.toml"
+    text = ("# written by python -m pipelines corpus --recipe from "
+            f"{scene_path.as_posix()}: edit that scene or the recipe, not this file\n"
+            + scene_toml(data))
+    scene_from_dict(tomllib.loads(text), path=path)  # refused before anything is written
+    folder.mkdir(parents=True, exist_ok=True)
+    if not path.is_file() or path.read_text() != text:
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
+    return path
+
+
 #: seconds between the lines saying a long stage is still running
 HEARTBEAT_S = 300.0
 
@@ -270,8 +339,9 @@ def write_corpus(path: Path, data: dict[str, Any]) -> None:
 
 def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] = (),
                command: Command = demo_command, docs: Path | None = DOCS,
-               echo: Callable[[str], None] = print) -> dict[str, Any]:
+               echo: Callable[[str], None] = print, recipe: bool = False) -> dict[str, Any]:
     """Run every scene of ``scenes`` (or the stems in ``only``); see the module docstring.
+    ``recipe``: the scenes are :func:`recipe_scene`'s (recorded in ``corpus.json``).
 
     Returns the corpus result, also written to ``out/corpus.json`` (and its table to
     ``docs`` unless None). With ``only``, the entries of the other scenes of ``scenes`` are
@@ -293,7 +363,8 @@ def run_corpus(scenes: Path = SCENES, out: Path = OUT, *, only: tuple[str, ...] 
     # smallest first (a scene refused at load first of all): results come in soonest
     paths.sort(key=lambda p: (meshes[p].get("vertices", -1), p.stem))
     started = datetime.now(timezone.utc)
-    data = {"kind": KIND, "version": VERSION, "date": started.isoformat(timespec="seconds"),
+    data = {"kind": KIND, "version": VERSION, "recipe": recipe,
+            "date": started.isoformat(timespec="seconds"),
             "git_commit": git_commit(), "cpus": os.cpu_count(),
             "loadavg_start": list(os.getloadavg()), "loadavg_end": None,
             "wall_time_s": None, "scenes_time_s": None, "passed": None, "scenes": []}
@@ -402,12 +473,23 @@ def corpus_markdown(data: dict[str, Any]) -> str:
                                    for n in e["verdict"]["checks"]} - set(CHECKS))
     load = " / ".join(" ".join(f"{x:.2f}" for x in data[k]) if data[k] else "?"
                       for k in ("loadavg_start", "loadavg_end"))
+    if data.get("recipe"):
+        head = ["# The corpus with the own-mesh recipe",
+                "",
+                "Each corpus scene with the README's \"Running your own mesh\" recipe (flat punch "
+                "of 1.5 mean surface edge lengths, relaxing volume term, gradient fit with the "
+                "FE's natural modes, a second support opposite the scene's, the discretisation "
+                "floor): `pipelines.corpus.recipe_scene`. Generated by `make corpus-recipe` "
+                "(`python -m pipelines corpus --recipe`) from `runs/corpus_recipe/corpus.json`; "
+                "`python -m pipelines corpus --recipe --table` rewrites this page from it."]
+    else:
+        head = ["# The corpus: third-party meshes through the whole pipeline",
+                "",
+                "Generated by `make corpus` (`python -m pipelines corpus`) from "
+                "`runs/corpus/corpus.json`; `python -m pipelines corpus --table` rewrites this "
+                "page from it."]
     lines = [
-        "# The corpus: third-party meshes through the whole pipeline",
-        "",
-        "Generated by `make corpus` (`python -m pipelines corpus`) from "
-        "`runs/corpus/corpus.json`; `python -m pipelines corpus --table` rewrites this page "
-        "from it. The meshes, their sources and licences: "
+        *head[:-1], head[-1] + " The meshes, their sources and licences: "
         "[`scenes/corpus/SOURCES.md`](../scenes/corpus/SOURCES.md).",
         "",
         f"Run of {data['date']} at commit `{data['git_commit']}` on {data['cpus']} cores, "
@@ -444,27 +526,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``corpus`` subcommand's options (used by :mod:`pipelines.cli`)."""
     parser.add_argument("--scenes", type=Path, default=SCENES,
                         help=f"folder of the corpus's scene files (default {SCENES})")
-    parser.add_argument("--out", type=Path, default=OUT,
+    parser.add_argument("--out", type=Path, default=None,
                         help=f"output folder: <out>/<scene>/, <out>/corpus.json (default {OUT})")
     parser.add_argument("--only", nargs="+", default=(), metavar="SCENE",
                         help="run only these scenes (file stems); corpus.json keeps the others")
-    parser.add_argument("--docs", type=Path, default=DOCS,
+    parser.add_argument("--docs", type=Path, default=None,
                         help=f"the Markdown table written from corpus.json (default {DOCS})")
     parser.add_argument("--table", action="store_true",
                         help="only rewrite --docs from <out>/corpus.json (no run)")
+    parser.add_argument("--recipe", action="store_true",
+                        help="run each scene with the README's own-mesh recipe (punch, volume "
+                        "term, gradient fit, whole-body data, second support, floor): the "
+                        f"scenes are written to <out>/scenes/; --out defaults to {RECIPE_OUT}, "
+                        f"--docs to {RECIPE_DOCS}")
 
 
 def main(args: argparse.Namespace) -> int:
     """``python -m pipelines corpus``: run the corpus (exit 0 when every scene wrote its
     report, 2 when one did not), or with ``--table`` only rewrite the docs table from
     ``corpus.json``."""
+    if args.out is None:
+        args.out = RECIPE_OUT if args.recipe else OUT
+    if args.docs is None:
+        args.docs = RECIPE_DOCS if args.recipe else DOCS
     if args.table:
         data = read_corpus(args.out / "corpus.json")
         with atomic_path(args.docs) as tmp:
             tmp.write_text(corpus_markdown(data))
         print(f"wrote {args.docs} from {args.out / 'corpus.json'}")
         return 0
-    data = run_corpus(args.scenes, args.out, only=tuple(args.only), docs=args.docs)
+    scenes = args.scenes
+    if args.recipe:  # the recipe's scenes, derived from the corpus's (refusals name the scene)
+        scenes = args.out / "scenes"
+        for path in sorted(args.scenes.glob("*.toml")):
+            if not args.only or path.stem in args.only:
+                recipe_scene(path, scenes)
+    data = run_corpus(scenes, args.out, only=tuple(args.only), docs=args.docs,
+                      recipe=args.recipe)
     ended = [e for e in data["scenes"] if e["exit_status"] not in REPORT_WRITTEN]
     print(f"corpus: {len(data['scenes']) - len(ended)}/{len(data['scenes'])} scenes wrote "
           f"their report in {data['wall_time_s'] / 60:.1f} min; verdict "

@@ -29,7 +29,8 @@ documentation is typed in by hand (``--check`` only lists what is stale). Block 
 
 ``docs/corpus.md`` is a whole generated page: when ``runs/corpus/corpus.json`` exists it is
 rewritten with :func:`pipelines.corpus.corpus_markdown` (``python -m pipelines corpus
---table`` writes the same).
+--table`` writes the same); ``docs/corpus_recipe.md`` likewise from
+``runs/corpus_recipe/corpus.json`` (``corpus --recipe --table``).
 """
 from __future__ import annotations
 
@@ -74,10 +75,6 @@ class Sources:
     def bench(self) -> dict[str, Any]:
         from pipelines.bench.driver import read_bench
         return read_bench(self.runs / "bench" / "bench.json")
-
-    @property
-    def corpus_json(self) -> Path:
-        return self.runs / "corpus" / "corpus.json"
 
 
 def _percent(value: float | None, signed: bool = False) -> str:
@@ -365,12 +362,15 @@ def pages(root: Path) -> list[Path]:
 
 def generated(root: Path) -> dict[Path, str]:
     """Every page's text as ``python -m pipelines docs`` writes it (pages without blocks
-    unchanged); ``docs/corpus.md`` from ``runs/corpus/corpus.json`` when that exists."""
+    unchanged); ``docs/corpus.md`` from ``runs/corpus/corpus.json`` and
+    ``docs/corpus_recipe.md`` from ``runs/corpus_recipe/corpus.json`` when they exist."""
     src = Sources(root)
     out = {path: regenerate(path.read_text(), src) for path in pages(root)}
-    if src.corpus_json.is_file():
-        from pipelines.corpus import DOCS, corpus_markdown, read_corpus
-        out[root / DOCS] = corpus_markdown(read_corpus(src.corpus_json))
+    from pipelines.corpus import DOCS, OUT, RECIPE_DOCS, RECIPE_OUT, corpus_markdown, read_corpus
+    for runs, page in ((OUT, DOCS), (RECIPE_OUT, RECIPE_DOCS)):
+        data = root / runs / "corpus.json"
+        if data.is_file():
+            out[root / page] = corpus_markdown(read_corpus(data))
     return out
 
 

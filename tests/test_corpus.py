@@ -312,3 +312,84 @@ def test_each_corpus_scene_loads_and_its_mesh_passes_the_checks(path):
     # before the FE reference)
     from calibration.reach import check_experiment_depths
     check_experiment_depths(scene, problem)
+
+
+def test_the_recipe_is_the_readmes_own_mesh_recipe_less_the_meshs_own_keys():
+    """``--recipe`` gives each corpus scene what the README's "Running your own mesh" block
+    sets, except what only that mesh can say (name, mesh, supports, gravity, punch radius:
+    the rule of :func:`pipelines.corpus.recipe_scene`)."""
+    readme = (ROOT / "README.md").read_text()
+    block = readme.split("## Running your own mesh", 1)[1].split("```toml\n", 1)[1]
+    recipe = tomllib.loads(block.split("```", 1)[0])
+    own = {"name", "mesh", "fixed", "second_support", "gravity"}
+    assert recipe.pop("experiments") == corpus.RECIPE["experiments"]
+    recipe["indentation"].pop("radius")
+    assert {k: v for k, v in recipe.items() if k not in own} == {
+        k: v for k, v in corpus.RECIPE.items() if k != "experiments"}
+    assert "1.5 x your mesh's mean surface edge length" in block
+    assert corpus.RECIPE_RADIUS_EDGES == 1.5
+
+
+def test_a_recipe_scene_is_the_corpus_scene_with_the_recipe(tmp_path):
+    """On the user organ's mesh as a corpus scene (hung from its top, its own depth): the
+    recipe scene keeps its keys, adds the recipe's, and its punch radius is the one
+    scenes/user_organ_punch.toml gives the same mesh by the same rule (17.3 mm); written
+    again, the file is untouched; a scene whose mesh is refused is written as it is."""
+    from forcecal.scene import load_scene
+    source = tmp_path / "corpus"
+    source.mkdir()
+    mesh = (SCENES / "meshes" / "user_organ.vtu").resolve()
+    (source / "organ.toml").write_text(textwrap.dedent(f'''
+        name = "organ"
+        description = "a kidney-like organ hung from its top"
+        [mesh]
+        source = "{mesh}"
+        scale = 0.001
+        [fixed]
+        axis = "y"
+        side = "max"
+        tolerance = 0.001
+        [gravity]
+        acceleration = [0.0, -9.81, 0.0]
+        [indentation]
+        depth = 0.004
+    '''))
+    folder = tmp_path / "out" / "scenes"
+    path = corpus.recipe_scene(source / "organ.toml", folder)
+    scene = load_scene(path)
+    assert scene.name == "organ_recipe" and list(scene.experiments) == corpus.RECIPE["experiments"]
+    assert scene.mesh_source_path().resolve() == mesh
+    assert (scene.fixed.axis, scene.fixed.side, scene.fixed.tolerance) == ("y", "max", 0.001)
+    assert (scene.second_support.axis, scene.second_support.side,
+            scene.second_support.tolerance) == ("y", "min", 0.001)
+    assert scene.indentation.depth == 0.004 and scene.indentation.indenter == "punch"
+    assert scene.indentation.radius == load_scene(SCENES / "user_organ_punch.toml").indentation.radius
+    assert (scene.fe.element, scene.fe.local_refine, scene.particle.volume) == (
+        "TH", 3, "viscoelastic")
+    assert (scene.calibration.method, scene.calibration.body_data) == (
+        "gradient", "modes+loaded_modes+free_modes")
+    written = path.stat().st_mtime_ns
+    assert corpus.recipe_scene(source / "organ.toml", folder) == path
+    assert path.stat().st_mtime_ns == written
+    (source / "gone.toml").write_text((source / "organ.toml").read_text().replace(
+        str(mesh), str(tmp_path / "gone.vtu")).replace('"organ"', '"gone"'))
+    gone = load_scene(corpus.recipe_scene(source / "gone.toml", folder))
+    assert gone.name == "gone" and gone.experiments == load_scene(source / "gone.toml").experiments
+
+
+def test_the_recipe_corpus_writes_its_scenes_and_records_that_it_ran_them(fake_corpus, tmp_path,
+                                                                          monkeypatch):
+    """``python -m pipelines corpus --recipe``: the recipe scenes under <out>/scenes/, run
+    by the corpus runner, ``corpus.json`` saying so."""
+    scenes, out, command, calls = fake_corpus
+    ran = []
+
+    def run_corpus(folder, where, **kw):
+        ran.append((folder, where, kw["recipe"]))
+        return {"scenes": [], "wall_time_s": 1.0, "passed": None}
+    monkeypatch.setattr(corpus, "run_corpus", run_corpus)
+    from pipelines.cli import main
+    assert main(["corpus", "--recipe", "--scenes", str(scenes), "--out", str(out),
+                 "--only", "b_ok"]) == 0
+    assert ran == [(out / "scenes", out, True)]
+    assert [p.name for p in (out / "scenes").glob("*.toml")] == ["b_ok.toml"]

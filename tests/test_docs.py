@@ -113,3 +113,8 @@ def test_the_corpus_page_is_written_from_corpus_json_when_there_is_one(tmp_path)
             "wall_time_s": 60.0, "scenes_time_s": 0.0, "passed": False}
     corpus.write_corpus(tmp_path / "runs" / "corpus" / "corpus.json", data)
     assert generated(tmp_path)[tmp_path / corpus.DOCS] == corpus.corpus_markdown(data)
+    assert tmp_path / corpus.RECIPE_DOCS not in generated(tmp_path)
+    recipe = {**data, "recipe": True}  # the recipe corpus: its own page, its own title
+    corpus.write_corpus(tmp_path / corpus.RECIPE_OUT / "corpus.json", recipe)
+    page = generated(tmp_path)[tmp_path / corpus.RECIPE_DOCS]
+    assert page == corpus.corpus_markdown(recipe) and "own-mesh recipe" in page.splitlines()[0]
