@@ -97,13 +97,28 @@ def experiment_reach(scene: Scene, problem: Problem, shape: np.ndarray | None,
     return Reach(linear, strain_range(linear.strain, max(depths.values()), margin))
 
 
-def check_experiment_depths(scene: Scene, problem: Problem | None = None) -> Reach:
-    """:func:`experiment_reach` with the calibration's global shape and indenter, for a scene
-    whose FE reference has not been computed (the pipeline's first stage)."""
-    problem = build_problem(scene) if problem is None else problem
+def _scene_indenter(scene: Scene, problem: Problem) -> tuple[np.ndarray | None,
+                                                             Sequence[np.ndarray] | None]:
+    """The calibration's global shape and the indenter's footprints on ``problem``."""
     mesh = problem.mesh
     footprints = (None if scene.indentation.indenter == "vertex" else indenter_footprints(
         mesh, problem.fixed, problem.test_points, problem.normals, scene.indentation.indenter,
         scene.indentation.radius))
-    return experiment_reach(scene, problem, global_shape(mesh, scene.calibration.global_shape),
-                            footprints)
+    return global_shape(mesh, scene.calibration.global_shape), footprints
+
+
+def check_experiment_depths(scene: Scene, problem: Problem | None = None) -> Reach:
+    """:func:`experiment_reach` with the calibration's global shape and indenter, for a scene
+    whose FE reference has not been computed (the pipeline's first stage)."""
+    problem = build_problem(scene) if problem is None else problem
+    return experiment_reach(scene, problem, *_scene_indenter(scene, problem))
+
+
+def accepted_depth(scene: Scene, problem: Problem | None = None) -> float:
+    """The largest depth [m] :func:`check_experiment_depths` accepts for the scene's mesh,
+    test points and indenter (depths must stay below it)."""
+    problem = build_problem(scene) if problem is None else problem
+    shape, footprints = _scene_indenter(scene, problem)
+    linear = linear_indentation(problem.mesh, problem.fixed, problem.test_points,
+                                problem.normals, stiffness=shape, footprints=footprints)
+    return largest_depth(linear.strain, scene.calibration.strain_margin)

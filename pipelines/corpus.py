@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import queue
 import re
@@ -38,6 +39,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 from forcecal.errors import DataFileError, ForcecalError
 from forcecal.failures import EXIT_ERROR, describe, die_with_parent
 from forcecal.h5io import atomic_path
@@ -112,10 +114,10 @@ RECIPE_DOCS = Path("docs/corpus_recipe.md")
 def recipe_scene(scene_path: Path, folder: Path) -> Path:
     """``folder/<stem>.toml``: the corpus scene ``scene_path`` with the README's own-mesh
     recipe (:data:`RECIPE`), as a user following it would write it for that mesh: its own
-    keys kept (mesh, support, gravity, depths), the punch radius
-    :data:`RECIPE_RADIUS_EDGES` mean surface edge lengths of its mesh, and the second support
-    the side opposite its ``[fixed]`` one, same axis and tolerance (hung from it where it
-    lies on a table). A scene whose mesh is refused is written as it is (its run ends in the
+    keys kept (mesh, support, gravity), the punch radius :data:`RECIPE_RADIUS_EDGES` mean
+    surface edge lengths of its mesh, the second support :func:`opposite_support` (hung from
+    its top where it lies on a table) and the depths :func:`recipe_depths` (what the
+    refusals would ask a user following the recipe to set). A scene whose mesh is refused is written as it is (its run ends in the
     same refusal, the scene's recorded result). The file is written only when its text
     changes; a scene file that cannot be loaded raises the :class:`ForcecalError` naming it."""
     import tomllib
@@ -127,6 +129,7 @@ def recipe_scene(scene_path: Path, folder: Path) -> Path:
 
     own = tomllib.loads(scene_path.read_text())
     scene = load_scene(scene_path)
+    folder.mkdir(parents=True, exist_ok=True)  # the mesh path below is walked from it
     if scene.mesh_source_path() is not None:  # as a path from the written scene's folder
         own["mesh"] = {**own["mesh"], "source": os.path.relpath(
             scene.mesh_source_path().resolve(), folder.resolve())}
@@ -142,20 +145,62 @@ def recipe_scene(scene_path: Path, folder: Path) -> Path:
         data.update({key: value for key, value in own.items() if key not in data})
         radius = RECIPE_RADIUS_EDGES * mean_surface_edge(mesh)
         data["indentation"].setdefault("radius", float(f"{radius:.4g}"))
-        fixed = scene.fixed
-        data.setdefault("second_support", {
-            "axis": fixed.axis, "side": "max" if fixed.side == "min" else "min",
-            "tolerance": fixed.tolerance})
+        if "second_support" not in own:
+            data["second_support"] = opposite_support(scene, mesh)
+        recipe_depths(data, mesh, path=folder / f"{scene_path.stem}.toml")
     path = folder / f"{scene_path.stem}.toml"
     text = ("# written by python -m pipelines corpus --recipe from "
             f"{scene_path.as_posix()}: edit that scene or the recipe, not this file\n"
             + scene_toml(data))
     scene_from_dict(tomllib.loads(text), path=path)  # refused before anything is written
-    folder.mkdir(parents=True, exist_ok=True)
     if not path.is_file() or path.read_text() != text:
         with atomic_path(path) as tmp:
             tmp.write_text(text)
     return path
+
+
+def opposite_support(scene: Any, mesh: Any) -> dict[str, Any]:
+    """The recipe's second support: the side opposite ``[fixed]``'s on its axis, with the
+    smallest tolerance [m] (at least ``[fixed]``'s, rounded up to 0.1 mm) that seats as many
+    vertices as ``[fixed]`` holds."""
+    from forcecal.point_selection import fixed_nodes
+    fixed = scene.fixed
+    held = len(fixed_nodes(mesh, fixed.axis, fixed.side, fixed.tolerance))
+    side = "max" if fixed.side == "min" else "min"
+    c = mesh.vertices[:, "xyz".index(fixed.axis)]
+    depth = np.sort(c.max() - c if side == "max" else c - c.min())[held - 1]
+    tolerance = max(fixed.tolerance, math.ceil(depth / 1e-4 - 1e-9) * 1e-4)
+    return {"axis": fixed.axis, "side": side, "tolerance": float(f"{tolerance:.4g}")}
+
+
+def recipe_depths(data: dict[str, Any], mesh: Any, *, path: Path) -> None:
+    """Give the recipe scene ``data`` depths its mesh accepts, as the refusals ask a user to
+    (a depth the corpus scene or the default sets is kept where it is accepted): below
+    :data:`forcecal.problem.MAX_DEPTH_PER_EDGE` mean edge lengths, then below
+    :func:`calibration.reach.accepted_depth` with the recipe's punch and test points; each
+    time the largest multiple of 0.5 mm (0.1 mm below 1 mm) under the limit. A scene the
+    checks refuse for another reason is left as it is (its run ends in that refusal,
+    recorded)."""
+    import tomllib
+
+    from calibration.reach import accepted_depth
+    from forcecal.problem import MAX_DEPTH_PER_EDGE
+    from forcecal.scene import scene_from_dict
+    from pipelines.bench.configs import scene_toml
+
+    def below(limit: float) -> None:
+        scene = scene_from_dict(tomllib.loads(scene_toml(data)), path=path)
+        step = 5e-4 if limit > 1e-3 else 1e-4
+        depth = math.ceil(limit / step - 1.0 - 1e-9) * step  # the largest multiple under it
+        for section in ("indentation", "relaxation"):
+            if not getattr(scene, section).depth < limit and depth > 0.0:
+                data[section] = {**data.get(section, {}), "depth": float(f"{depth:.4g}")}
+
+    try:
+        below(MAX_DEPTH_PER_EDGE * float(np.mean(mesh.edge_lengths)))
+        below(accepted_depth(scene_from_dict(tomllib.loads(scene_toml(data)), path=path)))
+    except ForcecalError:
+        return
 
 
 #: seconds between the lines saying a long stage is still running

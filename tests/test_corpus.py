@@ -360,14 +360,28 @@ def test_a_recipe_scene_is_the_corpus_scene_with_the_recipe(tmp_path):
     assert scene.name == "organ_recipe" and list(scene.experiments) == corpus.RECIPE["experiments"]
     assert scene.mesh_source_path().resolve() == mesh
     assert (scene.fixed.axis, scene.fixed.side, scene.fixed.tolerance) == ("y", "max", 0.001)
-    assert (scene.second_support.axis, scene.second_support.side,
-            scene.second_support.tolerance) == ("y", "min", 0.001)
+    assert (scene.second_support.axis, scene.second_support.side) == ("y", "min")
     assert scene.indentation.depth == 0.004 and scene.indentation.indenter == "punch"
     assert scene.indentation.radius == load_scene(SCENES / "user_organ_punch.toml").indentation.radius
     assert (scene.fe.element, scene.fe.local_refine, scene.particle.volume) == (
         "TH", 3, "viscoelastic")
     assert (scene.calibration.method, scene.calibration.body_data) == (
         "gradient", "modes+loaded_modes+free_modes")
+    # a depth the mesh refuses: the largest 0.5 mm multiple below both limits, as the
+    # refusals ask; the second support seats as many vertices as [fixed] holds
+    from calibration.reach import accepted_depth
+    from forcecal.point_selection import fixed_nodes
+    from forcecal.problem import MAX_DEPTH_PER_EDGE, load_mesh
+    (source / "deep.toml").write_text((source / "organ.toml").read_text().replace(
+        "depth = 0.004", "depth = 0.05").replace('"organ"', '"deep"'))
+    deep = load_scene(corpus.recipe_scene(source / "deep.toml", folder))
+    organ = load_mesh(scene)
+    limit = min(accepted_depth(deep), MAX_DEPTH_PER_EDGE * organ.edge_lengths.mean())
+    assert deep.indentation.depth < limit and deep.relaxation.depth == 0.005  # accepted: kept
+    assert limit - deep.indentation.depth <= 5e-4
+    assert round(deep.indentation.depth / 5e-4, 9).is_integer()
+    assert len(fixed_nodes(organ, "y", "min", scene.second_support.tolerance)) >= len(
+        fixed_nodes(organ, "y", "max", 0.001))
     written = path.stat().st_mtime_ns
     assert corpus.recipe_scene(source / "organ.toml", folder) == path
     assert path.stat().st_mtime_ns == written
