@@ -163,6 +163,15 @@ def stable_step_gap_answer(r: Result) -> str:
             f"{row['bound_band_substeps']} / {row['exact_rest_substeps']}" for row in r["rows"])
 
 
+def haptic_tail_answer(r: Result) -> str:
+    def cell(t: dict) -> str:
+        return f"{t['median_us']:.0f} / {t['p99_us']:.0f}"
+    return "median / p99 [us] of the step, a compute loop and a pass over the step's working " \
+        "set, each of the step's median time: " + "; ".join(
+            f"{row['mesh']} ({row['working_set_bytes'] / 1e6:.2f} MB) {cell(row['step'])}, "
+            f"{cell(row['compute'])}, {cell(row['memory'])}" for row in r["rows"])
+
+
 def independent_check_answer(r: Result) -> str:
     if "checks" not in r:
         return (f"no report (exit status {r['exit_status']}): "
@@ -306,6 +315,10 @@ STUDIES = (
           "valid at rest can exceed?",
           "runs/studies/stable_step_gap*.json", lambda path, r: r["command"],
           stable_step_gap_answer),
+    Study("haptic_tail", "How much of the haptic step's p99 is the machine's: its call times "
+          "against compiled loops of the same median time that keep no working set and that "
+          "sweep the step's working set?",
+          "runs/studies/haptic_tail*.json", lambda path, r: r["command"], haptic_tail_answer),
     Study("independent_check", "Does the README's own-mesh recipe end in a verdict, and beat "
           "the closed-form baseline, on a mesh nobody tuned forcecal on (SOFA's liver, kept "
           "out of the corpus for this)?",
