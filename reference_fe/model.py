@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass, field
 
 import basix
@@ -215,7 +216,7 @@ class _ResidualProblem(NonlinearProblem):
     def __init__(self, residual: ufl.Form, w: fem.Function, jacobian: ufl.Form):
         super().__init__(residual, w, [], J=jacobian, jit_params=JIT_PARAMS)
         self.offset: PETSc.Vec | None = None  # zero on Dirichlet rows (see solve_step)
-        self.krylov: PETSc.KSP | None = None  # the Newton solver's, set by FEModel
+        self.newton: weakref.ref | None = None  # the Newton solver, set by _newton_solver
         self.refactor = True  # the next tangent is assembled and factorised afresh
         self.lift_first = True  # the first residual of a solve applies dolfinx's lifting
         self.residual_norms: list[float] = []  # of the current solve, one per residual
@@ -251,6 +252,19 @@ class _ResidualProblem(NonlinearProblem):
         self.factored: PETSc.Mat | None = None
         self._solver_matrix: PETSc.Mat | None = None
         self._unknown_gather = _unknown_gather(self.L, w)
+
+    @property
+    def krylov(self) -> PETSc.KSP:
+        """The Newton solver's linear solver, fetched from it when needed and never kept.
+
+        dolfinx returns ``krylov_solver`` with pybind11's ``reference_internal``: the KSP
+        object keeps its NewtonSolver alive, and the NewtonSolver keeps this problem alive
+        through the callbacks it holds in C++ (``F``, ``J``, ``P``, ``update``). A KSP kept
+        here would close a cycle that Python's garbage collector cannot see, and every model
+        (mesh, spaces, forms, matrices, factorisation) would stay in memory after its last use:
+        measured 47 MB per 8.9k-dof Taylor-Hood punch item, 0.58 GB per 75k-dof one. The
+        solver is held weakly (``newton``) for the same reason."""
+        return self.newton().krylov_solver
 
     def chord(self) -> bool:
         """Whether the next iteration is a chord step (class docstring)."""
@@ -626,7 +640,7 @@ def _newton_solver(problem: _ResidualProblem, max_it: int) -> NewtonSolver:
         problem.factored = create_matrix(problem.a)
         solver.setP(problem.P, problem.factored)
     configure_linear_solver(solver.krylov_solver)
-    problem.krylov = solver.krylov_solver
+    problem.newton = weakref.ref(solver)  # not the KSP: see _ResidualProblem.krylov
     solver.set_update(problem.update)
     solver.convergence_criterion = "residual"
     solver.rtol = 0.0  # see solve_step
