@@ -257,7 +257,18 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
                                 at_particles)
     if scene.indentation.indenter == "punch" and scene.fe.local_refine:
         fe, model = punch_model(scene, problem, fe, item.point)
-        fixed = fe.problem.fixed
+        try:
+            return indenter_item(model, scene, problem, item, fe)
+        finally:
+            model.destroy()  # its memory now, failed or not (FEModel.destroy)
+    return indenter_item(model, scene, problem, item, fe)
+
+
+def indenter_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
+                  fe: FEProblem) -> dict:
+    """The force curve of an indentation or relaxation item on ``model``, built on ``fe``'s
+    mesh (:func:`compute_item`)."""
+    fixed = fe.problem.fixed
     dofs = indenter_dofs(model, scene, problem, fe, item.point)
     normal = problem.normals[item.point]  # refinement keeps it (coplanar sub-faces)
     what = f"{scene.indentation.indenter} {item.kind} at vertex {problem.test_points[item.point]}"
