@@ -261,9 +261,9 @@ class _ResidualProblem(NonlinearProblem):
         object keeps its NewtonSolver alive, and the NewtonSolver keeps this problem alive
         through the callbacks it holds in C++ (``F``, ``J``, ``P``, ``update``). A KSP kept
         here would close a cycle that Python's garbage collector cannot see, and every model
-        (mesh, spaces, forms, matrices, factorisation) would stay in memory after its last use:
-        measured 47 MB per 8.9k-dof Taylor-Hood punch item, 0.58 GB per 75k-dof one. The
-        solver is held weakly (``newton``) for the same reason."""
+        (mesh, spaces, forms, solver) would stay in memory after its last use: 38 MB per
+        8.9k-dof Taylor-Hood punch model. The solver is held weakly (``newton``) for the same
+        reason."""
         return self.newton().krylov_solver
 
     def chord(self) -> bool:
