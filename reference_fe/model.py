@@ -653,8 +653,13 @@ def _newton_solver(problem: _ResidualProblem, max_it: int) -> NewtonSolver:
         # the tangent assembled by 3x3 blocks (BAIJ: 20 ms instead of 30 ms on the default
         # liver, most of AIJ's time went to inserting single entries) and copied to AIJ for
         # MUMPS, whose LDL^T does not take BAIJ (0.4 ms)
-        solver._A = create_matrix(problem.a, "baij")
+        aij, solver._A = solver._A, create_matrix(problem.a, "baij")
         solver.setJ(problem.J, solver._A)
+        # dolfinx's C++ setJ references the new matrix without releasing the one it held (the
+        # AIJ NewtonSolver made): its reference and the wrapper's are released here, or that
+        # matrix is never freed (4.3 MB per 4.6k-dof P2 punch model)
+        aij.decRef()
+        aij.destroy()
         problem.factored = create_matrix(problem.a)
         solver.setP(problem.P, problem.factored)
     configure_linear_solver(solver.krylov_solver)
