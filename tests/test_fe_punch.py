@@ -293,6 +293,33 @@ def test_punch_items_give_their_model_memory_back(element):
     assert all(np.array_equal(c, curves[0]) for c in curves)  # the same item each time
     assert in_use[2] - in_use[0] < 1e6  # two items (TH: 60 MB when the models were kept)
 
+
+def test_the_memory_check_counts_the_largest_punch_model():
+    """The reference's memory check counts each punch's rim-refined mesh instead of assuming
+    a rim refinement at most doubles the dofs (x2.8 per level on a coarse mesh with a large
+    punch): the count is the model's, and the check refuses on it."""
+    from forcecal.scene import load_scene, replace
+    from reference_fe.refine import available_memory, estimated_bytes
+    from reference_fe.run import largest_punch_dofs, punch_model
+
+    from tests.conftest import SCENES
+
+    problem = _block_with_top_centre_point((4, 4, 2), 0.04)
+    scene = replace(load_scene(SCENES / "tiny.toml"),
+                    indentation={"indenter": "punch", "radius": 0.01, "depth": 0.001},
+                    fe={"element": "TH", "local_refine": 1})
+    dofs = largest_punch_dofs(scene, problem)
+    _, model = punch_model(scene, problem, fe_problem(problem, scene.fe), 0)  # the only point
+    assert dofs == model.n_dofs
+    model.destroy()
+    assert check_memory(problem.mesh, scene.fe, punch_dofs=dofs) == dofs
+    with pytest.raises(SceneError, match=rf"fe\.local_refine = 1: the TH model would have about "
+                                         rf"{dofs} dofs.*lower fe\.local_refine"):
+        # the punch model twice over the memory, the unrefined one (1290 dofs) within it
+        check_memory(problem.mesh, scene.fe, punch_dofs=dofs,
+                     ranks=int(2.0 * available_memory() / estimated_bytes(dofs)) + 1)
+    assert largest_punch_dofs(replace(scene, fe={"local_refine": 0}), problem) is None
+
 def test_rim_refinement_splits_only_the_cells_along_the_punch_rim():
     """``fe.local_refine``: the particle vertices are kept, the cells far from the rim are not
     split, the rim's nodes get denser each level, the clamp keeps the base (its rim level's
