@@ -173,8 +173,9 @@ def check_memory(mesh: TetMesh, fe: FESection, ranks: int = 1,
     (:func:`reference_fe.run.largest_punch_dofs`). Otherwise a rim refinement is assumed to
     at most double the dofs, and a punch mesh is estimated at ``2**local_refine`` times the
     ``fe.refine`` mesh: measured x1.5-2.0 per level on the default liver's punches (its
-    largest x2.03), but x2.8 on a coarse mesh with a large punch (SOFA's liver, 181 vertices,
-    a 40.7 mm punch: 75k dofs at ``local_refine = 3`` against 28k), where this underestimates.
+    largest x2.03), but up to x3.5 on a coarse mesh with a large punch (SOFA's liver, 181
+    vertices, a 40.7 mm punch: 146k dofs at ``local_refine = 3`` against 28k), where this
+    underestimates.
     Returns the estimated dofs of the largest model. Raises SceneError naming the key.
     """
     dofs = estimated_dofs(mesh, fe.element, fe.refine)

@@ -240,7 +240,7 @@ def largest_punch_dofs(scene: Scene, problem: Problem) -> int | None:
     without rim refinement), for :func:`~reference_fe.refine.check_memory`.
 
     Counted on every punch's refined mesh, not estimated: the dofs a rim refinement adds depend
-    on the cells along that rim (x2.03 per level for the default liver's largest punch, x2.8
+    on the cells along that rim (x2.03 per level for the default liver's largest punch, x3.5
     on SOFA's coarse liver). The meshes alone, without models: 4.3 s for the default liver's
     31 points at ``local_refine = 3``."""
     if not (scene.indentation.indenter == "punch" and scene.fe.local_refine):

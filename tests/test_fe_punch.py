@@ -296,8 +296,8 @@ def test_punch_items_give_their_model_memory_back(element):
 
 def test_the_memory_check_counts_the_largest_punch_model():
     """The reference's memory check counts each punch's rim-refined mesh instead of assuming
-    a rim refinement at most doubles the dofs (x2.8 per level on a coarse mesh with a large
-    punch): the count is the model's, and the check refuses on it."""
+    a rim refinement at most doubles the dofs (up to x3.5 per level on a coarse mesh with a
+    large punch): the count is the model's, and the check refuses on it."""
     from forcecal.scene import load_scene, replace
     from reference_fe.refine import available_memory, estimated_bytes
     from reference_fe.run import largest_punch_dofs, punch_model
