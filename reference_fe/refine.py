@@ -164,26 +164,32 @@ def available_memory() -> float:
         return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
-def check_memory(mesh: TetMesh, fe: FESection, ranks: int = 1) -> int:
+def check_memory(mesh: TetMesh, fe: FESection, ranks: int = 1,
+                 punch_dofs: int | None = None) -> int:
     """Refuse an ``fe.refine`` or ``fe.local_refine`` whose FE models (one per rank) would not
     fit in memory.
 
-    A rim refinement at most doubles the dofs (measured on the default liver's punches:
-    x1.5-2.0 per level), so a punch mesh is estimated at ``2**local_refine`` times the
-    ``fe.refine`` mesh. Returns the estimated dofs of the largest model. Raises SceneError
-    naming the key.
+    ``punch_dofs`` is the largest punch model's dofs when counted
+    (:func:`reference_fe.run.largest_punch_dofs`). Otherwise a rim refinement is assumed to
+    at most double the dofs, and a punch mesh is estimated at ``2**local_refine`` times the
+    ``fe.refine`` mesh: measured x1.5-2.0 per level on the default liver's punches (its
+    largest x2.03), but up to x3.5 on a coarse mesh with a large punch (SOFA's liver, 181
+    vertices, a 40.7 mm punch: 146k dofs at ``local_refine = 3`` against 28k), where this
+    underestimates.
+    Returns the estimated dofs of the largest model. Raises SceneError naming the key.
     """
     dofs = estimated_dofs(mesh, fe.element, fe.refine)
+    local = dofs * 2 ** fe.local_refine if punch_dofs is None else punch_dofs
     have = available_memory()
     for name, level, n in (("fe.refine", fe.refine, dofs),
-                           ("fe.local_refine", fe.local_refine, dofs * 2 ** fe.local_refine)):
+                           ("fe.local_refine", fe.local_refine, local)):
         need = ranks * estimated_bytes(n)
         if need > have:
             raise SceneError(f"{name} = {level}: the {fe.element} model would have about "
                              f"{n} dofs and needs an estimated {need / 1e9:.1f} GB with "
                              f"{ranks} rank(s), more than the {have / 1e9:.1f} GB available; "
                              f"lower {name}")
-    return dofs * 2 ** fe.local_refine
+    return local
 
 
 def fe_problem(problem: Problem, fe: FESection) -> FEProblem:

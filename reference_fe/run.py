@@ -81,8 +81,8 @@ from forcecal.sections import REFERENCE_SECTIONS
 from reference_fe import body, experiments, floor
 from reference_fe.keys import experiment_keys
 from reference_fe.model import FEModel
-from reference_fe.refine import (FEProblem, check_memory, fe_clamp, fe_problem, patch_on_fe_mesh,
-                                 rim_refined_problem)
+from reference_fe.refine import (FEProblem, check_memory, estimated_dofs, fe_clamp, fe_problem,
+                                 patch_on_fe_mesh, rim_refined_problem)
 
 log = logging.getLogger(__name__)
 
@@ -216,17 +216,39 @@ def indenter_dofs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem,
     return model.surface_patch_dofs(*patch_on_fe_mesh(fe, problem.mesh, held))
 
 
-def punch_model(scene: Scene, problem: Problem, fe: FEProblem,
-                point: int) -> tuple[FEProblem, FEModel]:
-    """The FE problem and model of the punch at test point ``point`` (index into
-    ``problem.test_points``) on ``fe``'s mesh refined ``fe.local_refine`` times near the rim
-    of its footprint's patch (:func:`~reference_fe.refine.rim_refined_problem`)."""
+def punch_problem(scene: Scene, problem: Problem, fe: FEProblem, point: int) -> FEProblem:
+    """The FE problem of the punch at test point ``point`` (index into
+    ``problem.test_points``): ``fe``'s mesh refined ``fe.local_refine`` times near the rim of
+    its footprint's patch (:func:`~reference_fe.refine.rim_refined_problem`)."""
     held = punch_footprint(problem.mesh, int(problem.test_points[point]),
                            problem.normals[point], scene.indentation.radius, fixed=problem.fixed)
     local = rim_refined_problem(fe, problem.mesh, held, scene.fe.local_refine)
     log.debug("punch at vertex %d: FE mesh %s", problem.test_points[point],
               local.problem.mesh.summary())
+    return local
+
+
+def punch_model(scene: Scene, problem: Problem, fe: FEProblem,
+                point: int) -> tuple[FEProblem, FEModel]:
+    """The FE problem (:func:`punch_problem`) and model of the punch at test point ``point``."""
+    local = punch_problem(scene, problem, fe, point)
     return local, FEModel(local.problem.mesh, scene.material, scene.fe)
+
+
+def largest_punch_dofs(scene: Scene, problem: Problem) -> int | None:
+    """Length of the solution vector of the largest punch model of the test points (None
+    without rim refinement), for :func:`~reference_fe.refine.check_memory`.
+
+    Counted on every punch's refined mesh, not estimated: the dofs a rim refinement adds depend
+    on the cells along that rim (x2.03 per level for the default liver's largest punch, x3.5
+    on SOFA's coarse liver). The meshes alone, without models: 4.3 s for the default liver's
+    31 points at ``local_refine = 3``."""
+    if not (scene.indentation.indenter == "punch" and scene.fe.local_refine):
+        return None
+    fe = fe_problem(problem, scene.fe)
+    return max(estimated_dofs(punch_problem(scene, problem, fe, point).problem.mesh,
+                              scene.fe.element, 0)
+               for point in range(len(problem.test_points)))
 
 
 def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
@@ -257,7 +279,18 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
                                 at_particles)
     if scene.indentation.indenter == "punch" and scene.fe.local_refine:
         fe, model = punch_model(scene, problem, fe, item.point)
-        fixed = fe.problem.fixed
+        try:
+            return indenter_item(model, scene, problem, item, fe)
+        finally:
+            model.destroy()  # its memory now, failed or not (FEModel.destroy)
+    return indenter_item(model, scene, problem, item, fe)
+
+
+def indenter_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
+                  fe: FEProblem) -> dict:
+    """The force curve of an indentation or relaxation item on ``model``, built on ``fe``'s
+    mesh (:func:`compute_item`)."""
+    fixed = fe.problem.fixed
     dofs = indenter_dofs(model, scene, problem, fe, item.point)
     normal = problem.normals[item.point]  # refinement keeps it (coplanar sub-faces)
     what = f"{scene.indentation.indenter} {item.kind} at vertex {problem.test_points[item.point]}"
@@ -607,7 +640,9 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
     except SceneError as exc:  # every rank decides the same
         raise collective(exc) from None
     check_indenter(scene, problem)
-    check_memory(problem.mesh, scene.fe, comm.size)  # a refinement that cannot fit: refused
+    # a refinement that cannot fit: refused
+    check_memory(problem.mesh, scene.fe, comm.size,
+                 _on_root(comm, lambda: largest_punch_dofs(scene, problem)))
     preflight = _on_root(comm, lambda: run_preflight(scene, problem.mesh, problem.fixed))
     if scene.runs("second_support"):  # a second support that does not hold: refused here
         _on_root(comm, lambda: check_second_support(scene, problem))
