@@ -143,19 +143,24 @@ def element_arrays(scene: Scene, problem: Problem, fe: FESection) -> dict[str, n
             out[prefix + "failed"] = np.asarray(f"{type(exc).__name__}: {exc}")
         parts[name] = time.perf_counter() - t0
 
-    part("gravity", lambda: gravity_test(model, scene, problem.fixed,
-                                         np.arange(problem.mesh.n_vertices)))
-    if "second_support" in scene.experiments:
-        identity = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0)
-        part("second_support", lambda: second_support_runs(model, run_scene, problem, identity),
-             "second_support_")
-    t0 = time.perf_counter()
-    out.update({f"held_out_{k}": v for k, v in held_out_forces(model, run_scene,
-                                                                problem).items()})
-    parts["held_out"] = time.perf_counter() - t0
+    try:
+        part("gravity", lambda: gravity_test(model, scene, problem.fixed,
+                                             np.arange(problem.mesh.n_vertices)))
+        if "second_support" in scene.experiments:
+            identity = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0)
+            part("second_support",
+                 lambda: second_support_runs(model, run_scene, problem, identity),
+                 "second_support_")
+        t0 = time.perf_counter()
+        out.update({f"held_out_{k}": v for k, v in held_out_forces(model, run_scene,
+                                                                    problem).items()})
+        parts["held_out"] = time.perf_counter() - t0
+        n_dofs = model.n_dofs
+    finally:
+        model.destroy()  # its memory now: the rank goes on with other items (FEModel.destroy)
     out["seconds"] = np.asarray(time.perf_counter() - start)
     out["part_seconds"] = np.asarray(json.dumps(parts))
-    log.info("discretisation floor, %s: %d dofs, %s", fe.element, model.n_dofs,
+    log.info("discretisation floor, %s: %d dofs, %s", fe.element, n_dofs,
              ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()))
     return out
 
