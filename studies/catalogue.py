@@ -283,6 +283,40 @@ def implicit_haptics_answer(r: Result) -> str:
     return "; ".join(parts) + f"; faster and within the error rules: **{wins}**"
 
 
+
+def punch_reach_command(path: str, r: Result) -> str:
+    """The recorded command, with ``--out`` where the file is not the default one."""
+    return r["command"] + ("" if path == "runs/studies/punch_reach.json" else f" --out {path}")
+
+
+def punch_reach_answer(r: Result) -> str:
+    def scene(path: str, e: Result) -> str:
+        s = e["summary"]
+        return (f"{Path(path).stem} {s['points_beyond']} of {s['points']} "
+                f"(farthest {1e3 * s['max_gap_m']:.1f} mm, {s['max_gap_over_depth']:.1f} x)")
+    parts = (["footprints holding particles beyond the punch's depth from its face: "
+              + ", ".join(scene(p, e) for p, e in r["scenes"].items())] if r["scenes"] else [])
+    if r.get("fe"):
+        def run(row: Result) -> str:
+            unit = "mm" if row["kind"] == "indentation" else "s"
+            scale = 1e3 if row["kind"] == "indentation" else 1.0
+            got = (f"{row['normal_force_n']:.3g} N" if row["completed"] else
+                   f"failed at {scale * row['reached']:.3g} {unit}" if row["reached"] is not None
+                   else "failed")
+            return f"{row['kind']} {got} ({row['wall_s']:.0f} s)"
+        fe = r["fe"]
+        label = {"rule": f"rule {1e3 * fe['radius_m']:.3g} mm",
+                 "reach": f"within reach {1e3 * fe['radius_m']:.3g} mm",
+                 "radius": f"rule {1e3 * fe['smaller_radius_m']:.3g} mm"}
+        parts.append(
+            f"FE at vertex {fe['vertex']} of {Path(fe['scene']).stem} (normal force at the "
+            "end, or how far it got): " + "; ".join(
+                f"{label[name]} ({v['footprint']['nodes']} particles, {v['footprint']['beyond']} "
+                f"beyond) " + ", ".join(run(x) for x in v["runs"])
+                for name, v in fe["variants"].items()))
+    return "; ".join(parts)
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -333,6 +367,10 @@ STUDIES = (
           "going to zero: the organ tips over on its seat)?",
           "runs/studies/support_stability*.json", support_stability_command,
           support_stability_answer),
+    Study("punch_reach", "Does the flat punch hold only the tissue its face reaches (particles "
+          "no farther from its face than the depth), and do the FE's punch failures follow "
+          "the ones it does not?",
+          "runs/studies/punch_reach*.json", punch_reach_command, punch_reach_answer),
     Study("implicit_haptics", "Would one linearised implicit step per 1 ms (Newmark or "
           "HHT-alpha on the tangent factorised at rest) beat the exact explicit haptic step at "
           "large sizes, within 1e-3 of its drag force and 1 % RMS of its release?",
