@@ -283,7 +283,6 @@ def implicit_haptics_answer(r: Result) -> str:
     return "; ".join(parts) + f"; faster and within the error rules: **{wins}**"
 
 
-
 def punch_reach_command(path: str, r: Result) -> str:
     """The recorded command, with ``--out`` where the file is not the default one."""
     return r["command"] + ("" if path == "runs/studies/punch_reach.json" else f" --out {path}")
