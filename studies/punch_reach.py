@@ -48,9 +48,6 @@ from forcecal.scene import Scene, load_scene, replace
 
 log = logging.getLogger(__name__)
 
-#: the FE runs' footprints (module docstring)
-FOOTPRINTS = ("rule", "reach", "radius")
-
 
 def deepest(scene: Scene) -> float:
     """The deepest indentation the scene's punch makes [m] (indentation and relaxation)."""
@@ -145,10 +142,10 @@ def fe_run(scene: Scene, problem: Problem, slot: int, kind: str) -> dict[str, An
 
 
 def fe_comparison(scene_path: Path, vertex: int, radius: float) -> dict[str, Any]:
-    """:func:`fe_run` of both experiments at test vertex ``vertex`` with each of
-    :data:`FOOTPRINTS` (module docstring), with the footprint's :func:`point_geometry`. The
-    test points are the scene's (its rule picks them); only this point's footprint
-    changes."""
+    """:func:`fe_run` of both experiments at test vertex ``vertex`` with each of the module
+    docstring's three footprints (``rule``, ``reach``, ``radius``), with the footprint's
+    :func:`point_geometry`. The test points are the scene's (its rule picks them); only
+    this point's footprint changes."""
     scene = load_scene(scene_path)
     problem = build_problem(scene)
     slots = np.flatnonzero(problem.test_points == vertex)
