@@ -42,6 +42,7 @@ from unittest import mock
 
 import numpy as np
 
+from calibration.reach import experiment_depths
 from forcecal import indenter
 from forcecal.problem import Problem, build_problem
 from forcecal.scene import Scene, load_scene, replace
@@ -50,11 +51,9 @@ log = logging.getLogger(__name__)
 
 
 def deepest(scene: Scene) -> float:
-    """The deepest indentation the scene's punch makes [m] (indentation and relaxation)."""
-    depths = [scene.indentation.depth]
-    if scene.runs("relaxation"):
-        depths.append(scene.relaxation.depth)
-    return max(depths)
+    """The deepest indentation the scene's punch makes [m] (of the experiments the
+    calibration fits, :func:`calibration.reach.experiment_depths`)."""
+    return max(experiment_depths(scene).values())
 
 
 def point_geometry(problem: Problem, slot: int, radius: float, depth: float
@@ -178,10 +177,9 @@ def measure(scenes: list[Path], fe: str | None, radius: float) -> dict[str, Any]
         if scene.indentation.indenter != "punch":
             log.info("%s: no punch, skipped", path)
             continue
-        rows = footprint_geometry(scene)
-        result["scenes"][str(path)] = {
-            "radius_m": scene.indentation.radius, "depth_m": deepest(scene),
-            "summary": summary(rows, deepest(scene)), "points": rows}
+        rows, depth = footprint_geometry(scene), deepest(scene)
+        result["scenes"][str(path)] = {"radius_m": scene.indentation.radius, "depth_m": depth,
+                                       "summary": summary(rows, depth), "points": rows}
     if fe:
         path, _, vertex = fe.rpartition(":")
         result["fe"] = fe_comparison(Path(path), int(vertex), radius)
