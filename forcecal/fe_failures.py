@@ -37,6 +37,7 @@ import numpy as np
 from forcecal.errors import ConvergenceError, DataFileError
 from forcecal.mesh import TetMesh
 from forcecal.point_selection import free_surface_vertices
+from forcecal.preflight import POOR_QUALITY
 from forcecal.problem import Problem
 
 #: the reference stops when more than this fraction of the test points fail
@@ -261,6 +262,45 @@ def _worst_quality_near(mesh: TetMesh, vertices: np.ndarray, quality: np.ndarray
         touching = np.isin(mesh.tets, nodes).any(axis=1)
         out[k] = float(quality[touching].min())
     return out
+
+
+#: a tet whose corners enclose less than this fraction of their volume at rest is called
+#: crushed (or folded, below 0) in the diagnosis of a failed gravity test
+CRUSHED_VOLUME_RATIO = 0.2
+
+
+def crushed_tet(mesh: TetMesh, displacement: np.ndarray, fixed: np.ndarray,
+                quality: np.ndarray) -> str | None:
+    """What the most compressed tet of a deformed state says about a failed gravity test, as a
+    short phrase (None when no tet is crushed): its index, the volume its corners enclose
+    relative to rest (:data:`CRUSHED_VOLUME_RATIO`; negative: folded), and whether it touches
+    the clamp (a bonded clamp's rim concentrates the strain) or is poorly shaped
+    (:data:`forcecal.preflight.POOR_QUALITY`: a sliver the mesh should not have).
+
+    The corners' volume is the linear element's: for a quadratic element a measure of where
+    the mesh is crushed, not its Jacobian at the quadrature points.
+
+    Args:
+        displacement: (N, 3) displacement of the mesh's vertices [m].
+        fixed: the clamped vertices.
+        quality: (T,) :func:`forcecal.preflight.tet_quality` of ``mesh``.
+    """
+    x = mesh.vertices + displacement
+    t = mesh.tets
+    a, b, c = x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]], x[t[:, 3]] - x[t[:, 0]]
+    ratio = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0 / mesh.signed_volumes
+    worst = int(np.argmin(ratio))
+    if ratio[worst] >= CRUSHED_VOLUME_RATIO:
+        return None
+    where = []
+    if np.isin(t[worst], fixed).any():
+        where.append("it touches the clamp")
+    if quality[worst] < POOR_QUALITY:
+        where.append(f"it is poorly shaped (quality {quality[worst]:.2g}, below "
+                     f"{POOR_QUALITY:g}: remesh)")
+    return (f"tet {worst} is {'folded' if ratio[worst] < 0 else 'crushed'} (its corners "
+            f"enclose {ratio[worst]:.2g} x their volume at rest)"
+            + (f": {' and '.join(where)}" if where else ""))
 
 
 def too_many_failures(n_points: int, failed: list[PointFailure], features: list[str]

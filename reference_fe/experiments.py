@@ -26,6 +26,8 @@ from typing import Callable, Iterator
 import numpy as np
 
 from forcecal.errors import ConvergenceError, SceneError, StabilityError
+from forcecal.fe_failures import crushed_tet
+from forcecal.preflight import tet_quality
 from forcecal.schedules import record_times
 from forcecal.indenter import footprint_edges, punch_footprint
 from reference_fe.model import (Constraint, FEModel, FEState, Load, StepFailed, clamp,
@@ -347,13 +349,25 @@ def check_sag(sag: float, factor: float, first: float, extent: float, n_fixed: i
 
 def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
                     duration: float, dt: float, record_interval: float,
-                    section: str = "fixed") -> tuple[np.ndarray, np.ndarray]:
+                    section: str = "fixed", *, static_sag: float | None = None,
+                    watched: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Release from rest in the undeformed shape with gravity on at t = 0 (``fixed`` clamped
     by the rule of scene section ``section``, named in the messages).
 
     Each record interval is split into ``ceil(record_interval / dt)`` equal
     steps (so the step never exceeds ``dt``). Newton starts from the
     constant-velocity predictor ``u + dt v``.
+
+    A support that does not hold the body in motion ends the release at the first record
+    past it (:func:`check_release`: the body falls over or buckles instead of swinging about
+    its sag), and a release whose Newton solve fails says what its last converged state
+    shows (:func:`release_state`).
+
+    Args:
+        static_sag: the largest displacement of the same support's static sag [m] at the
+            ``watched`` vertices (None: the release is checked against the body's size only).
+        watched: the vertices whose displacement is compared with ``static_sag`` (default:
+            all).
 
     Returns:
         time: (S,) sample times [s], from 0 (:func:`forcecal.schedules.record_times`).
@@ -372,12 +386,77 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
         return solve_step(model, state, load, t, dt=h, inertia=True,
                           guess=state.u + h * state.velocity)
 
+    what = f"{TEST_NAMES[section]} dynamic"
+    extent = float(np.linalg.norm(np.ptp(model.mesh.vertices, axis=0)))
+    watched = np.arange(model.mesh.n_vertices) if watched is None else watched
     state = initial_state(model)
     out = [model.vertex_values(state.u)]
-    states = march(state, step_times, step, max_cuts=model.fe.max_step_cuts,
-                   what=f"{TEST_NAMES[section]} dynamic", unit="s")
-    for k, state in enumerate(states, start=1):
-        if k % substeps == 0:
-            out.append(model.vertex_values(state.u))
-            log.debug("gravity dynamic: t = %.4g s", state.progress)
+    states = march(state, step_times, step, max_cuts=model.fe.max_step_cuts, what=what,
+                   unit="s")
+    try:
+        for k, state in enumerate(states, start=1):
+            if k % substeps == 0:
+                out.append(model.vertex_values(state.u))
+                log.debug("gravity dynamic: t = %.4g s", state.progress)
+                moved = float(np.linalg.norm(out[-1][watched], axis=1).max())
+                check_release(moved, state.progress, static_sag, extent, len(fixed), section,
+                              what)
+    except ConvergenceError as error:
+        # the state the failed step started from: the last one the march yielded
+        shown = release_state(model, fixed, model.vertex_values(state.u), watched, static_sag)
+        failure = ConvergenceError(f"{error}; at {state.progress:.6g} s, the last completed "
+                                   f"time step: {shown}")
+        failure.reached = error.reached
+        raise failure from None
     return times, np.array(out)
+
+
+#: the release may move the body this many times as far as the same support's static sag
+#: before the support is called unable to hold it in motion. A body released from rest under
+#: its weight stays within twice its long-term static sag in the linear viscoelastic limit
+#: (the weight's work bounds the long-term elastic energy: u^T K u <= 2 f^T u, so
+#: |u - u_s|_K <= |u_s|_K with u_s = K^-1 f); the rest is margin for the vertex-wise maximum
+#: and the nonlinear material. The released liver and the user organ on its second support
+#: stay below 1.0 x.
+RELEASE_RUNAWAY_LIMIT = 3.0
+
+
+def check_release(moved: float, time: float, static_sag: float | None, extent: float,
+                  n_fixed: int, section: str, what: str) -> None:
+    """Raise :class:`~forcecal.errors.StabilityError` (``reached`` = ``time``) when a release
+    has moved the body (``moved``, its largest displacement [m] at ``time`` [s]) more than
+    :data:`RELEASE_RUNAWAY_LIMIT` x the static sag ``static_sag`` [m] of the same support, or,
+    that sag unknown (None), more than the body's size ``extent`` [m] (twice the most a sag may
+    reach, :func:`check_sag`)."""
+    if static_sag is not None:
+        if moved <= RELEASE_RUNAWAY_LIMIT * static_sag:
+            return
+        cause = (f"the release has moved the body by {moved * 1e3:.3g} mm at {time:.4g} s, "
+                 f"{moved / static_sag:.2f} x its static sag of {static_sag * 1e3:.3g} mm (a "
+                 f"body that holds on its support swings within about twice it): it falls "
+                 f"over or buckles")
+    elif moved > extent:
+        cause = (f"the release has moved the body by {moved * 1e3:.3g} mm at {time:.4g} s, "
+                 f"more than its size ({extent * 1e3:.3g} mm)")
+    else:
+        return
+    error = StabilityError(
+        f"{what}: {cause}: the {n_fixed} fixed vertices of the [{section}] section do not "
+        f"hold the body in motion; clamp a larger patch ({section}.tolerance) or another side "
+        f"({section}.axis, {section}.side)")
+    error.reached = time
+    raise error
+
+
+def release_state(model: FEModel, fixed: np.ndarray, displacement: np.ndarray,
+                  watched: np.ndarray, static_sag: float | None) -> str:
+    """What a release's state (``displacement`` (N, 3) at the vertices [m]) shows, for the
+    message of a release that failed from it: how far the body has moved against its static
+    sag, and the most compressed tet (:func:`forcecal.fe_failures.crushed_tet`)."""
+    moved = float(np.linalg.norm(displacement[watched], axis=1).max())
+    said = [f"the body has moved by {moved * 1e3:.3g} mm"
+            + (f" ({moved / static_sag:.2g} x its static sag)" if static_sag else "")]
+    crushed = crushed_tet(model.mesh, displacement, fixed, tet_quality(model.mesh))
+    if crushed:
+        said.append(crushed)
+    return "; ".join(said)

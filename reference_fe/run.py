@@ -252,10 +252,11 @@ def largest_punch_dofs(scene: Scene, problem: Problem) -> int | None:
 
 
 def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
-                 fe: FEProblem | None = None) -> dict:
+                 fe: FEProblem | None = None, after: dict | None = None) -> dict:
     """Arrays of one work item (keys as stored in its checkpoint part), at the particle
     vertices; ``fe`` is the FE mesh's problem ``model`` was built on (default: ``problem``
-    itself, ``fe.refine = 0``)."""
+    itself, ``fe.refine = 0``); ``after`` the arrays of the item it waits for
+    (:data:`AFTER`: the release checks its motion against the static sag), if known."""
     fe = FEProblem(problem, np.arange(problem.mesh.n_vertices), 0) if fe is None else fe
     fixed, at_particles = fe.problem.fixed, fe.vertex_map
     if item.kind in ("indentation", "relaxation"):
@@ -270,8 +271,10 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
         disp = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps)
         return {"displacement": disp[at_particles]}
     if item.kind == "gravity_dynamic":
-        times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration,
-                                                  g.duration, g.fe_dt, g.record_interval)
+        times, disp = experiments.gravity_dynamic(
+            model, fixed, g.acceleration, g.duration, g.fe_dt, g.record_interval,
+            static_sag=None if after is None else largest_displacement(after["displacement"]),
+            watched=at_particles)
         return {"time": times, "displacement": disp[:, at_particles]}
     if item.kind == "body":
         return body.at_vertices(body.body_data(model, fixed, np.asarray(g.acceleration, float),
@@ -324,13 +327,20 @@ def gravity_test(model: FEModel, scene: Scene, fixed: np.ndarray, at_particles: 
         static = experiments.gravity_static(model, fixed, g.acceleration, g.static_load_steps,
                                             section=section)
         part = parts[1]
-        times, disp = experiments.gravity_dynamic(model, fixed, g.acceleration, g.duration,
-                                                  g.fe_dt, g.record_interval, section=section)
+        times, disp = experiments.gravity_dynamic(
+            model, fixed, g.acceleration, g.duration, g.fe_dt, g.record_interval,
+            section=section, static_sag=largest_displacement(static[at_particles]),
+            watched=at_particles)
     except ITEM_FAILURES as exc:
         exc.experiment = part
         raise
     return {"static_displacement": static[at_particles], "time": times,
             "displacement": disp[:, at_particles]}
+
+
+def largest_displacement(displacement: np.ndarray) -> float:
+    """The largest vertex displacement [m] of an (N, 3) displacement field."""
+    return float(np.linalg.norm(displacement, axis=1).max())
 
 
 def second_support_runs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem) -> dict:
@@ -876,7 +886,9 @@ def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], par
                 model = FEModel(fe.problem.mesh, scene.material, scene.fe)
                 build_seconds = time.perf_counter() - t0
                 t0 = time.perf_counter()
-            arrays = compute_item(model, scene, points.slots, item, fe)
+            after = (parts.load(WorkItem(AFTER[item.kind], item.point, 0.0))
+                     if item.kind in AFTER else None)
+            arrays = compute_item(model, scene, points.slots, item, fe, after)
         except experiments.Stopped:
             raise
         except Exception as exc:  # noqa: BLE001 - recorded, or reported on every rank

@@ -23,13 +23,13 @@ def failing(spec: str):
             for kind, _, v in (part.partition(":") for part in spec.split(",") if part)}
     original = reference_fe.run.compute_item
 
-    def compute_item(model, scene, problem, item, fe=None):
+    def compute_item(model, scene, problem, item, fe=None, after=None):
         vertex = int(problem.test_points[item.point]) if item.point >= 0 else -1
         if (item.kind, vertex) in fail:
             error = ConvergenceError(f"test hook: the {item.kind} of vertex {vertex} diverges")
             error.reached = 0.5
             raise error
-        return original(model, scene, problem, item, fe)
+        return original(model, scene, problem, item, fe, after)
     return compute_item
 
 

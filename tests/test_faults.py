@@ -621,6 +621,31 @@ def test_unstable_support_is_named(sag, factor, first, cause):
         check_sag(sag, factor, first, 0.2, 5, what="the weight along [1.0, 0.0, 0.0] (static)")
 
 
+@pytest.mark.parametrize("moved, static, cause", [
+    # 3.5 x the static sag: beyond the linear bound of twice it and the margin above it
+    (0.021, 0.006, r"gravity dynamic: the release has moved the body by 21 mm at 1.4 s, 3.50 x "
+                   r"its static sag of 6 mm .*: it falls over or buckles"),
+    # no static sag known: only the body's size
+    (0.21, None, r"gravity dynamic: the release has moved the body by 210 mm at 1.4 s, more "
+                 r"than its size \(200 mm\)"),
+])
+def test_a_release_the_support_does_not_hold_is_named(moved, static, cause):
+    from reference_fe.experiments import RELEASE_RUNAWAY_LIMIT, check_release
+    CASES["fault"] += 1
+    with pytest.raises(StabilityError, match=cause) as info:
+        check_release(moved, 1.4, static, 0.2, 5, "fixed", "gravity dynamic")
+    assert info.value.reached == 1.4
+    assert "5 fixed vertices of the [fixed] section do not hold the body in motion" in str(
+        info.value)
+    # a release that swings about its sag (the linear bound: twice the static sag) goes on
+    check_release(2.0 * 0.006, 1.4, 0.006, 0.2, 5, "fixed", "gravity dynamic")
+    check_release(RELEASE_RUNAWAY_LIMIT * 0.006, 1.4, 0.006, 0.2, 5, "fixed", "gravity dynamic")
+    # with the static sag known, the body's size does not matter (a sag near half of it
+    # swings further); without it, a release within the body's size goes on
+    check_release(0.15, 1.4, 0.09, 0.2, 5, "fixed", "gravity dynamic")
+    check_release(0.2, 1.4, None, 0.2, 5, "fixed", "gravity dynamic")
+
+
 def test_a_failed_item_stops_the_other_ranks_at_their_next_step():
     """The FE ranks ask the stop check (another rank's FAILED note) before every load or time
     step: a long item is abandoned at its next step, not finished."""

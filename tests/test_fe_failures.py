@@ -122,3 +122,30 @@ def test_more_than_a_quarter_stops_with_what_the_failures_share(tiny):
     assert (f"5 of 5 near the clamp (within {near * 1e3:.3g} mm, as the nearest quarter of "
             f"the free surface; of the others: {others} of 12)") in message
     assert "first failure: vertex" in message and "diverging" in message
+
+
+def test_the_crushed_tet_of_a_failed_gravity_test_is_named():
+    """Two tets sharing a face; the apex of the second pushed through the shared face folds it
+    (its corners enclose minus their volume at rest), the first stays whole."""
+    from forcecal.fe_failures import CRUSHED_VOLUME_RATIO, crushed_tet
+    from forcecal.mesh import TetMesh
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1]], float) * 0.01
+    mesh = TetMesh(x, np.array([[0, 1, 2, 3], [0, 2, 1, 4]]))
+    assert np.all(mesh.signed_volumes > 0)
+    quality = tet_quality(mesh)
+    u = np.zeros_like(x)
+    assert crushed_tet(mesh, u, np.array([0]), quality) is None  # at rest
+    u[4, 2] = 0.02  # the apex from z = -1 to z = +1 cm: the mirror image of the tet
+    said = crushed_tet(mesh, u, np.array([4]), quality)
+    assert said == "tet 1 is folded (its corners enclose -1 x their volume at rest): it " \
+                   "touches the clamp"
+    # crushed to 0.1 of its volume, away from the clamp, a sliver in its rest shape
+    u[4, 2] = 0.009
+    assert crushed_tet(mesh, u, np.array([3]), quality) == (
+        "tet 1 is crushed (its corners enclose 0.1 x their volume at rest)")
+    assert crushed_tet(mesh, u, np.array([3]), np.array([0.9, 0.05])) == (
+        "tet 1 is crushed (its corners enclose 0.1 x their volume at rest): it is poorly "
+        "shaped (quality 0.05, below 0.1: remesh)")
+    u[4, 2] = 0.0079  # 0.21 of its volume: compressed, not crushed
+    assert CRUSHED_VOLUME_RATIO < 0.21
+    assert crushed_tet(mesh, u, np.array([3]), quality) is None

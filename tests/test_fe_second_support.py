@@ -80,6 +80,48 @@ def test_the_second_support_is_the_gravity_test_with_the_supports_swapped(refine
     assert MESH.vertices[largest, 0] == 0.0  # the largest sag is at the free end
 
 
+def test_a_release_says_how_far_the_body_moved_when_it_fails_or_runs_away(monkeypatch):
+    """The beam's release on its second support, 3 steps of 5 ms: against a static sag it
+    passes a tenth of, it stops at its first record as a support that does not hold the body
+    in motion; a step that does not converge says what the last completed step shows."""
+    from forcecal.errors import StabilityError
+    from reference_fe.model import StepFailed
+    scene = _scene(ROOT, END)
+    problem = _problem(scene)
+    fe = fe_problem(problem, scene.fe)
+    model = FEModel(fe.problem.mesh, scene.material, scene.fe)
+    held = second_support(scene, problem).fixed
+    g = scene.gravity
+
+    def release(static_sag):
+        return ex.gravity_dynamic(model, held, g.acceleration, g.duration, g.fe_dt,
+                                  g.record_interval, "second_support", static_sag=static_sag)
+    times, disp = release(None)
+    moved = np.linalg.norm(disp, axis=2).max(axis=1)  # (S,) the body's largest displacement
+    assert len(times) == 4 and moved[0] == 0.0 and 0 < moved[1] < moved[2] < moved[3]
+    with pytest.raises(StabilityError, match=(
+            r"^second support dynamic: the release has moved the body by .* mm at 0.005 s, "
+            r"10.00 x its static sag of .*: it falls over or buckles: the \d+ fixed vertices of "
+            r"the \[second_support\] section do not hold the body in motion")) as info:
+        release(moved[1] / 10.0)
+    assert info.value.reached == pytest.approx(0.005)
+    solve = ex.solve_step
+
+    def diverging(model_, state, load, progress, **kwargs):
+        if progress > 0.01 + 1e-9:
+            raise StepFailed("diverging Newton iterate")
+        return solve(model_, state, load, progress, **kwargs)
+    monkeypatch.setattr(ex, "solve_step", diverging)
+    with pytest.raises(ConvergenceError, match=(
+            r"second support dynamic: step 3/3 \(to 0.015 s\) did not converge from 0.01 s "
+            r"even after 6 halvings .*; at 0.01 s, the last completed time step: the body has "
+            r"moved by ([0-9.]+) mm \(0.5 x its static sag\)$")) as info:
+        release(2.0 * moved[2])
+    assert float(info.value.args[0].split("moved by ")[1].split(" mm")[0]) == pytest.approx(
+        moved[2] * 1e3, rel=1e-2)
+    assert info.value.reached == 0.01
+
+
 def test_a_failed_second_support_run_is_recorded_and_the_reference_kept(tmp_path, monkeypatch):
     """Its release failing: the force curves and the scene's gravity test are kept, the second
     support left out and recorded (``fe_failures.second_support``, its key in
