@@ -122,6 +122,28 @@ def test_a_release_says_how_far_the_body_moved_when_it_fails_or_runs_away(monkey
     assert info.value.reached == 0.01
 
 
+def test_each_release_of_a_reference_is_checked_against_its_own_supports_sag(tmp_path,
+                                                                            monkeypatch):
+    """In a whole reference run, the scene's release gets the static sag of the scene's clamp
+    (its finished part) and the second support's release that of the second support, both the
+    largest displacement at the particle vertices that ``reference.h5`` stores."""
+    scene = dataclasses.replace(_scene(ROOT, END), experiments=(
+        "indentation", "gravity_static", "gravity_dynamic", "second_support"))
+    release, seen = ex.gravity_dynamic, {}
+
+    def recording(*args, section="fixed", **kwargs):
+        seen[section] = kwargs["static_sag"]
+        return release(*args, section=section, **kwargs)
+    monkeypatch.setattr(ex, "gravity_dynamic", recording)
+    out = tmp_path / "reference.h5"
+    compute_reference(scene, _problem(scene), out_path=out, progress=False)
+    back = read_reference(out)
+    assert seen["fixed"] == np.linalg.norm(back.gravity.static_displacement, axis=1).max()
+    assert seen["second_support"] == np.linalg.norm(
+        back.second_support.runs.static_displacement, axis=1).max()
+    assert 0 < seen["fixed"] < 3e-3 and 0 < seen["second_support"] < 3e-3
+
+
 def test_a_failed_second_support_run_is_recorded_and_the_reference_kept(tmp_path, monkeypatch):
     """Its release failing: the force curves and the scene's gravity test are kept, the second
     support left out and recorded (``fe_failures.second_support``, its key in
