@@ -35,6 +35,7 @@ from typing import Any, Callable
 import numpy as np
 
 from forcecal.errors import ConvergenceError, DataFileError
+from forcecal.indenter import face_gaps, radius_within_reach
 from forcecal.mesh import TetMesh
 from forcecal.point_selection import free_surface_vertices
 from forcecal.preflight import POOR_QUALITY
@@ -262,6 +263,41 @@ def _worst_quality_near(mesh: TetMesh, vertices: np.ndarray, quality: np.ndarray
         touching = np.isin(mesh.tets, nodes).any(axis=1)
         out[k] = float(quality[touching].min())
     return out
+
+
+def punch_reach(mesh: TetMesh, failed: dict[int, np.ndarray], footprints: dict[int, np.ndarray],
+                radius: float, depth: float) -> str | None:
+    """What the punch footprints of failed test points hold beyond the punch's reach, as a
+    short phrase for :func:`too_many_failures` (None unless it holds for at least 3/4 of the
+    failed points), with the radius that keeps every failed point's footprint within reach
+    (:func:`forcecal.indenter.radius_within_reach`), if one holds enough particles.
+
+    A flat punch pushed ``depth`` [m] never touches a footprint node lying farther than that
+    from the plane of its face (on a surface curved within the footprint): the footprint
+    holds it as if glued to the face, and the FE runs of such points are the ones that
+    diverge on the corpus torus (studies/punch_reach.py).
+
+    Args:
+        failed: failed test vertex -> its indentation direction (3,).
+        footprints: vertex -> its footprint's vertices at ``radius`` [m].
+    """
+    gaps = {v: float(face_gaps(mesh, v, n, footprints[v]).max()) for v, n in failed.items()}
+    beyond = [v for v, gap in gaps.items() if gap > depth]
+    if len(beyond) < 0.75 * len(failed):
+        return None
+    said = (f"the punch footprints of {len(beyond)} of the {len(failed)} failed points hold "
+            f"particles beyond the punch's reach, up to {max(gaps.values()) * 1e3:.3g} mm from "
+            f"its face against the {depth * 1e3:.3g} mm depth (a flat punch never touches "
+            f"them, its footprint holds them as if glued)")
+    fits = {v: radius_within_reach(mesh, v, failed[v], radius, depth) for v in beyond}
+    none = [v for v, r in fits.items() if r is None]
+    if none:
+        return (f"{said}: no radius holding enough particles keeps vertex {none[0]}'s within "
+                f"reach (test points where the surface is flat within the depth)")
+    largest = min(fits.values())
+    shown = math.floor(largest * 1e4) / 1e4  # in 0.1 mm, not above the radius that works
+    return (f"{said}: indentation.radius = {shown:.4g} m keeps every failed point's footprint "
+            f"within reach")
 
 
 #: a tet whose corners enclose less than this fraction of their volume at rest is called

@@ -109,6 +109,35 @@ def punch_footprint(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: floa
     return nodes
 
 
+def face_gaps(mesh: TetMesh, vertex: int, normal: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """(K,) distance of each of ``nodes`` from the plane of a flat punch's face centred at
+    ``vertex`` with ``normal`` [m]: how far the punch goes before its face reaches them."""
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    return np.abs((mesh.vertices[nodes] - mesh.vertices[int(vertex)]) @ n)
+
+
+def radius_within_reach(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: float,
+                        depth: float, *, min_nodes: int = MIN_FOOTPRINT) -> float | None:
+    """The largest radius up to ``radius`` [m] whose footprint at ``vertex`` holds only nodes
+    the punch's face reaches within ``depth`` [m] (:func:`face_gaps`), and at least
+    ``min_nodes`` of them; None when no radius does.
+
+    A footprint changes only where the radius passes a surface node's distance from the
+    punch's axis, so those distances below ``radius`` are the candidates (largest first);
+    the radius returned holds the same nodes up to the next one."""
+    vertex = int(vertex)
+    edges = surface_edges(mesh)
+    distance = _tangential_distance(mesh, vertex, normal)
+    surface = distance[mesh.surface_vertices]
+    for r in [radius, *np.sort(surface[surface < radius])[::-1]]:
+        nodes = _footprint(mesh, edges, vertex, distance, float(r))
+        if len(nodes) < min_nodes:
+            return None  # a smaller radius holds fewer still
+        if face_gaps(mesh, vertex, normal, nodes).max() <= depth:
+            return float(r)
+    return None
+
+
 def footprint_edges(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:
     """(K', 2) int64 surface edges with both ends in ``nodes``: their mid-edge nodes (P2) lie
     on the punch face too."""

@@ -67,7 +67,7 @@ from forcecal.errors import (ConvergenceError, DataFileError, ForcecalError, Sce
                              StabilityError)
 from forcecal.cost import check_cost
 from forcecal.failures import collective
-from forcecal.fe_failures import (FEFailures, PointFailure, common_features, replay,
+from forcecal.fe_failures import (FEFailures, PointFailure, common_features, punch_reach, replay,
                                   too_many_failures, with_point)
 from forcecal.preflight import run_preflight, tet_quality
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
@@ -811,6 +811,13 @@ class _Points:
         tested = np.union1d(self.slots.test_points, [f.vertex for f in failures])
         features = common_features(mesh, self.original.fixed, tested, failures,
                                    self._quality, footprints)
+        if footprints is not None:
+            depth = max(getattr(self.scene, kind).depth for kind in ("indentation", "relaxation")
+                        if kind in self.scene.experiments)
+            failed = sorted({f.vertex for f in failures})
+            reach = punch_reach(mesh, dict(zip(failed, mesh.inward_normals(np.array(failed)))),
+                                footprints, self.scene.indentation.radius, depth)
+            features += [reach] if reach else []
         return too_many_failures(n_points, failures, features)
 
     def records(self, tests: dict[str, dict | None]) -> FEFailures:

@@ -113,6 +113,37 @@ def test_more_than_a_quarter_failing_stops_the_run_saying_what_they_share(tiny, 
     assert (tmp_path / "r.h5.parts" / "FAILED").is_file()
 
 
+def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach(
+        tmp_path, monkeypatch):
+    """A 80 x 80 x 40 mm slab (5 x 20 x 20 mm cells, base clamped) indented by a 16 mm punch
+    at 9 vertices along its top edge y = 0 and 8 on its top face: at the edge the punch's
+    face leans 45 degrees, the footprint reaches the nodes 20 mm across the edge (on the top
+    and down the side, 14.1 mm off the face), beyond the 2 mm depth. Five edge points failing
+    stop the run with that and the radius that keeps only the edge's nodes, 10 mm
+    (:func:`forcecal.fe_failures.punch_reach`; tests/test_punch.py)."""
+    from calibration.synthetic import box_scene
+    from forcecal.mesh import box_mesh
+    x = box_mesh((16, 4, 2), (0.08, 0.08, 0.04)).vertices
+
+    def at(px, py):
+        return int(np.argmin(np.linalg.norm(x - [px, py, 0.04], axis=1)))
+    edge = [at(0.005 * k, 0.0) for k in range(3, 12)]
+    face = [at(0.005 * k, 0.04) for k in range(3, 11)]
+    scene = dataclasses.replace(box_scene(
+        tmp_path, cells=(16, 4, 2), size=(0.08, 0.08, 0.04),
+        test_points={"calibration": edge, "held_out": face},
+        indentation={"indenter": "punch", "radius": 0.016, "depth": 0.002},
+        relaxation={"depth": 0.002}), experiments=FORCES)
+    spec = ",".join(f"relaxation:{v}" for v in edge[:5])
+    with pytest.raises(ConvergenceError, match=(
+            r"what the failures share: 5 in relaxation; .*the punch footprints of 5 of the 5 "
+            r"failed points hold particles beyond the punch's reach, up to 14.1 mm from its "
+            r"face against the 2 mm depth \(a flat punch never touches them, its footprint "
+            r"holds them as if glued\): indentation.radius = 0.01 m keeps every failed "
+            r"point's footprint within reach; first failure: ")):
+        _run(scene, tmp_path / "r.h5", spec, monkeypatch)
+
+
 def test_a_recorded_failure_is_resumed_not_recomputed(tiny, tmp_path, monkeypatch):
     """A run interrupted after an item failed: the rerun takes the failure from the
     checkpoint folder and replaces the point (the hook fails nothing this time)."""

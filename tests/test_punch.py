@@ -267,3 +267,32 @@ def test_auto_test_points_of_a_punch_scene_can_all_be_indented():
         except SceneError:
             refused += 1
     assert refused > 0  # without the candidates the punch scene would be refused
+
+
+def _edge_of_a_slab():
+    """A 80 x 80 x 20 mm slab of 5 x 20 x 20 mm cells and the vertex at the middle of its top
+    face's edge y = 0: its inward normal leans 45 degrees (equal top and side areas), so the
+    surface nodes along the edge (5 mm apart) lie in the plane of a punch's face there, and
+    those across the edge (20 mm into the top or down the side) 20 mm x cos 45 = 14.1 mm
+    off it, at 14.1 mm from the punch's axis."""
+    mesh = box_mesh((16, 4, 1), (0.08, 0.08, 0.02))
+    vertex = int(np.argmin(np.linalg.norm(mesh.vertices - [0.04, 0.0, 0.02], axis=1)))
+    return mesh, vertex, mesh.inward_normals(np.array([vertex]))[0]
+
+
+def test_the_radius_within_reach_drops_what_the_punch_face_never_touches():
+    from forcecal.indenter import face_gaps, radius_within_reach
+    mesh, vertex, normal = _edge_of_a_slab()
+    np.testing.assert_allclose(normal, [0.0, np.sqrt(0.5), -np.sqrt(0.5)], atol=1e-15)
+    held = punch_footprint(mesh, vertex, normal, 0.021)
+    gaps = face_gaps(mesh, vertex, normal, held)
+    assert len(held) == 17 and np.sum(gaps > 0.002) == 8
+    np.testing.assert_allclose(gaps.max(), 0.02 * np.sqrt(0.5), rtol=1e-12)
+    # within 2 mm of the face: the edge's nodes only, 5 of them up to 10 mm from the axis
+    radius = radius_within_reach(mesh, vertex, normal, 0.021, 0.002)
+    assert radius == pytest.approx(0.01, rel=1e-12)
+    kept = punch_footprint(mesh, vertex, normal, radius)
+    assert len(kept) == 5 and face_gaps(mesh, vertex, normal, kept).max() < 1e-15
+    # a depth past the nodes across the edge keeps the radius; six nodes needed: none
+    assert radius_within_reach(mesh, vertex, normal, 0.021, 0.015) == 0.021
+    assert radius_within_reach(mesh, vertex, normal, 0.021, 0.002, min_nodes=6) is None
