@@ -360,7 +360,7 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
 
     A support that does not hold the body in motion ends the release at the first record
     past it (:func:`check_release`: the body falls over or buckles instead of swinging about
-    its sag), and a release whose Newton solve fails says what its last converged state
+    its sag), and a release whose Newton solve fails says what its last completed time step
     shows (:func:`release_state`).
 
     Args:
@@ -402,7 +402,8 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
                 check_release(moved, state.progress, static_sag, extent, len(fixed), section,
                               what)
     except ConvergenceError as error:
-        # the state the failed step started from: the last one the march yielded
+        # the last state the march yielded: its last completed time step (a failed step's
+        # halvings may have gone a little further)
         shown = release_state(model, fixed, model.vertex_values(state.u), watched, static_sag)
         failure = ConvergenceError(f"{error}; at {state.progress:.6g} s, the last completed "
                                    f"time step: {shown}")
