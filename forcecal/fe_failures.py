@@ -265,6 +265,21 @@ def _worst_quality_near(mesh: TetMesh, vertices: np.ndarray, quality: np.ndarray
     return out
 
 
+def with_preflight(record: dict | None, preflight: dict) -> dict | None:
+    """A failed FE gravity test's ``fe_failures`` record (``{"experiment", "reason",
+    "reached"}``, or None) with what the mesh preflight (:func:`forcecal.preflight.
+    mesh_preflight`) said of the scene's support when it said the support does not hold the
+    body under its weight: the failure was expected, and the reason says why."""
+    support = preflight.get("support") or {}
+    if record is None or support.get("holds", True) or support.get("linear_sag_m") is None:
+        return record
+    sag, size = support["linear_sag_m"], support["body_size_m"]
+    return {**record, "reason": (
+        f"{record['reason']}; expected by the mesh preflight: the support does not hold the "
+        f"body under its weight (linear sag under full gravity {sag * 1e3:.3g} mm, "
+        f"{sag / size:.2g} x the body's size {size * 1e3:.3g} mm)")}
+
+
 def punch_reach(mesh: TetMesh, failed: dict[int, np.ndarray], footprints: dict[int, np.ndarray],
                 radius: float, depth: float) -> str | None:
     """What the punch footprints of failed test points hold beyond the punch's reach, as a

@@ -68,7 +68,7 @@ from forcecal.errors import (ConvergenceError, DataFileError, ForcecalError, Sce
 from forcecal.cost import check_cost
 from forcecal.failures import collective
 from forcecal.fe_failures import (FEFailures, PointFailure, common_features, punch_reach, replay,
-                                  too_many_failures, with_point)
+                                  too_many_failures, with_point, with_preflight)
 from forcecal.preflight import run_preflight, tet_quality
 from forcecal.h5io import (GravityResult, IndentationCurves, Reference, RelaxationCurves,
                            SecondSupportResult, atomic_path, read_reference, write_reference)
@@ -692,8 +692,12 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         bar.close()
 
     def finish() -> Reference:
-        failures = points.records({test: failed_before.get(test) or parts.test_failure(
-            scheduled, kinds) for test, kinds in HELD_OUT_TESTS.items()})
+        # a gravity failure computed in this run gets what the preflight said of its support
+        # (one taken over from the previous reference has it already)
+        failures = points.records({test: failed_before.get(test) or (
+            with_preflight(parts.test_failure(scheduled, kinds), preflight)
+            if test == "gravity" else parts.test_failure(scheduled, kinds))
+            for test, kinds in HELD_OUT_TESTS.items()})
         if failures.gravity is not None:
             log.warning("the FE gravity test failed (%s: %s): both gravity experiments are "
                         "left out of %s, the force curves are kept", failures.gravity[

@@ -189,3 +189,17 @@ def test_footprints_beyond_the_punch_reach_are_named_with_the_radius_that_keeps_
     assert said.endswith(f"as if glued): no radius holding enough particles keeps vertex {v}'s "
                          f"within reach (test points where the surface is flat within the "
                          f"depth)")
+
+
+def test_a_gravity_failure_the_preflight_expected_says_so():
+    from forcecal.fe_failures import with_preflight
+    record = {"experiment": "gravity_static", "reason": "gravity static: diverged",
+              "reached": {"load_factor": 0.0039}}
+    holding = {"support": {"holds": True, "linear_sag_m": 0.001, "body_size_m": 0.2}}
+    falling = {"support": {"holds": False, "linear_sag_m": 0.464, "body_size_m": 0.229}}
+    assert with_preflight(record, holding) == record
+    assert with_preflight(None, falling) is None
+    assert with_preflight(record, falling) == {**record, "reason": (
+        "gravity static: diverged; expected by the mesh preflight: the support does not hold "
+        "the body under its weight (linear sag under full gravity 464 mm, 2 x the body's size "
+        "229 mm)")}

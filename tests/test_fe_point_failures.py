@@ -6,6 +6,7 @@ keeps the force curves, a recorded failure is resumed, and mpirun -n 2 decides t
 import dataclasses
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -144,6 +145,29 @@ def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach
         _run(scene, tmp_path / "r.h5", spec, monkeypatch)
 
 
+def test_a_failed_gravity_test_the_preflight_expected_says_so(tmp_path, monkeypatch):
+    """The preflight saying the support does not hold the body (its linear sag beyond a
+    quarter of the body): the gravity failure's reason carries it, and a rerun that takes the
+    failure over does not add it twice."""
+    import reference_fe.run as run
+    preflight = run.run_preflight
+
+    def soft(scene, mesh, fixed):
+        pf = preflight(scene, mesh, fixed)
+        return {**pf, "support": {**pf["support"], "holds": False,
+                                  "linear_sag_m": 0.5 * pf["support"]["body_size_m"]}}
+    monkeypatch.setattr(run, "run_preflight", soft)
+    scene = load_scene(SCENES / "tiny.toml")
+    out = tmp_path / "reference.h5"
+    _run(scene, out, "gravity_static:", monkeypatch)
+    expected = (r"test hook: the gravity_static of vertex -1 diverges; expected by the mesh "
+                r"preflight: the support does not hold the body under its weight \(linear sag "
+                r"under full gravity [0-9.]+ mm, 0.5 x the body's size [0-9.]+ mm\)")
+    assert re.fullmatch(expected, read_reference(out).fe_failures.gravity["reason"])
+    _run(scene, out, "", monkeypatch)
+    assert re.fullmatch(expected, read_reference(out).fe_failures.gravity["reason"])
+
+
 def test_a_recorded_failure_is_resumed_not_recomputed(tiny, tmp_path, monkeypatch):
     """A run interrupted after an item failed: the rerun takes the failure from the
     checkpoint folder and replaces the point (the hook fails nothing this time)."""
@@ -178,6 +202,7 @@ def test_a_failed_gravity_test_leaves_the_gravity_out_and_keeps_the_force_curves
                                                   "diverges",
                                         "reached": {"load_factor": 0.5}}
     assert "gravity_dynamic" not in json.loads(back.meta["items_computed"])  # never started
+    assert json.loads(back.meta["mesh_preflight"])["support"]["holds"]  # not expected to fail
     assert back.indentation.force.shape[0] == 17 and back.relaxation is not None
     ctx = Context(scene, tmp_path, False, 1)
     assert scene_after_reference(ctx).experiments == FORCES
