@@ -35,7 +35,7 @@ from typing import Any, Callable
 import numpy as np
 
 from forcecal.errors import ConvergenceError, DataFileError
-from forcecal.indenter import face_gaps, radius_within_reach
+from forcecal.indenter import face_gaps, radii_within_reach
 from forcecal.mesh import TetMesh
 from forcecal.point_selection import free_surface_vertices
 from forcecal.preflight import POOR_QUALITY
@@ -265,27 +265,34 @@ def _worst_quality_near(mesh: TetMesh, vertices: np.ndarray, quality: np.ndarray
     return out
 
 
+#: what :func:`with_preflight` adds to a failure's reason (once)
+EXPECTED = "expected by the mesh preflight"
+
+
 def with_preflight(record: dict | None, preflight: dict) -> dict | None:
     """A failed FE gravity test's ``fe_failures`` record (``{"experiment", "reason",
     "reached"}``, or None) with what the mesh preflight (:func:`forcecal.preflight.
     mesh_preflight`) said of the scene's support when it said the support does not hold the
-    body under its weight: the failure was expected, and the reason says why."""
+    body under its weight: the failure was expected, and the reason says why (a reason that
+    says it already is kept)."""
     support = preflight.get("support") or {}
-    if record is None or support.get("holds", True) or support.get("linear_sag_m") is None:
+    if (record is None or support.get("holds", True) or support.get("linear_sag_m") is None
+            or EXPECTED in record["reason"]):
         return record
     sag, size = support["linear_sag_m"], support["body_size_m"]
     return {**record, "reason": (
-        f"{record['reason']}; expected by the mesh preflight: the support does not hold the "
-        f"body under its weight (linear sag under full gravity {sag * 1e3:.3g} mm, "
-        f"{sag / size:.2g} x the body's size {size * 1e3:.3g} mm)")}
+        f"{record['reason']}; {EXPECTED}: the support does not hold the body under its weight "
+        f"(linear sag under full gravity {sag * 1e3:.3g} mm, {sag / size:.2g} x the body's size "
+        f"{size * 1e3:.3g} mm)")}
 
 
-def punch_reach(mesh: TetMesh, failed: dict[int, np.ndarray], footprints: dict[int, np.ndarray],
-                radius: float, depth: float) -> str | None:
+def punch_reach(mesh: TetMesh, failed: dict[int, tuple[np.ndarray, float]],
+                footprints: dict[int, np.ndarray], radius: float) -> str | None:
     """What the punch footprints of failed test points hold beyond the punch's reach, as a
     short phrase for :func:`too_many_failures` (None unless it holds for at least 3/4 of the
-    failed points), with the radius that keeps every failed point's footprint within reach
-    (:func:`forcecal.indenter.radius_within_reach`), if one holds enough particles.
+    failed points), with a radius that keeps every failed point's footprint within reach
+    and at least :data:`forcecal.indenter.MIN_FOOTPRINT` particles
+    (:func:`forcecal.indenter.radii_within_reach`), if one radius does for all of them.
 
     A flat punch pushed ``depth`` [m] never touches a footprint node lying farther than that
     from the plane of its face (on a surface curved within the footprint): the footprint
@@ -293,26 +300,41 @@ def punch_reach(mesh: TetMesh, failed: dict[int, np.ndarray], footprints: dict[i
     diverge on the corpus torus (studies/punch_reach.py).
 
     Args:
-        failed: failed test vertex -> its indentation direction (3,).
-        footprints: vertex -> its footprint's vertices at ``radius`` [m].
+        failed: failed test vertex -> (its indentation direction (3,), the depth [m] of the
+            shallowest experiment that failed there).
+        footprints: vertex -> its footprint's vertices at the scene's ``radius`` [m].
     """
-    gaps = {v: float(face_gaps(mesh, v, n, footprints[v]).max()) for v, n in failed.items()}
-    beyond = [v for v, gap in gaps.items() if gap > depth]
+    gaps = {v: float(face_gaps(mesh, v, n, footprints[v]).max()) for v, (n, _) in failed.items()}
+    beyond = [v for v, gap in gaps.items() if gap > failed[v][1]]
     if len(beyond) < 0.75 * len(failed):
         return None
+    depths = sorted({failed[v][1] for v in beyond})
     said = (f"the punch footprints of {len(beyond)} of the {len(failed)} failed points hold "
-            f"particles beyond the punch's reach, up to {max(gaps.values()) * 1e3:.3g} mm from "
-            f"its face against the {depth * 1e3:.3g} mm depth (a flat punch never touches "
-            f"them, its footprint holds them as if glued)")
-    fits = {v: radius_within_reach(mesh, v, failed[v], radius, depth) for v in beyond}
-    none = [v for v, r in fits.items() if r is None]
+            f"particles beyond the punch's reach, up to {max(gaps[v] for v in beyond) * 1e3:.3g}"
+            f" mm from its face against the {' / '.join(f'{d * 1e3:.3g}' for d in depths)} mm "
+            f"depth (a flat punch never touches them, its footprint holds them as if glued)")
+    ranges = {v: radii_within_reach(mesh, v, n, radius, depth)
+              for v, (n, depth) in failed.items()}
+    none = [v for v, r in ranges.items() if r is None]
     if none:
         return (f"{said}: no radius holding enough particles keeps vertex {none[0]}'s within "
                 f"reach (test points where the surface is flat within the depth)")
-    largest = min(fits.values())
-    shown = math.floor(largest * 1e4) / 1e4  # in 0.1 mm, not above the radius that works
-    return (f"{said}: indentation.radius = {shown:.4g} m keeps every failed point's footprint "
-            f"within reach")
+    low, high = max(r[0] for r in ranges.values()), min(r[1] for r in ranges.values())
+    if not low < high:
+        return (f"{said}: no one radius keeps every failed point's footprint within reach with "
+                f"enough particles (between {low:.4g} and {high:.4g} m at different points)")
+    return f"{said}: indentation.radius = {_round_within(low, high)} m keeps them within reach"
+
+
+def _round_within(low: float, high: float) -> str:
+    """A radius [m] to write for the range ``low <= r < high``: of the decimals with the
+    fewest digits in it (to 1 um at most), the largest, the closest to the scene's radius and
+    the tool's contact size."""
+    for digits in range(2, 7):
+        r = (math.ceil(high * 10 ** digits) - 1) / 10 ** digits
+        if r >= low:
+            return f"{r:.{digits}f}".rstrip("0")
+    return f"{low:.6f}"
 
 
 #: a tet whose corners enclose less than this fraction of their volume at rest is called

@@ -110,32 +110,37 @@ def punch_footprint(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: floa
 
 
 def face_gaps(mesh: TetMesh, vertex: int, normal: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-    """(K,) distance of each of ``nodes`` from the plane of a flat punch's face centred at
-    ``vertex`` with ``normal`` [m]: how far the punch goes before its face reaches them."""
+    """(K,) distance [m] of each of ``nodes`` from the plane of a flat punch's face centred at
+    ``vertex`` with ``normal``, on either side: behind the face (a convex surface) the punch
+    reaches them only after that much travel, in front of it (a concave one) they stand
+    that far proud of the face."""
     n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
     return np.abs((mesh.vertices[nodes] - mesh.vertices[int(vertex)]) @ n)
 
 
-def radius_within_reach(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: float,
-                        depth: float, *, min_nodes: int = MIN_FOOTPRINT) -> float | None:
-    """The largest radius up to ``radius`` [m] whose footprint at ``vertex`` holds only nodes
-    the punch's face reaches within ``depth`` [m] (:func:`face_gaps`), and at least
-    ``min_nodes`` of them; None when no radius does.
+def radii_within_reach(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: float,
+                       depth: float, *, min_nodes: int = MIN_FOOTPRINT
+                       ) -> tuple[float, float] | None:
+    """The radii ``(smallest, beyond)`` [m] at which the footprint at ``vertex`` holds at least
+    ``min_nodes`` nodes, all within ``depth`` [m] of the punch's face (:func:`face_gaps`):
+    every radius ``r`` with ``smallest <= r < beyond`` (``beyond`` just above ``radius`` when
+    the scene's own footprint is within reach); None when no radius up to ``radius`` does.
 
-    A footprint changes only where the radius passes a surface node's distance from the
-    punch's axis, so those distances below ``radius`` are the candidates (largest first);
-    the radius returned holds the same nodes up to the next one."""
+    A footprint grows with the radius and changes only where the radius passes a surface
+    node's distance from the punch's axis, so those distances are the radii tried, smallest
+    first, up to the first footprint with a node out of reach."""
     vertex = int(vertex)
     edges = surface_edges(mesh)
     distance = _tangential_distance(mesh, vertex, normal)
-    surface = distance[mesh.surface_vertices]
-    for r in [radius, *np.sort(surface[surface < radius])[::-1]]:
+    surface = np.unique(distance[mesh.surface_vertices])
+    smallest = None
+    for r in [*surface[surface < radius], radius]:
         nodes = _footprint(mesh, edges, vertex, distance, float(r))
-        if len(nodes) < min_nodes:
-            return None  # a smaller radius holds fewer still
-        if face_gaps(mesh, vertex, normal, nodes).max() <= depth:
-            return float(r)
-    return None
+        if face_gaps(mesh, vertex, normal, nodes).max() > depth:
+            return None if smallest is None else (smallest, float(r))
+        if smallest is None and len(nodes) >= min_nodes:
+            smallest = float(r)
+    return None if smallest is None else (smallest, float(np.nextafter(radius, np.inf)))
 
 
 def footprint_edges(mesh: TetMesh, nodes: np.ndarray) -> np.ndarray:

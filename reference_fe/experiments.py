@@ -263,6 +263,11 @@ def punch_relaxation_curve(model: FEModel, fixed: np.ndarray, vertex: int, norma
                                  normal, times, depths, f"punch relaxation at vertex {vertex}")
 
 
+def largest_displacement(displacement: np.ndarray) -> float:
+    """The largest vertex displacement [m] of an (N, 3) displacement field [m]."""
+    return float(np.linalg.norm(displacement, axis=1).max())
+
+
 #: the scene section of a clamp -> the name of its gravity test in the messages
 TEST_NAMES = {"fixed": "gravity", "second_support": "second support"}
 
@@ -297,7 +302,7 @@ def gravity_static(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
                                             what=what,
                                             unit="x gravity")):
         u = model.vertex_values(state.u)
-        sag = float(np.linalg.norm(u, axis=1).max())
+        sag = largest_displacement(u)
         first = sag / factor if first is None else first
         try:
             check_sag(sag, factor, first, extent, len(fixed), section, what)
@@ -365,7 +370,8 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
 
     Args:
         static_sag: the largest displacement of the same support's static sag [m] at the
-            ``watched`` vertices (None: the release is checked against the body's size only).
+            ``watched`` vertices (None: unknown, as for a scene that does not ask for the
+            static sag; the release is then checked against the body's size only).
         watched: the vertices whose displacement is compared with ``static_sag`` (default:
             all).
 
@@ -398,7 +404,7 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
             if k % substeps == 0:
                 out.append(model.vertex_values(state.u))
                 log.debug("gravity dynamic: t = %.4g s", state.progress)
-                moved = float(np.linalg.norm(out[-1][watched], axis=1).max())
+                moved = largest_displacement(out[-1][watched])
                 check_release(moved, state.progress, static_sag, extent, len(fixed), section,
                               what)
     except ConvergenceError as error:
@@ -428,9 +434,9 @@ def check_release(moved: float, time: float, static_sag: float | None, extent: f
     """Raise :class:`~forcecal.errors.StabilityError` (``reached`` = ``time``) when a release
     has moved the body (``moved``, its largest displacement [m] at ``time`` [s]) more than
     :data:`RELEASE_RUNAWAY_LIMIT` x the static sag ``static_sag`` [m] of the same support, or,
-    that sag unknown (None), more than the body's size ``extent`` [m] (twice the most a sag may
-    reach, :func:`check_sag`)."""
-    if static_sag is not None:
+    that sag unknown (None or 0), more than the body's size ``extent`` [m] (twice the most a sag
+    may reach, :func:`check_sag`)."""
+    if static_sag:
         if moved <= RELEASE_RUNAWAY_LIMIT * static_sag:
             return
         cause = (f"the release has moved the body by {moved * 1e3:.3g} mm at {time:.4g} s, "
@@ -455,10 +461,10 @@ def release_state(model: FEModel, fixed: np.ndarray, displacement: np.ndarray,
     """What a release's state (``displacement`` (N, 3) at the vertices [m]) shows, for the
     message of a release that failed from it: how far the body has moved against its static
     sag, and the most compressed tet (:func:`forcecal.fe_failures.crushed_tet`)."""
-    moved = float(np.linalg.norm(displacement[watched], axis=1).max())
+    moved = largest_displacement(displacement[watched])
     said = [f"the body has moved by {moved * 1e3:.3g} mm"
             + (f" ({moved / static_sag:.2g} x its static sag)" if static_sag else "")]
     crushed = crushed_tet(model.mesh, displacement, fixed, tet_quality(model.mesh))
     if crushed:
-        said.append(crushed)
+        said.append(f"on the FE mesh, {crushed}")
     return "; ".join(said)

@@ -273,7 +273,8 @@ def compute_item(model: FEModel, scene: Scene, problem: Problem, item: WorkItem,
     if item.kind == "gravity_dynamic":
         times, disp = experiments.gravity_dynamic(
             model, fixed, g.acceleration, g.duration, g.fe_dt, g.record_interval,
-            static_sag=None if after is None else largest_displacement(after["displacement"]),
+            static_sag=(None if after is None
+                        else experiments.largest_displacement(after["displacement"])),
             watched=at_particles)
         return {"time": times, "displacement": disp[:, at_particles]}
     if item.kind == "body":
@@ -329,18 +330,13 @@ def gravity_test(model: FEModel, scene: Scene, fixed: np.ndarray, at_particles: 
         part = parts[1]
         times, disp = experiments.gravity_dynamic(
             model, fixed, g.acceleration, g.duration, g.fe_dt, g.record_interval,
-            section=section, static_sag=largest_displacement(static[at_particles]),
+            section=section, static_sag=experiments.largest_displacement(static[at_particles]),
             watched=at_particles)
     except ITEM_FAILURES as exc:
         exc.experiment = part
         raise
     return {"static_displacement": static[at_particles], "time": times,
             "displacement": disp[:, at_particles]}
-
-
-def largest_displacement(displacement: np.ndarray) -> float:
-    """The largest vertex displacement [m] of an (N, 3) displacement field."""
-    return float(np.linalg.norm(displacement, axis=1).max())
 
 
 def second_support_runs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem) -> dict:
@@ -361,6 +357,9 @@ class _Parts:
     def __init__(self, out_path: Path, key: str | dict[str, str]):
         self.folder = out_path.with_name(out_path.name + ".parts")
         self.key = key  # one key, or one per experiment (:func:`run_keys`)
+        # item name -> the arrays of an item taken over from the previous reference instead of
+        # computed (those another item waits for, :data:`AFTER`), on every rank
+        self.reused: dict[str, dict] = {}
 
     def key_of(self, item: WorkItem) -> str:
         key = self.key[item.kind] if isinstance(self.key, dict) else self.key
@@ -389,6 +388,12 @@ class _Parts:
                         "is computed again", path, type(exc).__name__, exc)
             path.unlink(missing_ok=True)
             return None
+
+    def arrays(self, item: WorkItem) -> dict | None:
+        """The arrays of ``item``: its finished part, or those taken over from the previous
+        reference (:attr:`reused`); None when neither is there."""
+        arrays = self.load(item)
+        return self.reused.get(item.name) if arrays is None else arrays
 
     def save(self, item: WorkItem, arrays: dict) -> None:
         with atomic_path(self.path(item)) as tmp, open(tmp, "wb") as fh:
@@ -664,6 +669,8 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         previous.update(previous_results(out_path, keys, problem))
         return sorted(previous), previous_failures(out_path, keys)
     reused, failed_before = _on_root(comm, take_previous)  # arrays stay on rank 0
+    parts.reused = _on_root(comm, lambda: {e: previous[e]["arrays"] for e in AFTER.values()
+                                           if e in previous})
     skip = set(reused) | {e for test in failed_before for e in HELD_OUT_TESTS[test]}
     items = work_items(scene, len(problem.test_points),
                        tuple(e for e in scene.experiments if e not in skip))
@@ -692,12 +699,11 @@ def compute_reference(scene: Scene, problem: Problem | None = None, *, out_path:
         bar.close()
 
     def finish() -> Reference:
-        # a gravity failure computed in this run gets what the preflight said of its support
-        # (one taken over from the previous reference has it already)
-        failures = points.records({test: failed_before.get(test) or (
-            with_preflight(parts.test_failure(scheduled, kinds), preflight)
-            if test == "gravity" else parts.test_failure(scheduled, kinds))
-            for test, kinds in HELD_OUT_TESTS.items()})
+        failures = {test: failed_before.get(test) or parts.test_failure(scheduled, kinds)
+                    for test, kinds in HELD_OUT_TESTS.items()}
+        # the preflight checked the scene's own support: a gravity failure it expected says so
+        failures = points.records({**failures,
+                                   "gravity": with_preflight(failures["gravity"], preflight)})
         if failures.gravity is not None:
             log.warning("the FE gravity test failed (%s: %s): both gravity experiments are "
                         "left out of %s, the force curves are kept", failures.gravity[
@@ -816,11 +822,14 @@ class _Points:
         features = common_features(mesh, self.original.fixed, tested, failures,
                                    self._quality, footprints)
         if footprints is not None:
-            depth = max(getattr(self.scene, kind).depth for kind in ("indentation", "relaxation")
-                        if kind in self.scene.experiments)
-            failed = sorted({f.vertex for f in failures})
-            reach = punch_reach(mesh, dict(zip(failed, mesh.inward_normals(np.array(failed)))),
-                                footprints, self.scene.indentation.radius, depth)
+            depths: dict[int, float] = {}  # each failed vertex's shallowest failed experiment
+            for f in failures:
+                depth = getattr(self.scene, f.experiment).depth
+                depths[f.vertex] = min(depths.get(f.vertex, depth), depth)
+            vertices = sorted(depths)
+            failed = {v: (n, depths[v])
+                      for v, n in zip(vertices, mesh.inward_normals(np.array(vertices)))}
+            reach = punch_reach(mesh, failed, footprints, self.scene.indentation.radius)
             features += [reach] if reach else []
         return too_many_failures(n_points, failures, features)
 
@@ -897,7 +906,7 @@ def _claim_and_compute(scene: Scene, points: _Points, items: list[WorkItem], par
                 model = FEModel(fe.problem.mesh, scene.material, scene.fe)
                 build_seconds = time.perf_counter() - t0
                 t0 = time.perf_counter()
-            after = (parts.load(WorkItem(AFTER[item.kind], item.point, 0.0))
+            after = (parts.arrays(WorkItem(AFTER[item.kind], item.point, 0.0))
                      if item.kind in AFTER else None)
             arrays = compute_item(model, scene, points.slots, item, fe, after)
         except experiments.Stopped:

@@ -153,9 +153,10 @@ def test_the_crushed_tet_of_a_failed_gravity_test_is_named():
 
 def test_footprints_beyond_the_punch_reach_are_named_with_the_radius_that_keeps_them():
     """Failed points at the slab's top edge (tests/test_punch.py): their 21 mm footprints hold
-    nodes 14.1 mm off the punch's face, beyond a 2 mm depth; 10 mm keeps them within reach.
-    On 20 mm cells no radius holding 3 particles does; a point on the top face
-    (nothing beyond) among three failed at the edge leaves the 3/4 rule met, two of four not."""
+    nodes 14.1 mm off the punch's face, beyond a 2 mm depth; radii from 5 mm (3 particles) to
+    below 14.1 mm keep them within reach, 10 mm the shortest to write. On 20 mm cells no
+    radius holding 3 particles does; a point on the top face (nothing beyond) among three
+    failed at the edge leaves the 3/4 rule met, two of four not."""
     from forcecal.fe_failures import punch_reach
     from forcecal.indenter import punch_footprint
     from forcecal.mesh import box_mesh
@@ -167,28 +168,39 @@ def test_footprints_beyond_the_punch_reach_are_named_with_the_radius_that_keeps_
     edge = [at(0.03, 0.0, 0.02), at(0.04, 0.0, 0.02), at(0.05, 0.0, 0.02)]
     face = [at(0.04, 0.04, 0.02), at(0.03, 0.04, 0.02)]
 
-    def failed(vertices):
-        return dict(zip(vertices, mesh.inward_normals(np.array(vertices))))
-    footprints = {v: punch_footprint(mesh, v, n, 0.021) for v, n in failed(edge + face).items()}
-    said = punch_reach(mesh, failed(edge), footprints, 0.021, 0.002)
+    def failed(vertices, depth=0.002):
+        return {v: (n, depth) for v, n in zip(vertices, mesh.inward_normals(np.array(vertices)))}
+    footprints = {v: punch_footprint(mesh, v, n, 0.021)
+                  for v, (n, _) in failed(edge + face).items()}
+    said = punch_reach(mesh, failed(edge), footprints, 0.021)
     assert said == ("the punch footprints of 3 of the 3 failed points hold particles beyond the "
                     "punch's reach, up to 14.1 mm from its face against the 2 mm depth (a flat "
                     "punch never touches them, its footprint holds them as if glued): "
-                    "indentation.radius = 0.01 m keeps every failed point's footprint within "
-                    "reach")
-    assert punch_reach(mesh, failed(edge + face[:1]), footprints, 0.021, 0.002).startswith(
+                    "indentation.radius = 0.01 m keeps them within reach")
+    assert punch_reach(mesh, failed(edge + face[:1]), footprints, 0.021).startswith(
         "the punch footprints of 3 of the 4 failed points")
-    assert punch_reach(mesh, failed(edge[:2] + face), footprints, 0.021, 0.002) is None
-    assert punch_reach(mesh, failed(edge), footprints, 0.021, 0.015) is None
+    assert punch_reach(mesh, failed(edge[:2] + face), footprints, 0.021) is None
+    assert punch_reach(mesh, failed(edge, 0.015), footprints, 0.021) is None
     # 20 mm cells along the edge too (tests/test_study_punch_reach.py): every footprint of 3
     # particles or more at the edge's middle vertex holds one across the edge
     coarse = box_mesh((4, 4, 2), (0.08, 0.08, 0.02))
     v = int(np.argmin(np.linalg.norm(coarse.vertices - [0.04, 0.0, 0.02], axis=1)))
     n = coarse.inward_normals(np.array([v]))[0]
-    said = punch_reach(coarse, {v: n}, {v: punch_footprint(coarse, v, n, 0.021)}, 0.021, 0.002)
+    said = punch_reach(coarse, {v: (n, 0.002)}, {v: punch_footprint(coarse, v, n, 0.021)},
+                       0.021)
     assert said.endswith(f"as if glued): no radius holding enough particles keeps vertex {v}'s "
                          f"within reach (test points where the surface is flat within the "
                          f"depth)")
+
+
+def test_a_radius_is_written_as_short_as_its_range_allows_and_as_large():
+    from forcecal.fe_failures import _round_within
+    assert _round_within(0.005, 0.0141) == "0.01"
+    assert _round_within(0.00604, 0.00877) == "0.008"  # not 0.007: nearer the scene's radius
+    assert _round_within(0.0081, 0.0093) == "0.009"
+    assert _round_within(0.00812, 0.00815) == "0.00814"
+    assert _round_within(0.01, 0.0100001) == "0.01"  # the smallest radius itself works
+    assert _round_within(0.009, 0.01) == "0.009"  # the range's end does not
 
 
 def test_a_gravity_failure_the_preflight_expected_says_so():

@@ -120,7 +120,7 @@ def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach
     at 9 vertices along its top edge y = 0 and 8 on its top face: at the edge the punch's
     face leans 45 degrees, the footprint reaches the nodes 20 mm across the edge (on the top
     and down the side, 14.1 mm off the face), beyond the 2 mm depth. Five edge points failing
-    stop the run with that and the radius that keeps only the edge's nodes, 10 mm
+    stop the run with that and a radius that keeps only the edge's nodes, 10 mm
     (:func:`forcecal.fe_failures.punch_reach`; tests/test_punch.py)."""
     from calibration.synthetic import box_scene
     from forcecal.mesh import box_mesh
@@ -140,8 +140,8 @@ def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach
             r"what the failures share: 5 in relaxation; .*the punch footprints of 5 of the 5 "
             r"failed points hold particles beyond the punch's reach, up to 14.1 mm from its "
             r"face against the 2 mm depth \(a flat punch never touches them, its footprint "
-            r"holds them as if glued\): indentation.radius = 0.01 m keeps every failed "
-            r"point's footprint within reach; first failure: ")):
+            r"holds them as if glued\): indentation.radius = 0.01 m keeps them within reach; "
+            r"first failure: ")):
         _run(scene, tmp_path / "r.h5", spec, monkeypatch)
 
 

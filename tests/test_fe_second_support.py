@@ -152,8 +152,9 @@ def test_a_release_says_how_far_the_body_moved_when_it_fails_or_runs_away(monkey
 def test_each_release_of_a_reference_is_checked_against_its_own_supports_sag(tmp_path,
                                                                             monkeypatch):
     """In a whole reference run, the scene's release gets the static sag of the scene's clamp
-    (its finished part) and the second support's release that of the second support, both the
-    largest displacement at the particle vertices that ``reference.h5`` stores."""
+    and the second support's release that of the second support, both the largest
+    displacement at the particle vertices that ``reference.h5`` stores; the scene's sag also
+    when it was taken over from the previous ``reference.h5`` instead of computed."""
     scene = dataclasses.replace(_scene(ROOT, END), experiments=(
         "indentation", "gravity_static", "gravity_dynamic", "second_support"))
     release, seen = ex.gravity_dynamic, {}
@@ -163,8 +164,11 @@ def test_each_release_of_a_reference_is_checked_against_its_own_supports_sag(tmp
         return release(*args, section=section, **kwargs)
     monkeypatch.setattr(ex, "gravity_dynamic", recording)
     out = tmp_path / "reference.h5"
+    first = dataclasses.replace(scene, experiments=("indentation", "gravity_static"))
+    compute_reference(first, _problem(scene), out_path=out, progress=False)
     compute_reference(scene, _problem(scene), out_path=out, progress=False)
     back = read_reference(out)
+    assert "gravity_static" not in json.loads(back.meta["items_computed"])  # taken over
     assert seen["fixed"] == np.linalg.norm(back.gravity.static_displacement, axis=1).max()
     assert seen["second_support"] == np.linalg.norm(
         back.second_support.runs.static_displacement, axis=1).max()

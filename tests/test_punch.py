@@ -280,19 +280,26 @@ def _edge_of_a_slab():
     return mesh, vertex, mesh.inward_normals(np.array([vertex]))[0]
 
 
-def test_the_radius_within_reach_drops_what_the_punch_face_never_touches():
-    from forcecal.indenter import face_gaps, radius_within_reach
+def test_the_radii_within_reach_drop_what_the_punch_face_never_touches():
+    from forcecal.indenter import face_gaps, radii_within_reach
     mesh, vertex, normal = _edge_of_a_slab()
     np.testing.assert_allclose(normal, [0.0, np.sqrt(0.5), -np.sqrt(0.5)], atol=1e-15)
     held = punch_footprint(mesh, vertex, normal, 0.021)
     gaps = face_gaps(mesh, vertex, normal, held)
     assert len(held) == 17 and np.sum(gaps > 0.002) == 8
     np.testing.assert_allclose(gaps.max(), 0.02 * np.sqrt(0.5), rtol=1e-12)
-    # within 2 mm of the face: the edge's nodes only, 5 of them up to 10 mm from the axis
-    radius = radius_within_reach(mesh, vertex, normal, 0.021, 0.002)
-    assert radius == pytest.approx(0.01, rel=1e-12)
-    kept = punch_footprint(mesh, vertex, normal, radius)
-    assert len(kept) == 5 and face_gaps(mesh, vertex, normal, kept).max() < 1e-15
-    # a depth past the nodes across the edge keeps the radius; six nodes needed: none
-    assert radius_within_reach(mesh, vertex, normal, 0.021, 0.015) == 0.021
-    assert radius_within_reach(mesh, vertex, normal, 0.021, 0.002, min_nodes=6) is None
+    # within 2 mm of the face: the edge's nodes only, from 3 of them at 5 mm from the axis to 5
+    # at 10 mm, until the nodes across the edge join at 14.1 mm
+    smallest, beyond = radii_within_reach(mesh, vertex, normal, 0.021, 0.002)
+    assert smallest == pytest.approx(0.005, rel=1e-12)
+    assert beyond == pytest.approx(0.02 * np.sqrt(0.5), rel=1e-12)
+    for r, n in ((smallest, 3), (0.0141, 5)):
+        kept = punch_footprint(mesh, vertex, normal, r)
+        assert len(kept) == n and face_gaps(mesh, vertex, normal, kept).max() < 1e-15
+    assert face_gaps(mesh, vertex, normal, punch_footprint(mesh, vertex, normal, beyond)
+                     ).max() > 0.002
+    # a depth past the nodes across the edge: every radius up to the scene's; six nodes
+    # within 2 mm: none
+    assert radii_within_reach(mesh, vertex, normal, 0.021, 0.015) == (
+        pytest.approx(0.005, rel=1e-12), np.nextafter(0.021, 1.0))
+    assert radii_within_reach(mesh, vertex, normal, 0.021, 0.002, min_nodes=6) is None
