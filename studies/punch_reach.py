@@ -65,8 +65,7 @@ def point_geometry(problem: Problem, slot: int, radius: float, depth: float
     mesh = problem.mesh
     vertex, normal = int(problem.test_points[slot]), problem.normals[slot]
     held = indenter.punch_footprint(mesh, vertex, normal, radius, fixed=problem.fixed)
-    n = normal / np.linalg.norm(normal)
-    gap = np.abs((mesh.vertices[held] - mesh.vertices[vertex]) @ n)
+    gap = indenter.face_gaps(mesh, vertex, normal, held)
     outward = mesh.vertex_normals[held] / np.linalg.norm(mesh.vertex_normals[held],
                                                          axis=1)[:, None]
     centre = mesh.vertex_normals[vertex] / np.linalg.norm(mesh.vertex_normals[vertex])
@@ -103,8 +102,7 @@ def within_reach(depth: float) -> Iterator[None]:
     tangential = indenter._tangential_distance
 
     def distance(mesh, vertex, normal):
-        n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
-        off_face = np.abs((mesh.vertices - mesh.vertices[vertex]) @ n)
+        off_face = indenter.face_gaps(mesh, vertex, normal, np.arange(mesh.n_vertices))
         return np.where(off_face <= depth, tangential(mesh, vertex, normal), np.inf)
 
     with mock.patch.object(indenter, "_tangential_distance", distance):
