@@ -287,10 +287,12 @@ def with_preflight(record: dict | None, preflight: dict) -> dict | None:
 
 
 def punch_reach(mesh: TetMesh, failed: dict[int, tuple[np.ndarray, float]],
-                footprints: dict[int, np.ndarray], radius: float) -> str | None:
-    """What the punch footprints of failed test points hold beyond the punch's reach, as a
-    short phrase for :func:`too_many_failures` (None unless it holds for at least 3/4 of the
-    failed points), with a radius that keeps every failed point's footprint within reach
+                footprints: dict[int, np.ndarray], radius: float,
+                which: str = "failed points") -> str | None:
+    """What the punch footprints of failed test points (or others: ``which`` names them)
+    hold beyond the punch's reach, as a short phrase for :func:`too_many_failures` (None
+    unless it holds for at least 3/4 of the points), with a radius that keeps every point's
+    footprint within reach
     and at least :data:`forcecal.indenter.MIN_FOOTPRINT` particles
     (:func:`forcecal.indenter.radii_within_reach`), if one radius does for all of them.
 
@@ -309,7 +311,7 @@ def punch_reach(mesh: TetMesh, failed: dict[int, tuple[np.ndarray, float]],
     if len(beyond) < 0.75 * len(failed):
         return None
     depths = sorted({failed[v][1] for v in beyond})
-    said = (f"the punch footprints of {len(beyond)} of the {len(failed)} failed points hold "
+    said = (f"the punch footprints of {len(beyond)} of the {len(failed)} {which} hold "
             f"particles beyond the punch's reach, up to {max(gaps[v] for v in beyond) * 1e3:.3g}"
             f" mm from its face against the {' / '.join(f'{d * 1e3:.3g}' for d in depths)} mm "
             f"depth (a flat punch never touches them, its footprint holds them as if glued)")
@@ -321,8 +323,8 @@ def punch_reach(mesh: TetMesh, failed: dict[int, tuple[np.ndarray, float]],
                 f"reach (test points where the surface is flat within the depth)")
     low, high = max(r[0] for r in ranges.values()), min(r[1] for r in ranges.values())
     if not low < high:
-        return (f"{said}: no one radius keeps every failed point's footprint within reach with "
-                f"enough particles (between {low:.4g} and {high:.4g} m at different points)")
+        return (f"{said}: no one radius keeps every one of them within reach with enough "
+                f"particles (between {low:.4g} and {high:.4g} m at different points)")
     return f"{said}: indentation.radius = {_round_within(low, high)} m keeps them within reach"
 
 

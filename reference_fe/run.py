@@ -195,10 +195,20 @@ def indenter_experiments(scene: Scene) -> tuple[Callable[..., np.ndarray],
 
 def check_indenter(scene: Scene, problem: Problem) -> None:
     """Refuse, before any FE work, a punch whose footprint on the particle mesh holds fewer than
-    3 particles or touches the clamp (SceneError naming ``indentation.radius``)."""
+    3 particles or touches the clamp (SceneError naming ``indentation.radius``); warn when 3/4
+    of the test points' footprints hold particles beyond the punch's reach
+    (:func:`forcecal.fe_failures.punch_reach`, at the shallowest depth the scene indents)."""
     ind = scene.indentation
-    indenter_footprints(problem.mesh, problem.fixed, problem.test_points, problem.normals,
-                        ind.indenter, ind.radius)
+    held = indenter_footprints(problem.mesh, problem.fixed, problem.test_points,
+                               problem.normals, ind.indenter, ind.radius)
+    depths = [getattr(scene, kind).depth for kind in ("indentation", "relaxation")
+              if kind in scene.experiments]
+    if ind.indenter == "punch" and depths:
+        points = {int(v): (n, min(depths)) for v, n in zip(problem.test_points, problem.normals)}
+        said = punch_reach(problem.mesh, points, dict(zip(points, held)), ind.radius,
+                           "test points")
+        if said:
+            log.warning("%s; the FE punch runs there may not converge (docs/punch.md)", said)
 
 
 def indenter_dofs(model: FEModel, scene: Scene, problem: Problem, fe: FEProblem,

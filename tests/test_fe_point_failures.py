@@ -114,14 +114,12 @@ def test_more_than_a_quarter_failing_stops_the_run_saying_what_they_share(tiny, 
     assert (tmp_path / "r.h5.parts" / "FAILED").is_file()
 
 
-def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach(
-        tmp_path, monkeypatch):
+def _slab_at_its_edge(directory):
     """A 80 x 80 x 40 mm slab (5 x 20 x 20 mm cells, base clamped) indented by a 16 mm punch
     at 9 vertices along its top edge y = 0 and 8 on its top face: at the edge the punch's
     face leans 45 degrees, the footprint reaches the nodes 20 mm across the edge (on the top
-    and down the side, 14.1 mm off the face), beyond the 2 mm depth. Five edge points failing
-    stop the run with that and a radius that keeps only the edge's nodes, 10 mm
-    (:func:`forcecal.fe_failures.punch_reach`; tests/test_punch.py)."""
+    and down the side, 14.1 mm off the face), beyond the 2 mm depth; radii from 5 to 14.1 mm
+    keep only the edge's nodes (tests/test_punch.py). Returns the scene and the edge points."""
     from calibration.synthetic import box_scene
     from forcecal.mesh import box_mesh
     x = box_mesh((16, 4, 2), (0.08, 0.08, 0.04)).vertices
@@ -131,10 +129,19 @@ def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach
     edge = [at(0.005 * k, 0.0) for k in range(3, 12)]
     face = [at(0.005 * k, 0.04) for k in range(3, 11)]
     scene = dataclasses.replace(box_scene(
-        tmp_path, cells=(16, 4, 2), size=(0.08, 0.08, 0.04),
+        directory, cells=(16, 4, 2), size=(0.08, 0.08, 0.04),
         test_points={"calibration": edge, "held_out": face},
         indentation={"indenter": "punch", "radius": 0.016, "depth": 0.002},
         relaxation={"depth": 0.002}), experiments=FORCES)
+    return scene, edge
+
+
+def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach(
+        tmp_path, monkeypatch):
+    """Five of the slab's edge points failing stop the run with what their footprints hold
+    beyond the punch's reach and a radius that keeps only the edge's nodes, 10 mm
+    (:func:`forcecal.fe_failures.punch_reach`)."""
+    scene, edge = _slab_at_its_edge(tmp_path)
     spec = ",".join(f"relaxation:{v}" for v in edge[:5])
     with pytest.raises(ConvergenceError, match=(
             r"what the failures share: 5 in relaxation; .*the punch footprints of 5 of the 5 "
@@ -143,6 +150,32 @@ def test_more_than_a_quarter_failing_names_the_punch_footprints_beyond_its_reach
             r"holds them as if glued\): indentation.radius = 0.01 m keeps them within reach; "
             r"first failure: ")):
         _run(scene, tmp_path / "r.h5", spec, monkeypatch)
+
+
+def test_footprints_beyond_the_punch_reach_at_most_points_are_warned_of_before_the_fe(
+        tmp_path, caplog):
+    """9 of the slab's 17 footprints hold particles beyond the punch's reach: fewer than 3/4,
+    no warning; with the 8 held-out points on the opposite top edge (y = 80 mm) instead of
+    its face, every one: warned of, with the radius, before any FE work."""
+    import logging
+
+    from reference_fe.run import check_indenter
+    scene, edge = _slab_at_its_edge(tmp_path)
+    problem = build_problem(scene)
+    x = problem.mesh.vertices
+    opposite = tuple(int(np.argmin(np.linalg.norm(x - [0.005 * k, 0.08, 0.04], axis=1)))
+                     for k in range(3, 11))
+    with caplog.at_level(logging.WARNING, logger="reference_fe.run"):
+        check_indenter(scene, problem)
+        assert not caplog.records
+        along = dataclasses.replace(scene, test_points=dataclasses.replace(
+            scene.test_points, held_out=opposite))
+        check_indenter(along, build_problem(along))
+    assert [r.getMessage() for r in caplog.records] == [
+        "the punch footprints of 17 of the 17 test points hold particles beyond the punch's "
+        "reach, up to 14.1 mm from its face against the 2 mm depth (a flat punch never "
+        "touches them, its footprint holds them as if glued): indentation.radius = 0.01 m "
+        "keeps them within reach; the FE punch runs there may not converge (docs/punch.md)"]
 
 
 def test_a_failed_gravity_test_the_preflight_expected_says_so(tmp_path, monkeypatch):
