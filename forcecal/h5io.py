@@ -705,15 +705,20 @@ def write_reference(path: str | Path, ref: Reference) -> None:
         if ref.second_support is not None:
             _write_second_support(fh, ref.second_support, n_v)
         if ref.floor is not None:
-            _write_floor(fh, ref.floor, n_v)
+            _write_floor(fh, ref.floor, n_v, ref.problem.tracked_node)
 
 
-def _write_floor(fh: h5py.File, floor: FloorResult, n_v: int) -> None:
-    """The ``/floor`` group (:class:`FloorResult`; module docstring)."""
+def _write_floor(fh: h5py.File, floor: FloorResult, n_v: int, tracked_node: int) -> None:
+    """The ``/floor`` group (:class:`FloorResult`; module docstring); ``tracked_node`` the
+    reference's (the scene's support's), for the ``gravity`` settings when only the second
+    support's runs carry them (every element's own gravity test failed)."""
     g = fh.create_group("floor")
     g.attrs["elements"] = json.dumps(list(floor.elements))
     g.attrs["quadrature_degree"] = int(floor.quadrature_degree)
     settings = next(iter(floor.runs.values())).settings if floor.runs else None
+    if settings is None and floor.second_support:
+        settings = dataclasses.replace(next(iter(floor.second_support.values())).settings,
+                                       tracked_node=int(tracked_node))
     if settings is not None:
         write_section(g.create_group("gravity"), settings)
     if floor.has_second_support:

@@ -2,6 +2,7 @@
 P1, the floor's runs on a small scene, its reference.h5 group and its report block."""
 import dataclasses
 
+import h5py
 import numpy as np
 import pytest
 
@@ -187,6 +188,36 @@ def test_floor_group_round_trip_and_report_block(tmp_path, liver_problem, liver_
     assert block["baseline"]["period_error"] is None
     # no second support and no held-out curves in this floor: their metrics are null
     assert all(anp[k] is None for k in FLOOR_SUPPORT_METRICS + FLOOR_HELD_OUT_METRICS)
+
+
+def test_a_floor_whose_own_gravity_tests_failed_keeps_its_second_support(tmp_path,
+                                                                         liver_problem,
+                                                                         liver_scene):
+    """Both elements' gravity tests failed (a support that does not hold the body), their
+    second-support runs did not: the file keeps the second support's runs with their tracked
+    node, and the ``gravity`` settings the reference's (the corpus armadillo with the recipe,
+    standing on its feet, hung from its head)."""
+    from tests.test_h5io import _fake_reference
+
+    gravity, _ = _reference_with_floor(liver_problem, liver_scene.material, 0.9)
+    held = int(np.flatnonzero(liver_problem.free)[0])
+    held_settings = dataclasses.replace(gravity.settings, tracked_node=held)
+    runs = GravityResult(0.5 * gravity.static_displacement, gravity.time,
+                         0.5 * gravity.displacement, held_settings)
+    failed = {"ANP": "ConvergenceError: no equilibrium", "P1": "ConvergenceError: diverged"}
+    floor = FloorResult({}, failed, {"ANP": 1.5, "P1": 0.5}, 2, second_support={
+        "ANP": runs, "P1": runs})
+    ref = dataclasses.replace(_fake_reference(liver_problem, liver_scene.material,
+                                              gravity.settings), gravity=None, floor=floor)
+    write_reference(tmp_path / "reference.h5", ref)
+    back = read_reference(tmp_path / "reference.h5").floor
+    assert back.failed == failed and not back.runs
+    for element in ("ANP", "P1"):
+        np.testing.assert_array_equal(back.second_support[element].displacement,
+                                      runs.displacement)
+        assert back.second_support[element].settings == held_settings
+    with h5py.File(tmp_path / "reference.h5") as fh:
+        assert int(fh["floor/gravity"].attrs["tracked_node"]) == liver_problem.tracked_node
 
 
 # --- the floor runs the reference's own experiments: a cantilever beam, every test -----------
