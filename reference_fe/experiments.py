@@ -424,8 +424,7 @@ def gravity_dynamic(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
 #: (the weight's work bounds the long-term elastic energy: u^T K u <= 2 f^T u, so
 #: |u - u_s|_K <= |u_s|_K with u_s = K^-1 f); the rest is margin for the vertex-wise maximum
 #: and the nonlinear material. The cantilever beam of tests/test_fe_second_support.py peaks at
-#: 2.0 x nearly elastic, 0.85 x with the default Prony terms (its sag the long-term one); the
-#: released default liver at most 0.77 x, the user organ on its second support 0.94 x.
+#: 2.0 x nearly elastic, 0.85 x with the default Prony terms (its sag the long-term one).
 RELEASE_RUNAWAY_LIMIT = 3.0
 
 
