@@ -292,8 +292,7 @@ def punch_reach(mesh: TetMesh, failed: dict[int, tuple[np.ndarray, float]],
     """What the punch footprints of failed test points (or others: ``which`` names them)
     hold beyond the punch's reach, as a short phrase for :func:`too_many_failures` (None
     unless it holds for at least 3/4 of the points), with a radius that keeps every point's
-    footprint within reach
-    and at least :data:`forcecal.indenter.MIN_FOOTPRINT` particles
+    footprint within reach and at least :data:`forcecal.indenter.MIN_FOOTPRINT` particles
     (:func:`forcecal.indenter.radii_within_reach`), if one radius does for all of them.
 
     A flat punch pushed ``depth`` [m] never touches a footprint node lying farther than that
