@@ -821,13 +821,13 @@ class _Points:
         mesh = self.original.mesh
         if self._quality is None:
             self._quality = tet_quality(mesh)
-        footprints = None
+        footprints = normals = None
         if self.scene.indentation.indenter == "punch":
-            vertices = {f.vertex for f in failures} | set(self.slots.test_points.tolist())
-            normals = mesh.inward_normals(np.array(sorted(vertices)))
+            vertices = sorted({f.vertex for f in failures} | set(self.slots.test_points.tolist()))
+            normals = dict(zip(vertices, mesh.inward_normals(np.array(vertices))))
             footprints = {v: punch_footprint(mesh, v, n, self.scene.indentation.radius,
                                              min_nodes=1)
-                          for v, n in zip(sorted(vertices), normals)}
+                          for v, n in normals.items()}
         tested = np.union1d(self.slots.test_points, [f.vertex for f in failures])
         features = common_features(mesh, self.original.fixed, tested, failures,
                                    self._quality, footprints)
@@ -836,9 +836,7 @@ class _Points:
             for f in failures:
                 depth = getattr(self.scene, f.experiment).depth
                 depths[f.vertex] = min(depths.get(f.vertex, depth), depth)
-            vertices = sorted(depths)
-            failed = {v: (n, depths[v])
-                      for v, n in zip(vertices, mesh.inward_normals(np.array(vertices)))}
+            failed = {v: (normals[v], depth) for v, depth in sorted(depths.items())}
             reach = punch_reach(mesh, failed, footprints, self.scene.indentation.radius)
             features += [reach] if reach else []
         return too_many_failures(n_points, failures, features)
