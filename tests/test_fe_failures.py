@@ -160,13 +160,13 @@ def test_footprints_beyond_the_punch_reach_are_named_with_the_radius_that_keeps_
     from forcecal.fe_failures import punch_reach
     from forcecal.indenter import punch_footprint
     from forcecal.mesh import box_mesh
-    mesh = box_mesh((16, 4, 1), (0.08, 0.08, 0.02))
+    mesh = box_mesh((16, 4, 2), (0.08, 0.08, 0.04))
     x = mesh.vertices
 
     def at(*point):
         return int(np.argmin(np.linalg.norm(x - point, axis=1)))
-    edge = [at(0.03, 0.0, 0.02), at(0.04, 0.0, 0.02), at(0.05, 0.0, 0.02)]
-    face = [at(0.04, 0.04, 0.02), at(0.03, 0.04, 0.02)]
+    edge = [at(0.03, 0.0, 0.04), at(0.04, 0.0, 0.04), at(0.05, 0.0, 0.04)]
+    face = [at(0.04, 0.04, 0.04), at(0.03, 0.04, 0.04)]
 
     def failed(vertices, depth=0.002):
         return {v: (n, depth) for v, n in zip(vertices, mesh.inward_normals(np.array(vertices)))}

@@ -270,13 +270,15 @@ def test_auto_test_points_of_a_punch_scene_can_all_be_indented():
 
 
 def _edge_of_a_slab():
-    """A 80 x 80 x 20 mm slab of 5 x 20 x 20 mm cells and the vertex at the middle of its top
+    """A 80 x 80 x 40 mm slab of 5 x 20 x 20 mm cells and the vertex at the middle of its top
     face's edge y = 0: its inward normal leans 45 degrees (equal top and side areas), so the
     surface nodes along the edge (5 mm apart) lie in the plane of a punch's face there, and
     those across the edge (20 mm into the top or down the side) 20 mm x cos 45 = 14.1 mm
-    off it, at 14.1 mm from the punch's axis."""
-    mesh = box_mesh((16, 4, 1), (0.08, 0.08, 0.02))
-    vertex = int(np.argmin(np.linalg.norm(mesh.vertices - [0.04, 0.0, 0.02], axis=1)))
+    off it, at 14.1 mm from the punch's axis. Two cells deep, so no node of the footprint has
+    a normal at right angles to the vertex's (the bottom edge's, of a one-cell slab, whose
+    dot product is zero up to round-off, in or out of the footprint by its sign)."""
+    mesh = box_mesh((16, 4, 2), (0.08, 0.08, 0.04))
+    vertex = int(np.argmin(np.linalg.norm(mesh.vertices - [0.04, 0.0, 0.04], axis=1)))
     return mesh, vertex, mesh.inward_normals(np.array([vertex]))[0]
 
 
@@ -286,7 +288,9 @@ def test_the_radii_within_reach_drop_what_the_punch_face_never_touches():
     np.testing.assert_allclose(normal, [0.0, np.sqrt(0.5), -np.sqrt(0.5)], atol=1e-15)
     held = punch_footprint(mesh, vertex, normal, 0.021)
     gaps = face_gaps(mesh, vertex, normal, held)
-    assert len(held) == 17 and np.sum(gaps > 0.002) == 8
+    # the 9 nodes along the edge within 21 mm of the axis, and 7 across it on each side
+    # (5 mm apart along x, within sqrt(21^2 - 14.1^2) = 15.5 mm)
+    assert len(held) == 23 and np.sum(gaps > 0.002) == 14
     np.testing.assert_allclose(gaps.max(), 0.02 * np.sqrt(0.5), rtol=1e-12)
     # within 2 mm of the face: the edge's nodes only, from 3 of them at 5 mm from the axis to 5
     # at 10 mm, until the nodes across the edge join at 14.1 mm
