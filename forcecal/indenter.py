@@ -7,8 +7,9 @@ radius ``R`` centred on surface vertex ``i`` and pushed along its inward normal
 
 * whose projection on the tangent plane at ``i`` lies within ``R`` of ``x_i``
   (``|(x_j - x_i) - ((x_j - x_i) . n_i) n_i| <= R``),
-* that face the same way (``m_j . m_i > 0`` with ``m`` the area-weighted outward
-  vertex normals of :attr:`~forcecal.mesh.TetMesh.vertex_normals`), and
+* that face the same way (``m_j . m_i > 0`` with ``m`` the area-weighted outward unit
+  vertex normals of :attr:`~forcecal.mesh.TetMesh.vertex_normals`; at right angles, up to
+  :data:`FACING_TOLERANCE`, is not the same way), and
 * that are connected to ``i`` through surface edges between such nodes (a punch on
   one lobe does not grab a fold of another one that happens to project inside).
 
@@ -27,6 +28,10 @@ from forcecal.mesh import TetMesh
 
 # a node exactly on the punch's rim (a mesh made to fit it) is inside, despite round-off
 RIM_TOLERANCE = 1e-9
+# a node whose normal is at right angles to the test point's (a box's edge across a face from
+# an edge) has m_j . m_i = 0 up to round-off, whose sign differs between machines (BLAS
+# kernels, summation order): it is out on every machine, so a footprint does not depend on one
+FACING_TOLERANCE = 1e-9
 # fewer held particles than this is a point load, not a punch
 MIN_FOOTPRINT = 3
 
@@ -45,14 +50,20 @@ def _tangential_distance(mesh: TetMesh, vertex: int, normal: np.ndarray) -> np.n
     return np.linalg.norm(d - np.outer(d @ n, n), axis=1)
 
 
+def _facing(mesh: TetMesh, vertex: int) -> np.ndarray:
+    """(N,) bool: the vertices whose normal faces the same way as ``vertex``'s (module
+    docstring)."""
+    m = mesh.vertex_normals
+    return m @ m[vertex] > FACING_TOLERANCE
+
+
 def _footprint(mesh: TetMesh, edges: np.ndarray, vertex: int, distance: np.ndarray,
                radius: float) -> np.ndarray:
     """The rule of the module docstring for one radius, given the tangential distances."""
-    m = mesh.vertex_normals
     candidate = np.zeros(mesh.n_vertices, dtype=bool)
     candidate[mesh.surface_vertices] = True
     candidate &= distance <= radius * (1.0 + RIM_TOLERANCE)
-    candidate &= m @ m[vertex] > 0.0
+    candidate &= _facing(mesh, vertex)
     candidate[vertex] = True
     keep = edges[candidate[edges].all(axis=1)]
     graph = sp.coo_matrix((np.ones(len(keep)), (keep[:, 0], keep[:, 1])),
@@ -96,7 +107,7 @@ def punch_footprint(mesh: TetMesh, vertex: int, normal: np.ndarray, radius: floa
                              f"use a radius below {limit:.4g} m or another test point")
     if len(nodes) < min_nodes:
         need = None
-        same_side = np.nonzero(mesh.vertex_normals @ mesh.vertex_normals[vertex] > 0)[0]
+        same_side = np.nonzero(_facing(mesh, vertex))[0]
         for r in np.sort(distance[np.intersect1d(same_side, mesh.surface_vertices)]):
             if r > radius and len(_footprint(mesh, edges, vertex, distance, r)) >= min_nodes:
                 need = r

@@ -282,6 +282,24 @@ def _edge_of_a_slab():
     return mesh, vertex, mesh.inward_normals(np.array([vertex]))[0]
 
 
+def test_a_node_at_right_angles_is_out_of_the_footprint_on_every_machine():
+    """On a one-cell slab the bottom edge's normal (0, -1, -1)/sqrt 2 is at right angles to
+    the top edge's (0, -1, 1)/sqrt 2: their dot product is zero up to round-off, whose sign
+    differs between machines (the node was in the footprint on an AMD machine, out on an
+    Intel one). Nudged to either side by 1e-13 it stays out."""
+    mesh = box_mesh((16, 4, 1), (0.08, 0.08, 0.02))
+    x = mesh.vertices
+    vertex = int(np.argmin(np.linalg.norm(x - [0.04, 0.0, 0.02], axis=1)))
+    below = int(np.argmin(np.linalg.norm(x - [0.04, 0.0, 0.0], axis=1)))
+    m = mesh.vertex_normals.copy()
+    assert abs(m[below] @ m[vertex]) < 1e-15
+    for nudge in (1e-13, -1e-13):
+        mesh.__dict__["vertex_normals"] = m + np.where(np.arange(len(m)) == below, nudge, 0.0
+                                                       )[:, None] * m[vertex]
+        held = punch_footprint(mesh, vertex, -m[vertex], 0.021)
+        assert below not in held and len(held) == 16
+
+
 def test_the_radii_within_reach_drop_what_the_punch_face_never_touches():
     from forcecal.indenter import face_gaps, radii_within_reach
     mesh, vertex, normal = _edge_of_a_slab()
