@@ -285,8 +285,8 @@ def _edge_of_a_slab():
 def test_a_node_at_right_angles_is_out_of_the_footprint_on_every_machine():
     """On a one-cell slab the bottom edge's normal (0, -1, -1)/sqrt 2 is at right angles to
     the top edge's (0, -1, 1)/sqrt 2: their dot product is zero up to round-off, whose sign
-    differs between machines (the node was in the footprint on an AMD machine, out on an
-    Intel one). Nudged to either side by 1e-13 it stays out."""
+    differs between machines (BLAS kernels, summation order: in on one, out on another).
+    Nudged to either side by 1e-13 it stays out."""
     mesh = box_mesh((16, 4, 1), (0.08, 0.08, 0.02))
     x = mesh.vertices
     vertex = int(np.argmin(np.linalg.norm(x - [0.04, 0.0, 0.02], axis=1)))
