@@ -294,8 +294,9 @@ def test_a_node_at_right_angles_is_out_of_the_footprint_on_every_machine():
     m = mesh.vertex_normals.copy()
     assert abs(m[below] @ m[vertex]) < 1e-15
     for nudge in (1e-13, -1e-13):
-        mesh.__dict__["vertex_normals"] = m + np.where(np.arange(len(m)) == below, nudge, 0.0
-                                                       )[:, None] * m[vertex]
+        nudged = m.copy()
+        nudged[below] += nudge * m[vertex]
+        mesh.__dict__["vertex_normals"] = nudged
         held = punch_footprint(mesh, vertex, -m[vertex], 0.021)
         assert below not in held and len(held) == 16
 
