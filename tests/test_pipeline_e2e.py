@@ -28,9 +28,14 @@ from tests.conftest import ROOT, SCENES
 pytestmark = [pytest.mark.slow, pytest.mark.fe, pytest.mark.mpi]
 
 # the tiny scene with smaller calibration budgets and a shorter gravity run: the test is
-# about the pipeline, not about how far the optimiser gets (it still beats the baseline)
+# about the pipeline, not about how far the optimiser gets (it still beats the baseline).
+# The calibration evaluates its points in the test process (workers = 1, a setting outside
+# every stage key): two worker processes add ~2.7 s of CPU per calibration (their start and
+# the traffic, on a tiny scene more than they save) on cores the other pytest worker uses,
+# and check nothing the tests of the process transport (test_calibration_fit's command
+# line and workers tests, test_calibration_pool) do not
 FAST = {"calibration": {"static_max_evaluations": 60, "relaxation_max_evaluations": 80,
-                        "local_max_evaluations": 25, "local_max_sweeps": 1},
+                        "local_max_evaluations": 25, "local_max_sweeps": 1, "workers": 1},
         "gravity": {"duration": 0.1}}
 
 
