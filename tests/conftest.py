@@ -57,9 +57,9 @@ def pytest_sessionstart(session):
 # fill in behind them (longest-processing-time-first). A file's tests keep their order, so its
 # module fixtures are still computed once; files not listed follow in their usual order.
 # One exception to longest-first: the FE-only test_fe_point_failures goes second, ahead of the
-# pipeline files, so the first calibration pool starts after test_calibration_gradient has
-# compiled the static Newton loop into the numba cache (~15 s of CPU); started together, the
-# pool's two workers compiled it again each.
+# pipeline files, so the other worker's first calibration starts after test_calibration_gradient
+# has compiled the static Newton loop into the numba cache (~15 s of CPU); started together,
+# both processes compiled it (and a calibration's worker processes, each).
 LONGEST_FILES = (
     "test_calibration_gradient.py", "test_fe_point_failures.py", "test_pipeline_e2e.py",
     "test_calibration_fit.py", "test_validation_failures.py", "test_examples.py",
