@@ -30,10 +30,11 @@ pytestmark = [pytest.mark.slow, pytest.mark.fe, pytest.mark.mpi]
 # the tiny scene with smaller calibration budgets and a shorter gravity run: the test is
 # about the pipeline, not about how far the optimiser gets (it still beats the baseline).
 # The calibration evaluates its points in the test process (workers = 1, a setting outside
-# every stage key): two worker processes add ~2.7 s of CPU per calibration (their start and
-# the traffic, on a tiny scene more than they save) on cores the other pytest worker uses,
-# and check nothing the tests of the process transport (test_calibration_fit's command
-# line and workers tests, test_calibration_pool) do not
+# every stage key): on the tiny scene two worker processes cost ~3 s more CPU per calibration
+# (their start and the traffic) and, even with a core free, save at most ~1 s of wall time (the
+# default budgets, idle machine: 7.7-8.7 s inline, 7.1-8.1 s with two); in `make test` the other
+# core runs the other pytest worker. They check nothing the tests of the process transport
+# (test_calibration_fit's command-line and workers tests, test_calibration_pool) do not
 FAST = {"calibration": {"static_max_evaluations": 60, "relaxation_max_evaluations": 80,
                         "local_max_evaluations": 25, "local_max_sweeps": 1, "workers": 1},
         "gravity": {"duration": 0.1}}
