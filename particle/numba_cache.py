@@ -1,18 +1,32 @@
-"""A kernel from numba's on-disk cache is reused only with the kernel sources it was compiled from.
+"""A kernel from numba's on-disk cache is reused only with the kernel sources it was compiled
+from, and wherever those sources are checked out.
 
-numba keys each cached function on its own source file's modification time and size. A
-kernel that calls kernels of other files compiles them into its own machine code, so after
-one of those files changes (a ``git pull``, an edit) the cached caller still runs the old
-callee, with no warning: numba checks the caller's file only (numba issue #6845, open in
-every release). Here the stamp of every cached function whose file lies under a watched
-folder (the project's, :data:`PROJECT_ROOT`) also carries a digest of the kernel package's
-sources (:func:`sources_digest` of :data:`KERNEL_PACKAGE`), so any change there makes numba
-compile every project kernel again on its next call instead of loading it.
+numba keys each cached function on its own source file's modification time and size, and
+files it under a folder named after the source file's absolute path. Two consequences:
+
+* A kernel that calls kernels of other files compiles them into its own machine code, so
+  after one of those files changes (a ``git pull``, an edit) the cached caller still runs
+  the old callee, with no warning: numba checks the caller's file only (numba issue #6845,
+  open in every release).
+* The cache is lost whenever the sources are written anew with the same bytes (a fresh
+  clone, a checkout back and forth, a CI cache restored next to a new checkout): every
+  kernel compiles again, about 4 minutes of CPU for the test suite, a minute of a first
+  ``make demo``.
+
+Here every cached function whose file lies under a watched folder (the project's,
+:data:`PROJECT_ROOT`) is keyed on content instead: its stamp is the SHA-256 of its own
+file's bytes and of the kernel package's sources (:func:`sources_digest` of
+:data:`KERNEL_PACKAGE`), so any change there makes numba compile every project kernel again
+on its next call instead of loading it, and the same bytes anywhere load it. Its cache
+folder is named after its folder's path *inside* the watched one (:func:`cache_subpath`),
+so checkouts at different paths that share a ``NUMBA_CACHE_DIR`` share their kernels.
 
 What it costs: an edit of a ``particle`` module, a comment included, recompiles every kernel
-once (a fresh cache, as a new clone has). What it does not change: the machine code, and
-where the cache lives (:mod:`forcecal.caches`). :func:`install` runs on import of
-:mod:`particle`, before any kernel is decorated (numba reads the stamp then).
+once; checkouts of *different* sources that share one cache folder replace each other's
+entries (each then compiles what the other changed). What it does not change: the machine
+code (numba still keys each entry on the CPU it was compiled for), and where the cache
+lives (:mod:`forcecal.caches`). :func:`install` runs on import of :mod:`particle`, before
+any kernel is decorated (numba reads the stamp then).
 """
 from __future__ import annotations
 
@@ -24,7 +38,7 @@ from numba.core import caching
 
 #: the package whose sources every cached kernel's stamp carries: where the kernels live
 KERNEL_PACKAGE = Path(__file__).resolve().parent
-#: the folder under which cached functions are stamped with it (the project: the kernels,
+#: the folder under which cached functions are keyed on content (the project: the kernels,
 #: and the tests' own kernels that call them)
 PROJECT_ROOT = KERNEL_PACKAGE.parent
 
@@ -41,39 +55,73 @@ def sources_digest(package: Path = KERNEL_PACKAGE) -> str:
     return digest.hexdigest()
 
 
+def file_digest(py_file: str | Path) -> str:
+    """SHA-256 of the bytes of one source file."""
+    return hashlib.sha256(Path(py_file).read_bytes()).hexdigest()
+
+
 def watch(root: Path, package: Path) -> None:
-    """Stamp the cached functions of files under ``root`` with :func:`sources_digest` of
-    ``package`` too (from their next decoration on)."""
+    """Key the cached functions of files under ``root`` on content, with
+    :func:`sources_digest` of ``package`` (from their next decoration on)."""
     _WATCHED[Path(root).resolve()] = Path(package).resolve()
 
 
-def _package_of(py_file: str) -> Path | None:
-    """The watched package whose sources key a cached function of ``py_file``, or None."""
+def _watched(py_file: str) -> tuple[Path, Path] | None:
+    """(watched root, package whose sources key it) of a cached function's ``py_file``, or
+    None when no watched folder holds it."""
     path = Path(py_file).resolve()
     for root, package in _WATCHED.items():
         if path.is_relative_to(root):
-            return package
+            return root, package
     return None
 
 
+def cache_subpath(py_file: str, root: Path) -> str:
+    """The cache folder of the functions of ``py_file`` (a file under the watched ``root``):
+    its folder's name and a hash of that folder's path relative to ``root``, the same for
+    every checkout (numba hashes the absolute path)."""
+    folder = Path(py_file).resolve().parent
+    relative = folder.relative_to(root).as_posix()
+    return f"{folder.name}_{hashlib.sha1(relative.encode()).hexdigest()}"
+
+
 def _keyed(source_stamp):
-    """numba's source stamp, with the digest of the watched package for a watched file."""
+    """numba's source stamp, replaced by the file's and the watched package's digests for a
+    watched file."""
     @functools.wraps(source_stamp)
     def get_source_stamp(self):
-        stamp = source_stamp(self)
-        package = _package_of(self._py_file)
-        return stamp if package is None else (*stamp, sources_digest(package))
+        watched = _watched(self._py_file)
+        if watched is None:
+            return source_stamp(self)
+        return file_digest(self._py_file), sources_digest(watched[1])
     get_source_stamp.forcecal_keyed = True
     return get_source_stamp
 
 
+def _relocated(suitable_subpath):
+    """numba's cache subfolder, made independent of the checkout's path for a watched file."""
+    @functools.wraps(suitable_subpath)
+    def get_suitable_cache_subpath(cls, py_file):
+        watched = _watched(py_file)
+        if watched is None:
+            return suitable_subpath.__func__(cls, py_file)
+        return cache_subpath(py_file, watched[0])
+    get_suitable_cache_subpath.forcecal_keyed = True
+    return classmethod(get_suitable_cache_subpath)
+
+
 def install() -> None:
-    """Watch :data:`PROJECT_ROOT` with :data:`KERNEL_PACKAGE`'s sources and key numba's
-    source-file cache stamps on them (once)."""
+    """Watch :data:`PROJECT_ROOT` with :data:`KERNEL_PACKAGE`'s sources: key numba's
+    source-file cache stamps on content and its cache subfolders on the path inside the
+    project (once)."""
     watch(PROJECT_ROOT, KERNEL_PACKAGE)
     mixin = caching._SourceFileBackedLocatorMixin
     if not getattr(mixin.get_source_stamp, "forcecal_keyed", False):
         mixin.get_source_stamp = _keyed(mixin.get_source_stamp)
+    locator = caching._CacheLocator
+    current = locator.__dict__["get_suitable_cache_subpath"]
+    if not getattr(current.__func__, "forcecal_keyed", False):
+        locator.get_suitable_cache_subpath = _relocated(current)
 
 
 install()
