@@ -78,11 +78,12 @@ def _watched(py_file: str) -> tuple[Path, Path] | None:
 
 def cache_subpath(py_file: str, root: Path) -> str:
     """The cache folder of the functions of ``py_file`` (a file under the watched ``root``):
-    its folder's name and a hash of that folder's path relative to ``root``, the same for
-    every checkout (numba hashes the absolute path)."""
-    folder = Path(py_file).resolve().parent
-    relative = folder.relative_to(root).as_posix()
-    return f"{folder.name}_{hashlib.sha1(relative.encode()).hexdigest()}"
+    its folder's path relative to ``root`` (``-`` for ``/``; ``project`` for ``root``
+    itself) and a hash of that path, the same for every checkout (numba names it after the
+    absolute path)."""
+    relative = Path(py_file).resolve().parent.relative_to(root).as_posix()
+    label = "project" if relative == "." else relative.replace("/", "-")
+    return f"{label}_{hashlib.sha1(relative.encode()).hexdigest()}"
 
 
 def _keyed(source_stamp):
