@@ -10,8 +10,9 @@ files it under a folder named after the source file's absolute path. Two consequ
   open in every release).
 * The cache is lost whenever the sources are written anew with the same bytes (a fresh
   clone, a checkout back and forth, a CI cache restored next to a new checkout): every
-  kernel compiles again, about 4 minutes of CPU for the test suite, a minute of a first
-  ``make demo``.
+  kernel compiles again (measured: a first ``make demo`` 3:07 against 2:01 with the caches
+  filled; ``tests/test_particle_statics.py`` and ``test_particle_dynamics.py`` 61 s of
+  CPU, 58 of them compiling, against 8 s).
 
 Here every cached function whose file lies under a watched folder (the project's,
 :data:`PROJECT_ROOT`) is keyed on content instead: its stamp is the SHA-256 of its own
