@@ -84,6 +84,22 @@ def sag_split_answer(r: Result) -> str:
             f"{closest['mean_sag_ratio']:.3f}x")
 
 
+def load_softening_answer(r: Result) -> str:
+    def shifts(values: list[float]) -> str:
+        return " / ".join(f"{100 * v:+.1f}" for v in values)
+
+    rows = r["variants"]
+    first = "; ".join(f"{name} {shifts(row['first_mode_shifts'])}" for name, row in rows.items())
+    mean = "; ".join(f"{name} {shifts(row['load_shifts'].values())}"
+                     for name, row in rows.items())
+    strains = r["calibrated_strains"]
+    reach = ", ".join(f"[{s['strain'][0]:+.3f}, {s['strain'][1]:+.3f}]" for s in strains)
+    ratio = ", ".join(f"{s['stiffness_ratio'][0]:.2f}-{s['stiffness_ratio'][1]:.2f}"
+                      for s in strains)
+    return (f"lowest mode from rest to about each load: FE {shifts(r['fe_first_mode_shifts'])} "
+            f"%; {first} %; the mean mode error's change under each load (points): {mean}; "
+            f"the calibrated connectors' strains under the loads {reach}, K(eps)/K0 {ratio}")
+
 def sag_tradeoff_command(path: str, r: Result) -> str:
     return (f"python -m studies.sag_tradeoff --scene {scene_file(r['scene'])} --regions "
             f"{r['regions']} --iterations {r['rows'][-1]['iteration']} --out {path}")
@@ -380,6 +396,10 @@ STUDIES = (
           "support-free modes tell the calibration what its whole-body data miss?",
           "runs/studies/free_modes*.json", finished_run_command("free_modes"),
           free_modes_answer),
+    Study("load_softening", "Does a body load lower the particle model's modes more than the "
+          "FE's because of its springs' strain law, or because of its other terms under "
+          "load?", "runs/studies/load_softening*.json", finished_run_command("load_softening"),
+          load_softening_answer),
 )
 
 
