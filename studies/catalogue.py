@@ -100,6 +100,7 @@ def load_softening_answer(r: Result) -> str:
             f"%; {first} %; the mean mode error's change under each load (points): {mean}; "
             f"the calibrated connectors' strains under the loads {reach}, K(eps)/K0 {ratio}")
 
+
 def sag_tradeoff_command(path: str, r: Result) -> str:
     return (f"python -m studies.sag_tradeoff --scene {scene_file(r['scene'])} --regions "
             f"{r['regions']} --iterations {r['rows'][-1]['iteration']} --out {path}")

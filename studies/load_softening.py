@@ -92,7 +92,7 @@ def strain_reach(model, body, load_steps: int) -> list[dict]:
         x = weight_equilibrium(model, np.asarray(g, float), load_steps)
         d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
         eps = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
-        ratio = 1.0 + (p.a * eps + p.b * eps ** 2) / p.K0
+        ratio = p.stiffness(eps) / p.K0
         out.append({"acceleration": [float(v) for v in g],
                     "strain": [float(eps.min()), float(eps.max())],
                     "stiffness_ratio": [float(ratio.min()), float(ratio.max())]})
