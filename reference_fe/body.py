@@ -48,6 +48,8 @@ import logging
 
 import numpy as np
 import scipy.sparse as sp
+import ufl
+from dolfinx import fem
 from dolfinx.fem.petsc import assemble_matrix
 
 from forcecal.eigen import free_modes, nearest_modes
@@ -55,7 +57,8 @@ from forcecal.errors import ConvergenceError, StabilityError
 from forcecal.h5io import BodyResult
 from forcecal.problem import body_load_directions
 from reference_fe.experiments import gravity_static
-from reference_fe.model import FEModel, _set_material, initial_state
+from reference_fe.model import (JIT_PARAMS, FEModel, _set_material, initial_state,
+                                quadrature_measure, second_piola_kirchhoff)
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +104,24 @@ def loaded_modes(model: FEModel, fixed: np.ndarray, u: np.ndarray, count: int
     stiffness = _assembled(model, 0.0, u)
     return _lowest_modes(model, fixed, stiffness, _assembled(model, 1.0, u) - stiffness, count,
                          "about a loaded state")
+
+
+def initial_stress_stiffness(model: FEModel) -> sp.csr_matrix:
+    """(n, n) the initial-stress part of the residual's Jacobian [N/m], whole solution vector,
+    at the model's current unknown and material constants: ``int grad(du) S : grad(v)``
+    with ``S`` the residual's second Piola-Kirchhoff stress (the stiffness a stress adds to
+    small motions about it, as a taut string's). The rest of the Jacobian is the material
+    part ``int F dS[du] : grad(v)`` (and the pressure's rows for the u-p elements)."""
+    u, _, S, _ = second_piola_kirchhoff(model, model.material.kappa)
+    trial, test = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
+    if model._is_mixed:
+        trial, test = ufl.split(trial)[0], ufl.split(test)[0]
+    form = fem.form(ufl.inner(ufl.grad(trial) * S, ufl.grad(test)) * quadrature_measure(model),
+                    jit_params=JIT_PARAMS)
+    matrix = assemble_matrix(form)
+    matrix.assemble()
+    indptr, indices, data = matrix.getValuesCSR()
+    return sp.csr_matrix((data, indices, indptr), shape=matrix.getSize())
 
 
 def _assembled(model: FEModel, inertia: float, u: np.ndarray | None = None) -> sp.csr_matrix:

@@ -612,6 +612,29 @@ def pressure_compliance(element: str, p: ufl.core.expr.Expr, q: ufl.core.expr.Ex
     return 5.0 * p * q / kappa * exact - 4.0 * p * q / kappa * centroid
 
 
+def second_piola_kirchhoff(model: FEModel, kappa: fem.Constant | float
+                           ) -> tuple[ufl.core.expr.Expr, ...]:
+    """(u, F, S, S_iso0) of ``model``'s unknown: its displacement part, the deformation
+    gradient, the residual's second Piola-Kirchhoff stress ``S`` (module docstring) [Pa] and
+    the instantaneous isochoric stress S_iso0 [Pa]; ``kappa`` the bulk modulus [Pa] (used by
+    the displacement-only elements' pressure ``kappa (J - 1)``)."""
+    if model._is_mixed:
+        u, p = ufl.split(model.w)
+    else:
+        u = model.w
+    F = ufl.Identity(3) + ufl.grad(u)
+    C = F.T * F
+    s_iso = isochoric_stress(C, model._C10, model._C01)
+    s_vol = pressure_stress(C, p if model._is_mixed else kappa * (ufl.det(F) - 1.0))
+    return u, F, s_vol + model._gamma * s_iso + model._hist, s_iso
+
+
+def quadrature_measure(model: FEModel) -> ufl.Measure:
+    """The cell measure of ``model``'s forms (its quadrature degree, default scheme)."""
+    return ufl.dx(domain=model.domain, metadata={"quadrature_degree": model.fe.quadrature_degree,
+                                                 "quadrature_scheme": "default"})
+
+
 def balance_of_momentum(model: FEModel, *, rho: fem.Constant, kappa: fem.Constant
                         ) -> tuple[ufl.Form, ufl.core.expr.Expr]:
     """The residual form R(w; v) of the module docstring on ``model``'s space, constants and
@@ -623,19 +646,14 @@ def balance_of_momentum(model: FEModel, *, rho: fem.Constant, kappa: fem.Constan
         kappa: bulk modulus [Pa] (penalty for P1/P2, the pressure's compliance for TH/ANP).
     """
     if model._is_mixed:
-        u, p = ufl.split(model.w)
         v, p_test = ufl.TestFunctions(model.space)
         u_pred = ufl.split(model._u_pred)[0]
     else:
-        u, v, u_pred = model.w, ufl.TestFunction(model.space), model._u_pred
-    F = ufl.Identity(3) + ufl.grad(u)
-    C = F.T * F
+        v, u_pred = ufl.TestFunction(model.space), model._u_pred
+    u, F, S, s_iso = second_piola_kirchhoff(model, kappa)
     J = ufl.det(F)
-    s_iso = isochoric_stress(C, model._C10, model._C01)
-    s_vol = pressure_stress(C, p if model._is_mixed else kappa * (J - 1.0))
-    S = s_vol + model._gamma * s_iso + model._hist
-    dx = ufl.dx(domain=model.domain, metadata={"quadrature_degree": model.fe.quadrature_degree,
-                                               "quadrature_scheme": "default"})
+    p = ufl.split(model.w)[1] if model._is_mixed else None
+    dx = quadrature_measure(model)
     residual = (ufl.inner(F * S, ufl.grad(v)) - rho * ufl.dot(model._gravity, v)
                 + rho * model._c_m * ufl.dot(u - u_pred, v)) * dx
     if model._is_mixed:

@@ -19,8 +19,8 @@ pytest.importorskip("dolfinx")
 from forcecal.mesh import box_mesh  # noqa: E402
 from forcecal.problem import body_load_directions  # noqa: E402
 from forcecal.scene import FESection, MaterialSection  # noqa: E402
-from reference_fe.body import (MODULI, body_data, loaded_modes, natural_modes,  # noqa: E402
-                               static_loads, unsupported_modes)
+from reference_fe.body import (MODULI, body_data, initial_stress_stiffness,  # noqa: E402
+                               loaded_modes, natural_modes, static_loads, unsupported_modes)
 from reference_fe.model import FEModel  # noqa: E402
 
 pytestmark = pytest.mark.fe
@@ -315,3 +315,27 @@ def test_the_loaded_tangent_loses_its_stiffness_toward_the_buckling_load():
         ratios[fraction] = lowest(state.u) / rest
     for fraction, ratio in ratios.items():
         np.testing.assert_allclose(ratio, 1.0 - fraction, atol=0.02, err_msg=str(fraction))
+
+
+@pytest.mark.parametrize("element", ["P2", "TH"])
+def test_initial_stress_stiffness_of_a_uniform_stress_is_its_closed_form(element):
+    """A 20 x 10 x 15 mm box at rest carrying a uniform (non-physical, held) stress ``S0`` as
+    its Prony history: for the linear motion ``du = A X`` the initial-stress stiffness's
+    energy is ``V tr(A S0 A^T)`` (``grad du = A`` everywhere), which both elements hold
+    exactly (measured: to 1.3e-14); a u-p element's pressure rows carry none of it."""
+    from dolfinx import fem
+
+    size = (0.02, 0.01, 0.015)
+    A = np.array([[0.3, -0.1, 0.2], [0.05, 0.4, -0.2], [0.1, 0.15, -0.3]])
+    S0 = np.array([[300.0, 40.0, -20.0], [40.0, -150.0, 60.0], [-20.0, 60.0, 80.0]])  # [Pa]
+    material = MaterialSection(C10=500.0, C01=100.0, kappa=1e5, density=1000.0)
+    model = FEModel(box_mesh((2, 1, 1), size), material, FESection(element=element))
+    model.set_history(np.tile(S0.ravel(), (model.n_cells, model.n_qp, 1)))
+    stiffness = initial_stress_stiffness(model)
+    motion = fem.Function(model.space)
+    (motion.sub(0) if len(model.pressure_dofs) else motion).interpolate(lambda x: A @ x)
+    du = motion.x.array
+    np.testing.assert_allclose(du @ (stiffness @ du), np.prod(size) * np.trace(A @ S0 @ A.T),
+                               rtol=1e-12)
+    if len(model.pressure_dofs):
+        assert abs(stiffness[model.pressure_dofs]).max() == 0.0
