@@ -333,6 +333,41 @@ def punch_reach_answer(r: Result) -> str:
     return "; ".join(parts)
 
 
+def shape_response_command(path: str, r: Result) -> str:
+    refined = " --refined" if r.get("refined") else ""
+    return (f"python -m studies.shape_response --scene {scene_file(r['scene'])}{refined} "
+            f"--out {path}")
+
+
+def shape_response_answer(r: Result) -> str:
+    def per_load(block: dict, key: str) -> str:
+        rest = block["rest"][0]
+        return " / ".join(f"{100 * (load[key][0] / rest - 1.0):+.1f}" if key in load else "-"
+                          for load in block["loads"])
+
+    def rows(block: dict, keys: dict[str, str]) -> str:
+        return ", ".join(f"{label} {per_load(block, key)}" for key, label in keys.items()
+                         if any(key in load for load in block["loads"]))
+
+    fe_keys = {"loaded": "loaded", "without_initial_stress": "without its initial stress",
+               "stress_free_on_loaded_shape": "stress-free on the loaded shape"}
+    network_keys = {"loaded": "loaded", "without_initial_stress": "without its initial stress",
+                    "fe_shape_without_initial_stress": "material part at the FE's shape",
+                    "re_derived_on_fe_shape": "re-derived on the FE's shape"}
+    parts = [f"FE {name} ({block['element']}, {block['dofs']} dofs): {rows(block, fe_keys)}"
+             for name, block in r["fe"].items()]
+    parts += [f"{name} network: {rows(block, network_keys)}"
+              for name, block in r["networks"].items()]
+    why = {"failed": "no equilibrium under the load",
+           "fe_shape_failed": "straight tets inverted at the FE's loaded vertices",
+           "stress_free_on_loaded_shape_failed": "straight tets inverted at its loaded vertices"}
+    failed = sorted({f"{name}: {why[k]}" for group in ("fe", "networks")
+                     for name, block in r[group].items() for load in block["loads"]
+                     for k in load if k in why})
+    note = f" ('-': {'; '.join(failed)})" if failed else ""
+    return (f"lowest mode from rest to about each load (%): {'; '.join(parts)}{note}")
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -401,6 +436,10 @@ STUDIES = (
           "FE's because of its springs' strain law, or because of its other terms under "
           "load?", "runs/studies/load_softening*.json", finished_run_command("load_softening"),
           load_softening_answer),
+    Study("shape_response", "Under its own weight, does the particle model's stiffness follow "
+          "the body's change of shape as the FE's does, and is the gap in the stress the load "
+          "leaves (initial-stress stiffness) or in the shape it makes?",
+          "runs/studies/shape_response*.json", shape_response_command, shape_response_answer),
 )
 
 
