@@ -346,8 +346,13 @@ def shape_response_answer(r: Result) -> str:
                           for load in block["loads"])
 
     def rows(block: dict, keys: dict[str, str]) -> str:
-        return ", ".join(f"{label} {per_load(block, key)}" for key, label in keys.items()
-                         if any(key in load for load in block["loads"]))
+        shown = [f"{label} {per_load(block, key)}" for key, label in keys.items()
+                 if any(key in load for load in block["loads"])]
+        carried = [f"{load['carried']:.2f}" if load.get("carried") is not None else "1"
+                   for load in block["loads"]]
+        if any(c != "1" for c in carried):
+            shown.append(f"carries {' / '.join(carried)} of each load")
+        return ", ".join(shown)
 
     fe_keys = {"loaded": "loaded", "without_initial_stress": "without its initial stress",
                "stress_free_on_loaded_shape": "stress-free on the loaded shape"}

@@ -180,6 +180,7 @@ def network_response(model, accelerations: np.ndarray, load_steps: int,
             x = weight_equilibrium(model, np.asarray(g, float), load_steps)
         except ConvergenceError as exc:  # a network that does not carry the load: a result
             row["failed"] = str(exc)
+            row["carried"] = exc.reached  # the fraction of the load it had carried
         else:
             row["loaded"] = network_modes(model, ops, network_tangent(model, pat, x)).tolist()
             row["without_initial_stress"] = network_modes(
