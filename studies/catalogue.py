@@ -352,6 +352,10 @@ def shape_response_answer(r: Result) -> str:
                    for load in block["loads"]]
         if any(c != "1" for c in carried):
             shown.append(f"carries {' / '.join(carried)} of each load")
+        if any("min_volume_ratio" in load for load in block["loads"]):
+            shown.append("smallest tet V/V0 " + " / ".join(
+                f"{load['min_volume_ratio']:.2f}" if "min_volume_ratio" in load else "-"
+                for load in block["loads"]))
         return ", ".join(shown)
 
     fe_keys = {"loaded": "loaded", "without_initial_stress": "without its initial stress",

@@ -21,7 +21,12 @@ a connector's ``s e e^T``, a tet's ``k/V0 g g^T``). Per load, the lowest modes
   with the full tangent and without its initial-stress part, and without it at the FE's
   loaded shape (the material part on the same shape as the FE's); the closed-form network
   also re-derived by its rule on the FE's loaded shape (the network's analogue of the
-  stress-free body of that shape).
+  stress-free body of that shape). A network that finds no equilibrium under the whole load
+  records the fraction it carried;
+* per load, the smallest volume ratio ``V / V0`` of the particle mesh's tets: at each
+  network's equilibrium (or where it stopped), and through the FE's displaced vertices
+  (straight tets; the FE's own cells may curve): how far the load squeezes the body where a
+  network's volume term is far softer than the tissue's bulk modulus.
 
 Nothing is fitted and no gravity-test data are read; the FE part recomputes the loads' static
 solves (seconds on the punch scenes; ``--refined`` adds the scene's element on its mesh refined
@@ -92,7 +97,10 @@ def fe_response(scene, problem, element: str | None = None, refine: int | None =
         without, _ = body._lowest_modes(model, fixed, material_part, mass, MODES,
                                         f"about {what} without the initial stress")
         row = {"direction": d.tolist(), "loaded": loaded.tolist(),
-               "without_initial_stress": without.tolist(), "displacement": u[fe.vertex_map]}
+               "without_initial_stress": without.tolist(), "displacement": u[fe.vertex_map],
+               # straight tets through the displaced vertices (the FE's own cells may curve)
+               "min_volume_ratio": float((tet_volumes(mesh.vertices + u, mesh.tets)
+                                          / tet_volumes(mesh.vertices, mesh.tets)).min())}
         inverted = inverted_tets(mesh.vertices + u, mesh.tets)
         if inverted:
             row["stress_free_on_loaded_shape_failed"] = inverted
@@ -112,6 +120,12 @@ def tet_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """(T,) signed volumes [m^3] of ``tets`` at positions ``x``."""
     a, b, c, d = (x[tets[:, k]] for k in range(4))
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+
+
+def volume_ratio(model, x: np.ndarray) -> float:
+    """The smallest ``V / V0`` of ``model``'s tets at positions ``x`` [1] (negative: one is
+    inverted)."""
+    return float((tet_volumes(x, model.tets) / model.rest_volumes).min())
 
 
 def inverted_tets(x: np.ndarray, tets: np.ndarray) -> str | None:
@@ -181,11 +195,16 @@ def network_response(model, accelerations: np.ndarray, load_steps: int,
         except ConvergenceError as exc:  # a network that does not carry the load: a result
             row["failed"] = str(exc)
             row["carried"] = exc.reached  # the fraction of the load it had carried
+            if exc.reached:  # how far its tets were squeezed where it stopped
+                reached = weight_equilibrium(model, exc.reached * np.asarray(g, float),
+                                             load_steps)
+                row["min_volume_ratio"] = volume_ratio(model, reached)
         else:
             row["loaded"] = network_modes(model, ops, network_tangent(model, pat, x)).tolist()
             row["without_initial_stress"] = network_modes(
                 model, ops, network_tangent(model, pat, x, initial_stress=False)).tolist()
             row["max_displacement_m"] = float(np.abs(x - model.rest_positions).max())
+            row["min_volume_ratio"] = volume_ratio(model, x)
         at_fe = model.rest_positions + u_fe
         inverted = inverted_tets(at_fe, model.tets)
         if inverted:

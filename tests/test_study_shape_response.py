@@ -4,7 +4,8 @@ import numpy as np
 
 from particle.body import RestOperators, incremental_tangent
 from particle.statics import weight_equilibrium
-from studies.shape_response import inverted_tets, network_tangent, shift, tet_volumes
+from studies.shape_response import (inverted_tets, network_tangent, shift, tet_volumes,
+                                    volume_ratio)
 from tests.test_body import _box_model
 
 
@@ -66,3 +67,6 @@ def test_inverted_tets_and_the_lowest_modes_shift():
     assert inverted_tets(flipped, model.tets) == f"{len(model.tets)} tet(s) inverted at the " \
         "loaded vertices"
     np.testing.assert_allclose(shift([10.5, 3.0], [10.0, 1.0]), 0.05, rtol=1e-12)
+    np.testing.assert_allclose(volume_ratio(model, x), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(volume_ratio(model, 0.9 * x), 0.9 ** 3, rtol=1e-12)
+    assert volume_ratio(model, flipped) == -1.0
