@@ -91,10 +91,12 @@ def static_loads(model: FEModel, fixed: np.ndarray, acceleration: np.ndarray,
             np.stack(shapes) if modes else np.zeros((len(directions), 0, n, 3)))
 
 
-def loaded_modes(model: FEModel, fixed: np.ndarray, u: np.ndarray, count: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def loaded_modes(model: FEModel, fixed: np.ndarray, u: np.ndarray, count: int, *,
+                 initial_stress: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` lowest modes of small motions about the long-term static equilibrium
-    ``u`` (a solution vector), at the instantaneous incremental moduli (module docstring)."""
+    ``u`` (a solution vector), at the instantaneous incremental moduli (module docstring);
+    without ``initial_stress``, of the tangent less its initial-stress part
+    (:func:`initial_stress_stiffness`: the material stiffness about the loaded shape alone)."""
     m = model.material
     model._C10.value, model._C01.value, model._gamma.value = m.C10, m.C01, 1.0
     model._hist.x.array[:] = 0.0
@@ -102,8 +104,12 @@ def loaded_modes(model: FEModel, fixed: np.ndarray, u: np.ndarray, count: int
     model.set_history(-(1.0 - m.long_term_factor) * model.isochoric_stress_at_quadrature_points())
     model._gravity.value[:] = 0.0  # a constant load: no part of the tangent
     stiffness = _assembled(model, 0.0, u)
-    return _lowest_modes(model, fixed, stiffness, _assembled(model, 1.0, u) - stiffness, count,
-                         "about a loaded state")
+    mass = _assembled(model, 1.0, u) - stiffness  # leaves the unknown at u
+    if not initial_stress:
+        stiffness = stiffness - initial_stress_stiffness(model)
+    return _lowest_modes(model, fixed, stiffness, mass, count,
+                         "about a loaded state" + ("" if initial_stress
+                                                   else " without its initial stress"))
 
 
 def initial_stress_stiffness(model: FEModel) -> sp.csr_matrix:

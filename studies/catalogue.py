@@ -340,10 +340,11 @@ def shape_response_command(path: str, r: Result) -> str:
 
 
 def shape_response_answer(r: Result) -> str:
+    from studies.shape_response import shift
+
     def per_load(block: dict, key: str) -> str:
-        rest = block["rest"][0]
-        return " / ".join(f"{100 * (load[key][0] / rest - 1.0):+.1f}" if key in load else "-"
-                          for load in block["loads"])
+        return " / ".join(f"{100 * shift(load[key], block['rest']):+.1f}" if key in load
+                          else "-" for load in block["loads"])
 
     def rows(block: dict, keys: dict[str, str]) -> str:
         shown = [f"{label} {per_load(block, key)}" for key, label in keys.items()
