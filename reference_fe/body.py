@@ -118,7 +118,7 @@ def initial_stress_stiffness(model: FEModel) -> sp.csr_matrix:
     with ``S`` the residual's second Piola-Kirchhoff stress (the stiffness a stress adds to
     small motions about it, as a taut string's). The rest of the Jacobian is the material
     part ``int F dS[du] : grad(v)`` (and the pressure's rows for the u-p elements)."""
-    u, _, S, _ = second_piola_kirchhoff(model, model.material.kappa)
+    _, _, S, _ = second_piola_kirchhoff(model, model.material.kappa)
     trial, test = ufl.TrialFunction(model.space), ufl.TestFunction(model.space)
     if model._is_mixed:
         trial, test = ufl.split(trial)[0], ufl.split(test)[0]
