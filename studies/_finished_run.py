@@ -57,6 +57,15 @@ def parse_study(parser: argparse.ArgumentParser, argv: list[str] | None) -> argp
     return args
 
 
+def study_main(module: str, doc: str, study, argv: list[str] | None) -> int:
+    """``python -m <module>`` of a study of a finished run with the common arguments only:
+    ``study(scene, run)`` written by :func:`write_result`; exit status 0."""
+    parser = study_parser(module, doc)
+    args = parse_study(parser, argv)
+    write_result(parser, args.out, study(args.scene, args.run))
+    return 0
+
+
 def run_folder(scene: Scene, run: str | Path | None) -> Path:
     """``run``, or ``runs/<scene name>`` when None."""
     return Path(run) if run is not None else Path("runs") / scene.name

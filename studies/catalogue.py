@@ -378,6 +378,20 @@ def shape_response_answer(r: Result) -> str:
     return (f"lowest mode from rest to about each load (%): {'; '.join(parts)}{note}")
 
 
+def scaled_floor_answer(r: Result) -> str:
+    names = {"static_sag": "sag", "release_rms": "release RMS", "period_error": "period",
+             "first_peak_error": "first peak", "second_support_static_sag": "second-support sag",
+             "second_support_release_rms": "second-support RMS",
+             "indentation_held_out": "held-out indentation"}
+
+    def row(values: dict) -> str:
+        return ", ".join(f"{label} {pct(values.get(key))}" for key, label in names.items())
+
+    return (f"shear moduli x {r['scale']:.3f} (the FE's {len(r['rest_frequencies_fe'])} lowest "
+            f"rest modes): " + "; ".join(f"{name}: {row(values)}"
+                                          for name, values in r["rows"].items()))
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -450,6 +464,11 @@ STUDIES = (
           "the body's change of shape as the FE's does, and is the gap in the stress the load "
           "leaves (initial-stress stiffness) or in the shape it makes?",
           "runs/studies/shape_response*.json", shape_response_command, shape_response_answer),
+    Study("scaled_floor", "Would a vertex-only continuum model (the floor's P1 "
+          "displacement-pressure tets), its shear stiffness scaled once to the FE's natural "
+          "modes, pass the held-out gravity tests better than the calibrated network?",
+          "runs/studies/scaled_floor*.json", finished_run_command("scaled_floor"),
+          scaled_floor_answer),
 )
 
 

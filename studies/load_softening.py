@@ -35,7 +35,7 @@ import logging
 
 import numpy as np
 
-from studies._finished_run import finished_run, parse_study, study_parser, write_result
+from studies._finished_run import finished_run, study_main
 
 log = logging.getLogger(__name__)
 
@@ -131,10 +131,7 @@ def study(scene_path, run=None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = study_parser("studies.load_softening", __doc__)
-    args = parse_study(parser, argv)
-    write_result(parser, args.out, study(args.scene, args.run))
-    return 0
+    return study_main("studies.load_softening", __doc__, study, argv)
 
 
 if __name__ == "__main__":
