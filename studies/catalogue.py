@@ -387,9 +387,12 @@ def scaled_floor_answer(r: Result) -> str:
     def row(values: dict) -> str:
         return ", ".join(f"{label} {pct(values.get(key))}" for key, label in names.items())
 
+    steps = ", ".join(f"{name} {1e3 * dt:.2f} ms"
+                      for name, dt in r.get("stable_step_at_rest_s", {}).items())
     return (f"shear moduli x {r['scale']:.3f} (the FE's {len(r['rest_frequencies_fe'])} lowest "
             f"rest modes): " + "; ".join(f"{name}: {row(values)}"
-                                          for name, values in r["rows"].items()))
+                                          for name, values in r["rows"].items())
+            + (f"; explicit stable step at rest: {steps}" if steps else ""))
 
 
 STUDIES = (

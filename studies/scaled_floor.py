@@ -13,11 +13,14 @@ f_FE / f_floor)^2``. The scaled element then runs the reference's held-out tests
 the floor does (:func:`reference_fe.floor.element_arrays`: the gravity test, the second
 support, the held-out curves), measured as the report measures the calibrated model
 (:func:`pipelines.report.floor_block`), next to the calibrated and baseline models' errors
-from the run's ``report.json``. Nothing of the gravity tests chooses ``s``.
+from the run's ``report.json``. Nothing of the gravity tests chooses ``s``. With them, what
+each would cost an explicit (haptic) step: its exact stability limit at rest, the scaled
+element's with the particles' lumped masses and its nodal pressures condensed, the calibrated
+and baseline networks' at their instantaneous stiffness.
 
 ``python -m studies.scaled_floor --scene scenes/liver_punch.toml [--run DIR] [--out FILE]``
 (the run folder needs ``reference.h5`` with the experiments ``body``, the gravity tests and
-the floor, and ``report.json``; a minute on the punch scenes).
+the floor, ``params.h5`` and ``report.json``; a minute on the punch scenes).
 """
 
 from __future__ import annotations
@@ -73,6 +76,55 @@ def matched_scale(scene, problem, fe_frequencies: np.ndarray) -> tuple[float, li
     return scale, steps
 
 
+def largest_frequency(stiffness, mass: np.ndarray) -> float:
+    """``omega_max`` [rad/s] of ``stiffness`` (n, n) [N/m] with the diagonal ``mass`` (n,)
+    [kg]: the explicit central-difference step is stable below ``2 / omega_max``."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import eigsh
+
+    scale = sp.diags(1.0 / np.sqrt(mass))
+    value = eigsh(scale @ sp.csr_matrix(stiffness) @ scale, 1, which="LA",
+                  return_eigenvectors=False)[0]
+    return float(np.sqrt(value))
+
+
+def floor_stable_step(scene, problem, scale: float) -> float:
+    """The explicit step's exact stability limit [s] at rest of the scaled floor element with
+    the particles' lumped masses (the P1 mass's row sums): its stiffness at the instantaneous
+    moduli with the nodal pressures condensed (``K_uu - K_up K_pp^-1 K_pu``, ``K_pp`` the
+    lumped pressure compliance, diagonal) on the free vertices' dofs."""
+    import scipy.sparse as sp
+    from reference_fe.body import stiffness_and_mass
+    from reference_fe.floor import floor_fe
+    from reference_fe.model import FEModel
+
+    model = FEModel(problem.mesh, scaled_material(scene.material, scale),
+                    floor_fe(scene, ELEMENT))
+    try:
+        stiffness, mass = stiffness_and_mass(model, "instantaneous")
+        free = model.vertex_dofs[problem.free].ravel()
+        every = model.vertex_dofs.ravel()
+        p = model.pressure_dofs
+        K = stiffness.tocsr()
+        condensed = (K[free][:, free] - K[free][:, p]
+                     @ sp.diags(1.0 / K[p][:, p].diagonal()) @ K[p][:, free])
+        lumped = np.asarray(mass.tocsr()[free][:, every].sum(axis=1)).ravel()
+        return 2.0 / largest_frequency(condensed, lumped)
+    finally:
+        model.destroy()
+
+
+def network_stable_step(model) -> float:
+    """The explicit step's exact stability limit [s] at rest of a particle ``model`` at its
+    instantaneous stiffness (springs with their arms, the volume term with its arms)."""
+    from particle.body import RestOperators
+    from studies.shape_response import network_tangent
+
+    ops = RestOperators.of(model)
+    return 2.0 / largest_frequency(network_tangent(model, ops.pattern, model.rest_positions),
+                                   ops.mass)
+
+
 def study(scene_path, run=None) -> dict:
     """The scaled floor element's held-out test errors (module docstring)."""
     from forcecal.h5io import read_reference
@@ -108,7 +160,17 @@ def study(scene_path, run=None) -> dict:
             "floor": {m: unscaled.get(m) for m in METRICS},
             "calibrated": {m: block["calibrated"].get(m) for m in METRICS},
             "baseline": {m: block["baseline"].get(m) for m in METRICS}}
+    from calibration import read_params
+    from calibration.loading import calibrated_model
+    from pipelines.runners.common import PARAMS
+
+    calibration = read_params(folder / PARAMS)
+    stable_steps = {"scaled floor": floor_stable_step(scene, problem, scale),
+                    **{v: network_stable_step(calibrated_model(calibration, v,
+                                                               folder / PARAMS).model)
+                       for v in ("calibrated", "baseline")}}
     return {"scene": scene.name, "element": ELEMENT, "scale": scale, "scale_steps": steps,
+            "stable_step_at_rest_s": stable_steps,
             "rest_frequencies_fe": reference.body.frequencies[0][:MODES].tolist(),
             "rest_frequencies_scaled": rest_frequencies(scene, problem, scale).tolist(),
             "failed": block["elements"][ELEMENT].get("failed"),

@@ -27,3 +27,14 @@ def test_the_matched_scale_makes_the_mean_frequency_ratio_one(monkeypatch):
     uneven = f0 * np.array([0.8, 0.9, 1.0, 1.0, 0.9, 0.8])
     scale, steps = scaled_floor.matched_scale(None, None, uneven)
     np.testing.assert_allclose(np.mean(uneven / (f0 * np.sqrt(scale))), 1.0, rtol=1e-6)
+
+
+def test_largest_frequency_of_a_two_mass_chain():
+    """Two masses m on springs k (wall - m - m): ``omega^2 = (3 +- sqrt 5) k / (2 m)``, the
+    larger one returned (the explicit step's limit is 2 over it)."""
+    import scipy.sparse as sp
+
+    k, m = 400.0, 0.25
+    stiffness = sp.csr_matrix(np.array([[2 * k, -k], [-k, k]]))
+    np.testing.assert_allclose(scaled_floor.largest_frequency(stiffness, np.full(2, m)),
+                               np.sqrt((3 + np.sqrt(5)) * k / (2 * m)), rtol=1e-10)
