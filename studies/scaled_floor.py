@@ -80,12 +80,10 @@ def largest_frequency(stiffness, mass: np.ndarray) -> float:
     """``omega_max`` [rad/s] of ``stiffness`` (n, n) [N/m] with the diagonal ``mass`` (n,)
     [kg]: the explicit central-difference step is stable below ``2 / omega_max``."""
     import scipy.sparse as sp
-    from scipy.sparse.linalg import eigsh
+    from particle.stability import largest_eigenvalue
 
     scale = sp.diags(1.0 / np.sqrt(mass))
-    value = eigsh(scale @ sp.csr_matrix(stiffness) @ scale, 1, which="LA",
-                  return_eigenvectors=False)[0]
-    return float(np.sqrt(value))
+    return float(np.sqrt(largest_eigenvalue(sp.csr_matrix(scale @ stiffness @ scale))))
 
 
 def floor_stable_step(scene, problem, scale: float) -> float:
@@ -112,17 +110,6 @@ def floor_stable_step(scene, problem, scale: float) -> float:
         return 2.0 / largest_frequency(condensed, lumped)
     finally:
         model.destroy()
-
-
-def network_stable_step(model) -> float:
-    """The explicit step's exact stability limit [s] at rest of a particle ``model`` at its
-    instantaneous stiffness (springs with their arms, the volume term with its arms)."""
-    from particle.body import RestOperators
-    from studies.shape_response import network_tangent
-
-    ops = RestOperators.of(model)
-    return 2.0 / largest_frequency(network_tangent(model, ops.pattern, model.rest_positions),
-                                   ops.mass)
 
 
 def study(scene_path, run=None) -> dict:
@@ -163,11 +150,12 @@ def study(scene_path, run=None) -> dict:
     from calibration import read_params
     from calibration.loading import calibrated_model
     from pipelines.runners.common import PARAMS
+    from studies.stable_step_gap import exact_rest_step
 
     calibration = read_params(folder / PARAMS)
     stable_steps = {"scaled floor": floor_stable_step(scene, problem, scale),
-                    **{v: network_stable_step(calibrated_model(calibration, v,
-                                                               folder / PARAMS).model)
+                    **{v: exact_rest_step(calibrated_model(calibration, v,
+                                                           folder / PARAMS).model)
                        for v in ("calibrated", "baseline")}}
     return {"scene": scene.name, "element": ELEMENT, "scale": scale, "scale_steps": steps,
             "stable_step_at_rest_s": stable_steps,

@@ -17,7 +17,7 @@ def test_the_scale_acts_on_the_shear_moduli_only():
 def test_the_matched_scale_makes_the_mean_frequency_ratio_one(monkeypatch):
     """Frequencies ``f0 sqrt(s)`` (an incompressible body's: shear only): the fixed point
     ``s <- s (mean f_FE / f)^2`` lands on ``(f_FE / f0)^2`` in one step when the FE's modes
-    are a multiple of the model's, and near it when they are not."""
+    are a multiple of the model's, and on the squared mean ratio when they are not."""
     f0 = np.array([5.0, 6.0, 8.0, 9.0, 10.0, 12.0])
     monkeypatch.setattr(scaled_floor, "rest_frequencies",
                         lambda scene, problem, scale: f0 * np.sqrt(scale))
