@@ -44,6 +44,7 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 
+from particle.volume import signed_volumes
 from studies._finished_run import parse_study, run_folder, study_parser, write_result
 
 log = logging.getLogger(__name__)
@@ -94,8 +95,8 @@ def fe_response(scene, problem, element: str | None = None, refine: int | None =
         row = {"direction": d.tolist(), "loaded": loaded.tolist(),
                "without_initial_stress": without.tolist(), "displacement": u[fe.vertex_map],
                # straight tets through the displaced vertices (the FE's own cells may curve)
-               "min_volume_ratio": float((tet_volumes(mesh.vertices + u, mesh.tets)
-                                          / tet_volumes(mesh.vertices, mesh.tets)).min())}
+               "min_volume_ratio": float((signed_volumes(mesh.vertices + u, mesh.tets)
+                                          / signed_volumes(mesh.vertices, mesh.tets)).min())}
         inverted = inverted_tets(mesh.vertices + u, mesh.tets)
         if inverted:
             row["stress_free_on_loaded_shape_failed"] = inverted
@@ -111,22 +112,16 @@ def fe_response(scene, problem, element: str | None = None, refine: int | None =
     return {"element": section.element, "dofs": dofs, "rest": rest.tolist(), "loads": loads}
 
 
-def tet_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """(T,) signed volumes [m^3] of ``tets`` at positions ``x``."""
-    a, b, c, d = (x[tets[:, k]] for k in range(4))
-    return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
-
-
 def volume_ratio(model, x: np.ndarray) -> float:
     """The smallest ``V / V0`` of ``model``'s tets at positions ``x`` [1] (negative: one is
     inverted)."""
-    return float((tet_volumes(x, model.tets) / model.rest_volumes).min())
+    return float((signed_volumes(x, model.tets) / model.rest_volumes).min())
 
 
 def inverted_tets(x: np.ndarray, tets: np.ndarray) -> str | None:
     """None, or what says how many of the straight-sided ``tets`` are inverted or flat at
     positions ``x`` (a shape no stress-free model can be built on)."""
-    bad = int(np.count_nonzero(tet_volumes(x, tets) <= 0.0))
+    bad = int(np.count_nonzero(signed_volumes(x, tets) <= 0.0))
     return f"{bad} tet(s) inverted at the loaded vertices" if bad else None
 
 
@@ -155,7 +150,7 @@ def network_tangent(model, pattern, x: np.ndarray, initial_stress: bool = True
         if not initial_stress:
             # the same k/V0 with no pressure: the kernel's P = kv (V/V0 - 1) vanishes when
             # its V0 is the current volume, kv and the arms scaled to keep k/V0
-            rest_volumes = tet_volumes(x, model.tets)
+            rest_volumes = signed_volumes(x, model.tets)
             scale = rest_volumes / model.rest_volumes
         add_volume_tangent(x, model.tets, rest_volumes, p.kv * scale, pattern.tet_slots, data,
                            (arms * scale, np.zeros_like(p.kv)))
