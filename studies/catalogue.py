@@ -353,6 +353,10 @@ def shape_response_answer(r: Result) -> str:
                    for load in block["loads"]]
         if any(c != "1" for c in carried):
             shown.append(f"carries {' / '.join(carried)} of each load")
+        if any("lowest_mode_mac" in load for load in block["loads"]):
+            shown.append("lowest mode's MAC with the rest one (loaded) " + " / ".join(
+                f"{load['lowest_mode_mac']['loaded']:.2f}" if "lowest_mode_mac" in load
+                else "-" for load in block["loads"]))
         if any("min_volume_ratio" in load for load in block["loads"]):
             shown.append("smallest tet V/V0 " + " / ".join(
                 f"{load['min_volume_ratio']:.2f}" if "min_volume_ratio" in load else "-"

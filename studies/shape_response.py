@@ -23,6 +23,9 @@ a connector's ``s e e^T``, a tet's ``k/V0 g g^T``). Per load, the lowest modes
   also re-derived by its rule on the FE's loaded shape (the network's analogue of the
   stress-free body of that shape). A network that finds no equilibrium under the whole load
   records the fraction it carried;
+* per load, the MAC of the lowest mode about it (full tangent, and without its initial
+  stress) with the lowest mode at rest: near 1, the frequencies above compare one mode; low,
+  the load changed which mode is the lowest;
 * per load, the smallest volume ratio ``V / V0`` of the particle mesh's tets: at each
   network's equilibrium (or where it stopped), and through the FE's displaced vertices
   (straight tets; the FE's own cells may curve): how far the load squeezes the body where a
@@ -83,17 +86,21 @@ def fe_response(scene, problem, element: str | None = None, refine: int | None =
     fe = fe_problem(problem, section)
     mesh, fixed = fe.problem.mesh, fe.problem.fixed
     model = FEModel(mesh, material, section)
-    rest, _ = body.natural_modes(model, fixed, MODES, "instantaneous")
+    rest, rest_shapes = body.natural_modes(model, fixed, MODES, "instantaneous")
     g = np.asarray(scene.gravity.acceleration, float)
     loads = []
     for d in body_load_directions(g):
         what = f"the weight along {np.round(d, 3).tolist()}"
         u, state = gravity_static(model, fixed, np.linalg.norm(g) * d, scene.body.load_steps,
                                   with_state=True, what=what)
-        loaded, _ = body.loaded_modes(model, fixed, state.u, MODES)
-        without, _ = body.loaded_modes(model, fixed, state.u, MODES, initial_stress=False)
+        loaded, loaded_shapes = body.loaded_modes(model, fixed, state.u, MODES)
+        without, without_shapes = body.loaded_modes(model, fixed, state.u, MODES,
+                                                    initial_stress=False)
         row = {"direction": d.tolist(), "loaded": loaded.tolist(),
                "without_initial_stress": without.tolist(), "displacement": u[fe.vertex_map],
+               "lowest_mode_mac": {"loaded": mac(loaded_shapes[0], rest_shapes[0]),
+                                   "without_initial_stress": mac(without_shapes[0],
+                                                                 rest_shapes[0])},
                # straight tets through the displaced vertices (the FE's own cells may curve)
                "min_volume_ratio": float((signed_volumes(mesh.vertices + u, mesh.tets)
                                           / signed_volumes(mesh.vertices, mesh.tets)).min())}
@@ -158,12 +165,20 @@ def network_tangent(model, pattern, x: np.ndarray, initial_stress: bool = True
                          shape=(pattern.n_dofs, pattern.n_dofs))
 
 
-def network_modes(model, operators, stiffness) -> np.ndarray:
-    """(MODES,) the lowest frequencies [Hz] of ``stiffness`` with the model's lumped masses."""
+def network_modes(model, operators, stiffness) -> tuple[np.ndarray, np.ndarray]:
+    """((MODES,) the lowest frequencies [Hz], (n,) the lowest mode's shape on the free dofs)
+    of ``stiffness`` with the model's lumped masses."""
     from particle.body import model_modes
 
-    values, _, _ = model_modes(model, operators, "instantaneous", MODES, stiffness)
-    return np.sqrt(values) / (2.0 * np.pi)
+    values, vectors, _ = model_modes(model, operators, "instantaneous", MODES, stiffness)
+    return np.sqrt(values) / (2.0 * np.pi), vectors[:, 0]
+
+
+def mac(a: np.ndarray, b: np.ndarray) -> float:
+    """The modal assurance criterion of two shapes (any matching layout): 1 for the same shape,
+    0 for orthogonal ones (unweighted: a check of which mode is the lowest, not a metric)."""
+    a, b = np.ravel(a), np.ravel(b)
+    return float((a @ b) ** 2 / ((a @ a) * (b @ b)))
 
 
 def network_response(model, accelerations: np.ndarray, load_steps: int,
@@ -176,7 +191,8 @@ def network_response(model, accelerations: np.ndarray, load_steps: int,
 
     ops = RestOperators.of(model)
     pat = ops.pattern
-    rest = network_modes(model, ops, network_tangent(model, pat, model.rest_positions))
+    rest, rest_shape = network_modes(model, ops, network_tangent(model, pat,
+                                                                  model.rest_positions))
     loads = []
     for g, u_fe in zip(accelerations, fe_displacements):
         row = {}
@@ -190,9 +206,12 @@ def network_response(model, accelerations: np.ndarray, load_steps: int,
                                              load_steps)
                 row["min_volume_ratio"] = volume_ratio(model, reached)
         else:
-            row["loaded"] = network_modes(model, ops, network_tangent(model, pat, x)).tolist()
-            row["without_initial_stress"] = network_modes(
-                model, ops, network_tangent(model, pat, x, initial_stress=False)).tolist()
+            loaded, loaded_shape = network_modes(model, ops, network_tangent(model, pat, x))
+            without, without_shape = network_modes(
+                model, ops, network_tangent(model, pat, x, initial_stress=False))
+            row["loaded"], row["without_initial_stress"] = loaded.tolist(), without.tolist()
+            row["lowest_mode_mac"] = {"loaded": mac(loaded_shape, rest_shape),
+                                      "without_initial_stress": mac(without_shape, rest_shape)}
             row["max_displacement_m"] = float(np.abs(x - model.rest_positions).max())
             row["min_volume_ratio"] = volume_ratio(model, x)
         at_fe = model.rest_positions + u_fe
@@ -201,7 +220,7 @@ def network_response(model, accelerations: np.ndarray, load_steps: int,
             row["fe_shape_failed"] = inverted
         else:
             row["fe_shape_without_initial_stress"] = network_modes(
-                model, ops, network_tangent(model, pat, at_fe, initial_stress=False)).tolist()
+                model, ops, network_tangent(model, pat, at_fe, initial_stress=False))[0].tolist()
         loads.append(row)
     return {"rest": rest.tolist(), "loads": loads}
 
@@ -251,7 +270,7 @@ def study(scene_path, run=None, refined: bool = False) -> dict:
         if "fe_shape_failed" not in load:
             moved = closed_form_network(problem, scene.material, problem.mesh.vertices + u)
             load["re_derived_on_fe_shape"] = network_modes(
-                moved, *_operators_and_tangent(moved)).tolist()
+                moved, *_operators_and_tangent(moved))[0].tolist()
     folder = run_folder(scene, run)
     if (folder / PARAMS).is_file():
         from calibration import read_params

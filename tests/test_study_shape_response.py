@@ -4,7 +4,7 @@ import numpy as np
 
 from particle.body import RestOperators, incremental_tangent
 from particle.statics import weight_equilibrium
-from studies.shape_response import inverted_tets, network_tangent, shift, volume_ratio
+from studies.shape_response import inverted_tets, mac, network_tangent, shift, volume_ratio
 from tests.test_body import _box_model
 
 
@@ -68,3 +68,7 @@ def test_inverted_tets_and_the_lowest_modes_shift():
     np.testing.assert_allclose(volume_ratio(model, x), 1.0, rtol=1e-12)
     np.testing.assert_allclose(volume_ratio(model, 0.9 * x), 0.9 ** 3, rtol=1e-12)
     assert volume_ratio(model, flipped) == -1.0
+    shape = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    assert mac(shape, -3.0 * shape) == 1.0  # a shape's scale and sign do not count
+    assert mac(shape, [[0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]) == 0.0
+    np.testing.assert_allclose(mac(shape, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), 1.0 / 5.0)
