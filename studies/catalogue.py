@@ -399,6 +399,34 @@ def scaled_floor_answer(r: Result) -> str:
             + (f"; explicit stable step at rest: {steps}" if steps else ""))
 
 
+def body_stiffness_gap_command(path: str, r: Result) -> str:
+    levelled = " --levelled" if "levelled_prior" in r else ""
+    return (f"python -m studies.body_stiffness_gap --scene {r['scene_file']} --run {r['run']}"
+            f"{levelled} --out {path}")
+
+
+def body_stiffness_gap_answer(r: Result) -> str:
+    from studies.body_stiffness_gap import LOWEST
+
+    def lowest(row: dict) -> str:
+        return "/".join(f"{100 * e:+.1f}" for e in row["long_term_frequency_errors"][:LOWEST])
+
+    rows = "; ".join(f"{name}: {lowest(row)} % (sag {pct(row['static_sag_error'])}, "
+                     f"predicted {pct(row['predicted_sag_error'])})"
+                     for name, row in r["rows"].items())
+    out = (f"{r['vertices']} vertices, {pct(r['surface_share'], 0)} on the surface, body weight "
+           f"{r['body_weight']}; lowest {LOWEST} long-term rest frequencies: {rows}")
+    levelled = r.get("levelled_prior")
+    if levelled:
+        own, new = levelled["own"], levelled["levelled"]
+        out += (f"; levelled prior (stiffness x {levelled['factor']:.3f}): CV score "
+                f"{own['cv_score']:.4f} -> {new['cv_score']:.4f}, held-out indentation "
+                f"{pct(own['indentation_held_out'])} -> {pct(new['indentation_held_out'])}, "
+                f"relaxation {pct(own['relaxation_held_out'])} -> "
+                f"{pct(new['relaxation_held_out'])}")
+    return out
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -476,6 +504,11 @@ STUDIES = (
           "modes, pass the held-out gravity tests better than the calibrated network?",
           "runs/studies/scaled_floor*.json", finished_run_command("scaled_floor"),
           scaled_floor_answer),
+    Study("body_stiffness_gap", "Is the calibrated body too soft where its static sag misses, "
+          "and is it the surface curves that soften it, or the gradient fit's pull towards the "
+          "global fit (a prior levelled to the FE's rest modes instead)?",
+          "runs/studies/body_stiffness_gap*.json", body_stiffness_gap_command,
+          body_stiffness_gap_answer),
 )
 
 
