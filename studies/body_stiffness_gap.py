@@ -26,7 +26,6 @@ Two parts, neither reading a gravity test to choose anything:
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import json
@@ -39,6 +38,7 @@ import numpy as np
 
 import calibration.core as calibration_core
 from calibration.parametrisation import GlobalParams
+from calibration.results import read_params
 from forcecal.problem import load_mesh
 from forcecal.scene import load_scene
 from pipelines.report import point_set_means
@@ -152,18 +152,15 @@ def fit_summary(result) -> dict[str, Any]:
 def levelled_comparison(scene_path: str | Path, run: Path) -> dict[str, Any]:
     """The run's own calibration (its ``params.h5``) against the levelled prior's, fitted to
     the run's ``reference.h5`` in a scratch folder."""
-    from calibration.core import calibrate
-    from calibration.results import read_params
-
     record: dict[str, Any] = {}
     own = read_params(run / "params.h5")
     with tempfile.TemporaryDirectory() as scratch, levelled_prior(record):
-        result = calibrate(scene_path, run / "reference.h5", Path(scratch) / "params.h5",
-                           progress=False)
-    body = result.body or {}
+        result = calibration_core.calibrate(scene_path, run / "reference.h5",
+                                            Path(scratch) / "params.h5", progress=False)
+    calibrated = (result.body or {}).get("variants", {}).get("calibrated", {})
     return {**record, "own": fit_summary(own), "levelled": fit_summary(result),
-            "levelled_body": {v: {m: body.get("variants", {}).get(v, {}).get(m, {}).get(
-                "frequency_errors") for m in MODULI} for v in ("calibrated",)}}
+            "levelled_body": {"calibrated": {m: calibrated.get(m, {}).get("frequency_errors")
+                                             for m in MODULI}}}
 
 
 def study(scene_path: str | Path, run: str | Path, *, levelled_fit: bool = False
