@@ -41,7 +41,7 @@ from calibration.parametrisation import GlobalParams
 from calibration.results import read_params
 from forcecal.problem import load_mesh
 from forcecal.scene import load_scene
-from pipelines.report import point_set_means
+from pipelines.report import CALIBRATED_VARIANTS, point_set_means
 from studies._finished_run import parse_study, study_parser, write_result
 
 log = logging.getLogger(__name__)
@@ -140,10 +140,10 @@ def fit_summary(result) -> dict[str, Any]:
     out = {"cv_score": float(np.min(gradient["cv_costs"][-1])),
            "smoothness_weight": gradient["weight"], "body_weight": gradient.get("body_weight")}
     for experiment in result.variants["calibrated"].errors:
-        # the report's errors: the mean over the point set (pipelines.report.point_set_means)
-        means = point_set_means({"calibrated": result.variants["calibrated"].errors[experiment]},
-                                {"calibrated": "calibrated", "global": "calibrated",
-                                 "held_out": "calibrated"}, calibration, experiment)
+        # the report's own means over the point sets
+        means = point_set_means({v: result.variants[v].errors[experiment]
+                                 for v in set(CALIBRATED_VARIANTS.values())},
+                                CALIBRATED_VARIANTS, calibration, experiment)
         out.update({key: means[key] for key in (f"{experiment}_calibrated",
                                                 f"{experiment}_held_out")})
     return out
@@ -165,6 +165,8 @@ def levelled_comparison(scene_path: str | Path, run: Path) -> dict[str, Any]:
 
 def study(scene_path: str | Path, run: str | Path, *, levelled_fit: bool = False
           ) -> dict[str, Any]:
+    """The report part for the run folder ``run`` of ``scene_path``, and with
+    ``levelled_fit`` the levelled prior's comparison (module docstring)."""
     run = Path(run)
     report = json.loads((run / "report.json").read_text())
     result = {"scene": report["scene"], "scene_file": str(scene_path), "run": str(run),
