@@ -427,6 +427,44 @@ def body_stiffness_gap_answer(r: Result) -> str:
     return out
 
 
+def fit_wall_command(path: str, r: Result) -> str:
+    loads = " --loads-validity" if "loads_validity" in r else ""
+    return (f"python -m studies.fit_wall --scene {r['scene_file']} --run {r['run']}{loads} "
+            f"--out {path}")
+
+
+def fit_wall_answer(r: Result) -> str:
+    def load(k: int, row: dict) -> str:
+        wall = " (at the wall)" if row["at_the_wall"] else ""
+        return f"load {k} {row['factor']:.3g} x{wall}"
+
+    parts = []
+    for name, variant in r["variants"].items():
+        parts.append(f"{name}: " + ", ".join(load(k, row)
+                                            for k, row in enumerate(variant["loads"])))
+    out = f"body data {r['body_data']}; largest load carried: " + "; ".join(parts)
+    walled = [(k, row) for k, row in enumerate(r["variants"]["calibrated"]["loads"])
+              if row["at_the_wall"]]
+    for k, row in walled:
+        out += (f"; what gives way under load {k}: connector {row['connector']} at strain "
+                f"{row['connector_strain']:.2f} (FE {row['connector_fe_strain']:.2f}), tangent "
+                f"{row['connector_tangent_over_K0']:.2f} K0")
+        if "tet" in row:
+            out += (f", tet {row['tet']} at volume ratio {row['tet_volume_ratio']:.2g} "
+                    f"(FE vertices' {row['tet_fe_volume_ratio']:.3g})")
+    loads = r.get("loads_validity")
+    if loads:
+        own, new = loads["own"], loads["loads_valid"]
+        factors = ", ".join(f"{w['factor']:.3g} x" for w in loads["loads_valid_walls"])
+        out += (f"; springs also held stiff on the loads' strains (range "
+                f"[{loads['range_after'][0]:.2f}, {loads['range_after'][1]:.2f}]): CV score "
+                f"{own['cv_score']:.4f} -> {new['cv_score']:.4f}, held-out indentation "
+                f"{pct(own['indentation_held_out'])} -> {pct(new['indentation_held_out'])}, "
+                f"relaxation {pct(own['relaxation_held_out'])} -> "
+                f"{pct(new['relaxation_held_out'])}, loads carried {factors}")
+    return out
+
+
 STUDIES = (
     Study("fold_cv", "Which calibration setting predicts calibration points it was not "
           "fitted to? (k-fold cross-validation of whole calibrations; the score is the mean "
@@ -509,6 +547,10 @@ STUDIES = (
           "global fit (a prior levelled to the FE's rest modes instead)?",
           "runs/studies/body_stiffness_gap*.json", body_stiffness_gap_command,
           body_stiffness_gap_answer),
+    Study("fit_wall", "Where does the gradient fit stop: at its objective's least, or at a "
+          "wall, a fitted body load the model one step further no longer carries, and what "
+          "gives way there?",
+          "runs/studies/fit_wall*.json", fit_wall_command, fit_wall_answer),
 )
 
 
