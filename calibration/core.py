@@ -244,7 +244,8 @@ def prepare_fit(scene: Scene, reference_path: str | Path) -> FitSetup:
     # scene lists does not change its fit)
     gravity = ref.gravity is not None and any(scene.runs(e) for e in GRAVITY_EXPERIMENTS)
     validity = spring_validity(ref, initial, strain, settings.stiffness_floor,
-                               scene.particle.strain_margin, shape, gravity=gravity)
+                               scene.particle.strain_margin, shape, gravity=gravity,
+                               loads=fitted_loads(scene, ref))
     return FitSetup(
         scene=scene, ref=ref, fitted=fitted, ref_curves=ref_curves, experiments=experiments,
         shape=shape, strain=strain, unit_slope=linear.slope, fe_slope=fe_slope,
@@ -709,26 +710,50 @@ def local_validity(validity: Validity, glob: ConnectorParams, ceiling: float
             ceiling * global_max)
 
 
+def fitted_loads(scene: Scene, ref: Reference) -> np.ndarray | None:
+    """(L, N, 3) [m] the FE's displacements under the whole-body loads the scene's calibration
+    fits about (``calibration.body_data`` with ``loads`` or ``loaded_modes``, the gradient
+    method, the reference's experiment ``body`` holding them), else None."""
+    if not (scene.calibration.method == "gradient" and scene.runs("body")
+            and ref.body is not None and len(ref.body.load_accelerations)):
+        return None
+    if not set(body_kinds(scene.calibration.body_data)) & set(LOAD_KINDS):
+        return None
+    return ref.body.load_displacement
+
+
 def spring_validity(ref: Reference, glob: GlobalParams, strain: StrainRange, floor: float,
                     gravity_margin: float, shape: np.ndarray | None = None, *,
-                    gravity: bool = True) -> Validity:
+                    gravity: bool = True, loads: np.ndarray | None = None) -> Validity:
     """Where a calibration keeps every spring stiff (the global fits on the overall range,
     the gradient fit per connector, local tuning as :func:`local_validity` says): the
     experiments' strain range united, per connector, with the gravity release range of the
     FE static sag (:func:`particle.stability.strain_range_for_release` with
-    ``gravity_margin``; the experiments' range alone if the reference has no gravity run or
-    ``gravity`` is False: a scene without gravity experiments).
+    ``gravity_margin``; not if the reference has no gravity run or ``gravity`` is False: a
+    scene without gravity experiments) and with the strains of the FE's states under the
+    whole-body loads the fit uses, ``loads`` (L, N, 3) [m] displacements or None
+    (:func:`particle.stability.strain_range_of_states` with ``gravity_margin``): a model
+    fitted about a loaded state is used there, and a spring law left free beyond the other
+    strains softens there until the model no longer carries the load (the fit then ends
+    against that refusal instead of at its objective's least).
     The range depends on the geometry only; the floor is
     :func:`calibration.parametrisation.connector_floor`."""
-    from particle.stability import strain_range_for_release
+    from particle.stability import strain_range_for_release, strain_range_of_states
     from particle.model import build_model
 
     n = len(ref.problem.mesh.edges)
     low, high = np.full(n, strain.low), np.full(n, strain.high)
-    if gravity and ref.gravity is not None:
+    with_sag = gravity and ref.gravity is not None
+    if with_sag or loads is not None:
         model = build_model(ref.problem, ref.material.density, glob.connector_params(n, shape))
+    if with_sag:
         lo, hi = strain_range_for_release(model, ref.gravity.static_displacement, gravity_margin)
         low, high = np.minimum(low, lo), np.maximum(high, hi)
         log.info("springs kept stiff on the experiments' strains and the gravity "
                  "release range of the FE sag, [%.3g, %.3g] overall", low.min(), high.max())
+    if loads is not None:
+        lo, hi = strain_range_of_states(model, loads, gravity_margin)
+        low, high = np.minimum(low, lo), np.maximum(high, hi)
+        log.info("and on the strains of the FE's states under the %d fitted body loads: "
+                 "[%.3g, %.3g] overall", len(loads), low.min(), high.max())
     return Validity(low, high, connector_floor(floor, glob.K0, shape), glob.K0, strain.scale)

@@ -282,6 +282,25 @@ def strain_range_for_release(model: Model, static_displacement: np.ndarray, marg
                                    model.n_connectors, model.edges)
 
 
+def strain_range_of_states(model: Model, displacements: np.ndarray, margin: float
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-connector strain range (lo (E,), hi (E,)) of static states: each connector's strain
+    at rest and in every state of ``displacements`` (L, N, 3) [m] (e.g. the FE's states under
+    the whole-body loads a calibration fits), widened by ``margin`` >= 0, a compression capped
+    at half its way to zero length, ``lo >= (eps - 1)/2``, as :func:`strain_range_for_release`
+    caps it. A state is where the model is used, not released from, so no overshoot."""
+    if not (math.isfinite(margin) and margin >= 0.0):
+        raise ParameterError(f"strain margin = {margin} must be >= 0")
+    lo, hi = np.zeros(model.n_connectors), np.zeros(model.n_connectors)
+    for displacement in displacements:
+        x = _static_positions(model, displacement)
+        d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
+        eps = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
+        lo = np.minimum(lo, np.maximum(eps - margin, 0.5 * (eps - 1.0)))
+        hi = np.maximum(hi, eps + margin)
+    return connector_strain_bounds((lo, hi), model.n_connectors, model.edges)
+
+
 def overshoot_range(static: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) [1] around each static strain ``static`` [1] (a connector's length strain or a
     tet's volume strain) that a release from rest reaches: ``[min(0, 2 s) - margin, max(0, 2

@@ -428,8 +428,8 @@ def body_stiffness_gap_answer(r: Result) -> str:
 
 
 def fit_wall_command(path: str, r: Result) -> str:
-    loads = " --loads-validity" if "loads_validity" in r else ""
-    return (f"python -m studies.fit_wall --scene {r['scene_file']} --run {r['run']}{loads} "
+    without = " --without-load-strains" if "without_load_strains" in r else ""
+    return (f"python -m studies.fit_wall --scene {r['scene_file']} --run {r['run']}{without} "
             f"--out {path}")
 
 
@@ -452,16 +452,20 @@ def fit_wall_answer(r: Result) -> str:
         if "tet" in row:
             out += (f", tet {row['tet']} at volume ratio {row['tet_volume_ratio']:.2g} "
                     f"(FE vertices' {row['tet_fe_volume_ratio']:.3g})")
-    loads = r.get("loads_validity")
-    if loads:
-        own, new = loads["own"], loads["loads_valid"]
-        factors = ", ".join(f"{w['factor']:.3g} x" for w in loads["loads_valid_walls"])
-        out += (f"; springs also held stiff on the loads' strains (range "
-                f"[{loads['range_after'][0]:.2f}, {loads['range_after'][1]:.2f}]): CV score "
-                f"{own['cv_score']:.4f} -> {new['cv_score']:.4f}, held-out indentation "
-                f"{pct(own['indentation_held_out'])} -> {pct(new['indentation_held_out'])}, "
-                f"relaxation {pct(own['relaxation_held_out'])} -> "
-                f"{pct(new['relaxation_held_out'])}, loads carried {factors}")
+    rule = r.get("without_load_strains")
+    if rule:
+        own, without = rule["own"], rule["without"]
+
+        def carried(rows: list) -> str:
+            return " / ".join(f"{w['factor']:.3g}" for w in rows)
+
+        out += (f"; without the loads' strains in the springs' validity (the rule before): CV "
+                f"score {without['cv_score']:.4f} (with: {own['cv_score']:.4f}), held-out "
+                f"indentation {pct(without['indentation_held_out'])} "
+                f"({pct(own['indentation_held_out'])}), relaxation "
+                f"{pct(without['relaxation_held_out'])} ({pct(own['relaxation_held_out'])}), "
+                f"loads carried {carried(rule['without_carries'])} x "
+                f"({carried(rule['own_carries'])} x)")
     return out
 
 

@@ -21,26 +21,24 @@ displacement at the same vertices), and the lowest natural frequency about that 
 against the one at rest.
 No gravity test is read.
 
-**The loads' strains made valid** (``--loads-validity``; reruns the calibration of the run's
-reference, a few minutes on the liver): the calibration keeps every spring's tangent above its
-floor on the strains where the model is used (the experiments' and the gravity release's
-range, :func:`calibration.core.spring_validity`), but not on those of the fitted body loads;
-here their strains too, each connector's strain in the FE's state under each load widened by
-``particle.strain_margin`` (compressions capped as the release range caps them), so a spring
-law cannot soften to nothing where the load stretches it. Judged as the calibration judges its
-own choices, on calibration data only (:func:`studies.body_stiffness_gap.fit_summary`: the
-cross-validation score, the calibration and held-out curves), and by whether the new fit ends
-at a wall.
+**Without the loads' strains** (``--without-load-strains``; reruns the calibration of the
+run's reference, a few minutes on the liver): the calibration keeps every spring's tangent
+above its floor on the strains where the model is used
+(:func:`calibration.core.spring_validity`): the experiments', the gravity release's and,
+where the fit uses the body loads, those of the FE's loaded states. Here the fit again
+without the last, the rule before it, whose fits ended at the wall: a spring law left free
+beyond the other strains softens where a load stretches it. Judged as the calibration judges its own choices, on calibration data only
+(:func:`studies.body_stiffness_gap.fit_summary`: the cross-validation score, the calibration
+and held-out curves), and by the loads each fit carries.
 
 ``python -m studies.fit_wall --scene scenes/liver_punch.toml [--run DIR] [--out FILE]
-[--loads-validity]`` (default ``runs/studies/fit_wall_<scene name>.json``; a minute on the
-liver, a few on the corpus's meshes).
+[--without-load-strains]`` (default ``runs/studies/fit_wall_<scene name>.json``; a minute on
+the liver, a few on the corpus's meshes).
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import tempfile
 from pathlib import Path
@@ -54,7 +52,7 @@ import calibration.core as calibration_core
 from calibration.loading import calibrated_model
 from calibration.results import read_params
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
-from particle.model import Model, build_model
+from particle.model import Model
 from particle.statics import TangentPattern, net_forces, tangent_data, weight_equilibrium
 from particle.volume import signed_volumes
 from studies._finished_run import finished_run, parse_study, study_parser, write_result
@@ -174,45 +172,16 @@ def load_row(model: Model, acceleration: np.ndarray, fe_displacement: np.ndarray
     return row
 
 
-def load_strain_range(model: Model, load_displacement: np.ndarray, margin: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """(lo (E,), hi (E,)) [1]: each connector's strains in the FE's states under the loads
-    (``load_displacement`` (L, N, 3) [m]) and at rest, widened by ``margin``, a compression
-    capped at half its static length's way to zero (``lo >= (eps - 1) / 2``)."""
-    lo, hi = np.zeros(model.n_connectors), np.zeros(model.n_connectors)
-    for u in load_displacement:
-        eps = connector_strains(model, model.rest_positions + u)
-        lo = np.minimum(lo, np.maximum(eps - margin, 0.5 * (eps - 1.0)))
-        hi = np.maximum(hi, eps + margin)
-    return lo, hi
-
-
 @contextlib.contextmanager
-def loads_in_validity(record: dict[str, Any]):
-    """Within the block, :func:`calibration.core.spring_validity` also holds every spring stiff
-    on the fitted body loads' strains (:func:`load_strain_range`, module docstring); the
-    ranges before and after go to ``record``."""
-    validity = calibration_core.spring_validity
-
-    def with_loads(ref, glob, strain, floor, gravity_margin, shape=None, *, gravity=True):
-        out = validity(ref, glob, strain, floor, gravity_margin, shape, gravity=gravity)
-        if ref.body is None or not len(ref.body.load_accelerations):
-            return out
-        n = len(ref.problem.mesh.edges)
-        model = build_model(ref.problem, ref.material.density, glob.connector_params(n, shape))
-        lo, hi = load_strain_range(model, ref.body.load_displacement, gravity_margin)
-        widened = (lo < out.low) | (hi > out.high)
-        record.update(range_before=[float(out.low.min()), float(out.high.max())],
-                      connectors_widened=int(np.sum(widened)))
-        out = dataclasses.replace(out, low=np.minimum(out.low, lo), high=np.maximum(out.high, hi))
-        record.update(range_after=[float(out.low.min()), float(out.high.max())])
-        return out
-
-    calibration_core.spring_validity = with_loads
+def without_load_strains():
+    """Within the block, the calibration keeps springs stiff on the experiments' and the
+    gravity release's strains only (:func:`calibration.core.fitted_loads` None)."""
+    fitted_loads = calibration_core.fitted_loads
+    calibration_core.fitted_loads = lambda scene, ref: None
     try:
         yield
     finally:
-        calibration_core.spring_validity = validity
+        calibration_core.fitted_loads = fitted_loads
 
 
 def walls(scene_path: str | Path, folder: Path, params_path: Path) -> list[dict[str, Any]]:
@@ -227,26 +196,25 @@ def walls(scene_path: str | Path, folder: Path, params_path: Path) -> list[dict[
     return out
 
 
-def loads_validity_comparison(scene_path: str | Path, folder: Path) -> dict[str, Any]:
-    """The run's own calibration against one whose springs are also kept stiff on the fitted
-    loads' strains, fitted to the run's ``reference.h5`` in a scratch folder."""
-    record: dict[str, Any] = {}
+def rule_comparison(scene_path: str | Path, folder: Path) -> dict[str, Any]:
+    """The run's own calibration against one without the loads' strains in the springs'
+    validity, fitted to the run's ``reference.h5`` in a scratch folder; the loads each
+    carries."""
     own = read_params(folder / "params.h5")
     with tempfile.TemporaryDirectory() as scratch:
         params = Path(scratch) / "params.h5"
-        with loads_in_validity(record):
+        with without_load_strains():
             result = calibration_core.calibrate(scene_path, folder / "reference.h5", params,
                                                 progress=False)
-        loads = walls(scene_path, folder, params)
-    return {**record, "own": fit_summary(own), "loads_valid": fit_summary(result),
-            "loads_valid_walls": loads}
+        return {"own": fit_summary(own), "without": fit_summary(result),
+                "own_carries": walls(scene_path, folder, folder / "params.h5"),
+                "without_carries": walls(scene_path, folder, params)}
 
 
-def study(scene_path: str | Path, run: str | Path | None, *, loads_validity: bool = False
+def study(scene_path: str | Path, run: str | Path | None, *, without: bool = False
           ) -> dict[str, Any]:
     """Every parameter set of the finished run under every body load of its reference, and
-    with ``loads_validity`` the recalibration that holds the springs stiff on the loads'
-    strains (module docstring)."""
+    with ``without`` the recalibration without the loads' strains (module docstring)."""
     done = finished_run(scene_path, run)
     body = done.reference.body
     if body is None or not len(body.load_accelerations):
@@ -267,19 +235,19 @@ def study(scene_path: str | Path, run: str | Path | None, *, loads_validity: boo
             log.info("%s, load %d: carries %.4g x (fails at %s)", variant, k,
                      rows[-1]["factor"], rows[-1]["fails_at"])
         result["variants"][variant] = {"rest_lowest_frequency_hz": rest, "loads": rows}
-    if loads_validity:
-        result["loads_validity"] = loads_validity_comparison(scene_path, done.folder)
+    if without:
+        result["without_load_strains"] = rule_comparison(scene_path, done.folder)
     return result
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = study_parser("studies.fit_wall", __doc__)
-    parser.add_argument("--loads-validity", action="store_true",
-                        help="also recalibrate the run's reference with the springs held "
-                             "stiff on the fitted loads' strains")
+    parser.add_argument("--without-load-strains", action="store_true",
+                        help="also recalibrate the run's reference without the fitted loads' "
+                             "strains in the springs' validity (the rule before it)")
     args = parse_study(parser, argv)
     write_result(parser, args.out, study(args.scene, args.run,
-                                         loads_validity=args.loads_validity))
+                                         without=args.without_load_strains))
     return 0
 
 

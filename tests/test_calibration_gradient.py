@@ -966,6 +966,44 @@ def test_validity_range_covers_the_gravity_release_of_the_fe_sag(box):
     assert np.all(without.low == strain.low) and np.all(without.high == strain.high)
 
 
+def test_validity_range_covers_the_states_of_the_fitted_body_loads(box):
+    """With the FE's states under the fitted body loads, each connector's range is also united
+    with their strains widened by the margin; only a gradient fit of loads or their modes
+    passes them (:func:`calibration.core.fitted_loads`)."""
+    from types import SimpleNamespace
+
+    from calibration.core import fitted_loads, spring_validity
+    from particle.stability import strain_range_of_states
+    from particle.statics import gravity_static
+
+    problem = build_problem(box)
+    glob = dataclasses.replace(GLOBAL, alpha=0.0, beta=0.0)
+    n = len(problem.mesh.edges)
+    model = build_model(problem, box.material.density, glob.connector_params(n))
+    states = np.stack([gravity_static(model, np.array(g)) for g in ([9.81, 0.0, 0.0],
+                                                                    [0.0, 9.81, 0.0])])
+    ref = SimpleNamespace(problem=problem, material=box.material, gravity=None,
+                          body=SimpleNamespace(load_accelerations=np.eye(3)[:2] * 9.81,
+                                               load_displacement=states))
+    strain = StrainRange(-0.05, 0.02)
+    validity = spring_validity(ref, glob, strain, 0.1, 0.2, loads=states)
+    lo, hi = strain_range_of_states(model, states, 0.2)
+    np.testing.assert_array_equal(validity.low, np.minimum(lo, strain.low))
+    np.testing.assert_array_equal(validity.high, np.maximum(hi, strain.high))
+    assert validity.high.max() > strain.high
+
+    def scene(method="gradient", body_data="modes+loaded_modes", runs_body=True):
+        return SimpleNamespace(calibration=SimpleNamespace(method=method, body_data=body_data),
+                               runs=lambda e: runs_body or e != "body")
+
+    assert fitted_loads(scene(), ref) is states
+    assert fitted_loads(scene(body_data="loads"), ref) is states
+    assert fitted_loads(scene(body_data="modes+free_modes"), ref) is None
+    assert fitted_loads(scene(method="paper"), ref) is None
+    assert fitted_loads(scene(runs_body=False), ref) is None
+    assert fitted_loads(scene(), SimpleNamespace(body=None)) is None
+
+
 @pytest.mark.parametrize("indenter", ["vertex", "punch"])
 def test_every_backend_indents_alike(box, indenter):
     """The gradient fit's evaluators (with adjoints) and the particle engine's return the same

@@ -12,7 +12,7 @@ from forcecal.errors import ParameterError, StabilityError
 from particle.experiments import gravity_dynamic
 from particle.integrator import VerletIntegrator
 from particle.stability import (DENSE_EIGEN_LIMIT, EIGENVALUE_MARGIN, critical_time_step,
-                                strain_range_for_release)
+                                strain_range_for_release, strain_range_of_states)
 from particle.model import Model, ModelBuilder
 from particle.params import ConnectorParams, viscoelastic_params
 from particle.statics import gravity_static
@@ -171,3 +171,19 @@ def test_stiffness_extremes_of_tiny_quadratic_coefficients_raise_no_warning():
         kmin, kmax = p.extreme_stiffness((-0.5, 0.5))
         tmin, tmax = p.extreme_tangent_stiffness((-0.5, 0.5))
     np.testing.assert_allclose([kmin[0], kmax[0], tmin[0], tmax[0]], [7.5, 12.5, 5.0, 15.0])
+
+
+def test_the_strain_range_of_static_states_is_each_strain_widened_with_rest_in_it():
+    """Stretched by 0.3 and compressed by 0.9 in two states, margin 0.2: ``[max(-0.9 - 0.2,
+    (-0.9 - 1) / 2), 0.3 + 0.2]`` = [-0.95, 0.5] (no overshoot: the states are where the model
+    is used); the stretched state alone: [0, 0.5] (rest, strain 0, is in every range)."""
+    L = 0.02
+    model = two_particle_model(L, 0.01, viscoelastic_params(1, 50.0), (0.0, 0.0, -1.0))
+    states = np.zeros((2, 2, 3))
+    states[0, 1, 2], states[1, 1, 2] = -0.3 * L, 0.9 * L
+    lo, hi = strain_range_of_states(model, states, 0.2)
+    np.testing.assert_allclose([lo[0], hi[0]], [-0.95, 0.5], rtol=1e-12)
+    lo, hi = strain_range_of_states(model, states[:1], 0.2)
+    np.testing.assert_allclose([lo[0], hi[0]], [0.0, 0.5], atol=1e-12)
+    with pytest.raises(ParameterError, match="margin"):
+        strain_range_of_states(model, states, -0.1)
