@@ -433,6 +433,21 @@ def fit_wall_command(path: str, r: Result) -> str:
             f"--out {path}")
 
 
+def gives_way(rows: list) -> str:
+    """What gives way under each load a fit's model carries only up to the fitted load."""
+    out = ""
+    for k, row in enumerate(rows):
+        if not row["at_the_wall"]:
+            continue
+        out += (f"; at the wall of load {k}: connector {row['connector']} at strain "
+                f"{row['connector_strain']:.2f} (FE {row['connector_fe_strain']:.2f}), tangent "
+                f"{row['connector_tangent_over_K0']:.2f} K0")
+        if "tet" in row:
+            out += (f", tet {row['tet']} at volume ratio {row['tet_volume_ratio']:.2g} "
+                    f"(FE vertices' {row['tet_fe_volume_ratio']:.3g})")
+    return out
+
+
 def fit_wall_answer(r: Result) -> str:
     def load(k: int, row: dict) -> str:
         wall = " (at the wall)" if row["at_the_wall"] else ""
@@ -443,15 +458,7 @@ def fit_wall_answer(r: Result) -> str:
         parts.append(f"{name}: " + ", ".join(load(k, row)
                                             for k, row in enumerate(variant["loads"])))
     out = f"body data {r['body_data']}; largest load carried: " + "; ".join(parts)
-    walled = [(k, row) for k, row in enumerate(r["variants"]["calibrated"]["loads"])
-              if row["at_the_wall"]]
-    for k, row in walled:
-        out += (f"; what gives way under load {k}: connector {row['connector']} at strain "
-                f"{row['connector_strain']:.2f} (FE {row['connector_fe_strain']:.2f}), tangent "
-                f"{row['connector_tangent_over_K0']:.2f} K0")
-        if "tet" in row:
-            out += (f", tet {row['tet']} at volume ratio {row['tet_volume_ratio']:.2g} "
-                    f"(FE vertices' {row['tet_fe_volume_ratio']:.3g})")
+    out += gives_way(r["variants"]["calibrated"]["loads"])
     rule = r.get("without_load_strains")
     if rule:
         own, without = rule["own"], rule["without"]
@@ -459,13 +466,13 @@ def fit_wall_answer(r: Result) -> str:
         def carried(rows: list) -> str:
             return " / ".join(f"{w['factor']:.3g}" for w in rows)
 
-        out += (f"; without the loads' strains in the springs' validity (the rule before): CV "
+        out += (f"; without the loads' strains in the springs' validity: CV "
                 f"score {without['cv_score']:.4f} (with: {own['cv_score']:.4f}), held-out "
                 f"indentation {pct(without['indentation_held_out'])} "
                 f"({pct(own['indentation_held_out'])}), relaxation "
                 f"{pct(without['relaxation_held_out'])} ({pct(own['relaxation_held_out'])}), "
                 f"loads carried {carried(rule['without_carries'])} x "
-                f"({carried(rule['own_carries'])} x)")
+                f"({carried(rule['own_carries'])} x)" + gives_way(rule["without_carries"]))
     return out
 
 

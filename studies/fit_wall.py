@@ -186,14 +186,14 @@ def without_load_strains():
 
 def walls(scene_path: str | Path, folder: Path, params_path: Path) -> list[dict[str, Any]]:
     """The calibrated model of ``params_path`` under each body load of the run's reference:
-    the largest factor carried and whether it ends at the wall."""
+    :func:`load_row` (the largest factor carried, whether it ends at the wall, what gives
+    way there)."""
     done = finished_run(scene_path, folder)
+    body = done.reference.body
     model = calibrated_model(read_params(params_path), "calibrated", params_path).model
-    out = []
-    for acceleration in done.reference.body.load_accelerations:
-        carried = carried_factor(model, acceleration)
-        out.append({"factor": carried["factor"], "fails_at": carried["fails_at"]})
-    return out
+    rest = lowest_frequency(model, model.rest_positions)
+    return [load_row(model, acceleration, body.load_displacement[k], rest)
+            for k, acceleration in enumerate(body.load_accelerations)]
 
 
 def rule_comparison(scene_path: str | Path, folder: Path) -> dict[str, Any]:
