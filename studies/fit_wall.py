@@ -15,7 +15,8 @@ calibration's load stepping, bisection to :data:`RESOLUTION` between 0 and :data
 A set that carries the fitted load (factor 1) but not ``1 + RESOLUTION`` ends *at the
 wall*. At the largest load carried, what gives way (:func:`weakest_parts`): the connector
 whose spring tangent ``K0 + 2 a eps + 3 b eps^2`` is lowest relative to its ``K0`` (its
-strain against the strain range the calibration validated) and the tet whose volume ratio
+strain against the experiments' strain range the run's ``params.h5`` records; with linear
+springs every tangent is K0 and connector 0 is named) and the tet whose volume ratio
 ``V / V0`` is smallest, each with the FE's value under the whole load (the reference's load
 displacement at the same vertices), and the lowest natural frequency about that state
 against the one at rest.
@@ -27,9 +28,10 @@ above its floor on the strains where the model is used
 (:func:`calibration.core.spring_validity`): the experiments', the gravity release's and,
 where the fit uses the body loads, those of the FE's loaded states. Here the fit again
 without the last, the rule before it, whose fits ended at the wall: a spring law left free
-beyond the other strains softens where a load stretches it. Judged as the calibration judges its own choices, on calibration data only
-(:func:`studies.body_stiffness_gap.fit_summary`: the cross-validation score, the calibration
-and held-out curves), and by the loads each fit carries.
+beyond the other strains softens where a load stretches it. Judged as the calibration judges
+its own choices, on calibration data only (:func:`studies.body_stiffness_gap.fit_summary`:
+the cross-validation score, the calibration and held-out curves), and by the loads each fit
+carries.
 
 ``python -m studies.fit_wall --scene scenes/liver_punch.toml [--run DIR] [--out FILE]
 [--without-load-strains]`` (default ``runs/studies/fit_wall_<scene name>.json``; a minute on
