@@ -291,13 +291,14 @@ def strain_range_of_states(model: Model, displacements: np.ndarray, margin: floa
     caps it. A state is where the model is used, not released from, so no overshoot."""
     if not (math.isfinite(margin) and margin >= 0.0):
         raise ParameterError(f"strain margin = {margin} must be >= 0")
-    lo, hi = np.zeros(model.n_connectors), np.zeros(model.n_connectors)
-    for displacement in displacements:
-        x = _static_positions(model, displacement)
-        d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-        eps = np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
-        lo = np.minimum(lo, np.maximum(eps - margin, 0.5 * (eps - 1.0)))
-        hi = np.maximum(hi, eps + margin)
+    states = np.asarray(displacements, dtype=np.float64)
+    if states.ndim != 3 or states.shape[1:] != model.rest_positions.shape:
+        raise ParameterError(f"displacements of shape {states.shape} are not (L, "
+                             f"{model.n_particles}, 3) states of the model's particles")
+    eps = connector_strains(model, states)  # (L, E)
+    lo = np.minimum(0.0, np.min(np.maximum(eps - margin, 0.5 * (eps - 1.0)), axis=0,
+                                initial=0.0))
+    hi = np.maximum(0.0, np.max(eps + margin, axis=0, initial=0.0))
     return connector_strain_bounds((lo, hi), model.n_connectors, model.edges)
 
 

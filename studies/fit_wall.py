@@ -55,6 +55,7 @@ from calibration.loading import calibrated_model
 from calibration.results import read_params
 from forcecal.errors import ConvergenceError, ParameterError, StabilityError
 from particle.model import Model
+from particle.stability import connector_strains
 from particle.statics import TangentPattern, net_forces, tangent_data, weight_equilibrium
 from particle.volume import signed_volumes
 from studies._finished_run import finished_run, parse_study, study_parser, write_result
@@ -110,12 +111,6 @@ def carried_factor(model: Model, acceleration: np.ndarray, *, upper: float = UPP
     return {"factor": lo, "x": x_lo, "fails_at": hi, "failure": failure}
 
 
-def connector_strains(model: Model, x: np.ndarray) -> np.ndarray:
-    """(E,) connector strains [1] at positions ``x`` (N, 3)."""
-    d = x[model.edges[:, 1]] - x[model.edges[:, 0]]
-    return np.linalg.norm(d, axis=1) / model.rest_lengths - 1.0
-
-
 def lowest_frequency(model: Model, x: np.ndarray) -> float:
     """The lowest natural frequency [Hz] of small motions about ``x`` (N, 3): the long-term
     tangent (its geometric part included) and the lumped masses, the support's particles
@@ -140,8 +135,8 @@ def weakest_parts(model: Model, x: np.ndarray, fe_x: np.ndarray) -> dict[str, An
     relative to its K0 and the tet with the smallest volume ratio, with the FE's strain and
     volume ratio there at its positions ``fe_x`` (N, 3)."""
     p = model.params
-    strain = connector_strains(model, x)
-    fe_strain = connector_strains(model, fe_x)
+    strain = connector_strains(model, x - model.rest_positions)
+    fe_strain = connector_strains(model, fe_x - model.rest_positions)
     tangent = p.tangent_stiffness(strain) / p.K0
     e = int(np.argmin(tangent))
     out: dict[str, Any] = {

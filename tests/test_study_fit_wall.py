@@ -3,6 +3,7 @@ largest load, its fold and the frequencies about a loaded state are closed forms
 import numpy as np
 
 from particle.params import ConnectorParams
+from particle.stability import connector_strains
 from studies import fit_wall
 from tests.particle_models import two_particle_model
 
@@ -53,7 +54,8 @@ def test_the_lowest_frequency_about_a_loaded_state_is_the_pendulums():
     assert why is None
     tension = 0.5 * WEIGHT
     eps = (K0 - np.sqrt(K0 ** 2 - 4 * abs(A) * tension / L0)) / (2 * abs(A))
-    np.testing.assert_allclose(fit_wall.connector_strains(model, x), [eps], rtol=1e-8)
+    np.testing.assert_allclose(connector_strains(model, x - model.rest_positions), [eps],
+                               rtol=1e-8)
     m = WEIGHT / 9.81
     pendulum = np.sqrt(tension / (L0 * (1 + eps) * m)) / (2 * np.pi)
     assert pendulum < np.sqrt((K0 + 2 * A * eps) / m) / (2 * np.pi)
