@@ -181,31 +181,29 @@ def without_load_strains():
         calibration_core.fitted_loads = fitted_loads
 
 
-def walls(scene_path: str | Path, folder: Path, params_path: Path) -> list[dict[str, Any]]:
-    """The calibrated model of ``params_path`` under each body load of the run's reference:
-    :func:`load_row` (the largest factor carried, whether it ends at the wall, what gives
-    way there)."""
-    done = finished_run(scene_path, folder)
-    body = done.reference.body
+def walls(body, params_path: Path) -> list[dict[str, Any]]:
+    """The calibrated model of ``params_path`` under each load of the FE's whole-body data
+    ``body``: :func:`load_row` (the largest factor carried, whether it ends at the wall, what
+    gives way there)."""
     model = calibrated_model(read_params(params_path), "calibrated", params_path).model
     rest = lowest_frequency(model, model.rest_positions)
     return [load_row(model, acceleration, body.load_displacement[k], rest)
             for k, acceleration in enumerate(body.load_accelerations)]
 
 
-def rule_comparison(scene_path: str | Path, folder: Path) -> dict[str, Any]:
-    """The run's own calibration against one without the loads' strains in the springs'
-    validity, fitted to the run's ``reference.h5`` in a scratch folder; the loads each
-    carries."""
-    own = read_params(folder / "params.h5")
+def rule_comparison(scene_path: str | Path, done) -> dict[str, Any]:
+    """The finished run ``done``'s own calibration against one without the loads' strains in
+    the springs' validity, fitted to its ``reference.h5`` in a scratch folder; the loads
+    each carries."""
+    folder, body = done.folder, done.reference.body
     with tempfile.TemporaryDirectory() as scratch:
         params = Path(scratch) / "params.h5"
         with without_load_strains():
             result = calibration_core.calibrate(scene_path, folder / "reference.h5", params,
                                                 progress=False)
-        return {"own": fit_summary(own), "without": fit_summary(result),
-                "own_carries": walls(scene_path, folder, folder / "params.h5"),
-                "without_carries": walls(scene_path, folder, params)}
+        return {"own": fit_summary(done.params), "without": fit_summary(result),
+                "own_carries": walls(body, folder / "params.h5"),
+                "without_carries": walls(body, params)}
 
 
 def study(scene_path: str | Path, run: str | Path | None, *, without: bool = False
@@ -233,7 +231,7 @@ def study(scene_path: str | Path, run: str | Path | None, *, without: bool = Fal
                      rows[-1]["factor"], rows[-1]["fails_at"])
         result["variants"][variant] = {"rest_lowest_frequency_hz": rest, "loads": rows}
     if without:
-        result["without_load_strains"] = rule_comparison(scene_path, done.folder)
+        result["without_load_strains"] = rule_comparison(scene_path, done)
     return result
 
 
