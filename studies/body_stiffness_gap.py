@@ -42,7 +42,7 @@ from calibration.results import read_params
 from forcecal.problem import load_mesh
 from forcecal.scene import load_scene
 from pipelines.report import CALIBRATED_VARIANTS, point_set_means
-from studies._finished_run import parse_study, study_parser, write_result
+from studies._finished_run import parse_study, run_folder, study_parser, write_result
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--levelled", action="store_true",
                         help="also recalibrate the run's reference with the levelled prior")
     args = parse_study(parser, argv)
-    run = Path(args.run) if args.run else Path("runs") / load_scene(args.scene).name
+    run = run_folder(load_scene(args.scene), args.run)
     write_result(parser, args.out, study(args.scene, run, levelled_fit=args.levelled))
     return 0
 

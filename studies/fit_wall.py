@@ -79,8 +79,6 @@ def equilibrium(model: Model, acceleration: np.ndarray, factor: float
                 ) -> tuple[np.ndarray | None, str | None]:
     """((N, 3) positions [m] of the static equilibrium under ``factor`` times the weight
     ``m acceleration``, None), or (None, why there is none)."""
-    if factor == 0.0:
-        return model.rest_positions.copy(), None
     try:
         return weight_equilibrium(model, factor * np.asarray(acceleration), LOAD_STEPS), None
     except NO_EQUILIBRIUM as exc:
@@ -130,13 +128,14 @@ def lowest_frequency(model: Model, x: np.ndarray) -> float:
     return float(np.sign(omega2) * np.sqrt(abs(omega2)) / (2.0 * np.pi))
 
 
-def weakest_parts(model: Model, x: np.ndarray, fe_x: np.ndarray) -> dict[str, Any]:
+def weakest_parts(model: Model, x: np.ndarray, fe_displacement: np.ndarray
+                  ) -> dict[str, Any]:
     """At the model's positions ``x`` (N, 3): the connector with the lowest spring tangent
     relative to its K0 and the tet with the smallest volume ratio, with the FE's strain and
-    volume ratio there at its positions ``fe_x`` (N, 3)."""
+    volume ratio there under its displacement ``fe_displacement`` (N, 3) [m]."""
     p = model.params
     strain = connector_strains(model, x - model.rest_positions)
-    fe_strain = connector_strains(model, fe_x - model.rest_positions)
+    fe_strain = connector_strains(model, fe_displacement)
     tangent = p.tangent_stiffness(strain) / p.K0
     e = int(np.argmin(tangent))
     out: dict[str, Any] = {
@@ -147,7 +146,8 @@ def weakest_parts(model: Model, x: np.ndarray, fe_x: np.ndarray) -> dict[str, An
         "fe_strain_range": [float(fe_strain.min()), float(fe_strain.max())]}
     if model.n_tets:
         ratio = signed_volumes(x, model.tets) / model.rest_volumes
-        fe_ratio = signed_volumes(fe_x, model.tets) / model.rest_volumes
+        fe_ratio = (signed_volumes(model.rest_positions + fe_displacement, model.tets)
+                    / model.rest_volumes)
         t = int(np.argmin(ratio))
         out.update(tet=t, tet_volume_ratio=float(ratio[t]), tet_fe_volume_ratio=float(fe_ratio[t]),
                    fe_smallest_volume_ratio=float(fe_ratio.min()))
@@ -160,11 +160,10 @@ def load_row(model: Model, acceleration: np.ndarray, fe_displacement: np.ndarray
     factor carried, :func:`weakest_parts` and the lowest frequency there over the rest's."""
     carried = carried_factor(model, acceleration)
     x = carried.pop("x")
-    fe_x = model.rest_positions + fe_displacement
     row = {**carried, "at_the_wall": bool(carried["fails_at"] is not None
                                            and 1.0 <= carried["factor"]
                                            and carried["fails_at"] <= 1.0 + RESOLUTION),
-           **weakest_parts(model, x, fe_x)}
+           **weakest_parts(model, x, fe_displacement)}
     row["lowest_frequency_ratio"] = lowest_frequency(model, x) / rest_frequency
     return row
 
