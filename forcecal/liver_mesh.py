@@ -5,6 +5,7 @@ before gmsh runs. :func:`gmsh_session` (the reproducible gmsh setup) and :func:`
 
 from __future__ import annotations
 
+import functools
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -91,9 +92,23 @@ def generate_liver(characteristic_length: float = 0.0182) -> TetMesh:
     Right lobe semi-axes 75 x 60 x 40 mm centred at x = +30 mm, left lobe
     60 x 40 x 25 mm centred at (-45, 10, 0) mm; everything below z = -25 mm is
     cut off, giving a flat base for the fixed-node rule. Overall ~ 0.21 x 0.12 x
-    0.065 m, about 0.55 L. gmsh runs single-threaded with a fixed seed, so the
-    same length gives the same arrays, bit for bit.
+    0.065 m, about 0.55 L. gmsh runs single-threaded with a fixed seed: the same length
+    gives the same arrays, bit for bit. A process therefore keeps the arrays of the last
+    few lengths and returns a new :class:`TetMesh` of them (its derived quantities its
+    own) instead of meshing again at every stage that loads the scene; :func:`mesh_liver`
+    runs gmsh every time.
     """
+    kept = _kept_liver(characteristic_length)
+    return TetMesh(kept.vertices, kept.tets)
+
+
+@functools.lru_cache(maxsize=4)
+def _kept_liver(characteristic_length: float) -> TetMesh:
+    return mesh_liver(characteristic_length)
+
+
+def mesh_liver(characteristic_length: float = 0.0182) -> TetMesh:
+    """:func:`generate_liver`'s mesh, made by gmsh at this call."""
     if characteristic_length <= 0:
         raise MeshError(f"characteristic_length must be > 0, got {characteristic_length}")
     problem = liver_length_error(characteristic_length)

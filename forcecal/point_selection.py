@@ -5,6 +5,7 @@ reported for them."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
 
 import numpy as np
@@ -65,7 +66,7 @@ def _minimum_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray, n: int) ->
     (milliseconds), bounds the cover's size from below: a cover that cannot fit in
     the budget ``n`` is refused before the integer programme runs.
     """
-    from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+    from scipy.optimize import linprog
 
     sub = _closed_neighbourhoods(adj, vertices).astype(np.float64)
     relaxed = linprog(np.ones(len(vertices)), A_ub=-sub, b_ub=-np.ones(len(vertices)),
@@ -76,18 +77,41 @@ def _minimum_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray, n: int) ->
                         f"surface vertices needs at least {at_least} calibration points but "
                         f"test_points.n_calibration = {n}; use 'auto' ({n} spread-out points, "
                         "coverage reported) or raise n_calibration")
-    res = milp(c=np.ones(len(vertices)), integrality=np.ones(len(vertices)),
+    key = hashlib.sha256(sub.indptr.tobytes() + sub.indices.tobytes()).digest()
+    if key not in _COVERS:
+        _COVERS[key] = _exact_cover(sub, at_least)
+        while len(_COVERS) > KEPT_COVERS:
+            del _COVERS[next(iter(_COVERS))]
+    return np.sort(vertices[_COVERS[key]])
+
+
+#: proven minimum covers this process has found, by their graph (a proven optimum is a
+#: function of the graph alone; the test points of every stage and test of one mesh are
+#: chosen from the same graph)
+_COVERS: dict[bytes, np.ndarray] = {}
+KEPT_COVERS = 16
+
+
+def _exact_cover(sub: sp.csr_matrix, at_least: int) -> np.ndarray:
+    """(V,) bool, the proven minimum cover of :func:`_minimum_dominating_set`'s closed
+    neighbourhoods ``sub`` (V, V), which need ``at_least`` points."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    n_vertices = sub.shape[0]
+    res = milp(c=np.ones(n_vertices), integrality=np.ones(n_vertices),
                bounds=Bounds(0, 1), constraints=LinearConstraint(sub, lb=1.0),
                options={"node_limit": COVER_NODE_LIMIT, "time_limit": COVER_TIME_LIMIT_S})
     # only a proven optimum is a function of the graph alone; a time-limited feasible answer
     # would depend on the machine's speed (and change the points and every cache key)
     if res.status != 0 or res.x is None:
         raise MeshError(f"test_points.calibration = 'cover': the minimum cover of "
-                        f"{len(vertices)} free surface vertices (at least {at_least} points) was "
+                        f"{n_vertices} free surface vertices (at least {at_least} points) was "
                         f"not proven optimal within {COVER_NODE_LIMIT} branch-and-bound nodes "
                         f"and {COVER_TIME_LIMIT_S:g} s ({res.message}); use 'auto' (fast, "
                         "coverage reported) or give test_points.calibration explicitly")
-    return np.sort(vertices[res.x > 0.5])
+    chosen = res.x > 0.5
+    chosen.setflags(write=False)
+    return chosen
 
 
 def _greedy_dominating_set(adj: sp.csr_matrix, vertices: np.ndarray) -> np.ndarray:

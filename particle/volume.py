@@ -176,16 +176,17 @@ def volume_hessian_numpy(x: np.ndarray, tet: np.ndarray, rest_volume: float,
     c_1 + c_2 [Pa]) and ``arm_pressure`` (their summed pressure at ``x`` [Pa]) the arms'
     part too."""
     p = x[tet]
-    g = volume_gradients_numpy(p, np.arange(4)[None])[0].ravel()
     j = signed_volumes(p, np.arange(4)[None])[0] / rest_volume - 1.0
     # d^2 V / dp_a dp_b (a != b) = [s]_x / 6 with s the edge between the other two vertices
-    # oriented by the permutation's sign; built from the affine dependence of g_a on p_b
-    h = np.zeros((12, 12))
+    # oriented by the permutation's sign; built from the affine dependence of g_a on p_b:
+    # the gradients at p (copy 0) and with coordinate q of vertex b moved by 1 (copy 1 + 3b + q)
+    moved = np.repeat(p[None], 13, axis=0)
     for b in range(4):
         for q in range(3):
-            moved = p.copy()
-            moved[b, q] += 1.0
-            h[:, 3 * b + q] = (volume_gradients_numpy(moved, np.arange(4)[None])[0].ravel() - g)
+            moved[1 + 3 * b + q, b, q] += 1.0
+    grads = volume_gradients_numpy(moved.reshape(-1, 3), np.arange(52).reshape(13, 4))
+    g = grads[0].ravel()
+    h = (grads[1:].reshape(12, 12) - g).T
     for a in range(4):
         h[3 * a:3 * a + 3, 3 * a:3 * a + 3] = 0.0  # g_a does not depend on p_a
     if arm_stiffness is None:

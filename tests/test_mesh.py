@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from forcecal.errors import MeshError
-from forcecal.liver_mesh import generate_liver
+from forcecal import point_selection
+from forcecal.liver_mesh import generate_liver, mesh_liver
 from forcecal.mesh import TetMesh, box_mesh, check_mesh, check_mesh_arrays, read_mesh
 from forcecal.point_selection import (coverage, fixed_nodes, free_surface_vertices,
                                       select_calibration_points, select_held_out_points,
@@ -12,9 +13,11 @@ from forcecal.scene import FixedSection
 
 
 def test_generated_liver_is_deterministic_and_paper_sized():
-    a = generate_liver(0.0182)
-    b = generate_liver(0.0182)
-    assert a.fingerprint() == b.fingerprint()
+    a = mesh_liver(0.0182)
+    b = mesh_liver(0.0182)  # gmsh again, not the kept mesh
+    assert a is not b and a.fingerprint() == b.fingerprint()
+    kept, again = generate_liver(0.0182), generate_liver(0.0182)  # the kept arrays, new meshes
+    assert kept.fingerprint() == again.fingerprint() == a.fingerprint() and kept is not again
     # paper: 269 nodes, 887 tets, 1358 connectors; issue: "about 270 / 900 / 1350"
     assert 250 <= a.n_vertices <= 300
     assert 820 <= a.n_tets <= 960
@@ -182,6 +185,7 @@ def test_a_cover_not_proven_optimal_is_refused(coarse, monkeypatch):
                                              message="Time limit reached. (HiGHS Status 13)")
 
     monkeypatch.setattr(scipy.optimize, "milp", time_limited)
+    monkeypatch.setattr(point_selection, "_COVERS", {})  # no cover this process has proven
     mesh, fixed = coarse
     with pytest.raises(MeshError, match=r"was not proven optimal within 1000 branch-and-bound "
                        r"nodes and 300 s \(Time limit reached.*use 'auto'"):
@@ -431,3 +435,20 @@ def test_vertices_that_are_not_numbers_are_refused():
     _, t = _one_tet()
     with pytest.raises(MeshError, match=r"vertices must be an \(N, 3\) array of numbers"):
         TetMesh([["a", "b", "c"]] * 4, t)
+
+
+def test_a_cover_is_solved_once_per_graph_and_is_the_solvers(coarse, monkeypatch):
+    """The proven minimum cover a process keeps is the one the integer programme gives for
+    the same graph: kept once, then returned without solving again."""
+    import scipy.optimize
+    mesh, fixed = coarse
+    monkeypatch.setattr(point_selection, "_COVERS", {})
+    solved = select_calibration_points(mesh, fixed, 9, "cover")
+    calls = []
+    milp = scipy.optimize.milp
+    monkeypatch.setattr(scipy.optimize, "milp", lambda *a, **k: calls.append(1) or milp(*a, **k))
+    assert select_calibration_points(mesh, fixed, 9, "cover").tolist() == solved.tolist()
+    assert calls == [] and len(point_selection._COVERS) == 1
+    monkeypatch.setattr(point_selection, "_COVERS", {})
+    assert select_calibration_points(mesh, fixed, 9, "cover").tolist() == solved.tolist()
+    assert calls == [1]

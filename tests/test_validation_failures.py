@@ -57,6 +57,9 @@ BUDGET = {"local": False, "static_max_evaluations": 40, "relaxation_max_evaluati
 
 
 def _scene(directory, **sections):
+    """The box scene; no PNG figures unless ``outputs`` asks (most tests read report.json
+    alone, and the figures are a third of a report stage's time)."""
+    sections = {"outputs": {"figures": False}, **sections}
     return box_scene(directory, test_points={"calibration": "cover", "n_calibration": 4,
                                              "n_held_out": 8},
                      indentation={"depth": DEPTH}, relaxation={"depth": DEPTH},
@@ -181,7 +184,7 @@ def test_the_calibrations_gravity_check_is_the_gravity_stages_run(calibrated, tm
 def test_a_baseline_that_cannot_reach_the_depth_is_recorded_at_its_points(calibrated,
                                                                            tmp_path,
                                                                            monkeypatch):
-    folder, scene = _copy(calibrated, tmp_path)
+    folder, scene = _copy(calibrated, tmp_path, outputs={"figures": True})
     problem = build_problem(scene)
     n = len(problem.mesh.edges)
     monkeypatch.setattr("calibration.core.van_gelder_params",
@@ -226,7 +229,7 @@ def test_a_baseline_that_cannot_reach_the_depth_is_recorded_at_its_points(calibr
 
 @pytest.mark.parametrize("model", ["baseline", "calibrated"])
 def test_a_model_that_cannot_carry_its_weight_is_a_result(calibrated, tmp_path, model):
-    folder, scene = _copy(calibrated, tmp_path)
+    folder, scene = _copy(calibrated, tmp_path, outputs={"figures": True})
     n = len(build_problem(scene).mesh.edges)
     _swap(folder, model, softening(n, 30.0, 0.5))
     report = _gravity_and_report(folder, scene)
