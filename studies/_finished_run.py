@@ -57,12 +57,18 @@ def parse_study(parser: argparse.ArgumentParser, argv: list[str] | None) -> argp
     return args
 
 
-def study_main(module: str, doc: str, study, argv: list[str] | None) -> int:
-    """``python -m <module>`` of a study of a finished run with the common arguments only:
-    ``study(scene, run)`` written by :func:`write_result`; exit status 0."""
+def study_main(module: str, doc: str, study, argv: list[str] | None, *,
+               switch: tuple[str, str, str] | None = None) -> int:
+    """``python -m <module>`` of a study of a finished run with the common arguments:
+    ``study(scene, run)`` written by :func:`write_result`; exit status 0. ``switch``:
+    ``(option, keyword, help)`` of one more on/off option, passed as ``study(...,
+    keyword=on)``."""
     parser = study_parser(module, doc)
+    if switch is not None:
+        parser.add_argument(switch[0], dest="switch", action="store_true", help=switch[2])
     args = parse_study(parser, argv)
-    write_result(parser, args.out, study(args.scene, args.run))
+    extra = {} if switch is None else {switch[1]: args.switch}
+    write_result(parser, args.out, study(args.scene, args.run, **extra))
     return 0
 
 

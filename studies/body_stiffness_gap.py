@@ -42,7 +42,7 @@ from calibration.results import read_params
 from forcecal.problem import load_mesh
 from forcecal.scene import load_scene
 from pipelines.report import CALIBRATED_VARIANTS, point_set_means
-from studies._finished_run import parse_study, run_folder, study_parser, write_result
+from studies._finished_run import run_folder, study_main
 
 log = logging.getLogger(__name__)
 
@@ -163,11 +163,11 @@ def levelled_comparison(scene_path: str | Path, run: Path) -> dict[str, Any]:
                                              for m in MODULI}}}
 
 
-def study(scene_path: str | Path, run: str | Path, *, levelled_fit: bool = False
+def study(scene_path: str | Path, run: str | Path | None, *, levelled_fit: bool = False
           ) -> dict[str, Any]:
-    """The report part for the run folder ``run`` of ``scene_path``, and with
-    ``levelled_fit`` the levelled prior's comparison (module docstring)."""
-    run = Path(run)
+    """The report part for the run folder ``run`` of ``scene_path`` (None: ``runs/<scene
+    name>``), and with ``levelled_fit`` the levelled prior's comparison (module docstring)."""
+    run = run_folder(load_scene(scene_path), run)
     report = json.loads((run / "report.json").read_text())
     result = {"scene": report["scene"], "scene_file": str(scene_path), "run": str(run),
               "body_kinds": report["body"].get("kinds"),
@@ -179,13 +179,9 @@ def study(scene_path: str | Path, run: str | Path, *, levelled_fit: bool = False
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = study_parser("studies.body_stiffness_gap", __doc__)
-    parser.add_argument("--levelled", action="store_true",
-                        help="also recalibrate the run's reference with the levelled prior")
-    args = parse_study(parser, argv)
-    run = run_folder(load_scene(args.scene), args.run)
-    write_result(parser, args.out, study(args.scene, run, levelled_fit=args.levelled))
-    return 0
+    return study_main("studies.body_stiffness_gap", __doc__, study, argv, switch=(
+        "--levelled", "levelled_fit", "also recalibrate the run's reference with the levelled "
+        "prior"))
 
 
 if __name__ == "__main__":

@@ -58,7 +58,7 @@ from particle.model import Model
 from particle.stability import connector_strains
 from particle.statics import TangentPattern, net_forces, tangent_data, weight_equilibrium
 from particle.volume import signed_volumes
-from studies._finished_run import finished_run, parse_study, study_parser, write_result
+from studies._finished_run import finished_run, study_main
 from studies.body_stiffness_gap import fit_summary
 
 log = logging.getLogger(__name__)
@@ -235,14 +235,9 @@ def study(scene_path: str | Path, run: str | Path | None, *, without: bool = Fal
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = study_parser("studies.fit_wall", __doc__)
-    parser.add_argument("--without-load-strains", action="store_true",
-                        help="also recalibrate the run's reference without the fitted loads' "
-                             "strains in the springs' validity (the rule before it)")
-    args = parse_study(parser, argv)
-    write_result(parser, args.out, study(args.scene, args.run,
-                                         without=args.without_load_strains))
-    return 0
+    return study_main("studies.fit_wall", __doc__, study, argv, switch=(
+        "--without-load-strains", "without", "also recalibrate the run's reference without the "
+        "fitted loads' strains in the springs' validity (the rule before it)"))
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from particle.volume import signed_volumes
-from studies._finished_run import parse_study, run_folder, study_parser, write_result
+from studies._finished_run import run_folder, study_main
 
 log = logging.getLogger(__name__)
 
@@ -294,13 +294,9 @@ def _operators_and_tangent(model):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = study_parser("studies.shape_response", __doc__)
-    parser.add_argument("--refined", action="store_true",
-                        help="also the scene's FE element on its mesh refined once more "
-                        "(minutes: the loads' static solves on 8x the cells)")
-    args = parse_study(parser, argv)
-    write_result(parser, args.out, study(args.scene, args.run, args.refined))
-    return 0
+    return study_main("studies.shape_response", __doc__, study, argv, switch=(
+        "--refined", "refined", "also the scene's FE element on its mesh refined once more "
+        "(minutes: the loads' static solves on 8x the cells)"))
 
 
 if __name__ == "__main__":
