@@ -17,7 +17,8 @@ from forcecal.mesh import box_mesh
 from forcecal.problem import build_problem
 from forcecal.scene import BODY_DATA_CHOICES, BODY_KINDS, replace
 from particle.body import (BodyTarget, RestOperators, body_response, incremental_form,
-                           incremental_tangent, load_rows, model_modes, parameter_layout)
+                           incremental_form_numpy, incremental_tangent, load_rows, model_modes,
+                           parameter_layout)
 from particle.model import ModelBuilder
 from particle.params import ConnectorParams
 from particle.statics import weight_equilibrium
@@ -94,6 +95,28 @@ def test_incremental_form_is_the_tangent_and_its_gradient_is_exact():
         fd = (incremental_form(model, x + h * step, phi)[0]
               - incremental_form(model, x - h * step, phi)[0]) / (2 * h)
         assert np.sum(gradient * step) == pytest.approx(fd, rel=1e-7)
+
+
+@pytest.mark.parametrize("volume", ["springs", "elastic kv", "viscoelastic kv"])
+def test_compiled_incremental_form_matches_its_numpy_twin(volume):
+    """The compiled passes do the numpy expressions' operations in their order: the form, its
+    position gradient and its parameter derivatives agree to round-off (1e-13 of each
+    array's largest entry; bitwise on the machines measured, but numpy's SIMD sums may order
+    differently on another CPU)."""
+    rng = np.random.default_rng(5)
+    model = _box_model(volume == "viscoelastic kv")
+    if volume == "springs":
+        model = model.with_params(dataclasses.replace(model.params, kv=None))
+    x = weight_equilibrium(model, np.array([0.0, 9.81, -9.81]), 4)
+    for _ in range(3):
+        phi = np.zeros_like(x)
+        phi[model.free_nodes] = rng.standard_normal((len(model.free_nodes), 3))
+        q, gradient, explicit = incremental_form(model, x, phi)
+        q_np, gradient_np, explicit_np = incremental_form_numpy(model, x, phi)
+        assert q == pytest.approx(q_np, rel=1e-13)
+        for got, want in ((gradient, gradient_np), (explicit, explicit_np)):
+            assert got.shape == want.shape
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.abs(want).max())
 
 
 @pytest.mark.parametrize("arms", [False, True], ids=["elastic kv", "viscoelastic kv"])
