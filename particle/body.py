@@ -468,9 +468,24 @@ def mode_rows(model: Model, ops: RestOperators, modulus: str, frequencies: np.nd
 
 def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
                      ) -> tuple[float, np.ndarray, np.ndarray]:
-    """:func:`incremental_form_numpy` by the compiled passes of :mod:`particle.body_kernels`
-    (the same operations in the same order; one pass over the connectors and one over the
-    tets instead of some forty numpy temporaries per call)."""
+    """The instantaneous incremental tangent's quadratic form about the long-term state ``x``
+    (N, 3), ``q = phi^T K_t phi`` for a field ``phi`` (N, 3) (zero on fixed particles), with
+    its gradient with respect to the positions and its explicit parameter derivatives.
+
+    ``K_t`` is the tangent of small quick motions about a relaxed static state: each
+    connector ``s (u . w)^2 + (T / l) (|w|^2 - (u . w)^2)`` (``w`` the field's difference
+    across it, ``s = K0 + 2 a eps + 3 b eps^2 + k1 + k2`` the axial tangent with the arms'
+    instantaneous stiffness, ``T`` the long-term tension: the relaxed arms carry none), each
+    tet ``(kv + kv1 + kv2) / V0 (g . phi)^2 + P phi^T (d^2 V / dx^2) phi`` (``g = dV/dx``,
+    ``P = kv (V/V0 - 1)`` the long-term pressure; no ``kv1, kv2`` for an elastic term).
+
+    Returns (q [N m], (N, 3) dq/dx [N], (P,) dq/dp at fixed x in the layout of
+    :func:`parameter_layout`).
+
+    One compiled pass over the connectors and one over the tets (:mod:`particle.body_kernels`;
+    the loaded modes' rows call this thousands of times per calibration), the sums over them
+    numpy's; :func:`incremental_form_numpy` is its twin.
+    """
     refuse_nodal(model, "the whole-body incremental tangent (particle.body)")
     p = model.params
     x = np.ascontiguousarray(x, dtype=np.float64)
@@ -500,20 +515,8 @@ def incremental_form(model: Model, x: np.ndarray, field: np.ndarray
 
 def incremental_form_numpy(model: Model, x: np.ndarray, field: np.ndarray
                            ) -> tuple[float, np.ndarray, np.ndarray]:
-    """The instantaneous incremental tangent's quadratic form about the long-term state ``x``
-    (N, 3), ``q = phi^T K_t phi`` for a field ``phi`` (N, 3) (zero on fixed particles), with
-    its gradient with respect to the positions and its explicit parameter derivatives.
-
-    ``K_t`` is the tangent of small quick motions about a relaxed static state: each
-    connector ``s (u . w)^2 + (T / l) (|w|^2 - (u . w)^2)`` (``w`` the field's difference
-    across it, ``s = K0 + 2 a eps + 3 b eps^2 + k1 + k2`` the axial tangent with the arms'
-    instantaneous stiffness, ``T`` the long-term tension: the relaxed arms carry none), each
-    tet ``(kv + kv1 + kv2) / V0 (g . phi)^2 + P phi^T (d^2 V / dx^2) phi`` (``g = dV/dx``,
-    ``P = kv (V/V0 - 1)`` the long-term pressure; no ``kv1, kv2`` for an elastic term).
-
-    Returns (q [N m], (N, 3) dq/dx [N], (P,) dq/dp at fixed x in the layout of
-    :func:`parameter_layout`).
-    """
+    """:func:`incremental_form` as numpy expressions (its twin: the compiled passes do these
+    operations in this order)."""
     refuse_nodal(model, "the whole-body incremental tangent (particle.body)")
     p = model.params
     i, j = model.edges[:, 0], model.edges[:, 1]
