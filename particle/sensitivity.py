@@ -570,7 +570,7 @@ def maxwell_partials_numpy(r: np.ndarray, c: np.ndarray, k: np.ndarray, b: np.nd
     exact step ``A_i = r_i A_i^prev + c_i step`` (``r``, ``c``, ``k``, ``b``, ``force_prev``
     (M, 2); ``step`` (M,) the change of the elongation or volume strain; ``mu`` (M, 2, S)
     the arm forces' adjoints): the twin of :func:`particle.sensitivity_kernels.arm_derivatives`
-    with :func:`~particle.sensitivity_kernels.arm_adjoint_step`."""
+    with the arms' part of :func:`~particle.sensitivity_kernels.add_partials`."""
     log_r = np.log(r)
     dA_dk = (log_r * r / k) * force_prev + r * step[:, None]
     dA_db = (-log_r * r / b) * force_prev + ((c - r * k) / b) * step[:, None]

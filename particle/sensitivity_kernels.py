@@ -71,14 +71,21 @@ def elongation_adjoint(cols, dbar, abar, arm_c, with_arms, beta):
 
     Why a flag and not None for an elastic step: numba compiles one specialisation per
     None/array combination, in every fresh worker of a calibration."""
+    c1, c2 = np.ascontiguousarray(arm_c[:, 0]), np.ascontiguousarray(arm_c[:, 1])
     for k in range(cols.shape[0]):
         s = cols[k]
-        for e in range(beta.shape[1]):
-            if not with_arms:
-                beta[k, e] = dbar[s, e]
-            else:
-                beta[k, e] = dbar[s, e] + (arm_c[e, 0] * abar[s, 0, e]
-                                           + arm_c[e, 1] * abar[s, 1, e])
+        if not with_arms:
+            beta[k] = dbar[s]
+        else:
+            _elongation_row(beta[k], dbar[s], c1, abar[s, 0], c2, abar[s, 1])
+
+
+@njit(**JIT)
+def _elongation_row(out, d, c1, a1, c2, a2):
+    """``out = d + (c1 a1 + c2 a2)`` (1-D, element by element: a loop the compiler
+    vectorises)."""
+    for j in range(out.shape[0]):
+        out[j] = d[j] + (c1[j] * a1[j] + c2[j] * a2[j])
 
 
 @njit(**JIT)
@@ -154,41 +161,77 @@ def add_partials(cols, tau, dx, rest_lengths, jac, with_arms, arm_r, arm_c, dA_d
     ``dA_dk``, ``dA_db`` (:func:`arm_derivatives`), then ``abar_i <- r_i mu_i``,
     ``dbar <- -sum_i c_i mu_i`` (``arm_r``, ``arm_c`` (E, 2), ``abar`` (S, 2, E),
     ``dbar`` (S, E)).
+
+    Row by row (one output's row of each array per loop, the per-connector factors taken
+    out of the output loop): loops the compiler vectorises, with the same operations on each
+    element (bitwise the same results); measured 1.9x as fast as one loop doing every row per
+    connector (120 outputs x 1,400 connectors, the liver punch's relaxation: 1.23 -> 0.65 ms).
     """
+    e = dx.shape[0]
+    spring = np.empty((3, e))  # dT/dK0, dT/da, dT/db
+    for j in range(e):
+        eps = dx[j] / rest_lengths[j]
+        spring[0, j] = dx[j]
+        spring[1, j] = eps * dx[j]
+        spring[2, j] = eps * eps * dx[j]
     for k in range(cols.shape[0]):
         s = cols[k]
-        out = jac[s]
-        t_row = tau[k]
-        if with_arms:
-            a_row = abar[s]
-            d_row = dbar[s]
-        for e in range(t_row.shape[0]):
-            t = t_row[e]
-            d = dx[e]
-            eps = d / rest_lengths[e]
-            out[0, e] += t * d
-            out[1, e] += t * (eps * d)
-            out[2, e] += t * (eps * eps * d)
-            if with_arms:
-                arm_adjoint_step(e, t, a_row, d_row, out, 3, arm_r, arm_c, dA_dk, dA_db)
+        for q in range(3):
+            _add_product(jac[s, q], tau[k], spring[q])
+    if with_arms:
+        _arms_adjoint(cols, tau, abar, dbar, jac, 3, arm_r, arm_c, dA_dk, dA_db)
 
 
 @njit(**JIT)
-def arm_adjoint_step(e, adjoint, a_row, d_row, out, first, arm_r, arm_c, dA_dk, dA_db):
-    """One element's Maxwell arms in the adjoint pass (a connector's, or a tet's volume
-    arms): ``mu_i = a_row[i, e] + adjoint`` (the adjoint of the arm force, ``adjoint`` that
-    of the element's tension or pressure), ``out[first .. first + 3, e] += mu_1 dA_1/dk_1,
-    mu_1 dA_1/db_1, mu_2 dA_2/dk_2, mu_2 dA_2/db_2``, then the history adjoints stepped
-    back: ``a_row[i, e] = r_i mu_i``, ``d_row[e] = -sum_i c_i mu_i``."""
-    mu1 = a_row[0, e] + adjoint
-    mu2 = a_row[1, e] + adjoint
-    out[first, e] += mu1 * dA_dk[e, 0]
-    out[first + 1, e] += mu1 * dA_db[e, 0]
-    out[first + 2, e] += mu2 * dA_dk[e, 1]
-    out[first + 3, e] += mu2 * dA_db[e, 1]
-    a_row[0, e] = arm_r[e, 0] * mu1
-    a_row[1, e] = arm_r[e, 1] * mu2
-    d_row[e] = -(arm_c[e, 0] * mu1 + arm_c[e, 1] * mu2)
+def _add_product(out, a, b):
+    """``out += a * b`` (1-D, element by element)."""
+    for j in range(out.shape[0]):
+        out[j] += a[j] * b[j]
+
+
+@njit(**JIT)
+def _arms_adjoint(cols, adjoint, history, d_history, jac, first, arm_r, arm_c, dA_dk, dA_db):
+    """The Maxwell arms of M elements (connectors, or the volume elements' arms) in the
+    adjoint pass, for the samples ``cols``: ``mu_i = history[s, i] + adjoint[k]`` (the
+    adjoint of arm force i, ``adjoint`` (S', M) those of the elements' tensions or
+    pressures), ``jac[s, first .. first + 3] += mu_1 dA_1/dk_1, mu_1 dA_1/db_1, mu_2
+    dA_2/dk_2, mu_2 dA_2/db_2``, then the history adjoints stepped back: ``history[s, i] =
+    r_i mu_i``, ``d_history[s] = -sum_i c_i mu_i`` (``arm_r``, ``arm_c``, ``dA_dk``,
+    ``dA_db`` (M, 2))."""
+    m = arm_r.shape[0]
+    r, c = np.ascontiguousarray(arm_r.T), np.ascontiguousarray(arm_c.T)
+    dk, db = np.ascontiguousarray(dA_dk.T), np.ascontiguousarray(dA_db.T)
+    mu = np.empty((2, m))
+    for k in range(cols.shape[0]):
+        s = cols[k]
+        a_row, d_row, out = history[s], d_history[s], jac[s]
+        for i in range(2):
+            _sum_into(mu[i], a_row[i], adjoint[k])
+            _add_product(out[first + 2 * i], mu[i], dk[i])
+            _add_product(out[first + 2 * i + 1], mu[i], db[i])
+            _product_into(a_row[i], r[i], mu[i])
+        _negative_dot_into(d_row, c[0], mu[0], c[1], mu[1])
+
+
+@njit(**JIT)
+def _sum_into(out, a, b):
+    """``out = a + b`` (1-D, element by element)."""
+    for j in range(out.shape[0]):
+        out[j] = a[j] + b[j]
+
+
+@njit(**JIT)
+def _product_into(out, a, b):
+    """``out = a * b`` (1-D, element by element)."""
+    for j in range(out.shape[0]):
+        out[j] = a[j] * b[j]
+
+
+@njit(**JIT)
+def _negative_dot_into(out, a1, b1, a2, b2):
+    """``out = -(a1 b1 + a2 b2)`` (1-D, element by element)."""
+    for j in range(out.shape[0]):
+        out[j] = -(a1[j] * b1[j] + a2[j] * b2[j])
 
 
 @njit(**JIT)
@@ -197,12 +240,8 @@ def add_volume_arm_partials(cols, pressure, jac, arm_r, arm_c, dP_dk, dP_db, pba
     ``kv1, bv1, kv2, bv2`` of the samples ``cols`` (``pressure`` (S', T) the adjoints of the
     tets' pressures, ``dP_dk``, ``dP_db`` (T, 2) from :func:`arm_derivatives`), and the
     history adjoints ``pbar`` (S, 2, T), ``jbar`` (S, T) stepped back
-    (:func:`arm_adjoint_step`)."""
-    for k in range(cols.shape[0]):
-        s = cols[k]
-        for t in range(pressure.shape[1]):
-            arm_adjoint_step(t, pressure[k, t], pbar[s], jbar[s], jac[s], 0, arm_r, arm_c,
-                             dP_dk, dP_db)
+    (:func:`_arms_adjoint`)."""
+    _arms_adjoint(cols, pressure, pbar, jbar, jac, 0, arm_r, arm_c, dP_dk, dP_db)
 
 
 @njit(**JIT)
@@ -210,18 +249,21 @@ def add_volume_pattern_product(x, tets, tet_dofs, rest_volumes, gamma, out):
     """``out`` (S', n) += the forces on the matrix dofs of the pressures ``gamma / V0``
     (``gamma`` (S', T), the adjoints of the tets' volume strains): ``-gamma_t/V0_t dV/dp_a``
     on the dofs of each vertex a (``tet_dofs`` (T, 4), -1 fixed: nothing)."""
-    g = np.empty((4, 3))
-    for t in range(tets.shape[0]):
-        _tet_gradient(x, tets, t, g)
-        for k in range(gamma.shape[0]):
+    n_tets = tets.shape[0]
+    g = np.empty((n_tets, 4, 3))
+    for t in range(n_tets):
+        _tet_gradient(x, tets, t, g[t])
+    # output by output (each row's sums in tet order, as tet by tet): a row stays in cache
+    for k in range(gamma.shape[0]):
+        row = out[k]
+        for t in range(n_tets):
             w = gamma[k, t] / rest_volumes[t]
-            row = out[k]
             for a in range(4):
                 d = tet_dofs[t, a]
                 if d >= 0:
-                    row[d] -= w * g[a, 0]
-                    row[d + 1] -= w * g[a, 1]
-                    row[d + 2] -= w * g[a, 2]
+                    row[d] -= w * g[t, a, 0]
+                    row[d + 1] -= w * g[t, a, 1]
+                    row[d + 2] -= w * g[t, a, 2]
 
 
 @njit(**JIT)
