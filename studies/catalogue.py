@@ -166,6 +166,21 @@ def viscoelastic_volume_answer(r: Result) -> str:
     return "elastic -> viscoelastic volume term: " + "; ".join(parts)
 
 
+def calibration_time_answer(r: Result) -> str:
+    def kind(name: str) -> str:
+        row = r["kinds"][name]
+        top = ", ".join(f"{k} {v:.1f}" for k, v in list(row["kernels_ms"].items())[:3])
+        return (f"{name} ({row['samples']} samples x {r['directions']} directions) "
+                f"{row['point_jacobian_ms']:.0f} ms ({top})")
+    ap = r["add_partials"]
+    body = (f"; the parent's whole-body rows {r['body_rows_s']:.2f} s per linearisation"
+            if "body_rows_s" in r else "")
+    return (f"{r['connectors']} connectors: one point Jacobian, {kind('indentation')}; "
+            f"{kind('relaxation')} [ms]; add_partials at {ap['outputs']} outputs "
+            f"{ap['gb_per_s']:.0f} GB/s against a plain pass's {ap['memory_gb_per_s']:.0f} GB/s "
+            f"over as many bytes{body}")
+
+
 def haptic_cost_answer(r: Result) -> str:
     rows = r["summary"]["branch"]
     return "median time per 1 ms call: " + ", ".join(
@@ -558,6 +573,11 @@ STUDIES = (
           "global fit (a prior levelled to the FE's rest modes instead)?",
           "runs/studies/body_stiffness_gap*.json", body_stiffness_gap_command,
           body_stiffness_gap_answer),
+    Study("calibration_time", "Where does the gradient calibration spend its time, kernel by "
+          "kernel of a point Jacobian and in the parent's whole-body rows, and is its largest "
+          "kernel bound by arithmetic or by memory?",
+          "runs/studies/calibration_time*.json", finished_run_command("calibration_time"),
+          calibration_time_answer),
     Study("fit_wall", "Where does the gradient fit stop: at its objective's least, or at a "
           "wall, a fitted body load the model one step further no longer carries, and what "
           "gives way there?",

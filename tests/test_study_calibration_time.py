@@ -1,0 +1,51 @@
+"""The calibration time study (studies/calibration_time.py): its kernel clock and its rates."""
+import numpy as np
+import pytest
+
+import particle.sensitivity as sensitivity
+import particle.sensitivity_kernels as kernels
+from particle.sparse_ldl import Factor
+from studies.calibration_time import add_partials_rate, point_jacobian_times
+from tests.test_calibration_gradient import _box, _sensitivity_evaluators
+
+
+def _compiled(module) -> dict:
+    return {name: f for name, f in vars(module).items() if hasattr(f, "py_func")}
+
+
+def test_the_kernel_clock_times_the_adjoint_pass_and_leaves_it_as_it_was(tmp_path):
+    """On the box (relaxing volume term, two points, the force vector's three components):
+    the relaxation's adjoint pass is timed kernel by kernel (the connectors', the volume
+    arms', the factorisation and its solves), the kernels within the pass's time; the
+    Jacobian is the one the pass gives without the clock, bit for bit, and the module
+    attributes the clock wrapped are the originals afterwards."""
+    before = (_compiled(kernels), sensitivity.tangent_data, sensitivity.ldl_factor,
+              Factor.solve)
+    params, evaluators = _sensitivity_evaluators(_box(tmp_path), "viscoelastic", False)
+    evaluator, directions = evaluators["relaxation"], np.eye(3)
+    plain = evaluator.jacobian(params, [0, 1], directions)
+    times = point_jacobian_times(evaluator, params, [0, 1], directions)
+    assert {"add_partials", "elongation_adjoint", "add_volume_arm_partials",
+            "add_volume_pattern_product", "Factor.solve", "ldl_factor",
+            "tangent_data"} <= set(times["kernels_ms"])
+    assert times["points"] == 2 and times["samples"] == len(evaluator.depths)
+    assert 0 < sum(times["kernels_ms"].values()) <= times["point_jacobian_ms"]
+    assert times["other_ms"] == times["point_jacobian_ms"] - sum(times["kernels_ms"].values())
+    assert list(times["kernels_ms"].values()) == sorted(times["kernels_ms"].values(),
+                                                        reverse=True)
+    after = (_compiled(kernels), sensitivity.tangent_data, sensitivity.ldl_factor,
+             Factor.solve)
+    assert after[0] == before[0] and after[1:] == before[1:]
+    clocked = evaluator.jacobian(params, [0, 1], directions)
+    for name in ("forces", "connectors", "kv", "volume_arms"):
+        np.testing.assert_array_equal(getattr(clocked, name), getattr(plain, name))
+
+
+def test_the_streaming_rate_counts_the_bytes_add_partials_moves():
+    """Per (output, connector): the Jacobian's 7 rows, the two arm histories and the
+    elongation history read and written, the tension adjoint read: 21 doubles; the rates
+    are those bytes over the times."""
+    rate = add_partials_rate(4, 50, repeats=2)
+    assert rate["bytes"] == 8 * 4 * 50 * 21
+    assert rate["gb_per_s"] == pytest.approx(rate["bytes"] / (rate["ms"] * 1e-3) / 1e9)
+    assert rate["gb_per_s"] > 0 and rate["memory_gb_per_s"] > 0
