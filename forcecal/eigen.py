@@ -37,8 +37,13 @@ def nearest_modes(stiffness: sp.spmatrix, mass: sp.spmatrix, count: int, sigma: 
     K, M = sp.csc_matrix(stiffness), sp.csc_matrix(mass)
     lu = sla.splu(K if sigma == 0.0 else sp.csc_matrix(K - sigma * M))
     inverse = sla.LinearOperator(K.shape, matvec=lu.solve, dtype=np.float64)
+    # a fixed start vector: without one ARPACK draws it from a generator whose state persists
+    # in the process, so the same solve's round-off would depend on what was solved before it
+    # (a resumed calibration's modes not bitwise an uninterrupted one's)
+    start = np.random.default_rng(0).uniform(0.5, 1.5, K.shape[0])
     try:
-        values, vectors = sla.eigsh(K, k=count, M=M, sigma=sigma, OPinv=inverse, which="LM")
+        values, vectors = sla.eigsh(K, k=count, M=M, sigma=sigma, OPinv=inverse, which="LM",
+                                    v0=start)
     except (sla.ArpackError, sla.ArpackNoConvergence) as exc:
         raise ConvergenceError(f"{what}: the eigen-solve did not converge ({exc})") from None
     order = np.argsort(values)
