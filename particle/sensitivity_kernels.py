@@ -282,7 +282,8 @@ def add_volume_partials(x, tets, tet_dofs, rest_volumes, cols, lam, jac_kv, pres
         a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
         b0, b1, b2 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
         c0, c1, c2 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
-        # V as signed_volumes computes it: V/V0 - 1 cancels, so keep its round-off
+        # V from the triple product (V/V0 - 1 cancels, so its round-off shows in the strain;
+        # its terms summed in the order written, not numpy einsum's of signed_volumes_numpy)
         volume = (a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2)
                   + a2 * (b0 * c1 - b1 * c0)) / 6.0
         strain[t] = volume / rest_volumes[t] - 1.0
