@@ -15,12 +15,7 @@ import numpy as np
 from numba import njit
 
 from particle.kernels import JIT
-
-
-@njit(**JIT)
-def _dot(a0, a1, a2, b0, b1, b2):
-    # the order numpy's einsum("ec,ec->e") adds a row's three products in
-    return (a0 * b0 + a2 * b2) + a1 * b1
+from particle.volume import einsum_dot3
 
 
 @njit(**JIT)
@@ -47,8 +42,8 @@ def connector_form(x, field, edges, rest_lengths, K0, a, b, k1, k2, q, grad, exp
         w0 = field[j, 0] - field[i, 0]
         w1 = field[j, 1] - field[i, 1]
         w2 = field[j, 2] - field[i, 2]
-        uw = _dot(u0, u1, u2, w0, w1, w2)
-        ww = _dot(w0, w1, w2, w0, w1, w2)
+        uw = einsum_dot3(u0, u1, u2, w0, w1, w2)
+        ww = einsum_dot3(w0, w1, w2, w0, w1, w2)
         uw2 = uw * uw
         eps2 = eps * eps
         transverse = ww - uw2
@@ -88,7 +83,7 @@ def _cross(a, b, out):
 
 @njit(**JIT)
 def _dot3(a, b):
-    return _dot(a[0], a[1], a[2], b[0], b[1], b[2])
+    return einsum_dot3(a[0], a[1], a[2], b[0], b[1], b[2])
 
 
 @njit(**JIT)

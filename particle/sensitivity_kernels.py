@@ -164,8 +164,9 @@ def add_partials(cols, tau, dx, rest_lengths, jac, with_arms, arm_r, arm_c, dA_d
 
     Row by row (one output's row of each array per loop, the per-connector factors taken
     out of the output loop): loops the compiler vectorises, with the same operations on each
-    element (bitwise the same results); measured 1.9x as fast as one loop doing every row per
-    connector (120 outputs x 1,400 connectors, the liver punch's relaxation: 1.23 -> 0.65 ms).
+    element (bitwise the same results); measured 1.6x as fast as one loop doing every row per
+    connector (120 outputs x 1,400 connectors, the liver punch's relaxation: median 1.35 ->
+    0.86 ms, minimum 1.18 -> 0.61 ms).
     """
     e = dx.shape[0]
     spring = np.empty((3, e))  # dT/dK0, dT/da, dT/db
