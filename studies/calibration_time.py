@@ -15,6 +15,12 @@ rows and the Levenberg-Marquardt algebra. This study times, on a finished run's 
   hold's last steps), the bytes it reads and writes per call and their rate [GB/s], against
   a plain read-modify-write pass over as many bytes (``memory``): a rate near the pass's says
   the kernel waits on memory, not on its arithmetic;
+* **the factorisation's solve against its number of right-hand sides**: one tangent of the
+  first point's path (its last step, factorised as the adjoint pass factorises it), solved
+  for 1 to all of the outputs at once [us], and what taking the outputs back through the
+  path in blocks of :data:`BLOCK` would cost in solves against all at once (``blocked_ratio``):
+  a block's rows of the Jacobian would stay in cache from step to step, but each step would
+  solve once per block;
 * **the parent's whole-body rows** (with the scene's whole-body data): one
   :meth:`calibration.body.BodyData.responses` with Jacobians at the same parameters [s], what
   each linearisation computes while the workers compute theirs.
@@ -37,6 +43,7 @@ from studies._finished_run import run_folder, study_main
 
 POINTS = 6  # calibration points timed per kind
 REPEATS = 3  # timed repetitions of the whole-body rows and of the streaming kernels
+BLOCK = 16  # outputs per block of the blocked adjoint pass the solve's cost prices
 
 
 @contextlib.contextmanager
@@ -135,6 +142,30 @@ def add_partials_rate(outputs: int, connectors: int, repeats: int = 20) -> dict[
             "gb_per_s": moved / seconds / 1e9, "memory_gb_per_s": moved / memory / 1e9}
 
 
+def solve_cost(evaluator, params, outputs: int, repeats: int = 20) -> dict[str, Any]:
+    """The factorisation's solve on the tangent at the last step of ``evaluator``'s first
+    point's path (its forward path solved): best time [us] for 1, 3, :data:`BLOCK`, half of
+    and all ``outputs`` right-hand sides, the factor's size, and ``blocked_ratio``: the
+    solves of ``outputs`` right-hand sides in blocks of :data:`BLOCK` over one solve of all
+    of them."""
+    solver = evaluator._solvers[0]
+    arms, eq = evaluator._steps(0)[0][-1]
+    model = evaluator.model.with_params(params)
+    pattern = evaluator.pattern_for(solver)
+    factor = evaluator._constrained_factor(
+        solver, pattern, evaluator._tangent(solver, model, pattern, eq, arms))
+    rhs = np.asfortranarray(np.random.default_rng(0).standard_normal((factor.shape[0],
+                                                                      outputs)))
+    counts = sorted({1, 3, min(BLOCK, outputs), max(1, outputs // 2), outputs})
+    us = {r: 1e6 * _best_seconds(lambda: factor.solve(rhs[:, :r]), repeats) for r in counts}
+    blocks, rest = divmod(outputs, BLOCK)
+    blocked = blocks * us[min(BLOCK, outputs)] + (_best_seconds(
+        lambda: factor.solve(rhs[:, :rest]), repeats) * 1e6 if rest else 0.0)
+    return {"dofs": factor.shape[0], "l_entries": int(factor.symbolic.x_ptr[-1]),
+            "microseconds": {str(r): t for r, t in us.items()}, "block": BLOCK,
+            "blocked_ratio": blocked / us[outputs]}
+
+
 def study(scene_path: str | Path, run: str | Path | None = None, *, points: int = POINTS
           ) -> dict[str, Any]:
     """The timings of the module docstring on the finished run of ``scene_path``."""
@@ -156,6 +187,8 @@ def study(scene_path: str | Path, run: str | Path | None = None, *, points: int 
     result = {"scene": scene.name, "connectors": model.n_connectors, "tets": model.n_tets,
               "particles": model.n_particles, "directions": 1 if directions is None else 3,
               "kinds": kinds, "add_partials": add_partials_rate(outputs, model.n_connectors)}
+    if "relaxation" in evaluators:  # the kind whose outputs ride through many steps
+        result["solve_cost"] = solve_cost(evaluators["relaxation"], params, outputs)
     body = whole_body_data(setup, setup.initial).every
     if body is not None:
         result["body_rows_s"] = _best_seconds(lambda: body.responses(params), REPEATS)

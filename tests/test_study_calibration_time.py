@@ -5,7 +5,7 @@ import pytest
 import particle.sensitivity as sensitivity
 import particle.sensitivity_kernels as kernels
 from particle.sparse_ldl import Factor
-from studies.calibration_time import add_partials_rate, point_jacobian_times
+from studies.calibration_time import add_partials_rate, point_jacobian_times, solve_cost
 from tests.test_calibration_gradient import _box, _sensitivity_evaluators
 
 
@@ -49,3 +49,25 @@ def test_the_streaming_rate_counts_the_bytes_add_partials_moves():
     assert rate["bytes"] == 8 * 4 * 50 * 21
     assert rate["gb_per_s"] == pytest.approx(rate["bytes"] / (rate["ms"] * 1e-3) / 1e9)
     assert rate["gb_per_s"] > 0 and rate["memory_gb_per_s"] > 0
+
+
+def test_the_solve_cost_prices_the_blocked_pass_from_the_solves_it_times(tmp_path):
+    """On the box's relaxation (force vector, 3 directions): the factor is the constrained
+    tangent of the model's dofs, every count of right-hand sides up to all the outputs is
+    timed, and the blocked ratio is the blocks' solves (a remainder block's included) over
+    the one solve of all outputs."""
+    params, evaluators = _sensitivity_evaluators(_box(tmp_path), "viscoelastic", False)
+    evaluator = evaluators["relaxation"]
+    evaluator.jacobian(params, [0], np.eye(3))  # the forward path the study starts from
+    outputs = 3 * len(evaluator.depths)
+    cost = solve_cost(evaluator, params, outputs, repeats=2)
+    assert set(cost["microseconds"]) == {"1", "3", "16", str(outputs // 2), str(outputs)}
+    assert all(t > 0 for t in cost["microseconds"].values())
+    assert cost["dofs"] == evaluator.pattern_for(evaluator._solvers[0]).n_dofs
+    assert cost["l_entries"] > cost["dofs"]
+    blocks, rest = divmod(outputs, 16)
+    assert rest == 0 or cost["blocked_ratio"] > blocks * cost["microseconds"]["16"] / \
+        cost["microseconds"][str(outputs)]
+    if rest == 0:
+        assert cost["blocked_ratio"] == pytest.approx(
+            blocks * cost["microseconds"]["16"] / cost["microseconds"][str(outputs)])
