@@ -173,20 +173,20 @@ def calibration_time_answer(r: Result) -> str:
         return (f"{name} ({row['samples']} samples x {r['directions']} directions) "
                 f"{row['point_jacobian_ms']:.0f} ms ({top})")
     ap = r["add_partials"]
-    body = (f"; the parent's whole-body rows {r['body_rows_s']:.2f} s per linearisation"
+    tail = (f"; the parent's whole-body rows {r['body_rows_s']:.2f} s per linearisation"
             if "body_rows_s" in r else "")
     if "solve_cost" in r:
         sc = r["solve_cost"]
         us = sc["microseconds"]
         most = max(us, key=int)
-        body = (f"; the factorisation's solve ({sc['dofs']} dofs) {us['1']:.0f} us for one "
+        tail = (f"; the factorisation's solve ({sc['dofs']} dofs) {us['1']:.0f} us for one "
                 f"right-hand side, {us[str(sc['block'])]:.0f} for {sc['block']}, "
                 f"{us[most]:.0f} for {most}: in blocks of {sc['block']} the outputs' solves "
-                f"would cost {sc['blocked_ratio']:.1f}x{body}")
+                f"would cost {sc['blocked_ratio']:.1f}x{tail}")
     return (f"{r['connectors']} connectors: one point Jacobian, {kind('indentation')}; "
             f"{kind('relaxation')} [ms]; add_partials at {ap['outputs']} outputs "
             f"{ap['gb_per_s']:.0f} GB/s against a plain pass's {ap['memory_gb_per_s']:.0f} GB/s "
-            f"over as many bytes{body}")
+            f"over as many bytes{tail}")
 
 
 def haptic_cost_answer(r: Result) -> str:
