@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from calibration.gradient_solver import compress
+from calibration.gradient_solver import compress, leading_vectors
 from calibration.optimize import INFEASIBLE
 from forcecal.errors import ConvergenceError
 from forcecal.h5io import Reference
@@ -204,8 +204,7 @@ def compress_rows(part: Rows, chain: sp.csr_matrix, keep: int
     left = 0.0
     if len(r) > keep:
         gram = fields @ np.asarray((forces @ forces.T).todense()) @ fields.T
-        _, vectors = np.linalg.eigh(gram)  # ascending
-        U = vectors[:, ::-1][:, :keep]
+        U = leading_vectors(gram, keep)
         fields, r_kept = U.T @ fields, U.T @ r
         left = float(r @ r - r_kept @ r_kept)
         r = r_kept

@@ -12,7 +12,8 @@ from calibration.gradient import (Coordinates, GradientResult, GroupedRows, Vali
                                   body_candidates, neighbour_laplacian,
                                   shape_smoothness_factors, shared_laplacian)
 from calibration.gradient_solver import (BODY_WEIGHT_GRID, WEIGHT_GRID, Linearisation,
-                                         Regulariser, compress, cross_validate, folds_of)
+                                         Regulariser, compress, cross_validate, folds_of,
+                                         leading_vectors)
 from calibration.network import linear_indentation
 from calibration.parametrisation import GlobalParams, StrainRange
 from calibration.synthetic import box_scene, noisy_params, synthetic_reference
@@ -1067,3 +1068,23 @@ def test_hinge_rows_products_equal_the_dense_ones(box):
     predicted = dense.predict(step)
     np.testing.assert_allclose(split.predict(step), predicted, rtol=0,
                                atol=1e-12 * np.abs(predicted).max())
+
+
+def test_the_leading_vectors_are_the_largest_eigenpairs_in_an_order_blas_takes():
+    """:func:`compress` projects a point's rows on ``leading_vectors(J J^T, k)``: the
+    eigenvectors of the k largest eigenvalues, largest first (each ``G u = lambda u`` to
+    round-off of the largest, orthonormal), in a C-ordered array. A reversed view of eigh's
+    columns has a negative stride, which numpy's matmul does not hand to BLAS: its own loop
+    made the projection of a liver punch point's (150, 12,455) rows 40x slower."""
+    rng = np.random.default_rng(3)
+    J = rng.standard_normal((30, 200)) * np.geomspace(1.0, 1e-3, 30)[:, None]
+    gram = J @ J.T
+    U = leading_vectors(gram, 5)
+    values = np.linalg.eigvalsh(gram)[::-1][:5]
+    assert U.shape == (30, 5) and U.flags.c_contiguous
+    np.testing.assert_allclose(gram @ U, U * values, rtol=0, atol=1e-12 * values[0])
+    np.testing.assert_allclose(U.T @ U, np.eye(5), rtol=0, atol=1e-13)
+    r = rng.standard_normal(30)
+    r_kept, J_kept, left = compress(r, J, 30, 5)
+    np.testing.assert_allclose(r_kept, U.T @ r, rtol=1e-14)
+    assert left == pytest.approx(r @ r - r_kept @ r_kept)
