@@ -21,6 +21,12 @@ rows and the Levenberg-Marquardt algebra. This study times, on a finished run's 
   path in blocks of :data:`BLOCK` would cost in solves against all at once (``blocked_ratio``):
   a block's rows of the Jacobian would stay in cache from step to step, but each step would
   solve once per block;
+* **a point's rows compressed**: what a worker does with a point's Jacobian after the
+  adjoint pass, :func:`calibration.gradient_solver.compress` on rows of its shape (every
+  kind's outputs x the fit's coordinates) [ms], and the projection ``U^T J`` it does with
+  ``U`` a reversed view of eigh's columns instead (a negative stride: numpy's own matmul
+  loop, not BLAS; how the fit projected before :func:`calibration.gradient_solver.
+  leading_vectors`);
 * **the parent's whole-body rows** (with the scene's whole-body data): one
   :meth:`calibration.body.BodyData.responses` with Jacobians at the same parameters [s], what
   each linearisation computes while the workers compute theirs.
@@ -166,11 +172,39 @@ def solve_cost(evaluator, params, outputs: int, repeats: int = 20) -> dict[str, 
             "blocked_ratio": blocked / us[outputs]}
 
 
+def fit_size(setup, params, model) -> int:
+    """The gradient fit's number of coordinates (:class:`calibration.gradient.Coordinates`):
+    seven per connector, and log kv (with volume arms also log kv1, log kv2) per tet when
+    each tet's kv is fitted (``calibration.kv_per_tet``)."""
+    from calibration.gradient import Coordinates
+    per_tet = params.kv is not None and setup.settings.kv_per_tet
+    n_tets = model.n_tets if per_tet else 0
+    return Coordinates(1.0, model.n_connectors, n_tets, volume_tau=(
+        np.ones((n_tets, 2)) if per_tet and params.has_volume_arms else None)).size
+
+
+def compression_cost(rows: int, size: int, keep: int, repeats: int = REPEATS
+                     ) -> dict[str, Any]:
+    """:func:`calibration.gradient_solver.compress` of one point's (rows, size) Jacobian
+    (random values: the cost does not depend on them) to ``keep`` rows, and the projection
+    through a reversed view of the Gram matrix's eigenvectors [ms]."""
+    from calibration.gradient_solver import compress
+    rng = np.random.default_rng(0)
+    J, r = rng.standard_normal((rows, size)), rng.standard_normal(rows)
+    _, vectors = np.linalg.eigh(J @ J.T)
+    reversed_view = vectors[:, ::-1][:, :keep]
+    return {"rows": rows, "size": size, "keep": keep,
+            "compress_ms": 1e3 * _best_seconds(lambda: compress(r, J, rows, keep), repeats),
+            "reversed_view_projection_ms": 1e3 * _best_seconds(lambda: reversed_view.T @ J,
+                                                               repeats)}
+
+
 def study(scene_path: str | Path, run: str | Path | None = None, *, points: int = POINTS
           ) -> dict[str, Any]:
     """The timings of the module docstring on the finished run of ``scene_path``."""
     from calibration.core import prepare_fit, whole_body_data
     from calibration.gradient import gradient_backend
+    from calibration.gradient_solver import ROWS_KEPT
     from forcecal.scene import load_scene
     from pipelines.runners.common import REFERENCE
 
@@ -189,6 +223,8 @@ def study(scene_path: str | Path, run: str | Path | None = None, *, points: int 
               "kinds": kinds, "add_partials": add_partials_rate(outputs, model.n_connectors)}
     if "relaxation" in evaluators:  # the kind whose outputs ride through many steps
         result["solve_cost"] = solve_cost(evaluators["relaxation"], params, outputs)
+    rows = sum(k["samples"] for k in kinds.values()) * (1 if directions is None else 3)
+    result["compression"] = compression_cost(rows, fit_size(setup, params, model), ROWS_KEPT)
     body = whole_body_data(setup, setup.initial).every
     if body is not None:
         result["body_rows_s"] = _best_seconds(lambda: body.responses(params), REPEATS)

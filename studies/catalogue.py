@@ -175,6 +175,12 @@ def calibration_time_answer(r: Result) -> str:
     ap = r["add_partials"]
     tail = (f"; the parent's whole-body rows {r['body_rows_s']:.2f} s per linearisation"
             if "body_rows_s" in r else "")
+    if "compression" in r:
+        c = r["compression"]
+        tail = (f"; a point's rows compressed ({c['rows']} x {c['size']} -> {c['keep']}) "
+                f"{c['compress_ms']:.0f} ms, where the projection through a reversed view of "
+                f"eigh's vectors alone took {c['reversed_view_projection_ms']:.0f} ms (numpy's "
+                f"own loop, not BLAS){tail}")
     if "solve_cost" in r:
         sc = r["solve_cost"]
         us = sc["microseconds"]
@@ -582,8 +588,8 @@ STUDIES = (
           "runs/studies/body_stiffness_gap*.json", body_stiffness_gap_command,
           body_stiffness_gap_answer),
     Study("calibration_time", "Where does the gradient calibration spend its time, kernel by "
-          "kernel of a point Jacobian and in the parent's whole-body rows, and is its largest "
-          "kernel bound by arithmetic or by memory?",
+          "kernel of a point Jacobian, in a point's compressed rows and in the parent's "
+          "whole-body rows, and is its largest kernel bound by arithmetic or by memory?",
           "runs/studies/calibration_time*.json", finished_run_command("calibration_time"),
           calibration_time_answer),
     Study("fit_wall", "Where does the gradient fit stop: at its objective's least, or at a "

@@ -1,11 +1,14 @@
 """The calibration time study (studies/calibration_time.py): its kernel clock and its rates."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 import particle.sensitivity as sensitivity
 import particle.sensitivity_kernels as kernels
 from particle.sparse_ldl import Factor
-from studies.calibration_time import add_partials_rate, point_jacobian_times, solve_cost
+from studies.calibration_time import (add_partials_rate, compression_cost, fit_size,
+                                      point_jacobian_times, solve_cost)
 from tests.test_calibration_gradient import _box, _sensitivity_evaluators
 
 
@@ -71,3 +74,20 @@ def test_the_solve_cost_prices_the_blocked_pass_from_the_solves_it_times(tmp_pat
     if rest == 0:
         assert cost["blocked_ratio"] == pytest.approx(
             blocks * cost["microseconds"]["16"] / cost["microseconds"][str(outputs)])
+
+
+def test_the_compression_is_timed_on_a_points_rows_and_coordinates(tmp_path):
+    """The fit's coordinates: seven per connector, and per tet log kv, log kv1, log kv2 when
+    each tet's relaxing kv is fitted (the box: 3 per tet), none per tet otherwise; the
+    compression of rows of that shape is timed both ways."""
+    params, evaluators = _sensitivity_evaluators(_box(tmp_path), "viscoelastic", False)
+    model = evaluators["relaxation"].model
+    e, t = model.n_connectors, model.n_tets
+    per_tet = SimpleNamespace(settings=SimpleNamespace(kv_per_tet=True))
+    shared = SimpleNamespace(settings=SimpleNamespace(kv_per_tet=False))
+    assert params.kv is not None and params.has_volume_arms
+    assert fit_size(per_tet, params, model) == 7 * e + 3 * t
+    assert fit_size(shared, params, model) == 7 * e
+    cost = compression_cost(30, fit_size(per_tet, params, model), 5, repeats=2)
+    assert (cost["rows"], cost["size"], cost["keep"]) == (30, 7 * e + 3 * t, 5)
+    assert cost["compress_ms"] > 0 and cost["reversed_view_projection_ms"] > 0
