@@ -304,7 +304,7 @@ def leading_vectors(gram: np.ndarray, keep: int) -> np.ndarray:
     """(n, keep) the eigenvectors of the symmetric ``gram`` (n, n) of its ``keep`` largest
     eigenvalues, largest first, as a C-ordered array: a reversed view of eigh's columns has
     a negative stride, which numpy's matmul does not hand to BLAS (its own loop: measured
-    40x slower for a point's (12, 150) x (150, 12,455) projection)."""
+    10-40x slower for a point's (12, 150) x (150, 12,455) projection)."""
     _, vectors = np.linalg.eigh(gram)  # ascending
     return np.ascontiguousarray(vectors[:, ::-1][:, :keep])
 

@@ -25,8 +25,7 @@ rows and the Levenberg-Marquardt algebra. This study times, on a finished run's 
   adjoint pass, :func:`calibration.gradient_solver.compress` on rows of its shape (every
   kind's outputs x the fit's coordinates) [ms], and the projection ``U^T J`` it does with
   ``U`` a reversed view of eigh's columns instead (a negative stride: numpy's own matmul
-  loop, not BLAS; how the fit projected before :func:`calibration.gradient_solver.
-  leading_vectors`);
+  loop, not BLAS; the layout :func:`calibration.gradient_solver.leading_vectors` avoids);
 * **the parent's whole-body rows** (with the scene's whole-body data): one
   :meth:`calibration.body.BodyData.responses` with Jacobians at the same parameters [s], what
   each linearisation computes while the workers compute theirs.
