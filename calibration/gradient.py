@@ -625,6 +625,26 @@ def shape_smoothness_factors(shape_smoothness: float) -> np.ndarray:
     return scale
 
 
+def fit_coordinates(start: ConnectorParams, scale: float, n_connectors: int,
+                    n_tets: int | None, kv_per_tet: bool
+                    ) -> tuple[ConnectorParams, Coordinates]:
+    """The gradient fit's start parameters and coordinates from the global fit's ``start``
+    (:class:`Coordinates`; ``scale`` the strain scale [1]): the connectors', and with the
+    volume term (``n_tets`` its tets, None: no volume term) each tet's kv (and volume arm
+    stiffnesses) when ``kv_per_tet``, the start then carrying one row per tet; else every
+    tet keeps the start's volume parameters (``fixed_volume``)."""
+    if n_tets is None:
+        return start, Coordinates(scale, n_connectors)
+    if not kv_per_tet:
+        return start, Coordinates(scale, n_connectors, 0, fixed_volume={
+            n: getattr(start, n) for n in ("kv",) + VOLUME_ARM_NAMES})
+    # the global fit's kv and volume arms are one value for every tet ((1,), broadcast by
+    # the Model): the gradient fit starts each tet's own from it
+    start = params_for(start, n_connectors, n_tets)
+    return start, Coordinates(scale, n_connectors, n_tets, volume_tau=(
+        start.volume_arm_tau if start.has_volume_arms else None))
+
+
 def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
                  reference: dict[str, np.ndarray], validity: Validity, edges: np.ndarray,
                  n_particles: int, *, folds: int, max_iterations: int,
@@ -670,18 +690,10 @@ def fit_gradient(pool: Pool, glob: GlobalParams, strain: StrainRange,
     start_params = glob.connector_params(len(edges), global_shape)
     if tets is not None and start_params.kv is None:
         start_params = dataclasses.replace(start_params, kv=np.array([kv0], dtype=float))
-    if tets is not None and not kv_per_tet:
-        coords = Coordinates(strain.scale, len(edges), 0, fixed_volume={
-            n: getattr(start_params, n) for n in ("kv",) + VOLUME_ARM_NAMES})
+    start_params, coords = fit_coordinates(start_params, strain.scale, len(edges),
+                                           None if tets is None else len(tets), kv_per_tet)
+    if not coords.n_tets:
         tets = None  # no kv coordinates, no kv smoothness
-    elif tets is not None:
-        # the global fit's kv (or kv0) and volume arms are one value for every tet ((1,),
-        # broadcast by the Model): the gradient fit starts each tet's own from it
-        start_params = params_for(start_params, len(edges), len(tets))
-        coords = Coordinates(strain.scale, len(edges), len(tets), volume_tau=(
-            start_params.volume_arm_tau if start_params.has_volume_arms else None))
-    else:
-        coords = Coordinates(strain.scale, len(edges))
     theta0 = coords.theta_of(start_params)
     data = Data.of(reference, force_vectors)
     ev = Evaluator(pool, data, coords, body)

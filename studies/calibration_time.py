@@ -171,15 +171,14 @@ def solve_cost(evaluator, params, outputs: int, repeats: int = 20) -> dict[str, 
             "blocked_ratio": blocked / us[outputs]}
 
 
-def fit_size(setup, params, model) -> int:
-    """The gradient fit's number of coordinates (:class:`calibration.gradient.Coordinates`):
-    seven per connector, and log kv (with volume arms also log kv1, log kv2) per tet when
-    each tet's kv is fitted (``calibration.kv_per_tet``)."""
-    from calibration.gradient import Coordinates
-    per_tet = params.kv is not None and setup.settings.kv_per_tet
-    n_tets = model.n_tets if per_tet else 0
-    return Coordinates(1.0, model.n_connectors, n_tets, volume_tau=(
-        np.ones((n_tets, 2)) if per_tet and params.has_volume_arms else None)).size
+def fit_size(setup, params) -> int:
+    """The gradient fit's number of coordinates at the start ``params`` of the scene's
+    ``setup`` (:func:`calibration.gradient.fit_coordinates`)."""
+    from calibration.gradient import fit_coordinates
+    mesh = setup.problem.mesh
+    tets = len(mesh.tets) if params.kv is not None else None
+    return fit_coordinates(params, 1.0, len(mesh.edges), tets,
+                           setup.settings.kv_per_tet)[1].size
 
 
 def compression_cost(rows: int, size: int, keep: int, repeats: int = REPEATS
@@ -223,7 +222,7 @@ def study(scene_path: str | Path, run: str | Path | None = None, *, points: int 
     if "relaxation" in evaluators:  # the kind whose outputs ride through many steps
         result["solve_cost"] = solve_cost(evaluators["relaxation"], params, outputs)
     rows = sum(k["samples"] for k in kinds.values()) * (1 if directions is None else 3)
-    result["compression"] = compression_cost(rows, fit_size(setup, params, model), ROWS_KEPT)
+    result["compression"] = compression_cost(rows, fit_size(setup, params), ROWS_KEPT)
     body = whole_body_data(setup, setup.initial).every
     if body is not None:
         result["body_rows_s"] = _best_seconds(lambda: body.responses(params), REPEATS)

@@ -83,11 +83,15 @@ def test_the_compression_is_timed_on_a_points_rows_and_coordinates(tmp_path):
     params, evaluators = _sensitivity_evaluators(_box(tmp_path), "viscoelastic", False)
     model = evaluators["relaxation"].model
     e, t = model.n_connectors, model.n_tets
-    per_tet = SimpleNamespace(settings=SimpleNamespace(kv_per_tet=True))
-    shared = SimpleNamespace(settings=SimpleNamespace(kv_per_tet=False))
+    mesh = SimpleNamespace(edges=model.edges, tets=model.tets)
+
+    def setup(kv_per_tet: bool) -> SimpleNamespace:
+        return SimpleNamespace(problem=SimpleNamespace(mesh=mesh),
+                               settings=SimpleNamespace(kv_per_tet=kv_per_tet))
+
     assert params.kv is not None and params.has_volume_arms
-    assert fit_size(per_tet, params, model) == 7 * e + 3 * t
-    assert fit_size(shared, params, model) == 7 * e
-    cost = compression_cost(30, fit_size(per_tet, params, model), 5, repeats=2)
+    assert fit_size(setup(True), params) == 7 * e + 3 * t
+    assert fit_size(setup(False), params) == 7 * e
+    cost = compression_cost(30, fit_size(setup(True), params), 5, repeats=2)
     assert (cost["rows"], cost["size"], cost["keep"]) == (30, 7 * e + 3 * t, 5)
     assert cost["compress_ms"] > 0 and cost["reversed_view_projection_ms"] > 0
