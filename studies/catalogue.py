@@ -173,26 +173,27 @@ def calibration_time_answer(r: Result) -> str:
         return (f"{name} ({row['samples']} samples x {r['directions']} directions) "
                 f"{row['point_jacobian_ms']:.0f} ms ({top})")
     ap = r["add_partials"]
-    tail = (f"; the parent's whole-body rows {r['body_rows_s']:.2f} s per linearisation"
-            if "body_rows_s" in r else "")
-    if "compression" in r:
-        c = r["compression"]
-        tail = (f"; a point's rows compressed ({c['rows']} x {c['size']} -> {c['keep']}) "
-                f"{c['compress_ms']:.0f} ms, where the projection through a reversed view of "
-                f"eigh's vectors alone took {c['reversed_view_projection_ms']:.0f} ms (numpy's "
-                f"own loop, not BLAS){tail}")
+    parts = []  # in the answer's order
     if "solve_cost" in r:
         sc = r["solve_cost"]
         us = sc["microseconds"]
         most = max(us, key=int)
-        tail = (f"; the factorisation's solve ({sc['dofs']} dofs) {us['1']:.0f} us for one "
-                f"right-hand side, {us[str(sc['block'])]:.0f} for {sc['block']}, "
-                f"{us[most]:.0f} for {most}: in blocks of {sc['block']} the outputs' solves "
-                f"would cost {sc['blocked_ratio']:.1f}x{tail}")
+        parts.append(f"the factorisation's solve ({sc['dofs']} dofs) {us['1']:.0f} us for one "
+                     f"right-hand side, {us[str(sc['block'])]:.0f} for {sc['block']}, "
+                     f"{us[most]:.0f} for {most}: in blocks of {sc['block']} the outputs' "
+                     f"solves would cost {sc['blocked_ratio']:.1f}x")
+    if "compression" in r:
+        c = r["compression"]
+        parts.append(f"a point's rows compressed ({c['rows']} x {c['size']} -> {c['keep']}) "
+                     f"{c['compress_ms']:.0f} ms, where the projection through a reversed view "
+                     f"of eigh's vectors alone took {c['reversed_view_projection_ms']:.0f} ms "
+                     f"(numpy's own loop, not BLAS)")
+    if "body_rows_s" in r:
+        parts.append(f"the parent's whole-body rows {r['body_rows_s']:.2f} s per linearisation")
     return (f"{r['connectors']} connectors: one point Jacobian, {kind('indentation')}; "
             f"{kind('relaxation')} [ms]; add_partials at {ap['outputs']} outputs "
             f"{ap['gb_per_s']:.0f} GB/s against a plain pass's {ap['memory_gb_per_s']:.0f} GB/s "
-            f"over as many bytes{tail}")
+            f"over as many bytes" + "".join(f"; {p}" for p in parts))
 
 
 def haptic_cost_answer(r: Result) -> str:
