@@ -142,6 +142,29 @@ def test_check_bench_refuses_missing_keys_and_non_finite_numbers(damage, message
         check_bench(bench)
 
 
+def test_the_punch_scenes_whole_body_calibration_has_a_goal_row():
+    """The liver punch's calibration time goal (<= 120 s) is read off its punch + whole-body
+    row of the calibration methods item: met at the goal, missed above it or when that row
+    failed, and no row before the item has run."""
+    from pipelines.bench.report import _punch_calibration_rows
+
+    def bench(**body):
+        other = {"scene": "liver_punch", "model": "springs", "method": "gradient",
+                 "calibration_s": 30.0}
+        return {"calibration_methods": [other, {"scene": "liver_punch",
+                                                "model": "springs + relaxing volume",
+                                                "method": "gradient + body", **body}]}
+
+    (row,) = _punch_calibration_rows(bench(calibration_s=120.0))
+    assert row == ["calibration, liver_punch scene, springs + relaxing volume, gradient + body, "
+                   "2 cores", "<= 120 s", "120 s", "**met**"]
+    assert _punch_calibration_rows(bench(calibration_s=121.0))[0][2:] == ["121 s", "**missed**"]
+    assert _punch_calibration_rows(bench(failed="no equilibrium"))[0][2:] == [
+        "failed", "**missed**"]
+    assert _punch_calibration_rows({"calibration_methods": []}) == []
+    assert _punch_calibration_rows({}) == []
+
+
 def test_the_committed_bench_has_every_fixed_key_and_the_docs_show_its_goals():
     from pipelines.bench.driver import read_bench
     from pipelines.bench.report import goals_markdown
