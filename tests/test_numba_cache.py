@@ -66,7 +66,10 @@ def test_digest_changes_with_any_source_byte(tmp_path):
 def _run(folder: Path, cache: Path, mode: str) -> tuple[int, float]:
     """(cache hits, value) of the caller run in a fresh process: ``mode`` "watch" keys the
     package's kernels on content, "plain" leaves numba's own keys."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache),
+    # no bytecode files for the test's package: Python reuses a module's .pyc while the source's
+    # modification time (whole seconds) and size match it, so a callee edited within the second
+    # its first run started (same size: 1.0 -> 2.0) would run its old value whatever numba does
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONDONTWRITEBYTECODE="1",
                PYTHONPATH=os.pathsep.join([str(folder), str(ROOT)]))
     out = subprocess.run([sys.executable, "-c", SCRIPT, mode, str(folder)], env=env,
                          capture_output=True, text=True, timeout=120, check=True)
