@@ -215,13 +215,14 @@ def study(scene_path: str | Path, run: str | Path | None = None, *, points: int 
     kinds = {kind: point_jacobian_times(ev, params, list(range(len(chosen))), directions)
              for kind, ev in evaluators.items()}
     model = evaluators[next(iter(evaluators))].model
-    outputs = max(k["samples"] for k in kinds.values()) * (1 if directions is None else 3)
+    components = 1 if directions is None else len(directions)  # outputs per sample
+    outputs = max(k["samples"] for k in kinds.values()) * components
     result = {"scene": scene.name, "connectors": model.n_connectors, "tets": model.n_tets,
-              "particles": model.n_particles, "directions": 1 if directions is None else 3,
+              "particles": model.n_particles, "directions": components,
               "kinds": kinds, "add_partials": add_partials_rate(outputs, model.n_connectors)}
     if "relaxation" in evaluators:  # the kind whose outputs ride through many steps
         result["solve_cost"] = solve_cost(evaluators["relaxation"], params, outputs)
-    rows = sum(k["samples"] for k in kinds.values()) * (1 if directions is None else 3)
+    rows = sum(k["samples"] for k in kinds.values()) * components
     result["compression"] = compression_cost(rows, fit_size(setup, params), ROWS_KEPT)
     body = whole_body_data(setup, setup.initial).every
     if body is not None:
